@@ -1,0 +1,141 @@
+"""Flux-density models g_theta(y0) = psi(y0) theta, linear in the parameters.
+
+Section "Model structure" of van Meer et al.: ``g_theta^T(y0) = psi(y0) theta`` with
+``psi(y0) = I_3 kron beta(y0)`` and a periodic basis ``beta``. Here theta is stored as a 3 x m array
+(row h holds the weights of sensor h), i.e. ``g_h(y0) = beta(y0) @ theta[h]``.
+
+Fourier basis, eq. (basis): ``beta = [1, sin(h_1 y0), cos(h_1 y0), ..., sin(h_n y0), cos(h_n y0)]``
+with mechanical harmonics h (cycles per revolution). The periodic kernel basis of the experiment
+section is, on a uniform grid of centres, diagonalized by these same Fourier modes; it is provided by
+:mod:`hallcal.kernel` on top of this module.
+
+Units: y0 in rad (mechanical), g in the Hall sensor's unit (V or ADC counts).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .reconstruction import NOMINAL_PHASES
+
+__all__ = ["FluxModel", "FourierBasis", "sinusoidal_theta"]
+
+
+@dataclass(frozen=True)
+class FourierBasis:
+    """Fourier basis of eq. (basis) with a constant term and chosen mechanical harmonics.
+
+    Parameters
+    ----------
+    harmonics : sequence of int
+        Distinct mechanical harmonics h >= 1 (cycles per revolution).
+    """
+
+    harmonics: tuple[int, ...]
+
+    def __post_init__(self) -> None:
+        h = tuple(int(v) for v in self.harmonics)
+        if len(set(h)) != len(h) or any(v < 1 for v in h):
+            raise ValueError("harmonics must be distinct integers >= 1")
+        object.__setattr__(self, "harmonics", h)
+
+    @property
+    def size(self) -> int:
+        """Number of basis functions m = 1 + 2 n_h."""
+        return 1 + 2 * len(self.harmonics)
+
+    @property
+    def harmonic_array(self) -> NDArray[np.float64]:
+        return np.asarray(self.harmonics, dtype=np.float64)
+
+    def evaluate(self, y0: ArrayLike) -> NDArray[np.float64]:
+        """beta(y0), shape (N, m)."""
+        y = np.atleast_1d(np.asarray(y0, dtype=np.float64))
+        arg = np.multiply.outer(y, self.harmonic_array)
+        out = np.empty((y.size, self.size))
+        out[:, 0] = 1.0
+        out[:, 1::2] = np.sin(arg)
+        out[:, 2::2] = np.cos(arg)
+        return out
+
+    def derivative(self, y0: ArrayLike) -> NDArray[np.float64]:
+        """d beta / d y0, shape (N, m) [1/rad]."""
+        y = np.atleast_1d(np.asarray(y0, dtype=np.float64))
+        h = self.harmonic_array
+        arg = np.multiply.outer(y, h)
+        out = np.zeros((y.size, self.size))
+        out[:, 1::2] = h * np.cos(arg)
+        out[:, 2::2] = -h * np.sin(arg)
+        return out
+
+    def index(self, harmonic: int) -> tuple[int, int]:
+        """Columns (sin, cos) of a harmonic in beta."""
+        j = self.harmonics.index(int(harmonic))
+        return 1 + 2 * j, 2 + 2 * j
+
+
+@dataclass(frozen=True)
+class FluxModel:
+    """g_theta(y0) for the three sensors.
+
+    Parameters
+    ----------
+    basis : FourierBasis
+        The periodic basis beta.
+    theta : array_like, shape (3, m)
+        Weights, row h for sensor h.
+    """
+
+    basis: FourierBasis
+    theta: NDArray[np.float64] = field(repr=False)
+
+    def __post_init__(self) -> None:
+        th = np.array(self.theta, dtype=np.float64)
+        if th.shape != (3, self.basis.size):
+            raise ValueError(f"theta must have shape (3, {self.basis.size}), got {th.shape}")
+        th.setflags(write=False)
+        object.__setattr__(self, "theta", th)
+
+    def __call__(self, y0: ArrayLike) -> NDArray[np.float64]:
+        """g(y0), shape (N, 3)."""
+        return self.basis.evaluate(y0) @ self.theta.T
+
+    def derivative(self, y0: ArrayLike) -> NDArray[np.float64]:
+        """dg/dy0, shape (N, 3)."""
+        return self.basis.derivative(y0) @ self.theta.T
+
+    def with_theta(self, theta: ArrayLike) -> FluxModel:
+        return FluxModel(self.basis, np.asarray(theta, dtype=np.float64).reshape(3, -1))
+
+
+def sinusoidal_theta(
+    basis: FourierBasis,
+    pole_pairs: int,
+    *,
+    amplitude: ArrayLike = 1.0,
+    offset: ArrayLike = 0.0,
+    phases: ArrayLike = NOMINAL_PHASES,
+) -> NDArray[np.float64]:
+    """theta for pure sinusoids ``d_h = o_h + A_h cos(n_m y0 - phi_h)``: the inverse of f_init.
+
+    This is the paper's starting point theta_0 of problem (problem). Requires n_m in the
+    harmonics of the basis.
+
+    Returns
+    -------
+    ndarray, shape (3, m)
+    """
+    if pole_pairs not in basis.harmonics:
+        raise ValueError(f"the basis must contain the pole-pair harmonic {pole_pairs}")
+    A = np.broadcast_to(np.asarray(amplitude, float), (3,))
+    o = np.broadcast_to(np.asarray(offset, float), (3,))
+    phi = np.asarray(phases, float)
+    th = np.zeros((3, basis.size))
+    js, jc = basis.index(pole_pairs)
+    th[:, 0] = o
+    th[:, js] = A * np.sin(phi)  # cos(x - phi) = cos(phi) cos x + sin(phi) sin x
+    th[:, jc] = A * np.cos(phi)
+    return th
