@@ -1,0 +1,325 @@
+"""The virtual bench: a motor with imperfect Hall sensors in the closed loop of the paper.
+
+Built-in defaults are the paper's simulation setup (section "Simulation setup"): n_m = 11 pole
+pairs, Ts = 1/4000 s, G(s) = 1.663e5 / (s^3 + 632.6 s^2 + 2702 s) with an input delay of 1.2e-4 s
+(exact ZOH, see :mod:`hallcal.lti`), the controller C(q) of eq. (controller), a Fourier truth with
+mechanical harmonics 1..11 where the 11th dominates and the others make each magnet slightly
+different, Hall noise variance 7.5e-6 per channel, and a ramp 0 -> 13 rad in 26 s.
+
+The truth is always expressed exactly as a :class:`~hallcal.flux.FluxModel` (Fourier series in the
+mechanical angle), built from physical knobs:
+
+``d_h(y0) = o_h + A (1 + gain_h) (1 + a_h(y0)) s(n_m y0 - phi_h) + b_h(y0) + v_h``
+
+- ``phi_h = 2 pi (h-1)/3 + misalignment_h`` (electrical), sensor misalignment;
+- ``s(psi) = cos psi + sum_k c_k cos(k psi)``, higher electrical harmonics (trapezoidal flux);
+- ``b_h(y0)``: additive mechanical harmonics 1..n_m-1 of relative size ``magnet_variation``
+  (each magnet slightly different; the paper's truth lies in harmonics 1..11);
+- ``a_h(y0)``: amplitude modulation by mechanical harmonics 1..3 of relative size
+  ``pole_modulation`` (per-pole strength differences: sidebands k n_m +- j);
+- Hall noise ``v_h`` with variance ``noise_variance``, a random low-frequency torque disturbance
+  and a cogging torque ``cogging sin(cogging_periods y0)`` added to the plant input.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import scipy.signal
+from numpy.typing import ArrayLike, NDArray
+
+from .flux import FluxModel, FourierBasis
+from .lti import ContinuousTF, DiscreteTF
+from .loop import ClosedLoop, simulate_loop
+
+__all__ = [
+    "PAPER_CONTROLLER",
+    "PAPER_PLANT",
+    "BenchConfig",
+    "BenchRun",
+    "noise_floor",
+    "ramp_run",
+    "simulate_run",
+]
+
+TWO_PI = 2.0 * math.pi
+#: G(s) of the paper's simulation (with the physical sign of the delay, see DESIGN.md).
+PAPER_PLANT = ContinuousTF((1.663e5,), (1.0, 632.6, 2702.0, 0.0), 1.2e-4)
+#: C(q) of eq. (controller).
+PAPER_CONTROLLER = DiscreteTF((2.94, -3.29, -2.10, 2.45), (1.0, -3.45, 4.52, -2.68, 0.61))
+
+
+def noise_floor(noise_variance: float, pole_pairs: int, amplitude: float = 1.0) -> float:
+    """RMS angle error [rad] that white Hall noise alone causes in any reconstruction.
+
+    The alpha/beta projection of three channels with variance sigma^2 has variance
+    (2/3) sigma^2 per component; the tangential part gives an electrical angle error of
+    sigma sqrt(2/3) / A, i.e. sigma sqrt(2/3) / (A n_m) mechanical (DESIGN.md).
+    """
+    return math.sqrt(noise_variance) * math.sqrt(2.0 / 3.0) / (amplitude * pole_pairs)
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """Knobs of the virtual bench (defaults: the paper's simulation setup).
+
+    Attributes
+    ----------
+    pole_pairs : int
+        n_m.
+    sample_time : float
+        Ts [s].
+    plant : ContinuousTF
+        G(s) from torque to angle, with input delay.
+    controller : DiscreteTF
+        C(q).
+    amplitude : float
+        Fundamental Hall amplitude A.
+    noise_variance : float
+        Variance of the white noise on each Hall channel.
+    magnet_variation : float
+        RMS (relative to A) of the additive mechanical harmonics 1..n_m-1 per channel.
+    pole_modulation : float
+        RMS (relative) of the amplitude modulation by mechanical harmonics 1..3.
+    misalignment_deg : tuple of 3 float
+        Extra electrical phase of each sensor [deg].
+    gain_mismatch, offset : tuple of 3 float
+        Relative gain error and additive offset of each sensor.
+    electrical_harmonics : tuple of (int, float)
+        Higher harmonics k >= 2 of the electrical angle and their amplitude relative to A.
+    torque_disturbance : float
+        Standard deviation of a random torque (white noise through a 5 Hz first-order low-pass),
+        in plant input units.
+    cogging, cogging_periods : float, int
+        Cogging torque amplitude (plant input units) and periods per revolution
+        (0 = 6 n_m, the sixth electrical harmonic of a three-phase machine).
+    seed : int
+        Seed of the truth (magnet variations) and, unless given per run, of the noise.
+    """
+
+    pole_pairs: int = 11
+    sample_time: float = 2.5e-4
+    plant: ContinuousTF = PAPER_PLANT
+    controller: DiscreteTF = PAPER_CONTROLLER
+    amplitude: float = 1.0
+    noise_variance: float = 7.5e-6
+    magnet_variation: float = 0.04
+    pole_modulation: float = 0.0
+    misalignment_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gain_mismatch: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    electrical_harmonics: tuple[tuple[int, float], ...] = ()
+    torque_disturbance: float = 0.0
+    cogging: float = 0.0
+    cogging_periods: int = 0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.pole_pairs < 1:
+            raise ValueError("pole_pairs must be >= 1")
+        if not self.sample_time > 0:
+            raise ValueError("sample_time must be > 0")
+        if self.noise_variance < 0:
+            raise ValueError("noise_variance must be >= 0")
+
+    @property
+    def noise_floor(self) -> float:
+        """RMS angle error [rad] from Hall noise alone (see :func:`noise_floor`)."""
+        return noise_floor(self.noise_variance, self.pole_pairs, self.amplitude)
+
+    def loop(self) -> ClosedLoop:
+        """The true closed loop (Clarke-based f_init, as in the paper)."""
+        return ClosedLoop.from_transfer_functions(
+            self.plant, self.controller, self.sample_time, self.pole_pairs
+        )
+
+    def truth(self) -> FluxModel:
+        """The true flux g(y0) as an exact Fourier series (see the module docstring)."""
+        return _truth(self)
+
+
+def _truth(cfg: BenchConfig) -> FluxModel:
+    n = cfg.pole_pairs
+    rng = np.random.default_rng([cfg.seed, 0])
+    # Electrical shape s(psi) = sum_k c_k cos(k psi), c_1 = 1.
+    elec = {1: 1.0}
+    for k, c in cfg.electrical_harmonics:
+        elec[int(k)] = elec.get(int(k), 0.0) + float(c)
+    # Amplitude modulation a_h(y0) = sum_j alpha_hj cos(j y0) + beta_hj sin(j y0), j = 1..3.
+    jm = np.arange(1, 4)
+    am = cfg.pole_modulation * rng.standard_normal((3, 2, jm.size)) / math.sqrt(jm.size)
+    # Additive mechanical harmonics 1..n-1.
+    jb = np.arange(1, n)
+    bm = cfg.magnet_variation * rng.standard_normal((3, 2, jb.size)) / math.sqrt(max(jb.size, 1))
+
+    # Collect the series on a dense grid and project exactly: every term is a finite Fourier
+    # series in y0, so sampling at more points than twice the highest harmonic is exact.
+    hmax = max(elec) * n + (3 if cfg.pole_modulation else 0) + n
+    harmonics = sorted(
+        {h for h in range(1, n)} | {k * n + s for k in elec for s in (-3, -2, -1, 0, 1, 2, 3)}
+    )
+    harmonics = [h for h in harmonics if h >= 1]
+    if not cfg.pole_modulation:
+        harmonics = sorted(set(range(1, n)) | {k * n for k in elec})
+    basis = FourierBasis(tuple(harmonics))
+    M = 4 * hmax + 16
+    y0 = TWO_PI * np.arange(M) / M
+    theta = np.zeros((3, basis.size))
+    Phi = basis.evaluate(y0)
+    for h in range(3):
+        phi = TWO_PI * h / 3.0 + math.radians(cfg.misalignment_deg[h])
+        psi = n * y0 - phi
+        shape = sum(c * np.cos(k * psi) for k, c in elec.items())
+        a = am[h, 0] @ np.cos(np.outer(jm, y0)) + am[h, 1] @ np.sin(np.outer(jm, y0))
+        b = bm[h, 0] @ np.cos(np.outer(jb, y0)) + bm[h, 1] @ np.sin(np.outer(jb, y0))
+        g = cfg.offset[h] + cfg.amplitude * (
+            (1 + cfg.gain_mismatch[h]) * (1 + a) * shape + (b if jb.size else 0.0)
+        )
+        theta[h] = np.linalg.lstsq(Phi, g, rcond=None)[0]
+    return FluxModel(basis, theta)
+
+
+@dataclass(frozen=True)
+class BenchRun:
+    """One experiment on the virtual bench.
+
+    Attributes
+    ----------
+    t, r, y, u : ndarray (N,)
+        Time [s], reference [rad], f_init output [rad], torque command.
+    d : ndarray (N, 3)
+        Hall signals with noise.
+    y0 : ndarray (N,)
+        True angle [rad] (the virtual encoder).
+    truth : FluxModel
+        True flux g.
+    config : BenchConfig
+    realization : ndarray (N,) of int or None
+        Multisine realization index (BLA experiments).
+    status : str
+        "ok" or "diverged".
+    """
+
+    t: NDArray[np.float64] = field(repr=False)
+    r: NDArray[np.float64] = field(repr=False)
+    y: NDArray[np.float64] = field(repr=False)
+    u: NDArray[np.float64] = field(repr=False)
+    d: NDArray[np.float64] = field(repr=False)
+    y0: NDArray[np.float64] = field(repr=False)
+    truth: FluxModel = field(repr=False)
+    config: BenchConfig
+    realization: NDArray[np.float64] | None = field(default=None, repr=False)
+    status: str = "ok"
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.r.size)
+
+    def columns(self, *, with_encoder: bool = True) -> dict[str, NDArray[np.float64]]:
+        """Dataset columns of DESIGN.md (``y_ref`` = the true angle, validation only)."""
+        cols = {
+            "t": self.t,
+            "r": self.r,
+            "y": self.y,
+            "u": self.u,
+            "d1": self.d[:, 0],
+            "d2": self.d[:, 1],
+            "d3": self.d[:, 2],
+        }
+        if with_encoder:
+            cols["y_ref"] = self.y0
+        if self.realization is not None:
+            cols["realization"] = self.realization
+        return cols
+
+    def truth_dict(self) -> dict:
+        """The truth for a sidecar file: flux model, noise level and noise floor."""
+        cfg = self.config
+        return {
+            "format": "hallcal-truth/1",
+            "pole_pairs": cfg.pole_pairs,
+            "harmonics": list(self.truth.basis.harmonics),
+            "theta": self.truth.theta.tolist(),
+            "noise_variance": cfg.noise_variance,
+            "noise_floor": cfg.noise_floor,
+            "seed": cfg.seed,
+            "plant": {"num": list(cfg.plant.num), "den": list(cfg.plant.den),
+                      "delay": cfg.plant.delay},
+        }
+
+
+def _lowpass_noise(rng: np.random.Generator, n: int, std: float, ts: float, fc: float = 5.0):
+    if std == 0.0:
+        return np.zeros(n)
+    a = math.exp(-TWO_PI * fc * ts)
+    w = rng.standard_normal(n) * std * math.sqrt(1 - a * a)
+    return scipy.signal.lfilter([1.0], [1.0, -a], w)
+
+
+def simulate_run(
+    config: BenchConfig,
+    r: ArrayLike,
+    *,
+    seed: int | None = None,
+    realization: ArrayLike | None = None,
+) -> BenchRun:
+    """Run the closed loop of the bench on a reference r.
+
+    Parameters
+    ----------
+    config : BenchConfig
+    r : array_like (N,)
+        Reference [rad].
+    seed : int, keyword-only
+        Seed of this run's noise and disturbance (default: ``config.seed``); the truth depends on
+        ``config.seed`` only, so runs with other seeds are fresh realizations on the same motor.
+    """
+    r = np.asarray(r, dtype=np.float64)
+    N = r.size
+    rng = np.random.default_rng([config.seed if seed is None else seed, 1])
+    sigma = math.sqrt(config.noise_variance)
+    noise = sigma * rng.standard_normal((N, 3))
+    td = _lowpass_noise(rng, N, config.torque_disturbance, config.sample_time)
+    truth = config.truth()
+    cog_per = config.cogging_periods or 6 * config.pole_pairs
+    res = simulate_loop(
+        config.loop(),
+        truth,
+        r,
+        noise=noise,
+        torque_disturbance=td,
+        cogging_amplitude=config.cogging,
+        cogging_periods=cog_per,
+    )
+    return BenchRun(
+        t=config.sample_time * np.arange(N),
+        r=r,
+        y=res.y,
+        u=res.u,
+        d=res.d,
+        y0=res.y0,
+        truth=truth,
+        config=config,
+        realization=None if realization is None else np.asarray(realization, dtype=np.float64),
+        status=res.status,
+    )
+
+
+def ramp_run(
+    config: BenchConfig,
+    *,
+    ramp_end: float = 13.0,
+    duration: float = 26.0,
+    seed: int | None = None,
+) -> BenchRun:
+    """The calibration experiment: a ramp reference 0 -> ``ramp_end`` [rad] in ``duration`` [s]."""
+    N = int(round(duration / config.sample_time))
+    r = np.linspace(0.0, ramp_end, N, endpoint=False)
+    return simulate_run(config, r, seed=seed)
+
+
+def with_changes(config: BenchConfig, **changes) -> BenchConfig:
+    """A copy of the configuration with some knobs changed."""
+    return replace(config, **changes)
