@@ -62,6 +62,7 @@ from typing import IO, Any, Literal, NoReturn
 import numpy as np
 
 from hallcal._errors import HallcalInputError
+from hallcal.lti import ContinuousTF, DiscreteTF
 
 __all__ = [
     "ARTIFACT_FORMAT",
@@ -905,48 +906,6 @@ def _tuple_of_floats(values: Iterable[Any]) -> tuple[float, ...]:
 
 
 @dataclass(frozen=True)
-class DiscreteTF:
-    """Discrete-time transfer function, coefficients in descending powers of q (``[controller]``).
-
-    Attributes
-    ----------
-    num, den : tuple of float
-        Numerator and denominator; ``den[0] != 0`` and ``len(num) <= len(den)`` (causal).
-    """
-
-    num: tuple[float, ...]
-    den: tuple[float, ...]
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "num", _tuple_of_floats(self.num))
-        object.__setattr__(self, "den", _tuple_of_floats(self.den))
-
-
-@dataclass(frozen=True)
-class ContinuousTF:
-    """Continuous-time transfer function with input delay (``[plant]``).
-
-    ``G(s) = num(s) / den(s) * exp(-delay s)``, coefficients in descending powers of s.
-
-    Attributes
-    ----------
-    num, den : tuple of float
-        Numerator and denominator; proper (``len(num) <= len(den)``), ``den[0] != 0``.
-    delay : float
-        Input delay in seconds (>= 0).
-    """
-
-    num: tuple[float, ...]
-    den: tuple[float, ...]
-    delay: float = 0.0
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "num", _tuple_of_floats(self.num))
-        object.__setattr__(self, "den", _tuple_of_floats(self.den))
-        object.__setattr__(self, "delay", float(self.delay))
-
-
-@dataclass(frozen=True)
 class ModelSpec:
     """Flux model and solver options (``[model]``; paper, section on the flux model g_theta).
 
@@ -1068,6 +1027,9 @@ class BenchSpec:
     magnet_variation : float
         Relative size of the per-magnet flux variations (mechanical harmonics
         1 .. pole_pairs - 1).
+    pole_modulation : float
+        Relative size of per-pole amplitude differences (amplitude modulation by mechanical
+        harmonics 1..3: sidebands k pole_pairs +- j).
     misalignment_deg : tuple of 3 float
         Electrical degrees added to each sensor's nominal 0/120/240 degrees.
     gain_mismatch : tuple of 3 float
@@ -1091,7 +1053,8 @@ class BenchSpec:
     ramp_end: float = 13.0
     duration: float = 26.0
     amplitude: float = 1.0
-    magnet_variation: float = 0.02
+    magnet_variation: float = 0.04
+    pole_modulation: float = 0.0
     misalignment_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
     gain_mismatch: tuple[float, float, float] = (0.0, 0.0, 0.0)
     offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -1538,7 +1501,8 @@ def _parse_bench(t: _Table | None) -> BenchSpec:
         ramp_end=t.number("ramp_end", default=13.0),
         duration=t.number("duration", default=26.0, positive=True),
         amplitude=t.number("amplitude", default=1.0, positive=True),
-        magnet_variation=t.number("magnet_variation", default=0.02, minimum=0.0),
+        magnet_variation=t.number("magnet_variation", default=0.04, minimum=0.0),
+        pole_modulation=t.number("pole_modulation", default=0.0, minimum=0.0),
         misalignment_deg=t.numbers("misalignment_deg", default=(0.0, 0.0, 0.0), length=3),
         gain_mismatch=gain,
         offset=t.numbers("offset", default=(0.0, 0.0, 0.0), length=3),

@@ -131,7 +131,9 @@ class LoopResult:
     ----------
     y0 : true (simulated) angle [rad]; y : f_init output [rad]; u : torque command;
     d : Hall signals (N, 3) including noise; torque : total plant input u + T_d + T_cog;
-    status : "ok", or "diverged" when the states left a sane range (unstable loop).
+    status : "ok", or "diverged" when the loop went unstable: the states left a sane range or the
+    angle moved more than half an electrical period in one sample, so that f_init aliases
+    (the remaining samples are NaN).
     """
 
     y0: NDArray[np.float64] = field(repr=False)
@@ -202,6 +204,7 @@ def _simulate_kernel(
     ds = np.empty((N, 3))
     ts = np.empty(N)
     yprev = y_init
+    y0_last = 0.0
     ok = True
     dk = np.empty(3)
     for k in range(N):
@@ -249,7 +252,9 @@ def _simulate_kernel(
         us[k] = u
         ts[k] = tq
         yprev = y
-        if not (abs(y0) < 1e12 and abs(u) < 1e15):
+        jump = n_m * abs(y0 - y0_last)
+        y0_last = y0
+        if not (abs(y0) < 1e12 and abs(u) < 1e15 and jump < math.pi):
             ok = False
             for kk in range(k + 1, N):
                 y0s[kk] = np.nan
@@ -289,6 +294,7 @@ def _jacobian_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, y_
     gp = np.empty(3)
     dk = np.empty(3)
     yprev = y_init
+    y0_last = 0.0
     ok = True
     for k in range(N):
         y0 = 0.0
@@ -386,7 +392,9 @@ def _jacobian_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, y_
         ys[k] = y
         us[k] = u
         yprev = y
-        if not (abs(y0) < 1e12 and abs(u) < 1e15):
+        jump = n_m * abs(y0 - y0_last)
+        y0_last = y0
+        if not (abs(y0) < 1e12 and abs(u) < 1e15 and jump < math.pi):
             ok = False
             break
     return y0s, ys, us, ds, ok
