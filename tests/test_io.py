@@ -735,7 +735,7 @@ def _bad(update: dict[str, Any], *, drop: tuple[str, ...] = ()) -> str:
         ),
         (
             {"bla.period_samples": 4000, "bla.periods": 2, "bla.numerator_order": 4},
-            "key 'bla.numerator_order' must not exceed 'bla.denominator_order' (3), got 4",
+            "key 'bla.numerator_order' must not exceed 'bla.denominator_order' (2), got 4",
         ),
         ({"bench.experiment": "multisine"}, "key 'bench.experiment' is \"multisine\" but there"),
         ({"bench.noise_variance": -1.0}, "key 'bench.noise_variance' must be a number >= 0"),

@@ -982,7 +982,8 @@ class BLASpec:
     drift : float
         Speed in rad/s of the slow ramp the multisine rides on.
     numerator_order, denominator_order : int
-        Orders of the parametric model fitted to the BLA.
+        Orders of the parametric model fitted to the BLA; the denominator order excludes the
+        integrator pole (the paper's G(s) is numerator 0, denominator 2, integrator).
     integrator : bool
         Whether the parametric model has a pole at s = 0.
     fit_delay : bool
@@ -998,7 +999,7 @@ class BLASpec:
     lines: Literal["full", "odd", "random-odd"] = "random-odd"
     drift: float = 1.0
     numerator_order: int = 0
-    denominator_order: int = 3
+    denominator_order: int = 2
     integrator: bool = True
     fit_delay: bool = True
 
@@ -1447,7 +1448,7 @@ def _parse_bla(t: _Table | None, sample_time: float) -> BLASpec | None:
             f"1/(period_samples*sample_time) = {f0:g} Hz), got {_show(list(band))}"
         )
     numerator_order = t.integer("numerator_order", default=0, minimum=0)
-    denominator_order = t.integer("denominator_order", default=3, minimum=1)
+    denominator_order = t.integer("denominator_order", default=2, minimum=0)
     if numerator_order > denominator_order:
         t.error(
             f"key '{t.key('numerator_order')}' must not exceed "

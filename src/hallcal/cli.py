@@ -1,0 +1,312 @@
+"""The ``hallcal`` command line (contract in DESIGN.md, "Command line").
+
+Exit status: 0 success; 2 bad input (one line naming the file, column or key; no traceback);
+3 calibration refused (model inadequate or table not bijective; use ``--force`` to write an
+inadequate model anyway). Progress goes to stderr, results to stdout.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import click
+from rich.console import Console
+
+from ._errors import HallcalInputError
+
+EXIT_INPUT = 2
+EXIT_REFUSED = 3
+
+_err = Console(stderr=True, highlight=False, soft_wrap=True)
+_out = Console(highlight=False, soft_wrap=True)
+
+
+class Refused(Exception):
+    """The calibration ran but its result must not be used."""
+
+
+def _handle_errors(func: Callable[..., Any]) -> Callable[..., Any]:
+    @functools.wraps(func)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return func(*args, **kwargs)
+        except HallcalInputError as exc:
+            click.echo(f"hallcal: error: {exc}", err=True)
+            sys.exit(EXIT_INPUT)
+        except Refused as exc:
+            click.echo(f"hallcal: refused: {exc}", err=True)
+            sys.exit(EXIT_REFUSED)
+
+    return wrapper
+
+
+class _Progress:
+    """One line per step on stderr with the elapsed time."""
+
+    def __init__(self, quiet: bool = False) -> None:
+        self.t0 = time.perf_counter()
+        self.quiet = quiet
+
+    def __call__(self, message: str) -> None:
+        if not self.quiet:
+            _err.print(f"[dim]{time.perf_counter() - self.t0:6.1f} s[/dim]  {message}")
+
+
+def _setup(path: str | None):
+    from .io import default_setup, read_setup
+
+    return default_setup() if path is None else read_setup(path)
+
+
+def _mrad(x: float | None) -> str:
+    return "-" if x is None or not math.isfinite(x) else f"{1e3 * x:.4f} mrad"
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="hallcal")
+def cli() -> None:
+    """Self-calibration of analog linear Hall sensors without an encoder.
+
+    The method of van Meer et al., "Self-Calibrating Position Measurements: Applied to Imperfect
+    Hall Sensors": closed-loop data, a BLA of the motor, simulation-error minimization of a
+    flux model and a lookup-table correction f_star.
+    """
+
+
+# ------------------------------------------------------------------------------------------------
+
+
+@cli.command()
+@click.option(
+    "--setup",
+    "setup_path",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Setup TOML ([bench], [plant], [controller], [bla]); default: the paper's.",
+)
+@click.option(
+    "--out",
+    "out",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Dataset to write (.csv, .parquet, .h5, .mat, .npz).",
+)
+@click.option(
+    "--experiment",
+    type=click.Choice(["ramp", "multisine"]),
+    default=None,
+    help="Override [bench] experiment.",
+)
+@click.option("--seed", type=int, default=None, help="Noise seed of this run (truth unchanged).")
+@_handle_errors
+def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int | None) -> None:
+    """Run the virtual bench and write a dataset (truth in OUT's .truth.json sidecar)."""
+    from . import pipeline
+    from .io import write_dataset, write_json
+
+    setup = _setup(setup_path)
+    prog = _Progress()
+    kind = experiment or setup.bench.experiment
+    prog(f"simulating the {kind} experiment")
+    run = pipeline.simulate(setup, experiment=experiment, seed=seed)
+    if run.status != "ok":
+        raise HallcalInputError(
+            f"{setup_path or 'setup'}: the simulated closed loop diverged (check [controller] "
+            "and [plant])"
+        )
+    out_path = Path(out)
+    write_dataset(out_path, run.columns())
+    sidecar = out_path.with_suffix(".truth.json")
+    write_json(sidecar, run.truth_dict())
+    e = run.y - run.y0
+    _out.print(f"wrote {out_path} ({run.n_samples} samples) and {sidecar}")
+    _out.print(
+        f"f_init error against the truth: RMS {_mrad(float((e - e.mean()).std()))}, "
+        f"peak {_mrad(float(abs(e - e.mean()).max()))}; noise floor "
+        f"{_mrad(run.config.noise_floor)}"
+    )
+
+
+@cli.command()
+@click.argument("data", type=click.Path(dir_okay=False))
+@click.option("--setup", "setup_path", required=True, type=click.Path(dir_okay=False))
+@click.option("--out", required=True, type=click.Path(dir_okay=False), help="BLA JSON to write.")
+@_handle_errors
+def bla(data: str, setup_path: str, out: str) -> None:
+    """Identify the closed-loop BLA of the plant from a multisine dataset."""
+    from . import pipeline
+    from .io import read_dataset, write_json
+
+    setup = _setup(setup_path)
+    ds = read_dataset(data, required=("r", "u", "y", "realization"))
+    res = pipeline.identify_bla(ds, setup, progress=_Progress())
+    write_json(out, res.to_dict())
+    p = res.plant
+    _out.print(f"G(s) = {list(p.num)} / {list(p.den)} * exp(-{p.delay:.3g} s)   [{res.status}]")
+    _out.print(f"wrote {out}")
+
+
+@cli.command()
+@click.argument("data", type=click.Path(dir_okay=False))
+@click.option("--setup", "setup_path", required=True, type=click.Path(dir_okay=False))
+@click.option(
+    "--bla-data",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Multisine experiment for the BLA (when the setup has no [plant]).",
+)
+@click.option("--out", required=True, type=click.Path(dir_okay=False), help="Artifact to write.")
+@click.option("--force", is_flag=True, help="Write the artifact even if the model is inadequate.")
+@_handle_errors
+def calibrate(data: str, setup_path: str, bla_data: str | None, out: str, force: bool) -> None:
+    """Calibrate: BLA (if needed), SEM, lookup table; write the JSON artifact."""
+    from . import pipeline
+    from .io import read_dataset, write_artifact
+
+    setup = _setup(setup_path)
+    closed = setup.trajectory.kind == "closed-loop"
+    required = ("r", "d1", "d2", "d3") if closed else ("d1", "d2", "d3")
+    ds = read_dataset(data, required=required)
+    bla_ds = None
+    if bla_data is not None:
+        bla_ds = read_dataset(bla_data, required=("r", "u", "y", "realization"))
+    cal = pipeline.calibrate(ds, setup, bla_dataset=bla_ds, progress=_Progress())
+    _print_calibration(cal)
+    force = force or setup.model.force
+    if cal.status == "not-bijective":
+        raise Refused(cal.messages[0] + "; no artifact written")
+    if cal.status == "inadequate" and not force:
+        raise Refused(cal.messages[0] + "; no artifact written (use --force to write it anyway)")
+    write_artifact(out, pipeline.artifact_from_calibration(cal))
+    _out.print(f"wrote {out}")
+
+
+def _print_calibration(cal) -> None:
+    sem = cal.sem
+    for m in cal.messages:
+        _err.print(m)
+    if cal.gain is not None:
+        _out.print(f"gain correction c_hat = {cal.gain.c:.4f}")
+    if sem is not None:
+        _out.print(
+            f"cost {sem.initial_cost:.6g} -> {sem.cost:.6g} in {sem.iterations} iterations "
+            f"({sem.status}), {sem.solve_time:.2f} s; noise variance {sem.noise_variance:.3g}"
+        )
+    _out.print(
+        f"predicted f_star error (noise floor + model uncertainty): RMS "
+        f"{_mrad(cal.predicted_error)}"
+    )
+    if cal.adequacy is not None and hasattr(cal.adequacy, "verdict"):
+        _out.print(f"model adequacy: {cal.adequacy.verdict}")
+    _out.print(f"lookup table: {cal.lut.points} points, bijective: {cal.lut.bijective}")
+    v = cal.validation
+    if v is not None:
+        _out.print(
+            f"against y_ref: f_init RMS {_mrad(v.init.rms)} peak {_mrad(v.init.peak)}; "
+            f"f_star RMS {_mrad(v.star.rms)} peak {_mrad(v.star.peak)}"
+        )
+
+
+@cli.command()
+@click.argument("artifact", type=click.Path(dir_okay=False))
+@click.argument("data", type=click.Path(dir_okay=False))
+@click.option("--out", required=True, type=click.Path(dir_okay=False))
+@_handle_errors
+def reconstruct(artifact: str, data: str, out: str) -> None:
+    """Apply a calibration to a recording: columns y_init and y_star."""
+    from . import pipeline
+    from .io import read_artifact, read_dataset, write_dataset
+
+    art = read_artifact(artifact)
+    ds = read_dataset(data)
+    rec = pipeline.reconstruct(art, ds)
+    write_dataset(out, {"y_init": rec.y_init, "y_star": rec.y_star})
+    _out.print(f"wrote {out} ({rec.y_star.size} samples)")
+    if rec.validation is not None:
+        v = rec.validation
+        _out.print(
+            f"against y_ref: f_init RMS {_mrad(v.init.rms)} peak {_mrad(v.init.peak)}; "
+            f"f_star RMS {_mrad(v.star.rms)} peak {_mrad(v.star.peak)}"
+        )
+
+
+@cli.command("export-c")
+@click.argument("artifact", type=click.Path(dir_okay=False))
+@click.option("--out", required=True, type=click.Path(file_okay=False))
+@click.option("--no-fixed-point", is_flag=True, help="Only the float variant.")
+@_handle_errors
+def export_c(artifact: str, out: str, no_fixed_point: bool) -> None:
+    """Generate C99 sources of f_star (float and fixed point) for firmware."""
+    from .codegen import export_c as _export
+    from .io import read_artifact
+
+    art = read_artifact(artifact)
+    res = _export(art, out, fixed_point=not no_fixed_point)
+    for p in res.paths:
+        _out.print(f"wrote {p}")
+
+
+@cli.command()
+@click.argument("artifact", type=click.Path(dir_okay=False))
+@click.argument("data", type=click.Path(dir_okay=False))
+@click.option(
+    "--validation",
+    "validation",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="A fresh run with y_ref to validate on.",
+)
+@click.option(
+    "--setup",
+    "setup_path",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Setup (default: the one stored in the artifact).",
+)
+@click.option("--out", required=True, type=click.Path(file_okay=False))
+@_handle_errors
+def report(
+    artifact: str, data: str, validation: str | None, setup_path: str | None, out: str
+) -> None:
+    """Figures and an HTML report of a calibration."""
+    from .report import write_report_from_files
+
+    path = write_report_from_files(
+        artifact, data, validation=validation, out_dir=out, progress=_Progress()
+    )
+    _out.print(f"wrote {path}")
+
+
+@cli.command()
+@click.option(
+    "--out",
+    default="hallcal-demo",
+    type=click.Path(file_okay=False),
+    show_default=True,
+    help="Folder for data, artifact, figures and report.",
+)
+@click.option("--seed", type=int, default=1, show_default=True)
+@click.option("--no-report", is_flag=True, help="Skip figures and the HTML report.")
+@_handle_errors
+def demo(out: str, seed: int, no_report: bool) -> None:
+    """The paper's simulation study end to end on the built-in defaults."""
+    from .demo import run_demo
+
+    res = run_demo(out, seed=seed, report=not no_report, progress=_Progress())
+    for line in res.summary_lines():
+        _out.print(line)
+
+
+def main() -> None:
+    """Console entry point."""
+    cli(prog_name="hallcal")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()
