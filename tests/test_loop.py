@@ -28,8 +28,9 @@ def oracle(flux: FluxModel, r: np.ndarray, n_m: int):
     B = B[:, 0]
     C = C[0]
     tau = PAPER_PLANT.delay
-    num = np.r_[np.zeros(len(PAPER_CONTROLLER.den) - len(PAPER_CONTROLLER.num)),
-                PAPER_CONTROLLER.num]
+    num = np.r_[
+        np.zeros(len(PAPER_CONTROLLER.den) - len(PAPER_CONTROLLER.num)), PAPER_CONTROLLER.num
+    ]
     den = np.asarray(PAPER_CONTROLLER.den)
     x = np.zeros(A.shape[0])
     rec = InitReconstructor(n_m)
@@ -136,8 +137,11 @@ def test_noise_disturbance_and_divergence_flags():
     assert np.max(np.abs(clean.y - clean.y0)) < 1e-12  # ideal sensors: f_init is exact
     # A destabilizing controller (gain x 50) is reported as diverged, never as silent NaN.
     bad = ClosedLoop.from_transfer_functions(
-        PAPER_PLANT, type(PAPER_CONTROLLER)(tuple(50 * c for c in PAPER_CONTROLLER.num),
-                                            PAPER_CONTROLLER.den), TS, 11)
+        PAPER_PLANT,
+        type(PAPER_CONTROLLER)(tuple(50 * c for c in PAPER_CONTROLLER.num), PAPER_CONTROLLER.den),
+        TS,
+        11,
+    )
     res = simulate_loop(bad, flux, r)
     assert res.status == "diverged"
     # Torque disturbance moves the angle; cogging too.

@@ -42,8 +42,9 @@ def test_delay_is_a_phase_lag(l, frac):
     base = ContinuousTF(PAPER_PLANT.num, PAPER_PLANT.den, frac * TS).discretize(TS)
     more = ContinuousTF(PAPER_PLANT.num, PAPER_PLANT.den, (frac + l) * TS).discretize(TS)
     z = np.exp(2j * np.pi * f * TS)
-    np.testing.assert_allclose(more.frequency_response(f), base.frequency_response(f) * z**-l,
-                               rtol=1e-8)
+    np.testing.assert_allclose(
+        more.frequency_response(f), base.frequency_response(f) * z**-l, rtol=1e-8
+    )
 
 
 def test_fractional_delay_matches_continuous_phase_at_low_frequency():

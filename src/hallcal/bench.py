@@ -245,8 +245,11 @@ class BenchRun:
             "noise_variance": cfg.noise_variance,
             "noise_floor": cfg.noise_floor,
             "seed": cfg.seed,
-            "plant": {"num": list(cfg.plant.num), "den": list(cfg.plant.den),
-                      "delay": cfg.plant.delay},
+            "plant": {
+                "num": list(cfg.plant.num),
+                "den": list(cfg.plant.den),
+                "delay": cfg.plant.delay,
+            },
         }
 
 

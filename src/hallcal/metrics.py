@@ -89,9 +89,10 @@ def spatial_spectrum(
 ) -> SpatialSpectrum:
     """Cumulative PSD of an angle error over spatial frequency (Fig. exp_spectrum).
 
-    The error is resampled on a uniform grid of the position (which must be monotone over the
-    segment used; the longest monotone stretch is used) covering a whole number of revolutions
-    when possible, so that spatial harmonics fall on DFT lines.
+    The samples are ordered by position and the error is taken at the nearest sample on a
+    uniform grid of the position over a whole number of revolutions when possible, so that
+    spatial harmonics fall on DFT lines; the last cumulative value equals the variance of the
+    error over that segment (Parseval).
 
     Parameters
     ----------
@@ -100,27 +101,30 @@ def spatial_spectrum(
     position : array_like (N,)
         Angle used as the spatial axis [rad] (encoder, true angle or y_star).
     points_per_rev : int, optional
-        Grid density; default from the data (at least 4 points per sample and revolution...).
+        Grid density; default: as many grid points as samples in the segment.
     """
     e = np.asarray(error, dtype=np.float64)
     x = np.asarray(position, dtype=np.float64)
     if x[-1] < x[0]:
-        x, e = -x, e
-    # keep the longest strictly increasing stretch of a running maximum
+        x = -x
     order = np.argsort(x, kind="stable")
     xs, es = x[order], e[order]
-    keep = np.r_[True, np.diff(xs) > 0]
-    xs, es = xs[keep], es[keep]
     span = xs[-1] - xs[0]
-    if span <= 0:
+    if not span > 0:
         raise ValueError("position does not move")
     revs = span / TWO_PI
     whole = math.floor(revs)
     length = whole * TWO_PI if whole >= 1 else span
-    n_per_rev = points_per_rev or max(256, int(2 ** math.ceil(math.log2(xs.size / max(revs, 1)))))
-    n = max(16, int(round(n_per_rev * length / TWO_PI)))
+    inside = xs < xs[0] + length
+    xs, es = xs[inside], es[inside]
+    # One grid point per sample in the segment, each taking the nearest sample in position:
+    # unlike interpolation, this keeps the variance of white noise (Parseval holds).
+    n = int(points_per_rev * length / TWO_PI) if points_per_rev else xs.size
+    n = max(16, n)
     grid = xs[0] + length * np.arange(n) / n
-    eg = np.interp(grid, xs, es)
+    idx = np.clip(np.searchsorted(xs, grid), 1, xs.size - 1)
+    left_closer = (grid - xs[idx - 1]) < (xs[idx] - grid)
+    eg = es[np.where(left_closer, idx - 1, idx)]
     eg = eg - eg.mean()
     spec = np.fft.rfft(eg) / n
     power = np.abs(spec) ** 2

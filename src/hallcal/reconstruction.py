@@ -108,8 +108,10 @@ def unwrap_to(angle: float, reference: float) -> float:
     ``Gamma(angle, reference) = reference + mod(angle - reference + pi, 2 pi) - pi``: the value
     congruent to ``angle`` modulo 2 pi nearest to ``reference`` (ties go to ``reference - pi``).
     """
-    return reference + math.fmod(math.fmod(angle - reference + math.pi, TWO_PI) + TWO_PI, TWO_PI) - (
-        math.pi
+    return (
+        reference
+        + math.fmod(math.fmod(angle - reference + math.pi, TWO_PI) + TWO_PI, TWO_PI)
+        - (math.pi)
     )
 
 

@@ -91,9 +91,7 @@ class SEMResult:
         return self.flux.theta
 
 
-def least_squares_start(
-    basis: FourierBasis, d: ArrayLike, y: ArrayLike
-) -> NDArray[np.float64]:
+def least_squares_start(basis: FourierBasis, d: ArrayLike, y: ArrayLike) -> NDArray[np.float64]:
     """theta_0 by linear least squares of d on the basis at the f_init output y.
 
     Treats the measured f_init angle as if it were y0. The resulting model reproduces f_init's
