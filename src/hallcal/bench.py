@@ -31,8 +31,8 @@ import scipy.signal
 from numpy.typing import ArrayLike, NDArray
 
 from .flux import FluxModel, FourierBasis
-from .lti import ContinuousTF, DiscreteTF
 from .loop import ClosedLoop, simulate_loop
+from .lti import ContinuousTF, DiscreteTF
 
 __all__ = [
     "PAPER_CONTROLLER",

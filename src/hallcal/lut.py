@@ -3,7 +3,8 @@
 On M equidistant grid points y0_i in [0, 2 pi) the model predicts what f_init would output,
 ``y_hat_i = f_init(g_theta(y0_i))`` (eq. recon_biject, unwrapped around y0_i), and the error
 ``eta_i = y0_i - y_hat_i``. The correction ``eta(y_hat)`` interpolates the pairs (y_hat_i, eta_i)
-piecewise linearly with wrap-around, and eq. (f_final) gives ``f_star(d) = f_init(d) + eta(f_init(d))``.
+piecewise linearly with wrap-around, and eq. (f_final) gives
+``f_star(d) = f_init(d) + eta(f_init(d))``.
 
 The table is only valid when y0 -> y_hat is bijective (strictly increasing over one revolution);
 :func:`build_lut` reports this and :class:`LUT` refuses to correct with a non-bijective table.

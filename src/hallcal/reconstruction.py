@@ -7,9 +7,9 @@ relative to n_m times the previous estimate (the unwrapping function Gamma), and
 divided by the number of pole pairs n_m.
 
 The projection generalizes the paper's Clarke matrix: for sensors at electrical phases
-``phi_h`` with a common offset, ``projection_matrix(phases)`` is the least-squares left inverse of
-``d_h = o + A cos(n_m y0 - phi_h)``; for the nominal phases 0, 120 and 240 degrees it equals the first
-two rows of the Clarke matrix exactly.
+``phi_h`` with a common offset, ``projection_matrix(phases)`` is the least-squares left inverse
+of ``d_h = o + A cos(n_m y0 - phi_h)``; for the nominal phases 0, 120 and 240 degrees it equals
+the first two rows of the Clarke matrix exactly.
 
 Units: angles in rad (mechanical for ``y``, electrical for ``n_m * y``); d in the sensor's unit.
 """
@@ -97,7 +97,10 @@ def alpha_beta(
 
 
 def electrical_angle(d: ArrayLike, **kwargs) -> NDArray[np.float64]:
-    """Wrapped electrical angle ``atan2(beta, alpha)`` in [-pi, pi] (keywords as :func:`alpha_beta`)."""
+    """Wrapped electrical angle ``atan2(beta, alpha)`` in [-pi, pi].
+
+    Keywords as :func:`alpha_beta`.
+    """
     ab = alpha_beta(d, **kwargs)
     return np.arctan2(ab[..., 1], ab[..., 0])
 
@@ -191,9 +194,9 @@ def f_init(
 ) -> NDArray[np.float64]:
     """f_init over a whole recording, eq. (fimp), vectorized.
 
-    Equal to running :class:`InitReconstructor` sample by sample (to rounding, about 1e-13 rad):
-    each output is ``(psi_k + 2 pi m_k) / n_m`` with the wrapped electrical angle psi_k and an integer
-    turn count m_k, so no rounding error accumulates along the recording.
+    Equal to running :class:`InitReconstructor` sample by sample (to rounding, about 1e-13
+    rad): each output is ``(psi_k + 2 pi m_k) / n_m`` with the wrapped electrical angle psi_k and
+    an integer turn count m_k, so no rounding error accumulates along the recording.
 
     Parameters
     ----------
