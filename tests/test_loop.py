@@ -63,7 +63,12 @@ def oracle(flux: FluxModel, r: np.ndarray, n_m: int):
                 continue
             uc = w(0.5 * (a + b))
             sol = scipy.integrate.solve_ivp(
-                lambda t, xx, uc=uc: A @ xx + B * uc, (a, b), x, rtol=1e-12, atol=1e-15, method="DOP853"
+                lambda t, xx, uc=uc: A @ xx + B * uc,
+                (a, b),
+                x,
+                rtol=1e-12,
+                atol=1e-15,
+                method="DOP853",
             )
             x = sol.y[:, -1]
     return np.array(y0s), np.array(ys), np.array(us)
