@@ -371,12 +371,19 @@ def _closed_loop(setup: Setup, plant: ContinuousTF) -> ClosedLoop:
     )
 
 
-def _check_samples(dataset: Dataset, pole_pairs: int) -> None:
+def _check_samples(dataset: Dataset, pole_pairs: int, *, revolutions: bool = True) -> None:
+    """The run must cover one electrical period, and a full revolution to identify g over it."""
     y = f_init(dataset.d, pole_pairs)
-    if np.ptp(y) * pole_pairs < TWO_PI:
+    span = float(np.ptp(y))
+    if span * pole_pairs < TWO_PI:
         raise HallcalInputError(
             f"{dataset.source}: the recording covers less than one electrical period "
-            f"({np.ptp(y) * pole_pairs / TWO_PI:.2f}); nothing to calibrate"
+            f"({span * pole_pairs / TWO_PI:.2f}); nothing to calibrate"
+        )
+    if revolutions and span < TWO_PI:
+        raise HallcalInputError(
+            f"{dataset.source}: the recording covers {span / TWO_PI:.2f} revolutions; the flux "
+            "model is periodic over one revolution and needs at least one full revolution"
         )
 
 

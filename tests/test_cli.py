@@ -1,0 +1,154 @@
+"""The command line as a user runs it (subprocess): the happy path and the error messages."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hallcal.io import read_dataset, write_dataset
+
+SETUP = """\
+pole_pairs = 11
+sample_time = 2.5e-4
+[controller]
+num = [2.94, -3.29, -2.10, 2.45]
+den = [1, -3.45, 4.52, -2.68, 0.61]
+[plant]
+num = [1.663e5]
+den = [1, 632.6, 2702, 0]
+delay = 1.2e-4
+[model]
+basis = "fourier"
+harmonics = [1,2,3,4,5,6,7,8,9,10,11]
+[bench]
+ramp_end = 7.0
+duration = 10.0
+seed = 5
+"""
+
+
+def run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "hallcal.cli", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cli")
+    (d / "s.toml").write_text(SETUP)
+    res = run("simulate", "--setup", "s.toml", "--out", "cal.csv", cwd=d)
+    assert res.returncode == 0, res.stderr
+    res = run("simulate", "--setup", "s.toml", "--out", "val.npz", "--seed", "77", cwd=d)
+    assert res.returncode == 0, res.stderr
+    return d
+
+
+def test_simulate_writes_dataset_and_truth_sidecar(workdir):
+    ds = read_dataset(workdir / "cal.csv")
+    assert {"r", "y", "u", "d1", "d2", "d3", "t", "y_ref"} <= set(ds.names)
+    assert ds.n_samples == 40000
+    truth = json.loads((workdir / "cal.truth.json").read_text())
+    assert truth["pole_pairs"] == 11 and len(truth["theta"]) == 3
+
+
+def test_calibrate_then_reconstruct(workdir):
+    res = run("calibrate", "cal.csv", "--setup", "s.toml", "--out", "cal.json", cwd=workdir)
+    assert res.returncode == 0, res.stderr
+    assert "cost" in res.stdout and "iterations" in res.stdout and "predicted" in res.stdout
+    art = json.loads((workdir / "cal.json").read_text())
+    assert art["format"] == "hallcal-calibration/1"
+    assert art["diagnostics"]["bijective"] is True
+    res = run("reconstruct", "cal.json", "val.npz", "--out", "out.csv", cwd=workdir)
+    assert res.returncode == 0, res.stderr
+    out = read_dataset(workdir / "out.csv", required=("y_init", "y_star"))
+    val = read_dataset(workdir / "val.npz")
+    assert out.n_samples == val.n_samples
+    e_init = np.std(out["y_init"] - val["y_ref"])
+    e_star = np.std(out["y_star"] - val["y_ref"])
+    assert e_star < 0.25 * e_init  # 8 s of data: the table is good, if not at the floor yet
+
+
+def error_of(res: subprocess.CompletedProcess) -> str:
+    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
+    assert "Traceback" not in res.stderr
+    lines = [ln for ln in res.stderr.strip().splitlines() if ln.startswith("hallcal: error:")]
+    assert len(lines) == 1, res.stderr
+    return lines[0]
+
+
+@pytest.mark.parametrize(
+    ("mutate", "expected"),
+    [
+        (lambda s: s.replace("harmonics", "harmonix"), "model.harmonix"),
+        (lambda s: s.replace("pole_pairs = 11", "pole_pairs = 0"), "pole_pairs"),
+        (lambda s: s.replace('basis = "fourier"', 'basis = "wavelet"'), "model.basis"),
+        (lambda s: s.replace("[plant]", "[plant\n"), "line 6"),
+    ],
+)
+def test_bad_setup(workdir, mutate, expected):
+    (workdir / "bad.toml").write_text(mutate(SETUP))
+    msg = error_of(
+        run("calibrate", "cal.csv", "--setup", "bad.toml", "--out", "x.json", cwd=workdir)
+    )
+    assert expected in msg and "bad.toml" in msg
+    assert not (workdir / "x.json").exists()
+
+
+def test_bad_data(workdir):
+    ds = read_dataset(workdir / "cal.csv")
+    cols = dict(ds.columns)
+    n = ds.n_samples
+    cases = {
+        "missing.csv": None,
+        "nocol.csv": {k: v for k, v in cols.items() if k != "d2"},
+        "short.csv": {k: v[:20] for k, v in cols.items()},
+        "partial.csv": {k: v[:20000] for k, v in cols.items()},
+    }
+    for name, c in cases.items():
+        if c is not None:
+            write_dataset(workdir / name, c)
+    (workdir / "nan.csv").write_text("r,d1,d2,d3\n0,1,2,3\n0,nan,2,3\n")
+    (workdir / "text.csv").write_text("r,d1,d2,d3\n0,1,2,3\n0,abc,2,3\n")
+    (workdir / "empty.csv").write_text("")
+    expect = {
+        "missing.csv": "missing.csv",
+        "nocol.csv": "d2",
+        "short.csv": "electrical period",
+        "partial.csv": "full revolution",
+        "nan.csv": "d1",
+        "text.csv": "d1",
+        "empty.csv": "empty.csv",
+    }
+    for name, needle in expect.items():
+        msg = error_of(
+            run("calibrate", name, "--setup", "s.toml", "--out", "x.json", cwd=workdir)
+        )
+        assert needle in msg, (name, msg)
+        assert not (workdir / "x.json").exists()
+    assert n > 20
+
+
+def test_not_an_artifact(workdir):
+    (workdir / "notcal.json").write_text('{"hello": 1}')
+    msg = error_of(run("reconstruct", "notcal.json", "val.npz", "--out", "o.csv", cwd=workdir))
+    assert "notcal.json" in msg
+    msg = error_of(run("reconstruct", "nothere.json", "val.npz", "--out", "o.csv", cwd=workdir))
+    assert "nothere.json" in msg
+    assert not (workdir / "o.csv").exists()
+
+
+def test_help_lists_the_contract_commands(workdir):
+    res = run("--help", cwd=workdir)
+    assert res.returncode == 0
+    for cmd in ("demo", "simulate", "bla", "calibrate", "reconstruct", "export-c", "report"):
+        assert cmd in res.stdout
