@@ -192,7 +192,13 @@ def _print_calibration(cal) -> None:
     for m in cal.messages:
         _err.print(m)
     if cal.gain is not None:
-        _out.print(f"gain correction c_hat = {cal.gain.c:.4f}")
+        g = cal.gain
+        refined = (
+            ""
+            if g.c_refined is None
+            else (f", refined with theta: {g.c_refined:.4f} +- {g.c_refined_std:.4f}")
+        )
+        _out.print(f"gain correction c_hat (eq. c_hat) = {g.c:.4f}{refined}")
     if sem is not None:
         _out.print(
             f"cost {sem.initial_cost:.6g} -> {sem.cost:.6g} in {sem.iterations} iterations "

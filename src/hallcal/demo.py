@@ -44,7 +44,7 @@ class DemoResult:
         if cal.gain is not None and cal.plant is not None:
             g = cal.plant.num[-1] / cal.plant.den[-2] if len(cal.plant.den) > 1 else float("nan")
             lines.append(
-                f"plant from data: gain correction c_hat = {cal.gain.c:.4f}; identified "
+                f"plant from data: gain correction c = {cal.gain.value:.4f}; identified "
                 f"velocity gain {g:.4g} vs true {self.true_gain:.4g} "
                 f"({100 * (g / self.true_gain - 1):+.2f} %)"
             )

@@ -268,12 +268,14 @@ def _simulate_kernel(
 
 
 @nb.njit(cache=True)
-def _jacobian_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, y_init, jac):
+def _jacobian_kernel(
+    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, y_init, jac, fit_gain
+):
     N = r.size
     ng = Ag.shape[0]
     nc = Ac.shape[0]
     m = theta.shape[1]
-    p = 3 * m
+    p = 3 * m + (1 if fit_gain else 0)  # last column: d / d log(c), plant input gain
     xg = np.zeros(ng)
     xc = np.zeros(nc)
     xg2 = np.zeros(ng)
@@ -379,6 +381,9 @@ def _jacobian_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, y_
             bi = Bg[i]
             for j in range(p):
                 Sg2[i, j] = bi * du[j]
+            if fit_gain:
+                # x+ = A x + c B u with Bg = c B: d/d log c adds Bg u
+                Sg2[i, p - 1] += bi * u
             for l in range(ng):
                 a = Ag[i, l]
                 if a != 0.0:
@@ -469,13 +474,17 @@ def loop_jacobian(
     *,
     y_initial: float = 0.0,
     out: NDArray[np.float64] | None = None,
+    fit_gain: bool = False,
 ) -> LoopJacobian:
     """Noise-free simulation of eq. (state_eq) with the exact Jacobian d d_sim / d theta.
 
     Parameters
     ----------
-    out : ndarray (N, 3, 3 m), optional
+    out : ndarray (N, 3, 3 m [+ 1]), optional
         Preallocated Jacobian storage (reused between Gauss-Newton iterations).
+    fit_gain : bool, keyword-only
+        Append the column d d_sim / d log(c) for a factor c on the plant input matrix
+        (``B_G -> c B_G``, the unknown BLA gain of eq. c_hat), so that c can be refined jointly.
 
     Returns
     -------
@@ -483,7 +492,7 @@ def loop_jacobian(
     """
     r = np.ascontiguousarray(r, dtype=np.float64)
     N = r.size
-    p = flux.theta.size
+    p = flux.theta.size + (1 if fit_gain else 0)
     jac = np.empty((N, 3, p)) if out is None else out
     if jac.shape != (N, 3, p):
         raise ValueError(f"out must have shape {(N, 3, p)}")
@@ -495,5 +504,6 @@ def loop_jacobian(
         r,
         float(y_initial),
         jac,
+        bool(fit_gain),
     )
     return LoopJacobian(d, y0, y, u, jac, "ok" if ok else "diverged")

@@ -12,6 +12,7 @@ This module has no printing and no file I/O: it takes :class:`~hallcal.io.Datase
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import math
 import time
@@ -231,6 +232,9 @@ class GainCorrection:
     rotations_data, rotations_sim : int
         Full rotations of the data and of the simulation at c (eq. c_hat's check).
     status : str
+    c_refined, c_refined_std : float or None
+        c after joint refinement with theta in SEM (``solve_sem(fit_gain=True)``) and its
+        standard deviation: at the SEM optimum the flux model no longer masks the loop gain.
     """
 
     c: float
@@ -239,6 +243,28 @@ class GainCorrection:
     rotations_data: int
     rotations_sim: int
     status: str
+    c_refined: float | None = None
+    c_refined_std: float | None = None
+
+    @property
+    def value(self) -> float:
+        """The factor applied to the BLA: refined jointly with theta when available."""
+        return self.c if self.c_refined is None else self.c_refined
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            k: getattr(self, k)
+            for k in (
+                "c",
+                "c_refined",
+                "c_refined_std",
+                "cost",
+                "cost_unit",
+                "rotations_data",
+                "rotations_sim",
+                "status",
+            )
+        }
 
 
 def estimate_gain(
@@ -502,15 +528,40 @@ def calibrate(
         extra["kernel"] = kres
     else:
         harmonics = _harmonics(setup)
+        fit_gain = gain is not None
         if harmonics == "auto":
             _say(progress, "choosing the harmonics from the data")
             sel = _select_harmonics(loop, r, d, y, n_m, setup)
             sem, adequacy = sel.sem, getattr(sel, "adequacy", None)
             extra["selection"] = sel
+            if fit_gain:
+                _say(progress, "SEM with the chosen harmonics, refining the plant gain c")
+                sem = solve_sem(
+                    loop,
+                    r,
+                    d,
+                    sem.flux.basis,
+                    theta0=sem.flux.theta,
+                    max_iterations=setup.model.max_iterations,
+                    fit_gain=True,
+                )
+                adequacy = None
         else:
             basis = FourierBasis(harmonics)
-            _say(progress, f"SEM, Fourier basis with {len(harmonics)} harmonics")
-            sem = solve_sem(loop, r, d, basis, y=y, max_iterations=setup.model.max_iterations)
+            _say(
+                progress,
+                f"SEM, Fourier basis with {len(harmonics)} harmonics"
+                + (", refining the plant gain c" if fit_gain else ""),
+            )
+            sem = solve_sem(
+                loop, r, d, basis, y=y, max_iterations=setup.model.max_iterations, fit_gain=fit_gain
+            )
+        if fit_gain and gain is not None:
+            gain = dataclasses.replace(
+                gain, c_refined=gain.c * sem.gain, c_refined_std=gain.c * sem.gain_std
+            )
+            plant = bla.plant.scaled(gain.c_refined)
+            loop = _closed_loop(setup, plant)
         flux = sem.flux
         model_info = {
             "basis": "fourier",
@@ -658,6 +709,8 @@ def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
         diag["adequacy"] = cal.adequacy.to_dict()
     if cal.validation is not None:
         diag["validation"] = cal.validation.to_dict()
+    if cal.gain is not None:
+        diag["gain_correction"] = cal.gain.to_dict()
     for key, value in cal.extra.items():
         if hasattr(value, "to_dict") and key not in ("kernel", "selection"):
             diag[key] = value.to_dict()
@@ -680,7 +733,7 @@ def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
             "num": list(cal.plant.num),
             "den": list(cal.plant.den),
             "delay": cal.plant.delay,
-            "gain_correction": None if cal.gain is None else cal.gain.c,
+            "gain_correction": None if cal.gain is None else cal.gain.value,
             "source": "setup" if cal.bla is None else "bla",
         }
     return art

@@ -63,6 +63,10 @@ class SEMResult:
         Simulated Hall signals at theta*.
     y0_sim : ndarray (N,)
         Simulated angle at theta*.
+    gain : float
+        Factor c on the plant input matrix found jointly with theta (1 unless ``fit_gain``).
+    gain_std : float
+        Its standard deviation from the covariance (first order, c * std(log c)).
     """
 
     flux: FluxModel
@@ -76,6 +80,8 @@ class SEMResult:
     n_samples: int
     d_sim: NDArray[np.float64] = field(repr=False)
     y0_sim: NDArray[np.float64] = field(repr=False)
+    gain: float = 1.0
+    gain_std: float = 0.0
 
     @property
     def cost(self) -> float:
@@ -122,6 +128,7 @@ def solve_sem(
     tol: float = 1e-6,
     damping: float = 1e-6,
     regularization: ArrayLike | None = None,
+    fit_gain: bool = False,
 ) -> SEMResult:
     """Solve problem (problem) by Levenberg-Marquardt on exact sensitivities.
 
@@ -148,6 +155,10 @@ def solve_sem(
     regularization : array_like (p,), optional
         Diagonal Tikhonov weights w: the cost becomes J(theta) + sum_j w_j theta_j^2 (used by the
         kernel basis, whose prior is diagonal in the Fourier modes).
+    fit_gain : bool
+        Also estimate a factor c on the plant's input matrix (parametrized as log c, exact
+        sensitivity), refining the gain correction of eq. (c_hat) at the SEM optimum where the
+        flux model no longer masks it.
 
     Returns
     -------
@@ -163,29 +174,37 @@ def solve_sem(
         yy = f_init(d, loop.pole_pairs, projection=loop.projection, offset=loop.offset)
         theta0 = least_squares_start(basis, d, yy if y is None else y)
     theta = np.array(theta0, dtype=np.float64).reshape(3, basis.size)
-    p = theta.size
-    wreg = np.zeros(p) if regularization is None else np.asarray(regularization, float)
+    ng = 1 if fit_gain else 0
+    p = theta.size + ng
+    wreg = np.zeros(theta.size) if regularization is None else np.asarray(regularization, float)
+    wreg = np.r_[wreg, np.zeros(ng)]
     jac = np.empty((N, 3, p))
-    flux = FluxModel(basis, theta)
+    log_gain = 0.0
 
-    def cost_of(th: NDArray) -> tuple[float, object]:
-        res = simulate_loop(loop, FluxModel(basis, th), r)
+    def loop_at(lg: float) -> ClosedLoop:
+        return loop.with_plant_gain(math.exp(lg)) if fit_gain else loop
+
+    def jacobian_at(th: NDArray, lg: float):
+        return loop_jacobian(loop_at(lg), FluxModel(basis, th), r, out=jac, fit_gain=fit_gain)
+
+    def cost_of(th: NDArray, lg: float) -> float:
+        res = simulate_loop(loop_at(lg), FluxModel(basis, th), r)
         if res.status != "ok":
-            return math.inf, res
+            return math.inf
         e = d - res.d
-        return float(np.vdot(e, e) + wreg @ (th.ravel() ** 2)), res
+        return float(np.vdot(e, e) + wreg[: th.size] @ (th.ravel() ** 2))
 
     lam = damping
     history = []
     status = "max_iterations"
     iterations = 0
-    lj = loop_jacobian(loop, flux, r, out=jac)
+    lj = jacobian_at(theta, log_gain)
     if lj.status != "ok":
         status = "diverged"
     JtJ = np.eye(p)
     while status not in ("diverged",):
         e = (d - lj.d).ravel()
-        th = theta.ravel()
+        th = np.r_[theta.ravel(), [log_gain] * ng]
         cost = float(e @ e + wreg @ th**2)
         if not history:
             history.append(cost)
@@ -214,8 +233,9 @@ def solve_sem(
             except np.linalg.LinAlgError:
                 lam *= 10.0
                 continue
-            new_theta = theta + step.reshape(theta.shape)
-            new_cost, _res = cost_of(new_theta)
+            new_theta = theta + step[: theta.size].reshape(theta.shape)
+            new_log_gain = log_gain + (float(step[-1]) if fit_gain else 0.0)
+            new_cost = cost_of(new_theta, new_log_gain)
             if new_cost < cost:
                 accepted = True
                 break
@@ -223,17 +243,20 @@ def solve_sem(
         if not accepted:
             status = "stalled"
             break
-        theta = new_theta
+        theta, log_gain = new_theta, new_log_gain
         iterations += 1
         history.append(new_cost)
         lam = max(lam / 5.0, 1e-12)
-        lj = loop_jacobian(loop, FluxModel(basis, theta), r, out=jac)
+        lj = jacobian_at(theta, log_gain)
     final_flux = FluxModel(basis, theta)
     sigma2 = history[-1] / max(3 * N - p, 1) if history else math.nan
     try:
-        cov = sigma2 * np.linalg.inv(JtJ + np.diag(wreg))
+        cov_all = sigma2 * np.linalg.inv(JtJ + np.diag(wreg))
     except np.linalg.LinAlgError:
-        cov = np.full((p, p), np.nan)
+        cov_all = np.full((p, p), np.nan)
+    cov = cov_all[: theta.size, : theta.size]
+    gain = math.exp(log_gain)
+    gain_std = gain * math.sqrt(max(cov_all[-1, -1], 0.0)) if fit_gain else 0.0
     return SEMResult(
         flux=final_flux,
         theta0=np.asarray(theta0, float).reshape(3, -1),
@@ -246,6 +269,8 @@ def solve_sem(
         n_samples=N,
         d_sim=lj.d,
         y0_sim=lj.y0,
+        gain=gain,
+        gain_std=gain_std,
     )
 
 
