@@ -1,0 +1,1047 @@
+"""Calibration from an open-loop constant-speed run (``[trajectory] kind = "constant-speed"``).
+
+The paper (van Meer et al., "Self-Calibrating Position Measurements: Applied to Imperfect Hall
+Sensors") identifies the flux model g_theta by simulation-error minimization of a closed loop,
+eq. (problem). Many benches instead spin the rotor open loop at a constant speed. There the true
+angle is known up to two numbers, ``y0_k = a + b k`` (k the sample index), and eq. (problem) becomes
+
+    min_{theta, a, b}  sum_k || d_k - psi(a + b k) theta ||^2 ,
+
+a separable nonlinear least-squares problem: linear in theta for fixed (a, b). It is solved by
+variable projection (Golub & Pereyra, SIAM J. Numer. Anal. 10, 1973; Kaufman's Jacobian, BIT 15,
+1975): theta is eliminated by linear least squares and Gauss-Newton runs on the nonlinear
+parameters only. For a Fourier basis (eq. basis) the set {g_theta(y0 + c)} equals {g_theta(y0)}, so
+the cost does not depend on ``a`` at all: the only nonlinear parameter is the speed ``b``, and ``a``
+is a gauge fixed afterwards (see :func:`calibrate_constant_speed`).
+
+The module also estimates the electrical geometry of the three sensors from raw data
+(:func:`estimate_sensor_geometry`), so that f_init, eq. (fimp), can use the measured sensor
+spacing, gains and offsets instead of the nominal Clarke transform, and it locates the
+constant-speed part of a recording (:func:`find_constant_speed`).
+
+Units: angles in rad (mechanical unless stated), time in samples, d in the sensor's unit (V or raw
+ADC counts: offsets are handled by the geometry and by the constant term of the basis).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+import scipy.linalg
+from numpy.typing import ArrayLike, NDArray
+from threadpoolctl import threadpool_limits
+
+from .flux import FluxModel, FourierBasis
+from .lut import LUT, build_lut
+from .reconstruction import f_init
+
+if TYPE_CHECKING:  # the adapter at the end works on the pipeline's types
+    from .io import Dataset, Setup
+    from .pipeline import Calibration
+
+__all__ = [
+    "ConstantSpeedResult",
+    "SensorGeometry",
+    "SpeedSegment",
+    "calibrate_constant_speed",
+    "calibrate_dataset_constant_speed",
+    "default_harmonics",
+    "estimate_sensor_geometry",
+    "find_constant_speed",
+]
+
+TWO_PI = 2.0 * math.pi
+
+
+# --------------------------------------------------------------------------------------------------
+# Sensor geometry
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SensorGeometry:
+    """Electrical geometry of three Hall sensors: ``d_h ~ o_h + A_h cos(psi - phi_h)``.
+
+    psi is the electrical angle (``n_m y0`` up to a constant). The phases are relative to sensor 1
+    (``phases[0] = 0``) and oriented so that the sensor order is the positive direction:
+    ``0 < phases[1] < phases[2] < 2 pi``. For the nominal wiring of the paper (eq. fimp, Clarke)
+    the phases are 0, 120 and 240 degrees.
+
+    Attributes
+    ----------
+    phases : ndarray, shape (3,)
+        Electrical phase phi_h of each sensor [rad], in [0, 2 pi).
+    amplitudes : ndarray, shape (3,)
+        A_h, in the sensor's unit.
+    offsets : ndarray, shape (3,)
+        o_h, in the sensor's unit (the centre of the fitted ellipse).
+    projection : ndarray, shape (2, 3)
+        Least-squares left inverse of ``M = [A_h cos phi_h, A_h sin phi_h]`` scaled by the mean
+        amplitude: ``projection @ (d - offsets)`` gives (alpha, beta) = A_mean (cos psi, sin psi).
+        With equal amplitudes and nominal phases it equals the first two rows of the Clarke matrix.
+    direction : int
+        +1 if the electrical angle (with this orientation) increased over the data, -1 if it
+        decreased, 0 if it did not move a full electrical cycle either way.
+    electrical_cycles : float
+        Net electrical cycles covered by the data (signed).
+    revolutions : float or None
+        ``electrical_cycles / pole_pairs`` when the pole pairs were given.
+    fit_rms : float
+        RMS of the residual of the three signals about the fitted ellipse, relative to the mean
+        amplitude (harmonic distortion and noise; about 0.01-0.05 on real sensors).
+    status : str
+        ``"ok"``, ``"partial-coverage"`` (the data does not sweep all electrical angles, so the
+        ellipse is extrapolated) or ``"degenerate"`` (the signals do not span a plane or do not
+        trace an ellipse; the phases are then the nominal ones and meaningless).
+    message : str
+        Human-readable explanation of the status.
+    """
+
+    phases: NDArray[np.float64] = field(repr=False)
+    amplitudes: NDArray[np.float64] = field(repr=False)
+    offsets: NDArray[np.float64] = field(repr=False)
+    projection: NDArray[np.float64] = field(repr=False)
+    direction: int
+    electrical_cycles: float
+    revolutions: float | None
+    fit_rms: float
+    status: str
+    message: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    @property
+    def phases_deg(self) -> NDArray[np.float64]:
+        """phases in degrees."""
+        return np.degrees(self.phases)
+
+    @property
+    def spacing_deg(self) -> NDArray[np.float64]:
+        """Electrical spacing between neighbours 1->2, 2->3, 3->1 [deg]; sums to 360."""
+        p = np.append(self.phases, TWO_PI)
+        return np.degrees(np.diff(p))
+
+    def f_init(self, d: ArrayLike, pole_pairs: int, *, y_initial: float = 0.0) -> NDArray:
+        """f_init, eq. (fimp), with this geometry's projection and offsets [rad]."""
+        return f_init(
+            d, pole_pairs, y_initial=y_initial, projection=self.projection, offset=self.offsets
+        )
+
+    def to_dict(self) -> dict:
+        """JSON-ready description (for the calibration artifact)."""
+        return {
+            "phases": self.phases.tolist(),
+            "phases_deg": self.phases_deg.tolist(),
+            "amplitudes": self.amplitudes.tolist(),
+            "offsets": self.offsets.tolist(),
+            "projection": self.projection.tolist(),
+            "direction": int(self.direction),
+            "electrical_cycles": float(self.electrical_cycles),
+            "revolutions": None if self.revolutions is None else float(self.revolutions),
+            "fit_rms": float(self.fit_rms),
+            "status": self.status,
+            "message": self.message,
+        }
+
+
+def _projection_from(phases: NDArray, amplitudes: NDArray) -> NDArray[np.float64]:
+    M = amplitudes[:, None] * np.column_stack([np.cos(phases), np.sin(phases)])
+    return np.mean(amplitudes) * np.linalg.pinv(M)
+
+
+def _fit_ellipse(z: NDArray[np.float64]) -> tuple[NDArray, NDArray] | None:
+    """Direct least-squares ellipse fit (Fitzgibbon, Pilu & Fisher 1999; Halir & Flusser 1998).
+
+    Returns the centre c (2,) and L (2, 2) with ``z - c = L [cos u, sin u]`` on the ellipse, or
+    None if no ellipse fits.
+    """
+    s = np.std(z, axis=0)
+    s[s == 0.0] = 1.0
+    x, y = z[:, 0] / s[0], z[:, 1] / s[1]
+    D1 = np.column_stack([x * x, x * y, y * y])
+    D2 = np.column_stack([x, y, np.ones_like(x)])
+    S1, S2, S3 = D1.T @ D1, D1.T @ D2, D2.T @ D2
+    try:
+        T = -np.linalg.solve(S3, S2.T)
+    except np.linalg.LinAlgError:
+        return None
+    Mred = S1 + S2 @ T
+    Mred = np.array([Mred[2] / 2.0, -Mred[1], Mred[0] / 2.0])
+    w, V = np.linalg.eig(Mred)
+    V = np.real(V)
+    cond = 4.0 * V[0] * V[2] - V[1] ** 2
+    good = np.flatnonzero(cond > 0)
+    if good.size == 0:
+        return None
+    a1 = V[:, good[0]]
+    A, B, C = a1
+    Dl, E, F = T @ a1
+    Q = np.array([[A, B / 2.0], [B / 2.0, C]])
+    lin = np.array([Dl, E])
+    try:
+        c = -0.5 * np.linalg.solve(Q, lin)
+    except np.linalg.LinAlgError:
+        return None
+    kappa = c @ Q @ c - F  # (z - c)^T Q (z - c) = kappa on the ellipse
+    Qn = Q / kappa
+    w, U = np.linalg.eigh(Qn)
+    if np.any(w <= 0):
+        return None
+    L = U @ np.diag(1.0 / np.sqrt(w)) @ U.T  # (z-c) = L u, |u| = 1  <=>  (z-c)^T Qn (z-c) = 1
+    Sd = np.diag(s)
+    return Sd @ c, Sd @ L
+
+
+def estimate_sensor_geometry(
+    d: ArrayLike,
+    pole_pairs: int | None = None,
+    *,
+    refine: int = 2,
+    max_fit_rms: float = 0.3,
+) -> SensorGeometry:
+    """Electrical phases, amplitudes and offsets of three Hall sensors from raw data alone.
+
+    Model: ``d_k - o = M [cos psi_k, sin psi_k]`` with ``M[h] = A_h [cos phi_h, sin phi_h]``, the
+    first-harmonic part of the flux model of the paper (section "Model structure") seen in the
+    electrical angle psi. The centred data spans (nearly) a plane in R^3; in that plane it traces an
+    ellipse. Steps:
+
+    1. principal plane by SVD of the centred data (PCA);
+    2. direct least-squares ellipse fit in the plane (Fitzgibbon et al. 1999), giving the centre
+       o and M up to a rotation/reflection of psi;
+    3. ``refine`` rounds of alternation: psi_k = atan2 of the projected data, then o and M by
+       linear least squares of d on [1, cos psi, sin psi] (the fundamental of each sensor);
+    4. rotation fixing ``phi_1 = 0`` and reflection fixing the orientation
+       ``0 < phi_2 < phi_3 < 2 pi`` (the sensor order is the positive direction, so that f_init
+       increases when a standard-wired motor turns forward).
+
+    Pure sinusoids (any spacing, gains, offsets) are recovered exactly up to noise. Harmonic
+    distortion and per-pole variations average out in the fundamental; the calibration proper
+    (:func:`calibrate_constant_speed`) corrects what remains.
+
+    Parameters
+    ----------
+    d : array_like, shape (N, 3)
+        Hall signals; best a constant-speed stretch sweeping whole electrical cycles.
+    pole_pairs : int, optional
+        n_m; only used to report the mechanical revolutions covered.
+    refine : int, keyword-only
+        Rounds of the alternating refinement after the ellipse fit (0 = pure ellipse fit).
+    max_fit_rms : float, keyword-only
+        Largest ``fit_rms`` (relative to the amplitude) accepted as an ellipse; above it the status
+        is ``"degenerate"``. Real sensors give 0.01-0.1, pure noise about 0.6.
+
+    Returns
+    -------
+    SensorGeometry
+    """
+    x = np.asarray(d, dtype=np.float64)
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ValueError("d must have shape (N, 3)")
+    if x.shape[0] < 8:
+        raise ValueError("need at least 8 samples to fit the sensor geometry")
+    if not np.all(np.isfinite(x)):
+        raise ValueError("d contains non-finite values")
+
+    def degenerate(msg: str) -> SensorGeometry:
+        ph = np.array([0.0, TWO_PI / 3.0, 2.0 * TWO_PI / 3.0])
+        amp = np.maximum(np.std(x, axis=0) * math.sqrt(2.0), np.finfo(float).tiny)
+        return SensorGeometry(
+            ph, amp, x.mean(axis=0), _projection_from(ph, amp), 0, 0.0,
+            None, float("nan"), "degenerate", msg,
+        )  # fmt: skip
+
+    mean = x.mean(axis=0)
+    xc = x - mean
+    _, sv, Vt = np.linalg.svd(xc, full_matrices=False)
+    if sv[1] <= 1e-9 * max(sv[0], np.finfo(float).tiny):
+        return degenerate("the three signals do not span a plane (no rotation in the data?)")
+    U2 = Vt[:2].T  # (3, 2)
+    fit = _fit_ellipse(xc @ U2)
+    if fit is None:
+        return degenerate("no ellipse fits the data in its principal plane")
+    c, L = fit
+    o = mean + U2 @ c
+    M = U2 @ L  # d - o = M [cos u, sin u]
+    for _ in range(int(refine)):
+        psi = _psi_from(x, o, M)
+        H = np.column_stack([np.ones_like(psi), np.cos(psi), np.sin(psi)])
+        coef, *_ = np.linalg.lstsq(H, x, rcond=None)
+        o, M = coef[0].copy(), coef[1:].T.copy()
+    # rotation so that phi_1 = 0, reflection so that the sensor order is positive
+    phi = np.arctan2(M[:, 1], M[:, 0])
+    amp = np.hypot(M[:, 0], M[:, 1])
+    phi = np.mod(phi - phi[0], TWO_PI)
+    if phi[1] > phi[2]:
+        phi = np.mod(-phi, TWO_PI)
+    phi[0] = 0.0
+    P = _projection_from(phi, amp)
+    ab = (x - o) @ P.T / np.mean(amp)
+    psi = np.arctan2(ab[:, 1], ab[:, 0])
+    Mfin = amp[:, None] * np.column_stack([np.cos(phi), np.sin(phi)])
+    resid = x - o - np.column_stack([np.cos(psi), np.sin(psi)]) @ Mfin.T
+    fit_rms = float(np.sqrt(np.mean(resid**2)) / np.mean(amp))
+    un = np.unwrap(psi)
+    cycles = float((un[-1] - un[0]) / TWO_PI)
+    direction = int(np.sign(cycles)) if abs(cycles) >= 1.0 else 0
+    # coverage: fraction of 36 electrical sectors visited
+    sectors = np.unique(np.floor(np.mod(psi, TWO_PI) / TWO_PI * 36).astype(int))
+    if not fit_rms < max_fit_rms:
+        status = "degenerate"
+        message = (
+            f"the signals do not trace an ellipse (residual {fit_rms:.2f} of the amplitude): "
+            "noise only, or no rotation?"
+        )
+    elif sectors.size < 36:
+        status = "partial-coverage"
+        message = (
+            f"the data sweeps {sectors.size} of 36 electrical 10-degree sectors; the ellipse is "
+            "extrapolated elsewhere"
+        )
+    else:
+        status, message = "ok", ""
+    revs = None if pole_pairs is None else cycles / int(pole_pairs)
+    return SensorGeometry(phi, amp, o, P, direction, cycles, revs, fit_rms, status, message)
+
+
+def _psi_from(x: NDArray, o: NDArray, M: NDArray) -> NDArray[np.float64]:
+    u = (x - o) @ np.linalg.pinv(M).T
+    return np.arctan2(u[:, 1], u[:, 0])
+
+
+# --------------------------------------------------------------------------------------------------
+# Constant-speed segment
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SpeedSegment:
+    """The constant-speed part of a recording, found from f_init's speed.
+
+    Attributes
+    ----------
+    start, stop : int
+        Sample indices: the segment is ``start <= k < stop``.
+    speed : float
+        Mean f_init speed over the segment [rad (mechanical) per sample]; negative when turning
+        backwards.
+    samples_per_cycle : int
+        Samples per electrical cycle at that speed (the smoothing window).
+    revolutions : float
+        Mechanical revolutions in the segment.
+    status : str
+        ``"ok"`` or ``"not-found"``.
+    """
+
+    start: int
+    stop: int
+    speed: float
+    samples_per_cycle: int
+    revolutions: float
+    status: str
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    def split(self, revolutions: float) -> tuple[int, int, int]:
+        """Indices (start, mid, stop) with the first ``revolutions`` in start..mid."""
+        mid = self.start + int(round(revolutions * TWO_PI / abs(self.speed)))
+        return self.start, min(mid, self.stop), self.stop
+
+
+def find_constant_speed(
+    d: ArrayLike,
+    pole_pairs: int,
+    *,
+    geometry: SensorGeometry | None = None,
+    tolerance: float = 0.1,
+    margin_cycles: float = 0.5,
+) -> SpeedSegment:
+    """Locate the longest stretch of nearly constant speed (e.g. the cruise of a trapezoidal move).
+
+    f_init's angle (with the estimated geometry) is differentiated and averaged over a sliding
+    window of exactly one electrical cycle, which removes f_init's errors that are periodic in
+    the electrical angle (the bulk of them, see eq. fimp). The cruise speed is the median of that
+    smoothed speed where it exceeds half its maximum magnitude. The segment is the longest run of
+    samples all of whose one-cycle windows have a speed within ``tolerance`` (relative) of the
+    cruise speed, shrunk by ``margin_cycles`` electrical cycles on each side.
+
+    Parameters
+    ----------
+    d : array_like, shape (N, 3)
+        Hall signals.
+    pole_pairs : int
+        n_m.
+    geometry : SensorGeometry, optional
+        Default: estimated from the whole recording.
+    tolerance : float, keyword-only
+        Allowed relative deviation of the smoothed speed from the cruise speed. Per-pole
+        variations of real rings move f_init's cycle-averaged speed by a few percent.
+    margin_cycles : float, keyword-only
+        Extra electrical cycles dropped at each end.
+
+    Returns
+    -------
+    SpeedSegment
+    """
+    x = np.asarray(d, dtype=np.float64)
+    n = int(pole_pairs)
+    geo = estimate_sensor_geometry(x, n) if geometry is None else geometry
+    e = n * geo.f_init(x, n)  # electrical angle, unwrapped
+    N = e.size
+    v = np.diff(e)
+    if N < 16 or not np.any(v):
+        return SpeedSegment(0, 0, 0.0, 0, 0.0, "not-found")
+    # first guess of the cruise speed: a high quantile of |v| (robust to the rest phases)
+    vq = float(np.quantile(np.abs(v), 0.75))
+    W = 0
+    cruise = 0.0
+    for _ in range(3):
+        W_new = int(np.clip(round(TWO_PI / max(vq, 1e-12)), 2, max(2, N // 4)))
+        if W_new == W:
+            break
+        W = W_new
+        vs = (e[W:] - e[:-W]) / W  # mean speed over [k, k+W): centred at k + W/2
+        big = np.abs(vs) >= 0.5 * np.max(np.abs(vs))
+        cruise = float(np.median(vs[big]))
+        vq = abs(cruise)
+    ok = np.abs(vs - cruise) <= tolerance * abs(cruise)
+    # longest run of True
+    idx = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
+    starts, stops = idx[0::2], idx[1::2]
+    if starts.size == 0:
+        return SpeedSegment(0, 0, 0.0, W, 0.0, "not-found")
+    j = int(np.argmax(stops - starts))
+    # vs[i] is the mean speed over samples i..i+W-1 (W + 1 angle samples); keep the samples k all
+    # of whose windows i in [k - W + 1, k] are within tolerance, then drop the margins
+    margin = int(round(margin_cycles * W))
+    start = int(starts[j]) + W - 1 + margin
+    stop = min(int(stops[j]) - margin, N)
+    if stop - start < 2 * W:
+        return SpeedSegment(0, 0, 0.0, W, 0.0, "not-found")
+    k = np.arange(start, stop, dtype=np.float64)
+    slope = float(np.polyfit(k, e[start:stop], 1)[0]) / n
+    revs = abs(slope) * (stop - start) / TWO_PI
+    return SpeedSegment(start, stop, slope, W, revs, "ok")
+
+
+# --------------------------------------------------------------------------------------------------
+# Harmonics
+# --------------------------------------------------------------------------------------------------
+
+
+def default_harmonics(
+    pole_pairs: int,
+    *,
+    electrical: int = 3,
+    sidebands: int | None = None,
+) -> tuple[int, ...]:
+    """Mechanical harmonics for a ring of ``pole_pairs`` pole pairs with per-pole variations.
+
+    The flux of a ring of n_m identical pole pairs is periodic in the electrical angle n_m y0
+    (mechanical harmonics j n_m, eq. basis); magnets that differ from each other modulate it, which
+    puts energy in the sidebands ``j n_m +- s`` (an eccentric or tilted ring: s = 1; an arbitrary
+    per-pole pattern of amplitudes and offsets: every s up to n_m / 2).
+
+    With ``sidebands=None`` (default) every harmonic ``1 .. electrical * n_m`` is returned: the
+    per-pole pattern of real rings is broadband, so all sidebands below the top electrical harmonic
+    are kept. With an integer ``sidebands`` the set is
+    ``{j n_m + s : j = 0..electrical, |s| <= sidebands} intersect [1, inf)``.
+
+    The default (3 electrical harmonics, i.e. 1..75 for 25 pole pairs) was chosen by held-out error
+    on the ring-jig recordings (``tests/test_real_ringjig.py``: calibrate on two revolutions, test
+    on the remaining 2.35; f_star error in electrical degrees RMS, files 1/2/3, robust weights on):
+    1..62: 1.03/0.80/0.83; 1..75: 0.82/0.40/0.44; 1..80: 0.82/0.40/0.41; 1..87: 1.05/0.42/0.42;
+    1..100: 1.35/0.53/0.50 (without robust weights 1..75 gives 1.16/0.46/0.45). Multiples of 25
+    with sidebands +-6 only: 3.6/4.5/4.2; multiples of 25 alone: 4.8/6.5/7.0 (f_init: 4.9/6.6/7.0):
+    on that ring nearly all of f_init's error is per-magnet, and the sensor offsets vary at 1..24
+    cycles per revolution.
+
+    Parameters
+    ----------
+    pole_pairs : int
+        n_m.
+    electrical : int, keyword-only
+        Highest electrical harmonic j.
+    sidebands : int, keyword-only
+        Sideband order s kept around each j n_m (also the low harmonics 1..s of j = 0); default
+        all harmonics up to ``electrical * pole_pairs``.
+    """
+    n = int(pole_pairs)
+    if n < 1 or electrical < 1 or (sidebands is not None and sidebands < 0):
+        raise ValueError("need pole_pairs >= 1, electrical >= 1 and sidebands >= 0")
+    if sidebands is None:
+        return tuple(range(1, int(electrical) * n + 1))
+    sb = int(sidebands)
+    out = {j * n + s for j in range(int(electrical) + 1) for s in range(-sb, sb + 1)}
+    return tuple(sorted(h for h in out if h >= 1))
+
+
+# --------------------------------------------------------------------------------------------------
+# Constant-speed calibration
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ConstantSpeedResult:
+    """Result of :func:`calibrate_constant_speed`.
+
+    Attributes
+    ----------
+    model : FluxModel
+        The identified g_theta (theta: ``model.theta``, shape (3, m)).
+    a, b : float
+        The true angle on the segment is ``y0_k = a + b k`` [rad, rad per sample], k the sample
+        index of the whole recording, in f_init's frame (see the gauge in
+        :func:`calibrate_constant_speed`). ``b < 0`` when the rotor turned against the sensor order.
+    start, stop : int
+        The segment used, ``start <= k < stop``.
+    pole_pairs : int
+        n_m.
+    geometry : SensorGeometry
+        The geometry of f_init (projection and offsets) used for the table.
+    lut : LUT
+        The table of eq. (f_final) built from the model with the geometry's projection/offset.
+    cost : float
+        Unweighted cost of eq. (problem) at the solution: sum of squared residuals over the segment.
+    residual_rms : ndarray, shape (3,)
+        RMS residual per channel [sensor unit].
+    noise_std : float
+        White-noise estimate [sensor unit, per channel, assumed equal]: from the second differences
+        of the residual component orthogonal to the model curve's tangent g'(y0). Angle errors of
+        the rotor (which move d along the curve) do not enter it and smooth model errors hardly do.
+    angle_noise_floor : float
+        RMS angle error [rad, mechanical] that white noise of ``noise_std`` gives through f_init.
+    motion_rms : float
+        RMS of the residual's tangential component expressed as an angle [rad, mechanical]: how far
+        the rotor (as seen through the model) strays from the straight line a + b k. Several times
+        ``angle_noise_floor`` means the constant-speed assumption is violated (speed ripple,
+        resonances, stepper microsteps).
+    weights : ndarray, shape (stop - start,)
+        Final robust sample weights in (0, 1] (all ones with ``robust=False``).
+    revolutions : float
+        Mechanical revolutions in the segment, ``|b| (stop - start) / 2 pi``.
+    iterations : int
+        Gauss-Newton iterations on b (summed over the robust reweighting rounds).
+    converged : bool
+        Whether the last Gauss-Newton run met ``tol``.
+    status : str
+        ``"ok"``, ``"warning"`` (see ``warnings``) or ``"not-converged"``.
+    warnings : tuple of str
+        E.g. fewer than one revolution, non-bijective table, geometry status.
+    """
+
+    model: FluxModel
+    a: float
+    b: float
+    start: int
+    stop: int
+    pole_pairs: int
+    geometry: SensorGeometry
+    lut: LUT
+    cost: float
+    residual_rms: NDArray[np.float64] = field(repr=False)
+    noise_std: float
+    angle_noise_floor: float
+    motion_rms: float
+    weights: NDArray[np.float64] = field(repr=False)
+    revolutions: float
+    iterations: int
+    converged: bool
+    status: str
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def theta(self) -> NDArray[np.float64]:
+        return self.model.theta
+
+    @property
+    def direction(self) -> int:
+        """+1 if the rotor turned in the sensor order (f_init increasing), -1 otherwise."""
+        return 1 if self.b > 0 else -1
+
+    def y0(self, k: ArrayLike | None = None) -> NDArray[np.float64]:
+        """The fitted straight line ``a + b k`` (default: the segment's samples) [rad]."""
+        kk = np.arange(self.start, self.stop) if k is None else np.asarray(k, dtype=np.float64)
+        return self.a + self.b * kk
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary (for the calibration artifact); theta and the table not included."""
+        return {
+            "trajectory": "constant-speed",
+            "start": self.start,
+            "stop": self.stop,
+            "a": self.a,
+            "b": self.b,
+            "revolutions": self.revolutions,
+            "cost": self.cost,
+            "residual_rms": self.residual_rms.tolist(),
+            "noise_std": self.noise_std,
+            "angle_noise_floor": self.angle_noise_floor,
+            "motion_rms": self.motion_rms,
+            "downweighted_fraction": float(np.mean(self.weights < 1.0)),
+            "iterations": self.iterations,
+            "converged": self.converged,
+            "status": self.status,
+            "warnings": list(self.warnings),
+            "geometry": self.geometry.to_dict(),
+        }
+
+
+class _WeightedLS:
+    """Weighted linear least squares with the basis matrix B: the inner problem of VP.
+
+    Normal equations with a Cholesky factor (the Fourier basis over whole revolutions is nearly
+    orthogonal, so this is accurate and about 10x faster than QR); QR when the Gram matrix is
+    ill-conditioned (e.g. less than a revolution of data).
+    """
+
+    def __init__(self, B: NDArray, sw: NDArray) -> None:
+        self.B = B
+        self.Bw = B * sw[:, None]
+        self.sw = sw
+        self._cho = None
+        self._qr = None
+        G = self.Bw.T @ self.Bw
+        try:
+            cho = scipy.linalg.cho_factor(G, lower=True, check_finite=False)
+            dg = np.abs(np.diag(cho[0]))
+            if dg.min() > 1e-6 * dg.max():
+                self._cho = cho
+        except np.linalg.LinAlgError:
+            pass
+        if self._cho is None:
+            self._qr = np.linalg.qr(self.Bw)
+
+    def coef(self, Xw: NDArray) -> NDArray:
+        """C minimizing ||Xw - Bw C|| (Xw already weighted)."""
+        if self._cho is not None:
+            return scipy.linalg.cho_solve(self._cho, self.Bw.T @ Xw, check_finite=False)
+        Q, R = self._qr
+        return np.linalg.solve(R, Q.T @ Xw)
+
+    def solve(self, D: NDArray) -> tuple[NDArray, NDArray]:
+        """(theta^T, weighted residual) for data D (unweighted)."""
+        Dw = D * self.sw[:, None]
+        thT = self.coef(Dw)
+        return thT, Dw - self.Bw @ thT
+
+    def project_out(self, Xw: NDArray) -> NDArray:
+        """Xw minus its projection on range(Bw)."""
+        return Xw - self.Bw @ self.coef(Xw)
+
+
+def _basis_derivative(B: NDArray, basis: FourierBasis) -> NDArray:
+    """d beta / d y0 from beta itself (columns 1, sin h y, cos h y, ... of eq. basis)."""
+    h = basis.harmonic_array
+    out = np.zeros_like(B)
+    out[:, 1::2] = h * B[:, 2::2]
+    out[:, 2::2] = -h * B[:, 1::2]
+    return out
+
+
+def _gauss_newton_b(
+    D: NDArray,
+    basis: FourierBasis,
+    t: NDArray,
+    a_c: float,
+    b: float,
+    sw: NDArray,
+    *,
+    max_iterations: int,
+    tol: float,
+) -> tuple[float, int, bool]:
+    """Variable-projection Gauss-Newton on the speed b (a is a gauge, held at a_c)."""
+    h_max = float(np.max(basis.harmonic_array))
+    tmax = float(np.max(np.abs(t)))
+    ls = _WeightedLS(basis.evaluate(a_c + b * t), sw)
+    thT, r = ls.solve(D)
+    cost = float(np.sum(r * r))
+    for it in range(1, int(max_iterations) + 1):
+        Jc = (_basis_derivative(ls.B, basis) * (t * sw)[:, None]) @ thT  # d(sw model)/db
+        Jp = ls.project_out(Jc)  # Kaufman: the part orthogonal to range(sw B)
+        den = float(np.sum(Jp * Jp))
+        if not den > 0.0:
+            return b, it, False
+        step = float(np.sum(Jp * r)) / den
+        for _ in range(40):  # halve until the cost does not increase
+            ls_n = _WeightedLS(basis.evaluate(a_c + (b + step) * t), sw)
+            th_n, r_n = ls_n.solve(D)
+            c_n = float(np.sum(r_n * r_n))
+            if c_n <= cost * (1.0 + 1e-12):
+                break
+            step *= 0.5
+        else:
+            return b, it, abs(step) * h_max * tmax < tol
+        b += step
+        ls, thT, r, cost = ls_n, th_n, r_n, c_n
+        if abs(step) * h_max * tmax < tol:
+            return b, it, True
+    return b, int(max_iterations), False
+
+
+def calibrate_constant_speed(
+    d: ArrayLike,
+    pole_pairs: int,
+    basis: FourierBasis,
+    *,
+    start: int,
+    stop: int,
+    geometry: SensorGeometry | None = None,
+    max_iterations: int = 50,
+    tol: float = 1e-9,
+    robust: bool = True,
+    robust_iterations: int = 4,
+    robust_threshold: float = 2.0,
+    lut_points: int = 4096,
+) -> ConstantSpeedResult:
+    """Identify g_theta from a constant-speed stretch: eq. (problem) with ``y0_k = a + b k``.
+
+    The cost ``J(theta, a, b) = sum_{k=start}^{stop-1} w_k ||d_k - psi(a + b k) theta||^2`` is
+    separable (Golub & Pereyra 1973). For fixed (a, b), theta is the linear least-squares solution
+    (QR of the basis matrix). The Fourier basis is shift-invariant, so after eliminating theta J
+    does not depend on a; Gauss-Newton with Kaufman's variable-projection Jacobian
+    ``dr/db = -(I - Q Q^T) (d beta / d y0 * k) theta`` runs on b alone, with step halving if
+    the cost rises (3-5 iterations on real data). b starts from the slope of f_init's unwrapped
+    output over the segment, well inside the basin: a slope error delta moves harmonic h by a phase
+    of about h delta K over K samples, and f_init's error is periodic, so the line fit through it
+    is accurate to a small fraction of a cycle.
+
+    What pins b: the electrical period (harmonic n_m) and the per-magnet variations (harmonics
+    other than multiples of n_m), which repeat once per revolution. With less than one revolution
+    in the segment those harmonics cannot be told apart and part of the ring is never seen: the
+    result then carries a warning, and the table extrapolates there.
+
+    Gauge. Replacing a by a + c and theta by the correspondingly rotated theta gives the same fit,
+    so a is fixed by convention. f_star = f_init + eta(f_init mod 2 pi), eq. (f_final), needs the
+    model's angle to be f_init's own angle up to f_init's (small, periodic) error: f_init's frame
+    starts at y = 0 before the first sample of the recording and counts electrical cycles from
+    there, and the table's unwrapping, eq. (recon_biject), assumes ``|y0 - y_hat| < pi / n_m``.
+    We choose a such that the (unweighted) mean of ``f_init(d_k) - (a + b k)`` over the segment is
+    zero: f_star agrees with f_init on average and removes only its periodic error (over whole
+    revolutions the table's eta has zero mean). An absolute mechanical zero is not observable
+    without an index. Hence the table applies to recordings whose f_init starts at the same pole
+    pair as this one (same power-up position, or after homing), as in the paper.
+
+    Robust weights (``robust=True``). A real open-loop rotor does not turn exactly at constant
+    speed: a stepper-driven rig rings at its torsional resonance in bursts, which moves d *along*
+    the model curve. The residual's tangential component ``(g' . r) / |g'|^2`` is such an angle
+    error; its local RMS over one electrical cycle, ``s_k``, is compared with its median ``s_med``
+    and samples get the weight ``w_k = min(1, (c s_med / s_k)^2)`` (c = ``robust_threshold``),
+    iterated ``robust_iterations`` times (iteratively reweighted least squares). White noise alone
+    leaves all weights at 1 (a 1-cycle local RMS rarely doubles), so nothing is lost on clean
+    data; transients violating the constant-speed model stop dominating theta.
+
+    Parameters
+    ----------
+    d : array_like, shape (N, 3)
+        The whole recording (raw units allowed); f_init runs over it from sample 0.
+    pole_pairs : int
+        n_m.
+    basis : FourierBasis
+        Mechanical harmonics of the model; must contain n_m. See :func:`default_harmonics`.
+    start, stop : int, keyword-only
+        The constant-speed part, ``start <= k < stop`` (see :func:`find_constant_speed`).
+    geometry : SensorGeometry, optional
+        f_init's projection and offsets; default :func:`estimate_sensor_geometry` on the segment.
+    max_iterations : int, keyword-only
+        Gauss-Newton iterations on b per reweighting round.
+    tol : float, keyword-only
+        Convergence when a step in b moves the highest harmonic by less than ``tol`` rad of phase
+        at the ends of the segment.
+    robust : bool, keyword-only
+        Down-weight transients that violate the constant-speed model (see above).
+    robust_iterations : int, keyword-only
+        Reweighting rounds.
+    robust_threshold : float, keyword-only
+        c in the weight formula (larger = milder).
+    lut_points : int, keyword-only
+        Grid points of the table.
+
+    Returns
+    -------
+    ConstantSpeedResult
+
+    Raises
+    ------
+    ValueError
+        Bad shapes or indices, a basis without the harmonic n_m, a segment too short for the basis,
+        a degenerate sensor geometry, or no rotation in the segment.
+    """
+    x = np.asarray(d, dtype=np.float64)
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ValueError("d must have shape (N, 3)")
+    N = x.shape[0]
+    n = int(pole_pairs)
+    start, stop = int(start), int(stop)
+    if not (0 <= start < stop <= N):
+        raise ValueError(f"need 0 <= start < stop <= {N}, got start={start}, stop={stop}")
+    if n not in basis.harmonics:
+        raise ValueError(f"the basis must contain the pole-pair harmonic {n}")
+    K = stop - start
+    if K < 2 * basis.size:
+        raise ValueError(
+            f"segment of {K} samples is too short for {basis.size} basis functions per channel"
+        )
+    if not np.all(np.isfinite(x)):
+        raise ValueError("d contains non-finite values")
+    geo = estimate_sensor_geometry(x[start:stop], n) if geometry is None else geometry
+    if geo.status == "degenerate":
+        raise ValueError(f"cannot calibrate: sensor geometry: {geo.message}")
+    warnings: list[str] = []
+    if not geo.ok:
+        warnings.append(f"sensor geometry: {geo.status}: {geo.message}")
+
+    y = geo.f_init(x, n)
+    k = np.arange(start, stop, dtype=np.float64)
+    t = k - float(np.mean(k))  # centred time for conditioning
+    D = x[start:stop]
+    ys = y[start:stop]
+    b = float(np.polyfit(t, ys, 1)[0])
+    if not abs(b) * K * n >= TWO_PI:
+        raise ValueError(
+            "f_init moves less than one electrical cycle over the segment: no rotation to "
+            "calibrate from"
+        )
+    a_c = float(np.mean(ys))  # any fixed value: the cost does not depend on it
+
+    w = np.ones(K)
+    iterations = 0
+    converged = False
+    rounds = int(robust_iterations) if robust else 0
+    W = int(np.clip(round(TWO_PI / (n * abs(b))), 1, K))
+    with threadpool_limits(limits=1, user_api="blas"):
+        for rnd in range(rounds + 1):
+            b, its, converged = _gauss_newton_b(
+                D, basis, t, a_c, b, np.sqrt(w), max_iterations=max_iterations, tol=tol
+            )
+            iterations += its
+            if rnd == rounds:
+                break
+            thT, _ = _WeightedLS(basis.evaluate(a_c + b * t), np.sqrt(w)).solve(D)
+            w_new = _robust_weights(D, basis, thT, a_c + b * t, W, robust_threshold)
+            done = float(np.max(np.abs(w_new - w))) < 1e-3
+            w = w_new
+            W = int(np.clip(round(TWO_PI / (n * abs(b))), 1, K))
+            if done:
+                b, its, converged = _gauss_newton_b(
+                    D, basis, t, a_c, b, np.sqrt(w), max_iterations=max_iterations, tol=tol
+                )
+                iterations += its
+                break
+
+        # gauge: mean(f_init - y0) = 0 over the segment, in absolute sample index
+        a = float(np.mean(ys - b * k))
+        y0 = a + b * k
+        B = basis.evaluate(y0)
+        thT, _ = _WeightedLS(B, np.sqrt(w)).solve(D)
+        r = D - B @ thT
+        G = _basis_derivative(B, basis) @ thT
+    model = FluxModel(basis, thT.T)
+    cost = float(np.sum(r * r))
+    rms = np.sqrt(np.mean(r * r, axis=0))
+    g2 = np.maximum(np.sum(G * G, axis=1), np.finfo(float).tiny)
+    tang = np.sum(r * G, axis=1) / g2  # angle error along the curve [rad]
+    orth = r - tang[:, None] * G
+    # white noise: second differences of the orthogonal residual (variance 6 sigma^2 in each of the
+    # two orthogonal dimensions); smooth model errors and rotor motion hardly enter
+    dd = np.diff(orth, 2, axis=0)
+    noise = float(np.sqrt(np.sum(dd * dd) / (12.0 * max(K - 2, 1))))
+    Pn = geo.projection / float(np.mean(geo.amplitudes))  # unit-circle alpha/beta
+    angle_floor = float(noise * math.sqrt(0.5 * np.trace(Pn @ Pn.T)) / n)
+    motion = float(np.sqrt(np.mean(tang * tang)))
+    revs = abs(b) * K / TWO_PI
+    if revs < 1.0:
+        warnings.append(
+            f"the segment covers {revs:.2f} < 1 revolution: per-magnet harmonics are not "
+            "identifiable and part of the ring is unseen; the table extrapolates there"
+        )
+    if W < 4:
+        warnings.append(
+            f"only {TWO_PI / (n * abs(b)):.1f} samples per electrical cycle: spin slower or "
+            "sample faster"
+        )
+    lut = build_lut(model, n, points=lut_points, projection=geo.projection, offset=geo.offsets)
+    if not lut.bijective:
+        warnings.append(
+            f"the table is not bijective (min slope {lut.min_slope:.3g}): f_star is unavailable"
+        )
+    if not converged:
+        status = "not-converged"
+    elif warnings:
+        status = "warning"
+    else:
+        status = "ok"
+    return ConstantSpeedResult(
+        model=model,
+        a=a,
+        b=b,
+        start=start,
+        stop=stop,
+        pole_pairs=n,
+        geometry=geo,
+        lut=lut,
+        cost=cost,
+        residual_rms=rms,
+        noise_std=noise,
+        angle_noise_floor=angle_floor,
+        motion_rms=motion,
+        weights=w,
+        revolutions=revs,
+        iterations=iterations,
+        converged=converged,
+        status=status,
+        warnings=tuple(warnings),
+    )
+
+
+def _robust_weights(
+    D: NDArray, basis: FourierBasis, thT: NDArray, y0: NDArray, window: int, c: float
+) -> NDArray[np.float64]:
+    """IRLS weights from the local RMS of the tangential (angle-like) residual."""
+    B = basis.evaluate(y0)
+    r = D - B @ thT
+    G = _basis_derivative(B, basis) @ thT
+    g2 = np.maximum(np.sum(G * G, axis=1), np.finfo(float).tiny)
+    tang = np.sum(r * G, axis=1) / g2
+    ker = np.ones(window) / window
+    local = np.sqrt(np.convolve(tang * tang, ker, mode="same"))
+    med = float(np.median(local))
+    if not med > 0.0:
+        return np.ones_like(tang)
+    return np.minimum(1.0, (c * med / np.maximum(local, np.finfo(float).tiny)) ** 2)
+
+
+# --------------------------------------------------------------------------------------------------
+# Adapter for hallcal.pipeline.calibrate ([trajectory] kind = "constant-speed")
+# --------------------------------------------------------------------------------------------------
+
+
+def calibrate_dataset_constant_speed(
+    dataset: Dataset,
+    setup: Setup,
+    *,
+    progress: Callable[[str], None] | None = None,
+) -> Calibration:
+    """Run :func:`calibrate_constant_speed` for :func:`hallcal.pipeline.calibrate` (Algorithm 1).
+
+    Uses ``[trajectory] start``/``stop`` (``stop`` omitted: end of the data), ``pole_pairs``, the
+    ``[model]`` harmonics (``"auto"``: :func:`default_harmonics`), ``lut_points`` and
+    ``max_iterations``; ``sample_time`` is not needed (time in samples). Only the columns d1, d2,
+    d3 are required; ``y_ref``, when present, is used for validation only.
+
+    Raises
+    ------
+    HallcalInputError
+        Naming the file, column or setup key at fault.
+    """
+    from ._errors import HallcalInputError
+    from .pipeline import Calibration, validate
+
+    def say(msg: str) -> None:
+        if progress is not None:
+            progress(msg)
+
+    dataset.require("d1", "d2", "d3")
+    d = np.ascontiguousarray(dataset.d)
+    n = int(setup.pole_pairs)
+    N = d.shape[0]
+    traj = setup.trajectory
+    start = int(traj.start)
+    stop = N if traj.stop is None else int(traj.stop)
+    if not 0 <= start < stop <= N:
+        raise HallcalInputError(
+            f"setup: trajectory.start..stop = {start}..{stop} is outside {dataset.source} "
+            f"({N} samples)"
+        )
+    if setup.model.basis != "fourier":
+        raise HallcalInputError(
+            f'setup: model.basis = "{setup.model.basis}" is not available with trajectory.kind = '
+            '"constant-speed"; use "fourier"'
+        )
+    h = setup.model.harmonics
+    harmonics = default_harmonics(n) if h == "auto" else tuple(int(v) for v in h)
+    if n not in harmonics:
+        raise HallcalInputError(
+            f"setup: model.harmonics must contain the pole-pair harmonic {n} (pole_pairs)"
+        )
+    messages: list[str] = []
+    deviation = _speed_deviation(d[start:stop], n)
+    if deviation > 0.1:
+        seg = find_constant_speed(d, n)
+        hint = f"; the constant-speed part looks like {seg.start}..{seg.stop}" if seg.ok else ""
+        messages.append(
+            f"warning: f_init's speed varies by {100 * deviation:.0f}% within trajectory.start.."
+            f"stop = {start}..{stop} (averaged over electrical cycles){hint}"
+        )
+    say(f"constant-speed calibration on samples {start}..{stop} ({len(harmonics)} harmonics)")
+    t0 = time.perf_counter()
+    try:
+        res = calibrate_constant_speed(
+            d,
+            n,
+            FourierBasis(harmonics),
+            start=start,
+            stop=stop,
+            max_iterations=setup.model.max_iterations,
+            lut_points=setup.model.lut_points,
+        )
+    except ValueError as exc:
+        raise HallcalInputError(f"{dataset.source}: {exc}") from None
+    timings = {"constant_speed": time.perf_counter() - t0}
+    messages.extend(f"warning: {w}" for w in res.warnings)
+    if res.status == "not-converged":
+        messages.append("warning: the speed estimate did not converge")
+    if not res.lut.bijective:
+        status = "not-bijective"
+    elif res.status != "ok" or messages:
+        status = "warning"
+    else:
+        status = "ok"
+    validation = None
+    if "y_ref" in dataset and res.lut.bijective:
+        validation = validate(res.lut, dataset, noise_floor=res.angle_noise_floor)
+    return Calibration(
+        setup=setup,
+        flux=res.model,
+        lut=res.lut,
+        sem=None,
+        plant=None,
+        gain=None,
+        bla=None,
+        predicted_error=res.angle_noise_floor,
+        adequacy=None,
+        validation=validation,
+        status=status,
+        messages=messages,
+        timings=timings,
+        model_info={
+            "basis": "fourier",
+            "harmonics": list(harmonics),
+            "theta": res.model.theta.tolist(),
+        },
+        extra={"constant_speed": res},
+    )
+
+
+def _speed_deviation(d: NDArray, pole_pairs: int) -> float:
+    """Largest relative deviation of f_init's one-electrical-cycle mean speed from its median."""
+    if d.shape[0] < 8:
+        return 0.0
+    geo = estimate_sensor_geometry(d, pole_pairs)
+    e = pole_pairs * geo.f_init(d, pole_pairs)
+    v = float(np.median(np.diff(e)))
+    if v == 0.0:
+        return 0.0
+    W = int(np.clip(round(TWO_PI / abs(v)), 1, max(1, e.size // 2)))
+    vs = (e[W:] - e[:-W]) / W
+    med = float(np.median(vs))
+    return float(np.max(np.abs(vs - med)) / abs(med)) if med != 0.0 else 0.0
