@@ -246,16 +246,29 @@ def reconstruct(artifact: str, data: str, out: str) -> None:
 @click.argument("artifact", type=click.Path(dir_okay=False))
 @click.option("--out", required=True, type=click.Path(file_okay=False))
 @click.option("--no-fixed-point", is_flag=True, help="Only the float variant.")
+@click.option(
+    "--adc-scale",
+    type=float,
+    default=1.0,
+    show_default=True,
+    help="ADC counts per unit of the calibration's Hall signals (fixed point input).",
+)
 @_handle_errors
-def export_c(artifact: str, out: str, no_fixed_point: bool) -> None:
+def export_c(artifact: str, out: str, no_fixed_point: bool, adc_scale: float) -> None:
     """Generate C99 sources of f_star (float and fixed point) for firmware."""
     from .codegen import export_c as _export
     from .io import read_artifact
 
     art = read_artifact(artifact)
-    res = _export(art, out, fixed_point=not no_fixed_point)
+    res = _export(art, out, fixed_point=not no_fixed_point, source=artifact, adc_scale=adc_scale)
+    for m in res.messages:
+        _err.print(f"note: {m}")
     for p in res.paths:
         _out.print(f"wrote {p}")
+    _out.print(
+        f"table {res.table_bytes} bytes (float); stated error bounds: float "
+        f"{res.float_bound:.2g} rad, fixed point {res.fixed_bound:.2g} rad"
+    )
 
 
 @cli.command()

@@ -130,7 +130,9 @@ def _bijectivity(y0: NDArray, y_hat: NDArray) -> tuple[bool, float]:
     steps = np.diff(np.append(y_hat, y_hat[0] + TWO_PI))
     dy0 = np.diff(np.append(y0, y0[0] + TWO_PI))
     slope = float(np.min(steps / dy0))
-    return bool(slope > 0.0), slope
+    # the grid itself must be increasing too (stored nodes in another order are not a table)
+    ordered = bool(np.all(dy0 > 0))
+    return bool(slope > 0.0 and ordered), slope if ordered else -abs(slope)
 
 
 def build_lut(
