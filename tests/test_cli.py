@@ -152,3 +152,14 @@ def test_help_lists_the_contract_commands(workdir):
     assert res.returncode == 0
     for cmd in ("demo", "simulate", "bla", "calibrate", "reconstruct", "export-c", "report"):
         assert cmd in res.stdout
+
+
+def test_export_c_writes_sources(workdir):
+    if not (workdir / "cal.json").exists():
+        res = run("calibrate", "cal.csv", "--setup", "s.toml", "--out", "cal.json", cwd=workdir)
+        assert res.returncode == 0, res.stderr
+    res = run("export-c", "cal.json", "--out", "fw", "--adc-scale", "1000", cwd=workdir)
+    assert res.returncode == 0, res.stderr
+    names = {p.name for p in (workdir / "fw").iterdir()}
+    assert {"hallcal.h", "hallcal.c", "hallcal_q.h", "hallcal_q.c"} <= names
+    assert "hallcal_update" in (workdir / "fw" / "hallcal.h").read_text()
