@@ -71,6 +71,7 @@ needed to go further.
 from __future__ import annotations
 
 import math
+import os
 import time
 from pathlib import Path
 
@@ -87,7 +88,17 @@ from hallcal.flux import FourierBasis
 from hallcal.io import Dataset, setup_from_dict
 from hallcal.reconstruction import f_init
 
-DATA_DIR = Path("/work/shared/data/real/ring-jig")
+
+def _data_dir() -> Path:
+    """shared/ lies beside the repository (CI clones main next to it); HALLCAL_REAL_DATA wins."""
+    env = os.environ.get("HALLCAL_REAL_DATA")
+    if env:
+        return Path(env)
+    beside = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "ring-jig"
+    return beside if beside.exists() else Path("/work/shared/data/real/ring-jig")
+
+
+DATA_DIR = _data_dir()
 FILES = [DATA_DIR / f"hall_calibration_one_rotation_{i}.txt" for i in (1, 2, 3)]
 POLE_PAIRS = 25
 CAL_REVOLUTIONS = 2.0

@@ -205,7 +205,7 @@ def _print_calibration(cal) -> None:
             f"({sem.status}), {sem.solve_time:.2f} s; noise variance {sem.noise_variance:.3g}"
         )
     _out.print(
-        f"predicted f_star error (noise floor + model uncertainty): RMS "
+        f"predicted f_star error: RMS "
         f"{_mrad(cal.predicted_error)}"
     )
     if cal.adequacy is not None and hasattr(cal.adequacy, "verdict"):
