@@ -600,7 +600,8 @@ def calibrate(
         messages.insert(0, adequacy.message)
     elif adequacy is not None and getattr(adequacy, "verdict", "adequate") == "warning":
         status = "warning"
-        messages.insert(0, "warning: " + adequacy.message)
+        msg = adequacy.message
+        messages.insert(0, msg if msg.startswith("warning") else "warning: " + msg)
 
     validation = None
     if "y_ref" in dataset and lut.bijective:
