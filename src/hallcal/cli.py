@@ -187,10 +187,32 @@ def calibrate(data: str, setup_path: str, bla_data: str | None, out: str, force:
     _out.print(f"wrote {out}")
 
 
+def _ranges(values: list[int]) -> str:
+    """[1, 2, 3, 5, 33] -> '1..3, 5, 33'."""
+    out, v = [], sorted(int(x) for x in values)
+    i = 0
+    while i < len(v):
+        j = i
+        while j + 1 < len(v) and v[j + 1] == v[j] + 1:
+            j += 1
+        out.append(f"{v[i]}..{v[j]}" if j > i + 1 else ", ".join(map(str, v[i : j + 1])))
+        i = j + 1
+    return ", ".join(out)
+
+
 def _print_calibration(cal) -> None:
     sem = cal.sem
-    for m in cal.messages:
+    refused = cal.status in ("inadequate", "not-bijective")
+    for m in cal.messages[1:] if refused else cal.messages:  # the first comes with the refusal
         _err.print(m)
+    info = cal.model_info
+    if info.get("basis") == "fourier":
+        _out.print(f"model: Fourier basis, mechanical harmonics {_ranges(info['harmonics'])}")
+    elif info.get("basis") == "kernel":
+        _out.print(
+            f"model: periodic kernel basis, {info.get('points')} points, "
+            f"lengthscale {info.get('lengthscale', float('nan')):.3g} rad"
+        )
     if cal.gain is not None:
         g = cal.gain
         refined = (
@@ -204,10 +226,7 @@ def _print_calibration(cal) -> None:
             f"cost {sem.initial_cost:.6g} -> {sem.cost:.6g} in {sem.iterations} iterations "
             f"({sem.status}), {sem.solve_time:.2f} s; noise variance {sem.noise_variance:.3g}"
         )
-    _out.print(
-        f"predicted f_star error: RMS "
-        f"{_mrad(cal.predicted_error)}"
-    )
+    _out.print(f"predicted f_star error: RMS {_mrad(cal.predicted_error)}")
     if cal.adequacy is not None and hasattr(cal.adequacy, "verdict"):
         _out.print(f"model adequacy: {cal.adequacy.verdict}")
     _out.print(f"lookup table: {cal.lut.points} points, bijective: {cal.lut.bijective}")
