@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from . import bla as _bla
 from ._errors import HallcalInputError
+from .adequacy import assess
 from .bench import PAPER_CONTROLLER, BenchConfig, BenchRun, simulate_run
 from .excitation import multisine_experiment
 from .flux import FluxModel, FourierBasis
@@ -34,6 +35,7 @@ from .loop import ClosedLoop, simulate_loop
 from .lti import ContinuousTF
 from .lut import LUT, build_lut
 from .metrics import AngleError, SpatialSpectrum, angle_error, spatial_spectrum
+from .order import select_harmonics
 from .reconstruction import f_init
 from .sem import SEMResult, least_squares_start, predicted_angle_error, solve_sem
 
@@ -648,26 +650,10 @@ def _kernel_info(kres: Any) -> dict[str, Any]:
 
 
 def _select_harmonics(loop, r, d, y, n_m, setup):
-    try:
-        from .order import select_harmonics  # issue 9
-    except ImportError:  # pragma: no cover - until the selector lands
-        basis = FourierBasis(tuple(range(1, n_m + 1)))
-
-        @dataclass
-        class _Sel:
-            sem: SEMResult
-            harmonics: tuple[int, ...]
-
-        sem = solve_sem(loop, r, d, basis, y=y, max_iterations=setup.model.max_iterations)
-        return _Sel(sem, basis.harmonics)
     return select_harmonics(loop, r, d, y=y, pole_pairs=n_m)
 
 
 def _assess(sem, d, n_m, loop):
-    try:
-        from .adequacy import assess  # issue 9
-    except ImportError:  # pragma: no cover - until the adequacy checks land
-        return None
     return assess(sem, d, pole_pairs=n_m, projection=loop.projection, offset=loop.offset)
 
 
