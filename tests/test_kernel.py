@@ -1,0 +1,442 @@
+"""The periodic-kernel basis (experiment section), its spectral equivalent, the structured
+Gauss-Newton system, the hyperparameter criteria and the kernel SEM on the virtual bench.
+
+Fast tests check the algebra against independent brute-force computations (dense kernel matrices,
+dense Jacobians from :func:`hallcal.loop.loop_jacobian`, the Gaussian log-density and the hat
+matrix); the acceptance test runs the experiment-sized problem (160 000 samples, m = 400).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hallcal.bench import BenchConfig, ramp_run
+from hallcal.flux import FluxModel, FourierBasis
+from hallcal.kernel import (
+    KernelBasis,
+    fourier_gauss_newton,
+    fourier_rkhs_norm2,
+    select_hyperparameters,
+    simulate_fourier,
+    solve_kernel_sem,
+)
+from hallcal.loop import loop_jacobian, simulate_loop
+from hallcal.lut import build_lut
+from hallcal.metrics import angle_error
+from hallcal.sem import solve_sem
+
+TWO_PI = 2.0 * math.pi
+
+
+def _weights(seed: int, m: int) -> np.ndarray:
+    return np.random.default_rng(seed).standard_normal((3, m))
+
+
+# ---------------------------------------------------------------------------------------------
+# KernelBasis: kernel form against spectral form
+# ---------------------------------------------------------------------------------------------
+
+
+def test_kernel_matches_definition():
+    kb = KernelBasis(16, 0.4, sf=1.7)
+    y = np.array([0.0, 0.3, 2.0, -1.0, 7.5])
+    x = np.column_stack([np.sin(y), np.cos(y)])
+    c = np.column_stack([np.sin(kb.centres), np.cos(kb.centres)])
+    sq = ((x[:, None, :] - c[None, :, :]) ** 2).sum(-1)
+    expect = 1.7**2 * np.exp(-sq / (2 * 0.4**2))
+    np.testing.assert_allclose(kb.evaluate(y), expect, rtol=1e-13, atol=1e-15)
+
+
+def test_derivative_matches_finite_differences():
+    kb = KernelBasis(12, 0.3, sf=0.8)
+    y = np.linspace(-1, 7, 9)
+    h = 1e-6
+    fd = (kb.evaluate(y + h) - kb.evaluate(y - h)) / (2 * h)
+    np.testing.assert_allclose(kb.derivative(y), fd, rtol=1e-7, atol=1e-8)
+
+
+@pytest.mark.parametrize("lengthscale", [0.05, 0.1, 0.3, 1.0])
+def test_spectrum_reproduces_kernel(lengthscale):
+    """k(t) = sum_k s_k e^{ikt} with s_k = sf^2 ive(k, 1/l^2) (Bessel generating function)."""
+    kb = KernelBasis(400, lengthscale, sf=1.3)
+    K = kb.exact_harmonics()
+    s = kb.spectrum(K)
+    t = np.linspace(-math.pi, math.pi, 101)
+    series = s[0] + 2.0 * np.cos(np.outer(t, np.arange(1, K + 1))) @ s[1:]
+    np.testing.assert_allclose(series, kb.evaluate(t)[:, 0], rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize(("m", "lengthscale"), [(400, 0.07), (400, 0.3), (64, 0.2), (16, 0.15)])
+def test_spectral_model_reproduces_kernel_model(m, lengthscale):
+    """to_fourier is exact, including the aliases when l is short for the m-point grid."""
+    kb = KernelBasis(m, lengthscale, sf=0.9)
+    w = _weights(1, m)
+    flux = kb.to_fourier(w)
+    y = np.random.default_rng(2).uniform(-10, 30, 500)
+    g_kernel = kb.kernel_flux(w, y)
+    scale = np.max(np.abs(g_kernel))
+    np.testing.assert_allclose(flux(y), g_kernel, rtol=0, atol=1e-10 * scale)
+    np.testing.assert_allclose(
+        flux.derivative(y), kb.derivative(y) @ w.T, atol=1e-9 * scale / lengthscale
+    )
+
+
+def test_from_fourier_inverts_to_fourier():
+    kb = KernelBasis(400, 0.08, sf=0.7)
+    K = kb.truncation(7.5e-6)
+    assert K < 200 and kb.aliasing(K) < 1e-12
+    rng = np.random.default_rng(3)
+    theta = rng.standard_normal((3, 2 * K + 1)) * np.sqrt(kb.prior_variance(K))
+    flux = FluxModel(kb.fourier_basis(K), theta)
+    w = kb.from_fourier(flux)
+    y = rng.uniform(0, TWO_PI, 300)
+    np.testing.assert_allclose(kb.kernel_flux(w, y), flux(y), atol=1e-10)
+    back = kb.to_fourier(w, harmonics=K)
+    np.testing.assert_allclose(back.theta, theta, atol=1e-10)
+
+
+def test_from_fourier_rejects_harmonics_above_nyquist():
+    kb = KernelBasis(16, 0.5)
+    with pytest.raises(ValueError, match="m/2"):
+        kb.from_fourier(FluxModel(FourierBasis(tuple(range(1, 9))), np.zeros((3, 17))))
+
+
+@pytest.mark.parametrize(("m", "lengthscale"), [(32, 0.3), (40, 0.08), (400, 0.1)])
+def test_gram_is_circulant_with_bessel_eigenvalues(m, lengthscale):
+    kb = KernelBasis(m, lengthscale, sf=1.4)
+    Kmat = kb.gram()
+    np.testing.assert_allclose(Kmat, np.roll(np.roll(Kmat, 1, 0), 1, 1), atol=1e-14)
+    lam = kb.gram_eigenvalues()
+    np.testing.assert_allclose(np.fft.fft(Kmat[0]).real, lam, rtol=1e-10, atol=1e-12 * lam.max())
+    np.testing.assert_allclose(
+        np.sort(np.linalg.eigvalsh(Kmat)), np.sort(lam), rtol=1e-8, atol=1e-11 * lam.max()
+    )
+
+
+def test_rkhs_norm_is_diagonal_ridge_in_fourier_coefficients():
+    """w^T K w equals sum theta^2 / prior variance of the equivalent Fourier model."""
+    kb = KernelBasis(400, 0.12, sf=2.0)
+    w = _weights(4, 400) * 1e-3
+    direct = np.einsum("hi,ij,hj->h", w, kb.gram(), w)
+    np.testing.assert_allclose(kb.rkhs_norm2(w), direct, rtol=1e-10)
+    flux = kb.to_fourier(w, harmonics=kb.exact_harmonics(1e-30))
+    np.testing.assert_allclose(fourier_rkhs_norm2(kb, flux), direct, rtol=1e-8)
+    ridge = kb.ridge_weights(len(flux.basis.harmonics))
+    np.testing.assert_allclose(ridge @ flux.theta.ravel() ** 2, direct.sum(), rtol=1e-8)
+
+
+def test_sf_only_scales_the_weights():
+    """g is unchanged by sf -> c sf with w -> w / c^2 (why sf needs a regularizer)."""
+    a, b = KernelBasis(50, 0.3, sf=1.0), KernelBasis(50, 0.3, sf=3.0)
+    w = _weights(5, 50)
+    y = np.linspace(0, 6, 20)
+    np.testing.assert_allclose(a.kernel_flux(w, y), b.kernel_flux(w / 9.0, y), rtol=1e-12)
+    np.testing.assert_allclose(a.rkhs_norm2(w), 9.0 * b.rkhs_norm2(w / 9.0), rtol=1e-10)
+
+
+def test_truncation_rule():
+    kb = KernelBasis(400, 0.1, sf=0.8)
+    s2, tol = 7.5e-6, 1e-2
+    K = kb.truncation(s2, tol=tol)
+    v = 2.0 * kb.spectrum(K + 1)
+    assert v[K] >= tol**2 * s2 > v[K + 1]
+    assert 60 <= K <= 150  # l = 0.1 rad: the prior variance is negligible above ~harmonic 80
+    # the dropped tail carries less than tol sigma of signal standard deviation in total
+    tail = 2.0 * kb.spectrum(400)[K + 1 :]
+    assert math.sqrt(tail.sum()) < 3 * tol * math.sqrt(s2)
+    assert KernelBasis(400, 0.01).truncation(s2) == 199  # capped at the grid's Nyquist
+    assert KernelBasis(400, 0.5, sf=1.0).truncation(s2) < 40
+
+
+def test_invalid_basis():
+    for kw in (
+        {"points": 2, "lengthscale": 0.1},
+        {"points": 8, "lengthscale": 0.0},
+        {"points": 8, "lengthscale": 0.1, "sf": -1.0},
+    ):
+        with pytest.raises(ValueError):
+            KernelBasis(**kw)
+
+
+# ---------------------------------------------------------------------------------------------
+# Structured Gauss-Newton system against the dense Jacobian
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def short_run():
+    cfg = BenchConfig(electrical_harmonics=((3, 0.10), (5, 0.04)), pole_modulation=0.02, seed=3)
+    return cfg, ramp_run(cfg, ramp_end=1.5, duration=1.5, seed=3)
+
+
+def _truth_theta(run, K):
+    basis = FourierBasis(tuple(range(1, K + 1)))
+    yy = TWO_PI * np.arange(1024) / 1024
+    return basis, np.linalg.lstsq(basis.evaluate(yy), run.truth(yy), rcond=None)[0].T
+
+
+@pytest.mark.parametrize("chunk", [257, 4096])
+def test_structured_gauss_newton_matches_dense_jacobian(short_run, chunk):
+    cfg, run = short_run
+    basis, th = _truth_theta(run, 13)
+    th = th + 1e-3 * np.random.default_rng(0).standard_normal(th.shape)
+    loop = cfg.loop()
+    lj = loop_jacobian(loop, FluxModel(basis, th), run.r)
+    J = lj.jac.reshape(-1, th.size)
+    e = (run.d - lj.d).ravel()
+    gn = fourier_gauss_newton(loop, th, run.r, run.d, chunk=chunk)
+    JtJ = J.T @ J
+    assert gn.status == "ok"
+    np.testing.assert_allclose(gn.gram, JtJ, rtol=0, atol=1e-11 * np.abs(JtJ).max())
+    np.testing.assert_allclose(gn.gradient, J.T @ e, rtol=0, atol=1e-9 * np.abs(J.T @ e).max())
+    assert gn.sse == pytest.approx(e @ e, rel=1e-10)
+    np.testing.assert_allclose(gn.d, lj.d, atol=1e-11)
+    np.testing.assert_allclose(gn.y0, lj.y0, atol=1e-12)
+    # a strided Hessian is a close quadrature; gradient and cost stay exact
+    gs = fourier_gauss_newton(loop, th, run.r, run.d, chunk=chunk, stride=4)
+    np.testing.assert_array_equal(gs.gradient, gn.gradient)
+    assert np.linalg.norm(gs.gram - JtJ) < 0.05 * np.linalg.norm(JtJ)
+
+
+def test_simulate_fourier_matches_simulate_loop(short_run):
+    cfg, run = short_run
+    basis, th = _truth_theta(run, 20)
+    y0, y, u, d, status = simulate_fourier(cfg.loop(), th, run.r)
+    ref = simulate_loop(cfg.loop(), FluxModel(basis, th), run.r)
+    assert status == ref.status == "ok"
+    np.testing.assert_allclose(d, ref.d, atol=1e-11)
+    np.testing.assert_allclose(y, ref.y, atol=1e-12)
+    np.testing.assert_allclose(u, ref.u, atol=1e-9)
+
+
+def test_gauss_newton_rejects_non_contiguous_layout(short_run):
+    cfg, run = short_run
+    with pytest.raises(ValueError, match="2K"):
+        fourier_gauss_newton(cfg.loop(), np.zeros((3, 4)), run.r, run.d)
+
+
+# ---------------------------------------------------------------------------------------------
+# Hyperparameter criteria against brute force
+# ---------------------------------------------------------------------------------------------
+
+
+def _linear_problem(seed=0, n_angles=600, K=12, lengthscale=0.35, sf=0.8, sigma=0.05):
+    rng = np.random.default_rng(seed)
+    kb = KernelBasis(64, lengthscale, sf=sf)
+    basis = kb.fourier_basis(K)
+    y = rng.uniform(0, TWO_PI, n_angles)
+    B = basis.evaluate(y)
+    theta = rng.standard_normal((3, 2 * K + 1)) * np.sqrt(kb.prior_variance(K))
+    J = np.kron(np.eye(3), B)  # observations sensor-major
+    z = J @ theta.ravel() + sigma * rng.standard_normal(3 * n_angles)
+    return J, z, K
+
+
+def _brute_force(J, z, K, lengthscale, rho, criterion):
+    n = z.size
+    v = np.tile(KernelBasis(64, lengthscale).prior_variance(K), 3)
+    A = J.T @ J + rho * np.diag(1 / v)
+    th = np.linalg.solve(A, J.T @ z)
+    res = z - J @ th
+    if criterion == "gcv":
+        H = J @ np.linalg.solve(A, J.T)
+        return n * (res @ res) / (n - np.trace(H)) ** 2
+    s2 = (res @ res + rho * th @ (th / v)) / n  # profiled noise variance
+    C = s2 * (np.eye(n) + (J * v) @ J.T / rho)
+    sign, logdet = np.linalg.slogdet(C)
+    return n * math.log(TWO_PI) + logdet + z @ np.linalg.solve(C, z)
+
+
+@pytest.mark.parametrize("criterion", ["evidence", "gcv"])
+def test_criteria_match_brute_force(criterion):
+    J, z, K = _linear_problem(n_angles=60, K=6)
+    G, g = J.T @ J, J.T @ z
+    for lengthscale in (0.2, 0.5):
+        best, _ = select_hyperparameters(
+            G, g, float(z @ z), np.zeros(G.shape[0]), n=z.size, points=64,
+            lengthscale=lengthscale, criterion=criterion,
+        )  # fmt: skip
+        assert best.value == pytest.approx(
+            _brute_force(J, z, K, lengthscale, best.penalty, criterion), rel=1e-9
+        )
+        # and it is the minimum over rho
+        for f in (0.5, 2.0):
+            assert best.value <= _brute_force(J, z, K, lengthscale, f * best.penalty, criterion)
+
+
+def test_criterion_is_invariant_to_the_linearization_point():
+    """z = e* + J theta* : the criterion from (J^T J, J^T e*, e*'e*, theta*) equals that at 0."""
+    J, z, K = _linear_problem(n_angles=80, K=8)
+    G = J.T @ J
+    th_star = np.random.default_rng(9).standard_normal(G.shape[0]) * 0.1
+    e_star = z - J @ th_star
+    a, _ = select_hyperparameters(
+        G,
+        J.T @ z,
+        float(z @ z),
+        np.zeros_like(th_star),
+        n=z.size,
+        points=64,
+        lengthscale=(0.1, 1.0),
+    )
+    b, _ = select_hyperparameters(
+        G,
+        J.T @ e_star,
+        float(e_star @ e_star),
+        th_star,
+        n=z.size,
+        points=64,
+        lengthscale=(0.1, 1.0),
+    )
+    assert a.lengthscale == pytest.approx(b.lengthscale, rel=1e-6)
+    assert a.value == pytest.approx(b.value, rel=1e-9)
+    assert a.penalty == pytest.approx(b.penalty, rel=1e-5)
+
+
+@pytest.mark.parametrize("criterion", ["evidence", "gcv"])
+def test_criteria_recover_prior_draw_hyperparameters(criterion):
+    """A function drawn from the kernel's prior: l, sigma^2 (and sf, evidence) are recovered."""
+    J, z, K = _linear_problem(seed=1, n_angles=3000, K=30, lengthscale=0.3, sf=0.8, sigma=0.05)
+    best, tried = select_hyperparameters(
+        J.T @ J, J.T @ z, float(z @ z), np.zeros(J.shape[1]), n=z.size, points=64,
+        lengthscale=(0.05, 2.0), criterion=criterion,
+    )  # fmt: skip
+    ls = [c.lengthscale for c in tried]
+    assert min(ls) < best.lengthscale < max(ls)  # interior minimum
+    assert best.lengthscale == pytest.approx(0.3, rel=0.25)
+    assert best.noise_variance == pytest.approx(0.05**2, rel=0.05)
+    if criterion == "evidence":
+        assert best.sf == pytest.approx(0.8, rel=0.5)
+
+
+# ---------------------------------------------------------------------------------------------
+# Solver
+# ---------------------------------------------------------------------------------------------
+
+
+def test_solve_kernel_sem_small():
+    """A short run with a small grid: consistent result, kernel weights reproduce the flux."""
+    cfg = BenchConfig(magnet_variation=0.04, seed=2)
+    run = ramp_run(cfg, ramp_end=3.0, duration=3.0, seed=2)
+    res = solve_kernel_sem(cfg.loop(), run.r, run.d, y=run.y, points=64, rounds=2)
+    assert res.status == "converged"
+    assert res.sem.cost <= res.sem.initial_cost
+    assert res.noise_variance == pytest.approx(cfg.noise_variance, rel=0.15)
+    K = res.harmonics
+    assert res.flux.basis.harmonics == tuple(range(1, K + 1)) and K <= 31
+    assert res.weights.shape == (3, 64)
+    assert res.penalty == pytest.approx(res.noise_variance / res.sf**2, rel=1e-9)
+    y = np.linspace(0, TWO_PI, 257)
+    np.testing.assert_allclose(res.basis.kernel_flux(res.weights, y), res.flux(y), atol=1e-8)
+    lo, hi = res.lengthscale_range
+    assert lo <= res.lengthscale <= hi and lo > 0.1  # 64 points cannot resolve shorter l
+    assert res.rounds[-1].lengthscale == pytest.approx(res.lengthscale, rel=0.06)
+    assert res.sem.covariance.shape == (res.flux.theta.size,) * 2
+    lut = build_lut(res.flux, cfg.pole_pairs)
+    assert lut.bijective
+    err = angle_error(lut.f_star(run.d), run.y0).rms
+    assert err < 0.5 * angle_error(run.y, run.y0).rms
+
+
+def test_solve_kernel_sem_fixed_lengthscale_and_validation():
+    cfg = BenchConfig(seed=4)
+    run = ramp_run(cfg, ramp_end=2.0, duration=2.0, seed=4)
+    res = solve_kernel_sem(
+        cfg.loop(), run.r, run.d, points=48, lengthscale=0.4, criterion="gcv", rounds=1
+    )
+    assert res.lengthscale == 0.4 and res.lengthscale_range == (0.4, 0.4) and res.interior
+    assert res.criterion == "gcv" and len(res.criterion_values) == 1
+    with pytest.raises(ValueError):
+        solve_kernel_sem(cfg.loop(), run.r, run.d[:-1])
+    with pytest.raises(ValueError):
+        solve_kernel_sem(cfg.loop(), run.r, run.d, lengthscale=-1.0)
+    with pytest.raises(ValueError):
+        solve_kernel_sem(cfg.loop(), run.r, run.d, criterion="aic")  # type: ignore[arg-type]
+
+
+def test_solve_kernel_sem_time_budget_and_harmonic_cap():
+    cfg = BenchConfig(seed=5)
+    run = ramp_run(cfg, ramp_end=2.0, duration=2.0, seed=5)
+    res = solve_kernel_sem(cfg.loop(), run.r, run.d, points=64, time_budget=0.0)
+    assert res.status == "time_budget" and res.sem.iterations == 0
+    assert np.all(np.isfinite(res.flux.theta))
+    capped = solve_kernel_sem(cfg.loop(), run.r, run.d, points=64, max_harmonics=12, rounds=1)
+    assert capped.harmonics <= 12 and capped.flux.theta.shape == (3, 2 * capped.harmonics + 1)
+
+
+# ---------------------------------------------------------------------------------------------
+# Acceptance: the experiment-shaped problem
+# ---------------------------------------------------------------------------------------------
+
+
+EXPERIMENT = BenchConfig(
+    pole_pairs=11,
+    electrical_harmonics=((3, 0.10), (5, 0.04)),
+    pole_modulation=0.02,
+    magnet_variation=0.04,
+    seed=3,
+)
+
+
+def test_acceptance_experiment_shaped_bench():
+    """11 pole pairs, trapezoidal flux with per-magnet variation, 0 -> 20 rad in 40 s, m = 400.
+
+    The truth has mechanical harmonics 1..14, 30..36 and 52..58, far outside Fourier 1..11.
+    Measured on this bench (seed 3; validation on a fresh run, 18 rad in 36 s; see
+    benchmarks/bench_kernel.txt for other seeds):
+
+    =========================  =========  ====================
+    model                      f_star     / noise floor 0.203
+    =========================  =========  ====================
+    f_init                     4.12 mrad  20
+    Fourier 1..11 (SEM)        2.89 mrad  14
+    kernel (this test)         0.82 mrad  4.0   (seeds 1, 2, 4: 5.0, 2.5, 5.3)
+    Fourier, true harmonics    0.40 mrad  2.0   (oracle structure; seeds 1, 2, 4: 3.6, 1.8, 1.2)
+    =========================  =========  ====================
+
+    The issue's target "within 15 % of the floor" is not reachable on this ramp, not even with
+    the oracle structure on most seeds: once- to three-times-per-revolution warps of the angle are
+    only weakly identifiable by closed-loop SEM (the loop tracks them out of the f_init output),
+    and the kernel model's error sits in those warp harmonics. It scales with the noise (100x
+    smaller noise variance gives 10x smaller errors): variance, not bias. The bounds below leave
+    margin over the measured values.
+    """
+    cfg = EXPERIMENT
+    run = ramp_run(cfg, ramp_end=20.0, duration=40.0, seed=3)
+    val = ramp_run(cfg, ramp_end=18.0, duration=36.0, seed=103)
+    assert run.n_samples == 160_000
+    loop = cfg.loop()
+    res = solve_kernel_sem(loop, run.r, run.d, y=run.y, points=400)
+    assert res.status == "converged" and res.settled
+    # hyperparameters: interior minimum; l resolves the pole-pair family up to the 5th electrical
+    # harmonic's sidebands (58) but the prior is negligible long before the grid's Nyquist (200)
+    assert res.interior
+    assert 0.04 < res.lengthscale < 0.2
+    assert 58 < res.harmonics < 150
+    # ridge shrinkage of a harmonic-k coefficient, rho / (rho + prior variance * N / 2): the data
+    # dominate up to the highest harmonic of the truth, the prior at the grid's Nyquist harmonic
+    v1 = KernelBasis(400, res.lengthscale).prior_variance(199)[2::2]  # harmonics 1..199
+    shrink = res.penalty / (res.penalty + v1 * run.n_samples / 2)
+    assert shrink[58 - 1] < 1e-3 and shrink[199 - 1] > 0.99
+    vals = [c.value for c in res.criterion_values]
+    assert int(np.argmin(vals)) not in (0, len(vals) - 1)
+    # the noise level is recovered (closed-loop noise makes it slightly larger than the truth)
+    assert res.noise_variance == pytest.approx(cfg.noise_variance, rel=0.05)
+
+    lut = build_lut(res.flux, cfg.pole_pairs)
+    assert lut.bijective
+    err_kernel = angle_error(lut.f_star(val.d), val.y0).rms
+    err_init = angle_error(lut.f_init(val.d), val.y0).rms
+
+    four = solve_sem(loop, run.r, run.d, FourierBasis(tuple(range(1, 12))), y=run.y)
+    err_fourier = angle_error(build_lut(four.flux, 11).f_star(val.d), val.y0).rms
+
+    floor = cfg.noise_floor
+    assert err_kernel < 0.5 * err_fourier
+    assert err_kernel < 0.3 * err_init
+    assert err_kernel < 5.0 * floor
+    # the solve itself is fast (the paper: 10 hours); generous bound for shared CI machines
+    assert res.solve_time < 120.0
