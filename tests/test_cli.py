@@ -130,9 +130,7 @@ def test_bad_data(workdir):
         "empty.csv": "empty.csv",
     }
     for name, needle in expect.items():
-        msg = error_of(
-            run("calibrate", name, "--setup", "s.toml", "--out", "x.json", cwd=workdir)
-        )
+        msg = error_of(run("calibrate", name, "--setup", "s.toml", "--out", "x.json", cwd=workdir))
         assert needle in msg, (name, msg)
         assert not (workdir / "x.json").exists()
     assert n > 20
@@ -163,3 +161,19 @@ def test_export_c_writes_sources(workdir):
     names = {p.name for p in (workdir / "fw").iterdir()}
     assert {"hallcal.h", "hallcal.c", "hallcal_q.h", "hallcal_q.c"} <= names
     assert "hallcal_update" in (workdir / "fw" / "hallcal.h").read_text()
+
+
+def test_calibrate_with_the_kernel_basis(workdir):
+    """[model] basis = "kernel" with points works end to end (issue 5)."""
+    text = SETUP.replace('basis = "fourier"\n', "").replace(
+        "harmonics = [1,2,3,4,5,6,7,8,9,10,11]", 'basis = "kernel"\npoints = 64'
+    )
+    (workdir / "k.toml").write_text(text)
+    res = run("calibrate", "cal.csv", "--setup", "k.toml", "--out", "k.json", cwd=workdir)
+    assert res.returncode == 0, res.stderr
+    assert "periodic kernel basis, 64 points" in res.stdout
+    art = json.loads((workdir / "k.json").read_text())
+    assert art["model"]["basis"] == "kernel" and art["model"]["points"] == 64
+    assert np.asarray(art["model"]["weights"]).shape == (3, 64)
+    res = run("reconstruct", "k.json", "val.npz", "--out", "kout.csv", cwd=workdir)
+    assert res.returncode == 0, res.stderr

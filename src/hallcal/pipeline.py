@@ -522,7 +522,13 @@ def calibrate(
 
         _say(progress, f"SEM with the periodic kernel basis (m = {setup.model.points})")
         kres = solve_kernel_sem(
-            loop, r, d, points=setup.model.points, lengthscale=setup.model.lengthscale, y=y
+            loop,
+            r,
+            d,
+            points=setup.model.points,
+            lengthscale=setup.model.lengthscale,
+            y=y,
+            max_iterations=setup.model.max_iterations,
         )
         sem = kres.sem
         flux = kres.flux
@@ -638,10 +644,10 @@ def _amplitude(flux: FluxModel, n_m: int) -> float:
 
 
 def _kernel_info(kres: Any) -> dict[str, Any]:
-    info = {}
-    for key in ("points", "lengthscale", "sf", "penalty"):
-        if hasattr(kres, key):
-            info[key] = getattr(kres, key)
+    info: dict[str, Any] = {"points": int(kres.basis.points)}
+    for key in ("lengthscale", "sf", "penalty"):
+        info[key] = float(getattr(kres, key))
+    info["criterion"] = str(kres.criterion)
     if hasattr(kres, "weights"):
         info["weights"] = np.asarray(kres.weights).tolist()
     info["harmonics"] = list(kres.flux.basis.harmonics)
