@@ -358,7 +358,8 @@ def content_from_calibration(
         )
     t = np.asarray(data["t"], dtype=np.float64) if "t" in data else None
     if t is None:
-        t = cal.setup.sample_time * np.arange(d.shape[0])
+        # sample_time = 1.0 means time in samples (DESIGN.md): plot over the sample index
+        t = None if cal.setup.sample_time == 1.0 else cal.setup.sample_time * np.arange(d.shape[0])
     return ReportContent(
         title=title,
         setup=cal.setup,
@@ -612,7 +613,8 @@ def content_from_artifact(
     d_model, label = _model_signals(sem, flux, d, cal_traces)
     t = np.asarray(data["t"], dtype=np.float64) if "t" in data else None
     if t is None:
-        t = setup.sample_time * np.arange(d.shape[0])
+        # sample_time = 1.0 means time in samples (DESIGN.md): plot over the sample index
+        t = None if setup.sample_time == 1.0 else setup.sample_time * np.arange(d.shape[0])
     p = artifact.get("plant") if isinstance(artifact.get("plant"), Mapping) else {}
     gain = p.get("gain_correction")
     predicted = diag.get("predicted_angle_error_rms")
