@@ -184,6 +184,23 @@ def _basis(y0, harm, out, dout):
     return m
 
 
+@nb.njit(cache=True, inline="always")
+def _unwrap(psi, yprev, n_m):
+    """f_init's unwrapping Gamma(psi, n_m y_prev) / n_m, eq. (fimp)."""
+    ref = n_m * yprev
+    x = psi - ref + math.pi
+    return (ref + x - TWO_PI * math.floor(x / TWO_PI) - math.pi) / n_m
+
+
+@nb.njit(cache=True, inline="always")
+def _output(C, x, D, e):
+    """C x + D e of a single-output state space."""
+    u = D * e
+    for i in range(x.size):
+        u += C[i] * x[i]
+    return u
+
+
 @nb.njit(cache=True)
 def _simulate_kernel(
     Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, noise, td, cog_amp, cog_per, y_init
@@ -223,15 +240,9 @@ def _simulate_kernel(
         for h in range(3):
             al += P[0, h] * (dk[h] - off[h])
             be += P[1, h] * (dk[h] - off[h])
-        psi = math.atan2(be, al)
-        ref = n_m * yprev
-        x = psi - ref + math.pi
-        wr = x - TWO_PI * math.floor(x / TWO_PI)
-        y = (ref + wr - math.pi) / n_m
+        y = _unwrap(math.atan2(be, al), yprev, n_m)
         e = r[k] - y
-        u = Dc * e
-        for i in range(nc):
-            u += Cc[i] * xc[i]
+        u = _output(Cc, xc, Dc, e)
         tq = u + td[k]
         if cog_amp != 0.0:
             tq += cog_amp * math.sin(cog_per * y0)
@@ -343,15 +354,9 @@ def _jacobian_kernel(
             dy[j] += c0 * b[j]
             dy[m + j] += c1 * b[j]
             dy[2 * m + j] += c2 * b[j]
-        psi = math.atan2(be, al)
-        ref = n_m * yprev
-        x = psi - ref + math.pi
-        wr = x - TWO_PI * math.floor(x / TWO_PI)
-        y = (ref + wr - math.pi) / n_m
+        y = _unwrap(math.atan2(be, al), yprev, n_m)
         e = r[k] - y
-        u = Dc * e
-        for i in range(nc):
-            u += Cc[i] * xc[i]
+        u = _output(Cc, xc, Dc, e)
         for j in range(p):
             du[j] = -Dc * dy[j]
         for i in range(nc):
