@@ -136,6 +136,15 @@ def test_bad_data(workdir):
     assert n > 20
 
 
+def test_missing_plant_names_the_setup_file(workdir):
+    text = SETUP.split("[plant]")[0] + SETUP.split("delay = 1.2e-4\n")[1]
+    (workdir / "noplant.toml").write_text(text)
+    msg = error_of(
+        run("calibrate", "cal.csv", "--setup", "noplant.toml", "--out", "x.json", cwd=workdir)
+    )
+    assert "noplant.toml" in msg and "[plant]" in msg and "--bla-data" in msg
+
+
 def test_not_an_artifact(workdir):
     (workdir / "notcal.json").write_text('{"hello": 1}')
     msg = error_of(run("reconstruct", "notcal.json", "val.npz", "--out", "o.csv", cwd=workdir))

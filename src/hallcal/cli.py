@@ -37,7 +37,11 @@ def _handle_errors(func: Callable[..., Any]) -> Callable[..., Any]:
         try:
             return func(*args, **kwargs)
         except HallcalInputError as exc:
-            click.echo(f"hallcal: error: {exc}", err=True)
+            msg = str(exc)
+            if msg.startswith("setup:") and _setup_path[0]:
+                # the numeric layers say "setup:"; the user wants the file's name
+                msg = _setup_path[0] + msg[len("setup") :]
+            click.echo(f"hallcal: error: {msg}", err=True)
             sys.exit(EXIT_INPUT)
         except Refused as exc:
             click.echo(f"hallcal: refused: {exc}", err=True)
@@ -58,9 +62,13 @@ class _Progress:
             _err.print(f"[dim]{time.perf_counter() - self.t0:6.1f} s[/dim]  {message}")
 
 
+_setup_path: list[str | None] = [None]  # the setup file of this command, for error messages
+
+
 def _setup(path: str | None):
     from .io import default_setup, read_setup
 
+    _setup_path[0] = path
     return default_setup() if path is None else read_setup(path)
 
 
