@@ -1,23 +1,26 @@
 """Benchmark: the paper's kernel model (m = 400) at the experiment size, against Fourier 1..11.
 
-Bench shaped like the experiment section of van Meer et al.: 11 pole pairs, trapezoidal flux
-(electrical harmonics 3 and 5), per-pole amplitude modulation and per-magnet variation, Hall
-noise 7.5e-6, ramp 0 -> 20 rad in 40 s at 4 kHz (160 000 samples). Validation on a fresh run
-(another noise seed, 0 -> 18 rad in 36 s) against the true angle.
+Benches shaped like the experiment section of van Meer et al.: 11 pole pairs, trapezoidal flux
+(electrical harmonics 3 and 5), per-magnet variation 0.04, Hall noise 7.5e-6, ramp 0 -> 20 rad
+in 40 s at 4 kHz (160 000 samples); with per-pole amplitude modulation 0.02 ("pole_modulation"
+bench: sidebands 11k +- 1..3 in the truth) or without it (truth harmonics 1..11, 33, 55).
+Validation on a fresh run (another noise seed, 0 -> 18 rad in 36 s) against the true angle.
 
-Rows: the kernel model by :func:`hallcal.kernel.solve_kernel_sem` (evidence and GCV), the Fourier
-model with harmonics 1..11 by :func:`hallcal.sem.solve_sem` on the same data, and, as a reference
-for what any SEM can reach on this experiment, a Fourier model with exactly the truth's harmonics
-(oracle structure, dense :func:`solve_sem`). A second table repeats the three on other seeds
-(another truth and noise each); a last run with 100x less noise shows whether the kernel model's
-excess over the noise floor is variance (it scales with the noise) or bias.
+Rows: the kernel model by :func:`hallcal.kernel.solve_kernel_sem` with its spectrum learned per
+harmonic (ARD, the default) and with the squared-exponential kernel's own Bessel spectrum
+(evidence and GCV), the Fourier model with harmonics 1..11 by :func:`hallcal.sem.solve_sem` on
+the same data, and, as a reference, a Fourier model with exactly the truth's harmonics (oracle
+structure, dense :func:`solve_sem`). Tables over seeds 1..4 follow for both benches (another truth
+and noise each); a last run with 100x less noise shows whether the remaining excess over the
+noise floor is variance (it scales with the noise) or bias.
 
-Run: ``python benchmarks/bench_kernel.py > benchmarks/bench_kernel.txt`` (about 4 minutes on
+Run: ``python benchmarks/bench_kernel.py > benchmarks/bench_kernel.txt`` (about 10 minutes on
 2 cores). Times are wall-clock on a shared 2-core machine and vary with its load.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import platform
 import resource
@@ -28,17 +31,17 @@ import numpy as np
 
 from hallcal.bench import BenchConfig, ramp_run
 from hallcal.flux import FourierBasis
-from hallcal.kernel import solve_kernel_sem
+from hallcal.kernel import KernelBasis, solve_kernel_sem
 from hallcal.lut import build_lut
 from hallcal.metrics import angle_error
 from hallcal.sem import solve_sem
 
 
-def config(seed: int) -> BenchConfig:
+def config(seed: int, pole_modulation: float = 0.02) -> BenchConfig:
     return BenchConfig(
         pole_pairs=11,
         electrical_harmonics=((3, 0.10), (5, 0.04)),
-        pole_modulation=0.02,
+        pole_modulation=pole_modulation,
         magnet_variation=0.04,
         seed=seed,
     )
@@ -50,6 +53,38 @@ def errors(flux, val) -> tuple[float, float]:
         angle_error(lut.f_init(val.d), val.y0).rms,
         angle_error(lut.f_star(val.d), val.y0).rms,
     )
+
+
+def seed_table(title: str, pole_modulation: float, seeds: tuple[int, ...]) -> None:
+    print(f"\n== {title}: seeds {', '.join(map(str, seeds))}; f_star errors in mrad ==")
+    head = f"{'seed':>4}{'ARD [s]':>9}{'Bessel [s]':>11}{'F11 [s]':>8}{'f_init':>8}{'ARD':>8}"
+    head += f"{'Bessel':>8}{'F11':>7}{'oracle':>8}{'ARD/fl':>8}{'Bes/fl':>8}{'orc/fl':>8}"
+    head += f"{'l':>8}{'K':>4}{'settled':>8}"
+    print(head + "\n" + "-" * len(head))
+    for seed in seeds:
+        c = config(seed, pole_modulation)
+        run = ramp_run(c, ramp_end=20.0, duration=40.0, seed=seed)
+        val = ramp_run(c, ramp_end=18.0, duration=36.0, seed=seed + 100)
+        t = time.perf_counter()
+        res = solve_kernel_sem(c.loop(), run.r, run.d, y=run.y)
+        ta = time.perf_counter() - t
+        t = time.perf_counter()
+        bes = solve_kernel_sem(c.loop(), run.r, run.d, y=run.y, spectrum="bessel")
+        tb = time.perf_counter() - t
+        t = time.perf_counter()
+        four = solve_sem(c.loop(), run.r, run.d, FourierBasis(tuple(range(1, 12))), y=run.y)
+        tf = time.perf_counter() - t
+        orc = solve_sem(c.loop(), run.r, run.d, run.truth.basis, y=run.y, tol=1e-10)
+        ei, ea = errors(res.flux, val)
+        _, eb = errors(bes.flux, val)
+        _, ef = errors(four.flux, val)
+        _, eo = errors(orc.flux, val)
+        fl = c.noise_floor
+        print(
+            f"{seed:>4}{ta:>9.1f}{tb:>11.1f}{tf:>8.1f}{ei * 1e3:>8.3f}{ea * 1e3:>8.3f}"
+            f"{eb * 1e3:>8.3f}{ef * 1e3:>7.3f}{eo * 1e3:>8.3f}{ea / fl:>8.2f}{eb / fl:>8.2f}"
+            f"{eo / fl:>8.2f}{res.lengthscale:>8.4f}{res.harmonics:>4}{str(res.settled):>8}"
+        )
 
 
 def main() -> None:
@@ -67,6 +102,7 @@ def main() -> None:
     val = ramp_run(cfg, ramp_end=18.0, duration=36.0, seed=103)
     loop = cfg.loop()
     floor = cfg.noise_floor
+    print("\n== pole_modulation bench (pole_modulation = 0.02) ==")
     print(f"\nseed 3: N = {run.n_samples} samples, truth harmonics {run.truth.basis.harmonics}")
     print(f"noise floor {floor * 1e3:.4f} mrad RMS (sigma sqrt(2/3) / n_m)\n")
     head = (
@@ -77,15 +113,25 @@ def main() -> None:
     rows = []
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     rss1 = rss0
-    for crit in ("evidence", "gcv"):
+    ard = None
+    nominal_excess: dict[str, float] = {}
+    for spec, crit in (("ard", "evidence"), ("bessel", "evidence"), ("bessel", "gcv")):
         t = time.perf_counter()
-        res = solve_kernel_sem(loop, run.r, run.d, y=run.y, points=400, criterion=crit)
+        res = solve_kernel_sem(
+            loop, run.r, run.d, y=run.y, points=400, criterion=crit, spectrum=spec
+        )
         wall = time.perf_counter() - t
         ei, es = errors(res.flux, val)
-        rows.append((crit, res))
+        if crit == "evidence":
+            nominal_excess[spec] = math.sqrt(max(es**2 - floor**2, 0.0))
+        if spec == "ard":
+            ard = res
+        else:
+            rows.append((crit, res))
         rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        label = "kernel m=400, ARD" if spec == "ard" else f"kernel m=400, Bessel, {crit}"
         print(
-            f"{'kernel m=400, ' + crit:<34}{res.flux.theta.size:>7}{wall:>10.1f}"
+            f"{label:<34}{res.flux.theta.size:>7}{wall:>10.1f}"
             f"{ei * 1e3:>9.3f}{es * 1e3:>9.3f}{es / floor:>8.2f}  {res.status}"
         )
     t = time.perf_counter()
@@ -105,6 +151,22 @@ def main() -> None:
         f"{ei * 1e3:>9.3f}{es * 1e3:>9.3f}{es / floor:>8.2f}  {orc.status}"
     )
     print("(errors in mrad RMS on the validation run; time = wall time of the solve)")
+    assert ard is not None and ard.ard is not None
+    pv = ard.prior_variance
+    v0 = KernelBasis(400, ard.lengthscale, ard.sf).prior_variance(ard.harmonics)[2::2]
+    print(
+        f"\nkernel, ARD: started from the Bessel spectrum at l = {ard.lengthscale:.4f} rad, "
+        f"sf = {ard.sf:.4g}; {ard.ard_rounds} re-solves, {ard.gauss_newton_systems} Gauss-Newton "
+        f"systems, settled {ard.settled}, sigma^2 = {ard.noise_variance:.4g}; "
+        f"{int(np.sum(ard.ard.pruned))} of {ard.harmonics + 1} harmonics pruned"
+    )
+    print("  learned prior standard deviation / kernel's, harmonics 1..30:")
+    ratio = np.sqrt(pv[1:31] / v0[:30])
+    for lo in range(0, 30, 10):
+        print(
+            "   "
+            + " ".join(f"{k + 1:>3}:{x:8.2g}" for k, x in enumerate(ratio) if lo <= k < lo + 10)
+        )
 
     for crit, res in rows:
         print(
@@ -132,44 +194,25 @@ def main() -> None:
                 f"dof = {c.dof:6.1f}"
             )
 
-    print("\nother seeds (truth and noise), kernel with the evidence; f_star errors in mrad:")
-    head = f"{'seed':>4}{'kernel [s]':>12}{'Fourier11 [s]':>15}{'f_init':>9}{'kernel':>9}"
-    head += f"{'Fourier11':>11}{'oracle':>9}{'kernel/floor':>14}{'oracle/floor':>14}"
-    head += f"{'l':>8}{'K':>5}"
-    print(head + "\n" + "-" * len(head))
-    for seed in (1, 2, 4):
-        c = config(seed)
-        run = ramp_run(c, ramp_end=20.0, duration=40.0, seed=seed)
-        val = ramp_run(c, ramp_end=18.0, duration=36.0, seed=seed + 100)
-        t = time.perf_counter()
-        res = solve_kernel_sem(c.loop(), run.r, run.d, y=run.y)
-        tk = time.perf_counter() - t
-        t = time.perf_counter()
-        four = solve_sem(c.loop(), run.r, run.d, FourierBasis(tuple(range(1, 12))), y=run.y)
-        tf = time.perf_counter() - t
-        orc = solve_sem(c.loop(), run.r, run.d, run.truth.basis, y=run.y, tol=1e-10)
-        ei, ek = errors(res.flux, val)
-        _, ef = errors(four.flux, val)
-        _, eo = errors(orc.flux, val)
-        fl = c.noise_floor
-        print(
-            f"{seed:>4}{tk:>12.1f}{tf:>15.1f}{ei * 1e3:>9.3f}{ek * 1e3:>9.3f}{ef * 1e3:>11.3f}"
-            f"{eo * 1e3:>9.3f}{ek / fl:>14.2f}{eo / fl:>14.2f}{res.lengthscale:>8.4f}"
-            f"{res.harmonics:>5}"
-        )
+    seed_table("pole_modulation bench", 0.02, (1, 2, 4))
+    seed_table("bench without pole_modulation (truth harmonics 1..11, 33, 55)", 0.0, (1, 2, 3, 4))
 
-    print("\nvariance or bias? seed 3 with 100x smaller Hall noise variance (kernel, evidence):")
+    print("\nvariance or bias? pole_modulation bench, seed 3, 100x smaller Hall noise variance:")
+    print("  (excess = sqrt(f_star^2 - floor^2); pure variance would shrink it 10x)")
     c = replace(config(3), noise_variance=config(3).noise_variance / 100)
     run = ramp_run(c, ramp_end=20.0, duration=40.0, seed=3)
     val = ramp_run(c, ramp_end=18.0, duration=36.0, seed=103)
-    res = solve_kernel_sem(c.loop(), run.r, run.d, y=run.y)
-    ei, ek = errors(res.flux, val)
-    print(
-        f"  f_init {ei * 1e3:.3f} mrad, kernel f_star {ek * 1e3:.4f} mrad, floor "
-        f"{c.noise_floor * 1e3:.4f} mrad, ratio {ek / c.noise_floor:.2f} (l = "
-        f"{res.lengthscale:.4f}, K = {res.harmonics}, {res.status}): the excess over the floor "
-        "scales with the noise"
-    )
+    for spec in ("ard", "bessel"):
+        res = solve_kernel_sem(c.loop(), run.r, run.d, y=run.y, spectrum=spec)
+        ei, ek = errors(res.flux, val)
+        fl = c.noise_floor
+        ex, ex0 = math.sqrt(max(ek**2 - fl**2, 0.0)), nominal_excess[spec]
+        print(
+            f"  {spec:<6}: f_init {ei * 1e3:.3f} mrad, kernel f_star {ek * 1e3:.4f} mrad, floor "
+            f"{fl * 1e3:.4f} mrad, ratio {ek / fl:.2f} (l = {res.lengthscale:.4f}, K = "
+            f"{res.harmonics}, {res.status}); excess {ex * 1e3:.4f} mrad, "
+            f"{ex0 / max(ex, 1e-300):.1f}x smaller than at the nominal noise"
+        )
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(
         f"\npeak resident memory: {rss0:.0f} MB before the kernel solves, {rss1:.0f} MB after "
