@@ -93,7 +93,7 @@ from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
 from .flux import FluxModel, FourierBasis
-from .loop import ClosedLoop
+from .loop import ClosedLoop, _advance, _advance_sensitivity, _alpha_beta, _output, _unwrap
 from .reconstruction import f_init
 from .sem import SEMResult
 
@@ -392,32 +392,12 @@ def _sim_fourier(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, K, r, y_init):
             for j in range(mb):
                 acc += theta[h, j] * b[j]
             dk[h] = acc
-        al = 0.0
-        be = 0.0
-        for h in range(3):
-            al += P[0, h] * (dk[h] - off[h])
-            be += P[1, h] * (dk[h] - off[h])
-        psi = math.atan2(be, al)
-        ref = n_m * yprev
-        x = psi - ref + math.pi
-        wr = x - TWO_PI * math.floor(x / TWO_PI)
-        y = (ref + wr - math.pi) / n_m
+        al, be = _alpha_beta(P, off, dk)
+        y = _unwrap(math.atan2(be, al), yprev, n_m)
         e = r[k] - y
-        u = Dc * e
-        for i in range(nc):
-            u += Cc[i] * xc[i]
-        for i in range(nc):
-            acc = Bc[i] * e
-            for j in range(nc):
-                acc += Ac[i, j] * xc[j]
-            xc2[i] = acc
-        for i in range(ng):
-            acc = Bg[i] * u
-            for j in range(ng):
-                acc += Ag[i, j] * xg[j]
-            xg2[i] = acc
-        xc[:] = xc2
-        xg[:] = xg2
+        u = _output(Cc, xc, Dc, e)
+        _advance(Ac, Bc, xc, e, xc2)
+        _advance(Ag, Bg, xg, u, xg2)
         jump = n_m * abs(y0 - y0_last)
         y0_last = y0
         if not (abs(y0) < 1e12 and abs(u) < 1e15 and jump < math.pi):
@@ -485,11 +465,7 @@ def _sens_chunk(
             ds[k, h] = acc
             ek[h] = d[k, h] - acc
             sse += ek[h] * ek[h]
-        al = 0.0
-        be = 0.0
-        for h in range(3):
-            al += P[0, h] * (gk[h] - off[h])
-            be += P[1, h] * (gk[h] - off[h])
+        al, be = _alpha_beta(P, off, gk)
         rho2 = al * al + be * be
         c0 = (al * P[1, 0] - be * P[0, 0]) / (rho2 * n_m)
         c1 = (al * P[1, 1] - be * P[0, 1]) / (rho2 * n_m)
@@ -514,15 +490,9 @@ def _sens_chunk(
                 U[t, o + j] += nh * bj
                 grad[o + j] += eh * bj
                 dy[o + j] += ch * bj
-        psi = math.atan2(be, al)
-        ref = n_m * yprev
-        x = psi - ref + math.pi
-        wr = x - TWO_PI * math.floor(x / TWO_PI)
-        y = (ref + wr - math.pi) / n_m
+        y = _unwrap(math.atan2(be, al), yprev, n_m)
         e = r[k] - y
-        u = Dc * e
-        for i in range(nc):
-            u += Cc[i] * xc[i]
+        u = _output(Cc, xc, Dc, e)
         for j in range(p):
             du[j] = -Dc * dy[j]
         for i in range(nc):
@@ -530,34 +500,12 @@ def _sens_chunk(
             if ci != 0.0:
                 for j in range(p):
                     du[j] += ci * Sc[i, j]
-        for i in range(nc):
-            acc = Bc[i] * e
-            for l in range(nc):
-                acc += Ac[i, l] * xc[l]
-            xc2[i] = acc
-            bi = Bc[i]
-            for j in range(p):
-                Sc2[i, j] = -bi * dy[j]
-            for l in range(nc):
-                a = Ac[i, l]
-                if a != 0.0:
-                    for j in range(p):
-                        Sc2[i, j] += a * Sc[l, j]
-        for i in range(ng):
-            acc = Bg[i] * u
-            for l in range(ng):
-                acc += Ag[i, l] * xg[l]
-            xg2[i] = acc
-            bi = Bg[i]
-            for j in range(p):
-                Sg2[i, j] = bi * du[j]
-            for l in range(ng):
-                a = Ag[i, l]
-                if a != 0.0:
-                    for j in range(p):
-                        Sg2[i, j] += a * Sg[l, j]
-        xc[:] = xc2
-        xg[:] = xg2
+        for j in range(p):
+            dy[j] = -dy[j]  # de = -dy drives the controller
+        _advance_sensitivity(Ac, Bc, Sc, dy, Sc2)
+        _advance_sensitivity(Ag, Bg, Sg, du, Sg2)
+        _advance(Ac, Bc, xc, e, xc2)
+        _advance(Ag, Bg, xg, u, xg2)
         Sc, Sc2 = Sc2, Sc
         Sg, Sg2 = Sg2, Sg
         swapped = not swapped

@@ -193,6 +193,44 @@ def _unwrap(psi, yprev, n_m):
 
 
 @nb.njit(cache=True, inline="always")
+def _alpha_beta(P, off, dk):
+    """f_init's projection (alpha, beta) = P (d - offset)."""
+    al = 0.0
+    be = 0.0
+    for h in range(3):
+        al += P[0, h] * (dk[h] - off[h])
+        be += P[1, h] * (dk[h] - off[h])
+    return al, be
+
+
+@nb.njit(cache=True, inline="always")
+def _advance(A, B, x, v, out):
+    """out = A x + B v (one state-space step), then x <- out."""
+    n = x.size
+    for i in range(n):
+        acc = B[i] * v
+        for j in range(n):
+            acc += A[i, j] * x[j]
+        out[i] = acc
+    x[:] = out
+
+
+@nb.njit(cache=True, inline="always")
+def _advance_sensitivity(A, B, S, dv, out):
+    """out = A S + B dv for a sensitivity matrix S (states x parameters), p innermost."""
+    n, p = S.shape
+    for i in range(n):
+        bi = B[i]
+        for j in range(p):
+            out[i, j] = bi * dv[j]
+        for l in range(n):
+            a = A[i, l]
+            if a != 0.0:
+                for j in range(p):
+                    out[i, j] += a * S[l, j]
+
+
+@nb.njit(cache=True, inline="always")
 def _output(C, x, D, e):
     """C x + D e of a single-output state space."""
     u = D * e
@@ -235,29 +273,15 @@ def _simulate_kernel(
                 acc += theta[h, j] * b[j]
             dk[h] = acc + noise[k, h]
             ds[k, h] = dk[h]
-        al = 0.0
-        be = 0.0
-        for h in range(3):
-            al += P[0, h] * (dk[h] - off[h])
-            be += P[1, h] * (dk[h] - off[h])
+        al, be = _alpha_beta(P, off, dk)
         y = _unwrap(math.atan2(be, al), yprev, n_m)
         e = r[k] - y
         u = _output(Cc, xc, Dc, e)
         tq = u + td[k]
         if cog_amp != 0.0:
             tq += cog_amp * math.sin(cog_per * y0)
-        for i in range(nc):
-            acc = Bc[i] * e
-            for j in range(nc):
-                acc += Ac[i, j] * xc[j]
-            xc2[i] = acc
-        for i in range(ng):
-            acc = Bg[i] * tq
-            for j in range(ng):
-                acc += Ag[i, j] * xg[j]
-            xg2[i] = acc
-        xc[:] = xc2
-        xg[:] = xg2
+        _advance(Ac, Bc, xc, e, xc2)
+        _advance(Ag, Bg, xg, tq, xg2)
         y0s[k] = y0
         ys[k] = y
         us[k] = u
@@ -329,11 +353,7 @@ def _jacobian_kernel(
             dk[h] = acc
             gp[h] = dacc
             ds[k, h] = acc
-        al = 0.0
-        be = 0.0
-        for h in range(3):
-            al += P[0, h] * (dk[h] - off[h])
-            be += P[1, h] * (dk[h] - off[h])
+        al, be = _alpha_beta(P, off, dk)
         rho2 = al * al + be * be
         # d psi / d d_h
         c0 = (al * P[1, 0] - be * P[0, 0]) / (rho2 * n_m)
@@ -365,37 +385,16 @@ def _jacobian_kernel(
                 for j in range(p):
                     du[j] += ci * Sc[i, j]
         # state and sensitivity updates
-        for i in range(nc):
-            acc = Bc[i] * e
-            for l in range(nc):
-                acc += Ac[i, l] * xc[l]
-            xc2[i] = acc
-            bi = Bc[i]
-            for j in range(p):
-                Sc2[i, j] = -bi * dy[j]
-            for l in range(nc):
-                a = Ac[i, l]
-                if a != 0.0:
-                    for j in range(p):
-                        Sc2[i, j] += a * Sc[l, j]
-        for i in range(ng):
-            acc = Bg[i] * u
-            for l in range(ng):
-                acc += Ag[i, l] * xg[l]
-            xg2[i] = acc
-            bi = Bg[i]
-            for j in range(p):
-                Sg2[i, j] = bi * du[j]
-            if fit_gain:
-                # x+ = A x + c B u with Bg = c B: d/d log c adds Bg u
-                Sg2[i, p - 1] += bi * u
-            for l in range(ng):
-                a = Ag[i, l]
-                if a != 0.0:
-                    for j in range(p):
-                        Sg2[i, j] += a * Sg[l, j]
-        xc[:] = xc2
-        xg[:] = xg2
+        for j in range(p):
+            dy[j] = -dy[j]  # de = -dy drives the controller
+        _advance_sensitivity(Ac, Bc, Sc, dy, Sc2)
+        _advance_sensitivity(Ag, Bg, Sg, du, Sg2)
+        if fit_gain:
+            # x+ = A x + c B u with Bg = c B: d/d log c adds Bg u
+            for i in range(ng):
+                Sg2[i, p - 1] += Bg[i] * u
+        _advance(Ac, Bc, xc, e, xc2)
+        _advance(Ag, Bg, xg, u, xg2)
         Sc, Sc2 = Sc2, Sc
         Sg, Sg2 = Sg2, Sg
         y0s[k] = y0
