@@ -231,6 +231,13 @@ def _advance_sensitivity(A, B, S, dv, out):
 
 
 @nb.njit(cache=True, inline="always")
+def _diverged(y0, y0_last, u, n_m):
+    """The loop left a sane range, or the angle moved half an electrical period in one sample
+    (f_init aliases: the simulation no longer means anything)."""
+    return not (abs(y0) < 1e12 and abs(u) < 1e15 and n_m * abs(y0 - y0_last) < math.pi)
+
+
+@nb.njit(cache=True, inline="always")
 def _output(C, x, D, e):
     """C x + D e of a single-output state space."""
     u = D * e
@@ -287,9 +294,9 @@ def _simulate_kernel(
         us[k] = u
         ts[k] = tq
         yprev = y
-        jump = n_m * abs(y0 - y0_last)
+        bad = _diverged(y0, y0_last, u, n_m)
         y0_last = y0
-        if not (abs(y0) < 1e12 and abs(u) < 1e15 and jump < math.pi):
+        if bad:
             ok = False
             for kk in range(k + 1, N):
                 y0s[kk] = np.nan
@@ -401,9 +408,9 @@ def _jacobian_kernel(
         ys[k] = y
         us[k] = u
         yprev = y
-        jump = n_m * abs(y0 - y0_last)
+        bad = _diverged(y0, y0_last, u, n_m)
         y0_last = y0
-        if not (abs(y0) < 1e12 and abs(u) < 1e15 and jump < math.pi):
+        if bad:
             ok = False
             break
     return y0s, ys, us, ds, ok
