@@ -93,7 +93,15 @@ from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
 from .flux import FluxModel, FourierBasis
-from .loop import ClosedLoop, _advance, _advance_sensitivity, _alpha_beta, _output, _unwrap
+from .loop import (
+    ClosedLoop,
+    _advance,
+    _advance_sensitivity,
+    _alpha_beta,
+    _diverged,
+    _output,
+    _unwrap,
+)
 from .reconstruction import f_init
 from .sem import SEMResult
 
@@ -398,9 +406,9 @@ def _sim_fourier(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, K, r, y_init):
         u = _output(Cc, xc, Dc, e)
         _advance(Ac, Bc, xc, e, xc2)
         _advance(Ag, Bg, xg, u, xg2)
-        jump = n_m * abs(y0 - y0_last)
+        bad = _diverged(y0, y0_last, u, n_m)
         y0_last = y0
-        if not (abs(y0) < 1e12 and abs(u) < 1e15 and jump < math.pi):
+        if bad:
             ok = False
             break
         y0s[k] = y0
@@ -510,10 +518,10 @@ def _sens_chunk(
         Sg, Sg2 = Sg2, Sg
         swapped = not swapped
         y0s[k] = y0
-        jump = n_m * abs(y0 - y0_last)
+        bad = _diverged(y0, y0_last, u, n_m)
         y0_last = y0
         yprev = y
-        if not (abs(y0) < 1e12 and abs(u) < 1e15 and jump < math.pi):
+        if bad:
             ok = False
             break
     if swapped:  # the caller's Sg, Sc must hold the current sensitivities
