@@ -98,7 +98,9 @@ from .loop import (
     _advance,
     _advance_sensitivity,
     _alpha_beta,
+    _angle_and_sensitivity,
     _diverged,
+    _flux_and_slope,
     _output,
     _unwrap,
 )
@@ -451,27 +453,12 @@ def _sens_chunk(
     swapped = False
     for k in range(k0, k1):
         t = k - k0
-        y0 = 0.0
-        for i in range(ng):
-            y0 += Cg[i] * xg[i]
-        for j in range(p):
-            dy0[j] = 0.0
-        for i in range(ng):
-            ci = Cg[i]
-            if ci != 0.0:
-                for j in range(p):
-                    dy0[j] += ci * Sg[i, j]
+        y0 = _angle_and_sensitivity(Cg, xg, Sg, dy0)
         _trig(y0, K, b, db)
+        _flux_and_slope(theta, b, db, gk, gp)
         for h in range(3):
-            acc = 0.0
-            dacc = 0.0
-            for j in range(mb):
-                acc += theta[h, j] * b[j]
-                dacc += theta[h, j] * db[j]
-            gk[h] = acc
-            gp[h] = dacc
-            ds[k, h] = acc
-            ek[h] = d[k, h] - acc
+            ds[k, h] = gk[h]
+            ek[h] = d[k, h] - gk[h]
             sse += ek[h] * ek[h]
         al, be = _alpha_beta(P, off, gk)
         rho2 = al * al + be * be

@@ -238,6 +238,34 @@ def _diverged(y0, y0_last, u, n_m):
 
 
 @nb.njit(cache=True, inline="always")
+def _angle_and_sensitivity(Cg, xg, Sg, dy0):
+    """y0 = C_G x_G and, into dy0, its sensitivity C_G S_G (p innermost)."""
+    y0 = 0.0
+    for i in range(xg.size):
+        y0 += Cg[i] * xg[i]
+    dy0[:] = 0.0
+    for i in range(xg.size):
+        ci = Cg[i]
+        if ci != 0.0:
+            for j in range(dy0.size):
+                dy0[j] += ci * Sg[i, j]
+    return y0
+
+
+@nb.njit(cache=True, inline="always")
+def _flux_and_slope(theta, b, db, g, gp):
+    """g_h = theta_h . beta(y0) and g'_h = theta_h . beta'(y0) for the three sensors."""
+    for h in range(3):
+        acc = 0.0
+        dacc = 0.0
+        for j in range(b.size):
+            acc += theta[h, j] * b[j]
+            dacc += theta[h, j] * db[j]
+        g[h] = acc
+        gp[h] = dacc
+
+
+@nb.njit(cache=True, inline="always")
 def _output(C, x, D, e):
     """C x + D e of a single-output state space."""
     u = D * e
@@ -341,25 +369,11 @@ def _jacobian_kernel(
     y0_last = 0.0
     ok = True
     for k in range(N):
-        y0 = 0.0
-        for i in range(ng):
-            y0 += Cg[i] * xg[i]
-        dy0[:] = 0.0
-        for i in range(ng):
-            ci = Cg[i]
-            if ci != 0.0:
-                for j in range(p):
-                    dy0[j] += ci * Sg[i, j]
+        y0 = _angle_and_sensitivity(Cg, xg, Sg, dy0)
         _basis(y0, harm, b, db)
+        _flux_and_slope(theta, b, db, dk, gp)
         for h in range(3):
-            acc = 0.0
-            dacc = 0.0
-            for j in range(m):
-                acc += theta[h, j] * b[j]
-                dacc += theta[h, j] * db[j]
-            dk[h] = acc
-            gp[h] = dacc
-            ds[k, h] = acc
+            ds[k, h] = dk[h]
         al, be = _alpha_beta(P, off, dk)
         rho2 = al * al + be * be
         # d psi / d d_h
