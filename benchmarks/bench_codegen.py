@@ -1,4 +1,4 @@
-"""Benchmark of the generated firmware code (hallcal.codegen): speed, size, MCU cycle estimate.
+"""Benchmark of the generated firmware code (hallcal.output.codegen): speed, size, MCU cycles.
 
 Run ``python benchmarks/bench_codegen.py [--out benchmarks/bench_codegen.txt]``. It builds a
 raw-ADC-like calibration (n_m = 11, M = 4096 nodes, trapezoidal flux, unequal projection), exports
@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from hallcal.codegen import CORDIC_ITERATIONS, export_c
-from hallcal.flux import FluxModel, FourierBasis, sinusoidal_theta
-from hallcal.lut import LUT, build_lut
-from hallcal.reconstruction import projection_matrix
+from hallcal.output.codegen import CORDIC_ITERATIONS, export_c
+from hallcal.sensor.flux import FluxModel, FourierBasis, sinusoidal_theta
+from hallcal.sensor.lut import LUT, build_lut
+from hallcal.sensor.reconstruction import projection_matrix
 
 TWO_PI = 2.0 * math.pi
 N_SAMPLES = 65536
@@ -244,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
     m4_f = sum(c for _, c in M4_FLOAT) + M4_ATAN2F
     m4_q = sum(c for _, c in M4_FIXED)
     lines = [
-        "hallcal.codegen benchmark (benchmarks/bench_codegen.py)",
+        "hallcal.output.codegen benchmark (benchmarks/bench_codegen.py)",
         "=" * 56,
         f"machine : {_cpu()}, {platform.system()} {platform.machine()}, {os.cpu_count()} cores",
         f"          shared with other jobs (load average {os.getloadavg()[0]:.1f} at the end)",

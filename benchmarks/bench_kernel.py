@@ -6,9 +6,9 @@ in 40 s at 4 kHz (160 000 samples); with per-pole amplitude modulation 0.02 ("po
 bench: sidebands 11k +- 1..3 in the truth) or without it (truth harmonics 1..11, 33, 55).
 Validation on a fresh run (another noise seed, 0 -> 18 rad in 36 s) against the true angle.
 
-Rows: the kernel model by :func:`hallcal.kernel.solve_kernel_sem` with its spectrum learned per
+Rows: the kernel model by :func:`hallcal.fit.kernel.solve_kernel_sem` with its spectrum learned per
 harmonic (ARD, the default) and with the squared-exponential kernel's own Bessel spectrum
-(evidence and GCV), the Fourier model with harmonics 1..11 by :func:`hallcal.sem.solve_sem` on
+(evidence and GCV), the Fourier model with harmonics 1..11 by :func:`hallcal.fit.sem.solve_sem` on
 the same data, and, as a reference, a Fourier model with exactly the truth's harmonics (oracle
 structure, dense :func:`solve_sem`). Tables over seeds 1..4 follow for both benches (another truth
 and noise each); a last run with 100x less noise shows whether the remaining excess over the
@@ -29,12 +29,12 @@ from dataclasses import replace
 
 import numpy as np
 
-from hallcal.bench import BenchConfig, ramp_run
-from hallcal.flux import FourierBasis
-from hallcal.kernel import KernelBasis, solve_kernel_sem
-from hallcal.lut import build_lut
-from hallcal.metrics import angle_error
-from hallcal.sem import solve_sem
+from hallcal.fit.kernel import KernelBasis, solve_kernel_sem
+from hallcal.fit.sem import solve_sem
+from hallcal.sensor.flux import FourierBasis
+from hallcal.sensor.lut import build_lut
+from hallcal.sensor.metrics import angle_error
+from hallcal.sim.bench import BenchConfig, ramp_run
 
 
 def config(seed: int, pole_modulation: float = 0.02) -> BenchConfig:

@@ -11,8 +11,8 @@ import time
 
 import numpy as np
 
-from hallcal.bench import BenchConfig
-from hallcal.loop import loop_jacobian, simulate_loop
+from hallcal.sim.bench import BenchConfig
+from hallcal.sim.loop import loop_jacobian, simulate_loop
 
 
 def best_of(fn, repeats: int = 7) -> tuple[float, float]:

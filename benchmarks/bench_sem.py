@@ -25,12 +25,12 @@ import numpy as np
 import scipy
 import scipy.optimize
 
-from hallcal.bench import BenchConfig, ramp_run
-from hallcal.flux import FluxModel, FourierBasis
-from hallcal.loop import simulate_loop
-from hallcal.lut import build_lut
-from hallcal.metrics import angle_error
-from hallcal.sem import solve_sem
+from hallcal.fit.sem import solve_sem
+from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sensor.lut import build_lut
+from hallcal.sensor.metrics import angle_error
+from hallcal.sim.bench import BenchConfig, ramp_run
+from hallcal.sim.loop import simulate_loop
 
 
 def main() -> None:
@@ -109,7 +109,7 @@ def main() -> None:
 def _sinusoid_start(basis: FourierBasis, d: np.ndarray) -> np.ndarray:
     """The paper's theta_0: pure sinusoids (the inverse of f_init), amplitude and offset from
     the data's RMS and mean."""
-    from hallcal.flux import sinusoidal_theta
+    from hallcal.sensor.flux import sinusoidal_theta
 
     amp = np.sqrt(2.0) * np.std(d, axis=0)
     return sinusoidal_theta(basis, 11, amplitude=amp, offset=np.mean(d, axis=0))

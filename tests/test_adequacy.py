@@ -17,17 +17,17 @@ import numpy as np
 import pytest
 import scipy.signal
 
-from hallcal.adequacy import (
+from hallcal.fit.adequacy import (
     assess,
     curve_projection,
     estimate_noise_variance,
     harmonic_content,
 )
-from hallcal.bench import BenchConfig, ramp_run
-from hallcal.flux import FluxModel, FourierBasis
-from hallcal.lut import build_lut
-from hallcal.metrics import angle_error
-from hallcal.sem import solve_sem
+from hallcal.fit.sem import solve_sem
+from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sensor.lut import build_lut
+from hallcal.sensor.metrics import angle_error
+from hallcal.sim.bench import BenchConfig, ramp_run
 
 H11 = tuple(range(1, 12))
 TRAP = ((3, 0.10), (5, 0.04))

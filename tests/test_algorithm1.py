@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from hallcal import pipeline
-from hallcal.bench import PAPER_PLANT
 from hallcal.io import Dataset, default_setup
+from hallcal.sim.bench import PAPER_PLANT
 
 
 @pytest.fixture(scope="module")

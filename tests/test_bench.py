@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hallcal.bench import BenchConfig, noise_floor, ramp_run, simulate_run
+from hallcal.sim.bench import BenchConfig, noise_floor, ramp_run, simulate_run
 
 
 @pytest.fixture(scope="module")
@@ -101,7 +101,7 @@ def test_disturbances_move_the_motor():
 
 def test_noise_floor_formula_matches_monte_carlo():
     """f_star with the true table on noisy data is at sigma sqrt(2/3) / (A n_m) within 3%."""
-    from hallcal.lut import build_lut
+    from hallcal.sensor.lut import build_lut
 
     cfg = BenchConfig(seed=1, noise_variance=2e-5)
     run = ramp_run(cfg, ramp_end=7.0, duration=14.0)

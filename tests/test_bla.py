@@ -1,4 +1,4 @@
-"""Tests of hallcal.bla: closed-loop nonparametric BLA and the parametric fit.
+"""Tests of hallcal.identify.bla: closed-loop nonparametric BLA and the parametric fit.
 
 The closed loop is simulated here, independently of the package: the paper's plant
 G(s) = 1.663e5 / (s^3 + 632.6 s^2 + 2702 s) with an input delay of 1.2e-4 s, discretized exactly
@@ -16,9 +16,9 @@ import scipy.linalg as sla
 import scipy.signal as sig
 from scipy import stats
 
-from hallcal._errors import HallcalInputError
-from hallcal.bla import NonparametricBLA, ParametricBLA, fit_parametric, nonparametric_bla
-from hallcal.excitation import multisine_experiment
+from hallcal.errors import HallcalInputError
+from hallcal.identify.bla import NonparametricBLA, ParametricBLA, fit_parametric, nonparametric_bla
+from hallcal.identify.excitation import multisine_experiment
 
 TS = 2.5e-4
 TAU = 1.2e-4

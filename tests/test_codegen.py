@@ -1,4 +1,4 @@
-"""Generated C (hallcal.codegen) compiled with the system C compiler, against the Python f_star.
+"""Generated C (hallcal.output.codegen) compiled with the system C compiler, against Python f_star.
 
 The driver below is compiled together with the generated sources (it includes the .c file, so the
 static integer atan2 is reachable) in a temporary directory. It reads samples on stdin and writes
@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hallcal._errors import HallcalInputError
-from hallcal.codegen import CORDIC_ITERATIONS, cordic_error_bound, export_c
-from hallcal.flux import FluxModel, FourierBasis, sinusoidal_theta
-from hallcal.lut import LUT, build_lut
-from hallcal.reconstruction import projection_matrix
+from hallcal.errors import HallcalInputError
+from hallcal.output.codegen import CORDIC_ITERATIONS, cordic_error_bound, export_c
+from hallcal.sensor.flux import FluxModel, FourierBasis, sinusoidal_theta
+from hallcal.sensor.lut import LUT, build_lut
+from hallcal.sensor.reconstruction import projection_matrix
 
 TWO_PI = 2.0 * math.pi
 CC = shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")

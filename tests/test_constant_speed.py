@@ -1,4 +1,4 @@
-"""Constant-speed calibration on synthetic data with known truth (hallcal.constant_speed).
+"""Constant-speed calibration on synthetic data with known truth (hallcal.fit.constant_speed).
 
 The synthetic sensors have what the ring-jig recordings have: unequal electrical spacing (0, 101
 and 261 degrees), unequal gains, raw-ADC offsets of about 40 000 counts, per-magnet variations
@@ -16,14 +16,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hallcal.constant_speed import (
+from hallcal.fit.constant_speed import (
     calibrate_constant_speed,
     default_harmonics,
     estimate_sensor_geometry,
     find_constant_speed,
 )
-from hallcal.flux import FourierBasis
-from hallcal.reconstruction import clarke_matrix
+from hallcal.sensor.flux import FourierBasis
+from hallcal.sensor.reconstruction import clarke_matrix
 
 TWO_PI = 2.0 * math.pi
 PHASES = np.radians([0.0, 101.0, 261.0])
@@ -358,7 +358,7 @@ def test_default_harmonics():
 
 def test_pipeline_constant_speed(tmp_path):
     from hallcal import pipeline
-    from hallcal._errors import HallcalInputError
+    from hallcal.errors import HallcalInputError
     from hallcal.io import Dataset, read_artifact, setup_from_dict, write_artifact
 
     n = 7

@@ -1,12 +1,12 @@
-"""Tests of hallcal.excitation: ramps and random-phase multisines."""
+"""Tests of hallcal.identify.excitation: ramps and random-phase multisines."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from hallcal._errors import HallcalInputError
-from hallcal.excitation import multisine, multisine_experiment, ramp
+from hallcal.errors import HallcalInputError
+from hallcal.identify.excitation import multisine, multisine_experiment, ramp
 
 N = 1000
 TS = 1e-3  # resolution 1 Hz

@@ -19,7 +19,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from hallcal._errors import HallcalInputError
+from hallcal.errors import HallcalInputError
 from hallcal.io import (
     ARTIFACT_FORMAT,
     DATASET_EXTENSIONS,

@@ -2,7 +2,7 @@
 Gauss-Newton system, the hyperparameter criteria and the kernel SEM on the virtual bench.
 
 Fast tests check the algebra against independent brute-force computations (dense kernel matrices,
-dense Jacobians from :func:`hallcal.loop.loop_jacobian`, the Gaussian log-density and the hat
+dense Jacobians from :func:`hallcal.sim.loop.loop_jacobian`, the Gaussian log-density and the hat
 matrix); the acceptance test runs the experiment-sized problem (160 000 samples, m = 400).
 """
 
@@ -13,9 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from hallcal.bench import BenchConfig, ramp_run
-from hallcal.flux import FluxModel, FourierBasis
-from hallcal.kernel import (
+from hallcal.fit.kernel import (
     KernelBasis,
     ard_spectrum,
     fourier_gauss_newton,
@@ -24,10 +22,12 @@ from hallcal.kernel import (
     simulate_fourier,
     solve_kernel_sem,
 )
-from hallcal.loop import loop_jacobian, simulate_loop
-from hallcal.lut import build_lut
-from hallcal.metrics import angle_error
-from hallcal.sem import solve_sem
+from hallcal.fit.sem import solve_sem
+from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sensor.lut import build_lut
+from hallcal.sensor.metrics import angle_error
+from hallcal.sim.bench import BenchConfig, ramp_run
+from hallcal.sim.loop import loop_jacobian, simulate_loop
 
 TWO_PI = 2.0 * math.pi
 

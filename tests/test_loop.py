@@ -14,10 +14,10 @@ import pytest
 import scipy.integrate
 import scipy.signal
 
-from hallcal.bench import PAPER_CONTROLLER, PAPER_PLANT, BenchConfig
-from hallcal.flux import FluxModel, FourierBasis, sinusoidal_theta
-from hallcal.loop import ClosedLoop, loop_jacobian, simulate_loop
-from hallcal.reconstruction import InitReconstructor
+from hallcal.sensor.flux import FluxModel, FourierBasis, sinusoidal_theta
+from hallcal.sensor.reconstruction import InitReconstructor
+from hallcal.sim.bench import PAPER_CONTROLLER, PAPER_PLANT, BenchConfig
+from hallcal.sim.loop import ClosedLoop, loop_jacobian, simulate_loop
 
 TS = 2.5e-4
 N_ORACLE = 300

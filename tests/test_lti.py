@@ -8,8 +8,8 @@ import scipy.signal
 from hypothesis import given
 from hypothesis import strategies as st
 
-from hallcal.bench import PAPER_CONTROLLER, PAPER_PLANT
-from hallcal.lti import ContinuousTF, DiscreteTF, c2d_zoh, tf2ss
+from hallcal.sim.bench import PAPER_CONTROLLER, PAPER_PLANT
+from hallcal.sim.lti import ContinuousTF, DiscreteTF, c2d_zoh, tf2ss
 
 TS = 2.5e-4
 

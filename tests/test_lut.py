@@ -6,9 +6,9 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hallcal.flux import FluxModel, FourierBasis, sinusoidal_theta
-from hallcal.lut import LUT, StarReconstructor, build_lut
-from hallcal.reconstruction import projection_matrix
+from hallcal.sensor.flux import FluxModel, FourierBasis, sinusoidal_theta
+from hallcal.sensor.lut import LUT, StarReconstructor, build_lut
+from hallcal.sensor.reconstruction import projection_matrix
 
 
 @settings(max_examples=25)

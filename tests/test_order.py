@@ -16,13 +16,13 @@ import math
 import numpy as np
 import pytest
 
-from hallcal.adequacy import estimate_noise_variance, harmonic_content
-from hallcal.bench import BenchConfig, ramp_run
-from hallcal.flux import FourierBasis
-from hallcal.lut import build_lut
-from hallcal.metrics import angle_error
-from hallcal.order import fit_curve, initial_harmonics, select_harmonics
-from hallcal.sem import solve_sem
+from hallcal.fit.adequacy import estimate_noise_variance, harmonic_content
+from hallcal.fit.order import fit_curve, initial_harmonics, select_harmonics
+from hallcal.fit.sem import solve_sem
+from hallcal.sensor.flux import FourierBasis
+from hallcal.sensor.lut import build_lut
+from hallcal.sensor.metrics import angle_error
+from hallcal.sim.bench import BenchConfig, ramp_run
 
 H11 = tuple(range(1, 12))
 BENCHES = {

@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 from matplotlib.figure import Figure
 
-from hallcal import plots
-from hallcal._errors import HallcalInputError
 from hallcal.demo import run_demo
+from hallcal.errors import HallcalInputError
 from hallcal.io import Dataset, read_dataset, write_dataset
-from hallcal.report import (
+from hallcal.output import plots
+from hallcal.output.report import (
     content_from_calibration,
     write_demo_report,
     write_report,
@@ -61,7 +61,7 @@ def _figures(demo) -> dict[str, tuple[Figure, dict[str, str]]]:
     n_m = cal.setup.pole_pairs
     yi = cal.lut.f_init(run_v.d)
     ys = yi + cal.lut.correction(yi)
-    from hallcal.sem import predicted_angle_error
+    from hallcal.fit.sem import predicted_angle_error
 
     sd = predicted_angle_error(
         cal.flux, cal.sem.covariance, n_m, projection=cal.lut.projection, offset=cal.lut.offset

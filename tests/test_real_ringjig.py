@@ -9,12 +9,12 @@ Protocol (per file)
 -------------------
 1. Load the rows as integers, convert to the dataset's columns d1, d2, d3 (float64). The files are
    not rewritten.
-2. Locate the constant-speed part with :func:`hallcal.constant_speed.find_constant_speed`: f_init's
-   angle (with the estimated sensor geometry) is differentiated over sliding windows of exactly one
-   electrical cycle (52 samples here), which cancels f_init's electrically periodic error; the
-   segment is the longest run of samples whose every one-cycle window is within 10 % of the cruise
-   speed, minus half a cycle at each end. Found: samples ~110..~5740, 4.35 revolutions, 1294
-   samples per revolution, turning against the sensor order (b < 0) in all three files.
+2. 2. Locate the constant-speed part with :func:`hallcal.fit.constant_speed.find_constant_speed`:
+   f_init's angle (with the estimated sensor geometry) is differentiated over sliding windows of
+   exactly one electrical cycle (52 samples here), which cancels f_init's electrically periodic
+   error; the segment is the longest run of samples whose every one-cycle window is within 10 % of
+   the cruise speed, minus half a cycle at each end. Found: samples ~110..~5740, 4.35 revolutions,
+   1294 samples per revolution, turning against the sensor order (b < 0) in all three files.
 3. Calibrate on the first two whole revolutions of that part (default harmonics 1..75, robust
    weights on), reconstruct the *whole* file with f_star from y = 0 before sample 0 (the frame of
    the calibration), and on the held-out rest of the constant part (2.35 revolutions) fit the best
@@ -78,15 +78,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hallcal.constant_speed import (
+from hallcal.fit.constant_speed import (
     calibrate_constant_speed,
     default_harmonics,
     estimate_sensor_geometry,
     find_constant_speed,
 )
-from hallcal.flux import FourierBasis
 from hallcal.io import Dataset, setup_from_dict
-from hallcal.reconstruction import f_init
+from hallcal.sensor.flux import FourierBasis
+from hallcal.sensor.reconstruction import f_init
 
 
 def _data_dir() -> Path:

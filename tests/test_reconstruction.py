@@ -10,7 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from hallcal.reconstruction import (
+from hallcal.sensor.reconstruction import (
     NOMINAL_PHASES,
     InitReconstructor,
     clarke_matrix,

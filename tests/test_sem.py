@@ -10,11 +10,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hallcal.bench import BenchConfig, ramp_run
-from hallcal.flux import FluxModel, FourierBasis, sinusoidal_theta
-from hallcal.lut import LUT, NotBijectiveError, StarReconstructor, build_lut
-from hallcal.metrics import angle_error, spatial_spectrum
-from hallcal.sem import predicted_angle_error, solve_sem
+from hallcal.fit.sem import predicted_angle_error, solve_sem
+from hallcal.sensor.flux import FluxModel, FourierBasis, sinusoidal_theta
+from hallcal.sensor.lut import LUT, NotBijectiveError, StarReconstructor, build_lut
+from hallcal.sensor.metrics import angle_error, spatial_spectrum
+from hallcal.sim.bench import BenchConfig, ramp_run
 
 CASES = {
     "paper": (BenchConfig(seed=21), tuple(range(1, 12))),

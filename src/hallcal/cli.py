@@ -18,7 +18,7 @@ from typing import Any
 import click
 from rich.console import Console
 
-from ._errors import HallcalInputError
+from hallcal.errors import HallcalInputError
 
 EXIT_INPUT = 2
 EXIT_REFUSED = 3
@@ -66,7 +66,7 @@ _setup_path: list[str | None] = [None]  # the setup file of this command, for er
 
 
 def _setup(path: str | None):
-    from .io import default_setup, read_setup
+    from hallcal.io import default_setup, read_setup
 
     _setup_path[0] = path
     return default_setup() if path is None else read_setup(path)
@@ -115,8 +115,8 @@ def cli() -> None:
 @_handle_errors
 def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int | None) -> None:
     """Run the virtual bench and write a dataset (truth in OUT's .truth.json sidecar)."""
-    from . import pipeline
-    from .io import write_dataset, write_json
+    from hallcal import pipeline
+    from hallcal.io import write_dataset, write_json
 
     setup = _setup(setup_path)
     prog = _Progress()
@@ -148,8 +148,8 @@ def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int
 @_handle_errors
 def bla(data: str, setup_path: str, out: str) -> None:
     """Identify the closed-loop BLA of the plant from a multisine dataset."""
-    from . import pipeline
-    from .io import read_dataset, write_json
+    from hallcal import pipeline
+    from hallcal.io import read_dataset, write_json
 
     setup = _setup(setup_path)
     ds = read_dataset(data, required=("r", "u", "y", "realization"))
@@ -174,8 +174,8 @@ def bla(data: str, setup_path: str, out: str) -> None:
 @_handle_errors
 def calibrate(data: str, setup_path: str, bla_data: str | None, out: str, force: bool) -> None:
     """Calibrate: BLA (if needed), SEM, lookup table; write the JSON artifact."""
-    from . import pipeline
-    from .io import read_dataset, write_artifact
+    from hallcal import pipeline
+    from hallcal.io import read_dataset, write_artifact
 
     setup = _setup(setup_path)
     closed = setup.trajectory.kind == "closed-loop"
@@ -253,8 +253,8 @@ def _print_calibration(cal) -> None:
 @_handle_errors
 def reconstruct(artifact: str, data: str, out: str) -> None:
     """Apply a calibration to a recording: columns y_init and y_star."""
-    from . import pipeline
-    from .io import read_artifact, read_dataset, write_dataset
+    from hallcal import pipeline
+    from hallcal.io import read_artifact, read_dataset, write_dataset
 
     art = read_artifact(artifact)
     ds = read_dataset(data)
@@ -283,8 +283,8 @@ def reconstruct(artifact: str, data: str, out: str) -> None:
 @_handle_errors
 def export_c(artifact: str, out: str, no_fixed_point: bool, adc_scale: float) -> None:
     """Generate C99 sources of f_star (float and fixed point) for firmware."""
-    from .codegen import export_c as _export
-    from .io import read_artifact
+    from hallcal.io import read_artifact
+    from hallcal.output.codegen import export_c as _export
 
     art = read_artifact(artifact)
     res = _export(art, out, fixed_point=not no_fixed_point, source=artifact, adc_scale=adc_scale)
@@ -321,7 +321,7 @@ def report(
     artifact: str, data: str, validation: str | None, setup_path: str | None, out: str
 ) -> None:
     """Figures and an HTML report of a calibration."""
-    from .report import write_report_from_files
+    from hallcal.output.report import write_report_from_files
 
     path = write_report_from_files(
         artifact, data, validation=validation, out_dir=out, progress=_Progress()
@@ -342,7 +342,7 @@ def report(
 @_handle_errors
 def demo(out: str, seed: int, no_report: bool) -> None:
     """The paper's simulation study end to end on the built-in defaults."""
-    from .demo import run_demo
+    from hallcal.demo import run_demo
 
     res = run_demo(out, seed=seed, report=not no_report, progress=_Progress())
     for line in res.summary_lines():

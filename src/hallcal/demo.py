@@ -18,9 +18,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from . import pipeline
-from .bench import BenchRun
-from .io import Dataset, default_setup, write_artifact, write_dataset, write_json
+from hallcal import pipeline
+from hallcal.io import Dataset, default_setup, write_artifact, write_dataset, write_json
+from hallcal.sim.bench import BenchRun
 
 __all__ = ["DemoResult", "run_demo"]
 
@@ -105,7 +105,7 @@ def run_demo(
     # The user's view: the plant is unknown, only the controller and the data are.
     user_setup = dataclasses.replace(truth_setup, plant=None)
     setup_path = out / "setup.toml"
-    from .io import setup_to_toml
+    from hallcal.io import setup_to_toml
 
     setup_path.write_text(setup_to_toml(user_setup))
     files.append(setup_path)
@@ -133,7 +133,7 @@ def run_demo(
     runs: dict[str, Any] = {"bla": ms, "calibration": cal_run, "validation": val_run}
     if report:
         say("figures and HTML report")
-        from .report import write_demo_report
+        from hallcal.output.report import write_demo_report
 
         result_files.append(
             write_demo_report(

@@ -1,7 +1,7 @@
 """File input and output: datasets, the setup file, the calibration artifact, JSON sidecars.
 
 Everything a user hands to hallcal goes through this module, and every mistake in it raises
-:class:`hallcal._errors.HallcalInputError` with a one-line message that names the file and the
+:class:`hallcal.errors.HallcalInputError` with a one-line message that names the file and the
 column or key at fault. Everything hallcal writes goes through :func:`atomic_write` (a temporary
 file in the target directory, then :func:`os.replace`), so an interrupted or failed write never
 leaves a half-written output behind. Nothing here unpickles anything.
@@ -61,8 +61,8 @@ from typing import IO, Any, Literal, NoReturn
 
 import numpy as np
 
-from hallcal._errors import HallcalInputError
-from hallcal.lti import ContinuousTF, DiscreteTF
+from hallcal.errors import HallcalInputError
+from hallcal.sim.lti import ContinuousTF, DiscreteTF
 
 __all__ = [
     "ARTIFACT_FORMAT",

@@ -7,7 +7,7 @@ eq. (f_final); (5) validation against an encoder when one was logged.
 
 This module has no printing and no file I/O: it takes :class:`~hallcal.io.Dataset` and
 :class:`~hallcal.io.Setup` objects and returns result dataclasses; :mod:`hallcal.cli` and
-:mod:`hallcal.report` sit on top. ``progress`` callbacks receive one short message per step.
+:mod:`hallcal.output.report` sit on top. ``progress`` callbacks receive one short message per step.
 """
 
 from __future__ import annotations
@@ -24,20 +24,20 @@ import numpy as np
 import scipy.optimize
 from numpy.typing import NDArray
 
-from . import bla as _bla
-from ._errors import HallcalInputError
-from .adequacy import assess
-from .bench import PAPER_CONTROLLER, BenchConfig, BenchRun, simulate_run
-from .excitation import multisine_experiment
-from .flux import FluxModel, FourierBasis
-from .io import Dataset, Setup
-from .loop import ClosedLoop, simulate_loop
-from .lti import ContinuousTF
-from .lut import LUT, build_lut
-from .metrics import AngleError, SpatialSpectrum, angle_error, spatial_spectrum
-from .order import select_harmonics
-from .reconstruction import f_init
-from .sem import SEMResult, least_squares_start, predicted_angle_error, solve_sem
+from hallcal.errors import HallcalInputError
+from hallcal.fit.adequacy import assess
+from hallcal.fit.order import select_harmonics
+from hallcal.fit.sem import SEMResult, least_squares_start, predicted_angle_error, solve_sem
+from hallcal.identify import bla as _bla
+from hallcal.identify.excitation import multisine_experiment
+from hallcal.io import Dataset, Setup
+from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sensor.lut import LUT, build_lut
+from hallcal.sensor.metrics import AngleError, SpatialSpectrum, angle_error, spatial_spectrum
+from hallcal.sensor.reconstruction import f_init
+from hallcal.sim.bench import PAPER_CONTROLLER, BenchConfig, BenchRun, simulate_run
+from hallcal.sim.loop import ClosedLoop, simulate_loop
+from hallcal.sim.lti import ContinuousTF
 
 __all__ = [
     "BLAIdentification",
@@ -361,7 +361,7 @@ class Calibration:
         Predicted RMS angle error of f_star [rad]: noise floor and the LUT uncertainty from
         cov(theta), combined in quadrature.
     adequacy : object or None
-        Model-adequacy report (see :mod:`hallcal.adequacy`).
+        Model-adequacy report (see :mod:`hallcal.fit.adequacy`).
     validation : Validation or None
         Errors against ``y_ref`` when the calibration data had it (validation only).
     status : str
@@ -518,7 +518,7 @@ def calibrate(
     adequacy = None
     extra: dict[str, Any] = {}
     if setup.model.basis == "kernel":
-        from .kernel import solve_kernel_sem  # issue 5
+        from hallcal.fit.kernel import solve_kernel_sem  # issue 5
 
         _say(progress, f"SEM with the periodic kernel basis (m = {setup.model.points})")
         kres = solve_kernel_sem(
@@ -664,7 +664,7 @@ def _assess(sem, d, n_m, loop):
 
 
 def _calibrate_constant_speed(dataset: Dataset, setup: Setup, *, progress: Progress) -> Calibration:
-    from .constant_speed import calibrate_dataset_constant_speed  # issue 8
+    from hallcal.fit.constant_speed import calibrate_dataset_constant_speed  # issue 8
 
     return calibrate_dataset_constant_speed(dataset, setup, progress=progress)
 

@@ -58,10 +58,10 @@ import numpy as np
 import scipy.stats
 from numpy.typing import ArrayLike, NDArray
 
-from .flux import FluxModel
-from .lut import build_lut
-from .reconstruction import clarke_matrix
-from .sem import SEMResult, predicted_angle_error
+from hallcal.fit.sem import SEMResult, predicted_angle_error
+from hallcal.sensor.flux import FluxModel
+from hallcal.sensor.lut import build_lut
+from hallcal.sensor.reconstruction import clarke_matrix
 
 __all__ = [
     "AdequacyReport",

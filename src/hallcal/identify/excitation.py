@@ -19,7 +19,7 @@ from typing import Literal
 
 import numpy as np
 
-from hallcal._errors import HallcalInputError
+from hallcal.errors import HallcalInputError
 
 __all__ = [
     "Multisine",
@@ -82,11 +82,11 @@ class MultisineExperiment:
     ramp, continuous over the whole experiment, that keeps the motor turning.
 
     How the ramp is removed: it is a known part of ``r``, and in steady state the loop answers a
-    ramp with a linear trend in ``y`` and ``u``. :func:`hallcal.bla.nonparametric_bla` keeps only
-    the steady-state periods of each realization and subtracts, per realization and per signal, the
-    least-squares line through the period means before the DFT. A P-periodic signal has equal
-    period means, so this slope estimate is not disturbed by the multisine (it is the least-squares
-    estimate of the slope when the periodic part is left free); see its documentation.
+    ramp with a linear trend in ``y`` and ``u``. :func:`hallcal.identify.bla.nonparametric_bla`
+    keeps only the steady-state periods of each realization and subtracts, per realization and per
+    signal, the least-squares line through the period means before the DFT. A P-periodic signal has
+    equal period means, so this slope estimate is not disturbed by the multisine (it is the
+    least-squares estimate of the slope when the periodic part is left free); see its documentation.
 
     Attributes
     ----------
@@ -242,7 +242,7 @@ def multisine_experiment(
     and amplitudes are drawn once (for ``"random-odd"`` the detection lines are the same in all
     realizations), each realization gets new independent random phases. Realizations follow each
     other without pause; the first periods of each realization (``transient_periods`` of
-    :func:`hallcal.bla.nonparametric_bla`) absorb the transient of the switch.
+    :func:`hallcal.identify.bla.nonparametric_bla`) absorb the transient of the switch.
 
     The optional slow ramp ``drift * t`` is added under the multisine (continuous over the whole
     experiment). It is removed in the BLA by subtracting, per realization, the least-squares line

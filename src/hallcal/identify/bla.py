@@ -25,7 +25,7 @@ from typing import Any, Literal
 import numpy as np
 from scipy.optimize import least_squares
 
-from hallcal._errors import HallcalInputError
+from hallcal.errors import HallcalInputError
 
 __all__ = [
     "NonparametricBLA",
@@ -170,17 +170,17 @@ def nonparametric_bla(
 
     1. per realization ``m``, drop the first ``transient_periods`` periods and keep the
        ``P`` steady-state periods;
-    2. detrend (if ``detrend``): subtract from ``r``, ``u`` and ``y`` the least-squares line
+    2. 2. detrend (if ``detrend``): subtract from ``r``, ``u`` and ``y`` the least-squares line
        through their ``P`` period means. A slow ramp under the multisine (see
-       :func:`hallcal.excitation.multisine_experiment`) gives a linear trend in steady state, and
-       a ramp leaks into every DFT line; the periodic part has the same mean in every period, so
-       this slope is the least-squares slope with the periodic part left free and is not biased
-       by the excitation. Only the slope matters: a constant offset lives at DC only. The noise
-       in the estimated slope leaks into the low lines identically in all periods of a
+       :func:`hallcal.identify.excitation.multisine_experiment`) gives a linear trend in steady
+       state, and a ramp leaks into every DFT line; the periodic part has the same mean in every
+       period, so this slope is the least-squares slope with the periodic part left free and is not
+       biased by the excitation. Only the slope matters: a constant offset lives at DC only. The
+       noise in the estimated slope leaks into the low lines identically in all periods of a
        realization, so it is counted in ``var_total`` (not in ``var_noise``); for white noise it
-       adds about ``12 / ((P^2 - 1) (2 pi k)^2)`` of the noise variance at line ``k``;
-    3. per period ``p`` the DFT ``R, U, Y`` at the excited lines; ``G_ry^[m] = mean_p Y / R`` and
-       ``G_ru^[m] = mean_p U / R`` with their noise (co)variances from the period-to-period
+       adds about ``12 / ((P^2 - 1) (2 pi k)^2)`` of the noise variance at line ``k``; 3. per period
+       ``p`` the DFT ``R, U, Y`` at the excited lines; ``G_ry^[m] = mean_p Y / R`` and ``G_ru^[m] =
+       mean_p U / R`` with their noise (co)variances from the period-to-period
        sample (co)variance divided by ``P``;
     4. over realizations: ``G_ry = mean_m G_ry^[m]``, ``G_ru = mean_m G_ru^[m]``; total
        (co)variances from the realization-to-realization sample (co)variance divided by ``M``,

@@ -36,13 +36,13 @@ import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
-from .flux import FluxModel, FourierBasis
-from .lut import LUT, build_lut
-from .reconstruction import f_init
+from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sensor.lut import LUT, build_lut
+from hallcal.sensor.reconstruction import f_init
 
 if TYPE_CHECKING:  # the adapter at the end works on the pipeline's types
-    from .io import Dataset, Setup
-    from .pipeline import Calibration
+    from hallcal.io import Dataset, Setup
+    from hallcal.pipeline import Calibration
 
 __all__ = [
     "ConstantSpeedResult",
@@ -943,8 +943,8 @@ def calibrate_dataset_constant_speed(
     HallcalInputError
         Naming the file, column or setup key at fault.
     """
-    from ._errors import HallcalInputError
-    from .pipeline import Calibration, validate
+    from hallcal.errors import HallcalInputError
+    from hallcal.pipeline import Calibration, validate
 
     def say(msg: str) -> None:
         if progress is not None:

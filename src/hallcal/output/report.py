@@ -3,9 +3,9 @@
 Compute first, plot separately: :func:`content_from_calibration` (in memory, after
 :func:`hallcal.pipeline.calibrate`) and :func:`content_from_artifact` (from a JSON artifact and
 the calibration recording) gather everything the report shows into a :class:`ReportContent`;
-:func:`make_figures` turns it into figures with :mod:`hallcal.plots`; :func:`write_report` writes
-the PNG files and one HTML file with the figures embedded as base64 PNG, inline CSS, no scripts
-and no external references, so it opens in a browser without network access.
+:func:`make_figures` turns it into figures with :mod:`hallcal.output.plots`; :func:`write_report`
+writes the PNG files and one HTML file with the figures embedded as base64 PNG, inline CSS, no
+scripts and no external references, so it opens in a browser without network access.
 
 The report follows the paper's results sections (van Meer et al., Figs. example_ripple, sim_g,
 sim_eta/exp_eta and exp_spectrum) and adds the diagnostics of each step of Algorithm 1: the BLA,
@@ -31,9 +31,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ._errors import HallcalInputError
-from .flux import FluxModel, FourierBasis
-from .io import (
+from hallcal.errors import HallcalInputError
+from hallcal.io import (
     Dataset,
     Setup,
     atomic_write,
@@ -43,8 +42,9 @@ from .io import (
     setup_from_dict,
     setup_to_toml,
 )
-from .lti import ContinuousTF
-from .lut import LUT, build_lut
+from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sensor.lut import LUT, build_lut
+from hallcal.sim.lti import ContinuousTF
 
 __all__ = [
     "ReportContent",
@@ -214,7 +214,7 @@ def _traces(lut: LUT, dataset: Dataset) -> Traces:
 
 
 def _eta_std(flux: FluxModel, covariance: Any, lut: LUT) -> NDArray[np.float64] | None:
-    from .sem import predicted_angle_error
+    from hallcal.fit.sem import predicted_angle_error
 
     if covariance is None:
         return None
@@ -317,7 +317,7 @@ def content_from_calibration(
     -------
     ReportContent
     """
-    from .pipeline import validate
+    from hallcal.pipeline import validate
 
     lut: LUT = cal.lut
     flux: FluxModel = cal.flux
@@ -429,8 +429,8 @@ def _artifact_plant(art: Mapping[str, Any], setup: Setup, source: str) -> Contin
 
 
 def _read_bla(path: Path) -> Any:
-    from .bla import NonparametricBLA, ParametricBLA
-    from .pipeline import BLAIdentification
+    from hallcal.identify.bla import NonparametricBLA, ParametricBLA
+    from hallcal.pipeline import BLAIdentification
 
     data = read_json(path)
     if not isinstance(data, Mapping) or data.get("format") != "hallcal-bla/1":
@@ -461,8 +461,8 @@ def _resimulate(
     """The SEM result of an artifact: cost history stored, d_sim/y0_sim and covariance redone."""
     from threadpoolctl import threadpool_limits
 
-    from .loop import ClosedLoop, loop_jacobian, simulate_loop
-    from .sem import SEMResult
+    from hallcal.fit.sem import SEMResult
+    from hallcal.sim.loop import ClosedLoop, loop_jacobian, simulate_loop
 
     diag = art.get("diagnostics", {})
     history = np.asarray(diag.get("cost_history", []), dtype=np.float64)
@@ -575,7 +575,7 @@ def content_from_artifact(
     -------
     ReportContent
     """
-    from .pipeline import lut_from_artifact, validate
+    from hallcal.pipeline import lut_from_artifact, validate
 
     source = (sources or {}).get("artifact", "artifact")
     setup = setup_from_dict(artifact["setup"], source=f"{source}: setup")
@@ -682,7 +682,7 @@ class ReportFigure:
 
 def make_figures(content: ReportContent) -> list[ReportFigure]:
     """The report's figures, in order (paper figures first, then the steps' diagnostics)."""
-    from . import plots
+    from hallcal.output import plots
 
     c = content
     n_m = c.pole_pairs

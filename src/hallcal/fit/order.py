@@ -4,7 +4,7 @@ The paper (section "Model structure") notes that "the order m can be chosen by a
 harmonic content of data d". :func:`select_harmonics` does that in four steps:
 
 1. **Content of the data.** d is regressed on a wide Fourier basis of the measured angle y (the
-   f_init output; linear, a fraction of a second with :func:`hallcal.adequacy.harmonic_content`)
+   f_init output; linear, a fraction of a second with :func:`hallcal.fit.adequacy.harmonic_content`)
    and every harmonic gets a Wald test. Over y rather than the true angle, the content is wider
    than the flux's own: the f_init error modulates the pole-pair harmonic, which puts sidebands
    n_m +- j on the content (on the paper's bench harmonics 12..32 show 0.5-2 sigma although the
@@ -19,7 +19,7 @@ harmonic content of data d". :func:`select_harmonics` does that in four steps:
    from the f_init sidebands. With a set that pins the parametrization the fitted angle is the
    true angle within the noise floor, so the fit is also an excellent SEM start.
 3. **Confirmation by SEM and the adequacy test.** The set is fitted by SEM and judged by
-   :func:`hallcal.adequacy.assess`; harmonics that remain in the shape residual are added with a
+   :func:`hallcal.fit.adequacy.assess`; harmonics that remain in the shape residual are added with a
    warm start and the fit repeated while the time budget allows (model validation by residual
    analysis, Ljung 1999, sec. 16.6).
 4. **Pruning.** Harmonics whose SEM coefficients are neither significant (Wald test with the SEM
@@ -41,7 +41,7 @@ import numpy as np
 import scipy.stats
 from numpy.typing import ArrayLike, NDArray
 
-from .adequacy import (
+from hallcal.fit.adequacy import (
     AdequacyReport,
     HarmonicContent,
     NoiseEstimate,
@@ -54,9 +54,9 @@ from .adequacy import (
     estimate_noise_variance,
     harmonic_content,
 )
-from .flux import FluxModel, FourierBasis
-from .loop import ClosedLoop
-from .sem import SEMResult, least_squares_start, solve_sem
+from hallcal.fit.sem import SEMResult, least_squares_start, solve_sem
+from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sim.loop import ClosedLoop
 
 __all__ = [
     "Candidate",
@@ -81,7 +81,7 @@ class Candidate:
         "static" (:func:`fit_curve` only), "initial" (first SEM fit), "extended" (harmonics added
         from the residual) or "pruned".
     cost, ratio, shape_ratio : float
-        SEM cost and the ratios of :class:`hallcal.adequacy.AdequacyReport` (static stage: cost
+        SEM cost and the ratios of :class:`hallcal.fit.adequacy.AdequacyReport` (static stage: cost
         and ratio NaN, shape ratio of the curve fit).
     verdict : str
         Verdict of the adequacy test ("" for the static stage).
@@ -237,7 +237,7 @@ def fit_curve(
     """Fit the closed curve g(x) in R^3 with given harmonics, free in the parametrization x.
 
     Alternates (i) linear least squares of d on the Fourier basis at x and (ii) moving each sample
-    to the nearest point of the curve (:func:`hallcal.adequacy.curve_projection`), starting from
+    to the nearest point of the curve (:func:`hallcal.fit.adequacy.curve_projection`), starting from
     x = y, the f_init output (orthogonal distance regression by alternation, a principal-curve
     fit). The distance of the data from the curve does not depend on how the curve is
     parametrized, so it tests whether the harmonics can represent the *shape* of the flux without
@@ -353,22 +353,23 @@ def select_harmonics(
     pole_pairs : int, optional
         n_m (default ``loop.pole_pairs``).
     max_harmonic : int, optional
-        Highest harmonic examined (default :func:`hallcal.adequacy.default_max_harmonic`, 8 n_m).
+        Highest harmonic examined (default
+        :func:`hallcal.fit.adequacy.default_max_harmonic`, 8 n_m).
     time_budget : float
         Wall-time budget [s]. The first fit always runs; a further fit starts only when its
         estimated time (the last fit's, scaled by the parameter count) fits in the budget.
     max_rounds : int
         Maximum number of extension rounds after the first fit.
     significance, min_amplitude : float
-        As in :func:`hallcal.adequacy.assess`.
+        As in :func:`hallcal.fit.adequacy.assess`.
     prune : bool
         Drop insignificant harmonics at the end and refit.
     max_iterations, tol : optional
-        Passed to :func:`hallcal.sem.solve_sem`.
+        Passed to :func:`hallcal.fit.sem.solve_sem`.
     noise : NoiseEstimate, optional
-        Default :func:`hallcal.adequacy.estimate_noise_variance` of d.
+        Default :func:`hallcal.fit.adequacy.estimate_noise_variance` of d.
     warn_ratio, fail_ratio, dominance : float
-        Passed to :func:`hallcal.adequacy.assess`.
+        Passed to :func:`hallcal.fit.adequacy.assess`.
     static_rounds : int
         Rounds of the static stage (:func:`fit_curve`, extended by the dominant harmonics of the
         distance from the curve); 0 skips it and starts SEM from the least-squares fit at y.

@@ -10,8 +10,8 @@ Per sample k (zero initial conditions, y(t_{-1}) = y_initial):
     x_C[k+1] = A_C x_C[k] + B_C e[k]
     x_G[k+1] = A_G x_G[k] + B_G (u[k] + T_d[k] + T_cog(y0[k]))
 
-The plant is the exact ZOH discretization of G(s) with its input delay (:mod:`hallcal.lti`), so it
-has no direct feedthrough and the loop is explicit.
+The plant is the exact ZOH discretization of G(s) with its input delay (:mod:`hallcal.sim.lti`), so
+it has no direct feedthrough and the loop is explicit.
 
 Sensitivities (forward mode, exact). With ``g_h(y0) = beta(y0) theta_h`` and
 ``y = Gamma(atan2(beta_ab, alpha_ab), n_m y_prev) / n_m`` the unwrapping adds an integer multiple of
@@ -38,9 +38,9 @@ import numba as nb
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .flux import FluxModel
-from .lti import ContinuousTF, DiscreteTF, StateSpace
-from .reconstruction import clarke_matrix
+from hallcal.sensor.flux import FluxModel
+from hallcal.sensor.reconstruction import clarke_matrix
+from hallcal.sim.lti import ContinuousTF, DiscreteTF, StateSpace
 
 __all__ = ["ClosedLoop", "LoopJacobian", "LoopResult", "loop_jacobian", "simulate_loop"]
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .reconstruction import InitReconstructor, clarke_matrix, electrical_angle, f_init
+from hallcal.sensor.reconstruction import InitReconstructor, clarke_matrix, electrical_angle, f_init
 
 __all__ = ["LUT", "NotBijectiveError", "StarReconstructor", "build_lut"]
 
@@ -149,7 +149,7 @@ def build_lut(
     ----------
     g : callable
         Flux model, ``g(y0)`` of shape (M, 3) for y0 of shape (M,) (e.g. a
-        :class:`hallcal.flux.FluxModel`).
+        :class:`hallcal.sensor.flux.FluxModel`).
     pole_pairs : int
         n_m.
     points : int, keyword-only
@@ -157,7 +157,7 @@ def build_lut(
         scales as (2 pi / M)^2 eta'' / 8; 4096 points keep it below 1e-7 rad for errors of the
         size seen on real sensors, far below any Hall noise floor.
     projection, offset : optional
-        f_init's projection and offsets (see :mod:`hallcal.reconstruction`).
+        f_init's projection and offsets (see :mod:`hallcal.sensor.reconstruction`).
 
     Returns
     -------

@@ -7,7 +7,7 @@ Section "Model structure" of van Meer et al.: ``g_theta^T(y0) = psi(y0) theta`` 
 Fourier basis, eq. (basis): ``beta = [1, sin(h_1 y0), cos(h_1 y0), ..., sin(h_n y0), cos(h_n y0)]``
 with mechanical harmonics h (cycles per revolution). The periodic kernel basis of the experiment
 section is, on a uniform grid of centres, diagonalized by these same Fourier modes; it is
-provided by :mod:`hallcal.kernel` on top of this module.
+provided by :mod:`hallcal.fit.kernel` on top of this module.
 
 Units: y0 in rad (mechanical), g in the Hall sensor's unit (V or ADC counts).
 """
@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .reconstruction import NOMINAL_PHASES
+from hallcal.sensor.reconstruction import NOMINAL_PHASES
 
 __all__ = ["FluxModel", "FourierBasis", "sinusoidal_theta"]
 

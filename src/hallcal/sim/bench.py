@@ -2,12 +2,12 @@
 
 Built-in defaults are the paper's simulation setup (section "Simulation setup"): n_m = 11 pole
 pairs, Ts = 1/4000 s, G(s) = 1.663e5 / (s^3 + 632.6 s^2 + 2702 s) with an input delay of 1.2e-4 s
-(exact ZOH, see :mod:`hallcal.lti`), the controller C(q) of eq. (controller), a Fourier truth with
-mechanical harmonics 1..11 where the 11th dominates and the others make each magnet slightly
+(exact ZOH, see :mod:`hallcal.sim.lti`), the controller C(q) of eq. (controller), a Fourier truth
+with mechanical harmonics 1..11 where the 11th dominates and the others make each magnet slightly
 different, Hall noise variance 7.5e-6 per channel, and a ramp 0 -> 13 rad in 26 s.
 
-The truth is always expressed exactly as a :class:`~hallcal.flux.FluxModel` (Fourier series in the
-mechanical angle), built from physical knobs:
+The truth is always expressed exactly as a :class:`~hallcal.sensor.flux.FluxModel` (Fourier series
+in the mechanical angle), built from physical knobs:
 
 ``d_h(y0) = o_h + A (1 + gain_h) (1 + a_h(y0)) s(n_m y0 - phi_h) + b_h(y0) + v_h``
 
@@ -30,9 +30,9 @@ import numpy as np
 import scipy.signal
 from numpy.typing import ArrayLike, NDArray
 
-from .flux import FluxModel, FourierBasis
-from .loop import ClosedLoop, simulate_loop
-from .lti import ContinuousTF, DiscreteTF
+from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sim.loop import ClosedLoop, simulate_loop
+from hallcal.sim.lti import ContinuousTF, DiscreteTF
 
 __all__ = [
     "PAPER_CONTROLLER",

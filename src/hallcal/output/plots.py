@@ -8,8 +8,9 @@ Approximation"), the SEM cost per iteration (problem (problem)), the lookup tabl
 uncertainty band (eq. f_final) and the correction f_star - f_init applied along a recording.
 
 Compute first, plot separately: every function takes arrays or result objects that are already
-computed (:mod:`hallcal.pipeline`, :mod:`hallcal.metrics`, :mod:`hallcal.sem`, ...) and returns a
-new :class:`matplotlib.figure.Figure`; nothing here runs a simulation, a fit or an optimization.
+computed (:mod:`hallcal.pipeline`, :mod:`hallcal.sensor.metrics`, :mod:`hallcal.fit.sem`, ...)
+and returns a new :class:`matplotlib.figure.Figure`; nothing here runs a simulation, a fit or an
+optimization.
 The figures are built without pyplot (no global state, no GUI; ``savefig`` renders with Agg), so
 they are safe in scripts, servers and tests; in Jupyter a returned figure displays itself.
 
@@ -30,10 +31,10 @@ from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormat
 from numpy.typing import ArrayLike, NDArray
 
 if TYPE_CHECKING:
-    from .lti import ContinuousTF
-    from .lut import LUT
-    from .pipeline import BLAIdentification, Validation
-    from .sem import SEMResult
+    from hallcal.fit.sem import SEMResult
+    from hallcal.pipeline import BLAIdentification, Validation
+    from hallcal.sensor.lut import LUT
+    from hallcal.sim.lti import ContinuousTF
 
 __all__ = [
     "INIT_COLOR",
@@ -323,8 +324,8 @@ def plot_angle_error(
 ) -> Figure:
     """Angle error of f_init (blue) and f_star (red) over the angle (Figs. sim_eta, exp_eta).
 
-    Errors are shown about their mean, as :func:`hallcal.metrics.angle_error` measures them (a
-    constant offset of the angle origin is not a reconstruction error); the legend gives the RMS
+    Errors are shown about their mean, as :func:`hallcal.sensor.metrics.angle_error` measures them
+    (a constant offset of the angle origin is not a reconstruction error); the legend gives the RMS
     and peak. Dashed lines at +-3 times the noise floor: white noise alone stays inside.
 
     Parameters
@@ -404,7 +405,7 @@ def plot_error_spectrum(
     Parameters
     ----------
     validation : Validation
-        ``spectrum_init`` and ``spectrum_star`` (:class:`hallcal.metrics.SpatialSpectrum`).
+        ``spectrum_init`` and ``spectrum_star`` (:class:`hallcal.sensor.metrics.SpatialSpectrum`).
     pole_pairs : int, keyword-only
         n_m, marked with its first multiples.
     noise_floor : float, optional
@@ -690,7 +691,7 @@ def plot_lut(
     """Lookup-table correction eta over the angle with its +-2 sigma band (eq. f_final).
 
     The band is the first-order uncertainty of eta implied by cov(theta)
-    (:func:`hallcal.sem.predicted_angle_error`). When a second panel is drawn it shows the band
+    (:func:`hallcal.fit.sem.predicted_angle_error`). When a second panel is drawn it shows the band
     around zero on its own scale and, on the virtual bench, the error of the identified table
     against the true one, which should stay mostly inside the band.
 

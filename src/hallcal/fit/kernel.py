@@ -21,7 +21,7 @@ computed stably with ``scipy.special.ive``. Consequences used here (Wahba 1990, 
 * The Gram matrix ``K_ij = k(y_i, y_j)`` is circulant with eigenvalues
   ``lambda_q = m sum_{k = q mod m} s_k``.
 * RKHS norm. ``w^T K w = sum_k |G_k|^2 / s_k``: in the real Fourier coefficients of
-  :class:`~hallcal.flux.FourierBasis` (``[1, sin ky, cos ky, ...]``) the kernel norm is the
+  :class:`~hallcal.sensor.flux.FourierBasis` (``[1, sin ky, cos ky, ...]``) the kernel norm is the
   diagonal ridge ``theta_0^2 / s_0 + sum_k (theta_sk^2 + theta_ck^2) / (2 s_k)``, i.e. the
   Gaussian-process prior ``theta_0 ~ N(0, s_0)``, ``theta_sk, theta_ck ~ N(0, 2 s_k)``.
 * Truncation. Modes whose prior variance ``2 s_k`` is negligible relative to the Hall noise
@@ -43,7 +43,7 @@ interpolation") of the model linearized around the SEM solution,
 criteria need only ``J^T J``, ``J^T e`` and ``e^T e``, which the Gauss-Newton solver forms anyway.
 
 Speed. The dense Jacobian at the experiment size (480 000 x 1200) is never formed. Its rows have
-the structure ``J[k, h, :] = g_h'(y0_k) dy0_k + e_h kron beta(y0_k)`` (:mod:`hallcal.loop`), so
+the structure ``J[k, h, :] = g_h'(y0_k) dy0_k + e_h kron beta(y0_k)`` (:mod:`hallcal.sim.loop`), so
 
     J^T J = sum_k u_k u_k^T + sum_k (I_3 - n_k n_k^T) kron beta_k beta_k^T,
     u_k = |g'_k| dy0_k + n_k kron beta_k,   n_k = g'_k / |g'_k|,
@@ -92,8 +92,10 @@ import scipy.special
 from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
-from .flux import FluxModel, FourierBasis
-from .loop import (
+from hallcal.fit.sem import SEMResult
+from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sensor.reconstruction import f_init
+from hallcal.sim.loop import (
     ClosedLoop,
     _advance,
     _advance_sensitivity,
@@ -104,8 +106,6 @@ from .loop import (
     _output,
     _unwrap,
 )
-from .reconstruction import f_init
-from .sem import SEMResult
 
 __all__ = [
     "ARDSpectrum",
@@ -252,7 +252,7 @@ class KernelBasis:
         """Diagonal ridge of the RKHS norm in the Fourier coefficients, shape (3 (2K + 1),).
 
         ``sum_h ||g_h||^2_H = sum_j ridge_j theta_j^2`` with theta flattened sensor-major (the
-        layout of :func:`hallcal.sem.solve_sem`'s ``regularization``).
+        layout of :func:`hallcal.fit.sem.solve_sem`'s ``regularization``).
         """
         return np.tile(1.0 / np.maximum(self.prior_variance(harmonics), 1e-300), 3)
 
@@ -614,7 +614,7 @@ def simulate_fourier(
 ) -> tuple[NDArray, NDArray, NDArray, NDArray, str]:
     """Noise-free closed loop with a Fourier flux on harmonics 1..K (fast trigonometric recursion).
 
-    Same equations as :func:`hallcal.loop.simulate_loop` (eq. state_eq). Returns
+    Same equations as :func:`hallcal.sim.loop.simulate_loop` (eq. state_eq). Returns
     ``(y0, y, u, d, status)``; after a divergence the remaining samples are NaN.
     """
     th, K = _check_theta(theta)
@@ -638,7 +638,7 @@ def fourier_gauss_newton(
 ) -> GaussNewtonSystem:
     """J^T J, J^T e and e^T e of problem (problem) for a Fourier flux on harmonics 1..K.
 
-    The exact forward sensitivities of :mod:`hallcal.loop` are run in chunks of samples; each
+    The exact forward sensitivities of :mod:`hallcal.sim.loop` are run in chunks of samples; each
     chunk yields the rows ``u_k = |g'_k| dy0_k + n_k kron beta_k`` (one per sample instead of three
     Jacobian rows), whose Gram product is accumulated by single-threaded BLAS in a second thread
     while the next chunk's sensitivities are computed. The remainder
@@ -648,7 +648,8 @@ def fourier_gauss_newton(
     Parameters
     ----------
     theta : array_like (3, 2K + 1)
-        Fourier coefficients for harmonics 1..K (layout of :class:`~hallcal.flux.FourierBasis`).
+        Fourier coefficients for harmonics 1..K (layout of
+        :class:`~hallcal.sensor.flux.FourierBasis`).
     gram : bool, keyword-only
         False skips J^T J (gradient and cost only).
     stride : int, keyword-only
@@ -1210,7 +1211,7 @@ class KernelSEMResult:
     ----------
     flux : FluxModel
         The identified flux as its exact Fourier equivalent (harmonics 1..K): usable by
-        :func:`hallcal.lut.build_lut`, the artifact and the C export.
+        :func:`hallcal.sensor.lut.build_lut`, the artifact and the C export.
     basis : KernelBasis
         The kernel basis with the chosen lengthscale and sf.
     weights : ndarray (3, m)

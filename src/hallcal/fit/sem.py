@@ -7,8 +7,8 @@ conditions.
 
 Instead of the paper's interior-point method on finite differences (2 hours), this module uses
 Levenberg-Marquardt (More 1978, "The Levenberg-Marquardt algorithm: implementation and theory") on
-the exact Jacobian from forward sensitivities (:func:`hallcal.loop.loop_jacobian`), including the
-feedback term d y0_sim / d theta. One iteration costs one sensitivity pass, one Gram product
+the exact Jacobian from forward sensitivities (:func:`hallcal.sim.loop.loop_jacobian`), including
+the feedback term d y0_sim / d theta. One iteration costs one sensitivity pass, one Gram product
 J^T J (BLAS, pinned to one thread, see DESIGN.md) and one or two plain simulations.
 
 Parameter covariance (Ljung 1999, "System Identification", sec. 9.3): for white Hall noise,
@@ -26,9 +26,9 @@ import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
-from .flux import FluxModel, FourierBasis
-from .loop import ClosedLoop, loop_jacobian, simulate_loop
-from .reconstruction import f_init
+from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sensor.reconstruction import f_init
+from hallcal.sim.loop import ClosedLoop, loop_jacobian, simulate_loop
 
 __all__ = ["SEMResult", "least_squares_start", "predicted_angle_error", "solve_sem"]
 
