@@ -170,7 +170,7 @@ def nonparametric_bla(
 
     1. per realization ``m``, drop the first ``transient_periods`` periods and keep the
        ``P`` steady-state periods;
-    2. 2. detrend (if ``detrend``): subtract from ``r``, ``u`` and ``y`` the least-squares line
+    2. detrend (if ``detrend``): subtract from ``r``, ``u`` and ``y`` the least-squares line
        through their ``P`` period means. A slow ramp under the multisine (see
        :func:`hallcal.identify.excitation.multisine_experiment`) gives a linear trend in steady
        state, and a ramp leaks into every DFT line; the periodic part has the same mean in every
@@ -178,9 +178,9 @@ def nonparametric_bla(
        biased by the excitation. Only the slope matters: a constant offset lives at DC only. The
        noise in the estimated slope leaks into the low lines identically in all periods of a
        realization, so it is counted in ``var_total`` (not in ``var_noise``); for white noise it
-       adds about ``12 / ((P^2 - 1) (2 pi k)^2)`` of the noise variance at line ``k``; 3. per period
-       ``p`` the DFT ``R, U, Y`` at the excited lines; ``G_ry^[m] = mean_p Y / R`` and ``G_ru^[m] =
-       mean_p U / R`` with their noise (co)variances from the period-to-period
+       adds about ``12 / ((P^2 - 1) (2 pi k)^2)`` of the noise variance at line ``k``;
+    3. per period ``p`` the DFT ``R, U, Y`` at the excited lines; ``G_ry^[m] = mean_p Y / R``
+       and ``G_ru^[m] = mean_p U / R`` with their noise (co)variances from the period-to-period
        sample (co)variance divided by ``P``;
     4. over realizations: ``G_ry = mean_m G_ry^[m]``, ``G_ru = mean_m G_ru^[m]``; total
        (co)variances from the realization-to-realization sample (co)variance divided by ``M``,
