@@ -26,10 +26,7 @@ ADC counts: offsets are handled by the geometry and by the constant term of the 
 from __future__ import annotations
 
 import math
-import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.linalg
@@ -40,19 +37,15 @@ from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sensor.reconstruction import f_init
 
-if TYPE_CHECKING:  # the adapter at the end works on the pipeline's types
-    from hallcal.io import Dataset, Setup
-    from hallcal.pipeline import Calibration
-
 __all__ = [
     "ConstantSpeedResult",
     "SensorGeometry",
     "SpeedSegment",
     "calibrate_constant_speed",
-    "calibrate_dataset_constant_speed",
     "default_harmonics",
     "estimate_sensor_geometry",
     "find_constant_speed",
+    "speed_deviation",
 ]
 
 TWO_PI = 2.0 * math.pi
@@ -920,119 +913,7 @@ def _robust_weights(
     return np.minimum(1.0, (c * med / np.maximum(local, np.finfo(float).tiny)) ** 2)
 
 
-# --------------------------------------------------------------------------------------------------
-# Adapter for hallcal.pipeline.calibrate ([trajectory] kind = "constant-speed")
-# --------------------------------------------------------------------------------------------------
-
-
-def calibrate_dataset_constant_speed(
-    dataset: Dataset,
-    setup: Setup,
-    *,
-    progress: Callable[[str], None] | None = None,
-) -> Calibration:
-    """Run :func:`calibrate_constant_speed` for :func:`hallcal.pipeline.calibrate` (Algorithm 1).
-
-    Uses ``[trajectory] start``/``stop`` (``stop`` omitted: end of the data), ``pole_pairs``, the
-    ``[model]`` harmonics (``"auto"``: :func:`default_harmonics`), ``lut_points`` and
-    ``max_iterations``; ``sample_time`` is not needed (time in samples). Only the columns d1, d2,
-    d3 are required; ``y_ref``, when present, is used for validation only.
-
-    Raises
-    ------
-    HallcalInputError
-        Naming the file, column or setup key at fault.
-    """
-    from hallcal.errors import HallcalInputError
-    from hallcal.pipeline import Calibration, validate
-
-    def say(msg: str) -> None:
-        if progress is not None:
-            progress(msg)
-
-    dataset.require("d1", "d2", "d3")
-    d = np.ascontiguousarray(dataset.d)
-    n = int(setup.pole_pairs)
-    N = d.shape[0]
-    traj = setup.trajectory
-    start = int(traj.start)
-    stop = N if traj.stop is None else int(traj.stop)
-    if not 0 <= start < stop <= N:
-        raise HallcalInputError(
-            f"setup: trajectory.start..stop = {start}..{stop} is outside {dataset.source} "
-            f"({N} samples)"
-        )
-    if setup.model.basis != "fourier":
-        raise HallcalInputError(
-            f'setup: model.basis = "{setup.model.basis}" is not available with trajectory.kind = '
-            '"constant-speed"; use "fourier"'
-        )
-    h = setup.model.harmonics
-    harmonics = default_harmonics(n) if h == "auto" else tuple(int(v) for v in h)
-    if n not in harmonics:
-        raise HallcalInputError(
-            f"setup: model.harmonics must contain the pole-pair harmonic {n} (pole_pairs)"
-        )
-    messages: list[str] = []
-    deviation = _speed_deviation(d[start:stop], n)
-    if deviation > 0.1:
-        seg = find_constant_speed(d, n)
-        hint = f"; the constant-speed part looks like {seg.start}..{seg.stop}" if seg.ok else ""
-        messages.append(
-            f"warning: f_init's speed varies by {100 * deviation:.0f}% within trajectory.start.."
-            f"stop = {start}..{stop} (averaged over electrical cycles){hint}"
-        )
-    say(f"constant-speed calibration on samples {start}..{stop} ({len(harmonics)} harmonics)")
-    t0 = time.perf_counter()
-    try:
-        res = calibrate_constant_speed(
-            d,
-            n,
-            FourierBasis(harmonics),
-            start=start,
-            stop=stop,
-            max_iterations=setup.model.max_iterations,
-            lut_points=setup.model.lut_points,
-        )
-    except ValueError as exc:
-        raise HallcalInputError(f"{dataset.source}: {exc}") from None
-    timings = {"constant_speed": time.perf_counter() - t0}
-    messages.extend(f"warning: {w}" for w in res.warnings)
-    if res.status == "not-converged":
-        messages.append("warning: the speed estimate did not converge")
-    if not res.lut.bijective:
-        status = "not-bijective"
-    elif res.status != "ok" or messages:
-        status = "warning"
-    else:
-        status = "ok"
-    validation = None
-    if "y_ref" in dataset and res.lut.bijective:
-        validation = validate(res.lut, dataset, noise_floor=res.angle_noise_floor)
-    return Calibration(
-        setup=setup,
-        flux=res.model,
-        lut=res.lut,
-        sem=None,
-        plant=None,
-        gain=None,
-        bla=None,
-        predicted_error=res.angle_noise_floor,
-        adequacy=None,
-        validation=validation,
-        status=status,
-        messages=messages,
-        timings=timings,
-        model_info={
-            "basis": "fourier",
-            "harmonics": list(harmonics),
-            "theta": res.model.theta.tolist(),
-        },
-        extra={"constant_speed": res},
-    )
-
-
-def _speed_deviation(d: NDArray, pole_pairs: int) -> float:
+def speed_deviation(d: NDArray, pole_pairs: int) -> float:
     """Largest relative deviation of f_init's one-electrical-cycle mean speed from its median."""
     if d.shape[0] < 8:
         return 0.0
