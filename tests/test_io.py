@@ -23,6 +23,7 @@ from hallcal.errors import HallcalInputError
 from hallcal.io import (
     ARTIFACT_FORMAT,
     DATASET_EXTENSIONS,
+    KNOWN_COLUMNS,
     BenchSpec,
     BLASpec,
     Dataset,
@@ -77,6 +78,11 @@ def _message(excinfo: pytest.ExceptionInfo[BaseException]) -> str:
 
 _column_names = st.from_regex(r"[a-z][a-z0-9_]{0,8}", fullmatch=True)
 _finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
+#: Hall readings from 1e-3 to 1e3 of either sign, and zeros of both signs: every value is within
+#: 1e6 (limits.SPIKE_RATIO) of any nonzero median.
+_hall_value = st.one_of(st.sampled_from([0.0, -0.0]), st.floats(1e-3, 1e3), st.floats(-1e3, -1e-3))
+#: Other known columns (angles, time): within limits.MAX_ABS_VALUE.
+_known = st.floats(-1e12, 1e12)
 
 
 @st.composite
@@ -86,7 +92,10 @@ def _tables(draw: st.DrawFn) -> dict[str, np.ndarray]:
     names = ["d1", "d2", "d3", *[name for name in names if name not in HALL]]
     out: dict[str, np.ndarray] = {}
     for name in names:
-        out[name] = draw(hnp.arrays(np.float64, n, elements=_finite))
+        # known columns must be plausible (no 1e300, no Hall value of 1e-300: hallcal.limits);
+        # the others are any finite numbers
+        elements = _hall_value if name in HALL else _known if name in KNOWN_COLUMNS else _finite
+        out[name] = draw(hnp.arrays(np.float64, n, elements=elements))
     if draw(st.booleans()):
         out["realization"] = draw(hnp.arrays(np.int64, n, elements=st.integers(0, 50)))
     return out
