@@ -852,7 +852,7 @@ def _artifact(n: int = 32) -> dict[str, Any]:
             "offset": np.zeros(3),
         },
         "lut": {"y_hat": grid, "eta": 1e-3 * np.sin(grid)},
-        "model": {"basis": "fourier", "harmonics": list(range(1, 12)), "theta": np.ones((23, 3))},
+        "model": {"basis": "fourier", "harmonics": list(range(1, 12)), "theta": np.ones((3, 23))},
         "setup": default_setup(),
         "diagnostics": {"cost": np.float64(0.1), "iterations": np.int64(4), "bijective": True},
     }
@@ -868,7 +868,7 @@ def test_artifact_round_trip(tmp_path: Path) -> None:
     assert data["diagnostics"] == {"cost": 0.1, "iterations": 4, "bijective": True}
     assert setup_from_dict(data["setup"]) == default_setup()
     np.testing.assert_array_equal(data["lut"]["eta"], _artifact()["lut"]["eta"])
-    assert np.array(data["model"]["theta"]).shape == (23, 3)
+    assert np.array(data["model"]["theta"]).shape == (3, 23)
     assert path.read_text().startswith('{\n "format": "hallcal-calibration/1",')
     assert os.listdir(tmp_path) == ["CAL.json"]
 

@@ -210,7 +210,7 @@ def _decode_text(p: Path, raw: bytes) -> str:
         raise HallcalInputError(f"{p}: not UTF-8 text (line {line})") from None
 
 
-def _check_parsed(p: Path, data: Any) -> None:
+def _check_parsed(p: str | os.PathLike[str], data: Any) -> None:
     """Nesting at most MAX_JSON_DEPTH levels, every float finite, every integer within 64 bits.
 
     For parsed JSON or TOML; iterative (the data may be deep). The message names the key path of
@@ -249,7 +249,7 @@ def _check_parsed(p: Path, data: Any) -> None:
                 stack.append((item, path, depth + 1))
 
 
-def _nested_too_deeply(p: Path) -> HallcalInputError:
+def _nested_too_deeply(p: str | os.PathLike[str]) -> HallcalInputError:
     """The parsers recurse once per level; Python stops them at about a thousand."""
     return HallcalInputError(f"{p}: nested far more than {MAX_JSON_DEPTH} levels deep (the limit)")
 
