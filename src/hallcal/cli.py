@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -17,14 +18,21 @@ from typing import Any
 
 import click
 from rich.console import Console
+from rich.text import Text
 
 from hallcal.errors import CalibrationRefused, HallcalError, HallcalInputError
+from hallcal.limits import MAX_ADC_SCALE, MIN_ADC_SCALE
 
 EXIT_INPUT = HallcalInputError.exit_status
 EXIT_REFUSED = CalibrationRefused.exit_status
 
-_err = Console(stderr=True, highlight=False, soft_wrap=True)
-_out = Console(highlight=False, soft_wrap=True)
+# markup=False: paths, column names and messages are printed as they are ("[plant]", "x[/]")
+_err = Console(stderr=True, highlight=False, soft_wrap=True, markup=False)
+_out = Console(highlight=False, soft_wrap=True, markup=False)
+
+#: Seeds of the random generators: non-negative and within 64 bits with room for the demo's
+#: validation run (seed + 1000), so that they fit the artifact's JSON.
+_SEED = click.IntRange(0, 2**62)
 
 
 def _one_line(exc: BaseException) -> str:
@@ -59,7 +67,8 @@ class _Progress:
 
     def __call__(self, message: str) -> None:
         if not self.quiet:
-            _err.print(f"[dim]{time.perf_counter() - self.t0:6.1f} s[/dim]  {message}")
+            elapsed = f"{time.perf_counter() - self.t0:6.1f} s"
+            _err.print(Text.assemble((elapsed, "dim"), f"  {message}"))
 
 
 _setup_path: list[str | None] = [None]  # the setup file of this command, for error messages
@@ -76,7 +85,46 @@ def _mrad(x: float | None) -> str:
     return "-" if x is None or not math.isfinite(x) else f"{1e3 * x:.4f} mrad"
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def _output_dir(path: str) -> Path:
+    """Create the output folder of report, export-c or demo, or say in one line why not."""
+    out = Path(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise HallcalInputError(f"{out}: exists and is not a directory") from None
+    except OSError as exc:
+        raise HallcalInputError(
+            f"{out}: cannot create the directory ({exc.strerror or exc})"
+        ) from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise HallcalInputError(f"{out}: the directory is not writable")
+    return out
+
+
+class _Group(click.Group):
+    """The command group, with click's own usage errors in hallcal's one-line form.
+
+    ``hallcal calibrate`` without ``--out`` prints ``hallcal: error: Missing option '--out'
+    (see 'hallcal calibrate --help')`` and exits with status 2, like every other input error.
+    """
+
+    def main(self, *args: Any, standalone_mode: bool = True, **kwargs: Any) -> Any:
+        if not standalone_mode:
+            return super().main(*args, standalone_mode=False, **kwargs)
+        try:
+            rv = super().main(*args, standalone_mode=False, **kwargs)
+        except click.ClickException as exc:
+            ctx = getattr(exc, "ctx", None)
+            hint = f" (see '{ctx.command_path} --help')" if ctx is not None else ""
+            click.echo(f"hallcal: error: {_one_line(exc.format_message())}{hint}", err=True)
+            sys.exit(exc.exit_code)
+        except click.exceptions.Abort:
+            click.echo("hallcal: aborted", err=True)
+            sys.exit(1)
+        sys.exit(rv if isinstance(rv, int) else 0)
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="hallcal")
 def cli() -> None:
     """Self-calibration of analog linear Hall sensors without an encoder.
@@ -111,7 +159,7 @@ def cli() -> None:
     default=None,
     help="Override [bench] experiment.",
 )
-@click.option("--seed", type=int, default=None, help="Noise seed of this run (truth unchanged).")
+@click.option("--seed", type=_SEED, default=None, help="Noise seed of this run (truth unchanged).")
 @_handle_errors
 def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int | None) -> None:
     """Run the virtual bench and write a dataset (truth in OUT's .truth.json sidecar)."""
@@ -261,7 +309,7 @@ def reconstruct(artifact: str, data: str, out: str) -> None:
 @click.option("--no-fixed-point", is_flag=True, help="Only the float variant.")
 @click.option(
     "--adc-scale",
-    type=float,
+    type=click.FloatRange(MIN_ADC_SCALE, MAX_ADC_SCALE),
     default=1.0,
     show_default=True,
     help="ADC counts per unit of the calibration's Hall signals (fixed point input).",
@@ -273,14 +321,18 @@ def export_c(artifact: str, out: str, no_fixed_point: bool, adc_scale: float) ->
     from hallcal.output.codegen import export_c as _export
 
     art = read_artifact(artifact)
-    res = _export(art, out, fixed_point=not no_fixed_point, source=artifact, adc_scale=adc_scale)
+    out_dir = _output_dir(out)
+    res = _export(
+        art, out_dir, fixed_point=not no_fixed_point, source=artifact, adc_scale=adc_scale
+    )
     for m in res.messages:
         _err.print(f"note: {m}")
     for p in res.paths:
         _out.print(f"wrote {p}")
+    fixed = "" if res.fixed_bound is None else f", fixed point {res.fixed_bound:.2g} rad"
     _out.print(
         f"table {res.table_bytes} bytes (float); stated error bounds: float "
-        f"{res.float_bound:.2g} rad, fixed point {res.fixed_bound:.2g} rad"
+        f"{res.float_bound:.2g} rad{fixed}"
     )
 
 
@@ -309,6 +361,7 @@ def report(
     """Figures and an HTML report of a calibration."""
     from hallcal.output.report import write_report_from_files
 
+    _output_dir(out)
     path = write_report_from_files(
         artifact, data, validation=validation, out_dir=out, progress=_Progress()
     )
@@ -323,13 +376,14 @@ def report(
     show_default=True,
     help="Folder for data, artifact, figures and report.",
 )
-@click.option("--seed", type=int, default=1, show_default=True)
+@click.option("--seed", type=_SEED, default=1, show_default=True)
 @click.option("--no-report", is_flag=True, help="Skip figures and the HTML report.")
 @_handle_errors
 def demo(out: str, seed: int, no_report: bool) -> None:
     """The paper's simulation study end to end on the built-in defaults."""
     from hallcal.demo import run_demo
 
+    _output_dir(out)
     res = run_demo(out, seed=seed, report=not no_report, progress=_Progress())
     for line in res.summary_lines():
         _out.print(line)
