@@ -116,7 +116,10 @@ class _Group(click.Group):
         except click.ClickException as exc:
             ctx = getattr(exc, "ctx", None)
             hint = f" (see '{ctx.command_path} --help')" if ctx is not None else ""
-            click.echo(f"hallcal: error: {_one_line(exc.format_message())}{hint}", err=True)
+            message = _one_line(exc.format_message())
+            if type(exc).__name__ == "NoArgsIsHelpError":  # its message is the whole help
+                message = "no command given"
+            click.echo(f"hallcal: error: {message}{hint}", err=True)
             sys.exit(exc.exit_code)
         except click.exceptions.Abort:
             click.echo("hallcal: aborted", err=True)

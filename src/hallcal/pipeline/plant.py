@@ -22,6 +22,7 @@ from hallcal.fit.sem import least_squares_start
 from hallcal.identify import bla as _bla
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
+from hallcal.pipeline.boundary import numeric_errors
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sim.loop import ClosedLoop, simulate_loop
 from hallcal.sim.lti import ContinuousTF
@@ -92,24 +93,25 @@ def identify_bla(dataset: Dataset, setup: Setup, *, progress: Progress = None) -
         )
     dataset.require("r", "u", "y", "realization")
     _say(progress, "nonparametric BLA (indirect closed-loop method)")
-    npb = _bla.nonparametric_bla(
-        dataset["r"],
-        dataset["u"],
-        dataset["y"],
-        dataset["realization"].astype(int),
-        period_samples=spec.period_samples,
-        transient_periods=spec.transient_periods,
-        sample_time=setup.sample_time,
-    )
-    _say(progress, "parametric fit of G(s) with input delay")
-    par = _bla.fit_parametric(
-        npb,
-        numerator_order=spec.numerator_order,
-        denominator_order=spec.denominator_order,
-        integrator=spec.integrator,
-        fit_delay=spec.fit_delay,
-    )
-    plant = ContinuousTF(tuple(par.num), tuple(par.den), max(float(par.delay), 0.0))
+    with numeric_errors(dataset.source, "bla"):
+        npb = _bla.nonparametric_bla(
+            dataset["r"],
+            dataset["u"],
+            dataset["y"],
+            dataset["realization"].astype(int),
+            period_samples=spec.period_samples,
+            transient_periods=spec.transient_periods,
+            sample_time=setup.sample_time,
+        )
+        _say(progress, "parametric fit of G(s) with input delay")
+        par = _bla.fit_parametric(
+            npb,
+            numerator_order=spec.numerator_order,
+            denominator_order=spec.denominator_order,
+            integrator=spec.integrator,
+            fit_delay=spec.fit_delay,
+        )
+        plant = ContinuousTF(tuple(par.num), tuple(par.den), max(float(par.delay), 0.0))
     status = "ok" if (npb.status == "ok" and par.status == "ok") else f"{npb.status}/{par.status}"
     return BLAIdentification(npb, par, plant, status)
 
@@ -311,8 +313,10 @@ def plant_model(
     basis = FourierBasis(start_harmonics or tuple(range(1, n_m + 1)))
     d = np.ascontiguousarray(dataset.d)
     y = np.ascontiguousarray(dataset["y"])
-    flux0 = FluxModel(basis, least_squares_start(basis, d, y))
-    gain = estimate_gain(closed_loop(setup, bla.plant), dataset["r"], y, flux0)
+    loop = closed_loop(setup, bla.plant)
+    with numeric_errors(dataset.source, "plant"):
+        flux0 = FluxModel(basis, least_squares_start(basis, d, y))
+        gain = estimate_gain(loop, dataset["r"], y, flux0)
     note = f"plant: the BLA identified from {where}, gain-corrected with the calibration run"
     if setup.plant is not None:
         note += " (the setup's [plant] is not used for calibration; it serves the virtual bench)"

@@ -74,7 +74,10 @@ class ClosedLoop:
 
     def __post_init__(self) -> None:
         if self.plant.D != 0.0:
-            raise ValueError("the discrete plant must have no direct feedthrough")
+            raise ValueError(
+                "the plant has a direct feedthrough (as many zeros as poles and no delay): the "
+                "loop through f_init would be algebraic"
+            )
         if self.plant.dt is None or self.controller.dt is None:
             raise ValueError("plant and controller must be discrete")
 
