@@ -41,6 +41,7 @@ __all__ = [
     "MIN_HALL_MAGNITUDE",
     "MIN_LUT_POINTS",
     "SPIKE_RATIO",
+    "check_hall_scale",
     "check_work_memory",
     "work_memory_budget",
 ]
@@ -229,3 +230,28 @@ def _gib(nbytes: float) -> str:
     if not math.isfinite(nbytes):
         return "unbounded memory"
     return f"{nbytes / 2**30:.3g} GiB"
+
+
+def check_hall_scale(largest: float) -> None:
+    """Raise :class:`ValueError` when Hall signals are too small or too large to hold an angle.
+
+    The angle's derivative divides by alpha^2 + beta^2, which underflows to zero for signals
+    below about 1e-154 and overflows above 1e154; :data:`MIN_HALL_MAGNITUDE` and
+    :data:`MAX_ABS_VALUE` keep well inside.
+
+    Parameters
+    ----------
+    largest : float
+        The largest magnitude of the Hall signals (``max |d|``).
+
+    Raises
+    ------
+    ValueError
+        When `largest` is outside ``MIN_HALL_MAGNITUDE .. MAX_ABS_VALUE`` (or not finite).
+    """
+    if not MIN_HALL_MAGNITUDE <= largest <= MAX_ABS_VALUE:
+        raise ValueError(
+            f"the Hall signals' largest magnitude is {largest:.3g}, outside "
+            f"{MIN_HALL_MAGNITUDE:g} .. {MAX_ABS_VALUE:g}: no angle can be computed from them "
+            "(rescale d)"
+        )

@@ -93,6 +93,7 @@ from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
 from hallcal.fit.sem import SEMResult
+from hallcal.limits import check_hall_scale, check_work_memory
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.loop import (
@@ -671,6 +672,11 @@ def fourier_gauss_newton(
     mb = 2 * K + 1
     p = 3 * mb
     T = int(max(64, min(chunk, N)))
+    check_work_memory(
+        8.0 * p * (p + 2 * T),
+        f"the kernel SEM's normal equations ({p} parameters: {K} harmonics)",
+        "use fewer kernel points or a longer lengthscale",
+    )
     xg, xc = np.zeros(ng), np.zeros(nc)
     Sg, Sc = np.zeros((ng, p)), np.zeros((nc, p))
     Sg2, Sc2 = np.zeros((ng, p)), np.zeros((nc, p))
@@ -1419,6 +1425,7 @@ def solve_kernel_sem(
     N = r.size
     if d.shape != (N, 3):
         raise ValueError("d must have shape (N, 3) with N = len(r)")
+    check_hall_scale(float(np.max(np.abs(d))) if d.size else 0.0)
     if criterion not in ("evidence", "gcv"):
         raise ValueError('criterion must be "evidence" or "gcv"')
     if spectrum not in ("auto", "ard", "bessel"):

@@ -26,6 +26,7 @@ import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
+from hallcal.limits import check_hall_scale, check_work_memory
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.loop import ClosedLoop, loop_jacobian, simulate_loop
@@ -105,7 +106,13 @@ def least_squares_start(basis: FourierBasis, d: ArrayLike, y: ArrayLike) -> NDAr
     view of the sensors (its LUT is close to zero) but already carries the harmonic shape of the
     data, which makes the SEM start much closer than pure sinusoids when the flux is distorted.
     """
-    Phi = basis.evaluate(np.asarray(y, dtype=np.float64))
+    yy = np.asarray(y, dtype=np.float64)
+    check_work_memory(
+        8.0 * yy.size * basis.size,
+        f"the least-squares start ({yy.size} samples x {basis.size} basis functions)",
+        "use fewer harmonics or a shorter recording",
+    )
+    Phi = basis.evaluate(yy)
     dd = np.asarray(d, dtype=np.float64)
     # Normal equations: over whole revolutions the Fourier columns are nearly orthogonal, so
     # Phi^T Phi is well conditioned and a Cholesky solve is as accurate as an SVD, 30x faster.
@@ -183,6 +190,7 @@ def solve_sem(
     N = r.size
     if d.shape != (N, 3):
         raise ValueError("d must have shape (N, 3) with N = len(r)")
+    check_hall_scale(float(np.max(np.abs(d))) if d.size else 0.0)
     if theta0 is None:
         yy = f_init(d, loop.pole_pairs, projection=loop.projection, offset=loop.offset)
         theta0 = least_squares_start(basis, d, yy if y is None else y)
@@ -191,6 +199,11 @@ def solve_sem(
     p = theta.size + ng
     wreg = np.zeros(theta.size) if regularization is None else np.asarray(regularization, float)
     wreg = np.r_[wreg, np.zeros(ng)]
+    check_work_memory(
+        8.0 * N * 3 * p,
+        f"the SEM Jacobian ({N} samples x 3 x {p} parameters)",
+        "use fewer harmonics or a shorter recording",
+    )
     jac = np.empty((N, 3, p))
     log_gain = 0.0
 

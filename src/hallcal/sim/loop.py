@@ -380,6 +380,9 @@ def _jacobian_kernel(
             ds[k, h] = dk[h]
         al, be = _alpha_beta(P, off, dk)
         rho2 = al * al + be * be
+        if not rho2 > 0.0:  # no angle at alpha = beta = 0 (or NaN): the model is degenerate
+            ok = False
+            break
         # d psi / d d_h
         c0 = (al * P[1, 0] - be * P[0, 0]) / (rho2 * n_m)
         c1 = (al * P[1, 1] - be * P[0, 1]) / (rho2 * n_m)
