@@ -33,6 +33,7 @@ from hallcal.limits import (
     MAX_DELAY_SAMPLES,
     MAX_HARMONIC,
     MAX_HARMONICS,
+    MAX_ITERATIONS,
     MAX_KERNEL_POINTS,
     MAX_LUT_POINTS,
     MAX_POLE_PAIRS,
@@ -317,24 +318,75 @@ def _check_model(c: _Checker, model: Mapping[str, Any]) -> None:
             c.array(model["weights"], "model.weights", f"a 3x{points} array", shape=(3, points))
 
 
+#: Optional diagnostics read by the report and :func:`hallcal.load`, and their types.
+_DIAGNOSTIC_NUMBERS = (
+    "cost",
+    "cost_initial",
+    "solve_time",
+    "noise_variance",
+    "min_slope",
+    "predicted_angle_error_rms",
+    "noise_floor",
+)
+_DIAGNOSTIC_COUNTS = ("iterations", "n_samples")
+_DIAGNOSTIC_OBJECTS = ("adequacy", "validation", "gain_correction", "constant_speed", "timings")
+
+
 def _check_diagnostics(c: _Checker, diag: Mapping[str, Any]) -> None:
-    if "status" in diag:
-        c.text(diag["status"], "diagnostics.status")
+    for key in ("status", "sem_status"):
+        if key in diag:
+            c.text(diag[key], f"diagnostics.{key}")
     if "refusal" in diag:
         c.text(diag["refusal"], "diagnostics.refusal", optional=True)
+    for key in _DIAGNOSTIC_NUMBERS:
+        value = diag.get(key)
+        if value is not None and not _is_number(value):
+            c.bad(f"key 'diagnostics.{key}' must be a number or null")
+    for key in _DIAGNOSTIC_COUNTS:
+        if key in diag and not (_is_int(diag[key]) and diag[key] >= 0):
+            c.bad(f"key 'diagnostics.{key}' must be an integer >= 0")
+    for key in _DIAGNOSTIC_OBJECTS:
+        if diag.get(key) is not None:
+            c.mapping(diag[key], f"diagnostics.{key}")
+    if "bijective" in diag and not isinstance(diag["bijective"], bool):
+        c.bad("key 'diagnostics.bijective' must be true or false")
+    if "cost_history" in diag:
+        history = diag["cost_history"]
+        if not (isinstance(history, list) and all(_is_number(v) for v in history)):
+            c.bad("key 'diagnostics.cost_history' must be a list of numbers")
+        if len(history) > MAX_ITERATIONS + 1:
+            c.bad(
+                f"key 'diagnostics.cost_history' has {len(history)} entries, above the limit of "
+                f"{MAX_ITERATIONS + 1} (one per SEM iteration)"
+            )
     if "messages" in diag:
         messages = diag["messages"]
         if not isinstance(messages, list):
             c.bad("key 'diagnostics.messages' must be a list of strings")
         for i, m in enumerate(messages):
             c.text(m, f"diagnostics.messages[{i}]")
-    for key in ("predicted_angle_error_rms", "noise_floor"):
+    for key in ("predicted_angle_error_rms", "noise_floor", "noise_variance"):
         value = diag.get(key)
-        if value is not None and not (_is_number(value) and value >= 0):
+        if value is not None and value < 0:
             c.bad(f"key 'diagnostics.{key}' must be a number >= 0 or null")
     timings = diag.get("timings", {})
-    if not (isinstance(timings, Mapping) and all(_is_number(v) for v in timings.values())):
+    if not all(_is_number(v) for v in timings.values()):
         c.bad("key 'diagnostics.timings' must be an object of numbers")
+
+
+def _check_loop(c: _Checker, key: str, num: Any, den: Any, delay: float, setup: Setup) -> None:
+    """The plant and the setup's controller make a loop that can be simulated (report)."""
+    from hallcal.sim.loop import ClosedLoop
+    from hallcal.sim.lti import ContinuousTF
+
+    assert setup.controller is not None
+    try:
+        plant = ContinuousTF(tuple(num), tuple(den), float(delay))
+        ClosedLoop.from_transfer_functions(
+            plant, setup.controller, setup.sample_time, setup.pole_pairs
+        )
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        c.bad(f"key '{key}' and 'setup.controller' do not make a loop: {exc}")
 
 
 def _check_plant(c: _Checker, plant: Mapping[str, Any], setup: Setup) -> None:
@@ -357,6 +409,8 @@ def _check_plant(c: _Checker, plant: Mapping[str, Any], setup: Setup) -> None:
             f"key 'plant.delay' is {delay / setup.sample_time:.4g} samples, above the limit of "
             f"{MAX_DELAY_SAMPLES}"
         )
+    if setup.controller is not None:
+        _check_loop(c, "plant", plant["num"], plant["den"], delay, setup)
     gain = plant.get("gain_correction")
     if gain is not None and not (_is_number(gain) and gain > 0):
         c.bad("key 'plant.gain_correction' must be a number > 0 or null")
@@ -437,6 +491,9 @@ def validate_artifact(artifact: Mapping[str, Any], source: str = "<artifact>") -
     setup = _parse_setup(data["setup"], source, prefix="setup.")
     if setup.pole_pairs != n:
         c.bad(f"key 'pole_pairs' ({n}) differs from 'setup.pole_pairs' ({setup.pole_pairs})")
+    if setup.plant is not None and setup.controller is not None:
+        p = setup.plant
+        _check_loop(c, "setup.plant", p.num, p.den, p.delay, setup)
     _check_diagnostics(c, data["diagnostics"])
     plant = None
     if data.get("plant") is not None:

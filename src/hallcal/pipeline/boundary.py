@@ -20,7 +20,8 @@ def numeric_errors(source: str, key: str | None = None) -> Iterator[None]:
 
     The numeric packages (:mod:`hallcal.sensor`, :mod:`hallcal.sim`, :mod:`hallcal.identify`,
     :mod:`hallcal.fit`) raise :class:`ValueError` with a clear message when an argument cannot
-    be used; here the pipeline knows which file or setup table the argument came from. Only
+    be used (or :class:`~hallcal.errors.HallcalInputError` naming a column or key, but not the
+    file); here the pipeline knows which file or setup table the argument came from. Only
     ValueError is converted: any other exception is a bug and propagates.
 
     Parameters
@@ -35,11 +36,17 @@ def numeric_errors(source: str, key: str | None = None) -> Iterator[None]:
     HallcalInputError
         With ``"{source}: [key]: {message}"`` on one line.
     """
+    where = f"{source}: [{key}]" if key else source
     try:
         yield
+    except HallcalInputError as exc:
+        if exc.source is not None or str(exc).startswith(f"{source}:"):
+            raise
+        # raised by the core, which knew the column or key but not the file
+        text = " ".join(str(exc).split())
+        raise HallcalInputError(f"{where}: {text}", source=source, key=exc.key or key) from None
     except HallcalError:
         raise
     except ValueError as exc:
-        where = f"{source}: [{key}]" if key else source
         text = " ".join(str(exc).split())
         raise HallcalInputError(f"{where}: {text}", source=source, key=key) from None
