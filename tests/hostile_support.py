@@ -14,12 +14,15 @@ breaks. The test modules import this file as a plain module (``tests/`` is on ``
 from __future__ import annotations
 
 import dataclasses
+import json
+import math
 import os
 import re
 import time
 import traceback
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 #: The one line a failure ends with.
 ERROR_LINE = re.compile(r"^hallcal: (error|refused): \S")
@@ -145,3 +148,31 @@ def contract_violations(
     if new_files:
         problems.append(f"a failed command left output behind: {sorted(map(str, new_files))[:5]}")
     return problems
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if math.isnan(v):
+            return "nan"
+        if math.isinf(v):
+            return "inf" if v > 0 else "-inf"
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(type(v))
+
+
+def to_toml(d: dict[str, Any]) -> str:
+    """A setup dictionary as TOML (top-level keys, then one table per sub-dictionary)."""
+    lines = [f"{k} = {_toml_value(v)}" for k, v in d.items() if not isinstance(v, dict)]
+    for name, table in d.items():
+        if isinstance(table, dict):
+            lines += ["", f"[{name}]"]
+            lines += [f"{k} = {_toml_value(v)}" for k, v in table.items()]
+    return "\n".join(lines) + "\n"

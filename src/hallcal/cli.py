@@ -101,6 +101,34 @@ def _output_dir(path: str) -> Path:
     return out
 
 
+def _output_file(path: str, *, dataset: bool = False) -> Path:
+    """Check an output file's folder (and a dataset's extension) before any work is done."""
+    out = Path(path)
+    if dataset:
+        from hallcal.io import DATASET_EXTENSIONS
+
+        if out.suffix.lower() not in DATASET_EXTENSIONS:
+            shown = f"'{out.suffix}'" if out.suffix else "(none)"
+            raise HallcalInputError(
+                f"{out}: unknown dataset extension {shown} (expected one of "
+                f"{', '.join(DATASET_EXTENSIONS)})"
+            )
+    if not out.parent.is_dir():
+        raise HallcalInputError(f"{out}: directory '{out.parent}' does not exist")
+    if not os.access(out.parent, os.W_OK | os.X_OK):
+        raise HallcalInputError(f"{out}: the directory '{out.parent}' is not writable")
+    return out
+
+
+def _adc_scale(ctx: click.Context, param: click.Parameter, value: float) -> float:
+    """``--adc-scale``: a finite number within hallcal.limits' range."""
+    if not (math.isfinite(value) and MIN_ADC_SCALE <= value <= MAX_ADC_SCALE):
+        raise click.BadParameter(
+            f"{value:g} is not a number in {MIN_ADC_SCALE:g} .. {MAX_ADC_SCALE:g} counts per unit"
+        )
+    return value
+
+
 class _Group(click.Group):
     """The command group, with click's own usage errors in hallcal's one-line form.
 
@@ -170,6 +198,7 @@ def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int
     from hallcal.io import write_dataset, write_json
 
     setup = _setup(setup_path)
+    _output_file(out, dataset=True)
     prog = _Progress()
     kind = experiment or setup.bench.experiment
     prog(f"simulating the {kind} experiment")
@@ -203,6 +232,7 @@ def bla(data: str, setup_path: str, out: str) -> None:
     from hallcal.io import read_dataset, write_json
 
     setup = _setup(setup_path)
+    _output_file(out)
     ds = read_dataset(data, required=("r", "u", "y", "realization"))
     res = pipeline.identify_bla(ds, setup, progress=_Progress())
     write_json(out, res.to_dict())
@@ -228,6 +258,7 @@ def calibrate(data: str, setup_path: str, bla_data: str | None, out: str, force:
     from hallcal.api import calibrate as _calibrate
 
     setup = _setup(setup_path)
+    _output_file(out)
     cal = _calibrate(data, setup, bla_data=bla_data, progress=_Progress())
     _print_calibration(cal)
     cal.save(out, force=force or setup.model.force)
@@ -295,6 +326,7 @@ def reconstruct(artifact: str, data: str, out: str) -> None:
     from hallcal.io import write_dataset
 
     cal = load(artifact)
+    _output_file(out, dataset=True)
     rec = cal.reconstruct(data)
     write_dataset(out, rec.columns)
     _out.print(f"wrote {out} ({len(rec)} samples)")
@@ -312,7 +344,8 @@ def reconstruct(artifact: str, data: str, out: str) -> None:
 @click.option("--no-fixed-point", is_flag=True, help="Only the float variant.")
 @click.option(
     "--adc-scale",
-    type=click.FloatRange(MIN_ADC_SCALE, MAX_ADC_SCALE),
+    type=float,
+    callback=_adc_scale,
     default=1.0,
     show_default=True,
     help="ADC counts per unit of the calibration's Hall signals (fixed point input).",

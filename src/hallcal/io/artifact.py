@@ -46,6 +46,7 @@ from hallcal.sensor.lut import LUT
 
 __all__ = [
     "ARTIFACT_FORMAT",
+    "ARTIFACT_STATUSES",
     "ArtifactData",
     "load_artifact",
     "read_artifact",
@@ -55,6 +56,10 @@ __all__ = [
 
 #: Value of the ``"format"`` key of every calibration artifact this version writes and reads.
 ARTIFACT_FORMAT = "hallcal-calibration/1"
+
+#: Values of ``diagnostics.status``: those of :class:`hallcal.pipeline.CalibrationStatus`, which
+#: lives above this layer (tests/test_limits.py checks that the two agree).
+ARTIFACT_STATUSES = ("ok", "warning", "inadequate", "not-bijective")
 
 TWO_PI = 2.0 * math.pi
 
@@ -336,6 +341,9 @@ def _check_diagnostics(c: _Checker, diag: Mapping[str, Any]) -> None:
     for key in ("status", "sem_status"):
         if key in diag:
             c.text(diag[key], f"diagnostics.{key}")
+    if diag.get("status", "ok") not in ARTIFACT_STATUSES:
+        options = ", ".join(f'"{v}"' for v in ARTIFACT_STATUSES)
+        c.bad(f"key 'diagnostics.status' must be one of {options}, got {_show(diag['status'])}")
     if "refusal" in diag:
         c.text(diag["refusal"], "diagnostics.refusal", optional=True)
     for key in _DIAGNOSTIC_NUMBERS:

@@ -349,7 +349,9 @@ def read_dataset(
         raise HallcalInputError(f"{p}: file is empty")
     row_lines: list[int] | None = None
     if ext == ".csv":
-        cols, row_lines = _read_csv(p)
+        # the csv module's own errors (a field above its size limit, a NUL byte) are one line
+        with _library_errors(p, "CSV file", recognized=False):
+            cols, row_lines = _read_csv(p)
     elif ext == ".parquet":
         cols = _read_parquet(p)
     elif ext in (".h5", ".hdf5"):
