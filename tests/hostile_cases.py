@@ -1699,6 +1699,29 @@ def option_cases() -> list[Case]:
         (OK,),
     )
     c("report-auto-bla-deep", _report_auto_bla(lambda: "[" * 100000 + "]" * 100000), (OK,))
+    c(
+        "report-auto-bla-lists",
+        _report_auto_bla(
+            lambda: json.dumps(
+                {"format": "hallcal-bla/1", "nonparametric": [1], "parametric": [2], "plant": [3]}
+            )
+        ),
+        (OK,),
+    )
+    c(
+        "report-auto-bla-huge-arrays",
+        _report_auto_bla(
+            lambda: json.dumps(
+                {
+                    "format": "hallcal-bla/1",
+                    "nonparametric": {"kind": "nonparametric-bla", "freq": [1e300] * 1000},
+                    "parametric": {"kind": "parametric-bla", "num": ["x"], "den": [0]},
+                    "plant": {"num": [1], "den": [1, 1], "delay": -1},
+                }
+            )
+        ),
+        (OK,),
+    )
     # bla
     c(
         "bla-no-bla-table",
