@@ -1082,6 +1082,14 @@ def setup_cases() -> list[Case]:
 # Artifacts
 
 
+@dataclasses.dataclass(frozen=True)
+class _Sparse:
+    """A file of `size` bytes that starts with `text` (the rest a hole: instant to write)."""
+
+    text: str
+    size: int
+
+
 def _art(mutate: Callable[[dict[str, Any]], Any]) -> Callable[[Base], str]:
     def text(base: Base) -> str:
         a = copy.deepcopy(base.artifact)
@@ -1190,7 +1198,7 @@ def _artifact_variants() -> list[
             bad,
             "nested",
         ),
-        ("oversized", _art_text(lambda t: t[:-1] + " " * (65 * 2**20) + "}"), bad, "limit"),
+        ("oversized", lambda b: _Sparse(json.dumps(b.artifact), 65 * 2**20), bad, "limit"),
         (
             "offset-1e999",
             _art_text(
@@ -1380,7 +1388,11 @@ def artifact_cases() -> list[Case]:
 
         def write(folder: Path, base: Base, content=content) -> None:
             data = content(base)
-            if isinstance(data, bytes):
+            if isinstance(data, _Sparse):
+                with open(folder / "a.json", "w", encoding="utf-8") as f:
+                    f.write(data.text)
+                    f.truncate(data.size)
+            elif isinstance(data, bytes):
                 (folder / "a.json").write_bytes(data)
             else:
                 (folder / "a.json").write_text(data, encoding="utf-8")
