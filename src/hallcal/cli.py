@@ -294,18 +294,9 @@ def export_c(artifact: str, out: str, no_fixed_point: bool, adc_scale: float) ->
     default=None,
     help="A fresh run with y_ref to validate on.",
 )
-@click.option(
-    "--setup",
-    "setup_path",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Setup (default: the one stored in the artifact).",
-)
 @click.option("--out", required=True, type=click.Path(file_okay=False))
 @_handle_errors
-def report(
-    artifact: str, data: str, validation: str | None, setup_path: str | None, out: str
-) -> None:
+def report(artifact: str, data: str, validation: str | None, out: str) -> None:
     """Figures and an HTML report of a calibration."""
     from hallcal.output.report import write_report_from_files
 
