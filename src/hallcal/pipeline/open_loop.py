@@ -15,6 +15,7 @@ import numpy as np
 
 from hallcal.errors import HallcalInputError
 from hallcal.fit.constant_speed import (
+    ConstantSpeedStatus,
     calibrate_constant_speed,
     default_harmonics,
     find_constant_speed,
@@ -117,7 +118,7 @@ def calibrate_open_loop(
         raise HallcalInputError(f"{dataset.source}: {exc}") from None
     timings = {"constant_speed": time.perf_counter() - t0}
     messages.extend(f"warning: {w}" for w in res.warnings)
-    if res.status == "not-converged":
+    if res.status is ConstantSpeedStatus.NOT_CONVERGED:
         messages.append("warning: the speed estimate did not converge")
     refusal = None
     if not res.lut.bijective:
@@ -126,7 +127,7 @@ def calibrate_open_loop(
             f"the table is not bijective (min slope {res.lut.min_slope:.3g}): the identified "
             "sensor map folds, f_star is unavailable"
         )
-    elif res.status != "ok" or messages:
+    elif not res.status.success or messages:
         status = CalibrationStatus.WARNING
     else:
         status = CalibrationStatus.OK
