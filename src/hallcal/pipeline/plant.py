@@ -286,6 +286,12 @@ def plant_model(
         An already identified BLA.
     start_harmonics : tuple of int, optional
         Harmonics of the least-squares flux model used for the gain search (default 1..n_m).
+    progress : callable, optional
+        Called with a short message per step.
+
+    Returns
+    -------
+    PlantModel
     """
     if bla is None and bla_dataset is None:
         if setup.plant is None:
