@@ -1590,6 +1590,13 @@ def option_cases() -> list[Case]:
         msg="seed",
     )
     c("simulate-no-out", with_inputs(["simulate", "--setup", "s.toml"]), msg="--out")
+
+    def sidecar_is_dir(folder: Path, base: Base) -> list[str]:
+        (folder / "s.toml").write_text(base.setup_text)
+        (folder / "x.truth.json").mkdir()  # where simulate writes the truth next to the data
+        return ["simulate", "--setup", "s.toml", "--out", "x.npz"]
+
+    c("simulate-sidecar-is-dir", sidecar_is_dir, msg="truth.json")
     c(
         "simulate-missing-setup",
         with_inputs(["simulate", "--setup", "nope.toml", "--out", "x.npz"]),

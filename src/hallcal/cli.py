@@ -104,6 +104,8 @@ def _output_dir(path: str) -> Path:
 def _output_file(path: str, *, dataset: bool = False) -> Path:
     """Check an output file's folder (and a dataset's extension) before any work is done."""
     out = Path(path)
+    if out.is_dir():
+        raise HallcalInputError(f"{out}: is a directory")
     if dataset:
         from hallcal.io import DATASET_EXTENSIONS
 
@@ -199,6 +201,7 @@ def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int
 
     setup = _setup(setup_path)
     _output_file(out, dataset=True)
+    _output_file(str(Path(out).with_suffix(".truth.json")))  # the sidecar: both or neither
     prog = _Progress()
     kind = experiment or setup.bench.experiment
     prog(f"simulating the {kind} experiment")
