@@ -113,6 +113,13 @@ class Case:
     xfail: str | None = None
 
 
+def _link(base: Base, name: str, folder: Path) -> None:
+    """Put one of the base inputs (s.toml, b.toml, cal.npz, ms.npz, a.json) into a case folder
+    as a hard link: 800 folders share one copy (a command that writes over its input replaces
+    the link, atomically, and leaves the shared file alone)."""
+    os.link(base.dir / name, folder / name)
+
+
 # ------------------------------------------------------------------------------------------------
 # Writing datasets
 
@@ -630,8 +637,8 @@ def dataset_cases() -> list[Case]:
         def build_for(cmd: str, maker=maker, fname=fname) -> Callable[[Path, Base], list[str]]:
             def build(folder: Path, base: Base) -> list[str]:
                 maker(folder / fname, base)
-                (folder / "s.toml").write_text(base.setup_text)
-                (folder / "a.json").write_text(json.dumps(base.artifact))
+                _link(base, "s.toml", folder)
+                _link(base, "a.json", folder)
                 if cmd == "reconstruct":
                     return ["reconstruct", "a.json", fname, "--out", "rec.csv"]
                 if cmd == "calibrate":
@@ -654,13 +661,13 @@ def dataset_cases() -> list[Case]:
 
         def build_bla(folder: Path, base: Base, maker=maker, fname=fname) -> list[str]:
             maker(folder / fname, base)
-            (folder / "b.toml").write_text(base.bla_setup_text)
+            _link(base, "b.toml", folder)
             return ["bla", fname, "--setup", "b.toml", "--out", "bla.json"]
 
         def build_cal(folder: Path, base: Base, maker=maker, fname=fname) -> list[str]:
             maker(folder / fname, base)
-            (folder / "b.toml").write_text(base.bla_setup_text)
-            write_columns(folder / "cal.npz", base.columns)
+            _link(base, "b.toml", folder)
+            _link(base, "cal.npz", folder)
             return [
                 "calibrate",
                 "cal.npz",
@@ -1053,7 +1060,7 @@ def setup_cases() -> list[Case]:
 
         def build_cal(folder: Path, base: Base, write=write) -> list[str]:
             write(folder, base)
-            write_columns(folder / "cal.npz", base.columns)
+            _link(base, "cal.npz", folder)
             return ["calibrate", "cal.npz", "--setup", "s.toml", "--out", "c.json"]
 
         cases.append(
@@ -1396,7 +1403,7 @@ def artifact_cases() -> list[Case]:
                 (folder / "a.json").write_bytes(data)
             else:
                 (folder / "a.json").write_text(data, encoding="utf-8")
-            write_columns(folder / "cal.npz", base.columns)
+            _link(base, "cal.npz", folder)
 
         def rec(folder: Path, base: Base, write=write) -> list[str]:
             write(folder, base)
@@ -1456,11 +1463,11 @@ def option_cases() -> list[Case]:
 
     def with_inputs(args: list[str]) -> Callable[[Path, Base], list[str]]:
         def build(folder: Path, base: Base) -> list[str]:
-            (folder / "s.toml").write_text(base.setup_text)
-            (folder / "b.toml").write_text(base.bla_setup_text)
-            (folder / "a.json").write_text(json.dumps(base.artifact))
-            write_columns(folder / "cal.npz", base.columns)
-            write_columns(folder / "ms.npz", base.multisine)
+            _link(base, "s.toml", folder)
+            _link(base, "b.toml", folder)
+            _link(base, "a.json", folder)
+            _link(base, "cal.npz", folder)
+            _link(base, "ms.npz", folder)
             (folder / "afile").write_text("x")
             return list(args)
 
@@ -1592,7 +1599,7 @@ def option_cases() -> list[Case]:
     c("simulate-no-out", with_inputs(["simulate", "--setup", "s.toml"]), msg="--out")
 
     def sidecar_is_dir(folder: Path, base: Base) -> list[str]:
-        (folder / "s.toml").write_text(base.setup_text)
+        _link(base, "s.toml", folder)
         (folder / "x.truth.json").mkdir()  # where simulate writes the truth next to the data
         return ["simulate", "--setup", "s.toml", "--out", "x.npz"]
 
@@ -1777,8 +1784,8 @@ def _report_with(
     name: str, maker: Callable[[Path, Base], None]
 ) -> Callable[[Path, Base], list[str]]:
     def build(folder: Path, base: Base) -> list[str]:
-        (folder / "a.json").write_text(json.dumps(base.artifact))
-        write_columns(folder / "cal.npz", base.columns)
+        _link(base, "a.json", folder)
+        _link(base, "cal.npz", folder)
         maker(folder / name, base)
         return ["report", "a.json", "cal.npz", "--validation", name, "--out", "rep"]
 
@@ -1794,7 +1801,7 @@ def _report_auto_bla(text: Callable[[], str]) -> Callable[[Path, Base], list[str
         art["plant"]["source"] = "bla"
         (folder / "a.json").write_text(json.dumps(art))
         (folder / "bla.json").write_text(text())
-        write_columns(folder / "cal.npz", base.columns)
+        _link(base, "cal.npz", folder)
         return ["report", "a.json", "cal.npz", "--out", "rep"]
 
     return build

@@ -223,8 +223,11 @@ def hostile(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]
     build_seconds = time.perf_counter() - t0
     t0 = time.perf_counter()
     results = _run_workers(manifest, d)
-    if os.environ.get("HOSTILE_KEEP"):
-        print(f"hostile: results kept in {d}")
+    if os.environ.get("HOSTILE_KEEP"):  # for debugging: keep the folders, say where and how long
+        print(
+            f"hostile: {len(manifest)} cases built in {build_seconds:.1f} s, run in "
+            f"{time.perf_counter() - t0:.1f} s; results kept in {d}"
+        )
     yield {
         "results": results,
         "folders": {m["id"]: Path(m["cwd"]) for m in manifest},
