@@ -99,6 +99,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -110,6 +111,7 @@ from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT
 
 __all__ = [
+    "AbsoluteAngles",
     "AbsoluteReconstructor",
     "Identifiability",
     "IdentifiabilityReason",
@@ -120,6 +122,7 @@ __all__ = [
     "PowerUpIdentifier",
     "PowerUpStatus",
     "absolute_reconstruction",
+    "analyze_calibration",
     "assess_identifiability",
     "build_decoder",
     "estimate_normal_noise",
@@ -435,6 +438,7 @@ def build_decoder(
     grid: int | None = None,
     interpolation_tolerance: float = DEFAULT_INTERPOLATION_TOLERANCE,
     error_target: float = DEFAULT_ERROR_TARGET,
+    cost_cap: float = DEFAULT_COST_CAP,
 ) -> PowerUpDecoder:
     """Tables and constants of the power-up decoder for an identified flux model.
 
@@ -456,6 +460,8 @@ def build_decoder(
         identify in a few thousand samples (about 0.2 sigma).
     error_target : float
         alpha of the sequential test (0 < alpha < 0.5).
+    cost_cap : float
+        Censoring level c of one sample's cost (> 0), see :data:`DEFAULT_COST_CAP`.
 
     Returns
     -------
@@ -464,6 +470,8 @@ def build_decoder(
     lut._require_bijective()
     if not 0.0 < error_target < 0.5:
         raise ValueError("error_target must be in (0, 0.5)")
+    if not cost_cap > 0.0:
+        raise ValueError("cost_cap must be > 0")
     n = lut.pole_pairs
     cov = _noise_covariance(noise_std, noise_covariance)
     nv = null_vector(lut.projection)
@@ -501,6 +509,7 @@ def build_decoder(
         zero=Z,
         error_target=float(error_target),
         interpolation_error=err,
+        cost_cap=float(cost_cap),
     )
 
 
@@ -509,7 +518,7 @@ def build_decoder(
 # ------------------------------------------------------------------------------------------------
 
 
-class PowerUpStatus(enum.Enum):
+class PowerUpStatus(enum.StrEnum):
     """Outcome of a power-up identification."""
 
     IDENTIFIED = "identified"  # the sequential test locked: posterior >= 1 - alpha
@@ -891,7 +900,7 @@ def estimate_normal_noise(
 # ------------------------------------------------------------------------------------------------
 
 
-class Identifiability(enum.Enum):
+class Identifiability(enum.StrEnum):
     """Verdict of :func:`assess_identifiability`."""
 
     IDENTIFIABLE = "identifiable"  # at standstill, everywhere, within the standstill budget
@@ -904,7 +913,7 @@ class Identifiability(enum.Enum):
         return self is not Identifiability.NOT_IDENTIFIABLE
 
 
-class IdentifiabilityReason(enum.Enum):
+class IdentifiabilityReason(enum.StrEnum):
     """Why the verdict is what it is."""
 
     STANDSTILL = "standstill"  # every position within the standstill budget
@@ -959,6 +968,10 @@ class IdentifiabilityReport:
         None when unknown.
     interpolation_error : float
         Largest table interpolation error [noise sigmas].
+    cost_cap : float
+        The decoder's censoring level c.
+    noise : NoiseEstimate or None
+        The noise estimate sigma came from.
     """
 
     status: Identifiability
@@ -981,6 +994,7 @@ class IdentifiabilityReport:
     revolution_samples_needed: float
     model_floor: float | None
     interpolation_error: float
+    cost_cap: float = DEFAULT_COST_CAP
     noise: NoiseEstimate | None = None
 
     def to_dict(self) -> dict[str, Any]:
@@ -1010,10 +1024,74 @@ class IdentifiabilityReport:
             "revolution_samples_needed": num(self.revolution_samples_needed),
             "model_floor": num(self.model_floor),
             "interpolation_error": float(self.interpolation_error),
+            "cost_cap": float(self.cost_cap),
         }
         if self.noise is not None:
             out["noise"] = self.noise.to_dict()
         return out
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> IdentifiabilityReport:
+        """Inverse of :meth:`to_dict` (an artifact's ``"identifiability"`` entry).
+
+        Raises
+        ------
+        ValueError
+            Naming the first missing or malformed key.
+        """
+
+        def num(key: str, default: float = math.inf) -> float:
+            v = d.get(key, default)
+            return default if v is None else float(v)
+
+        try:
+            noise = d.get("noise")
+            return cls(
+                status=Identifiability(d["status"]),
+                reason=IdentifiabilityReason(d["reason"]),
+                message=str(d["message"]),
+                pole_pairs=int(d["pole_pairs"]),
+                grid=int(d["grid"]),
+                noise_std=float(d["noise_std"]),
+                error_target=float(d["error_target"]),
+                standstill_budget=int(d["standstill_budget"]),
+                motion_budget=int(d["motion_budget"]),
+                separation_worst=num("separation_worst", 0.0),
+                separation_p05=num("separation_p05", 0.0),
+                separation_median=num("separation_median", 0.0),
+                standstill_samples_worst=num("standstill_samples_worst"),
+                standstill_samples_median=num("standstill_samples_median"),
+                standstill_error_rate=num("standstill_error_rate", 1.0),
+                standstill_fraction_ok=num("standstill_fraction_ok", 0.0),
+                revolution_separation_worst=num("revolution_separation_worst", 0.0),
+                revolution_samples_needed=num("revolution_samples_needed"),
+                model_floor=None if d.get("model_floor") is None else float(d["model_floor"]),
+                interpolation_error=float(d.get("interpolation_error", 0.0)),
+                cost_cap=float(d.get("cost_cap", DEFAULT_COST_CAP)),
+                noise=None
+                if noise is None
+                else NoiseEstimate(
+                    float(noise["total_std"]), float(noise["white_std"]), int(noise["samples"])
+                ),
+            )
+        except KeyError as exc:
+            raise ValueError(f"identifiability: missing key {exc.args[0]!r}") from None
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"identifiability: {exc}") from None
+
+    def decoder(self, flux: FluxModel, lut: LUT) -> PowerUpDecoder:
+        """The decoder this analysis was made for, rebuilt from the calibration's model and
+        table (deterministic: same tables as at calibration time)."""
+        if lut.pole_pairs != self.pole_pairs:
+            raise ValueError("identifiability: pole pairs differ from the table's")
+        return build_decoder(
+            flux,
+            lut,
+            noise_std=self.noise_std,
+            grid=self.grid,
+            error_target=self.error_target,
+            cost_cap=self.cost_cap,
+        )
 
 
 @dataclass(frozen=True)
@@ -1237,6 +1315,7 @@ def assess_identifiability(
         revolution_samples_needed=K_rev,
         model_floor=floor,
         interpolation_error=dec.interpolation_error,
+        cost_cap=dec.cost_cap,
         noise=noise,
     )
     return IdentifiabilityReport(message=_message(report), **report)
@@ -1249,31 +1328,35 @@ def _fmt_k(K: float) -> str:
 def _message(r: dict[str, Any]) -> str:
     status, reason = r["status"], r["reason"]
     seps = (
-        f"separation {r['separation_median']:.1f} sigma typical, {r['separation_worst']:.2f} worst"
+        f"separation from the nearest wrong pole pair {r['separation_median']:.2g} noise sigmas "
+        f"typical, {r['separation_worst']:.2g} at the worst position"
     )
-    pct = 100.0 * (1.0 - r["error_target"])
+    pct = f"{100.0 * (1.0 - r['error_target']):g}%"
     if status is Identifiability.IDENTIFIABLE:
         return (
-            f"pole pair identifiable at power-up at standstill ({seps}; {pct:g}% within "
-            f"{_fmt_k(r['standstill_samples_worst'])} samples everywhere)"
+            f"pole pair identifiable at power-up at standstill: right with probability >= {pct} "
+            f"within {_fmt_k(r['standstill_samples_worst'])} samples at every position ({seps})"
         )
     if status is Identifiability.NEEDS_MOTION:
         return (
-            f"pole pair identifiable at power-up with motion ({seps}; standstill "
-            f"{100 * r['standstill_fraction_ok']:.1f}% of positions within "
-            f"{r['standstill_budget']} samples, worst {_fmt_k(r['standstill_samples_worst'])}; "
-            f"one electrical revolution in >= {_fmt_k(r['revolution_samples_needed'])} samples "
-            f"everywhere)"
+            f"pole pair identifiable at power-up with motion: at standstill "
+            f"{100 * r['standstill_fraction_ok']:.1f}% of positions reach {pct} within "
+            f"{r['standstill_budget']} samples (the worst needs "
+            f"{_fmt_k(r['standstill_samples_worst'])}), one electrical revolution of motion "
+            f"reaches it everywhere ({seps})"
         )
     why = (
         "the magnets' signatures are within the calibration's own uncertainty"
         if reason is IdentifiabilityReason.BELOW_MODEL_UNCERTAINTY
         else "the magnets are too alike"
     )
-    return (
-        f"pole pair NOT identifiable at power-up: {why} ({seps}; one electrical revolution "
-        f"needs {_fmt_k(r['revolution_samples_needed'])} samples); home the axis"
+    K = r["revolution_samples_needed"]
+    motion = (
+        f"one electrical revolution of motion would need {K:.0f} samples"
+        if math.isfinite(K)
+        else "no amount of motion tells them apart"
     )
+    return f"pole pair NOT identifiable at power-up: {why} ({seps}; {motion}); home the axis"
 
 
 def standstill_error_rate(decoder: PowerUpDecoder, samples: int | ArrayLike) -> NDArray:
@@ -1283,3 +1366,49 @@ def standstill_error_rate(decoder: PowerUpDecoder, samples: int | ArrayLike) -> 
     r1 = _standstill_radius(smap.planar)
     K = np.atleast_1d(np.asarray(samples, dtype=np.float64))
     return np.array([float(np.mean(standstill_error(r1, k))) for k in K])
+
+
+def analyze_calibration(
+    flux: FluxModel,
+    lut: LUT,
+    d: ArrayLike,
+    *,
+    start: int = 0,
+    stop: int | None = None,
+    basis_size: int | None = None,
+    standstill_budget: int = 200,
+    motion_budget: int = 4096,
+) -> tuple[PowerUpDecoder, IdentifiabilityReport]:
+    """Noise estimate, decoder and identifiability report for a calibration, in one call.
+
+    Sigma is the total noise across the model curve on the calibration samples
+    (:func:`estimate_normal_noise`): white noise plus the model's own error there, so the
+    decoder is not told the model is better than it is.
+
+    Parameters
+    ----------
+    flux, lut : the calibration's model and (bijective) table.
+    d : array_like, shape (N, 3)
+        The calibration recording (f_init from y = 0 before its first sample).
+    start, stop : int, keyword-only
+        The samples the model was fitted on.
+    basis_size : int, optional
+        m, basis functions per channel (for the model floor).
+    standstill_budget, motion_budget : int
+        See :func:`assess_identifiability`.
+    """
+    noise = estimate_normal_noise(flux, lut, d, start=start, stop=stop)
+    sigma = noise.total_std
+    if not sigma > 0.0:  # noise-free data: fall back to a tiny sigma relative to the signals
+        sigma = 1e-9 * max(float(np.std(np.asarray(d, dtype=np.float64))), 1e-300)
+    dec = build_decoder(flux, lut, noise_std=sigma)
+    used = len(range(*slice(start, stop).indices(np.shape(d)[0])))
+    rep = assess_identifiability(
+        dec,
+        standstill_budget=standstill_budget,
+        motion_budget=motion_budget,
+        calibration_samples=used,
+        basis_size=basis_size,
+        noise=noise,
+    )
+    return dec, rep
