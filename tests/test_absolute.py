@@ -106,6 +106,10 @@ def test_grid_is_refined_until_the_tolerance_holds(paper):
     assert coarse.interpolation_error > ab.DEFAULT_INTERPOLATION_TOLERANCE
     assert fine.interpolation_error <= 0.005 and fine.grid > 128
     assert fine.table_size == fine.grid * 11
+    # rebuilding with the chosen grid (as from an artifact) gives bit-identical tables
+    again = ab.build_decoder(truth, lut, noise_std=2.7e-3, grid=fine.grid)
+    np.testing.assert_array_equal(again.radius, fine.radius)
+    np.testing.assert_array_equal(again.zero, fine.zero)
 
 
 # ------------------------------------------------------------------------------------------------

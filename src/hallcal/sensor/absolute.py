@@ -419,11 +419,9 @@ def _noise_covariance(noise_std: float | None, noise_covariance: ArrayLike | Non
     return float(noise_std) ** 2 * np.eye(3)
 
 
-def _tables(flux: FluxModel, lut: LUT, M: int) -> tuple[NDArray, NDArray]:
-    """R and Z at the calibration frame's f_init angles 2 pi q / M, q = 0..M-1."""
-    n = lut.pole_pairs
-    y = TWO_PI * np.arange(M) / M
-    y0 = _invert_model(flux, n, lut.projection, lut.offset, y, y + lut.correction(y))
+def _tables(flux: FluxModel, lut: LUT, y: NDArray) -> tuple[NDArray, NDArray]:
+    """R and Z at calibration-frame f_init angles y (the table points are 2 pi q / M)."""
+    y0 = _invert_model(flux, lut.pole_pairs, lut.projection, lut.offset, y, y + lut.correction(y))
     x = flux(y0) - lut.offset
     ab = x @ lut.projection.T
     return np.hypot(ab[:, 0], ab[:, 1]), x @ null_vector(lut.projection)
@@ -480,12 +478,18 @@ def build_decoder(
     if choices[0] < 4:
         raise ValueError("grid must be >= 4")
     best = None
-    for L in choices:
-        R2, Z2 = _tables(flux, lut, 2 * n * L)
-        R, Z = R2[0::2], Z2[0::2]
+    L = choices[0]
+    R, Z = _tables(flux, lut, TWO_PI * np.arange(n * L) / (n * L))
+    Rm = Zm = np.empty(0)
+    for k, L in enumerate(choices):
+        if k:  # the next candidate doubles the grid: the last midpoints become table points
+            R = np.column_stack([R, Rm]).ravel()
+            Z = np.column_stack([Z, Zm]).ravel()
+        # same expression as a table point of the doubled grid (2 q + 1) / (2 n L): bit-identical
+        Rm, Zm = _tables(flux, lut, TWO_PI * (2 * np.arange(n * L) + 1) / (2 * n * L))
         # midpoint error of linear interpolation, in the metric of step 5 at the midpoint angles
-        a = R2[1::2] - 0.5 * (R + np.roll(R, -1))
-        b = Z2[1::2] - 0.5 * (Z + np.roll(Z, -1))
+        a = Rm - 0.5 * (R + np.roll(R, -1))
+        b = Zm - 0.5 * (Z + np.roll(Z, -1))
         psi = TWO_PI * (np.arange(n * L) + 0.5) / L
         c, s = np.cos(psi), np.sin(psi)
         guu = A[0, 0] * c * c + 2 * A[0, 1] * c * s + A[1, 1] * s * s
@@ -1203,19 +1207,22 @@ def standstill_error(planar_radius: NDArray, samples: float | NDArray) -> NDArra
 
 
 def _samples_for(err_fn, target: float, count: int, k_max: float = 1e9) -> NDArray:
-    """Smallest K >= 1 (per row, continuous) with err_fn(K) <= target; inf beyond k_max."""
-    lo = np.zeros(count)
-    hi = np.full(count, math.log(k_max))
-    ok_max = err_fn(np.full(count, k_max)) <= target
-    ok_one = err_fn(np.ones(count)) <= target
-    for _ in range(60):
+    """Smallest K >= 1 (per row, continuous) with ``err_fn(K, rows) <= target``; inf beyond
+    k_max. ``err_fn`` is decreasing in K; rows already right with one sample are not searched."""
+    out = np.ones(count)
+    rows = np.flatnonzero(err_fn(np.ones(count), np.arange(count)) > target)
+    if rows.size == 0:
+        return out
+    lo = np.zeros(rows.size)
+    hi = np.full(rows.size, math.log(k_max))
+    ok_max = err_fn(np.full(rows.size, k_max), rows) <= target
+    for _ in range(40):  # log K to 2e-11 of its range: far below any meaning
         mid = 0.5 * (lo + hi)
-        good = err_fn(np.exp(mid)) <= target
+        good = err_fn(np.exp(mid), rows) <= target
         hi = np.where(good, mid, hi)
         lo = np.where(good, lo, mid)
-    K = np.exp(hi)
-    K = np.where(ok_one, 1.0, K)
-    return np.where(ok_max, K, np.inf)
+    out[rows] = np.where(ok_max, np.exp(hi), np.inf)
+    return out
 
 
 def assess_identifiability(
@@ -1259,8 +1266,9 @@ def assess_identifiability(
     sep = smap.separation
     if n > 1:
         r1 = _standstill_radius(smap.planar)
+        r1sq = np.square(r1)
         K_pos = _samples_for(
-            lambda K: np.mean(np.exp(-0.5 * K[:, None] * np.square(r1)), axis=1), alpha, M
+            lambda K, rows: np.mean(np.exp(-0.5 * K[:, None] * r1sq[rows]), axis=1), alpha, M
         )
         err_budget = float(np.mean(standstill_error(r1, standstill_budget)))
         # one electrical revolution of uniform motion from every start q: mean (censored) cost
@@ -1270,8 +1278,8 @@ def assess_identifiability(
         D = (csum[L : L + M] - csum[:M]) / L  # (M, n - 1)
         rev_sep = float(math.sqrt(max(float(np.min(D)), 0.0)))
 
-        def union(K: NDArray) -> NDArray:
-            return np.sum(ndtr(-0.5 * np.sqrt(K[:, None] * D)), axis=1)
+        def union(K: NDArray, rows: NDArray) -> NDArray:
+            return np.sum(ndtr(-0.5 * np.sqrt(K[:, None] * D[rows])), axis=1)
 
         K_rev = float(np.max(_samples_for(union, alpha, M)))
     else:  # one pole pair: nothing to identify
