@@ -48,8 +48,9 @@ Constants (:class:`PowerUpDecoder`, all float64 in the reference):
 - ``alpha``: accepted error probability; lock when the best posterior >= 1 - alpha;
 - ``cap``: censoring level of one sample's cost, ``2 ln 100`` (a clean sample exceeds it once
   in a hundred): Huber's censored probability-ratio test (Huber 1965, Ann. Math. Statist.
-  36(6)), the likelihood of Gaussian noise contaminated by rare outliers; no single sample (and
-  with n >= 3 and the default alpha no two samples) can lock a wrong pole pair.
+  36(6)), the likelihood of Gaussian noise contaminated by rare outliers; one sample then weighs
+  at most a likelihood ratio of 100 against any hypothesis, so with alpha < 1 % no single sample
+  (a glitch) can lock.
 
 State: ``m`` (integer turn count, 0), ``psi_prev`` (none yet), ``Lam[j] = 0`` for j = 0..n-1,
 ``locked = false``, ``best = 0``.
