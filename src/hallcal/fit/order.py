@@ -38,7 +38,7 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import scipy.stats
+import scipy.special
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal.fit.adequacy import (
@@ -310,7 +310,8 @@ def _coefficient_tests(
             wald[h] = float(v @ np.linalg.solve(cov[np.ix_(idx, idx)], v))
         except np.linalg.LinAlgError:
             wald[h] = math.inf
-    thr = float(scipy.stats.chi2.isf(significance / max(len(basis.harmonics), 1), 6))
+    # chi2.isf(q, 6) = 2 gammainccinv(3, q); scipy.special instead of scipy.stats (0.4 s import)
+    thr = 2.0 * float(scipy.special.gammainccinv(3.0, significance / max(len(basis.harmonics), 1)))
     return wald, amp, thr
 
 

@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
-import scipy.optimize
 from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
@@ -196,6 +195,8 @@ def estimate_gain(
     vals = [cost(g) for g in grid]
     i = int(np.argmin(vals))
     a, b = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+    import scipy.optimize  # only when a gain is estimated (0.15 s import)
+
     opt = scipy.optimize.minimize_scalar(
         cost, bounds=(a, b), method="bounded", options={"xatol": 1e-5}
     )
