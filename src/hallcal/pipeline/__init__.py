@@ -15,6 +15,7 @@ one short message per step.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
@@ -29,15 +30,41 @@ from hallcal.pipeline.calibration import (
     reconstruct,
     validate,
 )
-from hallcal.pipeline.plant import (
-    BLAIdentification,
-    GainCorrection,
-    PlantModel,
-    estimate_gain,
-    identify_bla,
-    plant_model,
-)
 from hallcal.pipeline.simulate import bench_config, simulate
+
+if TYPE_CHECKING:
+    from hallcal.pipeline.plant import (
+        BLAIdentification,
+        GainCorrection,
+        PlantModel,
+        estimate_gain,
+        identify_bla,
+        plant_model,
+    )
+
+#: Names of :mod:`~hallcal.pipeline.plant`, imported on first use: it loads the closed-loop
+#: simulation (numba), which reading an artifact and reconstructing angles do not need.
+_PLANT_NAMES = frozenset(
+    {
+        "BLAIdentification",
+        "GainCorrection",
+        "PlantModel",
+        "estimate_gain",
+        "identify_bla",
+        "plant_model",
+    }
+)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _PLANT_NAMES:
+        from hallcal.pipeline import plant
+
+        value = getattr(plant, name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'hallcal.pipeline' has no attribute {name!r}")
+
 
 __all__ = [
     "BLAIdentification",
