@@ -38,6 +38,7 @@ from __future__ import annotations
 import csv
 import io
 import re
+import warnings
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -84,12 +85,15 @@ class _Layout:
         file has no header.
     trailing_empty : bool
         The header ends with a delimiter (``d1,d2,d3,``); rows may too.
+    headerless : bool
+        No header line: the names come from the number of columns.
     """
 
     names: tuple[str, ...]
     delimiter: str | None
     body: int
-    trailing_empty: bool
+    trailing_empty: bool = False
+    headerless: bool = False
 
 
 def _looks_numeric(text: str) -> bool:
@@ -192,7 +196,7 @@ def _layout(lines: Iterable[str], source: str, *, headerless_ok: bool) -> _Layou
                 f"only with {known}: add a first line naming the columns (for example "
                 "'t d1 d2 d3')"
             )
-        return _Layout(names, delimiter, first_data[0], False)
+        return _Layout(names, delimiter, first_data[0], headerless=True)
 
     index, line = header
     if line.startswith("#"):
@@ -212,7 +216,7 @@ def _layout(lines: Iterable[str], source: str, *, headerless_ok: bool) -> _Layou
                 f"{source}: the first line must be a header of column names, "
                 f"found the number {name!r}"
             )
-    return _Layout(tuple(names), delimiter, index + 1, trailing_empty)
+    return _Layout(tuple(names), delimiter, index + 1, trailing_empty=trailing_empty)
 
 
 # ---- the careful reader ------------------------------------------------------------------------
@@ -265,9 +269,10 @@ def _read_careful(
         if layout.trailing_empty and len(record) == width + 1 and not record[-1].strip():
             record.pop()
         if len(record) != width:
+            reference = "the first row" if layout.headerless else "the header"
             raise HallcalInputError(
                 f"{source}: row {len(row_lines) + 1} (line {line_no}) has {len(record)} "
-                f"fields, the header has {width}"
+                f"fields, {reference} has {width}"
             )
         row_lines.append(line_no)
         for j, item in enumerate(record):
@@ -373,10 +378,12 @@ def _pyarrow_csv(body: memoryview, names: list[str], layout: _Layout) -> dict[st
 
 def _loadtxt(body: memoryview, names: list[str]) -> dict[str, np.ndarray]:
     try:
-        data = np.loadtxt(
-            io.StringIO(bytes(body).decode("utf-8")), dtype=np.float64, comments=None, ndmin=2
-        )
-    except ValueError:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # "input contained no data" among others
+            data = np.loadtxt(
+                io.StringIO(bytes(body).decode("utf-8")), dtype=np.float64, comments=None, ndmin=2
+            )
+    except (ValueError, UserWarning):
         raise _NotRegular from None
     if data.shape[1] != len(names):
         raise _NotRegular
