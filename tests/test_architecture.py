@@ -229,6 +229,7 @@ def test_calibrate_loads_only_what_it_uses(paper_like_run):
         "pyarrow.csv",
     ]
     unused = ["matplotlib", "h5py", "scipy.io", "scipy.signal", "scipy.stats", "scipy.optimize"]
+    unused += ["scipy.special"]
     unused += ["pyarrow.parquet", "hallcal.fit.kernel", "hallcal.sim.bench", "hallcal.output"]
     unused += ["rich"]
     assert _loaded(modules, unused) == []
