@@ -372,7 +372,10 @@ def _pyarrow_csv(body: memoryview, names: list[str], layout: _Layout) -> dict[st
         column = table.column(name)
         if column.null_count:
             raise _NotRegular  # a missing value: the careful reader gives its row and line
-        cols[name] = column.to_numpy()
+        # NumPy's own copy, so that the parser's buffers can go back to the system now
+        cols[name] = np.array(column.to_numpy(), dtype=np.float64)
+    del table
+    pa.default_memory_pool().release_unused()
     return cols
 
 
