@@ -11,19 +11,21 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
 from hallcal.fit.sem import least_squares_start
-from hallcal.identify import bla as _bla
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sim.loop import ClosedLoop, simulate_loop
 from hallcal.sim.lti import ContinuousTF
+
+if TYPE_CHECKING:
+    from hallcal.identify import bla as _bla
 
 __all__ = [
     "BLAIdentification",
@@ -90,6 +92,8 @@ def identify_bla(dataset: Dataset, setup: Setup, *, progress: Progress = None) -
             f"{dataset.source}: a BLA experiment needs a [bla] table in the setup", key="bla"
         )
     dataset.require("r", "u", "y", "realization")
+    from hallcal.identify import bla as _bla  # loaded only when a BLA is identified
+
     _say(progress, "nonparametric BLA (indirect closed-loop method)")
     npb = _bla.nonparametric_bla(
         dataset["r"],

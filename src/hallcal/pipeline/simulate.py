@@ -7,7 +7,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from hallcal.errors import HallcalInputError
-from hallcal.identify.excitation import multisine_experiment
 from hallcal.io.setup import Setup
 
 if TYPE_CHECKING:
@@ -98,6 +97,8 @@ def simulate(
             raise HallcalInputError(
                 "setup: the multisine experiment needs a [bla] table", source="setup", key="bla"
             )
+        from hallcal.identify.excitation import multisine_experiment
+
         exp = multisine_experiment(
             spec.period_samples,
             setup.sample_time,
