@@ -118,6 +118,10 @@ def python_closed_loop(r, loop, theta, harmonics, pole_pairs):
 # ---- helpers -----------------------------------------------------------------------------------
 
 
+#: The commands run as a user's would: with Python's bytecode cache (this machine's sessions set
+#: PYTHONDONTWRITEBYTECODE, which makes every start compile hallcal's modules anew).
+CHILD_ENV = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+
 #: Runs the command line like the ``hallcal`` script and, at exit, writes the process's peak
 #: resident memory (VmHWM of /proc/self/status) to the file named by HALLCAL_BENCH_PEAK. The
 #: rusage of a child is no good here: Linux counts in it the parent's memory at fork time.
@@ -140,7 +144,7 @@ def run_measured(args: list[str], cwd: Path) -> tuple[float, float, float]:
     """Run ``hallcal ARGS`` in a fresh process: wall time [s], CPU time (user + sys) [s] and peak
     resident memory [MB] of that process."""
     peak_file = cwd / ".peak"
-    env = {**os.environ, "HALLCAL_BENCH_PEAK": str(peak_file)}
+    env = {**CHILD_ENV, "HALLCAL_BENCH_PEAK": str(peak_file)}
     t0 = time.perf_counter()
     proc = subprocess.Popen(
         [sys.executable, "-c", _RUN_AND_REPORT_PEAK, *args],
@@ -162,7 +166,7 @@ def run_measured(args: list[str], cwd: Path) -> tuple[float, float, float]:
 def run_wall(cmd: list[str], cwd: Path) -> float:
     """Wall time [s] of a command."""
     t0 = time.perf_counter()
-    subprocess.run(cmd, cwd=cwd, check=True, stdout=subprocess.DEVNULL)
+    subprocess.run(cmd, cwd=cwd, env=CHILD_ENV, check=True, stdout=subprocess.DEVNULL)
     return time.perf_counter() - t0
 
 
@@ -185,8 +189,15 @@ STAGES = r"""
 import json, sys, time
 t0 = time.perf_counter()
 marks = {}
+memory = {}
+def status(key):
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(key):
+                return int(line.split()[1]) / 1024.0
 def mark(name, t):
     marks[name] = marks.get(name, 0.0) + time.perf_counter() - t
+    memory[name] = (status("VmRSS:"), status("VmHWM:"))
 t = time.perf_counter()
 from hallcal.cli import main
 import hallcal.api, hallcal.pipeline.closed_loop as cl, hallcal.fit.sem as sem
@@ -231,7 +242,8 @@ try:
 except SystemExit:
     pass
 marks["total in the process"] = time.perf_counter() - t0
-print(json.dumps(marks), file=sys.stderr)
+memory["total in the process"] = (status("VmRSS:"), status("VmHWM:"))
+print(json.dumps([marks, memory]), file=sys.stderr)
 """
 
 
@@ -318,14 +330,24 @@ def main() -> None:
             "cal.json",
         ],
         cwd=work,
+        env=CHILD_ENV,
         capture_output=True,
         text=True,
         check=True,
     )
-    marks = json.loads(stages.stderr.strip().splitlines()[-1])
-    print("  where the time goes (one more run, wall, nested stages overlap):")
+    marks, memory = json.loads(stages.stderr.strip().splitlines()[-1])
+    print(
+        "  where the time and memory go (one more run; wall time of each stage, nested stages "
+        "overlap; resident memory after the stage and the peak so far):"
+    )
     for name, seconds in marks.items():
-        print(f"    {seconds:7.3f} s  {name}")
+        now, peak = memory[name]
+        print(f"    {seconds:7.3f} s  {now:5.0f} MB  peak {peak:5.0f} MB  {name}")
+    jacobian_mb = run.n_samples * 3 * 3 * basis.size * 8 / 2**20
+    print(
+        f"  of the peak, the SEM's dense Jacobian alone: {run.n_samples} x 3 x {3 * basis.size} "
+        f"float64 = {jacobian_mb:.0f} MB"
+    )
 
     # start-up
     print()
