@@ -9,12 +9,12 @@ data); this module takes the dataset and the setup, checks the options and retur
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 
 import numpy as np
 
 from hallcal.errors import HallcalInputError
 from hallcal.fit.constant_speed import (
+    ConstantSpeedStatus,
     calibrate_constant_speed,
     default_harmonics,
     find_constant_speed,
@@ -23,11 +23,10 @@ from hallcal.fit.constant_speed import (
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
+from hallcal.pipeline.progress import Progress
 from hallcal.sensor.flux import FourierBasis
 
 __all__ = ["calibrate_open_loop"]
-
-Progress = Callable[[str], None] | None
 
 
 def _segment(dataset: Dataset, setup: Setup) -> tuple[int, int]:
@@ -117,7 +116,7 @@ def calibrate_open_loop(
         raise HallcalInputError(f"{dataset.source}: {exc}") from None
     timings = {"constant_speed": time.perf_counter() - t0}
     messages.extend(f"warning: {w}" for w in res.warnings)
-    if res.status == "not-converged":
+    if res.status is ConstantSpeedStatus.NOT_CONVERGED:
         messages.append("warning: the speed estimate did not converge")
     refusal = None
     if not res.lut.bijective:
@@ -126,7 +125,7 @@ def calibrate_open_loop(
             f"the table is not bijective (min slope {res.lut.min_slope:.3g}): the identified "
             "sensor map folds, f_star is unavailable"
         )
-    elif res.status != "ok" or messages:
+    elif not res.status.success or messages:
         status = CalibrationStatus.WARNING
     else:
         status = CalibrationStatus.OK
