@@ -29,8 +29,9 @@ Both readers find the layout (header, delimiter, names) with the same code, :fun
   reader declines and writes the precise one-line error messages (row and line of a
   non-numeric or missing value, a ragged row, ...).
 
-:func:`read_text_table` tries the first and falls back to the second; ``tests/test_io.py``
-checks that both give the same columns or the same message on a collection of files.
+:func:`read_text_table` tries the first and falls back to the second;
+``tests/test_text_tables.py`` checks that both give the same columns or the same message on a
+collection of files, written and generated.
 """
 
 from __future__ import annotations
