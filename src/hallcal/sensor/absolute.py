@@ -106,7 +106,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.special import ndtr
 
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT
@@ -159,6 +158,19 @@ def null_vector(projection: ArrayLike) -> NDArray[np.float64]:
     if not norm > 0.0:
         raise ValueError("the projection has rank < 2")
     return nv / norm
+
+
+def _normal_tail(x: NDArray) -> NDArray:
+    """Phi(-x) = erfc(x / sqrt 2) / 2, vectorized without SciPy (keeps ``calibrate`` and
+    ``reconstruct`` light): the Chebyshev fit ``erfcc`` of Press et al., Numerical Recipes,
+    2nd ed., sec. 6.2, fractional error below 1.2e-7 everywhere."""
+    z = np.abs(np.asarray(x, dtype=np.float64)) / math.sqrt(2.0)
+    t = 1.0 / (1.0 + 0.5 * z)
+    poly = -1.13520398 + t * (1.48851587 + t * (-0.82215223 + t * 0.17087277))
+    poly = 0.09678418 + t * (-0.18628806 + t * (0.27886807 + t * poly))
+    poly = -1.26551223 + t * (1.00002368 + t * (0.37409196 + t * poly))
+    erfc = t * np.exp(-z * z + poly)
+    return 0.5 * np.where(np.asarray(x) >= 0.0, erfc, 2.0 - erfc)
 
 
 def _wrap(x: NDArray) -> NDArray:
@@ -1280,7 +1292,7 @@ def assess_identifiability(
         rev_sep = float(math.sqrt(max(float(np.min(D)), 0.0)))
 
         def union(K: NDArray, rows: NDArray) -> NDArray:
-            return np.sum(ndtr(-0.5 * np.sqrt(K[:, None] * D[rows])), axis=1)
+            return np.sum(_normal_tail(0.5 * np.sqrt(K[:, None] * D[rows])), axis=1)
 
         K_rev = float(np.max(_samples_for(union, alpha, M)))
     else:  # one pole pair: nothing to identify
