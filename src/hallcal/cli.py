@@ -17,8 +17,6 @@ from pathlib import Path
 from typing import Any
 
 import click
-from rich.console import Console
-from rich.text import Text
 
 from hallcal.errors import CalibrationRefused, HallcalError, HallcalInputError
 from hallcal.limits import MAX_ADC_SCALE, MIN_ADC_SCALE
@@ -26,9 +24,24 @@ from hallcal.limits import MAX_ADC_SCALE, MIN_ADC_SCALE
 EXIT_INPUT = HallcalInputError.exit_status
 EXIT_REFUSED = CalibrationRefused.exit_status
 
-# markup=False: paths, column names and messages are printed as they are ("[plant]", "x[/]")
-_err = Console(stderr=True, highlight=False, soft_wrap=True, markup=False)
-_out = Console(highlight=False, soft_wrap=True, markup=False)
+
+class _Stream:
+    """Plain lines on stdout or stderr through :func:`click.echo`.
+
+    Progress and results are one line each, so rich (40 ms to import, and it would read
+    ``[plant]`` in a message as markup) is not used here; styles are dropped when the stream
+    is not a terminal.
+    """
+
+    def __init__(self, *, err: bool) -> None:
+        self.err = err
+
+    def print(self, message: object = "") -> None:
+        click.echo(str(message), err=self.err)
+
+
+_err = _Stream(err=True)
+_out = _Stream(err=False)
 
 #: Seeds of the random generators: non-negative and within 64 bits with room for the demo's
 #: validation run (seed + 1000), so that they fit the artifact's JSON.
@@ -67,8 +80,8 @@ class _Progress:
 
     def __call__(self, message: str) -> None:
         if not self.quiet:
-            elapsed = f"{time.perf_counter() - self.t0:6.1f} s"
-            _err.print(Text.assemble((elapsed, "dim"), f"  {message}"))
+            elapsed = click.style(f"{time.perf_counter() - self.t0:6.1f} s", dim=True)
+            _err.print(f"{elapsed}  {message}")
 
 
 _setup_path: list[str | None] = [None]  # the setup file of this command, for error messages
@@ -310,6 +323,8 @@ def _print_calibration(cal) -> None:
     if cal.adequacy is not None:
         _out.print(f"model adequacy: {cal.adequacy.verdict}")
     _out.print(f"lookup table: {cal.lut.points} points, bijective: {cal.lut.bijective}")
+    if cal.identifiability is not None:
+        _out.print(cal.identifiability.message)
     _print_validation(cal.validation)
 
 
@@ -326,18 +341,42 @@ def _print_validation(v) -> None:
 @click.argument("artifact", type=click.Path(dir_okay=False))
 @click.argument("data", type=click.Path(dir_okay=False))
 @click.option("--out", required=True, type=click.Path(dir_okay=False))
+@click.option(
+    "--absolute",
+    is_flag=True,
+    help="The recording starts at power-up anywhere (no homing): identify the pole pair from "
+    "the magnets' signatures; angles in the calibration's frame.",
+)
 @_handle_errors
-def reconstruct(artifact: str, data: str, out: str) -> None:
+def reconstruct(artifact: str, data: str, out: str, absolute: bool) -> None:
     """Apply a calibration to a recording: columns y_init and y_star."""
     from hallcal.api import load
     from hallcal.io import write_dataset
 
     cal = load(artifact)
     _output_file(out, dataset=True)
-    rec = cal.reconstruct(data)
+    rec = cal.reconstruct(data, absolute=absolute)
     write_dataset(out, rec.columns)
     _out.print(f"wrote {out} ({len(rec)} samples)")
+    if rec.identification is not None:
+        _print_identification(rec.identification, cal.pole_pairs)
     _print_validation(rec.validation)
+
+
+def _print_identification(ident, pole_pairs: int) -> None:
+    """One line: which pole pair the recording started in, and how certain that is."""
+    where = f"pole pair offset {ident.offset} of {pole_pairs}"
+    if ident.status.success:
+        _out.print(
+            f"{where}: identified after {ident.lock_sample + 1} samples "
+            f"(posterior {ident.posterior:.6f}, margin {ident.margin:.1f} sigma)"
+        )
+    else:
+        _err.print(
+            f"warning: {where} is the most likely one but not certain after all "
+            f"{ident.samples} samples (posterior {ident.posterior:.3f}); the rotor stood at a "
+            "weak position: move it, or record longer"
+        )
 
 
 @cli.command("export-c")

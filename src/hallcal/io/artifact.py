@@ -24,7 +24,7 @@ from typing import Any, NoReturn
 import numpy as np
 from numpy.typing import NDArray
 
-from hallcal._version import __version__
+from hallcal import _version
 from hallcal.errors import HallcalInputError
 from hallcal.io.files import _check_parsed, _dump_json, atomic_write, read_json, to_jsonable
 from hallcal.io.setup import Setup, _is_int, _is_number, _parse_setup, _show
@@ -544,7 +544,7 @@ def write_artifact(path: str | os.PathLike[str], artifact: Mapping[str, Any]) ->
     p = Path(path)
     data = dict(artifact)
     data.setdefault("format", ARTIFACT_FORMAT)
-    data.setdefault("hallcal_version", __version__)
+    data.setdefault("hallcal_version", _version.__version__)
     ordered = {"format": data.pop("format"), **data}
     text = _dump_json(p, ordered)
     validate_artifact(json.loads(text), str(p))

@@ -15,14 +15,13 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
 from hallcal.fit.adequacy import AdequacyReport, assess
-from hallcal.fit.kernel import KernelSEMResult, solve_kernel_sem
 from hallcal.fit.order import HarmonicSelection, select_harmonics
 from hallcal.fit.sem import SEMResult, solve_sem
 from hallcal.io.dataset import Dataset
@@ -30,11 +29,15 @@ from hallcal.io.setup import Setup
 from hallcal.pipeline.boundary import numeric_errors
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
 from hallcal.pipeline.plant import BLAIdentification, PlantModel, closed_loop, plant_model
+from hallcal.pipeline.powerup import power_up_analysis
 from hallcal.pipeline.progress import Progress, say
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.loop import ClosedLoop
+
+if TYPE_CHECKING:
+    from hallcal.fit.kernel import KernelSEMResult
 
 __all__ = ["calibrate_closed_loop"]
 
@@ -103,6 +106,8 @@ class _ModelFit:
 
 
 def _fit_kernel(loop: ClosedLoop, s: _Signals, setup: Setup, *, progress: Progress) -> _ModelFit:
+    from hallcal.fit.kernel import solve_kernel_sem  # loaded only for this basis
+
     say(progress, f"SEM with the periodic kernel basis (m = {setup.model.points})")
     kres = solve_kernel_sem(
         loop,
@@ -286,6 +291,10 @@ def calibrate_closed_loop(
             offset=loop.offset,
         )
     status, refusal, leading = _verdict(lut, adequacy)
+    say(progress, "power-up identifiability of the pole pair")
+    t0 = time.perf_counter()
+    identifiability = power_up_analysis(fit.flux, lut, s.d)
+    timings["identifiability"] = time.perf_counter() - t0
     validation = None
     if "y_ref" in dataset and lut.bijective:
         validation = validate(lut, dataset, noise_floor=adequacy.noise_floor)
@@ -309,4 +318,5 @@ def calibrate_closed_loop(
         model_info=fit.model_info,
         selection=fit.selection,
         kernel=fit.kernel,
+        identifiability=identifiability,
     )

@@ -2,14 +2,20 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from hallcal.errors import HallcalInputError
-from hallcal.identify.excitation import multisine_experiment
 from hallcal.io.setup import Setup
 from hallcal.limits import MAX_SAMPLES
 from hallcal.pipeline.boundary import numeric_errors
-from hallcal.sim.bench import PAPER_CONTROLLER, BenchConfig, BenchRun, simulate_run
+
+if TYPE_CHECKING:
+    from hallcal.sim.bench import BenchConfig, BenchRun
+
+# The bench (and scipy.signal, which it uses) is imported when a run is simulated, so that
+# importing the pipeline for a calibration does not pay for it.
 
 __all__ = ["bench_config", "simulate"]
 
@@ -22,6 +28,8 @@ def bench_config(setup: Setup) -> BenchConfig:
     HallcalInputError
         When the setup has no ``[plant]`` (the bench needs the true G(s)).
     """
+    from hallcal.sim.bench import PAPER_CONTROLLER, BenchConfig
+
     b = setup.bench
     if setup.plant is None:
         raise HallcalInputError(
@@ -80,6 +88,8 @@ def simulate(
         No ``[plant]``, a ramp of fewer than 2 or more than :data:`~hallcal.limits.MAX_SAMPLES`
         samples, or a plant and controller the loop cannot use (named).
     """
+    from hallcal.sim.bench import simulate_run
+
     with numeric_errors("setup", "plant"):
         cfg = bench_config(setup)
     kind = experiment or setup.bench.experiment
@@ -105,6 +115,8 @@ def simulate(
             raise HallcalInputError(
                 "setup: the multisine experiment needs a [bla] table", source="setup", key="bla"
             )
+        from hallcal.identify.excitation import multisine_experiment
+
         with numeric_errors("setup", "bla"):
             exp = multisine_experiment(
                 spec.period_samples,
