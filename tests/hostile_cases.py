@@ -1748,6 +1748,32 @@ def option_cases() -> list[Case]:
         ),
         (OK,),
     )
+    # reconstruct --absolute reads the artifact's power-up entry
+    c(
+        "reconstruct-absolute",
+        with_inputs(["reconstruct", "a.json", "cal.npz", "--absolute", "--out", "x.csv"]),
+        (OK, REFUSED),
+    )
+    for label, entry, msg in (
+        ("grid-1e9", {"grid": 10**9}, "identifiability.grid"),
+        ("list", [1, 2], "identifiability"),
+        ("empty", {}, "identifiability"),
+        ("strings", {"status": 5, "reason": [], "message": {}}, "identifiability"),
+        ("pole-pairs", {"pole_pairs": 12}, "identifiability.pole_pairs"),
+        ("budget-1e12", {"standstill_budget": 10**12}, "standstill_budget"),
+    ):
+
+        def build_absolute(folder: Path, base: Base, entry=entry) -> list[str]:
+            art = copy.deepcopy(base.artifact)
+            if isinstance(entry, dict) and entry and isinstance(art.get("identifiability"), dict):
+                art["identifiability"].update(entry)
+            else:
+                art["identifiability"] = entry
+            (folder / "a.json").write_text(json.dumps(art))
+            _link(base, "cal.npz", folder)
+            return ["reconstruct", "a.json", "cal.npz", "--absolute", "--out", "x.csv"]
+
+        c(f"reconstruct-absolute-identifiability-{label}", build_absolute, msg=msg)
     # bla
     c(
         "bla-no-bla-table",

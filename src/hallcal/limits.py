@@ -30,6 +30,7 @@ __all__ = [
     "MAX_KERNEL_POINTS",
     "MAX_LUT_POINTS",
     "MAX_POLE_PAIRS",
+    "MAX_POWERUP_GRID",
     "MAX_PROJECTION_CONDITION",
     "MAX_REALIZATIONS",
     "MAX_SAMPLES",
@@ -100,6 +101,12 @@ MAX_REALIZATIONS = 1000
 #: Electrical harmonics of the virtual bench's flux (``[bench] electrical_harmonics``): trapezoidal
 #: or saturated flux has odd harmonics 3, 5, 7, ...; 64 pairs describe any realistic shape.
 MAX_BENCH_ELECTRICAL_HARMONICS = 64
+
+#: Grid points per electrical period of the power-up decoder (an artifact's
+#: ``identifiability.grid``). The calibration chooses among 32 .. 1024 (hallcal.sensor.absolute
+#: GRID_CHOICES); the decoder's table holds pole_pairs x grid points, so 4096 (4x the largest
+#: choice) bounds it at 1 M entries for 256 pole pairs.
+MAX_POWERUP_GRID = 4096
 
 # ---- Datasets ------------------------------------------------------------------------------
 

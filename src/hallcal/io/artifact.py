@@ -37,7 +37,9 @@ from hallcal.limits import (
     MAX_KERNEL_POINTS,
     MAX_LUT_POINTS,
     MAX_POLE_PAIRS,
+    MAX_POWERUP_GRID,
     MAX_PROJECTION_CONDITION,
+    MAX_SAMPLES,
     MAX_TEXT_FIELD,
     MAX_TF_ORDER,
     MIN_LUT_POINTS,
@@ -383,18 +385,40 @@ def _check_diagnostics(c: _Checker, diag: Mapping[str, Any]) -> None:
 
 
 def _check_loop(c: _Checker, key: str, num: Any, den: Any, delay: float, setup: Setup) -> None:
-    """The plant and the setup's controller make a loop that can be simulated (report)."""
-    from hallcal.sim.loop import ClosedLoop
-    from hallcal.sim.lti import ContinuousTF
+    """The plant can close a loop through f_init: no direct feedthrough without delay.
 
-    assert setup.controller is not None
-    try:
-        plant = ContinuousTF(tuple(num), tuple(den), float(delay))
-        ClosedLoop.from_transfer_functions(
-            plant, setup.controller, setup.sample_time, setup.pole_pairs
+    The exact ZOH of G(s) (hallcal.sim.lti.c2d_zoh) keeps the feedthrough D = num[0] / den[0]
+    of a biproper G only when the delay is below 1e-12 samples; then y[k] would depend on u[k],
+    which depends on y[k], and the loop cannot be simulated (the report re-simulates it). Checked
+    here in plain Python, so that reading an artifact does not load the simulator.
+    """
+    trimmed = list(num)
+    while len(trimmed) > 1 and trimmed[0] == 0:
+        trimmed = trimmed[1:]
+    if len(trimmed) == len(den) and trimmed[0] != 0 and delay < 1e-12 * setup.sample_time:
+        c.bad(
+            f"key '{key}' has a direct feedthrough (as many zeros as poles and no delay): the "
+            "loop through f_init would be algebraic"
         )
-    except (ValueError, np.linalg.LinAlgError) as exc:
-        c.bad(f"key '{key}' and 'setup.controller' do not make a loop: {exc}")
+
+
+def _check_identifiability(c: _Checker, entry: Any, pole_pairs: int) -> None:
+    """The sizes in the power-up entry (its meaning is hallcal.sensor.absolute's to check)."""
+    entry = c.mapping(entry, "identifiability")
+    if "pole_pairs" in entry and entry["pole_pairs"] != pole_pairs:
+        c.bad(
+            f"key 'identifiability.pole_pairs' ({_show(entry['pole_pairs'])}) differs from "
+            f"'pole_pairs' ({pole_pairs})"
+        )
+    grid = entry.get("grid")
+    if grid is not None and not (_is_int(grid) and 4 <= grid <= MAX_POWERUP_GRID):
+        c.bad(f"key 'identifiability.grid' must be an integer in 4 .. {MAX_POWERUP_GRID}")
+    for key in ("standstill_budget", "motion_budget"):
+        value = entry.get(key)
+        if value is not None and not (_is_int(value) and 0 <= value <= MAX_SAMPLES):
+            c.bad(f"key 'identifiability.{key}' must be an integer in 0 .. {MAX_SAMPLES}")
+    if "message" in entry:
+        c.text(entry["message"], "identifiability.message")
 
 
 def _check_plant(c: _Checker, plant: Mapping[str, Any], setup: Setup) -> None:
@@ -509,6 +533,8 @@ def validate_artifact(artifact: Mapping[str, Any], source: str = "<artifact>") -
         _check_plant(c, plant, setup)
     if "created" in data:
         c.text(data["created"], "created")
+    if data.get("identifiability") is not None:
+        _check_identifiability(c, data["identifiability"], int(n))
     return ArtifactData(
         format=data["format"],
         version=version,

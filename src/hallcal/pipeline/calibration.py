@@ -407,7 +407,13 @@ def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Cal
             source=art.source,
             key="diagnostics.status",
         ) from None
-    identifiability = identifiability_from_artifact(art.data)
+    try:
+        identifiability = identifiability_from_artifact(art.data)
+    except HallcalInputError as exc:  # it says "artifact:"; name the file
+        text = str(exc).removeprefix("artifact:").strip()
+        raise HallcalInputError(
+            f"{art.source}: {text}", source=art.source, key=exc.key or "identifiability"
+        ) from None
     plant = None
     plant_source = None
     if art.plant is not None:
