@@ -301,23 +301,36 @@ class _FloatNumbers:
 
 
 def _float_numbers(d: FirmwareDesign) -> _FloatNumbers:
+    """Constants of the float variant and its stated bounds.
+
+    The atan2 may use a tenth of the budget (electrical: times n_m): the fewest Newton steps
+    and polynomial terms within it (at least 1 and 3), so that the hot path does no more work
+    than the accuracy needs.
+    """
     pl = d.plausibility
     n = d.pole_pairs
-    x_lo = math.cos(math.pi / 8.0) * pl.radius_lo * (1.0 - 1e-6)
-    x_hi = pl.radius_hi * (1.0 + 1e-6)
+    # the reciprocal is of x = 2 max(|a|, |b|) (after the rotation: 2 r cos(th), |th| <= pi/8)
+    x_lo = 2.0 * math.cos(math.pi / 8.0) * pl.radius_lo * (1.0 - 1e-6)
+    x_hi = 2.0 * pl.radius_hi * (1.0 + 1e-6)
     c0, c1, eps = _reciprocal_seed(x_lo, x_hi)
-    newton, e = 0, eps
-    while e > 2.0**-26 and newton < 5:
+    target = min(0.25 * d.budget * n, 2e-5)
+    # reciprocal: relative error e of t turns the angle by at most e t / (1 + t^2) <= 0.354 e
+    newton, e = 1, eps * eps
+    while 0.354 * e > 0.5 * target and newton < 5:
         e, newton = e * e, newton + 1
-    coef, poly_err = _atan_poly(5)
-    # atan2 [rad, electrical]: polynomial; reciprocal (relative error of t, times the largest
-    # t / (1 + t^2) = 0.354); single-precision rounding: about 12 roundings of t and the Horner
-    # sum (relative to tan(pi/8)) and 3 of the octant assembly on values up to one turn.
+    terms = 3
+    coef, poly_err = _atan_poly(terms)
+    while poly_err > 0.25 * target and terms < 6:
+        terms += 1
+        coef, poly_err = _atan_poly(terms)
+    # atan2 [rad, electrical]: polynomial; reciprocal; single-precision rounding: about 12
+    # roundings of t and the Horner sum (relative to tan(pi/8)) and 2 of the octant assembly
+    # on values up to one turn.
     atan_bound = (
         poly_err
         + 0.354 * (e + 4.0 * _EPS_F32)
         + 12.0 * _EPS_F32 * _TAN_PI_8
-        + 3.0 * _EPS_F32 * TWO_PI
+        + 2.0 * _EPS_F32 * TWO_PI
     )
     # alpha/beta: the float offsets and about 4 roundings of the products and sums, relative
     # to the smallest radius; an error delta of (a, b) turns the angle by delta / r.
@@ -329,9 +342,10 @@ def _float_numbers(d: FirmwareDesign) -> _FloatNumbers:
     )
     e_el = atan_bound + math.sqrt(2.0) * ab_err / pl.radius_lo
     slope = _table_slope(d)
-    # within the revolution: (turn + psi) and its scaling to the table position and to rad,
-    # the output sum and its normalization: 6 roundings of numbers up to 2 pi.
-    e_x = e_el / n + 6.0 * _EPS_F32 * TWO_PI
+    # within the revolution: turn + psi and the table position (2 roundings of numbers up to
+    # M), the output sum and its scaling (3), the reading's conversion to rad (1 rounding and
+    # the single-precision 2 pi, 1.7e-7 rad per turn).
+    e_x = e_el / n + 5.0 * _EPS_F32 * TWO_PI + 1.8e-7
     eta_round = 4.0 * _EPS_F32 * 32768.0 * d.table.lsb_rad
     bound = d.table.error + (1.0 + slope) * e_x + eta_round
     return _FloatNumbers(
@@ -353,7 +367,7 @@ def _table_slope(d: FirmwareDesign) -> float:
     v = t.values.astype(np.float64)
     c = t.curvature.astype(np.float64) * 2.0**t.curvature_shift
     # derivative of T_i (1-f) + T_(i+1) f + c f (1-f) in f is dT + c (1 - 2f): at most |dT| + |c|
-    per_f = np.abs(np.diff(v)) + np.abs(c)
+    per_f = np.abs(np.diff(np.append(v, v[0]))) + np.abs(c)
     return float(np.max(per_f)) * t.lsb_rad * t.points / TWO_PI
 
 
@@ -618,15 +632,17 @@ typedef struct {
 typedef struct {
     int32_t rev;       /* f_init: whole revolutions of its own (uncorrected) unwrap state */
     int32_t turn;      /* f_init: electrical turn within the revolution, 0 .. n_m - 1 */
-    float psi;         /* f_init: electrical angle within the turn, [0, 1) turns */
-    int32_t out_rev;   /* last accepted y_star: whole revolutions */
-    float out_angle;   /* last accepted y_star within the revolution [rad] */
+    uint32_t phase;    /* f_init: electrical angle within the turn, Q0.32 turns */
+    uint32_t limit;    /* step limit for the next sample, Q0.32 electrical turns */
     uint32_t held;     /* rejected samples in a row */
-    uint32_t rejected; /* rejected samples since init */
+    volatile uint32_t rejected; /* rejected samples since init */
     uint32_t fault;    /* 1 once ${PFX}_FAULT_AFTER samples in a row were rejected */
-    uint32_t acquired; /* 1 after the first accepted sample (no step limit before it) */
-    volatile uint32_t seq;             /* readings published */
-    volatile ${pfx}_reading pub[2];   /* the last reading is pub[seq & 1] */
+    volatile uint32_t seq; /* readings published; the last one is pub[seq & 1] */
+    volatile struct {
+        int32_t revolutions;
+        float turns; /* y_star within the revolution [turns] */
+        uint32_t flags;
+    } pub[2];
 } ${pfx}_state;
 
 /* Start at y = 2 pi revolutions + angle (angle in [0, 2 pi) rad, else 0); 0, 0 by convention. */
@@ -658,14 +674,40 @@ _FLOAT_C = string.Template(
 
 #include "${header}"
 
-/* eta table, eq. (f_final): value T[i] (int16) at mechanical angle 2 pi i / ${m} and curvature
- * C[i] (int8) of interval i: eta = (T[i] (1 - f) + T[i+1] f + ${ck} C[i] f (1 - f)) x ${lsb_rad} rad. */
-static const int16_t hc_t[${m1}] = {
-${table}
+/* The sign and range checks read the IEEE 754 binary32 pattern of a float through a union
+ * (MISRA C:2012 Rule 19.2, advisory, deviated here: one definition, below). */
+typedef char hc_float_is_binary32[(sizeof(float) == sizeof(uint32_t)) ? 1 : -1];
+
+${table_decl}
+
+/* atan2 from the first-octant angle th: base +- th (Q0.32 turns), by octant (a < 0, b < 0,
+ * |b| > |a|) and by the 45-degree rotation (which adds 1/8 turn to th); th is subtracted in the
+ * octants of bit mask 0x96. */
+static const uint32_t hc_base[16] = {
+    0x00000000u, 0x20000000u, 0x40000000u, 0x20000000u, 0x00000000u, 0xE0000000u, 0xC0000000u,
+    0xE0000000u, 0x80000000u, 0x60000000u, 0x40000000u, 0x60000000u, 0x80000000u, 0xA0000000u,
+    0xC0000000u, 0xA0000000u,
 };
-static const int8_t hc_c[${m}] = {
-${curv}
-};
+
+static uint32_t hc_bits(float f)
+{
+    union {
+        float f;
+        uint32_t u;
+    } c;
+    c.f = f;
+    return c.u;
+}
+
+static float hc_float(uint32_t u)
+{
+    union {
+        uint32_t u;
+        float f;
+    } c;
+    c.u = u;
+    return c.f;
+}
 
 static int32_t hc_s32(uint32_t u) /* two's complement without implementation-defined casts */
 {
@@ -678,191 +720,160 @@ static int32_t hc_s32(uint32_t u) /* two's complement without implementation-def
     return v;
 }
 
-/* Electrical angle atan2(b, a) in turns, [0, 1). Octant reduction, a rotation by -45 degrees
+/* Electrical angle atan2(b, a) in Q0.32 turns. Octant reduction, a rotation by -45 degrees
  * above 22.5 degrees, 1/x from a linear seed valid for x in [${x_lo}, ${x_hi}] and ${newton} Newton
- * steps, and an odd minimax polynomial of atan on [-tan(pi/8), tan(pi/8)]. For vectors in the
- * radius window: |error| <= ${atan_bound} rad. */
-static float hc_angle(float a, float b)
+ * step(s), an odd minimax polynomial of atan on [-tan(pi/8), tan(pi/8)]. For vectors in the
+ * radius window: |error| <= ${atan_bound} rad (electrical). */
+static uint32_t hc_angle(float a, float b)
 {
-    const float ax = (a < 0.0f) ? -a : a;
-    const float ay = (b < 0.0f) ? -b : b;
-    float x = ax;
-    float y = ay;
-    float q = 0.0f;
+    const uint32_t ua = hc_bits(a);
+    const uint32_t ub = hc_bits(b);
+    const float ax = hc_float(ua & 0x7FFFFFFFu);
+    const float ay = hc_float(ub & 0x7FFFFFFFu);
+    const float dxy = ax - ay;
+    const float sum = ax + ay;
+    const float adxy = hc_float(hc_bits(dxy) & 0x7FFFFFFFu);
+    /* octant: a < 0, b < 0, |b| > |a| (sign bits) */
+    const uint32_t o = ((ua >> 31) << 2) | ((ub >> 31) << 1) | (hc_bits(dxy) >> 31);
+    uint32_t k = o << 1;
+    float x = sum + adxy; /* 2 max(|a|, |b|) */
+    float y = sum - adxy; /* 2 min(|a|, |b|) */
     float rc;
     float t;
     float t2;
-    float p;
-    if (ay > ax) {
-        x = ay;
-        y = ax;
-    }
+    uint32_t th;
     if (y > (${tan8} * x)) {
         const float xr = (x + y) * ${rsqrt2};
         y = (y - x) * ${rsqrt2};
         x = xr;
-        q = 0.125f;
+        k = k | 1u;
     }
     rc = ${c0} - (${c1} * x);
 ${newton_steps}
     t = y * rc;
     t2 = t * t;
-    p = q + (t * (${k1} + (t2 * (${k3} + (t2 * (${k5} + (t2 * (${k7} + (t2 * ${k9})))))))));
-    if (ay > ax) {
-        p = 0.25f - p;
-    }
-    if (a < 0.0f) {
-        p = 0.5f - p;
-    }
-    if (b < 0.0f) {
-        p = 1.0f - p;
-    }
-    if (p >= 1.0f) {
-        p = p - 1.0f;
-    }
-    return p;
+    th = (uint32_t)(int32_t)(t * ${poly}); /* atan(t) 2^32 / (2 pi), |.| <= 2^29 */
+    return hc_base[k] + ((((0x96u >> o) & 1u) != 0u) ? (0u - th) : th);
 }
 
-static void hc_publish(${pfx}_state *s, uint32_t flags)
+static void hc_publish(${pfx}_state *s, int32_t rev, float turns, uint32_t flags)
 {
     const uint32_t k = (s->seq + 1u) & 1u;
-    s->pub[k].revolutions = s->out_rev;
-    s->pub[k].angle = s->out_angle;
+    s->pub[k].revolutions = rev;
+    s->pub[k].turns = turns;
     s->pub[k].flags = flags;
-    s->pub[k].rejected = s->rejected;
     s->seq = s->seq + 1u;
 }
 
 void ${pfx}_init(${pfx}_state *s, int32_t revolutions, float angle)
 {
-    float a = angle;
+    float a = angle * 0.159154943f; /* turns */
     float e;
     int32_t t;
-    if (!((a >= 0.0f) && (a < ${two_pi}))) {
+    if (!((a >= 0.0f) && (a < 1.0f))) {
         a = 0.0f;
     }
-    e = a * ${n_over_2pi}; /* electrical turns within the revolution */
+    e = a * ${n}.0f; /* electrical turns within the revolution */
     t = (int32_t)e;
     if (t > ${n_minus_1}) {
         t = ${n_minus_1};
     }
     s->rev = revolutions;
     s->turn = t;
-    s->psi = e - (float)t;
-    if (s->psi >= 1.0f) {
-        s->psi = 0.0f;
-    }
-    s->out_rev = revolutions;
-    s->out_angle = a;
+    s->phase = (uint32_t)((e - (float)t) * 4294967296.0f);
+    s->limit = 0xFFFFFFFFu; /* no step limit before the first accepted sample */
     s->held = 0u;
     s->rejected = 0u;
     s->fault = 0u;
-    s->acquired = 0u;
     s->seq = 0u;
-    hc_publish(s, 0u);
-    hc_publish(s, 0u);
+    hc_publish(s, revolutions, a, 0u);
+    hc_publish(s, revolutions, a, 0u);
 }
 
 uint32_t ${pfx}_update(${pfx}_state *s, float d1, float d2, float d3)
 {
-    uint32_t flags = 0u;
-    /* plausibility: each channel in its calibrated range (false for NaN) */
-    const uint32_t in_range = ((d1 >= ${lo1}) && (d1 <= ${hi1}) && (d2 >= ${lo2}) && (d2 <= ${hi2})
-                               && (d3 >= ${lo3}) && (d3 <= ${hi3})) ? 1u : 0u;
+    uint32_t flags;
     /* f_init, eq. (fimp): alpha, beta = P (d - o) */
 ${projection}
     const float r2 = (a * a) + (b * b);
-    if (in_range == 0u) {
+    /* plausibility: each channel in its calibrated range (NaN is not), then the radius */
+    if (${range_check}) {
         flags = ${PFX}_REJ_RANGE;
-    } else if (!((r2 >= ${r2_lo}) && (r2 <= ${r2_hi}))) {
-        flags = ${PFX}_REJ_AMPLITUDE;
-    } else {
-        const float psi = hc_angle(a, b);
-        float step = psi - s->psi;
-        float mag;
+    } else if ((r2 >= ${r2_lo}) && (r2 <= ${r2_hi})) {
+        const uint32_t p = hc_angle(a, b); /* electrical angle, Q0.32 turns */
+        const int32_t step = hc_s32(p - s->phase);         /* wrapped into [-1/2, 1/2) turn */
+        const uint32_t mag = (step < 0) ? (0u - (uint32_t)step) : (uint32_t)step;
         int32_t turn = s->turn;
         int32_t rev = s->rev;
-        /* Gamma of eq. (fimp): the step wrapped into [-1/2, 1/2) turn moves the turn count */
-        if (step >= 0.5f) {
-            step = step - 1.0f;
-            if (turn == 0) {
-                turn = ${n_minus_1};
-                rev = hc_s32((uint32_t)rev - 1u);
-            } else {
-                turn = turn - 1;
-            }
-        } else if (step < -0.5f) {
-            step = step + 1.0f;
+        /* Gamma of eq. (fimp): crossing the start of the turn moves the turn count */
+        if ((step >= 0) && (p < s->phase)) {
             if (turn == ${n_minus_1}) {
                 turn = 0;
                 rev = hc_s32((uint32_t)rev + 1u);
             } else {
                 turn = turn + 1;
             }
+        } else if ((step < 0) && (p > s->phase)) {
+            if (turn == 0) {
+                turn = ${n_minus_1};
+                rev = hc_s32((uint32_t)rev - 1u);
+            } else {
+                turn = turn - 1;
+            }
         } else {
             /* no turn boundary crossed */
         }
-        mag = (step < 0.0f) ? -step : step;
-        if ((s->acquired != 0u) && (mag > (${step_limit} * (float)(s->held + 1u)))) {
-            flags = ${PFX}_REJ_STEP;
-        } else {
-            /* eta(x) from the table at f_init's angle within the revolution */
-            const float pos = ((float)turn + psi) * ${m_over_n};
-            int32_t i = (int32_t)pos;
-            float f;
-            float t0;
-            float t1;
-            float eta;
+        /* step limit from the last accepted sample (grown while samples are held) */
+        if (mag <= s->limit) {
+            /* eta from the table at f_init's angle within the revolution: interval i of
+             * ${per_turn} per electrical turn, f in [0, 1) within it */
+${index}
             float y;
             int32_t out_rev = rev;
-            if (i > ${m_minus_1}) {
-                i = ${m_minus_1};
-            }
-            f = pos - (float)i;
-            t0 = (float)hc_t[i];
-            t1 = (float)hc_t[i + 1];
-            eta = (t0 + (f * (t1 - t0))) + ((f - (f * f)) * ((float)hc_c[i] * ${ck}));
-            y = (pos * ${rad_per_pos}) + (eta * ${lsb_rad});
-            /* y_star = 2 pi rev + y, y kept in [0, 2 pi) */
+${eta}
+            /* y_star within the revolution [turns], kept in [0, 1) */
             if (y < 0.0f) {
-                const float w = (y + 6.28125f) + 1.93530717e-3f;
-                if (w < ${two_pi}) {
-                    y = w;
-                    out_rev = hc_s32((uint32_t)out_rev - 1u);
-                } else {
-                    y = 0.0f;
-                }
-            } else if (y >= ${two_pi}) {
-                y = (y - 6.28125f) - 1.93530717e-3f;
+                y = y + 1.0f;
+                out_rev = hc_s32((uint32_t)out_rev - 1u);
+            } else if (y >= 1.0f) {
+                y = y - 1.0f;
                 out_rev = hc_s32((uint32_t)out_rev + 1u);
             } else {
                 /* within the revolution */
             }
-            s->psi = psi;
+            s->phase = p;
             s->turn = turn;
             s->rev = rev;
-            s->out_rev = out_rev;
-            s->out_angle = y;
+            s->limit = ${step_limit}u;
             s->held = 0u;
-            s->acquired = 1u;
+            flags = (s->fault != 0u) ? ${PFX}_FAULT : 0u;
+            hc_publish(s, out_rev, y, flags);
+        } else {
+            flags = ${PFX}_REJ_STEP;
         }
+    } else {
+        flags = ${PFX}_REJ_AMPLITUDE;
     }
-    if (flags != 0u) {
+    if (flags > ${PFX}_FAULT) { /* rejected: count it and hold the last reading */
+        const uint32_t last = s->seq & 1u;
         if (s->rejected < 0xFFFFFFFFu) {
             s->rejected = s->rejected + 1u;
         }
-        if (s->held < ${hold_cap}u) {
+        if (s->held < ${PFX}_FAULT_AFTER) {
             s->held = s->held + 1u;
         }
         if (s->held >= ${PFX}_FAULT_AFTER) {
             s->fault = 1u;
         }
+        if (s->limit < 0x80000000u) {
+            s->limit = s->limit + ${step_limit}u;
+        }
         flags = flags | ${PFX}_HELD;
+        if (s->fault != 0u) {
+            flags = flags | ${PFX}_FAULT;
+        }
+        hc_publish(s, s->pub[last].revolutions, s->pub[last].turns, flags);
     }
-    if (s->fault != 0u) {
-        flags = flags | ${PFX}_FAULT;
-    }
-    hc_publish(s, flags);
     return flags;
 }
 
@@ -870,14 +881,20 @@ void ${pfx}_read(const ${pfx}_state *s, ${pfx}_reading *r)
 {
     uint32_t before;
     uint32_t after;
+    float turns;
     do {
         before = s->seq;
         r->revolutions = s->pub[before & 1u].revolutions;
-        r->angle = s->pub[before & 1u].angle;
+        turns = s->pub[before & 1u].turns;
         r->flags = s->pub[before & 1u].flags;
-        r->rejected = s->pub[before & 1u].rejected;
         after = s->seq;
     } while ((after - before) > 1u);
+    r->rejected = s->rejected;
+    r->angle = turns * 6.28318548f;
+    if (r->angle >= 6.28318548f) {
+        r->angle = 0.0f; /* rounded up to 2 pi: the start of the next revolution */
+        r->revolutions = hc_s32((uint32_t)r->revolutions + 1u);
+    }
 }
 
 void ${pfx}_clear_fault(${pfx}_state *s)
@@ -967,15 +984,7 @@ _FIXED_C = string.Template(
 
 #include "${header}"
 
-/* eta table, eq. (f_final), offset binary: value TB[i] - 32768 at mechanical angle i / ${m} turn and
- * curvature CB[i] - 128 of interval i, in units of 2^-${tshift} turn (curvature 2^${kc} units):
- * eta = (T[i] (1 - f) + T[i+1] f + 2^${kc} C[i] f (1 - f)) 2^-${tshift} turn. */
-static const uint16_t hc_t[${m1}] = {
-${table}
-};
-static const uint8_t hc_c[${m}] = {
-${curv}
-};
+${fixed_table}
 /* floor(t 2^32 / n_m): start of electrical turn t, Q0.32 mechanical turns. */
 static const uint32_t hc_turn[${n}] = {
 ${turn_base}
@@ -1130,11 +1139,8 @@ ${unwrap}
             } else {
                 /* eta(u) from the table at f_init's angle u within the revolution */
                 const uint32_t u = hc_turn[turn] + p;
-                const uint32_t i = u >> ${ishift};
-                const uint32_t f = ${f_expr};
-                const uint32_t g = (f * (65536u - f)) >> 16;
-                const uint32_t acc = (((((uint32_t)hc_t[i] * (65536u - f)) + ((uint32_t)hc_t[i + 1u] * f))
-                                      + (((uint32_t)hc_c[i] * g) << ${kc})) - (g << ${kc7}));
+${fixed_index}
+${fixed_eta}
                 const uint32_t out = (u + (acc >> ${eshift})) - ${ebias}u;
                 int32_t out_rev = rev;
                 if (acc >= 0x80000000u) {
@@ -1275,6 +1281,46 @@ def _int_add(var: str, value: int) -> str:
     return f"{var} + {value}"
 
 
+def _f32_down(v: float) -> np.float32:
+    x = np.float32(v)
+    return x if float(x) <= v else np.nextafter(x, np.float32(-np.inf))
+
+
+def _f32_up(v: float) -> np.float32:
+    x = np.float32(v)
+    return x if float(x) >= v else np.nextafter(x, np.float32(np.inf))
+
+
+def _bits(x: np.float32) -> int:
+    return int(np.array(x, dtype=np.float32).view(np.uint32))
+
+
+def _range_check(lo: NDArray, hi: NDArray) -> str:
+    """C expression, true when a channel is outside its range (or not a number).
+
+    Ranges of positive numbers compare the IEEE bit patterns as unsigned integers (their order
+    is the numbers' order; negative numbers and NaN fall outside); ranges about zero compare
+    the magnitude's bit pattern (the range is widened to be symmetric when its centre is within
+    5 % of its half width); other ranges compare as floats.
+    """
+    parts = []
+    for h in range(3):
+        d = f"d{h + 1}"
+        lo_f, hi_f = _f32_down(lo[h]), _f32_up(hi[h])
+        mid, half = 0.5 * (lo[h] + hi[h]), 0.5 * (hi[h] - lo[h])
+        for v in (lo_f, hi_f):
+            _f32(float(v), "channel range")
+        if lo_f > 0:
+            lob = _bits(lo_f)
+            parts.append(f"((hc_bits({d}) - {lob}u) > {_bits(hi_f) - lob}u)")
+        elif lo_f < 0 < hi_f and abs(mid) <= 0.05 * half:
+            m = _f32_up(max(-float(lo_f), float(hi_f)))
+            parts.append(f"((hc_bits({d}) & 0x7FFFFFFFu) > {_bits(m)}u)")
+        else:
+            parts.append(f"(!(({d} >= {_cf(float(lo_f))}) && ({d} <= {_cf(float(hi_f))})))")
+    return "\n        || ".join(parts)
+
+
 def _float_source(ctx: _Context, fn: _FloatNumbers, banner: str, defs: str) -> str:
     d = ctx.design
     n, m = d.pole_pairs, d.table.points
@@ -1306,17 +1352,60 @@ def _float_source(ctx: _Context, fn: _FloatNumbers, banner: str, defs: str) -> s
         )
     newton = "\n".join(
         ["    {", "        float u;"]
-        + [
-            "        u = 1.0f - (x * rc);\n        rc = rc + (rc * u);"
-            for _ in range(fn.newton)
-        ]
+        + ["        u = 1.0f - (x * rc);\n        rc = rc + (rc * u);"] * fn.newton
         + ["    }"]
     )
+    scaled = fn.poly * 2.0**32
+    poly = _cf(scaled[-1])
+    for c in scaled[-2::-1]:
+        poly = f"({_cf(c)} + (t2 * {poly}))"
     t = d.table
     pl = d.plausibility
-    hold_cap = max(pl.fault_after, int(math.ceil(0.5 / pl.step_limit)) + 1)
-    k = fn.poly
-    x_lo = math.cos(math.pi / 8.0) * pl.radius_lo
+    kbits = (m // n).bit_length() - 1  # M = n 2^k
+    values = list(t.values) + [t.values[0]]  # T[M] = T[0]: the wrap-around without a branch
+    if t.quadratic:
+        table_decl = (
+            f"/* eta table, eq. (f_final): value T[i] (int16) at mechanical angle i / {m} turn and "
+            f"curvature\n * C[i] (int8) of interval i: eta = (T[i] (1 - f) + T[i+1] f + "
+            f"2^{t.curvature_shift} C[i] f (1 - f)) 2^-{t.shift} turn\n"
+            " * (T[M] = T[0]). */\n"
+            f"static const int16_t hc_t[{m + 1}] = {{\n"
+            + _c_list([str(int(v)) for v in values], 12)
+            + f"\n}};\nstatic const int8_t hc_c[{m}] = {{\n"
+            + _c_list([str(int(v)) for v in t.curvature], 16)
+            + "\n};"
+        )
+        curv = (
+            "\n                 + (((f - (f * f)) * (float)hc_c[i]) * "
+            f"{_cf(2.0 ** (t.curvature_shift - t.shift) * m, 'table unit')})"
+        )
+    else:
+        table_decl = (
+            f"/* eta table, eq. (f_final): value T[i] (int16) at mechanical angle i / {m} turn, "
+            f"linear in\n * between: eta = (T[i] (1 - f) + T[i+1] f) 2^-{t.shift} turn "
+            "(T[M] = T[0]). */\n"
+            f"static const int16_t hc_t[{m + 1}] = {{\n"
+            + _c_list([str(int(v)) for v in values], 12)
+            + "\n};"
+        )
+        curv = ""
+    if kbits == 0:
+        index = (
+            "            const uint32_t i = (uint32_t)turn;\n"
+            "            const float f = (float)p * 2.32830644e-10f;"
+        )
+    else:
+        index = (
+            f"            const uint32_t i = ((uint32_t)turn << {kbits}) + (p >> {32 - kbits});\n"
+            f"            const float f = (float)(p << {kbits}) * 2.32830644e-10f;"
+        )
+    eta = (
+        "            const float t0 = (float)hc_t[i];\n"
+        "            y = (((float)i + f) + ((t0 + (f * ((float)hc_t[i + 1u] - t0))) * "
+        f"{_cf(m * 2.0**-t.shift, 'table unit')}){curv})\n"
+        f"                * {_cf(1.0 / m)};"
+    )
+    x_lo = 2.0 * math.cos(math.pi / 8.0) * pl.radius_lo
     return _FLOAT_C.substitute(
         banner=banner,
         header=f"{ctx.pfx}.h",
@@ -1324,12 +1413,9 @@ def _float_source(ctx: _Context, fn: _FloatNumbers, banner: str, defs: str) -> s
         PFX=ctx.PFX,
         m=m,
         m1=m + 1,
-        ck=_cf(2.0**t.curvature_shift),
-        lsb_rad=_cf(t.lsb_rad, "table unit"),
-        table=_c_list([str(int(v)) for v in t.values], 12),
-        curv=_c_list([str(int(v)) for v in t.curvature], 16),
+        table_decl=table_decl,
         x_lo=f"{x_lo:.6g}",
-        x_hi=f"{pl.radius_hi:.6g}",
+        x_hi=f"{2.0 * pl.radius_hi:.6g}",
         newton=fn.newton,
         atan_bound=f"{fn.atan_bound:.2e}",
         tan8=_cf(_TAN_PI_8),
@@ -1337,28 +1423,17 @@ def _float_source(ctx: _Context, fn: _FloatNumbers, banner: str, defs: str) -> s
         c0=_cf(fn.seed[0], "reciprocal seed"),
         c1=_cf(fn.seed[1], "reciprocal seed"),
         newton_steps=newton,
-        k1=_cf(k[0]),
-        k3=_cf(k[1]),
-        k5=_cf(k[2]),
-        k7=_cf(k[3]),
-        k9=_cf(k[4]),
-        two_pi="6.28318548f",
-        n_over_2pi=_cf(n / TWO_PI),
+        poly=poly,
+        n=n,
         n_minus_1=n - 1,
-        lo1=_cf(fn.lo[0], "channel range"),
-        hi1=_cf(fn.hi[0], "channel range"),
-        lo2=_cf(fn.lo[1], "channel range"),
-        hi2=_cf(fn.hi[1], "channel range"),
-        lo3=_cf(fn.lo[2], "channel range"),
-        hi3=_cf(fn.hi[2], "channel range"),
         projection=projection,
+        range_check=_range_check(fn.lo, fn.hi),
         r2_lo=_cf(fn.r2_lo, "radius window"),
         r2_hi=_cf(fn.r2_hi, "radius window"),
-        step_limit=_cf(pl.step_limit),
-        m_over_n=_cf(m / n),
-        m_minus_1=m - 1,
-        rad_per_pos=_cf(TWO_PI / m),
-        hold_cap=hold_cap,
+        step_limit=int(math.floor(pl.step_limit * 2.0**32)),
+        per_turn=m // n,
+        index=index,
+        eta=eta,
         section_defs=defs,
     )
 
@@ -1367,7 +1442,7 @@ def _fixed_source(ctx: _Context, q: _FixedNumbers, banner: str, defs: str) -> st
     d = ctx.design
     n, t = d.pole_pairs, d.table
     m = t.points
-    mbits = m.bit_length() - 1
+    kbits = (m // n).bit_length() - 1  # M = n 2^k
     pl = d.plausibility
     hold_cap = max(pl.fault_after, q.unlimited_after + 1)
     steps = "\n".join(
@@ -1389,14 +1464,58 @@ def _fixed_source(ctx: _Context, q: _FixedNumbers, banner: str, defs: str) -> st
         period_text = str(q.period)
     eshift = t.shift - 16
     rowsum = "zero" if d.rejects_common_mode else "the float rows' sums"
-    f_expr = "u & 0xFFFFu" if mbits == 16 else f"(u >> {16 - mbits}) & 0xFFFFu"
+    values = list(t.values) + [t.values[0]]  # T[M] = T[0]
+    tb = _c_list([f"{int(v) + 32768}u" for v in values], 12)
+    if t.quadratic:
+        fixed_table = (
+            "/* eta table, eq. (f_final), offset binary: value TB[i] - 32768 at mechanical angle "
+            f"i / {m} turn\n * and curvature CB[i] - 128 of interval i, in units of 2^-{t.shift} "
+            f"turn (curvature 2^{t.curvature_shift}\n * units): eta = (T[i] (1 - f) + T[i+1] f + "
+            f"2^{t.curvature_shift} C[i] f (1 - f)) 2^-{t.shift} turn, T[M] = T[0]. */\n"
+            f"static const uint16_t hc_t[{m + 1}] = {{\n{tb}\n}};\n"
+            f"static const uint8_t hc_c[{m}] = {{\n"
+            + _c_list([f"{int(v) + 128}u" for v in t.curvature], 16)
+            + "\n};"
+        )
+        fixed_eta = (
+            "                const uint32_t g = (f * (65536u - f)) >> 16;\n"
+            "                const uint32_t acc = ((((uint32_t)hc_t[i] * (65536u - f))\n"
+            "                                       + ((uint32_t)hc_t[i + 1u] * f))\n"
+            f"                                      + (((uint32_t)hc_c[i] * g) << {t.curvature_shift}))\n"
+            f"                                     - (g << {t.curvature_shift + 7});"
+        )
+    else:
+        fixed_table = (
+            "/* eta table, eq. (f_final), offset binary: value TB[i] - 32768 at mechanical angle "
+            f"i / {m} turn,\n * in units of 2^-{t.shift} turn, linear in between: eta = (T[i] "
+            f"(1 - f) + T[i+1] f) 2^-{t.shift} turn,\n * T[M] = T[0]. */\n"
+            f"static const uint16_t hc_t[{m + 1}] = {{\n{tb}\n}};"
+        )
+        fixed_eta = (
+            "                const uint32_t acc = ((uint32_t)hc_t[i] * (65536u - f))\n"
+            "                                     + ((uint32_t)hc_t[i + 1u] * f);"
+        )
+    # interval i = turn 2^k + the electrical fraction's top k bits; the electrical fraction is
+    # p n / 2^32 (p < 2^32 / n: no overflow), f its next 16 bits
+    if kbits == 0:
+        fixed_index = (
+            f"                const uint32_t e = p * {n}u; /* electrical angle, Q0.32 turns */\n"
+            "                const uint32_t i = (uint32_t)turn;\n"
+            "                const uint32_t f = e >> 16;"
+        )
+    else:
+        fixed_index = (
+            f"                const uint32_t e = p * {n}u; /* electrical angle, Q0.32 turns */\n"
+            f"                const uint32_t i = ((uint32_t)turn << {kbits}) + (e >> {32 - kbits});\n"
+            f"                const uint32_t f = (e >> {16 - kbits}) & 0xFFFFu;"
+        )
     return _FIXED_C.substitute(
         banner=banner,
         header=f"{ctx.pfx}_q.h",
         pfx=ctx.pfx,
         PFX=ctx.PFX,
         m=m,
-        m1=m + 1,
+        mask=m - 1,
         n=n,
         n_minus_1=n - 1,
         tshift=t.shift,
@@ -1465,8 +1584,9 @@ def _fixed_source(ctx: _Context, q: _FixedNumbers, banner: str, defs: str) -> st
         unwrap=unwrap,
         unlimited=q.unlimited_after,
         step_limit=q.step_limit,
-        ishift=32 - mbits,
-        f_expr=f_expr,
+        fixed_table=fixed_table,
+        fixed_index=fixed_index,
+        fixed_eta=fixed_eta,
         eshift=eshift,
         ebias=(1 << 31) >> eshift,
         hold_cap=hold_cap,

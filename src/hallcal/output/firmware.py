@@ -12,8 +12,10 @@ can be checked here without a C compiler:
   int16 and ``c`` in int8, both in power-of-two fractions of a turn. The values are fitted by
   least squares to the artifact's own interpolant (what ``hallcal reconstruct`` computes), and the
   largest difference to it is computed exactly (both are piecewise polynomials: their difference
-  is checked at every breakpoint and at every vertex). The size M (a power of two) is the smallest
-  whose difference is within the budget: a tenth of the calibration's noise floor (so the table
+  is checked at every breakpoint and at every vertex). The size is M = n_m 2^k intervals (a
+  power of two per electrical turn, so that the firmware finds the interval from f_init's turn
+  and electrical angle with shifts); the table is the cheapest whose difference is within the
+  budget: a tenth of the calibration's noise floor (so the table
   adds at most 0.5 % to the RMS error in quadrature), and never more than 1e-5 rad.
 * Plausibility (:class:`Plausibility`): each Hall channel must lie in its calibrated range, and
   the alpha/beta radius in its calibrated window, both widened by a relative ``tolerance`` (drift
@@ -52,7 +54,8 @@ __all__ = [
     "DEFAULT_STEP_LIMIT",
     "DEFAULT_TOLERANCE",
     "MAX_POLE_PAIRS",
-    "TABLE_SIZES",
+    "table_sizes",
+    "MAX_TABLE_POINTS",
     "CorrectionTable",
     "FirmwareDesign",
     "Plausibility",
@@ -63,9 +66,10 @@ __all__ = [
 TWO_PI = 2.0 * math.pi
 #: The artifact format this exporter reads.
 ARTIFACT_FORMAT = "hallcal-calibration/1"
-#: Table sizes the exporter chooses from (the smallest within the budget; 512-2048 are up to
-#: 4 kB; larger ones only when the budget needs them, with a note).
-TABLE_SIZES = (512, 1024, 2048, 4096, 8192)
+#: Largest table: M = n_m 2^k <= this many intervals.
+MAX_TABLE_POINTS = 16384
+#: Largest linear table the exporter chooses by itself (int16: 4 kB).
+MAX_LINEAR_POINTS = 2048
 #: Budget for the table's difference to the artifact's interpolant [rad] when the artifact
 #: states no noise floor.
 DEFAULT_BUDGET = 1e-6
@@ -92,16 +96,19 @@ class CorrectionTable:
     """The uniform piecewise-quadratic correction table of the firmware.
 
     ``eta(x) = (T[i] (1 - f) + T[i+1] f + 2^k C[i] f (1 - f)) 2^-s`` turns, with
-    ``x / (2 pi) = (i + f) / M`` turns, ``0 <= f < 1``, ``T[M] = T[0]``.
+    ``x / (2 pi) = (i + f) / M`` turns, ``0 <= f < 1``, indices modulo M (wrap-around). A linear
+    table has no curvatures (C = 0).
 
     Attributes
     ----------
     points : int
-        M, intervals per revolution (a power of two).
-    values : ndarray of int16, shape (M + 1,)
-        T, in units of 2^-s turn (the last equals the first: wrap-around).
+        M = n_m 2^k, intervals per revolution.
+    quadratic : bool
+        Whether the table has curvatures (piecewise quadratic) or not (piecewise linear).
+    values : ndarray of int16, shape (M,)
+        T, in units of 2^-s turn.
     curvature : ndarray of int8, shape (M,)
-        C, in units of 2^(k - s) turn.
+        C, in units of 2^(k - s) turn (zeros for a linear table).
     shift : int
         s: one unit of T is 2^-s turn.
     curvature_shift : int
@@ -113,6 +120,7 @@ class CorrectionTable:
     """
 
     points: int
+    quadratic: bool
     values: NDArray[np.int16]
     curvature: NDArray[np.int8]
     shift: int
@@ -122,8 +130,8 @@ class CorrectionTable:
 
     @property
     def nbytes(self) -> int:
-        """Bytes of the two tables in flash."""
-        return 2 * (self.points + 1) + self.points
+        """Bytes of the table(s) in flash."""
+        return 3 * self.points if self.quadratic else 2 * self.points
 
     @property
     def lsb_rad(self) -> float:
@@ -137,7 +145,8 @@ class CorrectionTable:
         f = pos - i
         t = self.values.astype(np.float64)
         c = self.curvature.astype(np.float64) * 2.0**self.curvature_shift
-        return (t[i] * (1.0 - f) + t[i + 1] * f + c[i] * f * (1.0 - f)) * self.lsb_rad
+        j = (i + 1) % self.points
+        return (t[i] * (1.0 - f) + t[j] * f + c[i] * f * (1.0 - f)) * self.lsb_rad
 
 
 @dataclass(frozen=True)
@@ -354,7 +363,7 @@ def _table_error(table: CorrectionTable, lut: LUT) -> tuple[float, float]:
     h = TWO_PI / m
     lsb = table.lsb_rad
     t0 = table.values[i].astype(np.float64) * lsb
-    t1 = table.values[i + 1].astype(np.float64) * lsb
+    t1 = table.values[(i + 1) % m].astype(np.float64) * lsb
     c = table.curvature[i].astype(np.float64) * 2.0**table.curvature_shift * lsb
     ref_lo, ref_hi = lut.correction(lo), lut.correction(hi)
     slope = (ref_hi - ref_lo) / (hi - lo)
@@ -370,10 +379,10 @@ def _table_error(table: CorrectionTable, lut: LUT) -> tuple[float, float]:
     return float(np.max(np.abs(diff))), float(np.sqrt(np.mean(d2**2)))
 
 
-def fit_table(lut: LUT, points: int) -> CorrectionTable:
-    """Fit the uniform piecewise-quadratic table of ``points`` intervals to a LUT.
+def fit_table(lut: LUT, points: int, *, quadratic: bool = True) -> CorrectionTable:
+    """Fit the uniform table of ``points`` intervals to a LUT.
 
-    Least squares (values and curvatures together) on the artifact's breakpoints and
+    Least squares (values, and curvatures when ``quadratic``) on the artifact's breakpoints and
     ``_FIT_PER_INTERVAL`` points per interval; then the values are rounded to int16 units of a
     power-of-two fraction of a turn, the curvatures refitted to the rounded values and rounded
     to int8. The returned error is exact for the rounded table.
@@ -383,31 +392,35 @@ def fit_table(lut: LUT, points: int) -> CorrectionTable:
     lut : LUT
         The artifact's table (reference).
     points : int
-        M, a power of two in 64..65536.
+        M, intervals per revolution, 64..65536.
+    quadratic : bool, keyword-only
+        Piecewise quadratic (values and curvatures) or piecewise linear (values only).
 
     Returns
     -------
     CorrectionTable
     """
     m = int(points)
-    if m < 64 or m > 65536 or m & (m - 1):
-        raise ValueError("points must be a power of two in 64..65536")
+    if not 64 <= m <= 65536:
+        raise ValueError("points must be in 64..65536")
     h = TWO_PI / m
     xb, _ = _reference_breaks(lut)
-    x = np.unique(np.concatenate([xb[:-1], h * np.arange(m * _FIT_PER_INTERVAL) / _FIT_PER_INTERVAL]))
+    grid = h * np.arange(m * _FIT_PER_INTERVAL) / _FIT_PER_INTERVAL
+    x = np.unique(np.concatenate([xb[:-1], grid]))
     ref = lut.correction(x)
     pos = x / h
     i = np.minimum(np.floor(pos).astype(np.int64), m - 1)
     f = pos - i
     g = f * (1.0 - f)
     rows = np.arange(x.size)
+    cols = [i, (i + 1) % m] + ([m + i] if quadratic else [])
+    vals = [1.0 - f, f] + ([g] if quadratic else [])
     A = sparse.csr_matrix(
-        (np.concatenate([1.0 - f, f, g]), (np.tile(rows, 3), np.concatenate([i, (i + 1) % m, m + i]))),
-        shape=(x.size, 2 * m),
+        (np.concatenate(vals), (np.tile(rows, len(cols)), np.concatenate(cols))),
+        shape=(x.size, (2 if quadratic else 1) * m),
     )
-    AtA = (A.T @ A).tocsc()
-    sol = sparse_linalg.spsolve(AtA, A.T @ ref)
-    values, curv = sol[:m] / TWO_PI, sol[m:] / TWO_PI  # turns
+    sol = sparse_linalg.spsolve((A.T @ A).tocsc(), A.T @ ref)
+    values = sol[:m] / TWO_PI  # turns
     # int16 values: the largest power-of-two unit 2^-s turn with |T| <= 32767
     vmax = float(np.max(np.abs(values))) or 2.0**-40
     shift = min(int(math.floor(math.log2(32767.0 / vmax))), 47)
@@ -415,20 +428,55 @@ def fit_table(lut: LUT, points: int) -> CorrectionTable:
     if np.max(np.abs(q)) > 32767:  # log2 rounding at an exact power of two
         shift -= 1
         q = np.round(values * 2.0**shift)
-    t = np.append(q, q[0])
-    # curvatures refitted per interval to the rounded values: c_i = <g, r> / <g, g>
-    resid = ref / TWO_PI * 2.0**shift - (t[i] * (1.0 - f) + t[i + 1] * f)
-    num = np.bincount(i, weights=g * resid, minlength=m)
-    den = np.bincount(i, weights=g * g, minlength=m)
-    c = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
-    cmax = float(np.max(np.abs(c)))
-    cshift = max(0, int(math.ceil(math.log2(cmax / 127.0)))) if cmax > 127.0 else 0
-    cq = np.clip(np.round(c / 2.0**cshift), -127, 127)
+    cshift = 0
+    cq = np.zeros(m)
+    if quadratic:
+        # curvatures refitted per interval to the rounded values: c_i = <g, r> / <g, g>
+        resid = ref / TWO_PI * 2.0**shift - (q[i] * (1.0 - f) + q[(i + 1) % m] * f)
+        num = np.bincount(i, weights=g * resid, minlength=m)
+        den = np.bincount(i, weights=g * g, minlength=m)
+        c = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+        cmax = float(np.max(np.abs(c)))
+        cshift = max(0, int(math.ceil(math.log2(cmax / 127.0)))) if cmax > 127.0 else 0
+        cq = np.clip(np.round(c / 2.0**cshift), -127, 127)
     table = CorrectionTable(
-        m, t.astype(np.int16), cq.astype(np.int8), shift, cshift, math.inf, math.inf
+        m, quadratic, q.astype(np.int16), cq.astype(np.int8), shift, cshift, math.inf, math.inf
     )
     err, rms = _table_error(table, lut)
-    return CorrectionTable(m, table.values, table.curvature, shift, cshift, err, rms)
+    return CorrectionTable(m, quadratic, table.values, table.curvature, shift, cshift, err, rms)
+
+
+def table_sizes(pole_pairs: int) -> list[int]:
+    """Candidate table sizes M = n_m 2^k (64 <= M <= :data:`MAX_TABLE_POINTS`), ascending."""
+    out = []
+    m = int(pole_pairs)
+    while m <= MAX_TABLE_POINTS:
+        if m >= 64:
+            out.append(m)
+        m *= 2
+    return out
+
+
+def _choose_table(lut: LUT, budget: float) -> CorrectionTable:
+    """The cheapest table within the budget: linear (one load and one multiply less per sample;
+    only if within half the budget, which leaves the other half to the arithmetic) of up to
+    :data:`MAX_LINEAR_POINTS` intervals, else quadratic, each size ascending from 256."""
+    sizes = [m for m in table_sizes(lut.pole_pairs) if m >= min(256, MAX_TABLE_POINTS)]
+    for m in sizes:
+        if m > MAX_LINEAR_POINTS:
+            break
+        table = fit_table(lut, m, quadratic=False)
+        if table.error <= 0.5 * budget:
+            return table
+    best = None
+    for m in sizes:
+        table = fit_table(lut, m, quadratic=True)
+        if table.error <= budget:
+            return table
+        if best is None or table.error < best.error:
+            best = table
+    assert best is not None
+    return best
 
 
 # --------------------------------------------------------------------------------------------
@@ -527,7 +575,7 @@ def design_firmware(
     source : str, keyword-only
         Name of the artifact for error messages.
     table_points : int, keyword-only
-        M (a power of two, 64..65536); default the smallest of :data:`TABLE_SIZES` within the
+        M = n_m 2^k (64..16384, a quadratic table); default the cheapest table within the
         budget.
     tolerance : float, keyword-only
         Relative widening of the calibrated amplitude windows, in [0, 0.9].
@@ -592,29 +640,29 @@ def design_firmware(
             f"the artifact states no noise floor: table budget {DEFAULT_BUDGET:g} rad"
         )
     if table_points is not None:
-        if isinstance(table_points, bool) or not isinstance(table_points, int):
-            raise HallcalInputError("table_points must be a power of two in 64..65536")
-        if table_points < 64 or table_points > 65536 or table_points & (table_points - 1):
-            raise HallcalInputError("table_points must be a power of two in 64..65536")
-        table = fit_table(lut, table_points)
+        if (
+            isinstance(table_points, bool)
+            or not isinstance(table_points, int)
+            or table_points not in table_sizes(n)
+        ):
+            raise HallcalInputError(
+                f"table_points must be n_m 2^k in 64..{MAX_TABLE_POINTS} ({n} 2^k here), "
+                f"got {table_points!r}"
+            )
+        table = fit_table(lut, table_points, quadratic=True)
         if table.error > budget:
             messages.append(
                 f"table of {table_points} points differs by {table.error:.2g} rad from the "
                 f"calibration, more than the budget {budget:.2g} rad"
             )
     else:
-        table = None
-        for m in TABLE_SIZES:
-            table = fit_table(lut, m)
-            if table.error <= budget:
-                break
-        assert table is not None
+        table = _choose_table(lut, budget)
         if table.error > budget:
             messages.append(
                 f"even {table.points} points differ by {table.error:.2g} rad from the "
                 f"calibration, more than the budget {budget:.2g} rad"
             )
-        elif table.points > 2048:
+        elif table.nbytes > 4096:
             messages.append(
                 f"the budget {budget:.2g} rad needs {table.points} points ({table.nbytes} bytes)"
             )
