@@ -636,7 +636,7 @@ typedef struct {
     uint32_t limit;    /* step limit for the next sample, Q0.32 electrical turns */
     uint32_t held;     /* rejected samples in a row */
     volatile uint32_t rejected; /* rejected samples since init */
-    uint32_t fault;    /* 1 once ${PFX}_FAULT_AFTER samples in a row were rejected */
+    uint32_t fault;    /* ${PFX}_FAULT once ${PFX}_FAULT_AFTER samples in a row were rejected */
     volatile uint32_t seq; /* readings published; the last one is pub[seq & 1] */
     volatile struct {
         int32_t revolutions;
@@ -758,11 +758,11 @@ ${newton_steps}
 
 static void hc_publish(${pfx}_state *s, int32_t rev, float turns, uint32_t flags)
 {
-    const uint32_t k = (s->seq + 1u) & 1u;
-    s->pub[k].revolutions = rev;
-    s->pub[k].turns = turns;
-    s->pub[k].flags = flags;
-    s->seq = s->seq + 1u;
+    const uint32_t q = s->seq + 1u;
+    s->pub[q & 1u].revolutions = rev;
+    s->pub[q & 1u].turns = turns;
+    s->pub[q & 1u].flags = flags;
+    s->seq = q;
 }
 
 void ${pfx}_init(${pfx}_state *s, int32_t revolutions, float angle)
@@ -826,28 +826,21 @@ ${projection}
         /* step limit from the last accepted sample (grown while samples are held) */
         if (mag <= s->limit) {
             /* eta from the table at f_init's angle within the revolution: interval i of
-             * ${per_turn} per electrical turn, f in [0, 1) within it */
+             * ${per_turn} per electrical turn, position i + f in Q16.16 */
 ${index}
-            float y;
-            int32_t out_rev = rev;
-${eta}
-            /* y_star within the revolution [turns], kept in [0, 1) */
-            if (y < 0.0f) {
-                y = y + 1.0f;
-                out_rev = hc_s32((uint32_t)out_rev - 1u);
-            } else if (y >= 1.0f) {
-                y = y - 1.0f;
-                out_rev = hc_s32((uint32_t)out_rev + 1u);
-            } else {
-                /* within the revolution */
-            }
+            const float f = (float)(uint16_t)x * 1.52587891e-5f; /* 2^-16 */
+            const float t0 = (float)hc_t[i];
+            /* y_star within the revolution [turns], in (-1/2, 3/2): _read brings it to [0, 1) */
+            const float y = (((float)i + f)
+                             + ((t0 + (f * ((float)hc_t[i + 1u] - t0))) * ${k_lin})${curv})
+                            * ${inv_m};
             s->phase = p;
             s->turn = turn;
             s->rev = rev;
             s->limit = ${step_limit}u;
             s->held = 0u;
-            flags = (s->fault != 0u) ? ${PFX}_FAULT : 0u;
-            hc_publish(s, out_rev, y, flags);
+            flags = s->fault; /* 0 or ${PFX}_FAULT (latched) */
+            hc_publish(s, rev, y, flags);
         } else {
             flags = ${PFX}_REJ_STEP;
         }
@@ -863,15 +856,12 @@ ${eta}
             s->held = s->held + 1u;
         }
         if (s->held >= ${PFX}_FAULT_AFTER) {
-            s->fault = 1u;
+            s->fault = ${PFX}_FAULT;
         }
         if (s->limit < 0x80000000u) {
             s->limit = s->limit + ${step_limit}u;
         }
-        flags = flags | ${PFX}_HELD;
-        if (s->fault != 0u) {
-            flags = flags | ${PFX}_FAULT;
-        }
+        flags = flags | ${PFX}_HELD | s->fault;
         hc_publish(s, s->pub[last].revolutions, s->pub[last].turns, flags);
     }
     return flags;
@@ -890,6 +880,15 @@ void ${pfx}_read(const ${pfx}_state *s, ${pfx}_reading *r)
         after = s->seq;
     } while ((after - before) > 1u);
     r->rejected = s->rejected;
+    if (turns < 0.0f) { /* update keeps y_star in (-1/2, 3/2) turns of its revolution */
+        turns = turns + 1.0f;
+        r->revolutions = hc_s32((uint32_t)r->revolutions - 1u);
+    } else if (turns >= 1.0f) {
+        turns = turns - 1.0f;
+        r->revolutions = hc_s32((uint32_t)r->revolutions + 1u);
+    } else {
+        /* within the revolution */
+    }
     r->angle = turns * 6.28318548f;
     if (r->angle >= 6.28318548f) {
         r->angle = 0.0f; /* rounded up to 2 pi: the start of the next revolution */
@@ -1389,22 +1388,11 @@ def _float_source(ctx: _Context, fn: _FloatNumbers, banner: str, defs: str) -> s
             + "\n};"
         )
         curv = ""
-    if kbits == 0:
-        index = (
-            "            const uint32_t i = (uint32_t)turn;\n"
-            "            const float f = (float)p * 2.32830644e-10f;"
-        )
-    else:
-        index = (
-            f"            const uint32_t i = ((uint32_t)turn << {kbits}) + (p >> {32 - kbits});\n"
-            f"            const float f = (float)(p << {kbits}) * 2.32830644e-10f;"
-        )
-    eta = (
-        "            const float t0 = (float)hc_t[i];\n"
-        "            y = (((float)i + f) + ((t0 + (f * ((float)hc_t[i + 1u] - t0))) * "
-        f"{_cf(m * 2.0**-t.shift, 'table unit')}){curv})\n"
-        f"                * {_cf(1.0 / m)};"
+    index = (
+        f"            const uint32_t x = ((uint32_t)turn << {kbits + 16}) + (p >> {16 - kbits});\n"
+        "            const uint32_t i = x >> 16;"
     )
+    curv = curv.replace("\n                 + ", "\n                             + ")
     x_lo = 2.0 * math.cos(math.pi / 8.0) * pl.radius_lo
     return _FLOAT_C.substitute(
         banner=banner,
@@ -1433,7 +1421,9 @@ def _float_source(ctx: _Context, fn: _FloatNumbers, banner: str, defs: str) -> s
         step_limit=int(math.floor(pl.step_limit * 2.0**32)),
         per_turn=m // n,
         index=index,
-        eta=eta,
+        curv=curv,
+        k_lin=_cf(m * 2.0**-t.shift, "table unit"),
+        inv_m=_cf(1.0 / m),
         section_defs=defs,
     )
 
