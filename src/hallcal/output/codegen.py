@@ -309,9 +309,9 @@ def _float_numbers(d: FirmwareDesign) -> _FloatNumbers:
     """
     pl = d.plausibility
     n = d.pole_pairs
-    # the reciprocal is of x = 2 max(|a|, |b|) (after the rotation: 2 r cos(th), |th| <= pi/8)
-    x_lo = 2.0 * math.cos(math.pi / 8.0) * pl.radius_lo * (1.0 - 1e-6)
-    x_hi = 2.0 * pl.radius_hi * (1.0 + 1e-6)
+    # the reciprocal is of x = max(|a|, |b|) (after the rotation: r cos(th), |th| <= pi/8)
+    x_lo = math.cos(math.pi / 8.0) * pl.radius_lo * (1.0 - 1e-6)
+    x_hi = pl.radius_hi * (1.0 + 1e-6)
     c0, c1, eps = _reciprocal_seed(x_lo, x_hi)
     target = min(0.25 * d.budget * n, 2e-5)
     # reciprocal: relative error e of t turns the angle by at most e t / (1 + t^2) <= 0.354 e
@@ -674,8 +674,11 @@ _FLOAT_C = string.Template(
 
 #include "${header}"
 
-/* The sign and range checks read the IEEE 754 binary32 pattern of a float through a union
- * (MISRA C:2012 Rule 19.2, advisory, deviated here: one definition, below). */
+/* The sign, absolute value and range checks read the IEEE 754 binary32 pattern of a float
+ * through a union (MISRA C:2012 Rule 19.2, advisory, deviated here: hc_bits and hc_float). The
+ * patterns of non-negative floats are ordered as the numbers are, so a range [lo, hi] of
+ * positive numbers is one unsigned comparison: bits(x) - bits(lo) <= bits(hi) - bits(lo);
+ * negative numbers and NaN fall outside. */
 typedef char hc_float_is_binary32[(sizeof(float) == sizeof(uint32_t)) ? 1 : -1];
 
 ${table_decl}
@@ -728,16 +731,14 @@ static uint32_t hc_angle(float a, float b)
 {
     const uint32_t ua = hc_bits(a);
     const uint32_t ub = hc_bits(b);
-    const float ax = hc_float(ua & 0x7FFFFFFFu);
-    const float ay = hc_float(ub & 0x7FFFFFFFu);
-    const float dxy = ax - ay;
-    const float sum = ax + ay;
-    const float adxy = hc_float(hc_bits(dxy) & 0x7FFFFFFFu);
-    /* octant: a < 0, b < 0, |b| > |a| (sign bits) */
-    const uint32_t o = ((ua >> 31) << 2) | ((ub >> 31) << 1) | (hc_bits(dxy) >> 31);
+    const uint32_t ma = ua & 0x7FFFFFFFu; /* |a|: non-negative floats order as their bits do */
+    const uint32_t mb = ub & 0x7FFFFFFFu; /* |b| */
+    const uint32_t sw = (mb > ma) ? 1u : 0u;
+    /* octant: a < 0, b < 0, |b| > |a| */
+    const uint32_t o = ((ua >> 31) << 2) | ((ub >> 31) << 1) | sw;
     uint32_t k = o << 1;
-    float x = sum + adxy; /* 2 max(|a|, |b|) */
-    float y = sum - adxy; /* 2 min(|a|, |b|) */
+    float x = hc_float((sw != 0u) ? mb : ma); /* max(|a|, |b|) */
+    float y = hc_float((sw != 0u) ? ma : mb); /* min(|a|, |b|) */
     float rc;
     float t;
     float t2;
@@ -799,7 +800,7 @@ ${projection}
     /* plausibility: each channel in its calibrated range (NaN is not), then the radius */
     if (${range_check}) {
         flags = ${PFX}_REJ_RANGE;
-    } else if ((r2 >= ${r2_lo}) && (r2 <= ${r2_hi})) {
+    } else if ((hc_bits(r2) - ${r2_lo_bits}u) <= ${r2_span_bits}u) { /* r2 in [${r2_lo}, ${r2_hi}] */
         const uint32_t p = hc_angle(a, b); /* electrical angle, Q0.32 turns */
         const int32_t step = hc_s32(p - s->phase);         /* wrapped into [-1/2, 1/2) turn */
         const uint32_t mag = (step < 0) ? (0u - (uint32_t)step) : (uint32_t)step;
@@ -829,11 +830,11 @@ ${projection}
              * ${per_turn} per electrical turn, position i + f in Q16.16 */
 ${index}
             const float f = (float)(uint16_t)x * 1.52587891e-5f; /* 2^-16 */
-            const float t0 = (float)hc_t[i];
+            const int32_t t0 = (int32_t)hc_t[i];
+            const int32_t dt = (int32_t)hc_t[i + 1u] - t0;
             /* y_star within the revolution [turns], in (-1/2, 3/2): _read brings it to [0, 1) */
-            const float y = (((float)i + f)
-                             + ((t0 + (f * ((float)hc_t[i + 1u] - t0))) * ${k_lin})${curv})
-                            * ${inv_m};
+            const float y = ((float)x * ${inv_m16})
+                            + ((((float)t0 + (f * (float)dt))${curv}) * ${lsb});
             s->phase = p;
             s->turn = turn;
             s->rev = rev;
@@ -1375,8 +1376,8 @@ def _float_source(ctx: _Context, fn: _FloatNumbers, banner: str, defs: str) -> s
             + "\n};"
         )
         curv = (
-            "\n                 + (((f - (f * f)) * (float)hc_c[i]) * "
-            f"{_cf(2.0 ** (t.curvature_shift - t.shift) * m, 'table unit')})"
+            "\n                 + ((f - (f * f)) * "
+            f"((float)hc_c[i] * {_cf(2.0**t.curvature_shift, 'table unit')}))"
         )
     else:
         table_decl = (
@@ -1393,7 +1394,7 @@ def _float_source(ctx: _Context, fn: _FloatNumbers, banner: str, defs: str) -> s
         "            const uint32_t i = x >> 16;"
     )
     curv = curv.replace("\n                 + ", "\n                             + ")
-    x_lo = 2.0 * math.cos(math.pi / 8.0) * pl.radius_lo
+    x_lo = math.cos(math.pi / 8.0) * pl.radius_lo
     return _FLOAT_C.substitute(
         banner=banner,
         header=f"{ctx.pfx}.h",
@@ -1403,7 +1404,7 @@ def _float_source(ctx: _Context, fn: _FloatNumbers, banner: str, defs: str) -> s
         m1=m + 1,
         table_decl=table_decl,
         x_lo=f"{x_lo:.6g}",
-        x_hi=f"{2.0 * pl.radius_hi:.6g}",
+        x_hi=f"{pl.radius_hi:.6g}",
         newton=fn.newton,
         atan_bound=f"{fn.atan_bound:.2e}",
         tan8=_cf(_TAN_PI_8),
@@ -1416,14 +1417,16 @@ def _float_source(ctx: _Context, fn: _FloatNumbers, banner: str, defs: str) -> s
         n_minus_1=n - 1,
         projection=projection,
         range_check=_range_check(fn.lo, fn.hi),
-        r2_lo=_cf(fn.r2_lo, "radius window"),
-        r2_hi=_cf(fn.r2_hi, "radius window"),
+        r2_lo=_cf(float(_f32_down(fn.r2_lo)), "radius window"),
+        r2_hi=_cf(float(_f32_up(fn.r2_hi)), "radius window"),
+        r2_lo_bits=_bits(_f32_down(fn.r2_lo)),
+        r2_span_bits=_bits(_f32_up(fn.r2_hi)) - _bits(_f32_down(fn.r2_lo)),
         step_limit=int(math.floor(pl.step_limit * 2.0**32)),
         per_turn=m // n,
         index=index,
         curv=curv,
-        k_lin=_cf(m * 2.0**-t.shift, "table unit"),
-        inv_m=_cf(1.0 / m),
+        lsb=_cf(2.0**-t.shift, "table unit"),
+        inv_m16=_cf(1.0 / m / 65536.0),
         section_defs=defs,
     )
 
