@@ -74,7 +74,7 @@ TWO_PI = 2.0 * math.pi
 _U32 = 1 << 32
 _EPS_F32 = 2.0**-24  # unit roundoff of IEEE single precision
 #: CORDIC steps of the fixed-point atan2 before the residual is taken as atan(t) ~ t - t^3/3.
-CORDIC_STEPS = 8
+CORDIC_STEPS = 6
 _TAN_PI_8 = math.tan(math.pi / 8.0)
 _C_KEYWORDS = frozenset(
     "auto break case char const continue default do double else enum extern float for goto if "
@@ -337,8 +337,10 @@ def _float_numbers(d: FirmwareDesign) -> _FloatNumbers:
     P = d.projection
     span = np.maximum(np.abs(pl.channel_lo), np.abs(pl.channel_hi))
     row = np.abs(P).sum(axis=1)
+    # (rows summing to zero: differences d2 - d1, d3 - d1, exact for integer counts below 2^24;
+    # otherwise P d - P o, whose roundings are relative to |d|, not to |d - o|)
     ab_err = float(np.max(row)) * (
-        _EPS_F32 * float(np.max(np.abs(d.offset))) + 4.0 * _EPS_F32 * float(np.max(span))
+        _EPS_F32 * float(np.max(np.abs(P @ d.offset))) + 4.0 * _EPS_F32 * float(np.max(span))
     )
     e_el = atan_bound + math.sqrt(2.0) * ab_err / pl.radius_lo
     slope = _table_slope(d)
@@ -1339,15 +1341,13 @@ def _float_source(ctx: _Context, fn: _FloatNumbers, banner: str, defs: str) -> s
             ]
         )
     else:
+        ab0 = P @ o
         projection = "\n".join(
             [
-                f"    const float x1 = d1 - {_cf(o[0], 'offset')};",
-                f"    const float x2 = d2 - {_cf(o[1], 'offset')};",
-                f"    const float x3 = d3 - {_cf(o[2], 'offset')};",
-                f"    const float a = (({_cf(P[0, 0])} * x1) + ({_cf(P[0, 1])} * x2)) + "
-                f"({_cf(P[0, 2])} * x3);",
-                f"    const float b = (({_cf(P[1, 0])} * x1) + ({_cf(P[1, 1])} * x2)) + "
-                f"({_cf(P[1, 2])} * x3);",
+                f"    const float a = ((({_cf(P[0, 0])} * d1) + ({_cf(P[0, 1])} * d2)) + "
+                f"({_cf(P[0, 2])} * d3)) - {_cf(ab0[0], 'P o')};",
+                f"    const float b = ((({_cf(P[1, 0])} * d1) + ({_cf(P[1, 1])} * d2)) + "
+                f"({_cf(P[1, 2])} * d3)) - {_cf(ab0[1], 'P o')};",
             ]
         )
     newton = "\n".join(
