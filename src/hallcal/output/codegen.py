@@ -944,17 +944,19 @@ typedef struct {
 
 /* State of one sensor set; its members are private (use the functions). No dynamic memory. */
 typedef struct {
-    int32_t rev;        /* f_init: whole revolutions of its own (uncorrected) unwrap state */
-    int32_t turn;       /* f_init: electrical turn within the revolution, 0 .. n_m - 1 */
-    uint32_t phase;     /* f_init: electrical angle within the turn, Q0.32 mechanical turns */
-    int32_t out_rev;    /* last accepted y_star: whole revolutions */
-    uint32_t out_angle; /* last accepted y_star within the revolution, Q0.32 turns */
-    uint32_t held;      /* rejected samples in a row */
-    uint32_t rejected;  /* rejected samples since init */
-    uint32_t fault;     /* 1 once ${PFX}_Q_FAULT_AFTER samples in a row were rejected */
-    uint32_t acquired;  /* 1 after the first accepted sample (no step limit before it) */
-    volatile uint32_t seq;              /* readings published */
-    volatile ${pfx}_q_reading pub[2];  /* the last reading is pub[seq & 1] */
+    int32_t rev;       /* f_init: whole revolutions of its own (uncorrected) unwrap state */
+    int32_t turn;      /* f_init: electrical turn within the revolution, 0 .. n_m - 1 */
+    uint32_t phase;    /* f_init: electrical angle within the turn, Q0.32 mechanical turns */
+    uint32_t limit;    /* step limit for the next sample, Q0.32 mechanical turns */
+    uint32_t held;     /* rejected samples in a row */
+    volatile uint32_t rejected; /* rejected samples since init */
+    uint32_t fault;    /* ${PFX}_Q_FAULT once ${PFX}_Q_FAULT_AFTER samples in a row were rejected */
+    volatile uint32_t seq; /* readings published; the last one is pub[seq & 1] */
+    volatile struct {
+        int32_t revolutions;
+        uint32_t angle; /* Q0.32 turns */
+        uint32_t flags;
+    } pub[2];
 } ${pfx}_q_state;
 
 /* Start at y = revolutions + angle / 2^32 turns (0, 0 by convention). */
@@ -1069,14 +1071,13 @@ ${wrap_period}
     return p;
 }
 
-static void hc_publish(${pfx}_q_state *s, uint32_t flags)
+static void hc_publish(${pfx}_q_state *s, int32_t rev, uint32_t angle, uint32_t flags)
 {
-    const uint32_t k = (s->seq + 1u) & 1u;
-    s->pub[k].revolutions = s->out_rev;
-    s->pub[k].angle = s->out_angle;
-    s->pub[k].flags = flags;
-    s->pub[k].rejected = s->rejected;
-    s->seq = s->seq + 1u;
+    const uint32_t q = s->seq + 1u;
+    s->pub[q & 1u].revolutions = rev;
+    s->pub[q & 1u].angle = angle;
+    s->pub[q & 1u].flags = flags;
+    s->seq = q;
 }
 
 void ${pfx}_q_init(${pfx}_q_state *s, int32_t revolutions, uint32_t angle)
@@ -1092,22 +1093,21 @@ void ${pfx}_q_init(${pfx}_q_state *s, int32_t revolutions, uint32_t angle)
     s->turn = (int32_t)t;
     s->phase = angle - hc_turn[t];
 ${init_wrap}
-    s->out_rev = revolutions;
-    s->out_angle = angle;
+    s->limit = 0xFFFFFFFFu; /* no step limit before the first accepted sample */
     s->held = 0u;
     s->rejected = 0u;
     s->fault = 0u;
-    s->acquired = 0u;
     s->seq = 0u;
-    hc_publish(s, 0u);
-    hc_publish(s, 0u);
+    hc_publish(s, revolutions, angle, 0u);
+    hc_publish(s, revolutions, angle, 0u);
 }
 
 uint32_t ${pfx}_q_update(${pfx}_q_state *s, int32_t d1, int32_t d2, int32_t d3)
 {
-    uint32_t flags = 0u;
-    if (!((d1 >= ${lo1}) && (d1 <= ${hi1}) && (d2 >= ${lo2}) && (d2 <= ${hi2}) && (d3 >= ${lo3})
-          && (d3 <= ${hi3}))) {
+    uint32_t flags;
+    /* plausibility: each channel in its calibrated range (unsigned: no overflow for any int32) */
+    if ((((uint32_t)d1 - ${lo1}u) > ${span1}u) || (((uint32_t)d2 - ${lo2}u) > ${span2}u)
+        || (((uint32_t)d3 - ${lo3}u) > ${span3}u)) {
         flags = ${PFX}_Q_REJ_RANGE;
     } else {
         /* f_init, eq. (fimp): alpha, beta = P (d - o) 2^${pshift}, with P 2^${pshift} = PH 2^${kl} + PL
@@ -1135,10 +1135,8 @@ uint32_t ${pfx}_q_update(${pfx}_q_state *s, int32_t d1, int32_t d2, int32_t d3)
             int32_t rev = s->rev;
             uint32_t mag;
 ${unwrap}
-            if ((s->acquired != 0u) && (s->held < ${unlimited}u)
-                && (mag > (${step_limit}u * (s->held + 1u)))) {
-                flags = ${PFX}_Q_REJ_STEP;
-            } else {
+            /* step limit from the last accepted sample (grown while samples are held) */
+            if (mag <= s->limit) {
                 /* eta(u) from the table at f_init's angle u within the revolution */
                 const uint32_t u = hc_turn[turn] + p;
 ${fixed_index}
@@ -1157,29 +1155,32 @@ ${fixed_eta}
                 s->phase = p;
                 s->turn = turn;
                 s->rev = rev;
-                s->out_rev = out_rev;
-                s->out_angle = out;
+                s->limit = ${step_limit}u;
                 s->held = 0u;
-                s->acquired = 1u;
+                flags = s->fault; /* 0 or ${PFX}_Q_FAULT (latched) */
+                hc_publish(s, out_rev, out, flags);
+            } else {
+                flags = ${PFX}_Q_REJ_STEP;
             }
         }
     }
-    if (flags != 0u) {
+    if (flags > ${PFX}_Q_FAULT) { /* rejected: count it and hold the last reading */
+        const uint32_t last = s->seq & 1u;
         if (s->rejected < 0xFFFFFFFFu) {
             s->rejected = s->rejected + 1u;
         }
-        if (s->held < ${hold_cap}u) {
+        if (s->held < ${PFX}_Q_FAULT_AFTER) {
             s->held = s->held + 1u;
         }
         if (s->held >= ${PFX}_Q_FAULT_AFTER) {
-            s->fault = 1u;
+            s->fault = ${PFX}_Q_FAULT;
         }
-        flags = flags | ${PFX}_Q_HELD;
+        if (s->limit < ${limit_cap}u) {
+            s->limit = s->limit + ${step_limit}u;
+        }
+        flags = flags | ${PFX}_Q_HELD | s->fault;
+        hc_publish(s, s->pub[last].revolutions, s->pub[last].angle, flags);
     }
-    if (s->fault != 0u) {
-        flags = flags | ${PFX}_Q_FAULT;
-    }
-    hc_publish(s, flags);
     return flags;
 }
 
@@ -1192,9 +1193,9 @@ void ${pfx}_q_read(const ${pfx}_q_state *s, ${pfx}_q_reading *r)
         r->revolutions = s->pub[before & 1u].revolutions;
         r->angle = s->pub[before & 1u].angle;
         r->flags = s->pub[before & 1u].flags;
-        r->rejected = s->pub[before & 1u].rejected;
         after = s->seq;
     } while ((after - before) > 1u);
+    r->rejected = s->rejected;
 }
 
 void ${pfx}_q_clear_fault(${pfx}_q_state *s)
@@ -1545,12 +1546,13 @@ def _fixed_source(ctx: _Context, q: _FixedNumbers, banner: str, defs: str) -> st
         period=q.period,
         wrap_period=wrap_period,
         init_wrap=init_wrap,
-        lo1=_ci(q.lo[0]),
-        hi1=_ci(q.hi[0]),
-        lo2=_ci(q.lo[1]),
-        hi2=_ci(q.hi[1]),
-        lo3=_ci(q.lo[2]),
-        hi3=_ci(q.hi[2]),
+        lo1=q.lo[0] % _U32,
+        span1=q.hi[0] - q.lo[0],
+        lo2=q.lo[1] % _U32,
+        span2=q.hi[1] - q.lo[1],
+        lo3=q.lo[2] % _U32,
+        span3=q.hi[2] - q.lo[2],
+        limit_cap=(q.half if n > 1 else 1 << 31),
         pshift=q.proj_shift,
         rowsum=rowsum,
         c1=f"({_ci(q.centre[0])})",
@@ -1575,7 +1577,6 @@ def _fixed_source(ctx: _Context, q: _FixedNumbers, banner: str, defs: str) -> st
         r2_lo=q.r2_lo,
         r2_hi=q.r2_hi,
         unwrap=unwrap,
-        unlimited=q.unlimited_after,
         step_limit=q.step_limit,
         fixed_table=fixed_table,
         fixed_index=fixed_index,
