@@ -211,7 +211,8 @@ int main(void)
 #endif
             out[3 * k + 2] = r.flags;
         }
-        if (hc_write(fo, out, got * (int)(3 * sizeof(uint32_t))) != got * (int)(3 * sizeof(uint32_t))) {
+        const int bytes = got * (int)(3 * sizeof(uint32_t));
+        if (hc_write(fo, out, bytes) != bytes) {
             return 3;
         }
     }
@@ -241,9 +242,7 @@ M4_CYCLES: dict[str, int] = {
     **dict.fromkeys("ldr ldrh ldrb ldrsh ldrsb str strh strb".split(), 2),
     **dict.fromkeys("ldrd strd".split(), 3),
     "it": 1,
-    **dict.fromkeys(
-        "vadd vsub vmul vnmul vabs vneg vcmp vcmpe vcvt vmov vmrs vmsr".split(), 1
-    ),
+    **dict.fromkeys("vadd vsub vmul vnmul vabs vneg vcmp vcmpe vcvt vmov vmrs vmsr".split(), 1),
     **dict.fromkeys("vmla vmls vnmla vnmls vfma vfms vfnma vfnms".split(), 3),
     **dict.fromkeys("vdiv vsqrt".split(), 14),
     **dict.fromkeys("vldr vstr".split(), 2),
@@ -303,7 +302,8 @@ def build(
     ld = workdir / f"link_{target}.ld"
     ld.write_text(LINKER.format(flash=t.flash, ram=t.ram))
     elf = workdir / f"{stem}_{target}.elf"
-    _run([gcc, *t.cflags, "-std=gnu99", "-O2", "-ffreestanding", "-nostdlib", f"-DHC_Q={int(fixed)}",
+    _run([gcc, *t.cflags, "-std=gnu99", "-O2", "-ffreestanding", "-nostdlib",
+          f"-DHC_Q={int(fixed)}",
           f"-I{gen_dir}", "-T", str(ld), str(workdir / "startup.c"),
           str(workdir / "semihosting.c"), str(workdir / "driver.c"), str(obj), "-lgcc",
           "-o", str(elf)])  # fmt: skip
@@ -493,7 +493,9 @@ def trace(b: Build, samples: np.ndarray, *, entry: str | None = None,
             cost = 1 + _register_count(ops) + (2 if "pc" in ops else 0)
         elif base in _INT_LOADS or base in _INT_STORES:
             cost = 2
-            base_reg = ops.split("[", 1)[1].split(",")[0].split("]")[0].strip() if "[" in ops else ""
+            base_reg = (
+                ops.split("[", 1)[1].split(",")[0].split("]")[0].strip() if "[" in ops else ""
+            )
             if base in _INT_STORES and re.search(r"\[\w+(, #-?\d+)?\]$", ops.strip()):
                 cost = 1  # STR Rx, [Ry, #imm] is always one cycle
             elif prev_load is not None and base_reg != prev_load and base_reg != "pc":

@@ -240,14 +240,15 @@ def _ci(value: int) -> str:
 
 def _c_list(values: Sequence[str], per_line: int, indent: str = "    ") -> str:
     return "\n".join(
-        indent + ", ".join(values[i : i + per_line]) + ","
-        for i in range(0, len(values), per_line)
+        indent + ", ".join(values[i : i + per_line]) + "," for i in range(0, len(values), per_line)
     )
 
 
 def _banner(fname: str, lines: Sequence[str]) -> str:
     body = [comment_text(t, limit=100) for t in lines]
-    return "/*\n" + "\n".join((" * " + t).rstrip() for t in [comment_text(fname)] + body) + "\n */\n"
+    return (
+        "/*\n" + "\n".join((" * " + t).rstrip() for t in [comment_text(fname)] + body) + "\n */\n"
+    )
 
 
 def _version() -> str:
@@ -444,7 +445,9 @@ def _fixed_numbers(d: FirmwareDesign, adc_scale: float) -> _FixedNumbers:
     row1 = float(np.max(np.abs(P).sum(axis=1)))
     quant_max = 0.5 * row1 * math.sqrt(2.0) / (s * pl.radius_model[0]) / n
     r_mean = 0.5 * sum(pl.radius_model)
-    quant_rms = (1.0 / math.sqrt(12.0)) * float(np.linalg.norm(P)) / (math.sqrt(2.0) * s * r_mean) / n
+    quant_rms = (
+        (1.0 / math.sqrt(12.0)) * float(np.linalg.norm(P)) / (math.sqrt(2.0) * s * r_mean) / n
+    )
     if d.noise_floor is not None:
         if quant_rms > d.noise_floor:
             raise HallcalInputError(
@@ -494,7 +497,9 @@ def _fixed_numbers(d: FirmwareDesign, adc_scale: float) -> _FixedNumbers:
     r_lo_a = pl.radius_lo * scale
     r_hi_a = pl.radius_hi * scale
     if r_hi_a >= 2.0**30.5 or r_lo_a < 2.0**24:
-        raise HallcalInputError("the fixed-point variant cannot scale this sensor map")  # pragma: no cover
+        raise HallcalInputError(
+            "the fixed-point variant cannot scale this sensor map"
+        )  # pragma: no cover
     # radius check on (|a| >> 15, |b| >> 15): r_s in [r / 2^15 - sqrt 2, r / 2^15]
     r2_lo = int(math.floor((r_lo_a / 2.0**15) ** 2))
     r2_hi = int(math.ceil((r_hi_a / 2.0**15) ** 2))
@@ -586,7 +591,8 @@ def _fixed_numbers(d: FirmwareDesign, adc_scale: float) -> _FixedNumbers:
     eta_round = (2.0 + 2.0**-16 * 65536.0) * lsb + 2.0**-16 * 32768.0 * d.table.lsb_rad
     bound = d.table.error + (1.0 + slope) * e_u + eta_round
     return _FixedNumbers(
-        lo=lo, hi=hi, centre=centre, proj_hi=hi_parts, proj_lo=lo_parts, lo_shift=kl, bias=xb, a0=a0,
+        lo=lo, hi=hi, centre=centre, proj_hi=hi_parts, proj_lo=lo_parts, lo_shift=kl, bias=xb,
+        a0=a0,
         proj_shift=ps + kl, r2_lo=r2_lo, r2_hi=r2_hi,
         tan8=0, period=period, half=half, quarter=quarter, eighth=eighth, turn_base=turn_base,
         cordic=cordic, sx=sx, kr=kr, seed_a=seed_a, seed_b=seed_b, seed_shift=seed_shift, sy=sy,
@@ -802,7 +808,8 @@ ${projection}
     /* plausibility: each channel in its calibrated range (NaN is not), then the radius */
     if (${range_check}) {
         flags = ${PFX}_REJ_RANGE;
-    } else if ((hc_bits(r2) - ${r2_lo_bits}u) <= ${r2_span_bits}u) { /* r2 in [${r2_lo}, ${r2_hi}] */
+    } else if ((hc_bits(r2) - ${r2_lo_bits}u) <= ${r2_span_bits}u) {
+        /* r2 in [${r2_lo}, ${r2_hi}] */
         const uint32_t p = hc_angle(a, b); /* electrical angle, Q0.32 turns */
         const int32_t step = hc_s32(p - s->phase);         /* wrapped into [-1/2, 1/2) turn */
         const uint32_t mag = (step < 0) ? (0u - (uint32_t)step) : (uint32_t)step;
@@ -929,7 +936,7 @@ extern "C" {
 
 /* Flags of a reading (bit mask). */
 #define ${PFX}_Q_HELD 1u           /* this sample was rejected: the reading is the last accepted */
-#define ${PFX}_Q_FAULT 2u          /* ${PFX}_Q_FAULT_AFTER rejected in a row; latched until cleared */
+#define ${PFX}_Q_FAULT 2u          /* ${PFX}_Q_FAULT_AFTER rejected in a row; latched */
 #define ${PFX}_Q_REJ_RANGE 4u      /* a channel outside its calibrated range */
 #define ${PFX}_Q_REJ_AMPLITUDE 8u  /* alpha/beta radius outside its calibrated window */
 #define ${PFX}_Q_REJ_STEP 16u      /* step from the last accepted angle above the limit */
@@ -1110,20 +1117,19 @@ uint32_t ${pfx}_q_update(${pfx}_q_state *s, int32_t d1, int32_t d2, int32_t d3)
         || (((uint32_t)d3 - ${lo3}u) > ${span3}u)) {
         flags = ${PFX}_Q_REJ_RANGE;
     } else {
-        /* f_init, eq. (fimp): alpha, beta = P (d - o) 2^${pshift}, with P 2^${pshift} = PH 2^${kl} + PL
-         * (PL >= 0 acts on the shifted, non-negative inputs); its rows sum to ${rowsum} */
+        /* f_init, eq. (fimp): alpha, beta = P (d - o) 2^${pshift}, with
+         * P 2^${pshift} = PH 2^${kl} + PL (PL >= 0 acts on the shifted, non-negative inputs);
+         * its rows sum to ${rowsum} */
         const int32_t x1 = d1 - ${c1};
         const int32_t x2 = d2 - ${c2};
         const int32_t x3 = d3 - ${c3};
         const uint32_t y1 = (uint32_t)(x1 + ${xb}); /* >= 0: x is within the channel range */
         const uint32_t y2 = (uint32_t)(x2 + ${xb});
         const uint32_t y3 = (uint32_t)(x3 + ${xb});
-        const int32_t a = ((((${p00} * x1) + (${p01} * x2)) + (${p02} * x3))
-                           + (int32_t)((((${l00}u * y1) + (${l01}u * y2)) + (${l02}u * y3)) >> ${kl}))
-                          - ${a0};
-        const int32_t b = ((((${p10} * x1) + (${p11} * x2)) + (${p12} * x3))
-                           + (int32_t)((((${l10}u * y1) + (${l11}u * y2)) + (${l12}u * y3)) >> ${kl}))
-                          - ${b0};
+        const uint32_t la = (((${l00}u * y1) + (${l01}u * y2)) + (${l02}u * y3)) >> ${kl};
+        const uint32_t lb = (((${l10}u * y1) + (${l11}u * y2)) + (${l12}u * y3)) >> ${kl};
+        const int32_t a = ((((${p00} * x1) + (${p01} * x2)) + (${p02} * x3)) + (int32_t)la) - ${a0};
+        const int32_t b = ((((${p10} * x1) + (${p11} * x2)) + (${p12} * x3)) + (int32_t)lb) - ${b0};
         const uint32_t as = hc_abs(a) >> 15;
         const uint32_t bs = hc_abs(b) >> 15;
         const uint32_t r2 = (as * as) + (bs * bs);
@@ -1439,22 +1445,22 @@ def _fixed_source(ctx: _Context, q: _FixedNumbers, banner: str, defs: str) -> st
     kbits = (m // n).bit_length() - 1  # M = n 2^k
     pl = d.plausibility
     hold_cap = max(pl.fault_after, q.unlimited_after + 1)
-    steps = "\n".join(
-        _CORDIC_STEP.format(i=i, atan=q.cordic[i]) for i in range(CORDIC_STEPS)
-    )
+    steps = "\n".join(_CORDIC_STEP.format(i=i, atan=q.cordic[i]) for i in range(CORDIC_STEPS))
     if n == 1:
         unwrap = _UNWRAP_1
         wrap_period = "    /* one pole pair: the electrical turn is the whole 2^32 */"
         init_wrap = "    /* one pole pair: the phase is the angle */"
         period_text = "2^32"
     else:
-        unwrap = _UNWRAP_N.format(
-            half=q.half, period=q.period, n_minus_1=n - 1
-        ).replace(f"step - {q.period};", _int_sub("step", q.period) + ";").replace(
-            f"step + {q.period};", _int_add("step", q.period) + ";"
+        unwrap = (
+            _UNWRAP_N.format(half=q.half, period=q.period, n_minus_1=n - 1)
+            .replace(f"step - {q.period};", _int_sub("step", q.period) + ";")
+            .replace(f"step + {q.period};", _int_add("step", q.period) + ";")
         )
         wrap_period = f"    if (p >= {q.period}u) {{\n        p = p - {q.period}u;\n    }}"
-        init_wrap = f"    if (s->phase >= {q.period}u) {{\n        s->phase = {q.period - 1}u;\n    }}"
+        init_wrap = (
+            f"    if (s->phase >= {q.period}u) {{\n        s->phase = {q.period - 1}u;\n    }}"
+        )
         period_text = str(q.period)
     eshift = t.shift - 16
     rowsum = "zero" if d.rejects_common_mode else "the float rows' sums"
@@ -1475,7 +1481,8 @@ def _fixed_source(ctx: _Context, q: _FixedNumbers, banner: str, defs: str) -> st
             "                const uint32_t g = (f * (65536u - f)) >> 16;\n"
             "                const uint32_t acc = ((((uint32_t)hc_t[i] * (65536u - f))\n"
             "                                       + ((uint32_t)hc_t[i + 1u] * f))\n"
-            f"                                      + (((uint32_t)hc_c[i] * g) << {t.curvature_shift}))\n"
+            "                                      + (((uint32_t)hc_c[i] * g) << "
+            f"{t.curvature_shift}))\n"
             f"                                     - (g << {t.curvature_shift + 7});"
         )
     else:
@@ -1500,7 +1507,8 @@ def _fixed_source(ctx: _Context, q: _FixedNumbers, banner: str, defs: str) -> st
     else:
         fixed_index = (
             f"                const uint32_t e = p * {n}u; /* electrical angle, Q0.32 turns */\n"
-            f"                const uint32_t i = ((uint32_t)turn << {kbits}) + (e >> {32 - kbits});\n"
+            f"                const uint32_t i = ((uint32_t)turn << {kbits})"
+            f" + (e >> {32 - kbits});\n"
             f"                const uint32_t f = (e >> {16 - kbits}) & 0xFFFFu;"
         )
     return _FIXED_C.substitute(
@@ -1702,8 +1710,10 @@ def export_c(
         fixed-point variant can take, or an option out of range. Nothing is written then.
     """
     if not isinstance(prefix, str) or not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]{0,30}", prefix):
-        raise HallcalInputError(f"prefix {str(prefix)[:40]!r} is not a C identifier (at most 31 "
-                                "letters, digits and underscores, starting with a letter)")  # fmt: skip
+        raise HallcalInputError(
+            f"prefix {str(prefix)[:40]!r} is not a C identifier (at most 31 letters, digits and "
+            "underscores, starting with a letter)"
+        )
     if prefix in _C_KEYWORDS:
         raise HallcalInputError(f"prefix {prefix!r} is a C keyword")
     if isinstance(adc_scale, bool) or not isinstance(adc_scale, int | float):
@@ -1771,12 +1781,16 @@ def export_c(
     ctx_f = _Context(artifact, design, pfx, PFX, "float")
     secs = _sections(ctx_f)
     section_names += [s.name for s in secs]
-    lines_f = common + [
-        "",
-        "Float variant: single precision, no libm, no double, no division.",
-        f"  stated bound vs hallcal reconstruct: {fn.bound:.2e} rad (mechanical)",
-        f"  atan2: |error| <= {fn.atan_bound:.2e} rad (electrical)",
-    ] + [note for s in secs for note in s.notes]
+    lines_f = (
+        common
+        + [
+            "",
+            "Float variant: single precision, no libm, no double, no division.",
+            f"  stated bound vs hallcal reconstruct: {fn.bound:.2e} rad (mechanical)",
+            f"  atan2: |error| <= {fn.atan_bound:.2e} rad (electrical)",
+        ]
+        + [note for s in secs for note in s.notes]
+    )
     texts.append(
         (
             f"{pfx}.h",
@@ -1800,15 +1814,19 @@ def export_c(
     if q is not None:
         ctx_q = _Context(artifact, design, pfx, PFX, "fixed")
         secs_q = _sections(ctx_q)
-        lines_q = common + [
-            "",
-            "Fixed-point variant: 32-bit integers only (no float, no 64-bit, no division).",
-            f"  inputs: ADC counts, adc_scale {adc_scale:g} counts per artifact unit",
-            f"  stated bound vs hallcal reconstruct on the same counts: {q.bound:.2e} rad",
-            f"  atan2: |error| <= {q.atan_bound:.2e} rad (electrical)",
-            f"  rounding the artifact's signals to counts adds {q.quant_rms:.2e} rad RMS "
-            f"(at most {q.quant_max:.2e})",
-        ] + [note for s in secs_q for note in s.notes]
+        lines_q = (
+            common
+            + [
+                "",
+                "Fixed-point variant: 32-bit integers only (no float, no 64-bit, no division).",
+                f"  inputs: ADC counts, adc_scale {adc_scale:g} counts per artifact unit",
+                f"  stated bound vs hallcal reconstruct on the same counts: {q.bound:.2e} rad",
+                f"  atan2: |error| <= {q.atan_bound:.2e} rad (electrical)",
+                f"  rounding the artifact's signals to counts adds {q.quant_rms:.2e} rad RMS "
+                f"(at most {q.quant_max:.2e})",
+            ]
+            + [note for s in secs_q for note in s.notes]
+        )
         texts.append(
             (
                 f"{pfx}_q.h",

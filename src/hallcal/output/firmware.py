@@ -620,8 +620,10 @@ def design_firmware(
         raise _bad(source, "reconstruction.offset", "has an implausible scale")
     if isinstance(tolerance, bool) or not (0.0 <= float(tolerance) <= 0.9):
         raise HallcalInputError(f"tolerance must be in [0, 0.9], got {tolerance!r}")
-    if isinstance(fault_after, bool) or not isinstance(fault_after, int) or not (
-        4 <= fault_after <= 1000
+    if (
+        isinstance(fault_after, bool)
+        or not isinstance(fault_after, int)
+        or not (4 <= fault_after <= 1000)
     ):
         raise HallcalInputError(f"fault_after must be an integer in 4..1000, got {fault_after!r}")
     if max_speed is not None and not (math.isfinite(max_speed) and max_speed > 0.0):
@@ -636,9 +638,7 @@ def design_firmware(
     messages: list[str] = []
     budget = DEFAULT_BUDGET if floor is None else min(BUDGET_FRACTION * floor, MAX_BUDGET)
     if floor is None:
-        messages.append(
-            f"the artifact states no noise floor: table budget {DEFAULT_BUDGET:g} rad"
-        )
+        messages.append(f"the artifact states no noise floor: table budget {DEFAULT_BUDGET:g} rad")
     if table_points is not None:
         if (
             isinstance(table_points, bool)
