@@ -174,26 +174,41 @@ static PFX_state st;
 #endif
 static in_t in[3 * CHUNK_N];
 static uint32_t out[3 * CHUNK_N];
-int main(void)
+static void init(void)
 {
-    const int fi = hc_open("in.bin", 1);
-    const int fo = hc_open("out.bin", 5);
-    int got;
-    int k;
-    if ((fi < 0) || (fo < 0)) {
-        return 2;
-    }
 #if HC_Q
     PFX_q_init(&st, 0, 0u);
 #else
     PFX_init(&st, 0, 0.0f);
 #endif
+}
+int main(void)
+{
+    const int fi = hc_open("in.bin", 1);
+    const int fo = hc_open("out.bin", 5);
+    const int fb = hc_open("block.bin", 1); /* optional: re-init every this many samples */
+    uint32_t block = 0u;
+    uint32_t count = 0u;
+    int got;
+    int k;
+    if ((fi < 0) || (fo < 0)) {
+        return 2;
+    }
+    if (fb >= 0) {
+        (void)hc_read(fb, &block, (int)sizeof block);
+        hc_close(fb);
+    }
+    init();
     for (;;) {
         got = hc_read(fi, in, (int)sizeof in) / (int)(3 * sizeof(in_t));
         if (got <= 0) {
             break;
         }
         for (k = 0; k < got; ++k) {
+            if ((block != 0u) && (count != 0u) && ((count % block) == 0u)) {
+                init();
+            }
+            count = count + 1u;
 #if HC_Q
             PFX_q_reading r;
             (void)PFX_q_update(&st, in[3 * k], in[3 * k + 1], in[3 * k + 2]);
@@ -231,7 +246,8 @@ int main(void)
 #: multi-register transfers as 1 + N (+ P when they load the PC).
 M4_CYCLES: dict[str, int] = {
     **dict.fromkeys(
-        "add adc sub sbc rsb mov mvn cmp cmn and orr orn eor bic tst teq lsl lsr asr ror rrx "
+        "add adc sub sbc rsb neg addw subw mov mvn cmp cmn and orr orn eor bic tst teq lsl lsr "
+        "asr ror rrx "
         "uxth uxtb sxth sxtb ubfx sbfx bfi bfc clz rbit rev rev16 revsh movw movt adr nop "
         "usat ssat mul".split(),
         1,
@@ -352,8 +368,9 @@ def _qemu(b: Build, extra: list[str], timeout: float) -> None:
         raise RuntimeError(f"QEMU exit status {res.returncode}: {res.stdout}{res.stderr}")
 
 
-def run(b: Build, samples: np.ndarray, *, timeout: float = 120.0) -> np.ndarray:
-    """Run the program on samples (N x 3; float32 or int32 as the variant takes).
+def run(b: Build, samples: np.ndarray, *, block: int = 0, timeout: float = 120.0) -> np.ndarray:
+    """Run the program on samples (N x 3; float32 or int32 as the variant takes); with
+    ``block`` > 0 the state is re-initialised every ``block`` samples.
 
     Returns
     -------
@@ -362,6 +379,7 @@ def run(b: Build, samples: np.ndarray, *, timeout: float = 120.0) -> np.ndarray:
     """
     data = np.ascontiguousarray(samples, dtype=np.int32 if b.fixed else np.float32)
     (b.workdir / "in.bin").write_bytes(data.tobytes())
+    (b.workdir / "block.bin").write_bytes(np.uint32(block).tobytes())
     out = b.workdir / "out.bin"
     out.unlink(missing_ok=True)
     _qemu(b, [], timeout)
@@ -459,6 +477,7 @@ def trace(b: Build, samples: np.ndarray, *, entry: str | None = None,
     start = ranges[entry][0]
     data = np.ascontiguousarray(samples, dtype=np.int32 if b.fixed else np.float32)
     (b.workdir / "in.bin").write_bytes(data.tobytes())
+    (b.workdir / "block.bin").write_bytes(np.uint32(0).tobytes())
     log = b.workdir / "trace.log"
     log.unlink(missing_ok=True)
     dfilter = ",".join(f"0x{a:x}+0x{s:x}" for a, s in ranges.values())
