@@ -641,3 +641,64 @@ def test_max_speed_sets_the_step_limit(tmp_path, cal):
     w = 20.0 * 2.5e-4 * cal.n / TWO_PI
     assert slow.step_limit == pytest.approx(2 * w, rel=0.2)
     assert slow.glitch_safe_speed >= 20.0 * 2.5e-4
+
+
+# ------------------------------------------------------------------------------------------
+# Command line
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def cli_artifact(tmp_path_factory, cal):
+    """The test calibration as a complete artifact file (hallcal's setup for 11 pole pairs)."""
+    from hallcal.io import default_setup, write_artifact
+
+    folder = tmp_path_factory.mktemp("cli")
+    art = copy.deepcopy(cal.artifact)
+    art["setup"] = default_setup()
+    path = folder / "cal.json"
+    write_artifact(path, art)
+    return folder, path
+
+
+def _hallcal(*args, cwd, env=None):
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "hallcal.cli", *args], cwd=cwd,
+                          capture_output=True, text=True, env=env, timeout=300)  # fmt: skip
+
+
+def test_cli_export_options_and_refusals(cli_artifact):
+    folder, path = cli_artifact
+    r = _hallcal("export-c", str(path), "--out", "fw1", "--no-fixed-point", cwd=folder)
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in (folder / "fw1").iterdir()) == ["hallcal.c", "hallcal.h"]
+    r = _hallcal("export-c", str(path), "--out", "fw2", "--max-speed", "50", "--prefix", "m2",
+                 "--fault-after", "6", "--tolerance", "0.2", cwd=folder)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    h = (folder / "fw2" / "m2.h").read_text()
+    assert "#define M2_FAULT_AFTER 6" in h and "m2_update" in h
+    for args, why in [
+        (["--adc-scale", "1e30"], "2^30 counts"),
+        (["--adc-scale", "0.001"], "noise floor"),
+        (["--table-points", "1000"], "table_points"),
+        (["--max-speed", "1e7"], "cannot follow"),
+        (["--prefix", "a b"], "C identifier"),
+    ]:
+        r = _hallcal("export-c", str(path), "--out", "bad", *args, cwd=folder)
+        assert r.returncode == 2, (args, r.stderr)
+        assert r.stderr.count("\n") == 1 and why in r.stderr and "Traceback" not in r.stderr
+        assert not (folder / "bad").exists()
+
+
+def test_cli_non_ascii_paths_in_an_ascii_locale(cli_artifact):
+    folder, path = cli_artifact
+    hostile = folder / "k\u00e4l*\\\n#define X 1\n.json"
+    hostile.write_bytes(path.read_bytes())
+    env = dict(os.environ, PYTHONIOENCODING="ascii", LC_ALL="C", LANG="C")
+    r = _hallcal("export-c", str(hostile), "--out", "f\u00fcr-fw", cwd=folder, env=env)
+    assert r.returncode == 0, r.stderr
+    assert "\\xfc" in r.stdout  # the name is written, escaped
+    for p in (folder / "f\u00fcr-fw").iterdir():
+        text = p.read_text(encoding="ascii")
+        assert "#define X 1" not in _code(text)
