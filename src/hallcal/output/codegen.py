@@ -78,7 +78,7 @@ _EPS_F32 = 2.0**-24  # unit roundoff of IEEE single precision
 #: table is chosen when the arithmetic would take it above.
 MAX_TOTAL_ERROR = 1e-5
 #: CORDIC steps of the fixed-point atan2 before the residual is taken as atan(t) ~ t - t^3/3.
-CORDIC_STEPS = 6
+CORDIC_STEPS = 5
 _TAN_PI_8 = math.tan(math.pi / 8.0)
 _C_KEYWORDS = frozenset(
     "auto break case char const continue default do double else enum extern float for goto if "
@@ -1128,16 +1128,20 @@ uint32_t ${pfx}_q_update(${pfx}_q_state *s, int32_t d1, int32_t d2, int32_t d3)
         /* f_init, eq. (fimp): alpha, beta = P (d - o) 2^${pshift}, with
          * P 2^${pshift} = PH 2^${kl} + PL (PL >= 0 acts on the shifted, non-negative inputs);
          * its rows sum to ${rowsum} */
-        const int32_t x1 = d1 - ${c1};
-        const int32_t x2 = d2 - ${c2};
-        const int32_t x3 = d3 - ${c3};
-        const uint32_t y1 = (uint32_t)(x1 + ${xb}); /* >= 0: x is within the channel range */
-        const uint32_t y2 = (uint32_t)(x2 + ${xb});
-        const uint32_t y3 = (uint32_t)(x3 + ${xb});
+        /* in unsigned (modular) arithmetic: the true values fit in int32, so no product or
+         * sum can overflow anything, and hc_s32 recovers the signed results */
+        const uint32_t x1 = (uint32_t)d1 - ${c1}u;
+        const uint32_t x2 = (uint32_t)d2 - ${c2}u;
+        const uint32_t x3 = (uint32_t)d3 - ${c3}u;
+        const uint32_t y1 = x1 + ${xb}u; /* x + xb >= 0: x is within the channel range */
+        const uint32_t y2 = x2 + ${xb}u;
+        const uint32_t y3 = x3 + ${xb}u;
         const uint32_t la = (((${l00}u * y1) + (${l01}u * y2)) + (${l02}u * y3)) >> ${kl};
         const uint32_t lb = (((${l10}u * y1) + (${l11}u * y2)) + (${l12}u * y3)) >> ${kl};
-        const int32_t a = ((((${p00} * x1) + (${p01} * x2)) + (${p02} * x3)) + (int32_t)la) - ${a0};
-        const int32_t b = ((((${p10} * x1) + (${p11} * x2)) + (${p12} * x3)) + (int32_t)lb) - ${b0};
+        const uint32_t ha = ((${p00}u * x1) + (${p01}u * x2)) + (${p02}u * x3);
+        const uint32_t hb = ((${p10}u * x1) + (${p11}u * x2)) + (${p12}u * x3);
+        const int32_t a = hc_s32((ha + la) - ${a0}u);
+        const int32_t b = hc_s32((hb + lb) - ${b0}u);
         const uint32_t as = hc_abs(a) >> 15;
         const uint32_t bs = hc_abs(b) >> 15;
         const uint32_t r2 = (as * as) + (bs * bs);
@@ -1571,25 +1575,25 @@ def _fixed_source(ctx: _Context, q: _FixedNumbers, banner: str, defs: str) -> st
         limit_cap=(q.half if n > 1 else 1 << 31),
         pshift=q.proj_shift,
         rowsum=rowsum,
-        c1=f"({_ci(q.centre[0])})",
-        c2=f"({_ci(q.centre[1])})",
-        c3=f"({_ci(q.centre[2])})",
-        p00=f"({_ci(q.proj_hi[0][0])})",
-        p01=f"({_ci(q.proj_hi[0][1])})",
-        p02=f"({_ci(q.proj_hi[0][2])})",
-        p10=f"({_ci(q.proj_hi[1][0])})",
-        p11=f"({_ci(q.proj_hi[1][1])})",
-        p12=f"({_ci(q.proj_hi[1][2])})",
+        c1=q.centre[0] % _U32,
+        c2=q.centre[1] % _U32,
+        c3=q.centre[2] % _U32,
+        p00=q.proj_hi[0][0] % _U32,
+        p01=q.proj_hi[0][1] % _U32,
+        p02=q.proj_hi[0][2] % _U32,
+        p10=q.proj_hi[1][0] % _U32,
+        p11=q.proj_hi[1][1] % _U32,
+        p12=q.proj_hi[1][2] % _U32,
         l00=q.proj_lo[0][0],
         l01=q.proj_lo[0][1],
         l02=q.proj_lo[0][2],
         l10=q.proj_lo[1][0],
         l11=q.proj_lo[1][1],
         l12=q.proj_lo[1][2],
+        a0=q.a0[0] % _U32,
+        b0=q.a0[1] % _U32,
         kl=q.lo_shift,
         xb=q.bias,
-        a0=f"({_ci(q.a0[0])})",
-        b0=f"({_ci(q.a0[1])})",
         r2_lo=q.r2_lo,
         r2_hi=q.r2_hi,
         unwrap=unwrap,
