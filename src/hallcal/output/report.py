@@ -1233,6 +1233,8 @@ def write_demo_report(
     out_dir : path-like
     noise_floor : float
         RMS angle error of the bench's Hall noise alone [rad].
+    progress : callable, optional
+        Called with a short message per step.
 
     Returns
     -------
@@ -1281,6 +1283,8 @@ def write_calibration_report(
     out_dir : path-like
     validation : Dataset, optional
         A fresh recording with ``y_ref``.
+    progress : callable, optional
+        Called with a short message per step.
 
     Returns
     -------
