@@ -702,3 +702,93 @@ def test_cli_non_ascii_paths_in_an_ascii_locale(cli_artifact):
     for p in (folder / "f\u00fcr-fw").iterdir():
         text = p.read_text(encoding="ascii")
         assert "#define X 1" not in _code(text)
+
+
+# ------------------------------------------------------------------------------------------
+# Optional sections: the anticogging feed-forward
+# ------------------------------------------------------------------------------------------
+
+COGGING = {
+    "orders": [66, 132, 11, 1, 22],
+    "a": [0.012, 0.003, 0.001, 0.0005, -0.0007],
+    "b": [0.002, -0.001, 0.0, 0.0002, 0.0004],
+    "std_a": [1e-4] * 5,
+    "std_b": [1e-4] * 5,
+    "unit": "plant input */ #define X",
+}
+
+
+def test_anticogging_section_matches_the_map(tmp_path, cal):
+    """With "cogging" in the artifact the float variant gets hallcal_anticogging(angle):
+    within 1e-6 of the map relative to its largest value, at any angle (reduced to one
+    revolution); the fixed variant and an artifact without the key get nothing."""
+    from hallcal.output.firmware import cogging_map, cogging_table
+
+    art = copy.deepcopy(cal.artifact)
+    art["cogging"] = COGGING
+    res = export_c(art, tmp_path / "fw", source="cal.json")
+    assert res.sections == ("anticogging",)
+    h = (tmp_path / "fw" / "hallcal.h").read_text()
+    assert "float hallcal_anticogging(float angle);" in h
+    assert "#define X" not in _code(h + (tmp_path / "fw" / "hallcal.c").read_text())
+    assert "anticogging" not in (tmp_path / "fw" / "hallcal_q.h").read_text()
+    assert "anticogging" not in (work_plain := export_c(cal.artifact, tmp_path / "plain")).sections
+    assert work_plain.sections == ()
+    drv = tmp_path / "cog.c"
+    drv.write_text(
+        '#include <stdio.h>\n#include "hallcal.c"\n'
+        "int main(void) { float a; while (fread(&a, sizeof a, 1, stdin) == 1) {\n"
+        "  float t = hallcal_anticogging(a); fwrite(&t, sizeof t, 1, stdout); } return 0; }\n"
+    )
+    exe = tmp_path / "cog"
+    subprocess.run([CC, *STRICT, "-O2", f"-I{tmp_path / 'fw'}", str(drv), "-o", str(exe)],
+                   check=True, capture_output=True)  # fmt: skip
+    rng = np.random.default_rng(9)
+    y = np.concatenate([rng.uniform(0, TWO_PI, 200_000), rng.uniform(-50, 50, 20_000),
+                        TWO_PI * np.arange(4096) / 4096]).astype(np.float32)  # fmt: skip
+    out = subprocess.run([str(exe)], input=y.tobytes(), capture_output=True, check=True).stdout
+    got = np.frombuffer(out, dtype=np.float32).astype(np.float64)
+    ref = cogging_map(COGGING["orders"], COGGING["a"], COGGING["b"], y.astype(np.float64))
+    scale = float(np.max(np.abs(ref)))
+    tab = cogging_table(COGGING)
+    # the table itself: within 1e-6 of the map (relative to its largest value), exactly
+    dense = np.linspace(0.0, TWO_PI, 2_000_001)
+    table_rel = float(np.max(np.abs(tab.interpolate(dense) - tab.torque(dense)))) / tab.scale
+    # the C: the table's cubic at the angle, within the single-precision position rounding
+    # (2^-24 of a revolution; the reduction of angles outside [0, 2 pi) adds 2 more ulps of
+    # the reduced angle) times the map's largest slope, plus 1e-7 of rounded sums
+    inside = (y >= 0) & (y < TWO_PI)
+    rounding = tab.slope * TWO_PI * 2.0**-24 * np.where(inside, 2.0, 6.0) + 1e-7 * scale
+    excess = np.abs(got - ref) - (1e-6 * scale + rounding)
+    worst = float(np.max(np.abs(got - ref)))
+    print(f"anticogging: table {table_rel:.1e} relative; C - map max {worst:.2e} (scale "
+          f"{scale:.3g}, slope {tab.slope:.3g})")  # fmt: skip
+    assert table_rel <= 1e-6
+    assert np.all(excess <= 0)
+    # at the table's nodes (exact positions) the C gives the map within 1e-6 relative
+    nodes = (TWO_PI * np.arange(tab.points) / tab.points).astype(np.float32)
+    out = subprocess.run([str(exe)], input=nodes.tobytes(), capture_output=True, check=True).stdout
+    at_nodes = np.frombuffer(out, dtype=np.float32).astype(np.float64)
+    on = np.abs(at_nodes - tab.torque(nodes.astype(np.float64))) / tab.scale
+    assert np.max(on) <= 1e-6 + tab.slope * TWO_PI * 2.0**-24 * 2 / tab.scale
+    nan = np.array([np.nan, np.inf, -np.inf, 1e30], dtype=np.float32)
+    out = subprocess.run([str(exe)], input=nan.tobytes(), capture_output=True, check=True).stdout
+    assert np.all(np.isfinite(np.frombuffer(out, dtype=np.float32)))
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "named"),
+    [
+        ("orders", [0, 1], "cogging.orders"),
+        ("orders", [1, 1], "cogging.orders"),
+        ("a", [1.0], "cogging.a"),
+        ("b", "x", "cogging.b"),
+        ("orders", list(range(1, 5000)), "cogging.orders"),
+    ],
+)
+def test_malformed_cogging_is_refused(tmp_path, cal, key, value, named):
+    art = copy.deepcopy(cal.artifact)
+    art["cogging"] = dict(COGGING, **{key: value})
+    with pytest.raises(HallcalInputError, match=re.escape(f"'{named}'")):
+        export_c(art, tmp_path)
+    assert not list(tmp_path.iterdir())

@@ -687,3 +687,143 @@ def design_firmware(
         sha256=sha256,
         messages=tuple(messages),
     )
+
+
+# --------------------------------------------------------------------------------------------
+# Anticogging feed-forward (artifact key "cogging")
+# --------------------------------------------------------------------------------------------
+
+#: Relative accuracy of the anticogging table against the Fourier map.
+COGGING_RELATIVE_ERROR = 1e-6
+#: Largest anticogging table (float values).
+MAX_COGGING_POINTS = 65536
+
+
+@dataclass(frozen=True)
+class CoggingTable:
+    """The anticogging feed-forward T_c(y0) as a uniform float table, cubic interpolation.
+
+    ``T_c(y0) = sum_k a_k cos(k y0) + b_k sin(k y0)`` (artifact key ``"cogging"``, y0 the
+    mechanical angle), tabulated at ``y0 = 2 pi i / N`` and interpolated by the cubic through the
+    four nearest values (periodic).
+
+    Attributes
+    ----------
+    orders, a, b : ndarray
+        The map's harmonics and coefficients.
+    unit : str
+        As the artifact states it (``"plant input"``).
+    values : ndarray of float32, shape (N,)
+        The table.
+    error : float
+        Largest |table - map| over the revolution (dense evaluation with the table's float32
+        values, in double), in the map's unit.
+    scale : float
+        Largest |T_c| over the revolution.
+    """
+
+    orders: NDArray[np.int64]
+    a: NDArray[np.float64]
+    b: NDArray[np.float64]
+    unit: str
+    values: NDArray[np.float32]
+    error: float
+    scale: float
+
+    @property
+    def points(self) -> int:
+        return int(self.values.size)
+
+    @property
+    def slope(self) -> float:
+        """Largest |d T_c / d y0| over the revolution (sum of k sqrt(a_k^2 + b_k^2))."""
+        return float(np.sum(self.orders * np.hypot(self.a, self.b)))
+
+    def torque(self, y0: NDArray[np.float64] | float) -> NDArray[np.float64]:
+        """The Fourier map T_c(y0) (double precision)."""
+        return cogging_map(self.orders, self.a, self.b, y0)
+
+    def interpolate(self, y0: NDArray[np.float64] | float) -> NDArray[np.float64]:
+        """The table's value at y0 as the firmware computes it (in double)."""
+        return _cubic(self.values.astype(np.float64), y0)
+
+
+def cogging_map(orders, a, b, y0) -> NDArray[np.float64]:
+    """``sum_k a_k cos(k y0) + b_k sin(k y0)`` at mechanical angles y0 [rad]."""
+    arg = np.multiply.outer(np.atleast_1d(np.asarray(y0, dtype=np.float64)), orders)
+    return np.cos(arg) @ np.asarray(a, float) + np.sin(arg) @ np.asarray(b, float)
+
+
+def _uniform(orders, a, b, n: int) -> NDArray[np.float64]:
+    """The map on y0 = 2 pi i / n, i = 0 .. n - 1 (inverse real FFT; n > 2 max order)."""
+    spec = np.zeros(n // 2 + 1, dtype=np.complex128)
+    np.add.at(spec, np.asarray(orders), (np.asarray(a) - 1j * np.asarray(b)) * (n / 2.0))
+    return np.fft.irfft(spec, n)
+
+
+def _cubic(values: NDArray[np.float64], y0) -> NDArray[np.float64]:
+    n = values.size
+    pos = np.mod(np.atleast_1d(np.asarray(y0, dtype=np.float64)), TWO_PI) * (n / TWO_PI)
+    return _cubic_at(values, pos)
+
+
+def _cubic_at(values: NDArray[np.float64], pos: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Cubic through the 4 nearest of the periodic values, at positions in [0, N)."""
+    n = values.size
+    i = np.minimum(np.floor(pos).astype(np.int64), n - 1)
+    t = pos - i
+    p0, p1, p2, p3 = (values[(i + k) % n] for k in (-1, 0, 1, 2))
+    return (
+        -t * (t - 1) * (t - 2) / 6 * p0
+        + (t + 1) * (t - 1) * (t - 2) / 2 * p1
+        - (t + 1) * t * (t - 2) / 2 * p2
+        + (t + 1) * t * (t - 1) / 6 * p3
+    )
+
+
+def cogging_table(cogging: Any, *, source: str = "<calibration artifact>") -> CoggingTable:
+    """Check the artifact's ``"cogging"`` key and tabulate the map within 1e-6 relative.
+
+    The table has the fewest points (a power of two, 64..65536, more than twice the largest
+    order) whose cubic interpolation of the float32 values stays within half of
+    :data:`COGGING_RELATIVE_ERROR` of the largest |T_c| (the other half is for the firmware's
+    single-precision arithmetic) at 16 points per interval (dense enough
+    for a cubic's error curve); the map on uniform grids comes from an inverse FFT.
+
+    Raises
+    ------
+    HallcalInputError
+        The key is malformed (named), or no table up to 65536 points reaches the accuracy.
+    """
+    if not isinstance(cogging, Mapping):
+        raise _bad(source, "cogging", "must be an object")
+    orders = _need(cogging, "orders", "cogging.orders", source)
+    if not isinstance(orders, list) or not 1 <= len(orders) <= 4096:
+        raise _bad(source, "cogging.orders", "must be a list of 1..4096 harmonics")
+    k = np.array([_integer(v, "cogging.orders", 1, 4096, source) for v in orders])
+    if len(set(k.tolist())) != k.size:
+        raise _bad(source, "cogging.orders", "has repeated harmonics")
+    a = _array(_need(cogging, "a", "cogging.a", source), (k.size,), "cogging.a", source)
+    b = _array(_need(cogging, "b", "cogging.b", source), (k.size,), "cogging.b", source)
+    if float(np.max(np.abs(np.concatenate([a, b])))) > 1e30:
+        raise _bad(source, "cogging.a", "has an implausible scale")
+    unit = cogging.get("unit", "")
+    unit = unit if isinstance(unit, str) else ""
+    scale = 0.0
+    m = 64
+    while True:
+        if 2 * int(k.max()) < m:
+            sub = 16  # 16 points per interval: dense enough for a cubic's error curve
+            ref = _uniform(k, a, b, sub * m)
+            scale = max(scale, float(np.max(np.abs(ref))))
+            vals = ref[::sub].astype(np.float32)
+            pos = np.arange(sub * m) / sub
+            err = float(np.max(np.abs(_cubic_at(vals.astype(np.float64), pos) - ref)))
+            if err <= 0.5 * COGGING_RELATIVE_ERROR * scale:  # half for float32 arithmetic
+                break
+        if m >= MAX_COGGING_POINTS:
+            raise _bad(source, "cogging.orders", "needs more than 65536 table points for 1e-6")
+        m *= 2
+    if not scale > 0.0:
+        raise _bad(source, "cogging", "is zero everywhere")
+    return CoggingTable(k, a, b, unit, vals, err, scale)
