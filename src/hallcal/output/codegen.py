@@ -14,20 +14,22 @@ no division, no compiler builtin):
    radius within its calibrated window;
 2. alpha/beta = P (d - o); the float variant forms d2 - d1 and d3 - d1 when P's rows sum to zero,
    the fixed variant's integer rows sum to exactly zero, so a common mode cancels exactly;
-3. the electrical angle: float: octant reduction, a rotation by 45 degrees above 22.5 degrees, a
-   reciprocal by Newton steps from a linear seed valid on the radius window, and an odd minimax
-   polynomial of atan on [-tan(pi/8), tan(pi/8)]; fixed: 8 sign-magnitude CORDIC steps in
-   unsigned arithmetic, then atan(y/x) ~ t - t^3/3 on the small residual with a 16-bit Newton
-   reciprocal, all scaled to mechanical Q0.32 turns;
-4. the unwrap Gamma of eq. (fimp) (ties to -pi), then the step limit from the last accepted
-   sample (grown for each sample held; none before the first accepted sample);
-5. eta from the uniform table (piecewise quadratic, int16 values + int8 curvatures) at
-   f_init's angle within the revolution, and y_star = revolutions + angle in [0, 2 pi);
+3. the electrical angle: float: octant reduction on the IEEE bit patterns, a rotation by 45
+   degrees above 22.5 degrees, a reciprocal by Newton steps from a linear seed valid on the
+   radius window, and an odd minimax polynomial of atan on [-tan(pi/8), tan(pi/8)], then Q0.32
+   turns; fixed: ``CORDIC_STEPS`` sign-magnitude CORDIC steps in unsigned arithmetic, then
+   atan(y/x) ~ t - t^3/3 on the small residual with a 16-bit Newton reciprocal, all scaled to
+   mechanical Q0.32 units;
+4. the unwrap Gamma of eq. (fimp) (ties to -pi) in integers, then the step limit from the last
+   accepted sample (grown for each sample held; none before the first accepted sample);
+5. eta from the uniform table of M = n_m 2^k intervals (int16 values, linear, or with int8
+   curvatures, quadratic) at f_init's angle within the revolution, found with shifts from the
+   turn count and the electrical angle; y_star = revolutions + angle within the revolution;
 6. a rejected sample (range, amplitude or step) is counted and the last reading held; after
    ``fault_after`` rejections in a row the fault flag latches until ``_clear_fault``;
-7. the reading (revolutions, angle, flags, rejected count) is published into one of two
-   buffers and a sequence counter advanced, so ``_read`` returns a consistent pair from any
-   context (an ISR's main loop, or a higher-priority interrupt).
+7. the reading (revolutions, angle, flags) is published into one of two buffers and a sequence
+   counter advanced, so ``_read`` returns a consistent pair from any context (the main loop
+   of an ISR's update, or a higher-priority interrupt).
 
 Generated files contain only numbers and comment text that is sanitized so that it cannot end the
 comment: file names are reduced to their base name and to the characters ``A-Za-z0-9 ._-+=,:()[]``.
@@ -235,13 +237,6 @@ def _cu(value: int) -> str:
     return f"{v}u"
 
 
-def _ci(value: int) -> str:
-    v = int(value)
-    if not -(2**31) < v < 2**31:
-        raise ValueError(v)
-    return str(v)
-
-
 def _c_list(values: Sequence[str], per_line: int, indent: str = "    ") -> str:
     return "\n".join(
         indent + ", ".join(values[i : i + per_line]) + "," for i in range(0, len(values), per_line)
@@ -404,7 +399,6 @@ class _FixedNumbers:
     proj_shift: int
     r2_lo: int
     r2_hi: int
-    tan8: int  # unused placeholder for symmetry
     period: int  # electrical period in mechanical Q0.32 units (0 for n = 1: 2^32)
     half: int
     quarter: int
@@ -424,7 +418,6 @@ class _FixedNumbers:
     s_mul: int
     s_post: int
     step_limit: int
-    unlimited_after: int
     atan_bound: float
     bound: float
     quant_rms: float
@@ -571,7 +564,6 @@ def _fixed_numbers(d: FirmwareDesign, adc_scale: float) -> _FixedNumbers:
     assert 2**15 <= s_mul < 2**16 and 0 <= s_post < 32, (s_mul, s_post)
     step = pl.step_limit * pe
     step_limit = int(math.floor(step))
-    unlimited_after = int(math.ceil(0.5 / pl.step_limit))
     # --- bounds ---
     # atan2 [rad, electrical]: the reciprocal's relative error (two Newton steps of a 16-bit
     # product: eps^4 plus 3 truncations of 2^-15) times tan(theta_max); the truncation of y to
@@ -602,10 +594,10 @@ def _fixed_numbers(d: FirmwareDesign, adc_scale: float) -> _FixedNumbers:
         lo=lo, hi=hi, centre=centre, proj_hi=hi_parts, proj_lo=lo_parts, lo_shift=kl, bias=xb,
         a0=a0,
         proj_shift=ps + kl, r2_lo=r2_lo, r2_hi=r2_hi,
-        tan8=0, period=period, half=half, quarter=quarter, eighth=eighth, turn_base=turn_base,
+        period=period, half=half, quarter=quarter, eighth=eighth, turn_base=turn_base,
         cordic=cordic, sx=sx, kr=kr, seed_a=seed_a, seed_b=seed_b, seed_shift=seed_shift, sy=sy,
         cube_shift=cube_shift, cube_mul=cube_mul, cube_post=post, d_shift=d_shift, s_mul=s_mul,
-        s_post=s_post, step_limit=step_limit, unlimited_after=unlimited_after,
+        s_post=s_post, step_limit=step_limit,
         atan_bound=atan_bound, bound=bound, quant_rms=quant_rms, quant_max=quant_max,
     )  # fmt: skip
 
@@ -1455,8 +1447,6 @@ def _fixed_source(ctx: _Context, q: _FixedNumbers, banner: str, defs: str) -> st
     n, t = d.pole_pairs, d.table
     m = t.points
     kbits = (m // n).bit_length() - 1  # M = n 2^k
-    pl = d.plausibility
-    hold_cap = max(pl.fault_after, q.unlimited_after + 1)
     steps = "\n".join(_CORDIC_STEP.format(i=i, atan=q.cordic[i]) for i in range(CORDIC_STEPS))
     if n == 1:
         unwrap = _UNWRAP_1
@@ -1603,7 +1593,6 @@ def _fixed_source(ctx: _Context, q: _FixedNumbers, banner: str, defs: str) -> st
         fixed_eta=fixed_eta,
         eshift=eshift,
         ebias=(1 << 31) >> eshift,
-        hold_cap=hold_cap,
         section_defs=defs,
     )
 
