@@ -1848,6 +1848,11 @@ def export_c(
                 break
     n, t, pl = design.pole_pairs, design.table, design.plausibility
     messages = list(design.messages)
+    if t.nbytes > 4096 and not any("bytes" in m for m in messages):
+        messages.append(
+            f"the table has {t.points} intervals ({t.nbytes} bytes): the calibration needs more "
+            "than 4 kB for a stated bound within 1e-5 rad"
+        )
     limit = design.noise_floor if design.noise_floor is not None else 1e-3
     if worst > limit:
         raise HallcalInputError(
