@@ -39,19 +39,12 @@ import numpy as np
 
 #: Exit statuses: success, bad input, refused.
 OK, INPUT, REFUSED = 0, 2, 3
+#: The base calibration is in normalized units (Hall amplitude 1): export-c needs the ADC's
+#: counts per unit for the fixed-point variant (2048: a 12-bit converter's half range). A case's
+#: own --adc-scale comes later on the command line and wins.
+ADC_SCALE = ["--adc-scale", "2048"]
 #: What the error line of a corrupt or truncated file must say.
 CORRUPT = r"corrupt|truncated|implausible|not a valid|cannot be read|is empty|holds Python objects"
-
-#: The C-injection fix is the firmware engineer's (src/hallcal/output/codegen.py, branch
-#: "firmware"); until it lands, these cases fail and are marked as strict expected failures.
-C_INJECTION_PENDING = (
-    "codegen copies the artifact's path into the C comments unsanitized (branch 'firmware' "
-    "sanitizes them)"
-)
-C_ASCII_PENDING = (
-    "codegen writes the artifact's path into ASCII C files: a non-ASCII path is a "
-    "UnicodeEncodeError (branch 'firmware' sanitizes the comments)"
-)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1411,7 +1404,7 @@ def artifact_cases() -> list[Case]:
 
         def exp(folder: Path, base: Base, write=write) -> list[str]:
             write(folder, base)
-            return ["export-c", "a.json", "--out", "fw"]
+            return ["export-c", *ADC_SCALE, "a.json", "--out", "fw"]
 
         def rep(folder: Path, base: Base, write=write) -> list[str]:
             write(folder, base)
@@ -1477,47 +1470,47 @@ def option_cases() -> list[Case]:
 
         def build(folder: Path, base: Base, rel=rel) -> list[str]:
             _place_artifact(folder, base, rel)
-            return ["export-c", rel, "--out", "fw"]
+            return ["export-c", *ADC_SCALE, rel, "--out", "fw"]
 
-        # until the exporter sanitizes comments: "*/" is refused (exit 2), the splices compile
-        # into the injected symbol
-        xfail = C_INJECTION_PENDING if key in ("splice", "trigraph") else None
-        c(f"export-c-path-{key}", build, (OK, INPUT), c_dir="fw", xfail=xfail)
+        c(f"export-c-path-{key}", build, (OK, INPUT), c_dir="fw")
     for key, rel in HARMLESS_PATHS.items():
 
         def build(folder: Path, base: Base, rel=rel) -> list[str]:
             _place_artifact(folder, base, rel)
-            return ["export-c", rel, "--out", "fw"]
+            return ["export-c", *ADC_SCALE, rel, "--out", "fw"]
 
-        xfail = C_ASCII_PENDING if key == "non-ascii" else None
-        c(f"export-c-path-{key}", build, (OK,), c_dir="fw", xfail=xfail)
+        c(f"export-c-path-{key}", build, (OK,), c_dir="fw")
     c(
         "export-c-out-non-ascii",
-        with_inputs(["export-c", "a.json", "--out", "fw é ☃"]),
+        with_inputs(["export-c", *ADC_SCALE, "a.json", "--out", "fw é ☃"]),
         (OK,),
         c_dir="fw é ☃",
     )
     c(
         "export-c-out-newline",
-        with_inputs(["export-c", "a.json", "--out", "fw\nx"]),
+        with_inputs(["export-c", *ADC_SCALE, "a.json", "--out", "fw\nx"]),
         (OK,),
         c_dir="fw\nx",
     )
     c(
         "export-c-out-markup",
-        with_inputs(["export-c", "a.json", "--out", "fw[/]"]),
+        with_inputs(["export-c", *ADC_SCALE, "a.json", "--out", "fw[/]"]),
         (OK,),
         c_dir="fw[/]",
     )
-    c("export-c-out-is-file", with_inputs(["export-c", "a.json", "--out", "afile"]), msg="afile")
+    c(
+        "export-c-out-is-file",
+        with_inputs(["export-c", *ADC_SCALE, "a.json", "--out", "afile"]),
+        msg="afile",
+    )
     c(
         "export-c-out-proc",
-        with_inputs(["export-c", "a.json", "--out", "/proc/hallcal-fw"]),
+        with_inputs(["export-c", *ADC_SCALE, "a.json", "--out", "/proc/hallcal-fw"]),
         msg="hallcal-fw",
     )
     c(
         "export-c-no-fixed-point",
-        with_inputs(["export-c", "a.json", "--out", "fw", "--no-fixed-point"]),
+        with_inputs(["export-c", *ADC_SCALE, "a.json", "--out", "fw", "--no-fixed-point"]),
         (OK,),
         c_dir="fw",
     )
@@ -1532,21 +1525,35 @@ def option_cases() -> list[Case]:
     ):
         c(
             f"export-c-adc-scale-{label}",
-            with_inputs(["export-c", "a.json", "--out", "fw", "--adc-scale", value]),
+            with_inputs(["export-c", *ADC_SCALE, "a.json", "--out", "fw", "--adc-scale", value]),
             msg="adc-scale",
         )
     c(
         "export-c-adc-scale-2e31",
-        with_inputs(["export-c", "a.json", "--out", "fw", "--adc-scale", str(2.0**31)]),
+        with_inputs(["export-c", *ADC_SCALE, "a.json", "--out", "fw", "--adc-scale", str(2.0**31)]),
         (OK, INPUT),
         c_dir="fw",
     )
     c(
         "export-c-missing-artifact",
-        with_inputs(["export-c", "nope.json", "--out", "fw"]),
+        with_inputs(["export-c", *ADC_SCALE, "nope.json", "--out", "fw"]),
         msg="not found",
     )
-    c("export-c-no-out", with_inputs(["export-c", "a.json"]), msg="--out")
+    c("export-c-no-out", with_inputs(["export-c", *ADC_SCALE, "a.json"]), msg="--out")
+    # the exporter's own options
+    for option, values in (
+        ("--prefix", ["x; int y", "int", "a" * 200, "", "hallcal\n#define X 1", "é"]),
+        ("--table-points", ["0", "-1", "3", "1000000000", "x"]),
+        ("--tolerance", ["nan", "-1", "inf", "1e300"]),
+        ("--max-speed", ["nan", "-1", "0", "inf", "1e300"]),
+        ("--fault-after", ["-1", "1000000000000", "x"]),
+    ):
+        for i, value in enumerate(values):
+            c(
+                f"export-c{option[1:]}-{i}",
+                with_inputs(["export-c", *ADC_SCALE, "a.json", "--out", "fw", option, value]),
+                msg=option.strip("-").replace("-", "[-_]"),
+            )
     # simulate
     c(
         "simulate-out-unknown-extension",

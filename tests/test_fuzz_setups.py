@@ -239,6 +239,11 @@ def test_random_setups_keep_the_contract_in_every_subcommand(
         if cal != 0:
             _artifact_with_setup(fixed_inputs["artifact"], setup, artifact)
         _run(["reconstruct", str(artifact), str(data), "--out", str(w / "rec.csv")], [], w)
-        _run(["export-c", str(artifact), "--out", str(w / "fw")], [w / "fw"], w)
+        # the bench's Hall signals have amplitude 1: 2048 counts per unit (a 12-bit ADC)
+        _run(
+            ["export-c", "--adc-scale", "2048", str(artifact), "--out", str(w / "fw")],
+            [w / "fw"],
+            w,
+        )
         _run(["report", str(artifact), str(data), "--out", str(w / "rep")], [w / "rep"], w)
         shutil.rmtree(w / "rep", ignore_errors=True)

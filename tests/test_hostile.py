@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 import pytest
 from hostile_cases import (
+    ADC_SCALE,
     BASE_SETUP,
     BLA_TABLE,
     Base,
@@ -94,7 +95,7 @@ def _build_base(d: Path) -> Base:
         ["simulate", "--setup", "s.toml", "--out", "cal.npz"],
         ["simulate", "--setup", "b.toml", "--experiment", "multisine", "--out", "ms.npz"],
         ["calibrate", "cal.npz", "--setup", "s.toml", "--out", "a.json"],
-        ["export-c", "a.json", "--out", "fw"],
+        ["export-c", *ADC_SCALE, "a.json", "--out", "fw"],
     ):
         cwd = os.getcwd()
         os.chdir(d)

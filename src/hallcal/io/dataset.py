@@ -368,7 +368,10 @@ def read_dataset(
         raise HallcalInputError(f"{p}: file is empty")
     row_lines: Sequence[int] | None = None
     if ext in TEXT_EXTENSIONS:
-        cols, row_lines = read_text_table(p, headerless_ok=ext != ".csv")
+        # what the text readers' libraries raise themselves (the csv module's field-size limit,
+        # pyarrow's parser) is one line too
+        with _library_errors(p, "CSV file" if ext == ".csv" else "text table", recognized=False):
+            cols, row_lines = read_text_table(p, headerless_ok=ext != ".csv")
     elif ext == ".parquet":
         cols = _read_parquet(p)
     elif ext in (".h5", ".hdf5"):
