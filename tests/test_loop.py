@@ -17,6 +17,7 @@ import scipy.signal
 from hallcal.sensor.flux import FluxModel, FourierBasis, sinusoidal_theta
 from hallcal.sensor.reconstruction import InitReconstructor
 from hallcal.sim.bench import PAPER_CONTROLLER, PAPER_PLANT, BenchConfig
+from hallcal.sim.cogging import CoggingTorque
 from hallcal.sim.loop import ClosedLoop, loop_jacobian, simulate_loop
 
 TS = 2.5e-4
@@ -152,5 +153,5 @@ def test_noise_disturbance_and_divergence_flags():
     # Torque disturbance moves the angle; cogging too.
     td = simulate_loop(cfg.loop(), flux, r, torque_disturbance=np.full(r.size, 1e-3))
     assert np.max(np.abs(td.y0 - clean.y0)) > 1e-4
-    cg = simulate_loop(cfg.loop(), flux, r, cogging_amplitude=1e-3, cogging_periods=66)
+    cg = simulate_loop(cfg.loop(), flux, r, cogging=CoggingTorque((66,), [0.0], [1e-3]))
     assert np.max(np.abs(cg.y0 - clean.y0)) > 1e-6
