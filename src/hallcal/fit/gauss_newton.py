@@ -36,10 +36,10 @@ the harmonics: with the product formulas they reduce to the trigonometric moment
 
 Work split. The sensitivity recursion runs in chunks of samples; two threads (numba releases the
 GIL) each advance the sensitivities of one block of parameter columns over a chunk (each thread
-re-runs the cheap nominal simulation), write their columns of the rows u_k into a shared buffer,
-meet at a barrier and then each accumulate a share of ``sum u_k u_k^T`` with single-threaded BLAS
-(threadpoolctl: OpenBLAS with two threads was 5-60x slower on these 2-core machines, DESIGN.md).
-Double buffering lets one thread start the next chunk while the other finishes its Gram share.
+re-runs the cheap nominal simulation) and write their columns of the rows u_k into a shared ring
+of buffers; once both have written a chunk, each adds a share of ``sum u_k u_k^T`` with
+single-threaded BLAS (threadpoolctl: OpenBLAS with two threads was 5-60x slower on these 2-core
+machines, docs/design.md). The ring lets one thread run a few chunks ahead of the other.
 
 Strided Hessian. ``stride = s`` accumulates the rank-one part over every s-th sample (times s):
 the sensitivities are smooth at the sampling rate (loop bandwidth ~10 Hz at 4 kHz), so this is a

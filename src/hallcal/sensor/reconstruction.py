@@ -154,7 +154,7 @@ class InitReconstructor:
     pole_pairs : int
         n_m.
     y_initial : float, optional
-        The estimate before the first sample [rad]; 0 by the convention of DESIGN.md.
+        The estimate before the first sample [rad]; 0 by the convention of docs/design.md.
     projection, offset : optional
         As in :func:`alpha_beta`.
     """
