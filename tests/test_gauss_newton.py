@@ -224,3 +224,20 @@ def test_layout_round_trip():
         ParameterLayout(FourierBasis((1,)), cogging_orders=(3, 3))
     with pytest.raises(ValueError, match="entries"):
         simulate_model(BenchConfig().loop(), layout, np.zeros(3), np.zeros(10))
+
+
+def test_known_cogging_of_the_loop_is_simulated_not_fitted(short_run):
+    """A cogging torque carried by the loop (known) adds to the fitted orders, same order too."""
+    cfg, run = short_run
+    known = CoggingTorque((66, 132), [2e-3, 0.0], [1e-3, 5e-4])
+    loop = cfg.loop().with_cogging(known)
+    layout = ParameterLayout(FourierBasis(tuple(range(1, 12))), True, (66, 7))
+    x = layout.pack(_theta_near_truth(run, layout.basis), 0.01,
+                    CoggingTorque((66, 7), [1e-3, 1e-3], [0.0, -1e-3]))  # fmt: skip
+    gn = gauss_newton_system(loop, layout, x, run.r, run.d, chunk=1000)
+    _assert_matches(gn, _dense(loop, layout, x, run.r, run.d))
+    # the same motion as one torque with the sum of the coefficients, simulated directly
+    total = CoggingTorque((66, 132, 7), [3e-3, 0.0, 1e-3], [1e-3, 5e-4, -1e-3])
+    ref = simulate_loop(cfg.loop().with_plant_gain(math.exp(0.01)),
+                        FluxModel(layout.basis, layout.theta(x)), run.r, cogging=total)  # fmt: skip
+    np.testing.assert_allclose(gn.d, ref.d, rtol=0, atol=RTOL)

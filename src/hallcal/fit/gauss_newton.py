@@ -515,8 +515,12 @@ def _model_arrays(loop: ClosedLoop, layout: ParameterLayout, x: ArrayLike) -> tu
     harm = np.asarray(layout.basis.harmonics, dtype=np.int64)
     hmax = int(harm.max()) if harm.size else 0
     theta = np.ascontiguousarray(layout.theta(xx))
+    # the fitted cogging orders first (their columns), then the loop's own, fixed cogging torque
     cog_k = np.asarray(layout.cogging_orders, dtype=np.float64)
     cog_x = np.ascontiguousarray(xx[layout.cogging_start :])
+    if loop.cogging is not None and loop.cogging.size:
+        cog_k = np.concatenate([cog_k, np.asarray(loop.cogging.orders, dtype=np.float64)])
+        cog_x = np.concatenate([cog_x, loop.cogging.coefficients])
     return (*arrs, float(loop.pole_pairs), theta, harm, hmax, cog_k, cog_x)
 
 

@@ -66,6 +66,8 @@ class SEMStatus(enum.StrEnum):
     DIVERGED = "diverged"
     #: a wall-time budget ran out (kernel solver)
     TIME_BUDGET = "time_budget"
+    #: not known (a result rebuilt from an artifact without the solver's status)
+    UNKNOWN = "unknown"
 
     @property
     def success(self) -> bool:
@@ -110,6 +112,15 @@ class SEMResult:
         when no cogging orders were fitted.
     parameter_covariance : ndarray (p, p) or None
         sigma^2 (J^T J + R)^-1 over all parameters in the layout of ``layout``.
+    batch_covariance : ndarray (p, p) or None
+        The batch-means (long-run) covariance ``A^-1 M A^-1`` with ``A = J^T J + R`` and M the
+        covariance of the scores J^T e summed over batches of consecutive samples, times the
+        number of batches: valid when the residual is coloured (unmodelled motion) as long as
+        its correlation is shorter than a batch (Ljung 1999, sec. 9.3; the batch-means method
+        of simulation output analysis). Its rank is at most ``batches - 1``: use it for a few
+        parameters at a time.
+    batches : int
+        Number of batches B.
     layout : ParameterLayout or None
         What the parameter vector holds.
     message : str
@@ -133,6 +144,8 @@ class SEMResult:
     parameter_covariance: NDArray[np.float64] | None = field(default=None, repr=False)
     layout: ParameterLayout | None = field(default=None, repr=False)
     message: str = ""
+    batch_covariance: NDArray[np.float64] | None = field(default=None, repr=False)
+    batches: int = 0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "status", SEMStatus(self.status))
@@ -302,6 +315,21 @@ def _covariance(system: GaussNewtonSystem, ridge: NDArray, sigma2: float) -> NDA
             return np.full((p, p), math.nan)
 
 
+def _batch_covariance(
+    system: GaussNewtonSystem, cov: NDArray, sigma2: float
+) -> NDArray[np.float64] | None:
+    """``A^-1 M A^-1`` with M the centred batch-score covariance times B/(B-1) (B batches)."""
+    S = system.batch_gradients
+    B = S.shape[0]
+    if B < 3 or not system.status.success or not np.all(np.isfinite(cov)) or not sigma2 > 0:
+        return None
+    Sc = S - S.mean(axis=0)
+    Ainv = cov / sigma2
+    with threadpool_limits(limits=1, user_api="blas"):
+        L = Ainv @ Sc.T  # (p, B)
+        return (B / (B - 1)) * (L @ L.T)
+
+
 def _default_stride(p: int) -> int:
     """Rank-one products from every sample up to 128 parameters, every 4th beyond.
 
@@ -326,6 +354,7 @@ def solve_sem(
     damping: float = 1e-6,
     regularization: ArrayLike | None = None,
     fit_gain: bool = False,
+    gain0: float = 1.0,
     cogging: Sequence[int] | CoggingTorque = (),
     stride: int | None = None,
     threads: int | None = None,
@@ -360,6 +389,8 @@ def solve_sem(
         Also estimate a factor c on the plant's input matrix (parametrized as log c, exact
         sensitivity), refining the gain correction of eq. (c_hat) at the SEM optimum where the
         flux model no longer masks it.
+    gain0 : float
+        Start of c with ``fit_gain`` (the result's ``gain`` is relative to ``loop`` as well).
     cogging : sequence of int or CoggingTorque
         Orders k of a cogging torque ``T_c(y0) = sum a_k cos(k y0) + b_k sin(k y0)`` at the plant
         input, identified jointly (a CoggingTorque also gives the start of its coefficients;
@@ -398,7 +429,7 @@ def solve_sem(
         threads, int(chunk),
     )  # fmt: skip
     it = _levenberg_marquardt(
-        problem, layout.pack(theta_start, 0.0, cog0),
+        problem, layout.pack(theta_start, math.log(gain0) if fit_gain else 0.0, cog0),
         max_iterations=max_iterations, tol=tol, damping=damping,
     )  # fmt: skip
     system = it.system
@@ -406,6 +437,7 @@ def solve_sem(
         system = problem.system(it.x, exact=True)  # the exact system for the covariance
     sigma2 = it.history[-1] / max(3 * N - p, 1)
     cov_all = _covariance(system, ridge, sigma2)
+    batch_cov = _batch_covariance(system, cov_all, sigma2)
     gain = math.exp(layout.log_gain(it.x))
     gain_std = (
         gain * math.sqrt(max(cov_all[layout.gain_index, layout.gain_index], 0.0))
@@ -430,6 +462,8 @@ def solve_sem(
         parameter_covariance=cov_all,
         layout=layout,
         message=_message(it, p),
+        batch_covariance=batch_cov,
+        batches=int(system.batch_gradients.shape[0]),
     )
 
 

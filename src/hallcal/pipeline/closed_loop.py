@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
 from hallcal.fit.adequacy import AdequacyReport, assess
+from hallcal.fit.cogging import CoggingSelection, CoggingStatus, select_cogging
 from hallcal.fit.kernel import KernelSEMResult, solve_kernel_sem
 from hallcal.fit.order import HarmonicSelection, select_harmonics
 from hallcal.fit.sem import SEMResult, solve_sem
@@ -105,6 +106,7 @@ class _ModelFit:
     selection: HarmonicSelection | None = None
     kernel: KernelSEMResult | None = None
     adequacy: AdequacyReport | None = None
+    cogging: CoggingSelection | None = None
 
 
 def _fit_kernel(loop: ClosedLoop, s: _Signals, setup: Setup, *, progress: Progress) -> _ModelFit:
@@ -184,6 +186,49 @@ def _fit_fourier(
         selection=selection,
         adequacy=adequacy,
     )
+
+
+def _with_cogging(
+    loop: ClosedLoop, s: _Signals, setup: Setup, fit: _ModelFit, *, fit_gain: bool,
+    progress: Progress,
+) -> _ModelFit:  # fmt: skip
+    """The cogging torque at the plant input, identified jointly with the flux.
+
+    ``[model] cogging``: "none" keeps the fit; given orders are fitted jointly; "auto" looks for
+    cogging in the fit's residual and keeps only orders whose coefficients are significant
+    (:func:`hallcal.fit.cogging.select_cogging`). When cogging is found and the harmonics are
+    chosen from the data, they are chosen again with the identified torque in the loop (so that
+    no flux harmonic is picked to absorb the cogging motion), and the final fit is joint.
+    """
+    orders = setup.model.cogging
+    if orders == "none":
+        return fit
+    _say(progress, "cogging torque" + (" (looking for it in the residual)" if orders == "auto"
+                                       else f" at orders {list(orders)}"))  # fmt: skip
+    sel = select_cogging(
+        loop, s.r, s.d, fit.sem, orders=orders, fit_gain=fit_gain,
+        max_iterations=setup.model.max_iterations,
+    )  # fmt: skip
+    if sel.status is CoggingStatus.NONE:
+        return dataclasses.replace(fit, cogging=sel)
+    sem, selection = sel.sem, fit.selection
+    if setup.model.harmonics == "auto" and sel.cogging is not None:
+        _say(progress, "choosing the harmonics again with the cogging torque in the loop")
+        known = loop.with_plant_gain(sem.gain).with_cogging(sel.cogging)
+        selection = select_harmonics(
+            known, s.r, s.d, y=s.y, pole_pairs=setup.pole_pairs,
+            max_iterations=setup.model.max_iterations,
+        )  # fmt: skip
+        sem = solve_sem(
+            loop, s.r, s.d, selection.sem.flux.basis, theta0=selection.sem.flux.theta,
+            fit_gain=fit_gain, gain0=sem.gain, cogging=sel.cogging,
+            max_iterations=setup.model.max_iterations,
+        )  # fmt: skip
+        sel = dataclasses.replace(sel, sem=sem, cogging=sem.cogging)
+    return dataclasses.replace(
+        fit, sem=sem, flux=sem.flux, model_info=_fourier_info(sem.flux), gain_factor=sem.gain,
+        gain_factor_std=sem.gain_std, selection=selection, adequacy=None, cogging=sel,
+    )  # fmt: skip
 
 
 def _refined_plant(pm: PlantModel, fit: _ModelFit) -> PlantModel:
@@ -269,9 +314,13 @@ def calibrate_closed_loop(
         fit = _fit_kernel(loop, s, setup, progress=progress)
     else:
         fit = _fit_fourier(loop, s, setup, fit_gain=pm.gain is not None, progress=progress)
+        fit = _with_cogging(loop, s, setup, fit, fit_gain=pm.gain is not None, progress=progress)
     timings["sem"] = time.perf_counter() - t0
     pm = _refined_plant(pm, fit)
-    loop = closed_loop(setup, pm.plant)
+    cogging = fit.cogging.cogging if fit.cogging is not None else None
+    if fit.cogging is not None and fit.cogging.status is not CoggingStatus.NONE:
+        messages.append(fit.cogging.message)
+    loop = closed_loop(setup, pm.plant).with_cogging(cogging)
 
     adequacy = fit.adequacy or assess(
         fit.sem, s.d, pole_pairs=setup.pole_pairs, projection=loop.projection, offset=loop.offset
@@ -308,4 +357,6 @@ def calibrate_closed_loop(
         model_info=fit.model_info,
         selection=fit.selection,
         kernel=fit.kernel,
+        cogging=cogging,
+        cogging_selection=fit.cogging,
     )

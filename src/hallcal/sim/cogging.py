@@ -167,7 +167,7 @@ class CoggingTorque:
             "std_b": [None if not math.isfinite(v) else float(v) for v in sb],
             "unit": "plant input",
         }
-        if self.covariance is not None:
+        if self.covariance is not None and np.all(np.isfinite(self.covariance)):
             out["covariance"] = self.covariance.tolist()
         return out
 

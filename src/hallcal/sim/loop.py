@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numba as nb
 import numpy as np
@@ -86,6 +86,9 @@ class ClosedLoop:
         f_init's projection (Clarke rows by default).
     offset : ndarray (3,)
         f_init's sensor offsets.
+    cogging : CoggingTorque or None
+        A known cogging torque T_c(y0) at the plant input, part of the plant model (e.g. one
+        identified earlier); the simulations and sensitivities include it.
     """
 
     plant: StateSpace
@@ -93,6 +96,7 @@ class ClosedLoop:
     pole_pairs: int
     projection: NDArray[np.float64] = field(default_factory=lambda: clarke_matrix()[:2])
     offset: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    cogging: CoggingTorque | None = None
 
     def __post_init__(self) -> None:
         if self.plant.D != 0.0:
@@ -123,13 +127,11 @@ class ClosedLoop:
     def with_plant_gain(self, c: float) -> ClosedLoop:
         """The loop with the plant input matrix scaled by c (eq. c_hat: B_G -> c B_G)."""
         p = self.plant
-        return ClosedLoop(
-            StateSpace(p.A, c * p.B, p.C, p.D, p.dt),
-            self.controller,
-            self.pole_pairs,
-            self.projection,
-            self.offset,
-        )
+        return replace(self, plant=StateSpace(p.A, c * p.B, p.C, p.D, p.dt))
+
+    def with_cogging(self, cogging: CoggingTorque | None) -> ClosedLoop:
+        """The loop with a known cogging torque at the plant input (None: without)."""
+        return replace(self, cogging=cogging)
 
     def _arrays(self) -> tuple:
         p, c = self.plant, self.controller
@@ -375,7 +377,7 @@ def _simulate_kernel(
 @nb.njit(cache=True)
 def _jacobian_kernel(
     Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, y_init, jac, fit_gain, cog_k, cog_x,
-    fit_cogging,
+    n_cog_fit,
 ):  # fmt: skip
     N = r.size
     ng = Ag.shape[0]
@@ -383,7 +385,7 @@ def _jacobian_kernel(
     m = theta.shape[1]
     jg = 3 * m  # column d / d log(c), plant input gain (when fit_gain)
     jc0 = 3 * m + (1 if fit_gain else 0)  # first cogging column (a_1, b_1, a_2, ...)
-    p = jc0 + (2 * cog_k.size if fit_cogging else 0)
+    p = jc0 + 2 * n_cog_fit  # the first n_cog_fit cogging terms are fitted
     xg = np.zeros(ng)
     xc = np.zeros(nc)
     xg2 = np.zeros(ng)
@@ -444,10 +446,9 @@ def _jacobian_kernel(
             if ci != 0.0:
                 for j in range(p):
                     du[j] += ci * Sc[i, j]
-        if fit_cogging:
-            for i in range(cog_k.size):
-                du[jc0 + 2 * i] += math.cos(cog_k[i] * y0)
-                du[jc0 + 2 * i + 1] += math.sin(cog_k[i] * y0)
+        for i in range(n_cog_fit):
+            du[jc0 + 2 * i] += math.cos(cog_k[i] * y0)
+            du[jc0 + 2 * i + 1] += math.sin(cog_k[i] * y0)
         # state and sensitivity updates
         for j in range(p):
             dy[j] = -dy[j]  # de = -dy drives the controller
@@ -484,11 +485,14 @@ def _harmonics_of(flux: FluxModel) -> NDArray[np.float64]:
     return np.ascontiguousarray(flux.basis.harmonic_array)
 
 
-def _cogging_arrays(cogging: CoggingTorque | None) -> tuple[NDArray, NDArray]:
-    """Orders (float64) and interleaved coefficients of a cogging torque for the kernels."""
-    if cogging is None:
+def _cogging_arrays(*torques: CoggingTorque | None) -> tuple[NDArray, NDArray]:
+    """Orders (float64) and interleaved coefficients of the terms of several cogging torques,
+    concatenated in order (the kernels sum all terms; an order may repeat)."""
+    ts = [t for t in torques if t is not None and t.size]
+    if not ts:
         return np.zeros(0), np.zeros(0)
-    return np.asarray(cogging.orders, dtype=np.float64), cogging.coefficients
+    orders = np.concatenate([np.asarray(t.orders, dtype=np.float64) for t in ts])
+    return orders, np.concatenate([t.coefficients for t in ts])
 
 
 def simulate_loop(
@@ -541,7 +545,7 @@ def simulate_loop(
         r,
         v,
         td,
-        *_cogging_arrays(cogging),
+        *_cogging_arrays(loop.cogging, cogging),
         float(y_initial),
     )
     return LoopResult(y0, y, u, d, tq, LoopStatus.OK if ok else LoopStatus.DIVERGED)
@@ -586,8 +590,10 @@ def loop_jacobian(
     """
     r = np.ascontiguousarray(r, dtype=np.float64)
     N = r.size
-    cog_k, cog_x = _cogging_arrays(cogging)
-    p = flux.theta.size + (1 if fit_gain else 0) + (2 * cog_k.size if fit_cogging else 0)
+    n_fit = len(cogging.orders) if (fit_cogging and cogging is not None) else 0
+    # the fitted orders first (their columns), then the loop's own, fixed cogging torque
+    cog_k, cog_x = _cogging_arrays(cogging, loop.cogging)
+    p = flux.theta.size + (1 if fit_gain else 0) + 2 * n_fit
     jac = np.empty((N, 3, p)) if out is None else out
     if jac.shape != (N, 3, p):
         raise ValueError(f"out must have shape {(N, 3, p)}")
@@ -602,6 +608,6 @@ def loop_jacobian(
         bool(fit_gain),
         cog_k,
         cog_x,
-        bool(fit_cogging),
+        n_fit,
     )
     return LoopJacobian(d, y0, y, u, jac, LoopStatus.OK if ok else LoopStatus.DIVERGED)
