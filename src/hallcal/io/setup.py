@@ -70,8 +70,9 @@ class ModelSpec:
         Write the artifact even when the adequacy check fails.
     cogging : tuple of int, "auto" or "none"
         Cogging torque ``sum_k a_k cos(k y0) + b_k sin(k y0)`` at the plant input, identified
-        jointly with the flux (Fourier basis): its orders k (periods per revolution), chosen
-        from the data (``"auto"``: nothing is added when the data show no cogging), or none.
+        jointly with the flux: its orders k (periods per revolution), chosen from the data
+        (``"auto"``: nothing is added when the data show no cogging), or none. Identified with
+        the Fourier basis; the kernel basis accepts "auto" and "none" and models no cogging.
     """
 
     basis: Literal["fourier", "kernel"] = "fourier"
@@ -550,15 +551,17 @@ def _parse_model(t: _Table | None) -> ModelSpec:
         lut_points=t.integer("lut_points", default=4096, minimum=16),
         max_iterations=t.integer("max_iterations", default=50, minimum=1),
         force=t.boolean("force", default=False),
-        cogging=_parse_cogging(t),  # type: ignore[arg-type]
+        cogging=_parse_cogging(t, basis),  # type: ignore[arg-type]
     )
 
 
-def _parse_cogging(t: _Table) -> tuple[int, ...] | str:
-    """``cogging = "auto" | "none" | [orders]`` (distinct integers >= 1)."""
+def _parse_cogging(t: _Table, basis: str) -> tuple[int, ...] | str:
+    """``cogging = "auto" | "none" | [orders]`` (distinct integers >= 1; Fourier basis)."""
     value = t.data.get("cogging", "auto")
     if isinstance(value, str) and value in ("auto", "none"):
         return value
+    if basis != "fourier":
+        t.error(f"key '{t.key('cogging')}' with orders applies only to basis = \"fourier\"")
     if (
         not isinstance(value, list | tuple)
         or not value
