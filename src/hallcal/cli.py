@@ -225,7 +225,11 @@ def _print_calibration(cal) -> None:
     if cal.adequacy is not None:
         _out.print(f"model adequacy: {cal.adequacy.verdict}")
     _out.print(f"lookup table: {cal.lut.points} points, bijective: {cal.lut.bijective}")
-    v = cal.validation
+    _print_validation(cal.validation)
+
+
+def _print_validation(v) -> None:
+    """One line: f_init and f_star against the recording's y_ref, when it has one."""
     if v is not None:
         _out.print(
             f"against y_ref: f_init RMS {_mrad(v.init.rms)} peak {_mrad(v.init.peak)}; "
@@ -247,12 +251,7 @@ def reconstruct(artifact: str, data: str, out: str) -> None:
     rec = cal.reconstruct(data)
     write_dataset(out, rec.columns)
     _out.print(f"wrote {out} ({len(rec)} samples)")
-    if rec.validation is not None:
-        v = rec.validation
-        _out.print(
-            f"against y_ref: f_init RMS {_mrad(v.init.rms)} peak {_mrad(v.init.peak)}; "
-            f"f_star RMS {_mrad(v.star.rms)} peak {_mrad(v.star.peak)}"
-        )
+    _print_validation(rec.validation)
 
 
 @cli.command("export-c")

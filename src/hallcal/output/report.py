@@ -1268,6 +1268,8 @@ def write_demo_report(
     out_dir : path-like
     noise_floor : float
         RMS angle error of the bench's Hall noise alone [rad].
+    progress : callable, optional
+        Called with a short message per step.
 
     Returns
     -------
@@ -1316,6 +1318,8 @@ def write_calibration_report(
     out_dir : path-like
     validation : Dataset, optional
         A fresh recording with ``y_ref``.
+    progress : callable, optional
+        Called with a short message per step.
 
     Returns
     -------
