@@ -197,7 +197,7 @@ def _with_cogging(
     orders = setup.model.cogging
     if orders == "none":
         return fit
-    _say(progress, "cogging torque" + (" (looking for it in the residual)" if orders == "auto"
+    say(progress, "cogging torque" + (" (looking for it in the residual)" if orders == "auto"
                                        else f" at orders {list(orders)}"))  # fmt: skip
     sel = select_cogging(
         loop, s.r, s.d, fit.sem, orders=orders, fit_gain=fit_gain,
@@ -207,7 +207,7 @@ def _with_cogging(
         return dataclasses.replace(fit, cogging=sel)
     sem, selection = sel.sem, fit.selection
     if setup.model.harmonics == "auto" and sel.cogging is not None:
-        _say(progress, "choosing the harmonics again with the cogging torque in the loop")
+        say(progress, "choosing the harmonics again with the cogging torque in the loop")
         known = loop.with_plant_gain(sem.gain).with_cogging(sel.cogging)
         selection = select_harmonics(
             known, s.r, s.d, y=s.y, pole_pairs=setup.pole_pairs,
