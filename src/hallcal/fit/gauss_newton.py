@@ -72,6 +72,7 @@ from hallcal.sim.loop import (
     _angle_and_sensitivity,
     _diverged,
     _flux_and_slope,
+    _kernel_array,
     _output,
     _unwrap,
 )
@@ -407,8 +408,13 @@ def _sens_block(
     return ok, sse
 
 
+def _moments(y0: ArrayLike, W: ArrayLike, nmax: int) -> tuple[NDArray, NDArray]:
+    """C[w, n] = sum_k W[k, w] cos(n y0_k), S[w, n] = sum_k W[k, w] sin(n y0_k), n = 0..nmax."""
+    return _moments_kernel(_kernel_array(y0), _kernel_array(W), int(nmax))
+
+
 @nb.njit(cache=True, nogil=True)
-def _moments(y0, W, nmax):
+def _moments_kernel(y0, W, nmax):
     """C[w, n] = sum_k W[k, w] cos(n y0_k), S[w, n] = sum_k W[k, w] sin(n y0_k), n = 0..nmax."""
     N = y0.size
     nw = W.shape[1]
@@ -430,12 +436,13 @@ def _moments(y0, W, nmax):
 def _moments_threaded(y0: NDArray, W: NDArray, nmax: int, threads: int) -> tuple[NDArray, NDArray]:
     """:func:`_moments` over sample halves in two threads (nogil), summed."""
     N = y0.size
+    y0, W = _kernel_array(y0), _kernel_array(W)
     if threads < 2 or N < 4096:
-        return _moments(y0, W, nmax)
+        return _moments_kernel(y0, W, int(nmax))
     h = N // 2
     with ThreadPoolExecutor(1) as pool:
-        fut = pool.submit(_moments, y0[h:], W[h:], nmax)
-        C0, S0 = _moments(y0[:h], W[:h], nmax)
+        fut = pool.submit(_moments_kernel, y0[h:], W[h:], nmax)
+        C0, S0 = _moments_kernel(y0[:h], W[:h], nmax)
         C1, S1 = fut.result()
     return C0 + C1, S0 + S1
 
@@ -474,11 +481,11 @@ def regression_normal_equations(
     From trigonometric moments (O(N max(harmonics)) time, no N x m matrix): the normal
     equations of the linear least-squares fit ``d ~ beta(y) theta^T``.
     """
-    yy = np.ascontiguousarray(y, dtype=np.float64)
+    yy = _kernel_array(y)
     dd = np.asarray(d, dtype=np.float64)
     dd = dd[:, None] if dd.ndim == 1 else dd
     h = np.asarray(harmonics, dtype=np.int64)
-    W = np.ascontiguousarray(np.column_stack([np.ones(yy.size), dd]))
+    W = np.column_stack([np.ones(yy.size), dd])
     C, S = _moments(yy, W, 2 * int(h.max()) if h.size else 0)
     M = _gram_from_moments(C[0], S[0], h)
     Btd = np.empty((1 + 2 * h.size, dd.shape[1]))
@@ -514,10 +521,10 @@ def _model_arrays(loop: ClosedLoop, layout: ParameterLayout, x: ArrayLike) -> tu
         arrs[1] = arrs[1] * math.exp(layout.log_gain(xx))
     harm = np.asarray(layout.basis.harmonics, dtype=np.int64)
     hmax = int(harm.max()) if harm.size else 0
-    theta = np.ascontiguousarray(layout.theta(xx))
+    theta = _kernel_array(layout.theta(xx))
     # the fitted cogging orders first (their columns), then the loop's own, fixed cogging torque
     cog_k = np.asarray(layout.cogging_orders, dtype=np.float64)
-    cog_x = np.ascontiguousarray(xx[layout.cogging_start :])
+    cog_x = _kernel_array(xx[layout.cogging_start :])
     if loop.cogging is not None and loop.cogging.size:
         cog_k = np.concatenate([cog_k, np.asarray(loop.cogging.orders, dtype=np.float64)])
         cog_x = np.concatenate([cog_x, loop.cogging.coefficients])
@@ -537,7 +544,7 @@ def simulate_model(
     Same equations as :func:`hallcal.sim.loop.simulate_loop`; the basis comes from a
     trigonometric recursion (one sine and cosine per sample).
     """
-    r = np.ascontiguousarray(r, dtype=np.float64)
+    r = _kernel_array(r)
     y0, y, u, d, ok = _simulate_kernel(*_model_arrays(loop, layout, x), r, float(y_initial))
     return SimulatedLoop(y0, y, u, d, PassStatus.OK if ok else PassStatus.DIVERGED)
 
@@ -672,8 +679,8 @@ def gauss_newton_system(
     -------
     GaussNewtonSystem
     """
-    r = np.ascontiguousarray(r, dtype=np.float64)
-    d = np.ascontiguousarray(d, dtype=np.float64)
+    r = _kernel_array(r)
+    d = _kernel_array(d)
     N = r.size
     if d.shape != (N, 3):
         raise ValueError("d must have shape (N, 3)")
@@ -730,7 +737,7 @@ def _normal_part(
     )
     harm = np.asarray(layout.basis.harmonics, dtype=np.int64)
     hmax = int(harm.max()) if harm.size else 0
-    C, S = _moments_threaded(y0, np.ascontiguousarray(W), 2 * hmax, threads)
+    C, S = _moments_threaded(y0, W, 2 * hmax, threads)
     mb = layout.basis.size
     out = np.zeros((3 * mb, 3 * mb))
     pairs = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]

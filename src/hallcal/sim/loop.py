@@ -58,6 +58,15 @@ __all__ = [
 TWO_PI = 2.0 * math.pi
 
 
+def _kernel_array(a: ArrayLike) -> NDArray[np.float64]:
+    """float64, C-contiguous and writeable: the one array type the numba kernels are compiled for.
+
+    A read-only array (a dataset's column, a frozen theta) would make numba compile and cache a
+    second specialization of every kernel it reaches; a copy of such an input is cheap.
+    """
+    return np.require(a, dtype=np.float64, requirements=("C", "W"))
+
+
 class LoopStatus(enum.StrEnum):
     """Outcome of a closed-loop simulation or sensitivity pass."""
 
@@ -136,15 +145,15 @@ class ClosedLoop:
     def _arrays(self) -> tuple:
         p, c = self.plant, self.controller
         return (
-            np.ascontiguousarray(p.A, dtype=np.float64),
-            np.ascontiguousarray(p.B, dtype=np.float64),
-            np.ascontiguousarray(p.C, dtype=np.float64),
-            np.ascontiguousarray(c.A, dtype=np.float64),
-            np.ascontiguousarray(c.B, dtype=np.float64),
-            np.ascontiguousarray(c.C, dtype=np.float64),
+            _kernel_array(p.A),
+            _kernel_array(p.B),
+            _kernel_array(p.C),
+            _kernel_array(c.A),
+            _kernel_array(c.B),
+            _kernel_array(c.C),
             float(c.D),
-            np.ascontiguousarray(self.projection, dtype=np.float64),
-            np.ascontiguousarray(self.offset, dtype=np.float64),
+            _kernel_array(self.projection),
+            _kernel_array(self.offset),
         )
 
 
@@ -482,7 +491,7 @@ def _jacobian_kernel(
 
 
 def _harmonics_of(flux: FluxModel) -> NDArray[np.float64]:
-    return np.ascontiguousarray(flux.basis.harmonic_array)
+    return _kernel_array(flux.basis.harmonic_array)
 
 
 def _cogging_arrays(*torques: CoggingTorque | None) -> tuple[NDArray, NDArray]:
@@ -527,13 +536,13 @@ def simulate_loop(
     -------
     LoopResult
     """
-    r = np.ascontiguousarray(r, dtype=np.float64)
+    r = _kernel_array(r)
     N = r.size
-    v = np.zeros((N, 3)) if noise is None else np.ascontiguousarray(noise, dtype=np.float64)
+    v = np.zeros((N, 3)) if noise is None else _kernel_array(noise)
     td = (
         np.zeros(N)
         if torque_disturbance is None
-        else np.ascontiguousarray(torque_disturbance, dtype=np.float64)
+        else _kernel_array(torque_disturbance)
     )
     if v.shape != (N, 3) or td.shape != (N,):
         raise ValueError("noise must be (N, 3) and torque_disturbance (N,)")
@@ -541,7 +550,7 @@ def simulate_loop(
         *loop._arrays(),
         float(loop.pole_pairs),
         _harmonics_of(flux),
-        np.ascontiguousarray(flux.theta),
+        _kernel_array(flux.theta),
         r,
         v,
         td,
@@ -588,7 +597,7 @@ def loop_jacobian(
     -------
     LoopJacobian
     """
-    r = np.ascontiguousarray(r, dtype=np.float64)
+    r = _kernel_array(r)
     N = r.size
     n_fit = len(cogging.orders) if (fit_cogging and cogging is not None) else 0
     # the fitted orders first (their columns), then the loop's own, fixed cogging torque
@@ -601,7 +610,7 @@ def loop_jacobian(
         *loop._arrays(),
         float(loop.pole_pairs),
         _harmonics_of(flux),
-        np.ascontiguousarray(flux.theta),
+        _kernel_array(flux.theta),
         r,
         float(y_initial),
         jac,
