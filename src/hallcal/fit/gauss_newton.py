@@ -61,7 +61,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
-from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sensor.flux import FourierBasis
 from hallcal.sim.cogging import CoggingTorque
 from hallcal.sim.loop import (
     ClosedLoop,
@@ -906,8 +906,3 @@ def fourier_gauss_newton(
         loop, layout, th.ravel(), r, d, y_initial=y_initial, chunk=chunk, gram=gram,
         stride=stride, threads=threads,
     )  # fmt: skip
-
-
-def flux_of(layout: ParameterLayout, x: ArrayLike) -> FluxModel:
-    """The flux model g_theta of x."""
-    return FluxModel(layout.basis, layout.theta(x))

@@ -539,11 +539,7 @@ def simulate_loop(
     r = _kernel_array(r)
     N = r.size
     v = np.zeros((N, 3)) if noise is None else _kernel_array(noise)
-    td = (
-        np.zeros(N)
-        if torque_disturbance is None
-        else _kernel_array(torque_disturbance)
-    )
+    td = np.zeros(N) if torque_disturbance is None else _kernel_array(torque_disturbance)
     if v.shape != (N, 3) or td.shape != (N,):
         raise ValueError("noise must be (N, 3) and torque_disturbance (N,)")
     y0, y, u, d, tq, ok = _simulate_kernel(
