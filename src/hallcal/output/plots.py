@@ -793,7 +793,9 @@ def plot_cogging(
     ``T_c(y0) = sum_k a_k cos(k y0) + b_k sin(k y0)`` in plant input units (the unit of the
     torque command: firmware subtracts it as a feed-forward). The band is ``2 std T_c(y0)`` from
     the covariance of the coefficients (:meth:`CoggingTorque.std`, exact for a torque linear in
-    its coefficients). The second panel zooms on one period of the lowest order.
+    its coefficients). Panels: the map over one revolution; one period of the lowest order; the
+    band on its own scale around zero with, on the virtual bench, the error of the identified
+    map (which should stay mostly inside it).
 
     Parameters
     ----------
@@ -810,14 +812,15 @@ def plot_cogging(
     """
     k_low = min(cogging.orders) if cogging.size else 1
     y = TWO_PI * np.arange(points) / points
-    span = TWO_PI / k_low
-    zoom = np.linspace(0.0, span, 400)
-    fig, axes = _figure(2, 6.0, sharex=False, ratios=(1.2, 1))
-    for ax, yy in zip(axes, (y, zoom), strict=True):
+    zoom = np.linspace(0.0, TWO_PI / k_low, 400)
+    has_band = cogging.covariance is not None
+    third = has_band or true_cogging is not None
+    fig, axes = _figure(3 if third else 2, 8.0 if third else 6.0, sharex=False)
+    for ax, yy in zip(axes[:2], (y, zoom), strict=True):
         t = cogging(yy)
-        sd = cogging.std(yy)
         ax.plot(_deg(yy), t, color=STAR_COLOR, lw=1.0, label="identified T_c(y₀)")
-        if np.all(np.isfinite(sd)):
+        if has_band:
+            sd = cogging.std(yy)
             ax.fill_between(_deg(yy), t - 2 * sd, t + 2 * sd, color=STAR_COLOR, alpha=0.25,
                             lw=0, label="±2σ from the covariance")  # fmt: skip
         if true_cogging is not None:
@@ -829,6 +832,21 @@ def plot_cogging(
     axes[0].set_xlabel("mechanical angle y₀ [deg]")
     axes[1].set_xlabel(f"mechanical angle y₀ [deg], one period of order {k_low}")
     _legend_above(axes[0], ncols=3)
+    if third:
+        ax3 = axes[2]
+        if has_band:
+            sd = cogging.std(y)
+            ax3.fill_between(_deg(y), -2 * sd, 2 * sd, color=STAR_COLOR, alpha=0.25, lw=0,
+                             label="±2σ band")  # fmt: skip
+        if true_cogging is not None:
+            err = cogging(y) - true_cogging(y)
+            ax3.plot(_deg(y), err, color=TRUTH_COLOR, lw=0.8,
+                     label=f"identified − true (RMS {np.sqrt(np.mean(err**2)):.3g})")  # fmt: skip
+        ax3.axhline(0.0, color=NOISE_COLOR, lw=0.6)
+        ax3.set_ylabel("uncertainty [plant input]")
+        ax3.set_xlabel("mechanical angle y₀ [deg]")
+        ax3.margins(x=0)
+        _legend_above(ax3, ncols=2)
     terms = ", ".join(
         f"{k}/rev: {A:.3g} at {math.degrees(ph):.1f}°"
         for k, A, ph in zip(cogging.orders, cogging.amplitude, cogging.phase, strict=True)
