@@ -707,7 +707,8 @@ def gauss_newton_system(
 
 def _threads(threads: int | None, p: int) -> int:
     if threads is None:
-        threads = 2 if (os.cpu_count() or 1) >= 2 else 1
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        threads = 2 if (cores or 1) >= 2 else 1
     # a column block needs enough columns to amortize its own nominal simulation
     return 2 if int(threads) >= 2 and p >= 16 else 1
 
