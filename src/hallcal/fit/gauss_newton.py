@@ -434,15 +434,20 @@ def _moments_kernel(y0, W, nmax):
 
 
 def _moments_threaded(y0: NDArray, W: NDArray, nmax: int, threads: int) -> tuple[NDArray, NDArray]:
-    """:func:`_moments` over sample halves in two threads (nogil), summed."""
+    """:func:`_moments` over the two halves of the samples, summed: in two threads (nogil) or
+    one after the other, with the same result to the bit."""
     N = y0.size
     y0, W = _kernel_array(y0), _kernel_array(W)
-    if threads < 2 or N < 4096:
+    if N < 4096:
         return _moments_kernel(y0, W, int(nmax))
     h = N // 2
+    if threads < 2:
+        C0, S0 = _moments_kernel(y0[:h], W[:h], int(nmax))
+        C1, S1 = _moments_kernel(y0[h:], W[h:], int(nmax))
+        return C0 + C1, S0 + S1
     with ThreadPoolExecutor(1) as pool:
-        fut = pool.submit(_moments_kernel, y0[h:], W[h:], nmax)
-        C0, S0 = _moments_kernel(y0[:h], W[:h], nmax)
+        fut = pool.submit(_moments_kernel, y0[h:], W[h:], int(nmax))
+        C0, S0 = _moments_kernel(y0[:h], W[:h], int(nmax))
         C1, S1 = fut.result()
     return C0 + C1, S0 + S1
 
@@ -610,15 +615,14 @@ class _Block:
         )  # fmt: skip
 
 
-def _gram_shares(p: int, parts: int) -> list[tuple[slice, slice]]:
-    """Blocks (rows, columns) of the upper triangle of a p x p Gram matrix, as equal shares.
+def _gram_shares(p: int) -> list[tuple[slice, slice]]:
+    """Blocks (rows, columns) of the upper triangle of a p x p Gram matrix, as two equal shares.
 
-    Two parts: [0, s) x [0, s) (a symmetric rank-k update, s^2 / 2 multiply-adds per row of U)
-    and [0, p) x [s, p) (a general product, p (p - s)): 0.25 p^2 and 0.29 p^2 for
-    s = p / sqrt(2). Only the upper triangle is used.
+    [0, s) x [0, s) (a symmetric rank-k update, s^2 / 2 multiply-adds per row of U) and
+    [0, p) x [s, p) (a general product, p (p - s)): 0.25 p^2 and 0.29 p^2 for s = p / sqrt(2).
+    Only the upper triangle is used. One thread adds both, two threads one each: the same BLAS
+    calls, so the same result to the bit.
     """
-    if parts < 2:
-        return [(slice(0, p), slice(0, p))]
     s = int(round(p / math.sqrt(2.0)))
     return [(slice(0, s), slice(0, s)), (slice(0, p), slice(s, p))]
 
@@ -706,9 +710,17 @@ def gauss_newton_system(
 
 
 def _threads(threads: int | None, p: int) -> int:
+    """Threads of a pass: the given number (1 or 2), else 2 when a second core is idle.
+
+    The second thread pays only on an idle core: on these 2-core machines it gave 1.3-1.5x with
+    the other core free, but cost 30-50 % more with the 1-minute load average above 3 (each
+    thread repeats the nominal simulation and waits for the other at each chunk). The results
+    do not depend on the choice (same column sums, same BLAS calls, see :func:`_gram_shares`).
+    """
     if threads is None:
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-        threads = 2 if (cores or 1) >= 2 else 1
+        cores = cores or 1
+        threads = 2 if cores >= 2 and os.getloadavg()[0] < cores - 0.5 else 1
     # a column block needs enough columns to amortize its own nominal simulation
     return 2 if int(threads) >= 2 and p >= 16 else 1
 
@@ -779,7 +791,7 @@ class _SensitivityPass:
         rows = -(-T // ustride) if ustride else 1
         self.ring = max(2, int(ring)) if ustride else 1
         self.bufs = [np.empty((rows, p)) for _ in range(self.ring)]
-        self.shares = _gram_shares(p, nthreads)
+        self.shares = _gram_shares(p)
         self.gram = np.zeros((p, p)) if ustride else np.zeros((0, 0))
         self.n_chunks = -(-N // T)
         self.batch_grad = np.zeros((self.n_chunks, p))
@@ -813,9 +825,10 @@ class _SensitivityPass:
         k0, k1 = self._bounds(i)
         s = self.ustride
         n_rows = (k1 + s - 1) // s - (k0 + s - 1) // s  # multiples of s in [k0, k1)
-        rows, cols = self.shares[b]
         buf = self.bufs[i % self.ring][:n_rows]
-        _add_gram_share(self.gram, buf, rows, cols, float(self.ustride))
+        mine = self.shares if len(self.blocks) == 1 else [self.shares[b]]
+        for rows, cols in mine:
+            _add_gram_share(self.gram, buf, rows, cols, float(self.ustride))
 
     def _wait(self, ready) -> bool:
         """Wait until ready() or a failure; False on failure."""
