@@ -290,3 +290,15 @@ def test_predicted_error_stays_honest_when_the_table_absorbs_motion(cogging):
         assert any("cogging torque at 66/rev that is not modelled" in m for m in cal.messages)
     else:
         assert cal.status.value == "ok" and actual < 1.10 * cfg.noise_floor
+
+
+@given(alpha=st.floats(1e-7, 0.5), dof=st.floats(2.0, 500.0))
+def test_f2_quantile_matches_scipy(alpha, dof):
+    """The closed-form F(2, dof) quantile against scipy.stats (the oracle), at the levels used
+    (1e-3 over up to a few hundred orders); scipy's numerical inversion is good to about 1e-8
+    relative there (deeper in the tail it is the less accurate of the two)."""
+    import scipy.stats
+
+    from hallcal.fit.cogging import f2_isf
+
+    assert f2_isf(alpha, dof) == pytest.approx(float(scipy.stats.f.isf(alpha, 2, dof)), rel=1e-7)

@@ -16,15 +16,30 @@ from pathlib import Path
 from typing import Any
 
 import click
-from rich.console import Console
 
 from hallcal.errors import CalibrationRefused, HallcalError, HallcalInputError
 
 EXIT_INPUT = HallcalInputError.exit_status
 EXIT_REFUSED = CalibrationRefused.exit_status
 
-_err = Console(stderr=True, highlight=False, soft_wrap=True)
-_out = Console(highlight=False, soft_wrap=True)
+
+class _Stream:
+    """Plain lines on stdout or stderr through :func:`click.echo`.
+
+    Progress and results are one line each, so rich (40 ms to import, and it would read
+    ``[plant]`` in a message as markup) is not used here; styles are dropped when the stream
+    is not a terminal.
+    """
+
+    def __init__(self, *, err: bool) -> None:
+        self.err = err
+
+    def print(self, message: object = "") -> None:
+        click.echo(str(message), err=self.err)
+
+
+_err = _Stream(err=True)
+_out = _Stream(err=False)
 
 
 def _one_line(exc: BaseException) -> str:
@@ -59,7 +74,8 @@ class _Progress:
 
     def __call__(self, message: str) -> None:
         if not self.quiet:
-            _err.print(f"[dim]{time.perf_counter() - self.t0:6.1f} s[/dim]  {message}")
+            elapsed = click.style(f"{time.perf_counter() - self.t0:6.1f} s", dim=True)
+            _err.print(f"{elapsed}  {message}")
 
 
 _setup_path: list[str | None] = [None]  # the setup file of this command, for error messages

@@ -10,21 +10,22 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
-import scipy.optimize
 from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
 from hallcal.fit.sem import least_squares_start
-from hallcal.identify import bla as _bla
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.progress import Progress, say
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sim.loop import ClosedLoop, simulate_loop
 from hallcal.sim.lti import ContinuousTF
+
+if TYPE_CHECKING:
+    from hallcal.identify import bla as _bla
 
 __all__ = [
     "BLAIdentification",
@@ -85,6 +86,8 @@ def identify_bla(dataset: Dataset, setup: Setup, *, progress: Progress = None) -
             f"{dataset.source}: a BLA experiment needs a [bla] table in the setup", key="bla"
         )
     dataset.require("r", "u", "y", "realization")
+    from hallcal.identify import bla as _bla  # loaded only when a BLA is identified
+
     say(progress, "nonparametric BLA (indirect closed-loop method)")
     npb = _bla.nonparametric_bla(
         dataset["r"],
@@ -190,6 +193,8 @@ def estimate_gain(
     vals = [cost(g) for g in grid]
     i = int(np.argmin(vals))
     a, b = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+    import scipy.optimize  # only when a gain is estimated (0.15 s import)
+
     opt = scipy.optimize.minimize_scalar(
         cost, bounds=(a, b), method="bounded", options={"xatol": 1e-5}
     )
