@@ -241,6 +241,8 @@ def _print_calibration(cal) -> None:
     if cal.adequacy is not None:
         _out.print(f"model adequacy: {cal.adequacy.verdict}")
     _out.print(f"lookup table: {cal.lut.points} points, bijective: {cal.lut.bijective}")
+    if cal.identifiability is not None:
+        _out.print(cal.identifiability.message)
     _print_validation(cal.validation)
 
 
@@ -257,17 +259,41 @@ def _print_validation(v) -> None:
 @click.argument("artifact", type=click.Path(dir_okay=False))
 @click.argument("data", type=click.Path(dir_okay=False))
 @click.option("--out", required=True, type=click.Path(dir_okay=False))
+@click.option(
+    "--absolute",
+    is_flag=True,
+    help="The recording starts at power-up anywhere (no homing): identify the pole pair from "
+    "the magnets' signatures; angles in the calibration's frame.",
+)
 @_handle_errors
-def reconstruct(artifact: str, data: str, out: str) -> None:
+def reconstruct(artifact: str, data: str, out: str, absolute: bool) -> None:
     """Apply a calibration to a recording: columns y_init and y_star."""
     from hallcal.api import load
     from hallcal.io import write_dataset
 
     cal = load(artifact)
-    rec = cal.reconstruct(data)
+    rec = cal.reconstruct(data, absolute=absolute)
     write_dataset(out, rec.columns)
     _out.print(f"wrote {out} ({len(rec)} samples)")
+    if rec.identification is not None:
+        _print_identification(rec.identification, cal.pole_pairs)
     _print_validation(rec.validation)
+
+
+def _print_identification(ident, pole_pairs: int) -> None:
+    """One line: which pole pair the recording started in, and how certain that is."""
+    where = f"pole pair offset {ident.offset} of {pole_pairs}"
+    if ident.status.success:
+        _out.print(
+            f"{where}: identified after {ident.lock_sample + 1} samples "
+            f"(posterior {ident.posterior:.6f}, margin {ident.margin:.1f} sigma)"
+        )
+    else:
+        _err.print(
+            f"warning: {where} is the most likely one but not certain after all "
+            f"{ident.samples} samples (posterior {ident.posterior:.3f}); the rotor stood at a "
+            "weak position: move it, or record longer"
+        )
 
 
 @cli.command("export-c")

@@ -29,6 +29,7 @@ from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
 from hallcal.pipeline.plant import BLAIdentification, PlantModel, closed_loop, plant_model
+from hallcal.pipeline.powerup import power_up_analysis
 from hallcal.pipeline.progress import Progress, say
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT, build_lut
@@ -369,6 +370,10 @@ def calibrate_closed_loop(
         predicted = math.hypot(predicted, bias)
         if note is not None:
             messages.append(note)
+    say(progress, "power-up identifiability of the pole pair")
+    t0 = time.perf_counter()
+    identifiability = power_up_analysis(fit.flux, lut, s.d)
+    timings["identifiability"] = time.perf_counter() - t0
     validation = None
     if "y_ref" in dataset and lut.bijective:
         validation = validate(lut, dataset, noise_floor=adequacy.noise_floor)
@@ -394,4 +399,5 @@ def calibrate_closed_loop(
         kernel=fit.kernel,
         cogging=cogging,
         cogging_selection=fit.cogging,
+        identifiability=identifiability,
     )

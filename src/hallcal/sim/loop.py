@@ -324,7 +324,25 @@ def _cogging(orders, coef, y0):
 
 @nb.njit(cache=True)
 def _simulate_kernel(
-    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, noise, td, cog_k, cog_x, y_init
+    Ag,
+    Bg,
+    Cg,
+    Ac,
+    Bc,
+    Cc,
+    Dc,
+    P,
+    off,
+    n_m,
+    harm,
+    theta,
+    r,
+    noise,
+    td,
+    cog_k,
+    cog_x,
+    y_init,
+    y0_start,
 ):
     N = r.size
     ng = Ag.shape[0]
@@ -342,11 +360,11 @@ def _simulate_kernel(
     ds = np.empty((N, 3))
     ts = np.empty(N)
     yprev = y_init
-    y0_last = 0.0
+    y0_last = y0_start
     ok = True
     dk = np.empty(3)
     for k in range(N):
-        y0 = 0.0
+        y0 = y0_start
         for i in range(ng):
             y0 += Cg[i] * xg[i]
         _basis(y0, harm, b, db)
@@ -513,6 +531,7 @@ def simulate_loop(
     torque_disturbance: ArrayLike | None = None,
     cogging: CoggingTorque | None = None,
     y_initial: float = 0.0,
+    initial_angle: float = 0.0,
 ) -> LoopResult:
     """Simulate eq. (state_eq) with optional sensor noise, torque disturbance and cogging.
 
@@ -531,6 +550,11 @@ def simulate_loop(
         Position-periodic torque T_c(y0) added to the plant input.
     y_initial : float
         f_init's estimate before the first sample [rad].
+    initial_angle : float, keyword-only
+        True angle at the first sample [rad]: the plant starts at rest with
+        ``y0 = initial_angle + C_G x_G`` (a power-up at an arbitrary rotor position; f_init still
+        starts from ``y_initial``). The flux, the cogging torque and the returned ``y0`` are all
+        at this true angle. Default 0, the convention of DESIGN.md.
 
     Returns
     -------
@@ -552,6 +576,7 @@ def simulate_loop(
         td,
         *_cogging_arrays(loop.cogging, cogging),
         float(y_initial),
+        float(initial_angle),
     )
     return LoopResult(y0, y, u, d, tq, LoopStatus.OK if ok else LoopStatus.DIVERGED)
 
