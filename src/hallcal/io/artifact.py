@@ -520,6 +520,8 @@ def validate_artifact(artifact: Mapping[str, Any], source: str = "<artifact>") -
     projection, offset = _check_projection(c, data["reconstruction"])
     y_hat, eta = _check_lut(c, data["lut"], int(n))
     _check_model(c, data["model"])
+    if data.get("cogging") is not None:
+        _check_cogging(c, data["cogging"])
     setup = _parse_setup(data["setup"], source, prefix="setup.")
     if setup.pole_pairs != n:
         c.bad(f"key 'pole_pairs' ({n}) differs from 'setup.pole_pairs' ({setup.pole_pairs})")
@@ -550,6 +552,34 @@ def validate_artifact(artifact: Mapping[str, Any], source: str = "<artifact>") -
         data=data,
         source=source,
     )
+
+
+def _check_cogging(c: _Checker, cog: Any) -> None:
+    """The optional ``"cogging"`` entry: T_c(y0) = sum a_k cos(k y0) + b_k sin(k y0)."""
+    cog = c.mapping(cog, "cogging")
+    orders = cog.get("orders")
+    if not isinstance(orders, list) or not all(_is_int(k) and k >= 1 for k in orders):
+        c.bad("key 'cogging.orders' must be a list of integers >= 1")
+    if len(orders) > MAX_HARMONICS or (orders and max(orders) > MAX_HARMONIC):
+        c.bad(
+            f"key 'cogging.orders' must hold at most {MAX_HARMONICS} orders up to "
+            f"{MAX_HARMONIC} (the limits of the flux model's harmonics)"
+        )
+    m = len(orders)
+    for key in ("a", "b"):
+        what = f"a list of {m} numbers (one per order)"
+        c.array(cog.get(key), f"cogging.{key}", what, shape=(m,), limit=math.inf)
+    for key in ("std_a", "std_b"):  # null where a standard deviation is unknown
+        value = cog.get(key)
+        if value is not None and not (
+            isinstance(value, list)
+            and len(value) == m
+            and all(v is None or (_is_number(v) and v >= 0) for v in value)
+        ):
+            c.bad(f"key 'cogging.{key}' must be a list of {m} numbers >= 0 or nulls")
+    if cog.get("covariance") is not None:
+        what = f"a {2 * m}x{2 * m} array of numbers"
+        c.array(cog["covariance"], "cogging.covariance", what, shape=(2 * m, 2 * m), limit=math.inf)
 
 
 def write_artifact(path: str | os.PathLike[str], artifact: Mapping[str, Any]) -> None:
