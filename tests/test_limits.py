@@ -335,23 +335,28 @@ def test_work_memory_is_checked_before_allocating() -> None:
         limits.check_work_memory(math.inf, "a table", "use less")
 
 
-def test_the_sem_refuses_a_jacobian_above_the_budget() -> None:
+def test_the_sem_checks_its_work_memory_before_allocating(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """With a budget of 64 MiB (as under a tight RLIMIT_AS), 11 harmonics over 20 000 samples
+    (69 parameters: chunk buffers of 4096 x 69, 9 MB) pass and 512 harmonics (3075 parameters:
+    1 GB of Gram matrix and buffers) are refused before anything is built."""
     from hallcal.fit.sem import solve_sem
     from hallcal.sensor.flux import FourierBasis
     from hallcal.sim.loop import ClosedLoop
 
+    monkeypatch.setattr(limits, "work_memory_budget", lambda: 64 * 2**20)
     s = default_setup()
     loop = ClosedLoop.from_transfer_functions(s.plant, s.controller, s.sample_time, 11)
     n = 20_000
-    basis = FourierBasis(tuple(range(1, limits.MAX_HARMONICS + 1)))
-    budget = limits.work_memory_budget()
-    # the Jacobian: n x 3 x 3 (2 H + 1) float64; the samples that make it exceed the budget
-    n = int(budget / (8 * 3 * 3 * basis.size)) + 1
     r = np.linspace(0.0, 7.0, n)
-    d = np.ones((n, 3))
-    d[:, 1] = -0.5
-    with pytest.raises(ValueError, match="the SEM Jacobian .* would need"):
-        solve_sem(loop, r, d, basis, theta0=np.zeros((3, basis.size)))
+    d = np.column_stack([np.cos(11 * r - 2.0 * np.pi * h / 3.0) for h in range(3)])
+    small = FourierBasis(tuple(range(1, 12)))
+    res = solve_sem(loop, r, d, small, max_iterations=1)
+    assert res.flux.theta.shape == (3, 23)
+    big = FourierBasis(tuple(range(1, limits.MAX_HARMONICS + 1)))
+    with pytest.raises(ValueError, match="the Gauss-Newton system .* would need .* GiB"):
+        solve_sem(loop, r, d, big, theta0=np.zeros((3, big.size)))
 
 
 def test_the_sem_refuses_hall_signals_without_an_angle() -> None:

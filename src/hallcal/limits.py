@@ -63,8 +63,9 @@ MAX_HARMONIC = 8 * MAX_POLE_PAIRS
 
 #: Number of harmonics of a Fourier model. A rotor whose magnets differ in shape has energy at
 #: all harmonics up to several n_m: a few hundred for the largest motors. Each harmonic adds 6
-#: SEM parameters; at 512 (3075 parameters) one dense Jacobian pass over the paper's 104 000
-#: samples is 7.7 GB, the most a workstation holds (:func:`check_work_memory` guards the product).
+#: SEM parameters: at 512 (3075 parameters) the Gauss-Newton system is 76 MB and its solve
+#: 3e10 flops per iteration, and the sensitivity pass over the paper's 104 000 samples carries
+#: 3075 sensitivities per state and sample: minutes per iteration, the most that is useful.
 MAX_HARMONICS = 512
 
 #: Kernel centres m (``[model] points``). The kernel model is a Fourier model with harmonics up to
@@ -171,9 +172,9 @@ MAX_ADC_SCALE = float(2**31)
 
 # ---- Work memory of the numeric core -------------------------------------------------------
 
-#: Largest single work array of the numeric core (the SEM Jacobian, Gram matrices): 8 GiB, and
-#: never more than half of the machine's memory or of the process's address-space limit (see
-#: :func:`work_memory_budget`).
+#: Largest single work array of the numeric core (the Gauss-Newton system with its buffers,
+#: a least-squares design matrix): 8 GiB, and never more than half of the machine's memory or of
+#: the process's address-space limit (see :func:`work_memory_budget`).
 MAX_WORK_BYTES = 8 * 2**30
 
 

@@ -330,6 +330,9 @@ def _sens_block(
             ek[h] = d[k, h] - gk[h]
         al, be = _alpha_beta(P, off, gk)
         rho2 = al * al + be * be
+        if not rho2 > 0.0:  # no angle at alpha = beta = 0 (or NaN): the model is degenerate
+            ok = False
+            break
         for h in range(3):
             ck[h] = (al * P[1, h] - be * P[0, h]) / (rho2 * n_m)  # d y / d d_h
         q = ck[0] * gp[0] + ck[1] * gp[1] + ck[2] * gp[2]
