@@ -1526,7 +1526,7 @@ def option_cases() -> list[Case]:
         c(
             f"export-c-adc-scale-{label}",
             with_inputs(["export-c", *ADC_SCALE, "a.json", "--out", "fw", "--adc-scale", value]),
-            msg="adc-scale",
+            msg="adc[-_]scale",
         )
     c(
         "export-c-adc-scale-2e31",

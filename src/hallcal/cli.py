@@ -19,7 +19,6 @@ from typing import Any
 import click
 
 from hallcal.errors import CalibrationRefused, HallcalError, HallcalInputError
-from hallcal.limits import MAX_ADC_SCALE, MIN_ADC_SCALE
 
 EXIT_INPUT = HallcalInputError.exit_status
 EXIT_REFUSED = CalibrationRefused.exit_status
@@ -99,18 +98,30 @@ def _mrad(x: float | None) -> str:
 
 
 def _output_dir(path: str) -> Path:
-    """Create the output folder of report, export-c or demo, or say in one line why not."""
+    """Check, before any work, that the output folder of report, export-c or demo can be written.
+
+    A missing folder is created and removed again (with any missing parents): the command
+    creates it only when it has something to write, so a failure leaves nothing behind.
+    """
     out = Path(path)
+    if out.exists():
+        if not out.is_dir():
+            raise HallcalInputError(f"{out}: exists and is not a directory")
+        if not os.access(out, os.W_OK | os.X_OK):
+            raise HallcalInputError(f"{out}: the directory is not writable")
+        return out
+    missing = []
+    p = out
+    while not p.exists() and p != p.parent:
+        missing.append(p)
+        p = p.parent
     try:
-        out.mkdir(parents=True, exist_ok=True)
-    except FileExistsError:
-        raise HallcalInputError(f"{out}: exists and is not a directory") from None
+        out.mkdir(parents=True)
     except OSError as exc:
-        raise HallcalInputError(
-            f"{out}: cannot create the directory ({exc.strerror or exc})"
-        ) from None
-    if not os.access(out, os.W_OK | os.X_OK):
-        raise HallcalInputError(f"{out}: the directory is not writable")
+        why = exc.strerror or exc
+        raise HallcalInputError(f"{out}: cannot create the directory ({why})") from None
+    for m in missing:  # innermost first
+        m.rmdir()
     return out
 
 
@@ -133,15 +144,6 @@ def _output_file(path: str, *, dataset: bool = False) -> Path:
     if not os.access(out.parent, os.W_OK | os.X_OK):
         raise HallcalInputError(f"{out}: the directory '{out.parent}' is not writable")
     return out
-
-
-def _adc_scale(ctx: click.Context, param: click.Parameter, value: float) -> float:
-    """``--adc-scale``: a finite number within hallcal.limits' range."""
-    if not (math.isfinite(value) and MIN_ADC_SCALE <= value <= MAX_ADC_SCALE):
-        raise click.BadParameter(
-            f"{value:g} is not a number in {MIN_ADC_SCALE:g} .. {MAX_ADC_SCALE:g} counts per unit"
-        )
-    return value
 
 
 class _Group(click.Group):
@@ -386,7 +388,6 @@ def _print_identification(ident, pole_pairs: int) -> None:
 @click.option(
     "--adc-scale",
     type=float,
-    callback=_adc_scale,
     default=1.0,
     show_default=True,
     help="ADC counts per unit of the calibration's Hall signals (fixed point input).",

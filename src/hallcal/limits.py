@@ -17,7 +17,6 @@ import os
 
 __all__ = [
     "MAX_ABS_VALUE",
-    "MAX_ADC_SCALE",
     "MAX_BENCH_ELECTRICAL_HARMONICS",
     "MAX_COLUMNS",
     "MAX_DATASET_VALUES",
@@ -38,7 +37,6 @@ __all__ = [
     "MAX_TF_ORDER",
     "MAX_TEXT_FIELD",
     "MAX_WORK_BYTES",
-    "MIN_ADC_SCALE",
     "MIN_HALL_MAGNITUDE",
     "MIN_LUT_POINTS",
     "SPIKE_RATIO",
@@ -162,13 +160,6 @@ MAX_TEXT_FIELD = 4096
 #: 0/60/120 degrees: 1); a relative error e of (d - offset) moves the angle by up to kappa e, so at
 #: kappa = 1e4 the ADC's quantization alone is radians of error: no angle can be read.
 MAX_PROJECTION_CONDITION = 1e4
-
-#: ADC counts per unit of the Hall signals (``export-c --adc-scale``). The fixed-point code takes
-#: int32 counts: above 2^31 counts per unit a signal of size 1 no longer fits, and a 32-bit
-#: converter reading normalized (amplitude 1) signals is the largest real case. Below 1e-9 a
-#: signal of 1e9 units (the largest ADC count in any unit) is under one count.
-MIN_ADC_SCALE = 1e-9
-MAX_ADC_SCALE = float(2**31)
 
 # ---- Work memory of the numeric core -------------------------------------------------------
 
