@@ -200,6 +200,8 @@ def _artifact_with_setup(base: Path, setup: dict[str, Any], dest: Path) -> None:
     art["setup"] = json.loads(json.dumps(setup, allow_nan=True))
     if isinstance(setup.get("pole_pairs"), int):
         art["pole_pairs"] = setup["pole_pairs"]
+        # the power-up analysis is of the fixed motor's pole pairs: not of this one
+        art.pop("identifiability", None)
     dest.write_text(json.dumps(art, allow_nan=True))
 
 
