@@ -1,6 +1,7 @@
 """Constant-speed calibration proven on measured Hall data: the ring-jig recordings.
 
-Data: ``tests/data/ring-jig/`` (shipped with the repository, MIT; see its README and LICENSE). Three analog
+Data: ``tests/data/ring-jig/`` (shipped with the repository, MIT; see its README and LICENSE).
+Three analog
 linear Hall sensors over a 25-pole-pair magnet ring turned open loop by a stepper with a trapezoidal
 move; 6000 rows of ``hall1 hall2 hall3`` raw ADC counts per file, no encoder, sample rate not logged
 (about 1.95 kHz), so time is in samples (``sample_time = 1.0``).

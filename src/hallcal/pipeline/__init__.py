@@ -14,6 +14,7 @@ one short message per step.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 
 from hallcal.io.dataset import Dataset
@@ -31,6 +32,7 @@ from hallcal.pipeline.calibration import (
 )
 from hallcal.pipeline.plant import (
     BLAIdentification,
+    BLAStatus,
     GainCorrection,
     PlantModel,
     estimate_gain,
@@ -41,6 +43,7 @@ from hallcal.pipeline.simulate import bench_config, simulate
 
 __all__ = [
     "BLAIdentification",
+    "BLAStatus",
     "Calibration",
     "CalibrationStatus",
     "GainCorrection",
@@ -93,7 +96,17 @@ def calibrate(
     if setup.trajectory.kind == "constant-speed":
         from hallcal.pipeline.open_loop import calibrate_open_loop
 
-        return calibrate_open_loop(dataset, setup, progress=progress)
+        cal = calibrate_open_loop(dataset, setup, progress=progress)
+        if bla_dataset is not None or bla is not None:
+            note = (
+                "warning: the BLA experiment is not used: a constant-speed calibration "
+                '(trajectory.kind = "constant-speed") needs no plant model'
+            )
+            status = cal.status
+            if status is CalibrationStatus.OK:
+                status = CalibrationStatus.WARNING
+            cal = dataclasses.replace(cal, status=status, messages=(note, *cal.messages))
+        return cal
     from hallcal.pipeline.closed_loop import calibrate_closed_loop
 
     return calibrate_closed_loop(

@@ -7,6 +7,7 @@ import numpy as np
 from hallcal.errors import HallcalInputError
 from hallcal.identify.excitation import multisine_experiment
 from hallcal.io.setup import Setup
+from hallcal.pipeline.checks import check_loop
 from hallcal.sim.bench import PAPER_CONTROLLER, BenchConfig, BenchRun, simulate_run
 
 __all__ = ["bench_config", "simulate"]
@@ -71,8 +72,15 @@ def simulate(
     Returns
     -------
     BenchRun
+
+    Raises
+    ------
+    HallcalInputError
+        No ``[plant]``, or a controller and plant whose closed loop is unstable (the pole named,
+        :func:`~hallcal.pipeline.checks.check_loop`).
     """
     cfg = bench_config(setup)
+    check_loop(cfg.controller, cfg.plant, setup.sample_time).raise_if_failed("setup")
     kind = experiment or setup.bench.experiment
     if kind == "ramp":
         b = setup.bench
