@@ -269,6 +269,8 @@ def calibrate_closed_loop(
     loop_check.raise_if_failed("setup")
     loop = closed_loop(setup, pm.plant)
     messages = list(s.messages) + [pm.note]
+    if pm.bla is not None:
+        messages += list(pm.bla.messages)
     messages += [c.text for c in preflight if c.status is CheckStatus.WARNING]
     if pm.gain is not None and pm.gain.status != "ok":
         messages.append(f"warning: gain correction c = {pm.gain.c:.3g} hit its search bound")

@@ -81,6 +81,8 @@ class Inspection:
         The rest of the window, for checking the calibration on unseen samples.
     messages : tuple of str
         Warnings (``warning: ...``) and notes.
+    reference : tuple of float or None
+        First and last value of the reference ``r`` [rad] (closed-loop recordings).
     """
 
     source: str
@@ -97,6 +99,7 @@ class Inspection:
     trajectory: tuple[int, int] | None
     held_out: tuple[int, int] | None
     messages: tuple[str, ...] = ()
+    reference: tuple[float, float] | None = None
 
     @property
     def revolutions(self) -> float | None:
@@ -153,7 +156,18 @@ class Inspection:
             f"{', '.join(f'{o:.4g}' for o in g.offsets)}"
         )
         seg = self.segment
-        if seg is None:
+        if self.reference is not None:
+            r0, r1 = self.reference
+            out.append(
+                f"reference r: {r0:.4g} -> {r1:.4g} rad ({(r1 - r0) / TWO_PI:.2f} revolutions)"
+                + (
+                    f", {abs(r1 - r0) / TWO_PI / (self.samples * self.sample_time):.4g} rev/s "
+                    "on average"
+                    if self.sample_time is not None
+                    else ""
+                )
+            )
+        elif seg is None:
             out.append("constant-speed window: not searched (pole pairs unknown)")
         elif not seg.ok:
             out.append("constant-speed window: none found (speed never steady for two cycles)")
@@ -299,4 +313,5 @@ def inspect_recording(
         trajectory=trajectory,
         held_out=held_out,
         messages=tuple(messages),
+        reference=None if "r" not in dataset else (float(dataset["r"][0]), float(dataset["r"][-1])),
     )
