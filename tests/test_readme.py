@@ -105,6 +105,9 @@ def test_readme_steps_run_as_written(tmp_path):
     assert (tmp_path / "bla.png").stat().st_size > 10_000
     for name in ("angles.csv", "report/report.html", "firmware/hallcal.c"):
         assert (tmp_path / name).is_file(), name
+    # the report shows the BLA next to the artifact (bla.json) with its two standard deviations
+    html = (tmp_path / "report" / "report.html").read_text(encoding="utf-8")
+    assert "Closed-loop BLA of the plant" in html and "realization to realization" in html
     # the validation run was calibrated to near its noise floor (f_star << f_init on run.csv)
     line = next(ln for ln in results["reconstruct"][0].stdout.splitlines() if "y_ref" in ln)
     init, star = (float(x) for x in re.findall(r"RMS ([0-9.]+) mrad", line))

@@ -191,6 +191,8 @@ def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int
     setup = _setup(setup_path)
     prog = _Progress()
     kind = experiment or setup.bench.experiment
+    if setup.controller is None:
+        _err.print("note: the setup has no [controller]: the virtual bench uses the paper's C(q)")
     prog(f"simulating the {kind} experiment")
     run = pipeline.simulate(setup, experiment=experiment, seed=seed)
     if run.status != "ok":
