@@ -465,7 +465,11 @@ def _print_calibration(cal, units: str = "mrad") -> None:
     if cal.adequacy is not None:
         _out.print(f"model adequacy: {cal.adequacy.verdict}")
     _out.print(f"lookup table: {cal.lut.points} points, bijective: {cal.lut.bijective}")
-    v = cal.validation
+    _print_validation(cal.validation, units, n_m)
+
+
+def _print_validation(v, units: str, n_m: int) -> None:
+    """One line: f_init and f_star against the recording's y_ref, when it has one."""
     if v is not None:
         _out.print(
             f"against y_ref: f_init RMS {_angle(v.init.rms, units, n_m)} peak "
@@ -503,13 +507,7 @@ def reconstruct(artifact: str, data: str, out: str, units: str) -> None:
     rec = cal.reconstruct(data)
     write_dataset(out, rec.columns)
     _out.print(f"wrote {out} ({len(rec)} samples)")
-    if rec.validation is not None:
-        v, n_m = rec.validation, cal.pole_pairs
-        _out.print(
-            f"against y_ref: f_init RMS {_angle(v.init.rms, units, n_m)} peak "
-            f"{_angle(v.init.peak, units, n_m)}; f_star RMS {_angle(v.star.rms, units, n_m)} "
-            f"peak {_angle(v.star.peak, units, n_m)}"
-        )
+    _print_validation(rec.validation, units, cal.pole_pairs)
 
 
 @cli.command(

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import enum
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -24,6 +23,7 @@ from hallcal.identify import bla as _bla
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.checks import BLAFitCheck, CheckStatus, check_bla_fit
+from hallcal.pipeline.progress import Progress, say
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sim.loop import ClosedLoop, simulate_loop
 from hallcal.sim.lti import ContinuousTF
@@ -39,13 +39,7 @@ __all__ = [
     "plant_model",
 ]
 
-Progress = Callable[[str], None] | None
 TWO_PI = 2.0 * math.pi
-
-
-def _say(progress: Progress, message: str) -> None:
-    if progress is not None:
-        progress(message)
 
 
 #: A fit whose weighted cost exceeds this many times the number of lines leaves structure the
@@ -177,7 +171,7 @@ def identify_bla(dataset: Dataset, setup: Setup, *, progress: Progress = None) -
             f"{dataset.source}: a BLA experiment needs a [bla] table in the setup", key="bla"
         )
     dataset.require("r", "u", "y", "realization")
-    _say(progress, "nonparametric BLA (indirect closed-loop method)")
+    say(progress, "nonparametric BLA (indirect closed-loop method)")
     npb = _bla.nonparametric_bla(
         dataset["r"],
         dataset["u"],
@@ -188,7 +182,7 @@ def identify_bla(dataset: Dataset, setup: Setup, *, progress: Progress = None) -
         sample_time=setup.sample_time,
     )
     auto = spec.denominator_order == "auto"
-    _say(
+    say(
         progress,
         "parametric fit of G(s) with input delay"
         + (", model orders 0..3 compared" if auto else ""),
@@ -452,7 +446,7 @@ def plant_model(
             f"{dataset.source}: column 'y' is missing (needed for the gain correction c)",
             key="y",
         )
-    _say(progress, "gain correction c of the BLA (the paper's c-hat)")
+    say(progress, "gain correction c of the BLA (the paper's c-hat)")
     n_m = setup.pole_pairs
     basis = FourierBasis(start_harmonics or tuple(range(1, n_m + 1)))
     d = np.ascontiguousarray(dataset.d)
