@@ -11,12 +11,12 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
 import stat
 import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from hallcal.io import read_artifact, setup_from_dict, setup_to_toml
@@ -69,10 +69,9 @@ def motor(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def ring(tmp_path_factory):
-    """Ring-jig file 1 as the CSV a user would write from it (d1, d2, d3 raw counts)."""
+    """Ring-jig file 1 as the capture wrote it (headerless whitespace text: d1 d2 d3)."""
     d = tmp_path_factory.mktemp("ring")
-    raw = np.loadtxt(RING / "hall_calibration_one_rotation_1.txt", dtype=np.int64)
-    np.savetxt(d / "ring.csv", raw, fmt="%d", delimiter=",", header="d1,d2,d3", comments="")
+    shutil.copy(RING / "hall_calibration_one_rotation_1.txt", d / "ring.txt")
     return d
 
 
@@ -195,7 +194,7 @@ def test_unstable_loop_is_named_before_sem(motor):
 
 
 def test_inspect_finds_the_window_and_the_pole_pairs(ring):
-    res = run("inspect", "ring.csv", cwd=ring)
+    res = run("inspect", "ring.txt", cwd=ring)
     assert res.returncode == 0, res.stderr
     out = res.stdout
     assert "6000 samples" in out and "the data suggest 25 (magnet signature)" in out
@@ -207,7 +206,7 @@ def test_inspect_finds_the_window_and_the_pole_pairs(ring):
     toml = out[out.index("[trajectory]") :]
     assert 'kind = "constant-speed"' in toml
     (ring / "ring.toml").write_text("pole_pairs = 25\nsample_time = 1.0\n\n" + toml)
-    wrong = run("inspect", "ring.csv", "--pole-pairs", "24", cwd=ring)
+    wrong = run("inspect", "ring.txt", "--pole-pairs", "24", cwd=ring)
     assert wrong.returncode == 0
     assert "pole pairs: 24 (given, WRONG)" in wrong.stdout and "set pole_pairs = 25" in wrong.stdout
 
@@ -216,10 +215,10 @@ def test_open_loop_report_is_complete_in_electrical_degrees(ring):
     """No "noise floor: -", no "not assessed", the ±2σ lines drawn, the held-out check shown."""
     if not (ring / "ring.toml").exists():
         test_inspect_finds_the_window_and_the_pole_pairs(ring)
-    res = run("calibrate", "ring.csv", "--setup", "ring.toml", "--out", "ring.json", cwd=ring)
+    res = run("calibrate", "ring.txt", "--setup", "ring.toml", "--out", "ring.json", cwd=ring)
     assert res.returncode == 0, res.stderr
     res = run(
-        "report", "ring.json", "ring.csv", "--out", "rep", "--units", "electrical-deg", cwd=ring
+        "report", "ring.json", "ring.txt", "--out", "rep", "--units", "electrical-deg", cwd=ring
     )
     assert res.returncode == 0, res.stderr
     html = (ring / "rep" / "report.html").read_text(encoding="utf-8")
@@ -240,7 +239,7 @@ def test_bla_data_with_a_constant_speed_run_is_a_warning(ring, motor):
     if not (ring / "ring.toml").exists():
         test_inspect_finds_the_window_and_the_pole_pairs(ring)
     res = run(
-        "calibrate", "ring.csv", "--setup", "ring.toml", "--bla-data", str(motor / "bla.csv"),
+        "calibrate", "ring.txt", "--setup", "ring.toml", "--bla-data", str(motor / "bla.csv"),
         "--out", "ring2.json", cwd=ring,
     )  # fmt: skip
     assert res.returncode == 0, res.stderr

@@ -17,17 +17,30 @@ from pathlib import Path
 from typing import Any
 
 import click
-from rich.console import Console
-from rich.text import Text
 
 from hallcal.errors import CalibrationRefused, HallcalError, HallcalInputError
 
 EXIT_INPUT = HallcalInputError.exit_status
 EXIT_REFUSED = CalibrationRefused.exit_status
 
-# markup off: messages quote setup tables such as "[plant]", which rich would take for tags
-_err = Console(stderr=True, highlight=False, soft_wrap=True, markup=False)
-_out = Console(highlight=False, soft_wrap=True, markup=False)
+
+class _Stream:
+    """Plain lines on stdout or stderr through :func:`click.echo`.
+
+    Progress and results are one line each, so rich (40 ms to import, and it would read
+    ``[plant]`` in a message as markup) is not used here; styles are dropped when the stream
+    is not a terminal.
+    """
+
+    def __init__(self, *, err: bool) -> None:
+        self.err = err
+
+    def print(self, message: object = "") -> None:
+        click.echo(str(message), err=self.err)
+
+
+_err = _Stream(err=True)
+_out = _Stream(err=False)
 
 UNITS = ("mrad", "electrical-deg")
 _EXITS = "0 success, 2 bad input (one line naming the file, column or key)"
@@ -66,9 +79,8 @@ class _Progress:
 
     def __call__(self, message: str) -> None:
         if not self.quiet:
-            line = Text(f"{time.perf_counter() - self.t0:6.1f} s", style="dim")
-            line.append(f"  {message}")
-            _err.print(line)
+            elapsed = click.style(f"{time.perf_counter() - self.t0:6.1f} s", dim=True)
+            _err.print(f"{elapsed}  {message}")
 
 
 _setup_path: list[str | None] = [None]  # the setup file of this command, for error messages

@@ -27,16 +27,18 @@ import enum
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.stats
 from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
-from hallcal.identify.bla import ParametricBLA, model_poles
 from hallcal.io.dataset import Dataset
 from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.lti import ContinuousTF, DiscreteTF
+
+if TYPE_CHECKING:  # the BLA module (scipy.optimize) is loaded only when a BLA is checked
+    from hallcal.identify.bla import ParametricBLA
 
 __all__ = [
     "BLAFitCheck",
@@ -340,7 +342,9 @@ class Signature:
         """p-value of the F test for period q (NaN if not tried)."""
         if q not in self.f_statistic:
             return math.nan
-        return float(scipy.stats.f.sf(self.f_statistic[q], *self.dof[q]))
+        from scipy.special import fdtrc  # survival function of the F distribution
+
+        return float(fdtrc(*self.dof[q], self.f_statistic[q]))
 
 
 def pole_pairs_from_signature(d: NDArray[np.float64]) -> Signature:
@@ -615,6 +619,8 @@ def check_bla_fit(
         Whether the order was chosen from the data (``"auto"``): then an unstable model means no
         candidate was stable.
     """
+    from hallcal.identify.bla import model_poles
+
     poles = tuple(complex(p) for p in model_poles(fit))
     unstable = tuple(p for p in poles if p.real >= 0.0)
     w_max = TWO_PI * float(max_frequency)

@@ -15,14 +15,13 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
 from hallcal.fit.adequacy import AdequacyReport, assess
-from hallcal.fit.kernel import KernelSEMResult, solve_kernel_sem
 from hallcal.fit.order import HarmonicSelection, select_harmonics
 from hallcal.fit.sem import SEMResult, solve_sem
 from hallcal.io.dataset import Dataset
@@ -35,6 +34,9 @@ from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.loop import ClosedLoop
+
+if TYPE_CHECKING:
+    from hallcal.fit.kernel import KernelSEMResult
 
 __all__ = ["calibrate_closed_loop"]
 
@@ -103,6 +105,8 @@ class _ModelFit:
 
 
 def _fit_kernel(loop: ClosedLoop, s: _Signals, setup: Setup, *, progress: Progress) -> _ModelFit:
+    from hallcal.fit.kernel import solve_kernel_sem  # loaded only for this basis
+
     say(progress, f"SEM with the periodic kernel basis (m = {setup.model.points})")
     kres = solve_kernel_sem(
         loop,

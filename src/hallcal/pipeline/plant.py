@@ -11,15 +11,13 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
-import scipy.optimize
 from numpy.typing import NDArray
 
 from hallcal.errors import CalibrationRefused, HallcalInputError
 from hallcal.fit.sem import least_squares_start
-from hallcal.identify import bla as _bla
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.checks import BLAFitCheck, CheckStatus, check_bla_fit
@@ -27,6 +25,9 @@ from hallcal.pipeline.progress import Progress, say
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sim.loop import ClosedLoop, simulate_loop
 from hallcal.sim.lti import ContinuousTF
+
+if TYPE_CHECKING:
+    from hallcal.identify import bla as _bla
 
 __all__ = [
     "BLAIdentification",
@@ -126,6 +127,8 @@ def _fit_with_order(
     npb: _bla.NonparametricBLA, setup: Setup
 ) -> tuple[_bla.ParametricBLA, int, _bla.OrderSelection | None, list[str]]:
     """The parametric fit with the setup's order, or with the order chosen from the data."""
+    from hallcal.identify import bla as _bla  # loaded only when a BLA is identified
+
     spec = setup.bla
     assert spec is not None
     options = dict(integrator=spec.integrator, fit_delay=spec.fit_delay)
@@ -171,6 +174,8 @@ def identify_bla(dataset: Dataset, setup: Setup, *, progress: Progress = None) -
             f"{dataset.source}: a BLA experiment needs a [bla] table in the setup", key="bla"
         )
     dataset.require("r", "u", "y", "realization")
+    from hallcal.identify import bla as _bla  # loaded only when a BLA is identified
+
     say(progress, "nonparametric BLA (indirect closed-loop method)")
     npb = _bla.nonparametric_bla(
         dataset["r"],
@@ -315,6 +320,8 @@ def estimate_gain(
     vals = [cost(g) for g in grid]
     i = int(np.argmin(vals))
     a, b = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+    import scipy.optimize  # only when a gain is estimated (0.15 s import)
+
     opt = scipy.optimize.minimize_scalar(
         cost, bounds=(a, b), method="bounded", options={"xatol": 1e-5}
     )
