@@ -477,6 +477,8 @@ def _print_calibration(cal, units: str = "mrad") -> None:
     if cal.adequacy is not None:
         _out.print(f"model adequacy: {cal.adequacy.verdict}")
     _out.print(f"lookup table: {cal.lut.points} points, bijective: {cal.lut.bijective}")
+    if cal.identifiability is not None:
+        _out.print(cal.identifiability.message)
     _print_validation(cal.validation, units, n_m)
 
 
@@ -493,6 +495,7 @@ def _print_validation(v, units: str, n_m: int) -> None:
 @cli.command(
     epilog=_epilog(
         "hallcal reconstruct cal.json run.csv --out angles.csv",
+        "hallcal reconstruct cal.json powerup.csv --absolute --out angles.csv",
         exits=_EXITS + ", 3 the artifact's table is not bijective",
     )
 )
@@ -504,22 +507,47 @@ def _print_validation(v, units: str, n_m: int) -> None:
     type=click.Path(dir_okay=False),
     help="Table to write: columns y_init and y_star [rad, mechanical], one row per sample.",
 )
+@click.option(
+    "--absolute",
+    is_flag=True,
+    help="The recording starts at power-up anywhere (no homing): identify the pole pair from "
+    "the magnets' signatures; angles in the calibration's frame.",
+)
 @_units_option
 @_handle_errors
-def reconstruct(artifact: str, data: str, out: str, units: str) -> None:
+def reconstruct(artifact: str, data: str, out: str, absolute: bool, units: str) -> None:
     """Apply a calibration to a recording: columns y_init and y_star.
 
     f_init and f_star run over the recording from y = 0 before the first sample (the frame of
-    the calibration run). With an encoder column y_ref both are compared with it.
+    the calibration run), or, with --absolute, from the pole pair identified at power-up. With
+    an encoder column y_ref both are compared with it.
     """
     from hallcal.api import load
     from hallcal.io import write_dataset
 
     cal = load(artifact)
-    rec = cal.reconstruct(data)
+    rec = cal.reconstruct(data, absolute=absolute)
     write_dataset(out, rec.columns)
     _out.print(f"wrote {out} ({len(rec)} samples)")
+    if rec.identification is not None:
+        _print_identification(rec.identification, cal.pole_pairs)
     _print_validation(rec.validation, units, cal.pole_pairs)
+
+
+def _print_identification(ident, pole_pairs: int) -> None:
+    """One line: which pole pair the recording started in, and how certain that is."""
+    where = f"pole pair offset {ident.offset} of {pole_pairs}"
+    if ident.status.success:
+        _out.print(
+            f"{where}: identified after {ident.lock_sample + 1} samples "
+            f"(posterior {ident.posterior:.6f}, margin {ident.margin:.1f} sigma)"
+        )
+    else:
+        _err.print(
+            f"warning: {where} is the most likely one but not certain after all "
+            f"{ident.samples} samples (posterior {ident.posterior:.3f}); the rotor stood at a "
+            "weak position: move it, or record longer"
+        )
 
 
 @cli.command(

@@ -29,6 +29,7 @@ from hallcal.io.setup import Setup
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
 from hallcal.pipeline.checks import CheckStatus, check_direction, check_loop, check_pole_pairs
 from hallcal.pipeline.plant import BLAIdentification, PlantModel, closed_loop, plant_model
+from hallcal.pipeline.powerup import power_up_analysis
 from hallcal.pipeline.progress import Progress, say
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT, build_lut
@@ -294,6 +295,10 @@ def calibrate_closed_loop(
         offset=loop.offset,
     )
     status, refusal, leading = _verdict(lut, adequacy)
+    say(progress, "power-up identifiability of the pole pair")
+    t0 = time.perf_counter()
+    identifiability = power_up_analysis(fit.flux, lut, s.d)
+    timings["identifiability"] = time.perf_counter() - t0
     validation = None
     if "y_ref" in dataset and lut.bijective:
         validation = validate(lut, dataset, noise_floor=adequacy.noise_floor)
@@ -317,4 +322,5 @@ def calibrate_closed_loop(
         model_info=fit.model_info,
         selection=fit.selection,
         kernel=fit.kernel,
+        identifiability=identifiability,
     )

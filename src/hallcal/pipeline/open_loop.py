@@ -24,6 +24,7 @@ from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
 from hallcal.pipeline.checks import CheckStatus, check_pole_pairs
+from hallcal.pipeline.powerup import power_up_analysis
 from hallcal.pipeline.progress import Progress
 from hallcal.sensor.flux import FourierBasis
 
@@ -140,6 +141,11 @@ def calibrate_open_loop(
         status = CalibrationStatus.WARNING
     else:
         status = CalibrationStatus.OK
+    if progress is not None:
+        progress("power-up identifiability of the pole pair")
+    t0 = time.perf_counter()
+    identifiability = power_up_analysis(res.model, res.lut, d, start=start, stop=stop)
+    timings["identifiability"] = time.perf_counter() - t0
     validation = None
     if "y_ref" in dataset and res.lut.bijective:
         validation = validate(res.lut, dataset, noise_floor=res.angle_noise_floor)
@@ -160,4 +166,5 @@ def calibrate_open_loop(
             "theta": res.model.theta.tolist(),
         },
         constant_speed=res,
+        identifiability=identifiability,
     )

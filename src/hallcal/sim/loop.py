@@ -277,7 +277,25 @@ def _output(C, x, D, e):
 
 @nb.njit(cache=True)
 def _simulate_kernel(
-    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, noise, td, cog_amp, cog_per, y_init
+    Ag,
+    Bg,
+    Cg,
+    Ac,
+    Bc,
+    Cc,
+    Dc,
+    P,
+    off,
+    n_m,
+    harm,
+    theta,
+    r,
+    noise,
+    td,
+    cog_amp,
+    cog_per,
+    y_init,
+    y0_start,
 ):
     N = r.size
     ng = Ag.shape[0]
@@ -295,11 +313,11 @@ def _simulate_kernel(
     ds = np.empty((N, 3))
     ts = np.empty(N)
     yprev = y_init
-    y0_last = 0.0
+    y0_last = y0_start
     ok = True
     dk = np.empty(3)
     for k in range(N):
-        y0 = 0.0
+        y0 = y0_start
         for i in range(ng):
             y0 += Cg[i] * xg[i]
         _basis(y0, harm, b, db)
@@ -445,6 +463,7 @@ def simulate_loop(
     cogging_amplitude: float = 0.0,
     cogging_periods: int = 0,
     y_initial: float = 0.0,
+    initial_angle: float = 0.0,
 ) -> LoopResult:
     """Simulate eq. (state_eq) with optional sensor noise, torque disturbance and cogging.
 
@@ -463,6 +482,11 @@ def simulate_loop(
         Position-dependent torque ``a sin(periods * y0)`` added to the plant input.
     y_initial : float
         f_init's estimate before the first sample [rad].
+    initial_angle : float, keyword-only
+        True angle at the first sample [rad]: the plant starts at rest with
+        ``y0 = initial_angle + C_G x_G`` (a power-up at an arbitrary rotor position; f_init still
+        starts from ``y_initial``). The flux, the cogging torque and the returned ``y0`` are all
+        at this true angle. Default 0, the convention of DESIGN.md.
 
     Returns
     -------
@@ -489,6 +513,7 @@ def simulate_loop(
         float(cogging_amplitude),
         float(cogging_periods),
         float(y_initial),
+        float(initial_angle),
     )
     return LoopResult(y0, y, u, d, tq, "ok" if ok else "diverged")
 
