@@ -251,19 +251,18 @@ def test_bla_data_with_a_constant_speed_run_is_a_warning(ring, motor):
 # outputs
 
 
-@pytest.mark.xfail(
-    strict=False,
-    reason="codegen.py (the firmware branch) writes through hallcal.io.atomic_write with the "
-    "umask's permissions; main's _write_atomic uses mkstemp (0600) until that branch is merged",
-)
-def test_generated_c_files_are_world_readable(motor, tmp_path):
+def test_generated_c_files_are_world_readable_and_worded(motor, tmp_path):
     if not (motor / "plant.json").exists():
         test_calibrate_says_which_plant_once_and_records_it(motor)
     old = os.umask(0o022)
     try:
-        res = run("export-c", str(motor / "plant.json"), "--out", "fw", cwd=tmp_path)
+        res = run(
+            "export-c", str(motor / "plant.json"), "--out", "fw", "--adc-scale", "2048",
+            cwd=tmp_path,
+        )  # fmt: skip
     finally:
         os.umask(old)
     assert res.returncode == 0, res.stderr
     for p in (tmp_path / "fw").iterdir():
         assert stat.S_IMODE(p.stat().st_mode) == 0o644, p
+        assert not LEAKS.search(p.read_text(encoding="ascii")), p  # the C comments are read too

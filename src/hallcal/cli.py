@@ -569,22 +569,85 @@ def _print_identification(ident, pole_pairs: int) -> None:
     show_default=True,
     help="ADC counts per unit of the calibration's Hall signals (fixed point input).",
 )
+@click.option(
+    "--max-speed",
+    type=float,
+    default=None,
+    help="Largest mechanical speed [rad/s] for the step limit (default: 45 electrical "
+    "degrees per sample).",
+)
+@click.option(
+    "--table-points",
+    type=int,
+    default=None,
+    help="Intervals of the correction table, pole pairs x 2^k (default: from the error budget).",
+)
+@click.option(
+    "--tolerance",
+    type=float,
+    default=0.25,
+    show_default=True,
+    help="Relative widening of the calibrated amplitude windows.",
+)
+@click.option(
+    "--fault-after",
+    type=int,
+    default=8,
+    show_default=True,
+    help="Rejected samples in a row before the fault flag.",
+)
+@click.option("--prefix", default="hallcal", show_default=True, help="C name prefix.")
 @_handle_errors
-def export_c(artifact: str, out: str, no_fixed_point: bool, adc_scale: float) -> None:
-    """Generate C99 sources of f_star (float and fixed point) for firmware (docs/firmware.md)."""
+def export_c(
+    artifact: str,
+    out: str,
+    no_fixed_point: bool,
+    adc_scale: float,
+    max_speed: float | None,
+    table_points: int | None,
+    tolerance: float,
+    fault_after: int,
+    prefix: str,
+) -> None:
+    """Generate lean C99 sources of f_star (float and fixed point) for firmware.
+
+    The API, the plausibility checks and the error bounds: docs/firmware.md.
+    """
     from hallcal.io import read_artifact
     from hallcal.output.codegen import export_c as _export
 
     art = read_artifact(artifact)
-    res = _export(art, out, fixed_point=not no_fixed_point, source=artifact, adc_scale=adc_scale)
-    for m in res.messages:
-        _err.print(f"note: {m}")
-    for p in res.paths:
-        _out.print(f"wrote {p}")
-    _out.print(
-        f"table {res.table_bytes} bytes (float); stated error bounds: float "
-        f"{res.float_bound:.2g} rad, fixed point {res.fixed_bound:.2g} rad"
+    res = _export(
+        art,
+        out,
+        fixed_point=not no_fixed_point,
+        source=artifact,
+        adc_scale=adc_scale,
+        max_speed=max_speed,
+        table_points=table_points,
+        tolerance=tolerance,
+        fault_after=fault_after,
+        prefix=prefix,
     )
+    for m in res.messages:
+        _echo(f"note: {m}", err=True)
+    for p in res.paths:
+        _echo(f"wrote {p}")
+    bounds = f"float {res.float_bound:.2g} rad"
+    if res.fixed_bound is not None:
+        bounds += f", fixed point {res.fixed_bound:.2g} rad"
+    _echo(
+        f"table {res.table_points} intervals ({res.table_bytes} bytes), "
+        f"{res.table_error:.2g} rad from the calibration's; stated bounds: {bounds}"
+    )
+
+
+def _echo(text: str, *, err: bool = False) -> None:
+    """One line to stdout or stderr, whatever characters the stream's encoding lacks (a file
+    name in an ASCII locale) written as escapes rather than failing."""
+    stream = sys.stderr if err else sys.stdout
+    encoding = getattr(stream, "encoding", None) or "ascii"
+    click.echo(text.encode(encoding, "backslashreplace").decode(encoding), err=err)
 
 
 @cli.command(
