@@ -68,6 +68,11 @@ class ModelSpec:
         Iteration limit of the simulation-error minimization.
     force : bool
         Write the artifact even when the adequacy check fails.
+    cogging : tuple of int, "auto" or "none"
+        Cogging torque ``sum_k a_k cos(k y0) + b_k sin(k y0)`` at the plant input, identified
+        jointly with the flux: its orders k (periods per revolution), chosen from the data
+        (``"auto"``: nothing is added when the data show no cogging), or none. Identified with
+        the Fourier basis; the kernel basis accepts "auto" and "none" and models no cogging.
     """
 
     basis: Literal["fourier", "kernel"] = "fourier"
@@ -77,10 +82,13 @@ class ModelSpec:
     lut_points: int = 4096
     max_iterations: int = 50
     force: bool = False
+    cogging: tuple[int, ...] | Literal["auto", "none"] = "auto"
 
     def __post_init__(self) -> None:
         if self.harmonics != "auto":
             object.__setattr__(self, "harmonics", tuple(int(h) for h in self.harmonics))
+        if self.cogging not in ("auto", "none"):
+            object.__setattr__(self, "cogging", tuple(int(k) for k in self.cogging))
 
 
 @dataclass(frozen=True)
@@ -276,6 +284,7 @@ class Setup:
             model["points"] = m.points
             model["lengthscale"] = m.lengthscale
         model.update(lut_points=m.lut_points, max_iterations=m.max_iterations, force=m.force)
+        model["cogging"] = m.cogging if m.cogging in ("auto", "none") else list(m.cogging)
         out["model"] = model
         t = self.trajectory
         trajectory: dict[str, Any] = {"kind": t.kind}
@@ -331,6 +340,7 @@ _SETUP_KEYS: dict[str, tuple[str, ...]] = {
         "lut_points",
         "max_iterations",
         "force",
+        "cogging",
     ),
     "trajectory": ("kind", "start", "stop"),
     "bla": tuple(f.name for f in dataclasses.fields(BLASpec)),
@@ -544,7 +554,27 @@ def _parse_model(t: _Table | None) -> ModelSpec:
         lut_points=t.integer("lut_points", default=4096, minimum=16),
         max_iterations=t.integer("max_iterations", default=50, minimum=1),
         force=t.boolean("force", default=False),
+        cogging=_parse_cogging(t, basis),  # type: ignore[arg-type]
     )
+
+
+def _parse_cogging(t: _Table, basis: str) -> tuple[int, ...] | str:
+    """``cogging = "auto" | "none" | [orders]`` (distinct integers >= 1; Fourier basis)."""
+    value = t.data.get("cogging", "auto")
+    if isinstance(value, str) and value in ("auto", "none"):
+        return value
+    if basis != "fourier":
+        t.error(f"key '{t.key('cogging')}' with orders applies only to basis = \"fourier\"")
+    if (
+        not isinstance(value, list | tuple)
+        or not value
+        or not all(_is_int(k) and k >= 1 for k in value)
+    ):
+        t.fail("cogging", 'a list of distinct integers >= 1 (periods per revolution), "auto" '
+               'or "none"')  # fmt: skip
+    if len(set(value)) != len(value):
+        t.error(f"key '{t.key('cogging')}' lists an order twice: {_show(value)}")
+    return tuple(int(k) for k in value)
 
 
 def _parse_trajectory(t: _Table | None) -> TrajectorySpec:

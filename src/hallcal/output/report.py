@@ -70,8 +70,6 @@ TWO_PI = 2.0 * math.pi
 REPORT_NAME = "report.html"
 FIGURE_DIR = "figures"
 _DPI = 120
-#: Largest Jacobian (bytes) the file-based report computes for the LUT uncertainty band.
-_MAX_JACOBIAN_BYTES = 800 * 2**20
 
 
 def _say(progress: Progress, message: str) -> None:
@@ -167,6 +165,10 @@ class ReportContent:
         f_init and f_star against a straight line on held-out constant-speed samples.
     angle_units : {"mrad", "electrical-deg"}
         Units of the angle errors in the text.
+    cogging : CoggingTorque or None
+        The cogging torque identified with the flux (with the covariance of its coefficients).
+    true_cogging : CoggingTorque or None
+        The virtual bench's cogging torque.
     """
 
     title: str
@@ -204,6 +206,8 @@ class ReportContent:
     constant_speed: dict[str, Any] | None = None
     straight_line: StraightLineCheck | None = None
     angle_units: str = "mrad"
+    cogging: Any = None
+    true_cogging: Any = None
 
     @property
     def pole_pairs(self) -> int:
@@ -420,6 +424,7 @@ def content_from_calibration(
     sources: Mapping[str, str] | None = None,
     title: str = "hallcal calibration report",
     noise_floor_source: str = "given",
+    true_cogging: Any = None,
 ) -> ReportContent:
     """Gather a report's content from an in-memory :class:`~hallcal.pipeline.Calibration`.
 
@@ -436,7 +441,7 @@ def content_from_calibration(
         Already computed errors on ``validation_data`` (recomputed when None).
     noise_floor : float, optional
         RMS angle error of Hall noise alone [rad]; default: estimated from the SEM residual.
-    true_flux, true_plant, true_noise_variance : optional
+    true_flux, true_plant, true_noise_variance, true_cogging : optional
         The virtual bench's truth, drawn for comparison.
     sources : mapping, optional
         Input names by role, listed in the report.
@@ -529,6 +534,8 @@ def content_from_calibration(
         hall_noise_variance=cs_noise,
         constant_speed=cs_summary,
         straight_line=straight,
+        cogging=getattr(cal, "cogging", None),
+        true_cogging=true_cogging,
     )
 
 
@@ -595,11 +602,16 @@ def _resimulate(
     progress: Progress,
     notes: list[str],
 ) -> Any:
-    """The SEM result of an artifact: cost history stored, d_sim/y0_sim and covariance redone."""
-    from threadpoolctl import threadpool_limits
+    """The SEM result of an artifact: cost history stored, d_sim/y0_sim and covariance redone.
 
+    The loop includes the artifact's cogging torque; for a Fourier model one structured
+    Gauss-Newton pass (:mod:`hallcal.fit.gauss_newton`, with the cogging coefficients as
+    parameters, as in the calibration) gives cov(theta) for the table's band.
+    """
+    from hallcal.fit.gauss_newton import ParameterLayout, gauss_newton_system
     from hallcal.fit.sem import SEMResult
-    from hallcal.sim.loop import ClosedLoop, loop_jacobian, simulate_loop
+    from hallcal.sim.cogging import CoggingTorque
+    from hallcal.sim.loop import ClosedLoop
 
     diag = art.get("diagnostics", {})
     history = np.asarray(diag.get("cost_history", []), dtype=np.float64)
@@ -611,6 +623,7 @@ def _resimulate(
     cov = None
     s2 = float(diag.get("noise_variance", math.nan))
     closed = setup.trajectory.kind == "closed-loop"
+    cogging = CoggingTorque.from_dict(art["cogging"]) if "cogging" in art else None
     if not (closed and plant is not None and setup.controller is not None and "r" in data):
         notes.append(
             "The model fit is shown at the calibrated angle f_star: re-simulating the closed loop "
@@ -627,36 +640,34 @@ def _resimulate(
             offset=lut.offset,
         )
         r = np.ascontiguousarray(data["r"], dtype=np.float64)
-        res = simulate_loop(loop, flux, r)
-        if res.status != "ok":
+        layout = ParameterLayout(flux.basis, cogging_orders=() if cogging is None
+                                 else cogging.orders)  # fmt: skip
+        x = layout.pack(flux.theta, 0.0, cogging)
+        basis_kind = art.get("model", {}).get("basis", "fourier")
+        fourier = basis_kind == "fourier"
+        if fourier:
+            _say(progress, "parameter covariance (one sensitivity pass) for the LUT band")
+        gn = gauss_newton_system(loop, layout, x, r, d, gram=fourier)
+        if not gn.status.success:
             notes.append("Re-simulating the closed loop with the identified model diverged.")
         else:
-            d_sim, y0_sim = res.d, res.y0
-            e = d - d_sim
-            cost = float(np.vdot(e, e))
+            d_sim, y0_sim = gn.d, gn.y0
+            cost = gn.sse
             stored = float(diag.get("cost", cost))
             if not math.isclose(cost, stored, rel_tol=1e-3):
                 notes.append(
                     f"The data's simulation cost ({cost:.6g}) differs from the artifact's "
                     f"({stored:.6g}): the data may not be the calibration recording."
                 )
-            p = flux.theta.size
-            basis_kind = art.get("model", {}).get("basis", "fourier")
-            if basis_kind == "fourier" and n * 3 * p * 8 <= _MAX_JACOBIAN_BYTES:
-                _say(progress, "parameter covariance (one sensitivity pass) for the LUT band")
-                lj = loop_jacobian(loop, flux, r)
-                if lj.status == "ok":
-                    J = lj.jac.reshape(3 * n, p)
-                    with threadpool_limits(limits=1, user_api="blas"):
-                        jtj = J.T @ J
-                    del J, lj
-                    if not math.isfinite(s2):
-                        s2 = cost / max(3 * n - p, 1)
-                    try:
-                        cov = s2 * np.linalg.inv(jtj)
-                    except np.linalg.LinAlgError:
-                        cov = None
-            elif basis_kind != "fourier":
+            if fourier:
+                if not math.isfinite(s2):
+                    s2 = cost / max(3 * n - layout.size, 1)
+                try:
+                    p = flux.theta.size
+                    cov = (s2 * np.linalg.inv(gn.gram))[:p, :p]
+                except np.linalg.LinAlgError:
+                    cov = None
+            else:
                 notes.append(
                     "No uncertainty band for the lookup table: the covariance of a kernel model "
                     "is only available in the calibrating process."
@@ -673,6 +684,7 @@ def _resimulate(
         n_samples=int(diag.get("n_samples", n)),
         d_sim=d_sim,
         y0_sim=y0_sim,
+        cogging=cogging,
     )
 
 
@@ -798,6 +810,7 @@ def content_from_artifact(
         hall_noise_variance=cs_noise,
         constant_speed=cs_summary,
         straight_line=straight,
+        cogging=None if sem is None else sem.cogging,
     )
 
 
@@ -951,6 +964,28 @@ def make_figures(content: ReportContent) -> list[ReportFigure]:
                 "Simulation-error cost per accepted Levenberg-Marquardt step. A converged model "
                 f"ends at the noise level 3Nσ² ({which} σ², dashed).",
                 plots.plot_sem_cost(c.sem, noise_variance=c.true_noise_variance),
+            )
+        )
+    if c.cogging is not None and c.cogging.size:
+        figs.append(
+            ReportFigure(
+                "cogging",
+                "Cogging torque identified with the flux (paper sec. Discussion)",
+                "The position-periodic torque at the plant input that the closed-loop "
+                "simulation needed to reproduce the data, in the unit of the torque command"
+                + (
+                    ", with its ±2σ band from the covariance"
+                    if c.cogging.covariance is not None
+                    else ""
+                )
+                + (
+                    " and the virtual bench's torque (black dashed)"
+                    if c.true_cogging is not None
+                    else ""
+                )
+                + ". Identified jointly with the flux, it no longer leaks into the lookup "
+                "table; subtracted from the torque command it is an anticogging feed-forward.",
+                plots.plot_cogging(c.cogging, true_cogging=c.true_cogging),
             )
         )
     figs.append(

@@ -104,6 +104,8 @@ def calibrate_open_loop(
     if pole_pairs.status is CheckStatus.WARNING:
         messages.append(pole_pairs.text)
     unused = [f"[{t}]" for t in ("controller", "plant") if getattr(setup, t) is not None]
+    if setup.model.cogging not in ("auto", "none"):
+        unused.append("[model] cogging")
     if unused:
         messages.append(
             f"note: {' and '.join(unused)} {'is' if len(unused) == 1 else 'are'} not used by a "
