@@ -29,6 +29,7 @@ from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.boundary import numeric_errors
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
+from hallcal.pipeline.checks import CheckStatus, check_direction, check_loop, check_pole_pairs
 from hallcal.pipeline.plant import BLAIdentification, PlantModel, closed_loop, plant_model
 from hallcal.pipeline.powerup import power_up_analysis
 from hallcal.pipeline.progress import Progress, say
@@ -321,6 +322,11 @@ def calibrate_closed_loop(
         Called with a short message at each step.
     """
     timings: dict[str, float] = {}
+    dataset.require("r", "d1", "d2", "d3")
+    say(progress, "checking pole pairs and direction against the reference")
+    preflight = [check_pole_pairs(dataset, setup.pole_pairs), check_direction(dataset)]
+    for check in preflight:
+        check.raise_if_failed(dataset.source)
     s = _signals(dataset, setup.pole_pairs)
 
     t0 = time.perf_counter()
@@ -335,8 +341,13 @@ def calibrate_closed_loop(
     )
     if pm.source == "bla":
         timings["plant"] = time.perf_counter() - t0
+    loop_check = check_loop(setup.controller, pm.plant, setup.sample_time, plant_name=pm.name)
+    loop_check.raise_if_failed("setup")
     loop = closed_loop(setup, pm.plant)
     messages = list(s.messages) + [pm.note]
+    if pm.bla is not None:
+        messages += list(pm.bla.messages)
+    messages += [c.text for c in preflight if c.status is CheckStatus.WARNING]
     if pm.gain is not None and pm.gain.status != "ok":
         messages.append(f"warning: gain correction c = {pm.gain.c:.3g} hit its search bound")
 

@@ -10,6 +10,7 @@ from hallcal.errors import HallcalInputError
 from hallcal.io.setup import Setup
 from hallcal.limits import MAX_SAMPLES
 from hallcal.pipeline.boundary import numeric_errors
+from hallcal.pipeline.checks import check_loop
 
 if TYPE_CHECKING:
     from hallcal.sim.bench import BenchConfig, BenchRun
@@ -86,12 +87,14 @@ def simulate(
     ------
     HallcalInputError
         No ``[plant]``, a ramp of fewer than 2 or more than :data:`~hallcal.limits.MAX_SAMPLES`
-        samples, or a plant and controller the loop cannot use (named).
+        samples, a plant and controller the loop cannot use (named), or whose closed loop is
+        unstable (the pole named, :func:`~hallcal.pipeline.checks.check_loop`).
     """
     from hallcal.sim.bench import simulate_run
 
     with numeric_errors("setup", "plant"):
         cfg = bench_config(setup)
+        check_loop(cfg.controller, cfg.plant, setup.sample_time).raise_if_failed("setup")
     kind = experiment or setup.bench.experiment
     if kind == "ramp":
         b = setup.bench
