@@ -636,6 +636,8 @@ def dataset_cases() -> list[Case]:
                     return ["reconstruct", "a.json", fname, "--out", "rec.csv"]
                 if cmd == "calibrate":
                     return ["calibrate", fname, "--setup", "s.toml", "--out", "c.json"]
+                if cmd == "inspect":
+                    return ["inspect", fname, "--setup", "s.toml"]
                 return ["report", "a.json", fname, "--out", "rep"]
 
             return build
@@ -643,6 +645,8 @@ def dataset_cases() -> list[Case]:
         cmds = ["reconstruct", "calibrate"]
         if name.startswith(("trunchalf-", "scaled-tiny-", "hall-data-random-d1-", "spike-")):
             cmds.append("report")
+        if name.startswith(("trunc", "scaled-", "hall-data-random-d2-", "empty-", "nan-", "h5-")):
+            cmds.append("inspect")
         for cmd in cmds:
             # int16 counts and an extra column are valid data: calibrate may refuse the model
             # fitted to rounded counts; reconstruct must succeed
@@ -1781,6 +1785,19 @@ def option_cases() -> list[Case]:
             return ["reconstruct", "a.json", "cal.npz", "--absolute", "--out", "x.csv"]
 
         c(f"reconstruct-absolute-identifiability-{label}", build_absolute, msg=msg)
+    # inspect
+    for label, value in (("zero", "0"), ("257", "257"), ("1e6", "1000000"), ("word", "x")):
+        c(
+            f"inspect-pole-pairs-{label}",
+            with_inputs(["inspect", "cal.npz", "--pole-pairs", value]),
+            msg="pole-pairs",
+        )
+    c("inspect-plain", with_inputs(["inspect", "cal.npz", "--setup", "s.toml"]), (OK,))
+    c(
+        "inspect-setup-is-data",
+        with_inputs(["inspect", "cal.npz", "--setup", "cal.npz"]),
+        msg="UTF-8",
+    )
     # bla
     c(
         "bla-no-bla-table",

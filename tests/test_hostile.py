@@ -349,7 +349,8 @@ def test_the_suite_covers_every_class_and_subcommand() -> None:
     ids = " ".join(c.id for c in CASES)
     for reader in ("-csv-", "-parquet-", "-h5-", "-hdf5-", "-mat-", "-npz-"):
         assert f"data-trunchalf{reader}" in ids and f"data-scaled-tiny{reader}" in ids
-    for command in ("simulate", "calibrate", "bla", "reconstruct", "report", "export-c", "demo"):
+    commands = ("simulate", "calibrate", "bla", "reconstruct", "report", "export-c", "demo")
+    for command in (*commands, "inspect"):
         assert any(c.id.endswith(f"-{command}") or f"option-{command}-" in c.id for c in CASES), (
             command
         )

@@ -20,6 +20,7 @@ from typing import Any
 import click
 
 from hallcal.errors import CalibrationRefused, HallcalError, HallcalInputError
+from hallcal.limits import MAX_POLE_PAIRS
 
 EXIT_INPUT = HallcalInputError.exit_status
 EXIT_REFUSED = CalibrationRefused.exit_status
@@ -324,7 +325,7 @@ def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int
 )
 @click.option(
     "--pole-pairs",
-    type=click.IntRange(min=1),
+    type=click.IntRange(1, MAX_POLE_PAIRS),
     default=None,
     help="Pole pairs to check (default: the setup's, else the count the data suggest).",
 )
