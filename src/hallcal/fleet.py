@@ -131,6 +131,9 @@ SUMMARY_CSV = "summary.csv"
 SUMMARY_PARQUET = "summary.parquet"
 RECORD_FORMAT = "hallcal-fleet-record/1"
 
+#: How long to wait for an existing scheduler (``scheduler="tcp://..."``) to answer.
+_CONNECT_TIMEOUT = "10s"
+
 _MOTOR_ID = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}")
 
 #: Summary columns with their Arrow types. Angles in rad, durations in s.
@@ -753,6 +756,8 @@ def _store(out: Path, spec: MotorSpec, fp: str, result: _Result) -> None:
     for p in stale:
         if p not in wanted and p.is_file():
             p.unlink()
+    if (folder / C_DIR).is_dir() and not any((folder / C_DIR).iterdir()):
+        (folder / C_DIR).rmdir()
     outputs: dict[str, str] = {}
     for rel, content in result.files.items():
         target = folder / rel
@@ -760,8 +765,6 @@ def _store(out: Path, spec: MotorSpec, fp: str, result: _Result) -> None:
         with atomic_write(target, "wb") as f:
             f.write(content)
         outputs[rel] = hashlib.sha256(content).hexdigest()
-    if not result.files and (folder / C_DIR).is_dir() and not any((folder / C_DIR).iterdir()):
-        (folder / C_DIR).rmdir()
     record = {
         "format": RECORD_FORMAT,
         "fingerprint": fp,
@@ -958,7 +961,7 @@ def _client(scheduler: Any, workers: int | None) -> Iterator[Any]:
             cluster.close()
     elif isinstance(scheduler, str):
         try:
-            client = Client(scheduler, timeout="10s", set_as_default=False)
+            client = Client(scheduler, timeout=_CONNECT_TIMEOUT, set_as_default=False)
         except (OSError, TimeoutError, ValueError) as exc:
             why = _one_line(str(exc)) or type(exc).__name__
             raise HallcalInputError(f"scheduler {scheduler}: cannot connect ({why})") from None

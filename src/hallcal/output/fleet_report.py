@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 from matplotlib.figure import Figure
+from matplotlib.ticker import FuncFormatter
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal.io import atomic_write
@@ -35,6 +36,10 @@ __all__ = ["Outlier", "find_outliers", "render_fleet_html", "robust_outliers", "
 #: about 0.05% of a normal sample, so in a batch of 1000 well-behaved motors about 0.5 false
 #: alarms, while a motor a few times worse than its peers stands out).
 Z_OUTLIER = 3.5
+#: Smallest excess over the batch median worth flagging: in a batch with almost no spread the
+#: z-score alone would flag a motor 2% worse than the median, while the sensors' noise, and so
+#: the noise floor, differs between parts by more than that (25%: a power ratio of 1.56).
+MIN_EXCESS = 0.25
 #: Fewest values for which a median and a MAD mean anything.
 _MIN_VALUES = 5
 _DPI = 110
@@ -46,6 +51,7 @@ _CSS = (
 .counts span { display: inline-block; margin-right: 14px; }
 table.motors td, table.motors th { padding-right: 14px; }
 td.msg { max-width: 560px; }
+td.nowrap { white-space: nowrap; }
 """
 )
 
@@ -54,10 +60,11 @@ def robust_outliers(values: ArrayLike) -> tuple[NDArray[np.bool_], float | None]
     """High outliers of positive values by the modified z-score of their logarithm.
 
     z_i = 0.6745 (log x_i - median) / MAD (Iglewicz and Hoaglin, 1993); x_i is an outlier when
-    z_i > :data:`Z_OUTLIER`. Angle errors are positive and skewed, their logarithm close to
-    symmetric, and only large errors are a problem, so only the high side is flagged. With a MAD
-    of zero the mean absolute deviation times 1.2533 stands in (the same estimator's fallback);
-    with fewer than 5 finite values, or no spread at all, nothing is flagged.
+    z_i > :data:`Z_OUTLIER` and x_i exceeds the median by more than :data:`MIN_EXCESS`. Angle
+    errors are positive and skewed, their logarithm close to symmetric, and only large errors are
+    a problem, so only the high side is flagged. With a MAD of zero the mean absolute deviation
+    times 1.2533 stands in (the same estimator's fallback); with fewer than 5 finite values, or
+    no spread at all, nothing is flagged.
 
     Parameters
     ----------
@@ -83,7 +90,7 @@ def robust_outliers(values: ArrayLike) -> tuple[NDArray[np.bool_], float | None]
         scale = float(np.mean(np.abs(lx - med))) * 1.2533
     if scale == 0.0:
         return mask, None
-    threshold = med + Z_OUTLIER * scale
+    threshold = max(med + Z_OUTLIER * scale, med + math.log1p(MIN_EXCESS))
     mask[ok] = lx > threshold
     return mask, float(math.exp(threshold))
 
@@ -153,11 +160,23 @@ def _esc(x: Any) -> str:
     return html.escape(str(x), quote=True)
 
 
+def _log_scale(values: NDArray[np.float64]) -> bool:
+    """A log axis when the values span more than a factor 3, else a linear one."""
+    return float(values.max()) > 3.0 * float(values.min())
+
+
+def _log_axis(axis: Any) -> None:
+    """Log scale with plain numbers (0.6, 2) instead of powers of ten."""
+    axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    axis.set_minor_formatter(FuncFormatter(lambda v, _: ""))
+
+
 def _bins(values: NDArray[np.float64], n: int = 24) -> NDArray[np.float64]:
     lo, hi = float(values.min()), float(values.max())
-    if hi <= lo * 1.05:
-        return np.linspace(lo * 0.9, hi * 1.1, 10)
-    return np.geomspace(lo / 1.05, hi * 1.05, n)
+    if _log_scale(values):
+        return np.geomspace(lo / 1.05, hi * 1.05, n)
+    pad = max(0.05 * (hi - lo), 0.01 * hi)
+    return np.linspace(lo - pad, hi + pad, n)
 
 
 def _figure_predicted(rows: Sequence[Mapping[str, Any]]) -> Figure | None:
@@ -170,7 +189,9 @@ def _figure_predicted(rows: Sequence[Mapping[str, Any]]) -> Figure | None:
     fig = Figure(figsize=(8.0, 3.4), layout="constrained")
     ax = fig.add_subplot()
     ax.hist(mrad, bins=_bins(mrad), color="#1f77b4", edgecolor="white")
-    ax.set_xscale("log")
+    if _log_scale(mrad):
+        ax.set_xscale("log")
+        _log_axis(ax.xaxis)
     ax.axvline(float(np.median(mrad)), color="black", ls="--", lw=1, label="median")
     _, thr = robust_outliers(vals)
     if thr is not None:
@@ -196,6 +217,8 @@ def _figure_validation(rows: Sequence[Mapping[str, Any]]) -> Figure | None:
     ax1.plot([lo, hi], [lo, hi], color="grey", lw=1, ls="--", label="f_star = f_init")
     ax1.set_xscale("log")
     ax1.set_yscale("log")
+    _log_axis(ax1.xaxis)
+    _log_axis(ax1.yaxis)
     ax1.set_xlim(lo, hi)
     ax1.set_ylim(lo, hi)
     ax1.set_xlabel("f_init RMS [mrad]")
@@ -205,7 +228,9 @@ def _figure_validation(rows: Sequence[Mapping[str, Any]]) -> Figure | None:
     bins = _bins(both[both > 0], 30)
     ax2.hist(fi, bins=bins, color="#1f77b4", alpha=0.75, label="f_init")
     ax2.hist(fs, bins=bins, color="#d62728", alpha=0.75, label="f_star")
-    ax2.set_xscale("log")
+    if _log_scale(both[both > 0]):
+        ax2.set_xscale("log")
+        _log_axis(ax2.xaxis)
     ax2.set_xlabel("RMS angle error on the validation run [mrad]")
     ax2.set_ylabel("motors")
     ax2.legend(frameon=False)
@@ -374,7 +399,7 @@ def _motor_table(rows: Sequence[Mapping[str, Any]], keys: Sequence[str]) -> str:
             elif k == "message":
                 cells.append(f'<td class="msg">{_esc(v or "")}</td>')
             else:
-                cells.append(f"<td>{_esc('' if v is None else v)}</td>")
+                cells.append(f'<td class="nowrap">{_esc("" if v is None else v)}</td>')
         body.append("<tr>" + "".join(cells) + "</tr>")
     return f'<table class="motors"><tr>{head}</tr>{"".join(body)}</table>'
 
