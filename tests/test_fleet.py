@@ -194,7 +194,7 @@ def test_api_on_a_distributed_scheduler_by_address(fleet_dir):
     out = fleet_dir / "out-api"
     seen = []
     with LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None
+        n_workers=2, threads_per_worker=1, processes=False, dashboard_address="127.0.0.1:0"
     ) as cluster:
         addresses = set(cluster.workers[w].address for w in cluster.workers)
         table = run_fleet(

@@ -792,7 +792,7 @@ def _local_cluster(workers: int | None) -> Any:
             n_workers=n,
             threads_per_worker=1,
             processes=True,
-            dashboard_address=None,
+            dashboard_address="127.0.0.1:0",  # a free port: no clash with other clusters
             silence_logs=logging.ERROR,
             env={
                 "OMP_NUM_THREADS": "1",
@@ -874,6 +874,16 @@ def run_fleet(
         The manifest is unusable (missing file or column, no motors), the output folder cannot
         be created, or the scheduler cannot be reached. Problems of single motors do not raise:
         they are in their rows.
+    Notes
+    -----
+    The default local cluster spawns worker processes, which import the calling script's main
+    module: a script (not a notebook) that calls this needs the usual
+    ``if __name__ == "__main__":`` guard, as with any Dask process cluster.
+
+    Examples
+    --------
+    >>> table = run_fleet("manifest.csv", "batch")  # doctest: +SKIP
+    >>> [r["motor_id"] for r in table.to_pylist() if r["status"] == "failed"]  # doctest: +SKIP
     """
     specs, source = _specs(manifest_or_rows, base)
     out_dir = Path(out)
