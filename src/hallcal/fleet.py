@@ -405,12 +405,9 @@ def _sha256_file(path: Path) -> str:
 
 
 def _version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
+    from hallcal._version import __version__
 
-    try:
-        return version("hallcal")
-    except PackageNotFoundError:  # pragma: no cover - running from a source tree
-        return "0+unknown"
+    return __version__
 
 
 def fingerprint(spec: MotorSpec, options: Mapping[str, Any]) -> str:
@@ -510,74 +507,21 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-class _PipelineCalibration:
-    """The front-door interface, on top of :func:`hallcal.pipeline.calibrate` (see the adapter).
+def _calibrate(data: str, setup: str, bla_data: str | None) -> Any:
+    """The one call into the calibration: the front door, as ``hallcal calibrate`` uses it.
 
-    Attributes mirror ``hallcal.api.Calibration``: ``status`` (a string: ok, warning, refused),
-    ``refusal``, ``messages``, ``predicted_error``, ``artifact``; methods ``save`` and
-    ``export_c``, ``reconstruct``.
+    Returns a :class:`hallcal.api.Calibration`; errors name the file at fault (the numeric
+    layers say "setup:", replaced here by the setup file's path, as the CLI does).
     """
+    from hallcal.api import calibrate
 
-    def __init__(self, cal: Any, force: bool) -> None:
-        from hallcal import pipeline
-
-        self._cal = cal
-        self.messages: list[str] = list(cal.messages)
-        self.predicted_error: float = float(cal.predicted_error)
-        self.refusal: str | None = None
-        if cal.status == "not-bijective" or (cal.status == "inadequate" and not force):
-            self.status = "refused"
-            self.refusal = cal.messages[0] if cal.messages else cal.status
-        elif cal.status == "inadequate":
-            self.status = "warning"
-            self.messages.insert(
-                0,
-                "model inadequate, artifact written because [model] force = true: "
-                + (cal.messages[0] if cal.messages else ""),
-            )
-        else:
-            self.status = cal.status
-        self.artifact: dict[str, Any] = pipeline.artifact_from_calibration(cal)
-
-    def save(self, path: str | os.PathLike[str]) -> None:
-        from hallcal.io import write_artifact
-
-        write_artifact(path, self.artifact)
-
-    def export_c(self, out_dir: str | os.PathLike[str], *, adc_scale: float = 1.0) -> Any:
-        from hallcal.output.codegen import export_c
-
-        return export_c(self.artifact, out_dir, adc_scale=adc_scale)
-
-    def reconstruct(self, dataset: Any) -> Any:
-        from hallcal import pipeline
-
-        return pipeline.reconstruct(self.artifact, dataset)
-
-
-def _calibrate(data: str, setup: str, bla_data: str | None) -> _PipelineCalibration:
-    """The one call into the calibration: the same as ``hallcal calibrate DATA --setup S``.
-
-    Reads the files (errors name them) and runs Algorithm 1. Replace the body with
-    ``hallcal.api.calibrate(data, setup, bla_data=bla_data)`` once the front door is in.
-    """
-    from hallcal import pipeline
-    from hallcal.io import read_dataset, read_setup
-
-    s = read_setup(setup)
-    required = ("r", "d1", "d2", "d3") if s.trajectory.kind == "closed-loop" else ("d1", "d2", "d3")
-    ds = read_dataset(data, required=required)
-    bla = None
-    if bla_data is not None:
-        bla = read_dataset(bla_data, required=("r", "u", "y", "realization"))
     try:
-        cal = pipeline.calibrate(ds, s, bla_dataset=bla)
+        return calibrate(data, setup, bla_data=bla_data)
     except HallcalInputError as exc:
         msg = str(exc)
-        if msg.startswith("setup:"):  # the numeric layers say "setup:"; name the file
+        if msg.startswith("setup:"):
             raise HallcalInputError(setup + msg[len("setup") :]) from None
         raise
-    return _PipelineCalibration(cal, force=s.model.force)
 
 
 def _model_text(model: Mapping[str, Any]) -> str:
@@ -675,18 +619,25 @@ def _run_motor(task: _Task) -> _Result:
 
 def _calibrate_into(task: _Task, result: _Result) -> None:
     from hallcal.io import read_dataset
+    from hallcal.pipeline.calibration import CalibrationStatus
 
     row = result.row
     cal = _calibrate(task.data, task.setup, task.bla_data)
     row["predicted_error"] = _finite(cal.predicted_error)
-    row["model"] = _model_text(cal.artifact.get("model", {}))
-    if cal.status == MotorStatus.REFUSED.value:
-        row.update(status=MotorStatus.REFUSED.value, message=_one_line(cal.refusal or "refused"))
+    row["model"] = _model_text(cal.model_info)
+    force = bool(cal.setup.model.force)  # as `hallcal calibrate` honours [model] force = true
+    notes = list(cal.messages)
+    if cal.status is CalibrationStatus.NOT_BIJECTIVE or (cal.status.refused and not force):
+        reason = cal.refusal or (notes[0] if notes else str(cal.status))
+        row.update(status=MotorStatus.REFUSED.value, message=_one_line(reason))
         return
-    status = MotorStatus(cal.status)
-    notes = [m for m in cal.messages]
+    status = MotorStatus.OK if cal.status is CalibrationStatus.OK else MotorStatus.WARNING
+    if cal.status.refused:
+        notes.insert(0, f"model inadequate, written because [model] force = true: {cal.refusal}")
+    elif cal.status is CalibrationStatus.WARNING and not notes:
+        notes.append("warning: see the artifact's diagnostics")
     with tempfile.TemporaryDirectory(prefix="hallcal-fleet-") as tmp:
-        cal.save(Path(tmp) / ARTIFACT_NAME)
+        cal.save(Path(tmp) / ARTIFACT_NAME, force=force)
         result.files[ARTIFACT_NAME] = (Path(tmp) / ARTIFACT_NAME).read_bytes()
         if task.export_c:
             cdir = Path(tmp) / C_DIR
@@ -697,8 +648,7 @@ def _calibrate_into(task: _Task, result: _Result) -> None:
     if task.validation is not None:
         try:
             ds = read_dataset(task.validation, required=("d1", "d2", "d3", "y_ref"))
-            rec = cal.reconstruct(ds)
-            v = rec.validation
+            v = cal.reconstruct(ds).validation
             row["f_init_rms"] = _finite(v.init.rms)
             row["f_star_rms"] = _finite(v.star.rms)
             if v.star.rms > v.init.rms:

@@ -9,7 +9,7 @@ Instead of the paper's interior-point method on finite differences (2 hours), th
 Levenberg-Marquardt (More 1978, "The Levenberg-Marquardt algorithm: implementation and theory") on
 the exact Jacobian from forward sensitivities (:func:`hallcal.sim.loop.loop_jacobian`), including
 the feedback term d y0_sim / d theta. One iteration costs one sensitivity pass, one Gram product
-J^T J (BLAS, pinned to one thread, see DESIGN.md) and one or two plain simulations.
+J^T J (BLAS, pinned to one thread, see docs/design.md) and one or two plain simulations.
 
 Parameter covariance (Ljung 1999, "System Identification", sec. 9.3): for white Hall noise,
 ``cov(theta) ~ sigma^2 (J^T J)^-1`` with ``sigma^2 = J(theta*) / (3 N - p)``.

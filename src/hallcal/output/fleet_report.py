@@ -26,9 +26,9 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal._version import __version__
 from hallcal.io import atomic_write
 from hallcal.output.report import _CSS as _REPORT_CSS
-from hallcal.output.report import _version
 
 __all__ = ["Outlier", "find_outliers", "render_fleet_html", "robust_outliers", "write_fleet_report"]
 
@@ -284,7 +284,7 @@ def render_fleet_html(rows: Sequence[Mapping[str, Any]], *, source: str = "") ->
         "<body><main>",
         f"<h1>Fleet calibration: {len(rows)} motors</h1>",
         f'<p class="meta">manifest: {_esc(source or "in memory")} · created {created} · '
-        f"hallcal {_esc(_version())}"
+        f"hallcal {_esc(__version__)}"
         + (f" · {reused} results reused from an earlier run" if reused else "")
         + "</p>",
         '<p class="counts">'

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from hallcal._version import __version__
 from hallcal.errors import HallcalInputError
 from hallcal.io import (
     Dataset,
@@ -42,6 +43,7 @@ from hallcal.io import (
     setup_from_dict,
     setup_to_toml,
 )
+from hallcal.pipeline.calibration import Calibration
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sim.lti import ContinuousTF
@@ -53,6 +55,7 @@ __all__ = [
     "content_from_calibration",
     "make_figures",
     "render_html",
+    "write_calibration_report",
     "write_demo_report",
     "write_report",
     "write_report_from_files",
@@ -197,13 +200,28 @@ def _amplitude(flux: FluxModel, n_m: int) -> float:
 
 
 def _estimated_floor(noise_variance: float | None, flux: FluxModel, n_m: int) -> float | None:
-    """sigma sqrt(2/3) / (A n_m): the RMS angle error white Hall noise alone causes (DESIGN.md)."""
+    """sigma sqrt(2/3) / (A n_m): the RMS angle error of white Hall noise alone (docs/design.md)."""
     if noise_variance is None or not math.isfinite(noise_variance) or noise_variance < 0:
         return None
     a = _amplitude(flux, n_m)
     if not a > 0:
         return None
     return math.sqrt(noise_variance) * math.sqrt(2.0 / 3.0) / (a * n_m)
+
+
+_ESTIMATED_FLOOR = "estimated from the calibration data (model-free Hall noise level)"
+
+
+def _artifact_floor(diag: Mapping[str, Any], flux: FluxModel, n_m: int) -> tuple[float | None, str]:
+    """The artifact's noise floor (the calibration's own), or for artifacts written before it
+    was stored, the estimate from the SEM's noise variance."""
+    stored = diag.get("noise_floor")
+    if isinstance(stored, int | float) and math.isfinite(stored):
+        return float(stored), _ESTIMATED_FLOOR
+    return (
+        _estimated_floor(diag.get("noise_variance"), flux, n_m),
+        "estimated from the SEM residual",
+    )
 
 
 def _traces(lut: LUT, dataset: Dataset) -> Traces:
@@ -347,9 +365,9 @@ def content_from_calibration(
             "f_init is shown."
         )
     floor_source = noise_floor_source
-    if noise_floor is None and sem is not None:
-        noise_floor = _estimated_floor(sem.noise_variance, flux, n_m)
-        floor_source = "estimated from the SEM residual"
+    if noise_floor is None and math.isfinite(cal.noise_floor):
+        noise_floor = cal.noise_floor
+        floor_source = _ESTIMATED_FLOOR
     d_model, label = _model_signals(sem, flux, d, cal_traces)
     true_lut = None
     if true_flux is not None:
@@ -358,7 +376,7 @@ def content_from_calibration(
         )
     t = np.asarray(data["t"], dtype=np.float64) if "t" in data else None
     if t is None:
-        # sample_time = 1.0 means time in samples (DESIGN.md): plot over the sample index
+        # sample_time = 1.0 means time in samples (docs/design.md): plot over the sample index
         t = None if cal.setup.sample_time == 1.0 else cal.setup.sample_time * np.arange(d.shape[0])
     return ReportContent(
         title=title,
@@ -554,7 +572,7 @@ def content_from_artifact(
     The lookup table and the flux model come from the artifact; the closed loop is re-simulated
     with the stored plant and controller to show the model fit (Fig. sim_g), and for a Fourier
     model one sensitivity pass gives cov(theta) for the table's uncertainty band. The noise
-    floor is estimated from the SEM residual (``sigma sqrt(2/3) / (A n_m)``).
+    floor is the calibration's own (``diagnostics.noise_floor``).
 
     Parameters
     ----------
@@ -587,7 +605,7 @@ def content_from_artifact(
     notes: list[str] = []
     cal_traces = _traces(lut, data)
     sem = _resimulate(artifact, setup, flux, plant, data, lut, progress=progress, notes=notes)
-    noise_floor = _estimated_floor(diag.get("noise_variance"), flux, n_m)
+    noise_floor, floor_source = _artifact_floor(diag, flux, n_m)
     validation = None
     val_traces = None
     val_source = None
@@ -613,7 +631,7 @@ def content_from_artifact(
     d_model, label = _model_signals(sem, flux, d, cal_traces)
     t = np.asarray(data["t"], dtype=np.float64) if "t" in data else None
     if t is None:
-        # sample_time = 1.0 means time in samples (DESIGN.md): plot over the sample index
+        # sample_time = 1.0 means time in samples (docs/design.md): plot over the sample index
         t = None if setup.sample_time == 1.0 else setup.sample_time * np.arange(d.shape[0])
     p = artifact.get("plant") if isinstance(artifact.get("plant"), Mapping) else {}
     gain = p.get("gain_correction")
@@ -633,7 +651,7 @@ def content_from_artifact(
         else None,
         predicted_error=None if predicted is None else float(predicted),
         noise_floor=noise_floor,
-        noise_floor_source="estimated from the SEM residual",
+        noise_floor_source=floor_source,
         status=str(diag.get("status", "unknown")),
         messages=[str(m) for m in diag.get("messages", [])],
         adequacy=_adequacy_dict(diag.get("adequacy")),
@@ -1045,7 +1063,7 @@ def render_html(content: ReportContent, images: list[tuple[ReportFigure, bytes]]
         f"<h1>{_esc(c.title)}</h1>",
         f'<p class="meta">{c.pole_pairs} pole pairs · sample time '
         f"{_num(c.setup.sample_time, '.4g')} s · inputs: {_esc(src)} · created {created} · "
-        f"hallcal {_esc(_version())}</p>",
+        f"hallcal {_esc(__version__)}</p>",
         f'<p><span class="status {_status_class(c.status)}">status: {_esc(c.status)}</span></p>',
     ]
     if c.messages or c.notes:
@@ -1076,15 +1094,6 @@ def render_html(content: ReportContent, images: list[tuple[ReportFigure, bytes]]
     )
     out.append("</main></body></html>")
     return "\n".join(out) + "\n"
-
-
-def _version() -> str:
-    try:
-        from importlib.metadata import PackageNotFoundError, version
-
-        return version("hallcal")
-    except (ImportError, PackageNotFoundError):
-        return "unknown"
 
 
 def _png(fig: Any) -> bytes:
@@ -1224,6 +1233,8 @@ def write_demo_report(
     out_dir : path-like
     noise_floor : float
         RMS angle error of the bench's Hall noise alone [rad].
+    progress : callable, optional
+        Called with a short message per step.
 
     Returns
     -------
@@ -1248,4 +1259,42 @@ def write_demo_report(
         title="hallcal demo: the paper's simulation study",
         noise_floor_source="virtual bench: σ·√(2/3)/(A·n_m) with the true σ and A",
     )
+    return write_report(content, out_dir, progress=progress)
+
+
+def write_calibration_report(
+    cal: Calibration,
+    data: Dataset,
+    out_dir: str | os.PathLike[str],
+    *,
+    validation: Dataset | None = None,
+    progress: Progress = None,
+) -> Path:
+    """The report of a calibration object (``Calibration.report``), computed or loaded.
+
+    A calibration computed in this process reports its in-memory results; one loaded from an
+    artifact (:attr:`Calibration.artifact`) is reported as ``hallcal report`` does it.
+
+    Parameters
+    ----------
+    cal : Calibration
+    data : Dataset
+        The calibration recording.
+    out_dir : path-like
+    validation : Dataset, optional
+        A fresh recording with ``y_ref``.
+    progress : callable, optional
+        Called with a short message per step.
+
+    Returns
+    -------
+    pathlib.Path
+        The HTML file.
+    """
+    if cal.artifact is not None:
+        content = content_from_artifact(
+            cal.artifact, data, validation_data=validation, progress=progress
+        )
+    else:
+        content = content_from_calibration(cal, data, validation_data=validation)
     return write_report(content, out_dir, progress=progress)

@@ -45,7 +45,7 @@ __all__ = [
 ]
 
 TWO_PI = 2.0 * math.pi
-#: G(s) of the paper's simulation (with the physical sign of the delay, see DESIGN.md).
+#: G(s) of the paper's simulation (with the physical sign of the delay, see docs/design.md).
 PAPER_PLANT = ContinuousTF((1.663e5,), (1.0, 632.6, 2702.0, 0.0), 1.2e-4)
 #: C(q) of eq. (controller).
 PAPER_CONTROLLER = DiscreteTF((2.94, -3.29, -2.10, 2.45), (1.0, -3.45, 4.52, -2.68, 0.61))
@@ -56,7 +56,7 @@ def noise_floor(noise_variance: float, pole_pairs: int, amplitude: float = 1.0) 
 
     The alpha/beta projection of three channels with variance sigma^2 has variance
     (2/3) sigma^2 per component; the tangential part gives an electrical angle error of
-    sigma sqrt(2/3) / A, i.e. sigma sqrt(2/3) / (A n_m) mechanical (DESIGN.md).
+    sigma sqrt(2/3) / A, i.e. sigma sqrt(2/3) / (A n_m) mechanical (docs/design.md).
     """
     return math.sqrt(noise_variance) * math.sqrt(2.0 / 3.0) / (amplitude * pole_pairs)
 
@@ -218,7 +218,7 @@ class BenchRun:
         return int(self.r.size)
 
     def columns(self, *, with_encoder: bool = True) -> dict[str, NDArray[np.float64]]:
-        """Dataset columns of DESIGN.md (``y_ref`` = the true angle, validation only)."""
+        """Dataset columns of docs/design.md (``y_ref`` = the true angle, validation only)."""
         cols = {
             "t": self.t,
             "r": self.r,

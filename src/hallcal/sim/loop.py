@@ -25,7 +25,8 @@ Sensitivities (forward mode, exact). With ``g_h(y0) = beta(y0) theta_h`` and
     S_C+  = A_C S_C - B_C dy
     S_G+  = A_G S_G + B_G du
 
-The feedback term ``g'(y0) dy0`` is what makes simulation-error minimization converge (DESIGN.md).
+The feedback term ``g'(y0) dy0`` is what makes simulation-error minimization converge
+(docs/design.md).
 The hot loops are compiled with numba; float64 throughout.
 """
 
