@@ -445,3 +445,29 @@ def test_find_outliers_names_the_reason():
 def test_status_enum():
     assert [s.value for s in MotorStatus] == ["ok", "warning", "refused", "failed"]
     assert MotorStatus.WARNING.success and not MotorStatus.REFUSED.success
+
+
+def test_warnings_keep_the_artifact(fleet_dir, tmp_path):
+    """An unusable validation run, or an inadequate model the setup forces, give a warning."""
+    forced = tmp_path / "forced.toml"
+    text = (fleet_dir / f"motors/{REFUSED}.toml").read_text()
+    forced.write_text(text.replace("force = false", "force = true"))
+    assert "force = true" in forced.read_text()
+    motors = fleet_dir / "motors"
+    rows = [
+        {
+            "motor_id": "noval",
+            "data": motors / "m00.npz",
+            "setup": motors / "m00.toml",
+            "validation": motors / "gone-val.npz",
+        },
+        {"motor_id": "forced", "data": motors / f"{REFUSED}.csv", "setup": forced},
+    ]
+    table = run_fleet(rows, tmp_path / "out", scheduler="sequential", report=False)
+    noval, frc = table.to_pylist()
+    assert noval["status"] == "warning" and "validation run unusable" in noval["message"]
+    assert "gone-val.npz: file not found" in noval["message"]
+    assert frc["status"] == "warning" and "force = true" in frc["message"]
+    assert "inadequate" in frc["message"]
+    for mid in ("noval", "forced"):
+        assert (tmp_path / "out" / mid / ARTIFACT_NAME).is_file()
