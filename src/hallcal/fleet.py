@@ -92,7 +92,7 @@ import traceback
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pyarrow as pa
 
@@ -110,6 +110,8 @@ __all__ = [
     "FleetProgress",
     "MotorSpec",
     "MotorStatus",
+    "all_succeeded",
+    "fingerprint",
     "read_manifest",
     "run_fleet",
     "summary_counts",
@@ -155,7 +157,8 @@ SUMMARY_SCHEMA = pa.schema(
 )
 SUMMARY_COLUMNS: tuple[str, ...] = tuple(SUMMARY_SCHEMA.names)
 
-_log = logging.getLogger(__name__)
+if TYPE_CHECKING:
+    from hallcal.api import Calibration
 
 
 class MotorStatus(enum.Enum):
@@ -507,7 +510,7 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-def _calibrate(data: str, setup: str, bla_data: str | None) -> Any:
+def _calibrate(data: str, setup: str, bla_data: str | None) -> Calibration:
     """The one call into the calibration: the front door, as ``hallcal calibrate`` uses it.
 
     Returns a :class:`hallcal.api.Calibration`; errors name the file at fault (the numeric
