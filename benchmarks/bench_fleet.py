@@ -16,7 +16,9 @@ Three configurations, interleaved and repeated (``--repeats``, the best of each 
 3. Dask, steady state: the same on a cluster started beforehand (``scheduler=client``): what a
    long-running cluster on the line costs per batch.
 
-Figures: wall time, motors per minute, and the speed-up of 2 and 3 over 1. The machine has
+Figures: wall time, motors per minute, and the speed-up of 2 and 3 over 1; for 1 and 3 also the
+CPU time per motor (of this process, of the workers): equal CPU times and a smaller speed-up than
+2x mean the time went to other users of the machine, not to Dask. The machine has
 2 cores shared with others: the load average is printed before and after; figures taken under
 load understate the speed-up.
 
@@ -116,6 +118,7 @@ def main() -> None:
             f"Dask, {w} workers, cluster already running",
         )
         times: dict[str, list[float]] = {k: [] for k in names}
+        cpu: dict[str, list[float]] = {k: [] for k in names}
         with _local_cluster(w) as cluster, Client(cluster) as client:
             client.run(lambda: __import__("hallcal.fleet"))  # workers ready, as on a line
             run_fleet(_first(manifest, root), root / "warm2", scheduler=client, report=False)
@@ -127,8 +130,13 @@ def main() -> None:
                 )
                 for i, (name, fn) in enumerate(zip(names, runs, strict=True)):
                     key = f"r{rep}-{i}"
+                    cpu0 = _cpu(client) if i != 1 else None
                     dt, line = timed(lambda fn=fn, key=key: fn(key), n)
                     times[name].append(dt)
+                    if cpu0 is not None:  # CPU time of the processes that calibrated
+                        used = _cpu(client)[i == 2] - cpu0[i == 2]
+                        cpu[name].append(used / n)
+                        line += f", CPU {used / n:.2f} s per motor"
                     print(f"  repeat {rep + 1}: {name:<44s} {line}")
         print(f"\n{n} motors, best of {args.repeats}:")
         best = {k: min(v) for k, v in times.items()}
@@ -137,6 +145,8 @@ def main() -> None:
                 f"{name:<46s} {best[name]:6.1f} s  {60 * n / best[name]:6.1f} motors/min  "
                 f"(median {np.median(times[name]):.1f} s)"
             )
+        for name in (names[0], names[2]):
+            print(f"CPU time per motor, {name}: median {np.median(cpu[name]):.2f} s")
         t_seq = best[names[0]]
         print(
             f"speed-up over the sequential loop, cluster started in the call: "
@@ -153,6 +163,16 @@ def main() -> None:
     finally:
         shutil.rmtree(root, ignore_errors=True)
     print(f"load after: {uptime()}")
+
+
+def _cpu(client) -> tuple[float, float]:
+    """CPU seconds (user + system) used so far by this process and by the cluster's workers."""
+
+    def used() -> float:
+        t = os.times()
+        return t.user + t.system
+
+    return used(), sum(client.run(used).values())
 
 
 def _first(manifest: Path, root: Path) -> list[dict[str, str]]:
