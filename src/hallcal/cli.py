@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Any
 
 import click
-from rich.console import Console
 
 from hallcal.errors import CalibrationRefused, HallcalError, HallcalInputError
 
@@ -26,8 +25,24 @@ EXIT_INPUT = HallcalInputError.exit_status
 EXIT_REFUSED = CalibrationRefused.exit_status
 EXIT_FLEET_INCOMPLETE = 4  # hallcal.fleet.EXIT_INCOMPLETE
 
-_err = Console(stderr=True, highlight=False, soft_wrap=True)
-_out = Console(highlight=False, soft_wrap=True)
+
+class _Stream:
+    """Plain lines on stdout or stderr through :func:`click.echo`.
+
+    Progress and results are one line each, so rich (40 ms to import, and it would read
+    ``[plant]`` in a message as markup) is not used here; styles are dropped when the stream
+    is not a terminal.
+    """
+
+    def __init__(self, *, err: bool) -> None:
+        self.err = err
+
+    def print(self, message: object = "") -> None:
+        click.echo(str(message), err=self.err)
+
+
+_err = _Stream(err=True)
+_out = _Stream(err=False)
 
 
 def _one_line(exc: BaseException) -> str:
@@ -62,7 +77,8 @@ class _Progress:
 
     def __call__(self, message: str) -> None:
         if not self.quiet:
-            _err.print(f"[dim]{time.perf_counter() - self.t0:6.1f} s[/dim]  {message}")
+            elapsed = click.style(f"{time.perf_counter() - self.t0:6.1f} s", dim=True)
+            _err.print(f"{elapsed}  {message}")
 
 
 _setup_path: list[str | None] = [None]  # the setup file of this command, for error messages
@@ -231,7 +247,11 @@ def _print_calibration(cal) -> None:
     if cal.adequacy is not None:
         _out.print(f"model adequacy: {cal.adequacy.verdict}")
     _out.print(f"lookup table: {cal.lut.points} points, bijective: {cal.lut.bijective}")
-    v = cal.validation
+    _print_validation(cal.validation)
+
+
+def _print_validation(v) -> None:
+    """One line: f_init and f_star against the recording's y_ref, when it has one."""
     if v is not None:
         _out.print(
             f"against y_ref: f_init RMS {_mrad(v.init.rms)} peak {_mrad(v.init.peak)}; "
@@ -253,12 +273,7 @@ def reconstruct(artifact: str, data: str, out: str) -> None:
     rec = cal.reconstruct(data)
     write_dataset(out, rec.columns)
     _out.print(f"wrote {out} ({len(rec)} samples)")
-    if rec.validation is not None:
-        v = rec.validation
-        _out.print(
-            f"against y_ref: f_init RMS {_mrad(v.init.rms)} peak {_mrad(v.init.peak)}; "
-            f"f_star RMS {_mrad(v.star.rms)} peak {_mrad(v.star.peak)}"
-        )
+    _print_validation(rec.validation)
 
 
 @cli.command("export-c")

@@ -38,7 +38,6 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import scipy.stats
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal.fit.adequacy import (
@@ -48,6 +47,7 @@ from hallcal.fit.adequacy import (
     _f,
     _fourier_normal_equations,
     assess,
+    chi2_isf_even,
     curve_projection,
     default_max_harmonic,
     dominant_harmonics,
@@ -310,7 +310,7 @@ def _coefficient_tests(
             wald[h] = float(v @ np.linalg.solve(cov[np.ix_(idx, idx)], v))
         except np.linalg.LinAlgError:
             wald[h] = math.inf
-    thr = float(scipy.stats.chi2.isf(significance / max(len(basis.harmonics), 1), 6))
+    thr = chi2_isf_even(significance / max(len(basis.harmonics), 1), 6)
     return wald, amp, thr
 
 

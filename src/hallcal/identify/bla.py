@@ -23,7 +23,6 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from hallcal.errors import HallcalInputError
 
@@ -730,6 +729,8 @@ def fit_parametric(
     lower = np.full(theta0.size, -np.inf)
     if fit_delay:
         lower[-1] = 0.0
+    from scipy.optimize import least_squares  # only when a BLA is fitted (0.15 s import)
+
     sol = least_squares(
         residual,
         theta0,

@@ -102,11 +102,21 @@ class Validation:
         }
 
 
-def validate(lut: LUT, dataset: Dataset, *, noise_floor: float | None = None) -> Validation:
-    """Errors of f_init and f_star on a dataset with ``y_ref`` (encoder or bench truth)."""
+def validate(
+    lut: LUT,
+    dataset: Dataset,
+    *,
+    noise_floor: float | None = None,
+    angles: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+) -> Validation:
+    """Errors of f_init and f_star on a dataset with ``y_ref`` (encoder or bench truth).
+
+    ``angles``, when given, are the recording's (y_init, y_star) already computed with `lut`.
+    """
     y_ref = dataset["y_ref"]
-    yi = lut.f_init(dataset.d)
-    ys = yi + lut.correction(yi)
+    if angles is None:
+        angles = lut.reconstruct(dataset["d1"], dataset["d2"], dataset["d3"])
+    yi, ys = angles
     ei, es = angle_error(yi, y_ref), angle_error(ys, y_ref)
     return Validation(
         ei,
@@ -372,9 +382,9 @@ def reconstruct_with(lut: LUT, dataset: Dataset, *, y_initial: float = 0.0) -> R
     """
     if not lut.bijective:
         raise CalibrationRefused("the lookup table is not bijective; refusing to use it")
-    yi = lut.f_init(dataset.d, y_initial=y_initial)
-    ys = yi + lut.correction(yi)
-    val = validate(lut, dataset) if "y_ref" in dataset else None
+    dataset.require("d1", "d2", "d3")
+    yi, ys = lut.reconstruct(dataset["d1"], dataset["d2"], dataset["d3"], y_initial=y_initial)
+    val = validate(lut, dataset, angles=(yi, ys)) if "y_ref" in dataset else None
     return Reconstruction(yi, ys, val)
 
 

@@ -14,36 +14,32 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
 from hallcal.fit.adequacy import AdequacyReport, assess
-from hallcal.fit.kernel import KernelSEMResult, solve_kernel_sem
 from hallcal.fit.order import HarmonicSelection, select_harmonics
 from hallcal.fit.sem import SEMResult, solve_sem
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
 from hallcal.pipeline.plant import BLAIdentification, PlantModel, closed_loop, plant_model
+from hallcal.pipeline.progress import Progress, say
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.loop import ClosedLoop
 
+if TYPE_CHECKING:
+    from hallcal.fit.kernel import KernelSEMResult
+
 __all__ = ["calibrate_closed_loop"]
 
-Progress = Callable[[str], None] | None
 TWO_PI = 2.0 * math.pi
-
-
-def _say(progress: Progress, message: str) -> None:
-    if progress is not None:
-        progress(message)
 
 
 @dataclass(frozen=True)
@@ -108,7 +104,9 @@ class _ModelFit:
 
 
 def _fit_kernel(loop: ClosedLoop, s: _Signals, setup: Setup, *, progress: Progress) -> _ModelFit:
-    _say(progress, f"SEM with the periodic kernel basis (m = {setup.model.points})")
+    from hallcal.fit.kernel import solve_kernel_sem  # loaded only for this basis
+
+    say(progress, f"SEM with the periodic kernel basis (m = {setup.model.points})")
     kres = solve_kernel_sem(
         loop,
         s.r,
@@ -152,14 +150,14 @@ def _fit_fourier(
     selection = None
     adequacy = None
     if harmonics == "auto":
-        _say(progress, "choosing the harmonics from the data")
+        say(progress, "choosing the harmonics from the data")
         selection = select_harmonics(
             loop, s.r, s.d, y=s.y, pole_pairs=setup.pole_pairs, max_iterations=max_it
         )
         sem = selection.sem
         adequacy = selection.report
         if fit_gain:
-            _say(progress, "SEM with the chosen harmonics, refining the plant gain c")
+            say(progress, "SEM with the chosen harmonics, refining the plant gain c")
             sem = solve_sem(
                 loop,
                 s.r,
@@ -173,7 +171,7 @@ def _fit_fourier(
     else:
         basis = FourierBasis(tuple(harmonics))
         gain_note = ", refining the plant gain c" if fit_gain else ""
-        _say(progress, f"SEM, Fourier basis with {len(harmonics)} harmonics{gain_note}")
+        say(progress, f"SEM, Fourier basis with {len(harmonics)} harmonics{gain_note}")
         sem = solve_sem(loop, s.r, s.d, basis, y=s.y, max_iterations=max_it, fit_gain=fit_gain)
     return _ModelFit(
         sem=sem,
@@ -276,7 +274,7 @@ def calibrate_closed_loop(
     adequacy = fit.adequacy or assess(
         fit.sem, s.d, pole_pairs=setup.pole_pairs, projection=loop.projection, offset=loop.offset
     )
-    _say(progress, "lookup table and bijectivity check")
+    say(progress, "lookup table and bijectivity check")
     lut = build_lut(
         fit.flux,
         setup.pole_pairs,

@@ -9,7 +9,6 @@ data); this module takes the dataset and the setup, checks the options and retur
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 
 import numpy as np
 
@@ -24,11 +23,10 @@ from hallcal.fit.constant_speed import (
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
+from hallcal.pipeline.progress import Progress
 from hallcal.sensor.flux import FourierBasis
 
 __all__ = ["calibrate_open_loop"]
-
-Progress = Callable[[str], None] | None
 
 
 def _segment(dataset: Dataset, setup: Setup) -> tuple[int, int]:

@@ -9,22 +9,23 @@ the imperfect f_init, the BLA is known up to a gain c, estimated from the calibr
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
-import scipy.optimize
 from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
 from hallcal.fit.sem import least_squares_start
-from hallcal.identify import bla as _bla
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
+from hallcal.pipeline.progress import Progress, say
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sim.loop import ClosedLoop, simulate_loop
 from hallcal.sim.lti import ContinuousTF
+
+if TYPE_CHECKING:
+    from hallcal.identify import bla as _bla
 
 __all__ = [
     "BLAIdentification",
@@ -36,13 +37,7 @@ __all__ = [
     "plant_model",
 ]
 
-Progress = Callable[[str], None] | None
 TWO_PI = 2.0 * math.pi
-
-
-def _say(progress: Progress, message: str) -> None:
-    if progress is not None:
-        progress(message)
 
 
 @dataclass(frozen=True)
@@ -91,7 +86,9 @@ def identify_bla(dataset: Dataset, setup: Setup, *, progress: Progress = None) -
             f"{dataset.source}: a BLA experiment needs a [bla] table in the setup", key="bla"
         )
     dataset.require("r", "u", "y", "realization")
-    _say(progress, "nonparametric BLA (indirect closed-loop method)")
+    from hallcal.identify import bla as _bla  # loaded only when a BLA is identified
+
+    say(progress, "nonparametric BLA (indirect closed-loop method)")
     npb = _bla.nonparametric_bla(
         dataset["r"],
         dataset["u"],
@@ -101,7 +98,7 @@ def identify_bla(dataset: Dataset, setup: Setup, *, progress: Progress = None) -
         transient_periods=spec.transient_periods,
         sample_time=setup.sample_time,
     )
-    _say(progress, "parametric fit of G(s) with input delay")
+    say(progress, "parametric fit of G(s) with input delay")
     par = _bla.fit_parametric(
         npb,
         numerator_order=spec.numerator_order,
@@ -196,6 +193,8 @@ def estimate_gain(
     vals = [cost(g) for g in grid]
     i = int(np.argmin(vals))
     a, b = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+    import scipy.optimize  # only when a gain is estimated (0.15 s import)
+
     opt = scipy.optimize.minimize_scalar(
         cost, bounds=(a, b), method="bounded", options={"xatol": 1e-5}
     )
@@ -312,7 +311,7 @@ def plant_model(
             f"{dataset.source}: column 'y' is missing (needed for the gain correction c)",
             key="y",
         )
-    _say(progress, "gain correction c_hat of the BLA")
+    say(progress, "gain correction c_hat of the BLA")
     n_m = setup.pole_pairs
     basis = FourierBasis(start_harmonics or tuple(range(1, n_m + 1)))
     d = np.ascontiguousarray(dataset.d)
