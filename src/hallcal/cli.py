@@ -404,6 +404,7 @@ def fleet(
     Exit status: 0 every motor ok or warning; 4 at least one motor refused or failed (see
     summary.csv); 2 the manifest or an option is unusable.
     """
+    from rich.console import Console  # the progress bar only: imported by this command alone
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -425,7 +426,7 @@ def fleet(
         TextColumn("{task.fields[counts]}"),
         TimeElapsedColumn(),
         TimeRemainingColumn(),
-        console=_err,
+        console=Console(stderr=True, highlight=False, soft_wrap=True),
         disable=quiet,
     )
     task_id = None
@@ -438,7 +439,8 @@ def fleet(
             return
         counts[row["status"]] = counts.get(row["status"], 0) + 1
         if row["status"] in ("refused", "failed"):
-            bar.console.print(f"{row['motor_id']}: {row['status']}: {row['message']}")
+            line = f"{row['motor_id']}: {row['status']}: {row['message']}"
+            bar.console.print(line, markup=False)  # messages hold [plant], [model]...
         text = " ".join(f"{k} {v}" for k, v in counts.items() if v)
         bar.update(task_id, completed=done, counts=text)
 
