@@ -739,8 +739,15 @@ def _local_cluster(workers: int | None) -> Any:
     from distributed import LocalCluster
 
     n = workers if workers is not None else (os.cpu_count() or 1)
-    # one retry of a task whose worker died (a transient crash), then it is reported as failed
-    with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+    settings = {
+        # one retry of a task whose worker died (a transient crash), then it is reported failed
+        "distributed.scheduler.allowed-failures": 1,
+        # Dask sets MALLOC_TRIM_THRESHOLD_ in its workers to hand memory back to the system
+        # early; it also turns off glibc's adaptive mmap threshold, so every large temporary of
+        # a calibration is mapped and faulted in anew (twice the system time, measured)
+        "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+    }
+    with dask.config.set(settings):
         return LocalCluster(
             n_workers=n,
             threads_per_worker=1,
