@@ -18,7 +18,8 @@ in the mechanical angle), built from physical knobs:
 - ``a_h(y0)``: amplitude modulation by mechanical harmonics 1..3 of relative size
   ``pole_modulation`` (per-pole strength differences: sidebands k n_m +- j);
 - Hall noise ``v_h`` with variance ``noise_variance``, a random low-frequency torque disturbance
-  and a cogging torque ``cogging sin(cogging_periods y0)`` added to the plant input.
+  and a cogging torque ``cogging sin(cogging_periods y0) + sum A cos(k y0 - phase)``
+  (``cogging_terms``) added to the plant input (:class:`~hallcal.sim.cogging.CoggingTorque`).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import scipy.signal
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sim.cogging import CoggingTorque
 from hallcal.sim.loop import ClosedLoop, simulate_loop
 from hallcal.sim.lti import ContinuousTF, DiscreteTF
 
@@ -40,6 +42,8 @@ __all__ = [
     "BenchConfig",
     "BenchRun",
     "noise_floor",
+    "power_up_run",
+    "power_up_start",
     "ramp_run",
     "simulate_run",
 ]
@@ -94,7 +98,11 @@ class BenchConfig:
         in plant input units.
     cogging, cogging_periods : float, int
         Cogging torque amplitude (plant input units) and periods per revolution
-        (0 = 6 n_m, the sixth electrical harmonic of a three-phase machine).
+        (0 = 6 n_m, the sixth electrical harmonic of a three-phase machine): a term
+        ``cogging sin(cogging_periods y0)``.
+    cogging_terms : tuple of (int, float, float)
+        Further cogging terms ``(k, A, phase_deg)``, each ``A cos(k y0 - phase)`` (plant input
+        units): real cogging has several orders (multiples of the slot/pole pattern) with phases.
     seed : int
         Seed of the truth (magnet variations) and, unless given per run, of the noise.
     """
@@ -114,6 +122,7 @@ class BenchConfig:
     torque_disturbance: float = 0.0
     cogging: float = 0.0
     cogging_periods: int = 0
+    cogging_terms: tuple[tuple[int, float, float], ...] = ()
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -138,6 +147,19 @@ class BenchConfig:
     def truth(self) -> FluxModel:
         """The true flux g(y0) as an exact Fourier series (see the module docstring)."""
         return _truth(self)
+
+    def cogging_torque(self) -> CoggingTorque:
+        """The true cogging torque T_c(y0): ``cogging`` and ``cogging_terms`` summed per order."""
+        coef: dict[int, complex] = {}
+        if self.cogging:
+            k = int(self.cogging_periods or 6 * self.pole_pairs)
+            coef[k] = coef.get(k, 0j) + 1j * float(self.cogging)  # sin: b = amplitude
+        for k, amp, phase_deg in self.cogging_terms:
+            z = float(amp) * complex(math.cos(math.radians(phase_deg)),
+                                     math.sin(math.radians(phase_deg)))  # fmt: skip
+            coef[int(k)] = coef.get(int(k), 0j) + z
+        orders = tuple(sorted(coef))
+        return CoggingTorque(orders, [coef[k].real for k in orders], [coef[k].imag for k in orders])
 
 
 def _truth(cfg: BenchConfig) -> FluxModel:
@@ -267,6 +289,7 @@ def simulate_run(
     *,
     seed: int | None = None,
     realization: ArrayLike | None = None,
+    initial_angle: float = 0.0,
 ) -> BenchRun:
     """Run the closed loop of the bench on a reference r.
 
@@ -278,6 +301,13 @@ def simulate_run(
     seed : int, keyword-only
         Seed of this run's noise and disturbance (default: ``config.seed``); the truth depends on
         ``config.seed`` only, so runs with other seeds are fresh realizations on the same motor.
+    initial_angle : float, keyword-only
+        True rotor angle at the first sample [rad, in the truth's frame]: a power-up wherever
+        the rotor stopped. f_init (and so the loop) still starts from y = 0 before the first
+        sample, i.e. from its own atan2 within one electrical period, so ``y`` and ``y0`` differ
+        by about a whole number of pole pairs ``2 pi j / n_m``. The reference should start
+        near f_init's first value (:func:`power_up_start`) to avoid a step. Default 0: the
+        calibration convention (y0 = 0 at the first sample).
     """
     r = np.asarray(r, dtype=np.float64)
     N = r.size
@@ -286,15 +316,14 @@ def simulate_run(
     noise = sigma * rng.standard_normal((N, 3))
     td = _lowpass_noise(rng, N, config.torque_disturbance, config.sample_time)
     truth = config.truth()
-    cog_per = config.cogging_periods or 6 * config.pole_pairs
     res = simulate_loop(
         config.loop(),
         truth,
         r,
         noise=noise,
         torque_disturbance=td,
-        cogging_amplitude=config.cogging,
-        cogging_periods=cog_per,
+        cogging=config.cogging_torque(),
+        initial_angle=float(initial_angle),
     )
     return BenchRun(
         t=config.sample_time * np.arange(N),
@@ -321,6 +350,39 @@ def ramp_run(
     N = int(round(duration / config.sample_time))
     r = np.linspace(0.0, ramp_end, N, endpoint=False)
     return simulate_run(config, r, seed=seed)
+
+
+def power_up_start(config: BenchConfig, initial_angle: float) -> float:
+    """f_init's noise-free first output [rad] when the rotor powers up at ``initial_angle``.
+
+    f_init starts from y = 0, so this is the true flux's electrical angle at ``initial_angle``
+    unwrapped into [-pi/n_m, pi/n_m): the value a power-up reference should start from.
+    """
+    g = config.truth()(np.array([float(initial_angle)]))[0]
+    P = config.loop().projection
+    a, b = P @ (g - config.loop().offset)
+    n = config.pole_pairs
+    return (math.fmod(math.fmod(math.atan2(b, a) + math.pi, TWO_PI) + TWO_PI, TWO_PI) - math.pi) / n
+
+
+def power_up_run(
+    config: BenchConfig,
+    initial_angle: float,
+    *,
+    samples: int,
+    speed: float = 0.0,
+    seed: int | None = None,
+) -> BenchRun:
+    """A run after a power-up at ``initial_angle`` [rad]: hold still (speed 0) or ramp.
+
+    The reference starts at f_init's first value (:func:`power_up_start`) and moves at
+    ``speed`` [rad/s] relative to f_init's frame, so the loop starts without a step. The true
+    angle ``y0`` is in the truth's frame (the calibration's frame when the calibration run
+    started at y0 = 0), while f_init starts within one electrical period of zero.
+    """
+    y_start = power_up_start(config, initial_angle)
+    r = y_start + speed * config.sample_time * np.arange(int(samples))
+    return simulate_run(config, r, seed=seed, initial_angle=initial_angle)
 
 
 def with_changes(config: BenchConfig, **changes) -> BenchConfig:
