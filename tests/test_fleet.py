@@ -238,7 +238,9 @@ def test_changed_inputs_and_options_are_recomputed(fleet_dir, tmp_path):
             copy.write_bytes(Path(r[key]).read_bytes())
             r[key] = copy
     out = tmp_path / "out"
-    t1 = run_fleet(rows, out, scheduler="sequential", export_c=True, report=False)
+    # the bench's Hall signals have amplitude 1: 2048 ADC counts per unit (the README's example)
+    c_opts = {"export_c": True, "adc_scale": 2048.0}
+    t1 = run_fleet(rows, out, scheduler="sequential", report=False, **c_opts)
     assert summary_counts(t1)["ok"] == 3
     c_files = sorted(p.name for p in (out / "m06" / "c").iterdir())
     assert {"hallcal.c", "hallcal.h", "hallcal_q.c", "hallcal_q.h"} <= set(c_files)
@@ -247,10 +249,10 @@ def test_changed_inputs_and_options_are_recomputed(fleet_dir, tmp_path):
 
     setup = Path(rows[1]["setup"])
     os.utime(setup, ns=(1, 1))  # a new time stamp, the same contents: still up to date
-    t2 = run_fleet(rows, out, scheduler="sequential", export_c=True, report=False)
+    t2 = run_fleet(rows, out, scheduler="sequential", report=False, **c_opts)
     assert all(t2.column("reused").to_pylist())
     setup.write_text(setup.read_text().replace("lut_points = 4096", "lut_points = 2048"))
-    t3 = run_fleet(rows, out, scheduler="sequential", export_c=True, report=False)
+    t3 = run_fleet(rows, out, scheduler="sequential", report=False, **c_opts)
     assert t3.column("reused").to_pylist() == [True, False, True]
     assert len(read_artifact(out / "m06" / ARTIFACT_NAME)["lut"]["eta"]) == 2048
     # without the C export the outputs differ: recomputed, and the stale C sources removed
@@ -259,6 +261,11 @@ def test_changed_inputs_and_options_are_recomputed(fleet_dir, tmp_path):
     assert not (out / "m06" / "c").exists()
     t5 = run_fleet(rows, out, scheduler="sequential", report=False, recompute=True)
     assert not any(t5.column("reused").to_pylist())
+    # a C export the generator refuses (1 count per unit: coarser than the noise) is a warning
+    t6 = run_fleet(rows[:1], out, scheduler="sequential", report=False, export_c=True)
+    row = t6.to_pylist()[0]
+    assert row["status"] == "warning" and "no C export" in row["message"], row
+    assert (out / "m00" / ARTIFACT_NAME).is_file() and not (out / "m00" / "c").exists()
 
 
 def test_bad_rows_fail_alone(fleet_dir, tmp_path):

@@ -713,8 +713,8 @@ def demo(out: str, seed: int, no_report: bool) -> None:
     epilog=_epilog(
         "hallcal fleet manifest.csv --out batch/",
         "hallcal fleet manifest.csv --out batch/ --scheduler tcp://10.0.0.5:8786 --export-c",
-        exits="0 every motor ok or warning, 4 at least one motor refused or failed (see "
-        "summary.csv), 2 the manifest or an option is unusable (one line naming it)",
+        exits=_EXITS + " (the manifest or an option), 4 at least one motor refused or failed "
+        "(see summary.csv); success is every motor ok or warning",
     )
 )
 @click.argument("manifest", type=click.Path(dir_okay=False))

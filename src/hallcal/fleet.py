@@ -62,8 +62,9 @@ Status
     Artifact written, nothing to report.
 ``warning``
     Artifact written, with a caveat in the message (model adequacy warning, the validation run
-    unusable or f_star worse than f_init on it, or an inadequate model written because the
-    setup says ``[model] force = true``).
+    unusable or f_star worse than f_init on it, the C export refused (for instance an
+    ``adc_scale`` too coarse for the signals), or an inadequate model written because the setup
+    says ``[model] force = true``).
 ``refused``
     The calibration ran but its result must not be used (model inadequate, or the lookup table
     not bijective): no artifact.
@@ -644,10 +645,15 @@ def _calibrate_into(task: _Task, result: _Result) -> None:
         result.files[ARTIFACT_NAME] = (Path(tmp) / ARTIFACT_NAME).read_bytes()
         if task.export_c:
             cdir = Path(tmp) / C_DIR
-            res = cal.export_c(cdir, adc_scale=task.adc_scale)
-            notes += [f"C export: {m}" for m in getattr(res, "messages", [])]
-            for p in sorted(cdir.iterdir()):
-                result.files[f"{C_DIR}/{p.name}"] = p.read_bytes()
+            try:
+                res = cal.export_c(cdir, adc_scale=task.adc_scale)
+            except HallcalInputError as exc:  # the artifact stands; its C sources do not
+                status = MotorStatus.WARNING
+                notes.insert(0, f"warning: no C export: {exc}")
+            else:
+                notes += [f"C export: {m}" for m in getattr(res, "messages", [])]
+                for p in sorted(cdir.iterdir()):
+                    result.files[f"{C_DIR}/{p.name}"] = p.read_bytes()
     if task.validation is not None:
         try:
             ds = read_dataset(task.validation, required=("d1", "d2", "d3", "y_ref"))
