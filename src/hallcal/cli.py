@@ -2,8 +2,9 @@
 
 Exit status: 0 success; 2 bad input (one line naming the file, column or key; no traceback);
 3 refused (calibration: model inadequate or table not bijective, use ``--force`` to write an
-inadequate model anyway; BLA: the fitted plant model is unstable). Progress and notes go to
-stderr, results to stdout.
+inadequate model anyway; BLA: the fitted plant model is unstable); 4 (``hallcal fleet`` only)
+at least one motor refused or failed, the others calibrated (their rows in ``summary.csv`` say
+why). Progress and notes go to stderr, results to stdout.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from hallcal.limits import MAX_POLE_PAIRS
 
 EXIT_INPUT = HallcalInputError.exit_status
 EXIT_REFUSED = CalibrationRefused.exit_status
+EXIT_FLEET_INCOMPLETE = 4  # hallcal.fleet.EXIT_INCOMPLETE
 
 
 class _Stream:
@@ -232,6 +234,9 @@ def cli() -> None:
     Hall Sensors": closed-loop data, a BLA of the motor, simulation-error minimization of a
     flux model and a lookup-table correction f_star. The setup file's keys are documented in
     docs/setup-reference.md.
+
+    Exit status: 0 success; 2 bad input (one line naming the file, column or key); 3 refused;
+    4 (fleet) at least one motor refused or failed.
     """
 
 
@@ -793,6 +798,133 @@ def demo(out: str, seed: int, no_report: bool) -> None:
     res = run_demo(out, seed=seed, report=not no_report, progress=_Progress())
     for line in res.summary_lines():
         _out.print(line)
+
+
+@cli.command(
+    epilog=_epilog(
+        "hallcal fleet manifest.csv --out batch/",
+        "hallcal fleet manifest.csv --out batch/ --scheduler tcp://10.0.0.5:8786 --export-c",
+        exits=_EXITS + " (the manifest or an option), 4 at least one motor refused or failed "
+        "(see summary.csv); success is every motor ok or warning",
+    )
+)
+@click.argument("manifest", type=click.Path(dir_okay=False))
+@click.option(
+    "--out",
+    required=True,
+    type=click.Path(file_okay=False),
+    help="Output folder: <motor_id>/ per motor, summary.csv, summary.parquet, fleet.html.",
+)
+@click.option(
+    "--scheduler",
+    default=None,
+    metavar="ADDRESS",
+    help="Address of an existing Dask scheduler (tcp://host:8786); default: a local cluster "
+    "with one worker per core. 'sequential': no Dask, one motor after the other.",
+)
+@click.option(
+    "--workers",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Workers of the local cluster (default: one per core).",
+)
+@click.option(
+    "--export-c", is_flag=True, help="Also write each motor's C99 sources (<motor_id>/c/)."
+)
+@click.option(
+    "--adc-scale",
+    type=float,
+    default=1.0,
+    show_default=True,
+    help="ADC counts per Hall signal unit, for the fixed-point C export.",
+)
+@click.option("--recompute", is_flag=True, help="Recalibrate motors whose results are up to date.")
+@click.option("--no-report", is_flag=True, help="Skip fleet.html.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+@_handle_errors
+def fleet(
+    manifest: str,
+    out: str,
+    scheduler: str | None,
+    workers: int | None,
+    export_c: bool,
+    adc_scale: float,
+    recompute: bool,
+    no_report: bool,
+    quiet: bool,
+) -> None:
+    """Calibrate many motors on Dask, listed in MANIFEST (CSV or Parquet).
+
+    MANIFEST columns: motor_id, data, setup, and optional bla_data and validation (an empty cell
+    is none); relative paths are relative to MANIFEST. Each motor gets a row in summary.csv and
+    summary.parquet with its status (ok, warning, refused, failed) and a one-line reason; a bad
+    file or a crashed worker stops only its motor. A rerun skips motors whose results are up to
+    date (same input contents, setup and hallcal version).
+    """
+    from rich.console import Console  # the progress bar only: imported by this command alone
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    from hallcal.fleet import all_succeeded, run_fleet, summary_counts
+
+    if workers is not None and scheduler is not None:
+        raise HallcalInputError("--workers applies to the local cluster, not to --scheduler")
+    counts = {"ok": 0, "warning": 0, "refused": 0, "failed": 0}
+    bar = Progress(
+        TextColumn("calibrating"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[counts]}"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=Console(stderr=True, highlight=False, soft_wrap=True),
+        disable=quiet,
+    )
+    task_id = None
+
+    def progress(row, done: int, total: int) -> None:
+        nonlocal task_id
+        if task_id is None:
+            task_id = bar.add_task("fleet", total=total, counts="")
+        if row is None:
+            return
+        counts[row["status"]] = counts.get(row["status"], 0) + 1
+        if row["status"] in ("refused", "failed"):
+            line = f"{row['motor_id']}: {row['status']}: {row['message']}"
+            bar.console.print(line, markup=False)  # messages hold [plant], [model]...
+        text = " ".join(f"{k} {v}" for k, v in counts.items() if v)
+        bar.update(task_id, completed=done, counts=text)
+
+    with bar:
+        table = run_fleet(
+            manifest,
+            out,
+            scheduler=scheduler,
+            workers=workers,
+            export_c=export_c,
+            adc_scale=adc_scale,
+            recompute=recompute,
+            report=not no_report,
+            progress=progress,
+        )
+    c = summary_counts(table)
+    reused = sum(table.column("reused").to_pylist())
+    _out.print(
+        f"{table.num_rows} motors: {c['ok']} ok, {c['warning']} warning, {c['refused']} "
+        f"refused, {c['failed']} failed"
+        + (f" ({reused} up to date from an earlier run)" if reused else "")
+    )
+    out_dir = Path(out)
+    written = ["summary.csv", "summary.parquet"] + ([] if no_report else ["fleet.html"])
+    _out.print("wrote " + ", ".join(str(out_dir / w) for w in written))
+    if not all_succeeded(table):
+        sys.exit(EXIT_FLEET_INCOMPLETE)
 
 
 def main() -> None:
