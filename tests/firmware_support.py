@@ -64,7 +64,11 @@ typedef int32_t in_t;
 typedef PFX_state st_t;
 typedef PFX_reading rd_t;
 typedef float in_t;
+#if defined(UPFX_POWERUP)
+#define INIT(s) PFX_init((s))
+#else
 #define INIT(s) PFX_init((s), 0, 0.0f)
+#endif
 #define UPDATE PFX_update
 #define READ PFX_read
 static uint32_t fbits(float f) { uint32_t u; memcpy(&u, &f, sizeof u); return u; }
@@ -112,11 +116,52 @@ static int mode_run(long block) {
         out[0] = (uint32_t)r.revolutions;
         out[1] = ANGLE_BITS(r);
         out[2] = r.flags;
+#if !HC_Q && defined(UPFX_POWERUP)
+        out[2] |= (r.pole_pair << 16) | (r.identified << 31);
+#endif
         fwrite(out, sizeof out, 1, stdout);
         ++k;
     }
     return 0;
 }
+
+#if !HC_Q && defined(UPFX_POWERUP)
+/* lam: as run, then the decoder's Lambda_j (n floats) after each sample */
+static int mode_lam(long block) {
+    st_t s;
+    rd_t r;
+    in_t d[3];
+    long k = 0;
+    INIT(&s);
+    while (fread(d, sizeof d, 1, stdin) == 1) {
+        uint32_t out[3];
+        if (block > 0 && k > 0 && k % block == 0) INIT(&s);
+        (void)UPDATE(&s, d[0], d[1], d[2]);
+        READ(&s, &r);
+        out[0] = (uint32_t)r.revolutions;
+        out[1] = ANGLE_BITS(r);
+        out[2] = r.flags | (r.pole_pair << 16) | (r.identified << 31);
+        fwrite(out, sizeof out, 1, stdout);
+        fwrite(s.lam, sizeof s.lam, 1, stdout);
+        ++k;
+    }
+    return 0;
+}
+
+/* lock: Lambda vectors (n floats each, the smallest 0) on stdin; the generated lock rule on
+ * each, 1 byte out per vector */
+static int mode_lock(void) {
+    float v[UPFX_POLE_PAIRS];
+    while (fread(v, sizeof v, 1, stdin) == 1) {
+        unsigned j, best = 0u;
+        unsigned char out;
+        for (j = 1u; j < UPFX_POLE_PAIRS; ++j) if (v[j] < v[best]) best = j;
+        out = (unsigned char)hc_lock_rule(v, best);
+        fwrite(&out, 1, 1, stdout);
+    }
+    return 0;
+}
+#endif
 
 static int mode_angle(void) {
     in_t v[2];
@@ -332,6 +377,10 @@ int main(int argc, char **argv) {
     if (!strcmp(argv[1], "long")) return mode_long(argc, argv);
     if (!strcmp(argv[1], "fuzz")) return mode_fuzz(atoll(argv[2]));
     if (!strcmp(argv[1], "isr")) return mode_isr(atoi(argv[2]), atol(argv[3]));
+#if !HC_Q && defined(UPFX_POWERUP)
+    if (!strcmp(argv[1], "lam")) return mode_lam(argc > 2 ? atol(argv[2]) : 0);
+    if (!strcmp(argv[1], "lock")) return mode_lock();
+#endif
     return fail("unknown mode", 0);
 }
 """
@@ -411,7 +460,7 @@ def compile_driver(workdir: Path, prefix: str = "hallcal", *, fixed: bool, flags
                    pole_pairs: int = 11) -> Path:  # fmt: skip
     """Compile DRIVER with the generated source of one variant."""
     src = workdir / f"drv_{prefix}.c"
-    src.write_text(DRIVER.replace("PFX", prefix))
+    src.write_text(DRIVER.replace("UPFX", prefix.upper()).replace("PFX", prefix))
     exe = workdir / (name or f"drv_{prefix}_{'q' if fixed else 'f'}")
     cmd = [CC, "-std=c99", *flags, f"-DHC_Q={int(fixed)}", f"-DHC_N_FOR_TEST={pole_pairs}",
            f"-I{workdir}", str(src), "-o", str(exe), "-lm"]  # fmt: skip
