@@ -1410,8 +1410,8 @@ def _atan2_c(
 
 #: Insertion points of the float variant's templates an optional Section may fill (``hooks``).
 #: ``init_decl`` and ``init_def`` replace the default ``init`` (angle given: homing);
-#: ``update_dispatch`` is a condition under which ``update`` calls ``hc_identify`` instead of
-#: the lean path.
+#: ``update_dispatch`` is ``(condition, function)``-like text "cond|name": while the condition
+#: holds, ``update`` hands the sample to that function instead of running the lean path.
 FLOAT_HOOKS = (
     "api_macros", "reading_members", "state_members", "pub_members", "init_decl", "init_def",
     "read_locals", "read_copy", "read_after", "before_update", "update_dispatch",
@@ -1547,14 +1547,15 @@ def _float_source(ctx: _Context, banner: str, secs: Sequence[Section]) -> str:
     hooks = _hooks(secs, FLOAT_HOOKS)
     update = _FLOAT_UPDATE.substitute(subs)
     if hooks["update_dispatch"]:
-        # the lean path in an else branch: before the pole pair is identified, hc_identify
+        # the lean path in an else branch; while the condition holds, the other function
+        cond, func = hooks["update_dispatch"].split("|")
         head, rest = update.split("    uint32_t flags;\n", 1)
         body, tail = rest.rsplit("    return flags;\n", 1)
         update = (
             head
             + "    uint32_t flags;\n"
-            + f"    if ({hooks['update_dispatch']}) {{\n"
-            + "        flags = hc_identify(s, d1, d2, d3);\n"
+            + f"    if ({cond}) {{\n"
+            + f"        flags = {func}(s, d1, d2, d3);\n"
             + "    } else {\n"
             + "\n".join(("    " + line) if line else line for line in body.split("\n"))
             + "    }\n    return flags;\n"
@@ -1851,7 +1852,6 @@ _PU_INIT = string.Template(
 
 void ${pfx}_init(${pfx}_state *s)
 {
-    uint32_t j;
     s->rev = 0; /* f_init from y = 0 before the first sample, as the calibration run */
     s->turn = 0;
     s->phase = 0u;
@@ -1861,9 +1861,7 @@ void ${pfx}_init(${pfx}_state *s)
     s->fault = 0u;
     s->locked = 0u;
     s->best = 0u;
-    for (j = 0u; j < ${n}u; j = j + 1u) {
-        s->lam[j] = 0.0f;
-    }
+    s->samples = 0u; /* lam is set by the first sample of evidence (no loop: no memset) */
     s->seq = 0u;
     hc_publish_id(s, 0, 0.0f, 0u, 0u);
     hc_publish_id(s, 0, 0.0f, 0u, 0u);
@@ -1922,7 +1920,7 @@ static uint32_t hc_lock_rule(const float lam[${n}], uint32_t best)
  * projected out, censored at ${cap_text}), the maximum-likelihood choice, and the lock rule
  * sum_(j != best) exp(-Lambda_j / 2) <= alpha / (1 - alpha) = ${theta_text}, evaluated in base 2
  * (exp(-L / 2) = 2^-(L / (2 ln 2))): no library call. a, b: alpha/beta; r2 = a^2 + b^2 (in the
- * amplitude window); zeta in sigmas; turn, p: f_init's electrical turn and angle (lean atan2).
+ * amplitude window); zeta in sigmas; turn, p: f_init's electrical turn and angle (the fine atan2).
  * n_m hypotheses: a loop of ${n} iterations, no other data-dependent work. */
 static void hc_evidence(${pfx}_state *s, float a, float b, float r2, float zeta, uint32_t turn,
                         uint32_t p)
@@ -1933,8 +1931,6 @@ static void hc_evidence(${pfx}_state *s, float a, float b, float r2, float zeta,
     float rho;
 ${gram_decls}    float f;
     float lmin;
-    uint32_t pf;
-    uint32_t dd;
     uint32_t e;
     uint32_t lo;
     uint32_t j;
@@ -1945,20 +1941,10 @@ ${rsqrt_steps}
     rho = (r2 * y) * ${inv_sigma}; /* radius in sigmas */
     /* the metric S in the frame (u, v, n) of this angle${gram_note} */
 ${gram_calc}
-    /* table position of hypothesis 0: f_init's turn and the finer angle pf (the lean p is within
-     * its bound of it; crossing the start of the turn between the two moves the turn) */
-    pf = hc_angle_fine(a, b);
-    dd = pf - p;
+    /* table position of hypothesis j: electrical turn (turn + j) mod n_m, then the angle */
     e = turn;
-    if ((dd < 0x80000000u) && (pf < p)) {
-        e = (turn == ${n_minus_1}u) ? 0u : (turn + 1u);
-    } else if ((dd >= 0x80000000u) && (pf > p)) {
-        e = (turn == 0u) ? ${n_minus_1}u : (turn - 1u);
-    } else {
-        /* the same turn */
-    }
-    lo = pf >> ${g_shift};                                  /* interval within the turn */
-    f = (float)((pf << ${g}) >> 8) * 5.96046448e-8f; /* fraction, 2^-24 */
+    lo = p >> ${g_shift};                             /* interval within the turn */
+    f = (float)((p << ${g}) >> 8) * 5.96046448e-8f; /* fraction, 2^-24 */
     for (j = 0u; j < ${n}u; j = j + 1u) {
         const uint32_t i = (e << ${g}) + lo;
         const float r0 = hc_pu_r[i];
@@ -1980,9 +1966,10 @@ ${tt_steps}
         if (cost > ${cap}) {
             cost = ${cap};
         }
-        s->lam[j] = s->lam[j] + cost;
+        s->lam[j] = (s->samples != 0u) ? (s->lam[j] + cost) : cost; /* 0 + cost, exactly */
         e = (e == ${n_minus_1}u) ? 0u : (e + 1u);
     }
+    s->samples = s->samples + 1u;
     lmin = s->lam[0];
     for (j = 1u; j < ${n}u; j = j + 1u) {
         if (s->lam[j] < lmin) {
@@ -2006,9 +1993,9 @@ def _pu_newton(var: str, expr: str, steps: int, indent: str) -> str:
 
 
 def _powerup_identify(ctx: _Context) -> str:
-    """``hc_identify``: the lean sample path with the evidence and the output in the frame of the
-    current maximum-likelihood pole pair, derived from the lean template's text (so the checks,
-    f_init and the table are literally the lean path's)."""
+    """``<prefix>_identify_sample``: the lean sample path with the evidence and the output in
+    the frame of the current maximum-likelihood pole pair, derived from the lean template's
+    text (so the checks, the unwrap and the table are literally the lean path's)."""
     n = ctx.design.pole_pairs
     text = _FLOAT_UPDATE.template
 
@@ -2024,7 +2011,7 @@ def _powerup_identify(ctx: _Context) -> str:
         " * the evidence of every hypothesis, and the output in the frame of the current\n"
         " * maximum-likelihood pole pair; once identified, the state moves to that frame for good\n"
         " * and the lean path takes over. */\n"
-        "static uint32_t hc_identify(${pfx}_state *s, float d1, float d2, float d3)\n{",
+        "uint32_t ${pfx}_identify_sample(${pfx}_state *s, float d1, float d2, float d3)\n{",
     )
     swap(
         "        if (mag <= s->limit) {\n",
@@ -2043,6 +2030,12 @@ def _powerup_identify(ctx: _Context) -> str:
         "            }\n",
     )
     swap("${index}\n", "${index_o}\n")
+    # the decoder's finer atan2 for f_init too (the table positions need it; hc_angle stays
+    # called once, so compilers keep it inlined in the lean path, whose cycles must not change)
+    swap(
+        "const uint32_t p = hc_angle(a, b); /* electrical angle, Q0.32 turns */",
+        "const uint32_t p = hc_angle_fine(a, b); /* electrical angle, Q0.32 turns */",
+    )
     swap(
         "            s->phase = p;\n"
         "            s->turn = turn;\n"
@@ -2263,10 +2256,15 @@ def _powerup_section(ctx: _Context) -> Section | None:
         "state_members": (
             "    uint32_t locked;   /* pole pair identified: the lean path runs */\n"
             "    uint32_t best;     /* maximum-likelihood pole-pair offset j */\n"
+            "    uint32_t samples;  /* samples of evidence so far (until identified) */\n"
             f"    float lam[{n}];    /* Lambda_j - min Lambda [noise sigma^2] */\n"
         ),
         "pub_members": "        uint32_t ident; /* pole pair j, + 0x10000 once identified */\n",
         "init_decl": (
+            f"/* Until the pole pair is identified, {pfx}_update hands each sample to this\n"
+            " * function; it has external linkage only so that compilers keep it out of the lean\n"
+            f" * path (whose cycles it would lengthen). Call {pfx}_update, not this. */\n"
+            f"uint32_t {pfx}_identify_sample({pfx}_state *s, float d1, float d2, float d3);\n\n"
             "/* Start after power-up wherever the rotor is: no angle and no homing. The first\n"
             " * readings are in the frame of the current maximum-likelihood pole pair (angle\n"
             " * right within the electrical period from the first sample); reading.identified\n"
@@ -2279,7 +2277,7 @@ def _powerup_section(ctx: _Context) -> Section | None:
         "read_copy": "        ident = s->pub[before & 1u].ident;\n",
         "read_after": "\n    r->pole_pair = ident & 0xFFFFu;\n    r->identified = ident >> 16;",
         "before_update": source,
-        "update_dispatch": "s->locked == 0u",
+        "update_dispatch": f"s->locked == 0u|{pfx}_identify_sample",
     }
     notes = (
         "",
