@@ -476,11 +476,13 @@ def _register_count(ops: str) -> int:
 
 
 def trace(b: Build, samples: np.ndarray, *, entry: str | None = None,
-          timeout: float = 300.0) -> Trace:  # fmt: skip
+          timeout: float = 300.0, block: int = 0) -> Trace:  # fmt: skip
     """Count the instructions of each ``update`` call (QEMU single-step trace).
 
     Every function of the generated object except the reader, init and clear-fault ones is
-    traced (static helpers the compiler did not inline are counted with the update they serve).
+    traced (static helpers the compiler did not inline, and the power-up decoder's
+    ``_identify_sample``, are counted with the update they serve). With ``block`` > 0 the state
+    is re-initialised every ``block`` samples (as :func:`run`).
     """
     entry = entry or (f"{b.prefix}_q_update" if b.fixed else f"{b.prefix}_update")
     skip = ("_read", "_init", "_clear_fault")
@@ -488,7 +490,7 @@ def trace(b: Build, samples: np.ndarray, *, entry: str | None = None,
     start = ranges[entry][0]
     data = np.ascontiguousarray(samples, dtype=np.int32 if b.fixed else np.float32)
     (b.workdir / "in.bin").write_bytes(data.tobytes())
-    (b.workdir / "block.bin").write_bytes(np.uint32(0).tobytes())
+    (b.workdir / "block.bin").write_bytes(np.uint32(block).tobytes())
     log = b.workdir / "trace.log"
     log.unlink(missing_ok=True)
     dfilter = ",".join(f"0x{a:x}+0x{s:x}" for a, s in ranges.values())

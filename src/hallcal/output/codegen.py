@@ -668,13 +668,13 @@ typedef struct {
     uint32_t held;     /* rejected samples in a row */
     volatile uint32_t rejected; /* rejected samples since init */
     uint32_t fault;    /* ${PFX}_FAULT once ${PFX}_FAULT_AFTER samples in a row were rejected */
-${state_members}    volatile uint32_t seq; /* readings published; the last one is pub[seq & 1] */
+    volatile uint32_t seq; /* readings published; the last one is pub[seq & 1] */
     volatile struct {
         int32_t revolutions;
         float turns; /* y_star within the revolution [turns] */
         uint32_t flags;
-${pub_members}    } pub[2];
-} ${pfx}_state;
+    } pub[2];
+${state_members}} ${pfx}_state;
 
 ${init_decl}
 /* One sample of the three Hall signals in the calibration's unit. Returns the flags of the
@@ -1408,12 +1408,13 @@ def _atan2_c(
     )
 
 
-#: Insertion points of the float variant's templates an optional Section may fill (``hooks``).
+#: Insertion points of the float variant's templates an optional Section may fill (``hooks``;
+#: ``state_members`` go after the lean members, whose offsets stay those of the lean build).
 #: ``init_decl`` and ``init_def`` replace the default ``init`` (angle given: homing);
 #: ``update_dispatch`` is ``(condition, function)``-like text "cond|name": while the condition
 #: holds, ``update`` hands the sample to that function instead of running the lean path.
 FLOAT_HOOKS = (
-    "api_macros", "reading_members", "state_members", "pub_members", "init_decl", "init_def",
+    "api_macros", "reading_members", "state_members", "init_decl", "init_def",
     "read_locals", "read_copy", "read_after", "before_update", "update_dispatch",
 )  # fmt: skip
 
@@ -1537,7 +1538,6 @@ def _float_header(ctx: _Context, banner: str, secs: Sequence[Section]) -> str:
         api_macros=hooks["api_macros"],
         reading_members=hooks["reading_members"],
         state_members=hooks["state_members"],
-        pub_members=hooks["pub_members"],
         init_decl=init_decl,
     )
 
@@ -1846,7 +1846,7 @@ _PU_INIT = string.Template(
     s->pub[q & 1u].revolutions = rev;
     s->pub[q & 1u].turns = turns;
     s->pub[q & 1u].flags = flags;
-    s->pub[q & 1u].ident = ident;
+    s->pub_ident[q & 1u] = ident;
     s->seq = q;
 }
 
@@ -2064,7 +2064,7 @@ def _powerup_identify(ctx: _Context) -> str:
     swap(
         "        hc_publish(s, s->pub[last].revolutions, s->pub[last].turns, flags);\n",
         "        hc_publish_id(s, s->pub[last].revolutions, s->pub[last].turns, flags,\n"
-        "                      s->pub[last].ident);\n",
+        "                      s->pub_ident[last]);\n",
     )
     swap(
         "    if (flags > ${PFX}_FAULT) { /* rejected: count it and hold the last reading */",
@@ -2254,12 +2254,15 @@ def _powerup_section(ctx: _Context) -> Section | None:
             "                          * the current maximum-likelihood j until identified */\n"
         ),
         "state_members": (
+            "    /* power-up identification (after the lean path's members: their offsets, and so\n"
+            "     * the lean path's code, are those of the build without it) */\n"
+            "    volatile uint32_t pub_ident[2]; /* of pub[i]: pole pair j, + 0x10000 once\n"
+            "                                     * identified */\n"
             "    uint32_t locked;   /* pole pair identified: the lean path runs */\n"
             "    uint32_t best;     /* maximum-likelihood pole-pair offset j */\n"
             "    uint32_t samples;  /* samples of evidence so far (until identified) */\n"
             f"    float lam[{n}];    /* Lambda_j - min Lambda [noise sigma^2] */\n"
         ),
-        "pub_members": "        uint32_t ident; /* pole pair j, + 0x10000 once identified */\n",
         "init_decl": (
             f"/* Until the pole pair is identified, {pfx}_update hands each sample to this\n"
             " * function; it has external linkage only so that compilers keep it out of the lean\n"
@@ -2274,7 +2277,7 @@ def _powerup_section(ctx: _Context) -> Section | None:
         ),
         "init_def": _PU_INIT.substitute(pfx=pfx, n=n),
         "read_locals": "    uint32_t ident;\n",
-        "read_copy": "        ident = s->pub[before & 1u].ident;\n",
+        "read_copy": "        ident = s->pub_ident[before & 1u];\n",
         "read_after": "\n    r->pole_pair = ident & 0xFFFFu;\n    r->identified = ident >> 16;",
         "before_update": source,
         "update_dispatch": f"s->locked == 0u|{pfx}_identify_sample",
