@@ -292,6 +292,40 @@ def test_ideal_sensors_emit_no_decoder(tmp_path):
     assert not np.any(out[:, 2])
 
 
+def test_one_pole_pair_needs_no_decoder(tmp_path):
+    """With one pole pair f_init from y = 0 is already in the calibration's frame: no decoder,
+    the lean API, and the header says so (not "homing")."""
+    art = bench_artifact(BenchConfig(pole_pairs=1))
+    res = export_c(art, tmp_path, adc_scale=ADC_SCALE)
+    assert not res.identifies_pole_pair and res.powerup_table_bytes == 0
+    assert not any("power-up" in m for m in res.messages)
+    h = (tmp_path / "hallcal.h").read_text()
+    assert "one pole pair" in h and "homed" not in h
+    assert "void hallcal_init(hallcal_state *s, int32_t revolutions, float angle);" in h
+
+
+def test_rejected_sample_before_the_lock_brings_no_evidence(paper):
+    """A NaN sample right after power-up is rejected (counted, the reading held) and changes
+    nothing else: the C then locks as Python does on the recording without that sample."""
+    d, n = _starts(paper, moving=False)
+    dec = paper["dec"]
+    checked = 0
+    for k in range(20):
+        lock, _, _ = identify_python(dec, d[k].astype(np.float64))
+        if lock is None or lock < 1:
+            continue
+        x = np.insert(d[k], 1, np.float32(np.nan), axis=0)  # a bad second sample
+        out = run(paper["exe"], x, fixed=False)
+        assert out[1, 2] & 0xFFFF == 1 | 4  # held, rejected: range (NaN)
+        assert np.array_equal(out[1, :2], out[0, :2])  # the reading held
+        ref_lock, ref_j, _ = identify_python(dec, np.delete(x, 1, axis=0).astype(np.float64))
+        ident = out[:, 2] >> 31
+        assert int(np.argmax(ident)) == ref_lock + 1  # one sample later: the rejected one
+        assert (out[-1, 2] >> 16) & 0x7FFF == ref_j
+        checked += 1
+    assert checked >= 10
+
+
 def test_artifact_without_analysis_emits_no_decoder(paper, tmp_path):
     art = copy.deepcopy(paper["art"])
     del art["identifiability"]

@@ -63,6 +63,7 @@ from hallcal.output.firmware import (
     DEFAULT_TOLERANCE,
     EXP2_CUT,
     FirmwareDesign,
+    PowerUpCode,
     PowerUpFirmware,
     design_firmware,
     design_powerup,
@@ -2297,6 +2298,9 @@ def _powerup_section(ctx: _Context) -> Section | None:
 
 def _homing_note(pu: PowerUpFirmware, *, fixed: bool = False) -> list[str]:
     """Banner lines of a variant that does not identify the pole pair (homing API)."""
+    if pu.status is PowerUpCode.SINGLE_POLE_PAIR:
+        text = comment_text("Power-up: " + pu.message.replace("'", ""), limit=600)
+        return ["", *textwrap.wrap(text, 90, subsequent_indent="  ")]
     if fixed and pu.emitted:
         why = (
             "the decoder needs single precision (24-bit mantissa arithmetic on every hypothesis, "
@@ -2524,7 +2528,16 @@ def export_c(
     texts: list[tuple[str, str]] = []
     section_names: list[str] = []
     pu = design_powerup(artifact, design, source=src)
-    if not pu.emitted:
+    if pu.emitted:
+        messages.append(
+            f"the float variant identifies the pole pair at power-up by itself ({prefix}_init "
+            f"takes no angle; tables {pu.table_bytes} bytes); the fixed-point variant needs "
+            "the calibration's starting position as before"
+            if fixed_point
+            else f"the float variant identifies the pole pair at power-up by itself "
+            f"({prefix}_init takes no angle; tables {pu.table_bytes} bytes)"
+        )
+    elif pu.status is not PowerUpCode.SINGLE_POLE_PAIR:
         messages.append(f"no power-up identification in the C (homing needed): {pu.message}")
     ctx_f = _Context(artifact, design, pfx, PFX, "float", powerup=pu)
     ctx_f = dataclasses.replace(ctx_f, subs=_float_subs(ctx_f, fn))

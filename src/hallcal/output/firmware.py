@@ -862,6 +862,7 @@ class PowerUpCode(enum.StrEnum):
     NO_ANALYSIS = "no-analysis"  # the artifact has no "identifiability" entry
     NOT_IDENTIFIABLE = "not-identifiable"  # the analysis says the magnets are too alike
     UNSUPPORTED = "unsupported"  # a grid the C cannot index with shifts, or a huge table
+    SINGLE_POLE_PAIR = "single-pole-pair"  # nothing to identify: f_init's frame is absolute
 
     @property
     def success(self) -> bool:
@@ -1047,9 +1048,11 @@ def design_powerup(
 
     No decoder (and the homing API) when the artifact has no ``"identifiability"`` entry, when
     its verdict is "not identifiable", or when its grid is not a power of two or its tables
-    would pass :data:`MAX_POWERUP_TABLE` points. The decoder is the one ``hallcal reconstruct
-    --absolute`` rebuilds from the same artifact (:meth:`IdentifiabilityReport.decoder`), so
-    its tables are bit-identical to Python's before the conversion to single precision.
+    would pass :data:`MAX_POWERUP_TABLE` points; none either for one pole pair, where f_init
+    from y = 0 already gives the calibration's frame (modulo one revolution). The decoder is
+    the one ``hallcal reconstruct --absolute`` rebuilds from the same artifact
+    (:meth:`IdentifiabilityReport.decoder`), so its tables are bit-identical to Python's before
+    the conversion to single precision.
 
     Raises
     ------
@@ -1071,6 +1074,13 @@ def design_powerup(
         raise HallcalInputError(f"{source}: {exc}") from None
     if report.pole_pairs != design.pole_pairs:
         raise _bad(source, "identifiability.pole_pairs", "differs from pole_pairs")
+    if design.pole_pairs == 1:
+        return PowerUpFirmware(
+            PowerUpCode.SINGLE_POLE_PAIR,
+            "one pole pair: f_init from y = 0 is in the frame of the calibration after any "
+            "power-up (init with revolutions 0 and angle 0)",
+            report,
+        )
     if not report.status.success:
         return PowerUpFirmware(PowerUpCode.NOT_IDENTIFIABLE, report.message, report)
     L = report.grid
