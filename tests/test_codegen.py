@@ -632,8 +632,10 @@ def _hallcal(*args, cwd, env=None):
 
 def test_cli_export_options_and_refusals(cli_artifact):
     folder, path = cli_artifact
-    r = _hallcal("export-c", str(path), "--out", "fw1", "--no-fixed-point", cwd=folder)
+    r = _hallcal("export-c", str(path), "--out", "fw1", "--no-fixed-point", "--no-powerup",
+                 cwd=folder)  # fmt: skip
     assert r.returncode == 0, r.stderr
+    assert "left out on request" in r.stderr  # the note says why init needs the position
     assert sorted(p.name for p in (folder / "fw1").iterdir()) == ["hallcal.c", "hallcal.h"]
     r = _hallcal("export-c", str(path), "--out", "fw2", "--max-speed", "50", "--prefix", "m2",
                  "--fault-after", "6", "--tolerance", "0.2", cwd=folder)  # fmt: skip

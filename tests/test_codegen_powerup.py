@@ -326,6 +326,15 @@ def test_rejected_sample_before_the_lock_brings_no_evidence(paper):
     assert checked >= 10
 
 
+def test_no_powerup_option(paper, tmp_path):
+    """``powerup=False`` (CLI ``--no-powerup``) keeps the homing API and saves the tables."""
+    res = export_c(paper["art"], tmp_path, adc_scale=ADC_SCALE, powerup=False)
+    assert not res.identifies_pole_pair and "powerup" not in res.sections
+    h = (tmp_path / "hallcal.h").read_text()
+    assert "void hallcal_init(hallcal_state *s, int32_t revolutions, float angle);" in h
+    assert "left out on request" in h
+
+
 def test_artifact_without_analysis_emits_no_decoder(paper, tmp_path):
     art = copy.deepcopy(paper["art"])
     del art["identifiability"]

@@ -2378,6 +2378,7 @@ def export_c(
     tolerance: float = DEFAULT_TOLERANCE,
     max_speed: float | None = None,
     fault_after: int = DEFAULT_FAULT_AFTER,
+    powerup: bool = True,
 ) -> ExportResult:
     """Generate lean C99 sources of f_star (eq. (f_final)) from a calibration artifact.
 
@@ -2390,6 +2391,10 @@ def export_c(
         void hallcal_read(const hallcal_state *s, hallcal_reading *r);  /* consistent */
         void hallcal_clear_fault(hallcal_state *s);
         /* hallcal_q_...: the same with int32 counts in and Q0.32 turns out */
+
+    With the power-up identification (the artifact's identifiability verdict allows it; float
+    variant only) ``void hallcal_init(hallcal_state *s);`` takes no angle and the reading has
+    ``identified`` and ``pole_pair`` (see :func:`_powerup_section`).
 
     Parameters
     ----------
@@ -2417,6 +2422,10 @@ def export_c(
         sample.
     fault_after : int, keyword-only
         Rejected samples in a row before the fault flag (default 8).
+    powerup : bool, keyword-only
+        Put the power-up identification of the pole pair into the float variant when the
+        artifact's identifiability verdict allows it (then ``<prefix>_init(s)`` takes no angle;
+        see :data:`_PU_C`); False keeps the homing API (and saves the decoder's tables).
 
     Returns
     -------
@@ -2527,7 +2536,11 @@ def export_c(
     paths: list[Path] = []
     texts: list[tuple[str, str]] = []
     section_names: list[str] = []
-    pu = design_powerup(artifact, design, source=src)
+    pu = (
+        design_powerup(artifact, design, source=src)
+        if powerup
+        else PowerUpFirmware(PowerUpCode.DISABLED, "left out on request (powerup=False)")
+    )
     if pu.emitted:
         messages.append(
             f"the float variant identifies the pole pair at power-up by itself ({prefix}_init "

@@ -863,6 +863,7 @@ class PowerUpCode(enum.StrEnum):
     NOT_IDENTIFIABLE = "not-identifiable"  # the analysis says the magnets are too alike
     UNSUPPORTED = "unsupported"  # a grid the C cannot index with shifts, or a huge table
     SINGLE_POLE_PAIR = "single-pole-pair"  # nothing to identify: f_init's frame is absolute
+    DISABLED = "disabled"  # left out on request (export_c(powerup=False), --no-powerup)
 
     @property
     def success(self) -> bool:
