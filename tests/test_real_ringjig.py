@@ -1,6 +1,7 @@
 """Constant-speed calibration proven on measured Hall data: the ring-jig recordings.
 
-Data: ``/work/shared/data/real/ring-jig/`` (read-only; see its README and LICENSE). Three analog
+Data: ``tests/data/ring-jig/`` (shipped with the repository, MIT; see its README and LICENSE).
+Three analog
 linear Hall sensors over a 25-pole-pair magnet ring turned open loop by a stepper with a trapezoidal
 move; 6000 rows of ``hall1 hall2 hall3`` raw ADC counts per file, no encoder, sample rate not logged
 (about 1.95 kHz), so time is in samples (``sample_time = 1.0``).
@@ -90,12 +91,11 @@ from hallcal.sensor.reconstruction import f_init
 
 
 def _data_dir() -> Path:
-    """shared/ lies beside the repository (CI clones main next to it); HALLCAL_REAL_DATA wins."""
+    """The copy shipped in tests/data/ring-jig; the environment variable HALLCAL_REAL_DATA wins."""
     env = os.environ.get("HALLCAL_REAL_DATA")
     if env:
         return Path(env)
-    beside = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "ring-jig"
-    return beside if beside.exists() else Path("/work/shared/data/real/ring-jig")
+    return Path(__file__).resolve().parent / "data" / "ring-jig"
 
 
 DATA_DIR = _data_dir()
@@ -103,9 +103,13 @@ FILES = [DATA_DIR / f"hall_calibration_one_rotation_{i}.txt" for i in (1, 2, 3)]
 POLE_PAIRS = 25
 CAL_REVOLUTIONS = 2.0
 
-pytestmark = pytest.mark.skipif(
-    not all(f.exists() for f in FILES), reason="ring-jig recordings not available"
-)
+
+def test_the_recordings_ship_with_the_repository():
+    """No skip: the files, their license and their README are part of the repository."""
+    for f in FILES:
+        assert f.is_file(), f
+    assert "MIT License" in (DATA_DIR / "LICENSE").read_text(encoding="utf-8")
+    assert "tomrodinger/servomotor" in (DATA_DIR / "README.md").read_text(encoding="utf-8")
 
 
 def load_dataset(path: Path) -> Dataset:

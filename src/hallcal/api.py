@@ -97,6 +97,7 @@ class Calibration(_Result):
         *,
         data: DataLike | None = None,
         validation: DataLike | None = None,
+        units: str = "mrad",
     ) -> Path:
         """Write the figures and the HTML report; returns the HTML file's path.
 
@@ -108,6 +109,8 @@ class Calibration(_Result):
             The calibration recording (needed for the model-fit figures).
         validation : path, Dataset or mapping, optional
             A fresh recording with ``y_ref`` to validate on.
+        units : {"mrad", "electrical-deg"}
+            Units of the angle errors in the report's text.
         """
         from hallcal.output.report import write_calibration_report
 
@@ -116,6 +119,7 @@ class Calibration(_Result):
             None if data is None else as_dataset(data),
             out_dir,
             validation=None if validation is None else as_dataset(validation, required=("y_ref",)),
+            units=units,
         )
 
     def export_c(self, out_dir: str | os.PathLike[str], **options: Any) -> Any:

@@ -938,7 +938,8 @@ def assess(
     # decision rule
     if not lut.bijective:
         reasons_fail.append(
-            f"the table is not bijective (min slope {lut.min_slope:.3g}): eq. (recon_biject) fails"
+            f"the table is not bijective (min slope {lut.min_slope:.3g}): the paper's bijectivity "
+            "condition fails"
         )
     if shape_ratio > fail:
         reasons_fail.append(
@@ -1013,8 +1014,8 @@ def assess(
         verdict = "inadequate"
         if not lut.bijective:
             msg = (
-                "inadequate: the identified model gives a non-bijective lookup table (eq. "
-                f"recon_biject, min slope {lut.min_slope:.3g}); f_star would give wrong angles"
+                "inadequate: the identified model gives a non-bijective lookup table (min slope "
+                f"{lut.min_slope:.3g}); f_star would give wrong angles"
                 + (
                     f"; the residual shows harmonics {_format_harmonics(suggested, 6)} missing"
                     if suggested

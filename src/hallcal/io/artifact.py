@@ -71,12 +71,26 @@ def _validate_artifact(data: Any, source: str) -> None:
     n_hat, n_eta = len(lut["y_hat"]), len(lut["eta"])
     if n_hat != n_eta:
         bad(f"keys 'lut.y_hat' and 'lut.eta' have different lengths ({n_hat} and {n_eta})")
+    if "cogging" in data:
+        _check_cogging(data["cogging"], bad, vector)
     setup = _parse_setup(data["setup"], source, prefix="setup.")
     if setup.pole_pairs != data["pole_pairs"]:
         bad(
             f"key 'pole_pairs' ({data['pole_pairs']}) differs from 'setup.pole_pairs' "
             f"({setup.pole_pairs})"
         )
+
+
+def _check_cogging(cog: Any, bad: Any, vector: Any) -> None:
+    """The optional ``"cogging"`` entry: T_c(y0) = sum a_k cos(k y0) + b_k sin(k y0)."""
+    if not isinstance(cog, Mapping):
+        bad("key 'cogging' must be an object")
+    orders = cog.get("orders")
+    if not isinstance(orders, list) or not all(_is_int(k) and k >= 1 for k in orders):
+        bad("key 'cogging.orders' must be a list of integers >= 1")
+    for key in ("a", "b"):
+        if not vector(cog.get(key), len(orders)):
+            bad(f"key 'cogging.{key}' must be a list of {len(orders)} numbers (one per order)")
 
 
 def write_artifact(path: str | os.PathLike[str], artifact: Mapping[str, Any]) -> None:

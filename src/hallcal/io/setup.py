@@ -68,6 +68,11 @@ class ModelSpec:
         Iteration limit of the simulation-error minimization.
     force : bool
         Write the artifact even when the adequacy check fails.
+    cogging : tuple of int, "auto" or "none"
+        Cogging torque ``sum_k a_k cos(k y0) + b_k sin(k y0)`` at the plant input, identified
+        jointly with the flux: its orders k (periods per revolution), chosen from the data
+        (``"auto"``: nothing is added when the data show no cogging), or none. Identified with
+        the Fourier basis; the kernel basis accepts "auto" and "none" and models no cogging.
     """
 
     basis: Literal["fourier", "kernel"] = "fourier"
@@ -77,10 +82,13 @@ class ModelSpec:
     lut_points: int = 4096
     max_iterations: int = 50
     force: bool = False
+    cogging: tuple[int, ...] | Literal["auto", "none"] = "auto"
 
     def __post_init__(self) -> None:
         if self.harmonics != "auto":
             object.__setattr__(self, "harmonics", tuple(int(h) for h in self.harmonics))
+        if self.cogging not in ("auto", "none"):
+            object.__setattr__(self, "cogging", tuple(int(k) for k in self.cogging))
 
 
 @dataclass(frozen=True)
@@ -123,9 +131,12 @@ class BLASpec:
         Which frequency lines in the band are excited.
     drift : float
         Speed in rad/s of the slow ramp the multisine rides on.
-    numerator_order, denominator_order : int
-        Orders of the parametric model fitted to the BLA; the denominator order excludes the
-        integrator pole (the paper's G(s) is numerator 0, denominator 2, integrator).
+    numerator_order : int
+        Order of the numerator of the parametric model fitted to the BLA.
+    denominator_order : int or "auto"
+        Order of its denominator, the integrator pole excluded (the paper's G(s) is numerator
+        0, denominator 2, integrator; a motor with one mechanical pole is denominator 1);
+        ``"auto"`` chooses 0..3 from the data (stable fits only, minimum description length).
     integrator : bool
         Whether the parametric model has a pole at s = 0.
     fit_delay : bool
@@ -141,7 +152,7 @@ class BLASpec:
     lines: Literal["full", "odd", "random-odd"] = "random-odd"
     drift: float = 1.0
     numerator_order: int = 0
-    denominator_order: int = 2
+    denominator_order: int | Literal["auto"] = "auto"
     integrator: bool = True
     fit_delay: bool = True
 
@@ -273,6 +284,7 @@ class Setup:
             model["points"] = m.points
             model["lengthscale"] = m.lengthscale
         model.update(lut_points=m.lut_points, max_iterations=m.max_iterations, force=m.force)
+        model["cogging"] = m.cogging if m.cogging in ("auto", "none") else list(m.cogging)
         out["model"] = model
         t = self.trajectory
         trajectory: dict[str, Any] = {"kind": t.kind}
@@ -328,6 +340,7 @@ _SETUP_KEYS: dict[str, tuple[str, ...]] = {
         "lut_points",
         "max_iterations",
         "force",
+        "cogging",
     ),
     "trajectory": ("kind", "start", "stop"),
     "bla": tuple(f.name for f in dataclasses.fields(BLASpec)),
@@ -541,7 +554,27 @@ def _parse_model(t: _Table | None) -> ModelSpec:
         lut_points=t.integer("lut_points", default=4096, minimum=16),
         max_iterations=t.integer("max_iterations", default=50, minimum=1),
         force=t.boolean("force", default=False),
+        cogging=_parse_cogging(t, basis),  # type: ignore[arg-type]
     )
+
+
+def _parse_cogging(t: _Table, basis: str) -> tuple[int, ...] | str:
+    """``cogging = "auto" | "none" | [orders]`` (distinct integers >= 1; Fourier basis)."""
+    value = t.data.get("cogging", "auto")
+    if isinstance(value, str) and value in ("auto", "none"):
+        return value
+    if basis != "fourier":
+        t.error(f"key '{t.key('cogging')}' with orders applies only to basis = \"fourier\"")
+    if (
+        not isinstance(value, list | tuple)
+        or not value
+        or not all(_is_int(k) and k >= 1 for k in value)
+    ):
+        t.fail("cogging", 'a list of distinct integers >= 1 (periods per revolution), "auto" '
+               'or "none"')  # fmt: skip
+    if len(set(value)) != len(value):
+        t.error(f"key '{t.key('cogging')}' lists an order twice: {_show(value)}")
+    return tuple(int(k) for k in value)
 
 
 def _parse_trajectory(t: _Table | None) -> TrajectorySpec:
@@ -590,8 +623,13 @@ def _parse_bla(t: _Table | None, sample_time: float) -> BLASpec | None:
             f"1/(period_samples*sample_time) = {f0:g} Hz), got {_show(list(band))}"
         )
     numerator_order = t.integer("numerator_order", default=0, minimum=0)
-    denominator_order = t.integer("denominator_order", default=2, minimum=0)
-    if numerator_order > denominator_order:
+    denominator_order: int | str = "auto"
+    value = t.data.get("denominator_order", "auto")
+    if not (isinstance(value, str) and value == "auto"):
+        if not _is_int(value) or value < 0:
+            t.fail("denominator_order", 'an integer >= 0 or "auto"')
+        denominator_order = int(value)
+    if denominator_order != "auto" and numerator_order > int(denominator_order):
         t.error(
             f"key '{t.key('numerator_order')}' must not exceed "
             f"'{t.key('denominator_order')}' ({denominator_order}), got {numerator_order}"
@@ -606,7 +644,7 @@ def _parse_bla(t: _Table | None, sample_time: float) -> BLASpec | None:
         lines=t.choice("lines", ("full", "odd", "random-odd"), default="random-odd"),
         drift=t.number("drift", default=1.0),
         numerator_order=numerator_order,
-        denominator_order=denominator_order,
+        denominator_order=denominator_order,  # type: ignore[arg-type]
         integrator=t.boolean("integrator", default=True),
         fit_delay=t.boolean("fit_delay", default=True),
     )

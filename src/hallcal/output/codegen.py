@@ -878,7 +878,7 @@ _FLOAT_UPDATE = string.Template(
     r"""uint32_t ${pfx}_update(${pfx}_state *s, float d1, float d2, float d3)
 {
     uint32_t flags;
-    /* f_init, eq. (fimp): alpha, beta = P (d - o) */
+    /* f_init: alpha, beta = P (d - o) */
 ${projection}
     const float r2 = (a * a) + (b * b);
     /* plausibility: each channel in its calibrated range (NaN is not), then the radius */
@@ -891,7 +891,7 @@ ${projection}
         const uint32_t mag = (step < 0) ? (0u - (uint32_t)step) : (uint32_t)step;
         int32_t turn = s->turn;
         int32_t rev = s->rev;
-        /* Gamma of eq. (fimp): crossing the start of the turn moves the turn count */
+        /* the unwrap of f_init: crossing the start of the turn moves the turn count */
         if ((step >= 0) && (p < s->phase)) {
             if (turn == ${n_minus_1}) {
                 turn = 0;
@@ -1159,7 +1159,7 @@ uint32_t ${pfx}_q_update(${pfx}_q_state *s, int32_t d1, int32_t d2, int32_t d3)
         || (((uint32_t)d3 - ${lo3}u) > ${span3}u)) {
         flags = ${PFX}_Q_REJ_RANGE;
     } else {
-        /* f_init, eq. (fimp): alpha, beta = P (d - o) 2^${pshift}, with
+        /* f_init: alpha, beta = P (d - o) 2^${pshift}, with
          * P 2^${pshift} = PH 2^${kl} + PL (PL >= 0 acts on the shifted, non-negative inputs);
          * its rows sum to ${rowsum} */
         /* in unsigned (modular) arithmetic: the true values fit in int32, so no product or
@@ -1271,7 +1271,7 @@ _CORDIC_STEP = """\
     }}"""
 
 _UNWRAP_N = """\
-            /* Gamma of eq. (fimp): the step wrapped into [-1/2, 1/2) electrical turn */
+            /* the unwrap of f_init: the step wrapped into [-1/2, 1/2) electrical turn */
             int32_t step = hc_s32(p - s->phase);
             if (step >= {half}) {{
                 step = step - {period};
@@ -1295,7 +1295,7 @@ _UNWRAP_N = """\
             mag = hc_abs(step);"""
 
 _UNWRAP_1 = """\
-            /* Gamma of eq. (fimp) for one pole pair: the step modulo 2^32 in [-1/2, 1/2) turn */
+            /* the unwrap of f_init for one pole pair: the step modulo 2^32 in [-1/2, 1/2) turn */
             const int32_t step = hc_s32(p - s->phase);
             if ((step >= 0) && (p < s->phase)) {
                 rev = hc_s32((uint32_t)rev + 1u);
@@ -1454,7 +1454,7 @@ def _float_subs(ctx: _Context, fn: _FloatNumbers) -> dict[str, Any]:
     values = list(t.values) + [t.values[0]]  # T[M] = T[0]: the wrap-around without a branch
     if t.quadratic:
         table_decl = (
-            f"/* eta table, eq. (f_final): value T[i] (int16) at mechanical angle i / {m} turn and "
+            f"/* eta table of f_star: value T[i] (int16) at mechanical angle i / {m} turn and "
             f"curvature\n * C[i] (int8) of interval i: eta = (T[i] (1 - f) + T[i+1] f + "
             f"2^{t.curvature_shift} C[i] f (1 - f)) 2^-{t.shift} turn\n"
             " * (T[M] = T[0]). */\n"
@@ -1470,7 +1470,7 @@ def _float_subs(ctx: _Context, fn: _FloatNumbers) -> dict[str, Any]:
         )
     else:
         table_decl = (
-            f"/* eta table, eq. (f_final): value T[i] (int16) at mechanical angle i / {m} turn, "
+            f"/* eta table of f_star: value T[i] (int16) at mechanical angle i / {m} turn, "
             f"linear in\n * between: eta = (T[i] (1 - f) + T[i+1] f) 2^-{t.shift} turn "
             "(T[M] = T[0]). */\n"
             f"static const int16_t hc_t[{m + 1}] = {{\n"
@@ -1603,7 +1603,7 @@ def _fixed_source(ctx: _Context, q: _FixedNumbers, banner: str, defs: str) -> st
     tb = _c_list([f"{int(v) + 32768}u" for v in values], 12)
     if t.quadratic:
         fixed_table = (
-            "/* eta table, eq. (f_final), offset binary: value TB[i] - 32768 at mechanical angle "
+            "/* eta table of f_star, offset binary: value TB[i] - 32768 at mechanical angle "
             f"i / {m} turn\n * and curvature CB[i] - 128 of interval i, in units of 2^-{t.shift} "
             f"turn (curvature 2^{t.curvature_shift}\n * units): eta = (T[i] (1 - f) + T[i+1] f + "
             f"2^{t.curvature_shift} C[i] f (1 - f)) 2^-{t.shift} turn, T[M] = T[0]. */\n"
@@ -1622,7 +1622,7 @@ def _fixed_source(ctx: _Context, q: _FixedNumbers, banner: str, defs: str) -> st
         )
     else:
         fixed_table = (
-            "/* eta table, eq. (f_final), offset binary: value TB[i] - 32768 at mechanical angle "
+            "/* eta table of f_star, offset binary: value TB[i] - 32768 at mechanical angle "
             f"i / {m} turn,\n * in units of 2^-{t.shift} turn, linear in between: eta = (T[i] "
             f"(1 - f) + T[i+1] f) 2^-{t.shift} turn,\n * T[M] = T[0]. */\n"
             f"static const uint16_t hc_t[{m + 1}] = {{\n{tb}\n}};"
@@ -2511,7 +2511,7 @@ def export_c(
         f"  sha256        : {sha}",
         f"Pole pairs n_m  : {n}",
         'Method: van Meer et al., "Self-Calibrating Position Measurements: Applied to Imperfect',
-        'Hall Sensors": f_init of eq. (fimp) and y_star = y + eta(mod(y, 2 pi)) of eq. (f_final).',
+        'Hall Sensors": f_init (Clarke + atan2 + unwrap) and y_star = y + eta(mod(y, 2 pi)).',
         "",
         f"Table: {t.points} uniform intervals per revolution, "
         + (

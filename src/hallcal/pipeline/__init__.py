@@ -14,6 +14,7 @@ one short message per step.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -35,6 +36,7 @@ from hallcal.pipeline.simulate import bench_config, simulate
 if TYPE_CHECKING:
     from hallcal.pipeline.plant import (
         BLAIdentification,
+        BLAStatus,
         GainCorrection,
         PlantModel,
         estimate_gain,
@@ -47,6 +49,7 @@ if TYPE_CHECKING:
 _PLANT_NAMES = frozenset(
     {
         "BLAIdentification",
+        "BLAStatus",
         "GainCorrection",
         "PlantModel",
         "estimate_gain",
@@ -68,6 +71,7 @@ def __getattr__(name: str) -> Any:
 
 __all__ = [
     "BLAIdentification",
+    "BLAStatus",
     "Calibration",
     "CalibrationStatus",
     "GainCorrection",
@@ -126,7 +130,17 @@ def calibrate(
         if setup.trajectory.kind == "constant-speed":
             from hallcal.pipeline.open_loop import calibrate_open_loop
 
-            return calibrate_open_loop(dataset, setup, progress=progress)
+            cal = calibrate_open_loop(dataset, setup, progress=progress)
+            if bla_dataset is not None or bla is not None:
+                note = (
+                    "warning: the BLA experiment is not used: a constant-speed calibration "
+                    '(trajectory.kind = "constant-speed") needs no plant model'
+                )
+                status = cal.status
+                if status is CalibrationStatus.OK:
+                    status = CalibrationStatus.WARNING
+                cal = dataclasses.replace(cal, status=status, messages=(note, *cal.messages))
+            return cal
         from hallcal.pipeline.closed_loop import calibrate_closed_loop
 
         return calibrate_closed_loop(

@@ -32,10 +32,12 @@ from hallcal.sensor.absolute import IdentifiabilityReport, PowerUpIdentification
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT
 from hallcal.sensor.metrics import AngleError, SpatialSpectrum, angle_error, spatial_spectrum
+from hallcal.sim.cogging import CoggingTorque
 from hallcal.sim.lti import ContinuousTF
 
 if TYPE_CHECKING:  # result types of the steps, for annotations only (keeps the import light)
     from hallcal.fit.adequacy import AdequacyReport
+    from hallcal.fit.cogging import CoggingSelection
     from hallcal.fit.constant_speed import ConstantSpeedResult
     from hallcal.fit.kernel import KernelSEMResult
     from hallcal.fit.order import HarmonicSelection
@@ -208,6 +210,11 @@ class Calibration:
         The kernel-basis solve (``basis = "kernel"``).
     constant_speed : ConstantSpeedResult or None
         The open-loop constant-speed fit (``[trajectory] kind = "constant-speed"``).
+    cogging : CoggingTorque or None
+        The cogging torque identified jointly with the flux (``[model] cogging``), with the
+        covariance of its coefficients; None when none was modelled or found.
+    cogging_selection : CoggingSelection or None
+        How its orders were chosen (evidence and tests).
     identifiability : IdentifiabilityReport or None
         How well the pole pair can be identified at power-up from the magnets' signatures
         (:mod:`hallcal.sensor.absolute`); None without a bijective table or for artifacts
@@ -236,6 +243,8 @@ class Calibration:
     selection: HarmonicSelection | None = field(default=None, repr=False)
     kernel: KernelSEMResult | None = field(default=None, repr=False)
     constant_speed: ConstantSpeedResult | None = field(default=None, repr=False)
+    cogging: CoggingTorque | None = field(default=None, repr=False)
+    cogging_selection: CoggingSelection | None = field(default=None, repr=False)
     identifiability: IdentifiabilityReport | None = field(default=None, repr=False)
     artifact: Mapping[str, Any] | None = field(default=None, repr=False)
 
@@ -323,6 +332,8 @@ def _diagnostics(cal: Calibration) -> dict[str, Any]:
         diag["gain_correction"] = cal.gain.to_dict()
     if cal.constant_speed is not None:
         diag["constant_speed"] = cal.constant_speed.to_dict()
+    if cal.cogging_selection is not None:
+        diag["cogging"] = cal.cogging_selection.to_dict()
     return diag
 
 
@@ -352,6 +363,8 @@ def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
             "gain_correction": None if cal.gain is None else cal.gain.value,
             "source": cal.plant_source,
         }
+    if cal.cogging is not None:
+        art["cogging"] = cal.cogging.to_dict()
     return art
 
 
@@ -389,6 +402,7 @@ def calibration_from_artifact(artifact: Mapping[str, Any]) -> Calibration:
         p = artifact["plant"]
         plant = ContinuousTF(tuple(p["num"]), tuple(p["den"]), float(p["delay"]))
         plant_source = p.get("source")
+    cogging = CoggingTorque.from_dict(artifact["cogging"]) if "cogging" in artifact else None
     return Calibration(
         setup=setup,
         flux=flux,
@@ -404,6 +418,7 @@ def calibration_from_artifact(artifact: Mapping[str, Any]) -> Calibration:
         model_info=dict(model),
         identifiability=identifiability,
         artifact=artifact,
+        cogging=cogging,
     )
 
 

@@ -22,11 +22,13 @@ from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
 from hallcal.fit.adequacy import AdequacyReport, assess
+from hallcal.fit.cogging import CoggingSelection, CoggingStatus, select_cogging
 from hallcal.fit.order import HarmonicSelection, select_harmonics
 from hallcal.fit.sem import SEMResult, solve_sem
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
+from hallcal.pipeline.checks import CheckStatus, check_direction, check_loop, check_pole_pairs
 from hallcal.pipeline.plant import BLAIdentification, PlantModel, closed_loop, plant_model
 from hallcal.pipeline.powerup import power_up_analysis
 from hallcal.pipeline.progress import Progress, say
@@ -102,6 +104,7 @@ class _ModelFit:
     selection: HarmonicSelection | None = None
     kernel: KernelSEMResult | None = None
     adequacy: AdequacyReport | None = None
+    cogging: CoggingSelection | None = None
 
 
 def _fit_kernel(loop: ClosedLoop, s: _Signals, setup: Setup, *, progress: Progress) -> _ModelFit:
@@ -185,6 +188,80 @@ def _fit_fourier(
     )
 
 
+def _with_cogging(
+    loop: ClosedLoop, s: _Signals, setup: Setup, fit: _ModelFit, *, fit_gain: bool,
+    progress: Progress,
+) -> _ModelFit:  # fmt: skip
+    """The cogging torque at the plant input, identified jointly with the flux.
+
+    ``[model] cogging``: "none" keeps the fit; given orders are fitted jointly; "auto" looks for
+    cogging in the fit's residual and keeps only orders whose coefficients are significant
+    (:func:`hallcal.fit.cogging.select_cogging`). When cogging is found and the harmonics are
+    chosen from the data, they are chosen again with the identified torque in the loop (so that
+    no flux harmonic is picked to absorb the cogging motion), and the final fit is joint.
+    """
+    orders = setup.model.cogging
+    if orders == "none":
+        return fit
+    say(progress, "cogging torque" + (" (looking for it in the residual)" if orders == "auto"
+                                       else f" at orders {list(orders)}"))  # fmt: skip
+    sel = select_cogging(
+        loop, s.r, s.d, fit.sem, orders=orders, fit_gain=fit_gain,
+        max_iterations=setup.model.max_iterations,
+    )  # fmt: skip
+    if sel.status is CoggingStatus.NONE:
+        return dataclasses.replace(fit, cogging=sel)
+    sem, selection = sel.sem, fit.selection
+    if setup.model.harmonics == "auto" and sel.cogging is not None:
+        say(progress, "choosing the harmonics again with the cogging torque in the loop")
+        known = loop.with_plant_gain(sem.gain).with_cogging(sel.cogging)
+        selection = select_harmonics(
+            known, s.r, s.d, y=s.y, pole_pairs=setup.pole_pairs,
+            max_iterations=setup.model.max_iterations,
+        )  # fmt: skip
+        sem = solve_sem(
+            loop, s.r, s.d, selection.sem.flux.basis, theta0=selection.sem.flux.theta,
+            fit_gain=fit_gain, gain0=sem.gain, cogging=sel.cogging,
+            max_iterations=setup.model.max_iterations,
+        )  # fmt: skip
+        sel = dataclasses.replace(sel, sem=sem, cogging=sem.cogging)
+    return dataclasses.replace(
+        fit, sem=sem, flux=sem.flux, model_info=_fourier_info(sem.flux), gain_factor=sem.gain,
+        gain_factor_std=sem.gain_std, selection=selection, adequacy=None, cogging=sel,
+    )  # fmt: skip
+
+
+def _motion_bias(
+    loop: ClosedLoop, s: _Signals, setup: Setup, fit: _ModelFit, lut: LUT
+) -> tuple[float, str | None]:
+    """How far unmodelled cogging may have moved the table, when cogging is not modelled.
+
+    A position-periodic motion error that the model lacks is partly absorbed by flux harmonics
+    at its sidebands: a bias of the table that no covariance shows (the residual no longer
+    carries it). With ``cogging = "none"`` and a warning from the adequacy check, the cogging
+    search is run as a diagnostic; when it finds cogging, the RMS difference (about the mean)
+    between the two tables estimates that bias, and is added to the predicted error. ``loop``
+    is the final one (a BLA plant with its refined gain), so the gain stays fixed here.
+    """
+    if setup.model.cogging != "none" or setup.model.basis != "fourier":
+        return 0.0, None
+    diag = select_cogging(loop, s.r, s.d, fit.sem, orders="auto",
+                          max_iterations=setup.model.max_iterations)  # fmt: skip
+    if diag.cogging is None:
+        return 0.0, None
+    alt = build_lut(diag.sem.flux, setup.pole_pairs, points=setup.model.lut_points,
+                    projection=loop.projection, offset=loop.offset)  # fmt: skip
+    y = TWO_PI * np.arange(4096) / 4096
+    delta = lut.correction(y) - alt.correction(y)
+    bias = float(np.std(delta))
+    orders = ", ".join(str(k) for k in diag.orders)
+    return bias, (
+        f"warning: the residual shows a cogging torque at {orders}/rev that is not modelled "
+        f'(cogging = "none"); modelled, it moves the table by {1e3 * bias:.3g} mrad RMS, '
+        'which the predicted error includes: set cogging = "auto"'
+    )
+
+
 def _refined_plant(pm: PlantModel, fit: _ModelFit) -> PlantModel:
     """Apply the gain refined jointly with theta to a BLA plant (no-op for a given plant)."""
     if pm.gain is None or pm.bla is None:
@@ -244,6 +321,11 @@ def calibrate_closed_loop(
         Called with a short message at each step.
     """
     timings: dict[str, float] = {}
+    dataset.require("r", "d1", "d2", "d3")
+    say(progress, "checking pole pairs and direction against the reference")
+    preflight = [check_pole_pairs(dataset, setup.pole_pairs), check_direction(dataset)]
+    for check in preflight:
+        check.raise_if_failed(dataset.source)
     s = _signals(dataset, setup.pole_pairs)
 
     t0 = time.perf_counter()
@@ -258,8 +340,13 @@ def calibrate_closed_loop(
     )
     if pm.source == "bla":
         timings["plant"] = time.perf_counter() - t0
+    loop_check = check_loop(setup.controller, pm.plant, setup.sample_time, plant_name=pm.name)
+    loop_check.raise_if_failed("setup")
     loop = closed_loop(setup, pm.plant)
     messages = list(s.messages) + [pm.note]
+    if pm.bla is not None:
+        messages += list(pm.bla.messages)
+    messages += [c.text for c in preflight if c.status is CheckStatus.WARNING]
     if pm.gain is not None and pm.gain.status != "ok":
         messages.append(f"warning: gain correction c = {pm.gain.c:.3g} hit its search bound")
 
@@ -268,9 +355,13 @@ def calibrate_closed_loop(
         fit = _fit_kernel(loop, s, setup, progress=progress)
     else:
         fit = _fit_fourier(loop, s, setup, fit_gain=pm.gain is not None, progress=progress)
+        fit = _with_cogging(loop, s, setup, fit, fit_gain=pm.gain is not None, progress=progress)
     timings["sem"] = time.perf_counter() - t0
     pm = _refined_plant(pm, fit)
-    loop = closed_loop(setup, pm.plant)
+    cogging = fit.cogging.cogging if fit.cogging is not None else None
+    if fit.cogging is not None and fit.cogging.status is not CoggingStatus.NONE:
+        messages.append(fit.cogging.message)
+    loop = closed_loop(setup, pm.plant).with_cogging(cogging)
 
     adequacy = fit.adequacy or assess(
         fit.sem, s.d, pole_pairs=setup.pole_pairs, projection=loop.projection, offset=loop.offset
@@ -284,6 +375,12 @@ def calibrate_closed_loop(
         offset=loop.offset,
     )
     status, refusal, leading = _verdict(lut, adequacy)
+    predicted = adequacy.predicted_error
+    if status is CalibrationStatus.WARNING:
+        bias, note = _motion_bias(loop, s, setup, fit, lut)
+        predicted = math.hypot(predicted, bias)
+        if note is not None:
+            messages.append(note)
     say(progress, "power-up identifiability of the pole pair")
     t0 = time.perf_counter()
     identifiability = power_up_analysis(fit.flux, lut, s.d)
@@ -296,7 +393,7 @@ def calibrate_closed_loop(
         flux=fit.flux,
         lut=lut,
         status=status,
-        predicted_error=adequacy.predicted_error,
+        predicted_error=predicted,
         noise_floor=adequacy.noise_floor,
         refusal=refusal,
         messages=leading + tuple(messages),
@@ -311,5 +408,7 @@ def calibrate_closed_loop(
         model_info=fit.model_info,
         selection=fit.selection,
         kernel=fit.kernel,
+        cogging=cogging,
+        cogging_selection=fit.cogging,
         identifiability=identifiability,
     )

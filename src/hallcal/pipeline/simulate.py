@@ -8,6 +8,7 @@ import numpy as np
 
 from hallcal.errors import HallcalInputError
 from hallcal.io.setup import Setup
+from hallcal.pipeline.checks import check_loop
 
 if TYPE_CHECKING:
     from hallcal.sim.bench import BenchConfig, BenchRun
@@ -79,10 +80,17 @@ def simulate(
     Returns
     -------
     BenchRun
+
+    Raises
+    ------
+    HallcalInputError
+        No ``[plant]``, or a controller and plant whose closed loop is unstable (the pole named,
+        :func:`~hallcal.pipeline.checks.check_loop`).
     """
     from hallcal.sim.bench import simulate_run
 
     cfg = bench_config(setup)
+    check_loop(cfg.controller, cfg.plant, setup.sample_time).raise_if_failed("setup")
     kind = experiment or setup.bench.experiment
     if kind == "ramp":
         b = setup.bench

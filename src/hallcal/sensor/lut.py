@@ -1,9 +1,10 @@
 """The lookup-table correction f_star (section "Designing a reconstruction function").
 
 On M equidistant grid points y0_i in [0, 2 pi) the model predicts what f_init would output,
-``y_hat_i = f_init(g_theta(y0_i))`` (eq. recon_biject, unwrapped around y0_i), and the error
+``y_hat_i = f_init(g_theta(y0_i))`` (unwrapped around y0_i; the bijectivity condition), and the
+error
 ``eta_i = y0_i - y_hat_i``. The correction ``eta(y_hat)`` interpolates the pairs (y_hat_i, eta_i)
-piecewise linearly with wrap-around, and eq. (f_final) gives
+piecewise linearly with wrap-around, and the table correction gives
 ``f_star(d) = f_init(d) + eta(f_init(d))``.
 
 The table is only valid when y0 -> y_hat is bijective (strictly increasing over one revolution);
@@ -35,12 +36,13 @@ TWO_PI = 2.0 * math.pi
 
 
 class NotBijectiveError(ValueError):
-    """The model's map y0 -> y_hat is not bijective, so eq. (f_final) would give wrong angles."""
+    """The model's map y0 -> y_hat is not bijective, so f_star = f_init + eta would give wrong
+    angles."""
 
 
 @dataclass(frozen=True)
 class LUT:
-    """Lookup table of eq. (f_final) and the f_init it corrects.
+    """Lookup table of f_star = f_init + eta and the f_init it corrects.
 
     Attributes
     ----------
@@ -57,7 +59,7 @@ class LUT:
     eta : ndarray, shape (M,)
         eta_i = y0_i - y_hat_i [rad].
     bijective : bool
-        Whether y_hat is strictly increasing over the revolution, eq. (recon_biject).
+        Whether y_hat is strictly increasing over the revolution, the bijectivity condition.
     min_slope : float
         Smallest finite-difference slope d y_hat / d y0 on the grid (> 0 when bijective).
     """
@@ -93,7 +95,7 @@ class LUT:
         return np.interp(np.mod(y, TWO_PI), xp, fp)
 
     def f_star(self, d: ArrayLike, *, y_initial: float = 0.0) -> NDArray[np.float64]:
-        """eq. (f_final) over a recording: f_init(d) + eta(f_init(d)), shape (N,) [rad]."""
+        """f_star over a recording: f_init(d) + eta(f_init(d)), shape (N,) [rad]."""
         y = self.f_init(d, y_initial=y_initial)
         return y + self.correction(y)
 
@@ -150,7 +152,7 @@ class LUT:
         return y_init, y_star
 
     def f_init(self, d: ArrayLike, *, y_initial: float = 0.0) -> NDArray[np.float64]:
-        """The f_init this table corrects, eq. (fimp) [rad]."""
+        """The f_init (Clarke + atan2 + unwrap) this table corrects [rad]."""
         return f_init(
             d, self.pole_pairs, y_initial=y_initial, projection=self.projection, offset=self.offset
         )
@@ -240,7 +242,7 @@ def build_lut(
     y0 = TWO_PI * np.arange(M) / M
     psi = electrical_angle(np.asarray(g(y0)), projection=projection, offset=offset)
     n = int(pole_pairs)
-    # Gamma(psi, n y0_i): f_init with the previous estimate phi = y0_i, eq. (recon_biject)
+    # Gamma(psi, n y0_i): f_init with the previous estimate phi = y0_i, the bijectivity condition
     y_hat = (n * y0 + np.mod(psi - n * y0 + math.pi, TWO_PI) - math.pi) / n
     eta = y0 - y_hat
     bij, slope = _bijectivity(y0, y_hat)
@@ -258,7 +260,7 @@ def build_lut(
 
 
 class StarReconstructor:
-    """Streaming f_star, eq. (f_final): one sample at a time, as firmware runs it.
+    """Streaming f_star = f_init + eta(f_init): one sample at a time, as firmware runs it.
 
     Note that the f_init inside runs on its own (uncorrected) previous estimate, as in the paper:
     the table corrects the output, not the unwrapping state.

@@ -1,6 +1,7 @@
 """Initial angle reconstruction f_init: Clarke transform, atan2 and unwrapping.
 
-Implements eq. (fimp) of van Meer et al., "Self-Calibrating Position Measurements: Applied to
+Implements f_init (Clarke + atan2 + unwrap) of van Meer et al., "Self-Calibrating Position
+Measurements: Applied to
 Imperfect Hall Sensors" (section "Collecting data"): the three Hall signals d = [d1, d2, d3] are
 projected on the electrical alpha/beta plane, the electrical angle atan2(beta, alpha) is unwrapped
 relative to n_m times the previous estimate (the unwrapping function Gamma), and the result is
@@ -43,7 +44,7 @@ NOMINAL_PHASES = (0.0, TWO_PI / 3.0, 2.0 * TWO_PI / 3.0)
 
 
 def clarke_matrix() -> NDArray[np.float64]:
-    """The amplitude-invariant Clarke matrix C of eq. (fimp) (3 x 3).
+    """The amplitude-invariant Clarke matrix C of f_init (3 x 3).
 
     Rows give alpha, beta and the zero-sequence component of ``C @ d``.
     """
@@ -110,7 +111,7 @@ def electrical_angle(d: ArrayLike, **kwargs) -> NDArray[np.float64]:
 
 
 def unwrap_to(angle: float, reference: float) -> float:
-    """The unwrapping function Gamma of eq. (fimp).
+    """The unwrapping function Gamma of f_init.
 
     ``Gamma(angle, reference) = reference + mod(angle - reference + pi, 2 pi) - pi``: the value
     congruent to ``angle`` modulo 2 pi nearest to ``reference`` (ties go to ``reference - pi``).
@@ -130,7 +131,7 @@ def f_init_step(
     projection: ArrayLike | None = None,
     offset: ArrayLike | None = None,
 ) -> float:
-    """One sample of f_init, eq. (fimp): ``y_k = Gamma(atan2(beta, alpha), n_m y_{k-1}) / n_m``.
+    """One sample of f_init: ``y_k = Gamma(atan2(beta, alpha), n_m y_{k-1}) / n_m``.
 
     Parameters
     ----------
@@ -198,7 +199,7 @@ def f_init(
     projection: ArrayLike | None = None,
     offset: ArrayLike | None = None,
 ) -> NDArray[np.float64]:
-    """f_init over a whole recording, eq. (fimp), vectorized.
+    """f_init (Clarke + atan2 + unwrap) over a whole recording, vectorized.
 
     Equal to running :class:`InitReconstructor` sample by sample (to rounding, about 1e-13
     rad): each output is ``(psi_k + 2 pi m_k) / n_m`` with the wrapped electrical angle psi_k and

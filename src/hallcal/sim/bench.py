@@ -18,7 +18,8 @@ in the mechanical angle), built from physical knobs:
 - ``a_h(y0)``: amplitude modulation by mechanical harmonics 1..3 of relative size
   ``pole_modulation`` (per-pole strength differences: sidebands k n_m +- j);
 - Hall noise ``v_h`` with variance ``noise_variance``, a random low-frequency torque disturbance
-  and a cogging torque ``cogging sin(cogging_periods y0)`` added to the plant input.
+  and a cogging torque ``cogging sin(cogging_periods y0) + sum A cos(k y0 - phase)``
+  (``cogging_terms``) added to the plant input (:class:`~hallcal.sim.cogging.CoggingTorque`).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import scipy.signal
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sim.cogging import CoggingTorque
 from hallcal.sim.loop import ClosedLoop, simulate_loop
 from hallcal.sim.lti import ContinuousTF, DiscreteTF
 
@@ -96,7 +98,11 @@ class BenchConfig:
         in plant input units.
     cogging, cogging_periods : float, int
         Cogging torque amplitude (plant input units) and periods per revolution
-        (0 = 6 n_m, the sixth electrical harmonic of a three-phase machine).
+        (0 = 6 n_m, the sixth electrical harmonic of a three-phase machine): a term
+        ``cogging sin(cogging_periods y0)``.
+    cogging_terms : tuple of (int, float, float)
+        Further cogging terms ``(k, A, phase_deg)``, each ``A cos(k y0 - phase)`` (plant input
+        units): real cogging has several orders (multiples of the slot/pole pattern) with phases.
     seed : int
         Seed of the truth (magnet variations) and, unless given per run, of the noise.
     """
@@ -116,6 +122,7 @@ class BenchConfig:
     torque_disturbance: float = 0.0
     cogging: float = 0.0
     cogging_periods: int = 0
+    cogging_terms: tuple[tuple[int, float, float], ...] = ()
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -140,6 +147,19 @@ class BenchConfig:
     def truth(self) -> FluxModel:
         """The true flux g(y0) as an exact Fourier series (see the module docstring)."""
         return _truth(self)
+
+    def cogging_torque(self) -> CoggingTorque:
+        """The true cogging torque T_c(y0): ``cogging`` and ``cogging_terms`` summed per order."""
+        coef: dict[int, complex] = {}
+        if self.cogging:
+            k = int(self.cogging_periods or 6 * self.pole_pairs)
+            coef[k] = coef.get(k, 0j) + 1j * float(self.cogging)  # sin: b = amplitude
+        for k, amp, phase_deg in self.cogging_terms:
+            z = float(amp) * complex(math.cos(math.radians(phase_deg)),
+                                     math.sin(math.radians(phase_deg)))  # fmt: skip
+            coef[int(k)] = coef.get(int(k), 0j) + z
+        orders = tuple(sorted(coef))
+        return CoggingTorque(orders, [coef[k].real for k in orders], [coef[k].imag for k in orders])
 
 
 def _truth(cfg: BenchConfig) -> FluxModel:
@@ -296,15 +316,13 @@ def simulate_run(
     noise = sigma * rng.standard_normal((N, 3))
     td = _lowpass_noise(rng, N, config.torque_disturbance, config.sample_time)
     truth = config.truth()
-    cog_per = config.cogging_periods or 6 * config.pole_pairs
     res = simulate_loop(
         config.loop(),
         truth,
         r,
         noise=noise,
         torque_disturbance=td,
-        cogging_amplitude=config.cogging,
-        cogging_periods=cog_per,
+        cogging=config.cogging_torque(),
         initial_angle=float(initial_angle),
     )
     return BenchRun(

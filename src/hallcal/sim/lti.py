@@ -129,7 +129,7 @@ class ContinuousTF:
         return np.polyval(self.num, s) / np.polyval(self.den, s) * np.exp(-s * self.delay)
 
     def scaled(self, c: float) -> ContinuousTF:
-        """c G(s) (the gain correction of eq. c_hat multiplies the plant by a constant)."""
+        """c G(s) (the gain correction c-hat multiplies the plant by a constant)."""
         return ContinuousTF(tuple(c * v for v in self.num), self.den, self.delay)
 
     def discretize(self, sample_time: float) -> StateSpace:
