@@ -33,8 +33,13 @@ no division, no compiler builtin):
 
 Generated files contain only numbers and comment text that is sanitized so that it cannot end the
 comment: file names are reduced to their base name and to the characters ``A-Za-z0-9 ._-+=,:()[]``.
-Optional parts (e.g. the anticogging feed-forward when the artifact has ``"cogging"``) are
-separate :class:`Section` objects appended to a variant (see ``_SECTIONS``).
+Optional parts are separate :class:`Section` objects added to a variant (see ``_SECTIONS``):
+the anticogging feed-forward when the artifact has ``"cogging"``, and the power-up
+identification of the pole pair when its ``"identifiability"`` verdict allows it (float variant:
+the decoder of :mod:`hallcal.sensor.absolute`, ``init`` without an angle, the identification in
+the reading; it fills the variant's insertion points, :data:`FLOAT_HOOKS`, and keeps the lean
+path's code; see :func:`_powerup_section`). Without it the generated code keeps the homing API
+and its header says why.
 """
 
 from __future__ import annotations
