@@ -99,6 +99,7 @@ from hallcal.fit.gauss_newton import (
     simulate_fourier,
 )
 from hallcal.fit.sem import SEMResult
+from hallcal.limits import check_hall_scale
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.loop import ClosedLoop
@@ -1029,6 +1030,7 @@ def solve_kernel_sem(
     N = r.size
     if d.shape != (N, 3):
         raise ValueError("d must have shape (N, 3) with N = len(r)")
+    check_hall_scale(float(np.max(np.abs(d))) if d.size else 0.0)
     if criterion not in ("evidence", "gcv"):
         raise ValueError('criterion must be "evidence" or "gcv"')
     if spectrum not in ("auto", "ard", "bessel"):
