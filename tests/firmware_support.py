@@ -550,17 +550,31 @@ def bench_artifact(cfg, *, points: int = 4096) -> dict:
     lut = build_lut(truth, n, points=points, projection=loop.projection, offset=loop.offset)
     dec = ab.build_decoder(truth, lut, noise_std=math.sqrt(cfg.noise_variance))
     report = ab.assess_identifiability(dec)
+    from hallcal import __version__
+
     return {
         "format": "hallcal-calibration/1",
+        "hallcal_version": __version__,
         "pole_pairs": n,
         "reconstruction": {"projection": lut.projection.tolist(), "offset": lut.offset.tolist()},
         "lut": {"y_hat": lut.y_hat.tolist(), "eta": lut.eta.tolist(), "points": points},
         "model": {"basis": "fourier", "harmonics": list(truth.basis.harmonics),
                   "theta": truth.theta.tolist()},
-        "setup": {"pole_pairs": n, "sample_time": cfg.sample_time},
+        "setup": _bench_setup(n, cfg.sample_time),
         "diagnostics": {"bijective": True, "noise_floor": cfg.noise_floor},
         "identifiability": report.to_dict(),
     }  # fmt: skip
+
+
+def _bench_setup(n: int, sample_time: float) -> dict:
+    """The default setup (the paper's controller) for n pole pairs, as an artifact stores it."""
+    import dataclasses
+
+    from hallcal.io import default_setup
+
+    setup = default_setup()
+    model = dataclasses.replace(setup.model, harmonics=tuple(range(1, n + 1)))
+    return dataclasses.replace(setup, pole_pairs=n, sample_time=sample_time, model=model).to_dict()
 
 
 def python_decoder(artifact: dict):
