@@ -16,6 +16,23 @@ for the FPU-less Cortex-M4), and reports
   when pipelined after a load, STR with immediate offset 1, VMUL/VADD 1, VCVT 1, ...), with
   zero-wait-state memory; and where the cycles go (per instruction class);
 * the largest difference to ``hallcal reconstruct`` on the whole recording.
+
+These lean figures come from the artifacts without their ``"identifiability"`` entry (the
+homing API). Then the power-up identification in the float variant (the artifacts as they
+are):
+
+* flash of the decoder's tables and code, and the M4 cycles per sample before the lock (every
+  sample evaluates all n_m hypotheses: traced over the first 6 samples of power-ups) and after
+  it (the validation run and the fast spin, against the build without the decoder on the same
+  samples);
+* agreement with ``PowerUpIdentifier`` (host gcc -O2): on the demo's bench motor 200 power-ups
+  at standstill and 200 moving (0.5 to 5 rad/s either way), simulated as
+  ``benchmarks/bench_powerup.py`` does; the same lock sample and pole pair every time, the
+  largest Lambda difference, the angle after the lock against the stated bound; 24 of them on
+  the M4F under QEMU (the same bits as the host); on ring-jig 1, 50 random starts in the
+  held-out revolutions (60 samples each, as bench_powerup); and, as a stress, 1000 power-ups
+  at standstill on a weak bench (7 pole pairs, magnet variation 0.01, the true flux as the
+  model), where locks take up to thousands of samples.
 """
 
 from __future__ import annotations
@@ -35,6 +52,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import arm_harness as ah  # noqa: E402
+import firmware_support as fs  # noqa: E402
 
 from hallcal.io import read_artifact, read_dataset  # noqa: E402
 from hallcal.output.codegen import CORDIC_STEPS, export_c  # noqa: E402
@@ -99,6 +117,172 @@ def _classes(tr: ah.Trace, calls: int) -> list[str]:
     return [f"      {c / calls:6.1f}  {g}" for g, c in out.most_common()]
 
 
+def _decisions(exe: Path, dec, x: np.ndarray) -> dict:
+    """C (host driver, ``lam`` mode) against PowerUpIdentifier on power-ups x (K x N x 3)."""
+    import subprocess
+
+    K, N, _ = x.shape
+    n = dec.pole_pairs
+    out = subprocess.run([str(exe), "lam", str(N)], input=x.reshape(-1, 3).tobytes(),
+                         capture_output=True, check=True).stdout  # fmt: skip
+    rec = np.frombuffer(out, dtype=np.uint8).reshape(K, N, 12 + 4 * n)
+    words = rec[:, :, :12].copy().view(np.uint32)
+    lam_c = rec[:, :, 12:].copy().view(np.float32).astype(np.float64)
+    same = locked = 0
+    lock_at: list[int] = []
+    worst_lam = 0.0
+    for k in range(K):
+        lock, j, _ = fs.identify_python(dec, x[k].astype(np.float64))
+        ident = words[k, :, 2] >> 31
+        lock_c = int(np.argmax(ident)) if ident.any() else None
+        stop = N if lock is None else lock + 1
+        same += int(lock_c == lock and ((words[k, stop - 1, 2] >> 16) & 0x7FFF) == j)
+        if lock is not None:
+            locked += 1
+            lock_at.append(lock + 1)
+        acc = np.zeros(n)
+        for i, e in enumerate(dec.sample_costs(x[k].astype(np.float64))[:stop]):
+            acc = acc + e
+            acc = acc - acc.min()
+            small = acc < 50.0
+            if small.any():
+                worst_lam = max(worst_lam, float(np.max(np.abs(lam_c[k, i] - acc)[small])))
+    return {"starts": K, "same": same, "locked": locked, "lock_at": lock_at,
+            "lam": worst_lam, "words": words}  # fmt: skip
+
+
+def _powerup(wd: Path, title: str, art: dict, d: np.ndarray, scale: float, lean_gen: Path):
+    """The power-up section of one case: size, cycles before and after the lock, agreement."""
+    from hallcal.sensor.absolute import absolute_reconstruction
+    from hallcal.sim.bench import BenchConfig
+
+    gen = wd / f"pu_{lean_gen.name}"
+    res = export_c(art, gen, source="calibration.json", adc_scale=scale, fixed_point=False)
+    out = [f"  power-up identification ({title.split(' (')[0]}):"]
+    if not res.identifies_pole_pair:
+        return out + [f"    no decoder: {res.powerup_message}"]
+    dec, lut = fs.python_decoder(art)
+    out.append(
+        f"    verdict: {art['identifiability']['status']}; tables R, Z: {dec.pole_pairs} x "
+        f"{dec.grid} + 1 floats each = {res.powerup_table_bytes} bytes"
+    )
+    b = ah.build(gen, wd / f"{gen.name}_m4f", target="m4f", fixed=False)
+    lean_b = ah.build(lean_gen, wd / f"{gen.name}_lean", target="m4f", fixed=False)
+    size = ah.sizes(b.obj)
+    funcs = ah.function_sizes(b)
+    code = {k: v for k, v in funcs.items() if not k.startswith("hc_pu_") and
+            k not in ("hc_t", "hc_c", "hc_base")}  # fmt: skip
+    out += [
+        f"    float on Cortex-M4F: text {size['text']} bytes (data {size['data']}, bss "
+        f"{size['bss']}); nm -u: {' '.join(ah.undefined_symbols(b.obj)) or 'nothing'}",
+        "    code bytes: " + ", ".join(f"{k} {v}" for k, v in sorted(code.items())),
+    ]
+    # starts: the demo's bench motor, or offsets into the held-out revolutions of a recording
+    if scale != 1.0:
+        pu = fs.PowerUps(BenchConfig(seed=1))
+        rng = np.random.default_rng(77)
+        angle = rng.uniform(0.0, TWO_PI, 400)
+        speed = np.concatenate([np.zeros(200), rng.uniform(0.5, 5.0, 200)
+                                * rng.choice([-1.0, 1.0], 200)])  # fmt: skip
+        kinds = {"standstill": slice(0, 200), "moving 0.5-5 rad/s": slice(200, 400)}
+        N = 400
+        x = np.stack([pu.run(a, N, float(v), seed=60_000 + i)
+                      for i, (a, v) in enumerate(zip(angle, speed, strict=True))])  # fmt: skip
+    else:
+        from hallcal.fit.constant_speed import find_constant_speed
+
+        _, mid, stop = find_constant_speed(d, dec.pole_pairs).split(2.0)
+        N = 60
+        starts = np.random.default_rng(1001).integers(mid, stop - N, 50)
+        x = np.stack([d[s : s + N] for s in starts])
+        kinds = {"50 starts in the held-out revolutions": slice(0, 50)}
+    x = x.astype(np.float32)
+    host = fs.compile_driver(gen, fixed=False, flags=["-O2"], name="host_pu")
+    for name, sl in kinds.items():
+        r = _decisions(host, dec, x[sl])
+        y_c = fs.angles(r["words"].reshape(-1, 3), fixed=False).reshape(r["starts"], -1)
+        worst = 0.0
+        for k, xk in enumerate(x[sl]):
+            ident = r["words"][k, :, 2] >> 31
+            if ident.any():
+                at = int(np.argmax(ident))
+                y_py = absolute_reconstruction(dec, lut, xk.astype(np.float64)).y_star
+                worst = max(worst, float(np.max(np.abs(y_c[k, at:] - y_py[at:]))))
+        la = np.array(r["lock_at"] or [0])
+        out.append(
+            f"    {name}: {r['same']}/{r['starts']} same lock sample and pole pair as "
+            f"PowerUpIdentifier; locked {r['locked']} (samples median {np.median(la):.0f}, max "
+            f"{la.max()}); max |Lambda_C - Lambda_py| {r['lam']:.1e}; after the lock max "
+            f"|y_C - y_py| {worst:.2e} rad (bound {res.float_bound:.2e})"
+        )
+    # QEMU: a sample of starts on the M4F, bit for bit as the host
+    sample = x[:12] if len(x) < 400 else np.concatenate([x[:12], x[200:212]])
+    raw = ah.run(b, sample.reshape(-1, 3), block=N)
+    same_bits = np.array_equal(raw, fs.run(host, sample.reshape(-1, 3), fixed=False, block=N))
+    agree = 0
+    for k, xk in enumerate(sample):
+        lock, j, _ = fs.identify_python(dec, xk.astype(np.float64))
+        ident = raw.reshape(len(sample), N, 3)[k, :, 2] >> 31
+        lock_c = int(np.argmax(ident)) if ident.any() else None
+        agree += int(lock_c == lock)
+    out.append(
+        f"    on the M4F under QEMU: {agree}/{len(sample)} same lock sample as Python, "
+        f"{'the same bits as' if same_bits else 'DIFFERENT bits from'} the host build"
+    )
+    # cycles: before the lock (the first 6 samples of power-ups), after it
+    first = x[:40, :6].reshape(-1, 3)
+    raw6 = ah.run(b, first, block=6)
+    tr = ah.trace(b, first, block=6)
+    pre = np.ones(len(first), dtype=bool)
+    pre.reshape(-1, 6)[:, 1:] = (raw6[:, 2] >> 31).reshape(-1, 6)[:, :-1] == 0
+    spin = _fast_spin(art)
+    post_x = np.concatenate([d[:2000], spin]).astype(np.float32)
+    after = np.concatenate([[False], (ah.run(b, post_x)[:-1, 2] >> 31) == 1])
+    tr_post = ah.trace(b, post_x)
+    tr_lean = ah.trace(lean_b, post_x)
+    cb, ca, cl = tr.cycles[pre], tr_post.cycles[after], tr_lean.cycles[after]
+    out += [
+        f"    Cortex-M4 cycles per sample before the lock ({int(pre.sum())} traced): min "
+        f"{cb.min()}, median {int(np.median(cb))}, max {cb.max()} -> {cb.max() / 168:.1f} us "
+        f"at 168 MHz ({(cb.max() - np.median(ca)) / dec.pole_pairs:.0f} per hypothesis)",
+        f"    Cortex-M4 cycles per sample after the lock ({int(after.sum())} traced): min "
+        f"{ca.min()}, median {int(np.median(ca))}, max {ca.max()}; the build without the "
+        f"decoder on the same samples: min {cl.min()}, median {int(np.median(cl))}, max "
+        f"{cl.max()} (difference per sample {int((ca - cl).min())} .. {int((ca - cl).max())})",
+    ]
+    return out
+
+
+def _weak_bench(wd: Path) -> list[str]:
+    """Stress of the decisions: a weak bench where the evidence accumulates slowly."""
+    from hallcal.sim.bench import BenchConfig
+
+    cfg = BenchConfig(pole_pairs=7, magnet_variation=0.01, seed=0)
+    art = fs.bench_artifact(cfg)
+    gen = wd / "weak"
+    res = export_c(art, gen, adc_scale=2.0**14, fixed_point=False)
+    dec, _ = fs.python_decoder(art)
+    host = fs.compile_driver(gen, fixed=False, flags=["-O2"], name="host_weak")
+    pu = fs.PowerUps(cfg)
+    rng = np.random.default_rng(5)
+    angles = rng.uniform(0.0, TWO_PI, 1000)
+    x = np.stack([pu.run(a, 3000, 0.0, seed=900 + i) for i, a in enumerate(angles)])
+    x = x.astype(np.float32)
+    r = _decisions(host, dec, x)
+    la = np.array(r["lock_at"])
+    title = "weak bench (7 pole pairs, magnet variation 0.01, the true flux as the model)"
+    return [
+        title,
+        "-" * len(title),
+        f"  {art['identifiability']['message']}",
+        f"  tables {res.powerup_table_bytes} bytes; 1000 power-ups at standstill, 3000 samples: "
+        f"{r['same']}/1000 same lock sample and pole pair as PowerUpIdentifier (host gcc -O2); "
+        f"locked {r['locked']} (samples median {np.median(la):.0f}, 99th percentile "
+        f"{np.percentile(la, 99):.0f}, max {la.max()}); max |Lambda_C - Lambda_py| "
+        f"{r['lam']:.1e}",
+    ]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=None, help="also write the report here")
@@ -127,7 +311,8 @@ def main(argv: list[str] | None = None) -> int:
             cases.append(("ring-jig 1 (n_m = 25, raw 16-bit counts)", *rj, 1.0))
         for title, art, d, scale in cases:
             gen = wd / f"gen{len(lines)}"
-            res = export_c(art, gen, source="calibration.json", adc_scale=scale)
+            lean = {k: v for k, v in art.items() if k != "identifiability"}
+            res = export_c(lean, gen, source="calibration.json", adc_scale=scale)
             lut = lut_from_artifact(art)
             t = res.design.table
             lines += [
@@ -180,6 +365,10 @@ def main(argv: list[str] | None = None) -> int:
                         lines += ["    where the cycles go (per sample):"]
                         lines += _classes(tr, len(tr.counts))
             lines.append("")
+            lines += _powerup(wd, title, art, d, scale, gen)
+            lines.append("")
+        lines += _weak_bench(wd)
+        lines.append("")
     load = os.getloadavg()
     lines.append(f"load average at the end: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
     report = "\n".join(lines) + "\n"

@@ -7,9 +7,11 @@ Used by ``tests/test_codegen_arm.py`` and ``benchmarks/bench_codegen.py``. Needs
 The program is bare metal: a vector table and reset handler (``STARTUP``), semihosting calls for
 file I/O and the exit status (``SEMIHOSTING``, ``bkpt 0xAB``), and a driver (``DRIVER``) that
 reads samples from ``in.bin`` in chunks, calls ``<prefix>_update`` and ``<prefix>_read`` for each
-and writes the reading (revolutions, angle bits, flags) to ``out.bin``. The generated sources are
-compiled alone into an object first (strict warnings, ``-Werror``), so that ``nm -u`` and
-``size`` see the generated code only.
+and writes the reading (revolutions, angle bits, flags) to ``out.bin``; with the power-up
+decoder (``<PREFIX>_POWERUP``) the flags word also carries ``pole_pair << 16`` and
+``identified << 31``, as in the host driver of ``tests/firmware_support.py``. The generated
+sources are compiled alone into an object first (strict warnings, ``-Werror``), so that
+``nm -u`` and ``size`` see the generated code only.
 
 Machines: ``mps2-an386`` (Cortex-M4 with FPU) for the float variant, ``microbit`` (nRF51,
 Cortex-M0; the same ARMv6-M instruction set as the M0+ the code is compiled for) for the fixed
@@ -178,6 +180,8 @@ static void init(void)
 {
 #if HC_Q
     PFX_q_init(&st, 0, 0u);
+#elif defined(UPFX_POWERUP)
+    PFX_init(&st); /* identifies the pole pair by itself */
 #else
     PFX_init(&st, 0, 0.0f);
 #endif
@@ -225,6 +229,9 @@ int main(void)
             out[3 * k + 1] = bits.u;
 #endif
             out[3 * k + 2] = r.flags;
+#if !HC_Q && defined(UPFX_POWERUP)
+            out[3 * k + 2] |= (r.pole_pair << 16) | (r.identified << 31);
+#endif
         }
         const int bytes = got * (int)(3 * sizeof(uint32_t));
         if (hc_write(fo, out, bytes) != bytes) {
@@ -313,7 +320,11 @@ def build(
           "-o", str(obj)])  # fmt: skip
     (workdir / "startup.c").write_text(STARTUP)
     (workdir / "semihosting.c").write_text(SEMIHOSTING)
-    drv = DRIVER.replace("PFX_HEADER", f"{stem}.h").replace("PFX", prefix)
+    drv = (
+        DRIVER.replace("PFX_HEADER", f"{stem}.h")
+        .replace("UPFX", prefix.upper())
+        .replace("PFX", prefix)
+    )
     (workdir / "driver.c").write_text(drv.replace("CHUNK_VALUE", str(CHUNK)))
     ld = workdir / f"link_{target}.ld"
     ld.write_text(LINKER.format(flash=t.flash, ram=t.ram))
@@ -465,11 +476,13 @@ def _register_count(ops: str) -> int:
 
 
 def trace(b: Build, samples: np.ndarray, *, entry: str | None = None,
-          timeout: float = 300.0) -> Trace:  # fmt: skip
+          timeout: float = 300.0, block: int = 0) -> Trace:  # fmt: skip
     """Count the instructions of each ``update`` call (QEMU single-step trace).
 
     Every function of the generated object except the reader, init and clear-fault ones is
-    traced (static helpers the compiler did not inline are counted with the update they serve).
+    traced (static helpers the compiler did not inline, and the power-up decoder's
+    ``_identify_sample``, are counted with the update they serve). With ``block`` > 0 the state
+    is re-initialised every ``block`` samples (as :func:`run`).
     """
     entry = entry or (f"{b.prefix}_q_update" if b.fixed else f"{b.prefix}_update")
     skip = ("_read", "_init", "_clear_fault")
@@ -477,7 +490,7 @@ def trace(b: Build, samples: np.ndarray, *, entry: str | None = None,
     start = ranges[entry][0]
     data = np.ascontiguousarray(samples, dtype=np.int32 if b.fixed else np.float32)
     (b.workdir / "in.bin").write_bytes(data.tobytes())
-    (b.workdir / "block.bin").write_bytes(np.uint32(0).tobytes())
+    (b.workdir / "block.bin").write_bytes(np.uint32(block).tobytes())
     log = b.workdir / "trace.log"
     log.unlink(missing_ok=True)
     dfilter = ",".join(f"0x{a:x}+0x{s:x}" for a, s in ranges.values())

@@ -12,17 +12,29 @@ or pipes:
 * ``long a b nfwd ntot every amp n o1 o2 o3 ph1 ph2 ph3``: exact rational positions for 10^6
   revolutions forward then back; checkpoints as text.
 * ``fuzz count``: random and adversarial inputs, invariants checked on every sample.
-* ``isr mode count``: the snapshot under interruption (POSIX interval timer): ``mode`` 0 runs
-  ``update`` in the signal handler and ``read`` in the main loop, 1 the other way round, 2 the
-  main loop takes the revolutions and the angle from two reads (a deliberately torn reader, to
-  show that the test sees tearing). Samples come from stdin (as for ``run``); every pair read
-  is written out.
+* ``isr mode count [block]``: the snapshot under interruption (POSIX interval timer): ``mode``
+  0 runs ``update`` in the signal handler and ``read`` in the main loop (re-initialising every
+  ``block`` samples, never during a read: init restarts the sequence counter), 1 the other way
+  round (the main loop re-initialising), 2 the main loop takes the revolutions and the
+  angle from two reads (a deliberately torn reader, to show that the test sees tearing).
+  Samples come from stdin (as for ``run``); every pair read is written out.
+
+With the power-up decoder (the header defines ``<PREFIX>_POWERUP``) ``init`` takes no angle, the
+flags word of ``run`` also carries ``pole_pair << 16 | identified << 31``, ``isr`` writes that
+word as a third one, and two more modes exist: ``lam [block]`` (as ``run``, then the decoder's
+Lambda_j as n floats after each sample) and ``lock`` (Lambda vectors in, the generated lock rule
+out, one byte each).
+
+:class:`PowerUps` simulates power-ups on the paper bench as ``benchmarks/bench_powerup.py`` does
+(closed loop from a random rotor angle, f_init from y = 0), and :func:`bench_artifact` makes the
+artifact of a bench motor calibrated exactly (its true flux as the model, its noise as sigma).
 """
 
 from __future__ import annotations
 
 import math
 import os
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -64,7 +76,11 @@ typedef int32_t in_t;
 typedef PFX_state st_t;
 typedef PFX_reading rd_t;
 typedef float in_t;
+#if defined(UPFX_POWERUP)
+#define INIT(s) PFX_init((s))
+#else
 #define INIT(s) PFX_init((s), 0, 0.0f)
+#endif
 #define UPDATE PFX_update
 #define READ PFX_read
 static uint32_t fbits(float f) { uint32_t u; memcpy(&u, &f, sizeof u); return u; }
@@ -112,11 +128,52 @@ static int mode_run(long block) {
         out[0] = (uint32_t)r.revolutions;
         out[1] = ANGLE_BITS(r);
         out[2] = r.flags;
+#if !HC_Q && defined(UPFX_POWERUP)
+        out[2] |= (r.pole_pair << 16) | (r.identified << 31);
+#endif
         fwrite(out, sizeof out, 1, stdout);
         ++k;
     }
     return 0;
 }
+
+#if !HC_Q && defined(UPFX_POWERUP)
+/* lam: as run, then the decoder's Lambda_j (n floats) after each sample */
+static int mode_lam(long block) {
+    st_t s;
+    rd_t r;
+    in_t d[3];
+    long k = 0;
+    INIT(&s);
+    while (fread(d, sizeof d, 1, stdin) == 1) {
+        uint32_t out[3];
+        if (block > 0 && k > 0 && k % block == 0) INIT(&s);
+        (void)UPDATE(&s, d[0], d[1], d[2]);
+        READ(&s, &r);
+        out[0] = (uint32_t)r.revolutions;
+        out[1] = ANGLE_BITS(r);
+        out[2] = r.flags | (r.pole_pair << 16) | (r.identified << 31);
+        fwrite(out, sizeof out, 1, stdout);
+        fwrite(s.lam, sizeof s.lam, 1, stdout);
+        ++k;
+    }
+    return 0;
+}
+
+/* lock: Lambda vectors (n floats each, the smallest 0) on stdin; the generated lock rule on
+ * each, 1 byte out per vector */
+static int mode_lock(void) {
+    float v[UPFX_POLE_PAIRS];
+    while (fread(v, sizeof v, 1, stdin) == 1) {
+        unsigned j, best = 0u;
+        unsigned char out;
+        for (j = 1u; j < UPFX_POLE_PAIRS; ++j) if (v[j] < v[best]) best = j;
+        out = (unsigned char)hc_lock_rule(v, best);
+        fwrite(&out, 1, 1, stdout);
+    }
+    return 0;
+}
+#endif
 
 static int mode_angle(void) {
     in_t v[2];
@@ -247,7 +304,19 @@ static int mode_fuzz(long long count) {
     return 0;
 }
 
-/* isr: one side in a signal handler (an interrupt), the other in the main loop */
+/* isr: one side in a signal handler (an interrupt), the other in the main loop. Each read is
+ * written as ISR_WORDS words: revolutions, angle bits and, with the power-up decoder, its
+ * identification (pole_pair << 16 | identified << 31). In mode 0 the interrupt re-initialises
+ * the state every isr_block samples (0: never), so that many power-ups are read. */
+#if !HC_Q && defined(UPFX_POWERUP)
+#define ISR_WORDS 3
+#define ISR_IDENT(r) (((r).pole_pair << 16) | ((r).identified << 31))
+#else
+#define ISR_WORDS 2
+#define ISR_IDENT(r) 0u
+#endif
+static long isr_block;
+static volatile int isr_in_read; /* the main loop is inside a read (mode 0) */
 static st_t isr_state;
 static in_t *isr_samples;
 static long isr_count;
@@ -263,19 +332,26 @@ static void isr_handler(int sig) {
         rd_t r;
         READ(&isr_state, &r);
         if (isr_npairs < isr_cap) {
-            isr_pairs[2 * isr_npairs] = (uint32_t)r.revolutions;
-            isr_pairs[2 * isr_npairs + 1] = ANGLE_BITS(r);
+            isr_pairs[ISR_WORDS * isr_npairs] = (uint32_t)r.revolutions;
+            isr_pairs[ISR_WORDS * isr_npairs + 1] = ANGLE_BITS(r);
+            if (ISR_WORDS > 2) isr_pairs[ISR_WORDS * isr_npairs + ISR_WORDS - 1] = ISR_IDENT(r);
             isr_npairs = isr_npairs + 1;
         }
     } else if (isr_next < isr_count) { /* the writer is the interrupt */
         long k = isr_next;
+        if (isr_block > 0 && k > 0 && k % isr_block == 0) {
+            /* init restarts the sequence counter: not while a read is under way (a reader
+             * stalled across a whole block could see the same count again) */
+            if (isr_in_read) return;
+            INIT(&isr_state);
+        }
         (void)UPDATE(&isr_state, isr_samples[3 * k], isr_samples[3 * k + 1],
                      isr_samples[3 * k + 2]);
         isr_next = k + 1;
     }
 }
 
-static int mode_isr(int mode, long reads) {
+static int mode_isr(int mode, long reads, long block) {
     struct sigaction sa;
     struct itimerval it;
     memset(&sa, 0, sizeof sa);
@@ -283,7 +359,8 @@ static int mode_isr(int mode, long reads) {
     sigaction(SIGALRM, &sa, NULL);
     isr_samples = read_samples(&isr_count);
     isr_cap = reads;
-    isr_pairs = malloc(sizeof(uint32_t) * 2 * (size_t)isr_cap);
+    isr_block = block;
+    isr_pairs = malloc(sizeof(uint32_t) * ISR_WORDS * (size_t)isr_cap);
     if (!isr_samples || !isr_pairs) return fail("malloc", 0);
     INIT(&isr_state);
     isr_mode = mode;
@@ -295,6 +372,7 @@ static int mode_isr(int mode, long reads) {
         long k;
         for (k = 0; k < isr_count && isr_npairs < isr_cap; ++k) {
             volatile int spin;
+            if (isr_block > 0 && k > 0 && k % isr_block == 0) INIT(&isr_state);
             (void)UPDATE(&isr_state, isr_samples[3 * k], isr_samples[3 * k + 1],
                          isr_samples[3 * k + 2]);
             for (spin = 0; spin < 300; ++spin) {
@@ -304,6 +382,7 @@ static int mode_isr(int mode, long reads) {
         long n = 0;
         while (n < isr_cap && isr_next < isr_count) {
             rd_t r;
+            isr_in_read = 1;
             READ(&isr_state, &r);
             if (mode == 2) { /* torn on purpose: revolutions and angle from two reads */
                 rd_t r2;
@@ -313,15 +392,17 @@ static int mode_isr(int mode, long reads) {
                 READ(&isr_state, &r2);
                 r.angle = r2.angle;
             }
-            isr_pairs[2 * n] = (uint32_t)r.revolutions;
-            isr_pairs[2 * n + 1] = ANGLE_BITS(r);
+            isr_in_read = 0;
+            isr_pairs[ISR_WORDS * n] = (uint32_t)r.revolutions;
+            isr_pairs[ISR_WORDS * n + 1] = ANGLE_BITS(r);
+            if (ISR_WORDS > 2) isr_pairs[ISR_WORDS * n + ISR_WORDS - 1] = ISR_IDENT(r);
             ++n;
         }
         isr_npairs = n;
     }
     memset(&it, 0, sizeof it);
     setitimer(ITIMER_REAL, &it, NULL);
-    fwrite(isr_pairs, sizeof(uint32_t) * 2, (size_t)isr_npairs, stdout);
+    fwrite(isr_pairs, sizeof(uint32_t) * ISR_WORDS, (size_t)isr_npairs, stdout);
     return 0;
 }
 
@@ -331,7 +412,12 @@ int main(int argc, char **argv) {
     if (!strcmp(argv[1], "angle")) return mode_angle();
     if (!strcmp(argv[1], "long")) return mode_long(argc, argv);
     if (!strcmp(argv[1], "fuzz")) return mode_fuzz(atoll(argv[2]));
-    if (!strcmp(argv[1], "isr")) return mode_isr(atoi(argv[2]), atol(argv[3]));
+    if (!strcmp(argv[1], "isr"))
+        return mode_isr(atoi(argv[2]), atol(argv[3]), argc > 4 ? atol(argv[4]) : 0);
+#if !HC_Q && defined(UPFX_POWERUP)
+    if (!strcmp(argv[1], "lam")) return mode_lam(argc > 2 ? atol(argv[2]) : 0);
+    if (!strcmp(argv[1], "lock")) return mode_lock();
+#endif
     return fail("unknown mode", 0);
 }
 """
@@ -411,7 +497,7 @@ def compile_driver(workdir: Path, prefix: str = "hallcal", *, fixed: bool, flags
                    pole_pairs: int = 11) -> Path:  # fmt: skip
     """Compile DRIVER with the generated source of one variant."""
     src = workdir / f"drv_{prefix}.c"
-    src.write_text(DRIVER.replace("PFX", prefix))
+    src.write_text(DRIVER.replace("UPFX", prefix.upper()).replace("PFX", prefix))
     exe = workdir / (name or f"drv_{prefix}_{'q' if fixed else 'f'}")
     cmd = [CC, "-std=c99", *flags, f"-DHC_Q={int(fixed)}", f"-DHC_N_FOR_TEST={pole_pairs}",
            f"-I{workdir}", str(src), "-o", str(exe), "-lm"]  # fmt: skip
@@ -447,3 +533,156 @@ def sanitizer_flags() -> list[str] | None:
         if r.returncode == 0:
             return [*base, *extra]
     return None
+
+
+# ------------------------------------------------------------------------------------------
+# Power-up: bench motors and their artifacts
+# ------------------------------------------------------------------------------------------
+
+
+def bench_artifact(cfg, *, points: int = 4096) -> dict:
+    """The artifact of a bench motor calibrated exactly: its true flux as the model, the lookup
+    table of that flux, sigma the bench's noise and the identifiability analysis of the decoder
+    ``hallcal calibrate`` would build (no calibration run needed)."""
+    from hallcal.sensor import absolute as ab
+
+    truth, loop, n = cfg.truth(), cfg.loop(), cfg.pole_pairs
+    lut = build_lut(truth, n, points=points, projection=loop.projection, offset=loop.offset)
+    dec = ab.build_decoder(truth, lut, noise_std=math.sqrt(cfg.noise_variance))
+    report = ab.assess_identifiability(dec)
+    from hallcal import __version__
+
+    return {
+        "format": "hallcal-calibration/1",
+        "hallcal_version": __version__,
+        "pole_pairs": n,
+        "reconstruction": {"projection": lut.projection.tolist(), "offset": lut.offset.tolist()},
+        "lut": {"y_hat": lut.y_hat.tolist(), "eta": lut.eta.tolist(), "points": points},
+        "model": {"basis": "fourier", "harmonics": list(truth.basis.harmonics),
+                  "theta": truth.theta.tolist()},
+        "setup": _bench_setup(n, cfg.sample_time),
+        "diagnostics": {"bijective": True, "noise_floor": cfg.noise_floor},
+        "identifiability": report.to_dict(),
+    }  # fmt: skip
+
+
+def _bench_setup(n: int, sample_time: float) -> dict:
+    """The default setup (the paper's controller) for n pole pairs, as an artifact stores it."""
+    import dataclasses
+
+    from hallcal.io import default_setup
+
+    setup = default_setup()
+    model = dataclasses.replace(setup.model, harmonics=tuple(range(1, n + 1)))
+    return dataclasses.replace(setup, pole_pairs=n, sample_time=sample_time, model=model).to_dict()
+
+
+def python_decoder(artifact: dict):
+    """``(decoder, lut)`` as ``hallcal reconstruct --absolute`` builds them from an artifact."""
+    from hallcal.pipeline.calibration import lut_from_artifact
+    from hallcal.pipeline.powerup import decoder_for, identifiability_from_artifact
+
+    flux = FluxModel(
+        FourierBasis(tuple(artifact["model"]["harmonics"])), np.array(artifact["model"]["theta"])
+    )
+    lut = lut_from_artifact(artifact)
+    return decoder_for(flux, lut, identifiability_from_artifact(artifact)), lut
+
+
+class PowerUps:
+    """Closed-loop power-ups on a bench motor, as ``benchmarks/bench_powerup.py`` simulates them
+    (``hallcal.sim.bench.power_up_run`` with the truth and the loop built once): the rotor at
+    ``angle`` [rad], the reference from f_init's first value at ``speed`` [rad/s]."""
+
+    def __init__(self, cfg) -> None:
+        self.cfg = cfg
+        self.truth = cfg.truth()
+        self.loop = cfg.loop()
+        self.sigma = math.sqrt(cfg.noise_variance)
+
+    def run(self, angle: float, samples: int, speed: float, seed: int) -> np.ndarray:
+        """Hall signals (samples x 3) after a power-up at ``angle``."""
+        from hallcal.sim.loop import simulate_loop
+
+        n = self.cfg.pole_pairs
+        a, b = self.loop.projection @ (self.truth(np.array([angle]))[0] - self.loop.offset)
+        y_start = (math.fmod(math.atan2(b, a) + math.pi, TWO_PI) - math.pi) / n
+        r = y_start + speed * self.cfg.sample_time * np.arange(samples)
+        noise = self.sigma * np.random.default_rng([seed, 1]).standard_normal((samples, 3))
+        res = simulate_loop(self.loop, self.truth, r, noise=noise, initial_angle=float(angle))
+        assert res.status == "ok"
+        return res.d
+
+
+def identify_python(decoder, d: np.ndarray) -> tuple[int | None, int, np.ndarray]:
+    """``PowerUpIdentifier`` over one power-up: (lock sample or None, pole pair at the lock or
+    after the last sample, the pole pair in force after each sample)."""
+    from hallcal.sensor.absolute import PowerUpIdentifier
+
+    ident = PowerUpIdentifier(decoder)
+    best = np.array([ident.update(*row) for row in d.tolist()])
+    return ident.lock_sample, ident.best, best
+
+
+# ------------------------------------------------------------------------------------------
+# Checks of the generated text
+# ------------------------------------------------------------------------------------------
+
+
+def c_code(text: str) -> str:
+    """C text without comments."""
+    return re.sub(r"/\*.*?\*/", "", text, flags=re.S)
+
+
+def misra_check(d: Path, prefix: str = "hallcal") -> None:
+    """The MISRA-minded patterns of every generated file in ``d`` (asserts): only <stdint.h>
+    and the own header included, no function-like macro, no builtin, no dynamic memory, no
+    double, no goto, no increment (so none inside a condition), no float equality, no
+    assignment inside a condition, right shifts only of unsigned values; the fixed-point
+    variant without float, 64-bit types or division."""
+    _code = c_code
+    heads = {"stdint.h", f"{prefix}.h", f"{prefix}_q.h"}
+    files = [p for p in (d / f"{prefix}.h", d / f"{prefix}.c", d / f"{prefix}_q.h",
+                         d / f"{prefix}_q.c") if p.exists()]  # fmt: skip
+    assert files
+    for p in files:
+        code = _code(p.read_text())
+        assert set(re.findall(r'#include [<"]([^>"]+)[>"]', code)) <= heads
+        assert not re.search(r"#define\s+\w+\(", code)  # no function-like macro
+        assert "__builtin" not in code and "__attribute__" not in code and "asm" not in code
+        assert not re.search(r"\b(malloc|free|double|goto)\b", code)
+        assert "++" not in code and "--" not in code  # so no increment inside a condition
+        assert not re.search(r"[=!]=\s*-?\d+\.\d*(e-?\d+)?f", code)  # no float equality
+        # every operand of && / || is a comparison or a negation, without assignment
+        for cond in re.findall(r"if \((.*?)\) \{", code, flags=re.S):
+            for part in re.split(r"&&|\|\|", cond):
+                assert not re.search(r"[^=!<>]=[^=]", part), part
+    for p in (f for f in files if f.suffix == ".c"):
+        code = _code(p.read_text())
+        decl: dict[str, str] = {}
+        for typ, name in re.findall(r"\b(u?int32_t|float|uint16_t)\s+(\w+)\b", code):
+            if decl.get(name) != "int32_t":  # a name declared signed anywhere counts as signed
+                decl[name] = typ
+        # right shifts only of unsigned variables, unsigned function results or parenthesised
+        # expressions without a signed variable
+        for m in re.finditer(r"(\w+|\))\s*>>", code):
+            operand = m.group(1)
+            if operand != ")":
+                assert decl.get(operand, "uint32_t") != "int32_t", (p.name, operand)
+                continue
+            depth, j = 0, m.start(1)
+            while True:  # the matching "("
+                depth += {")": 1, "(": -1}.get(code[j], 0)
+                if depth == 0:
+                    break
+                j -= 1
+            func = re.search(r"(\w+)\s*$", code[:j])
+            if func and decl.get(func.group(1)) is not None:  # a call: its return type
+                assert decl[func.group(1)] != "int32_t", (p.name, func.group(1))
+                continue
+            expr = code[j : m.start(1) + 1]
+            signed = [v for v in re.findall(r"[A-Za-z_]\w*", expr) if decl.get(v) == "int32_t"]
+            assert not signed, (p.name, expr)
+    if (d / f"{prefix}_q.c").exists():
+        code_q = _code((d / f"{prefix}_q.c").read_text())
+        assert not re.search(r"\b(float|double|int64_t|uint64_t)\b|\s/\s", code_q)

@@ -169,6 +169,7 @@ def test_export_c_writes_sources(workdir):
     names = {p.name for p in (workdir / "fw").iterdir()}
     assert {"hallcal.h", "hallcal.c", "hallcal_q.h", "hallcal_q.c"} <= names
     assert "hallcal_update" in (workdir / "fw" / "hallcal.h").read_text()
+    assert "power-up" in res.stderr  # whether the C identifies the pole pair, and why (not)
 
 
 def test_calibrate_with_the_kernel_basis(workdir):

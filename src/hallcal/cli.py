@@ -688,6 +688,12 @@ def _print_identification(ident, pole_pairs: int) -> None:
     help="Rejected samples in a row before the fault flag.",
 )
 @click.option("--prefix", default="hallcal", show_default=True, help="C name prefix.")
+@click.option(
+    "--no-powerup",
+    is_flag=True,
+    help="No pole-pair identification at power-up in the float variant (saves its tables; "
+    "init then needs the calibration's starting position, as the fixed-point variant).",
+)
 @_handle_errors
 def export_c(
     artifact: str,
@@ -699,6 +705,7 @@ def export_c(
     tolerance: float,
     fault_after: int,
     prefix: str,
+    no_powerup: bool,
 ) -> None:
     """Generate lean C99 sources of f_star (float and fixed point) for firmware.
 
@@ -720,6 +727,7 @@ def export_c(
         tolerance=tolerance,
         fault_after=fault_after,
         prefix=prefix,
+        powerup=not no_powerup,
     )
     for m in res.messages:
         _echo(f"note: {m}", err=True)

@@ -33,18 +33,25 @@ no division, no compiler builtin):
 
 Generated files contain only numbers and comment text that is sanitized so that it cannot end the
 comment: file names are reduced to their base name and to the characters ``A-Za-z0-9 ._-+=,:()[]``.
-Optional parts (e.g. the anticogging feed-forward when the artifact has ``"cogging"``) are
-separate :class:`Section` objects appended to a variant (see ``_SECTIONS``).
+Optional parts are separate :class:`Section` objects added to a variant (see ``_SECTIONS``):
+the anticogging feed-forward when the artifact has ``"cogging"``, and the power-up
+identification of the pole pair when its ``"identifiability"`` verdict allows it (float variant:
+the decoder of :mod:`hallcal.sensor.absolute`, ``init`` without an angle, the identification in
+the reading; it fills the variant's insertion points, :data:`FLOAT_HOOKS`, and keeps the lean
+path's code; see :func:`_powerup_section`). Without it the generated code keeps the homing API
+and its header says why.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
 import os
 import re
 import string
+import textwrap
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -59,8 +66,12 @@ from hallcal.output.firmware import (
     ARTIFACT_FORMAT,
     DEFAULT_FAULT_AFTER,
     DEFAULT_TOLERANCE,
+    EXP2_CUT,
     FirmwareDesign,
+    PowerUpCode,
+    PowerUpFirmware,
     design_firmware,
+    design_powerup,
     table_sizes,
 )
 
@@ -137,6 +148,16 @@ class ExportResult:
         Warnings and notes.
     design : FirmwareDesign
         The numbers behind the files.
+    identifies_pole_pair : bool
+        Whether the float variant identifies the pole pair after init by itself (section
+        ``"powerup"``; init takes no angle); otherwise both variants need the calibration's
+        starting position (homing).
+    powerup_message : str
+        The artifact's identifiability verdict, or why there is no decoder.
+    powerup_table_bytes : int
+        Flash of the decoder's tables R and Z (0 without a decoder).
+    powerup : PowerUpFirmware or None
+        The decoder's numbers.
     """
 
     paths: tuple[Path, ...]
@@ -160,6 +181,10 @@ class ExportResult:
     sections: tuple[str, ...] = ()
     messages: tuple[str, ...] = ()
     design: FirmwareDesign | None = field(default=None, repr=False, compare=False)
+    identifies_pole_pair: bool = False
+    powerup_message: str = ""
+    powerup_table_bytes: int = 0
+    powerup: PowerUpFirmware | None = field(default=None, repr=False, compare=False)
 
 
 @dataclass(frozen=True)
@@ -176,12 +201,16 @@ class Section:
         Definitions for the source file.
     notes : tuple of str
         Lines for the banner comment.
+    hooks : mapping of str to str
+        Text for the variant's insertion points (:data:`FLOAT_HOOKS`; the fixed-point variant
+        has none), e.g. members of the state or another ``init``.
     """
 
     name: str
     header: str
     source: str
     notes: tuple[str, ...] = ()
+    hooks: Mapping[str, str] = field(default_factory=dict)
 
 
 # --------------------------------------------------------------------------------------------
@@ -620,7 +649,7 @@ extern "C" {
 #define ${PFX}_POLE_PAIRS ${n}
 #define ${PFX}_TABLE_POINTS ${m}
 #define ${PFX}_FAULT_AFTER ${fault_after}
-
+${api_macros}
 /* Flags of a reading (bit mask). */
 #define ${PFX}_HELD 1u           /* this sample was rejected: the reading is the last accepted */
 #define ${PFX}_FAULT 2u          /* ${PFX}_FAULT_AFTER rejected in a row; latched until cleared */
@@ -634,7 +663,7 @@ typedef struct {
     float angle;         /* within the revolution, [0, 2 pi) rad */
     uint32_t flags;      /* of the last sample: ${PFX}_HELD, ${PFX}_FAULT, ${PFX}_REJ_... */
     uint32_t rejected;   /* rejected samples since init (saturates) */
-} ${pfx}_reading;
+${reading_members}} ${pfx}_reading;
 
 /* State of one sensor set; its members are private (use the functions). No dynamic memory. */
 typedef struct {
@@ -651,11 +680,9 @@ typedef struct {
         float turns; /* y_star within the revolution [turns] */
         uint32_t flags;
     } pub[2];
-} ${pfx}_state;
+${state_members}} ${pfx}_state;
 
-/* Start at y = 2 pi revolutions + angle (angle in [0, 2 pi) rad, else 0); 0, 0 by convention. */
-void ${pfx}_init(${pfx}_state *s, int32_t revolutions, float angle);
-
+${init_decl}
 /* One sample of the three Hall signals in the calibration's unit. Returns the flags of the
  * reading it publishes (0: accepted). Constant worst-case time, no library call. */
 uint32_t ${pfx}_update(${pfx}_state *s, float d1, float d2, float d3);
@@ -731,11 +758,62 @@ static int32_t hc_s32(uint32_t u) /* two's complement without implementation-def
     return v;
 }
 
-/* Electrical angle atan2(b, a) in Q0.32 turns. Octant reduction, a rotation by -45 degrees
- * above 22.5 degrees, 1/x from a linear seed valid for x in [${x_lo}, ${x_hi}] and ${newton} Newton
- * step(s), an odd minimax polynomial of atan on [-tan(pi/8), tan(pi/8)]. For vectors in the
- * radius window: |error| <= ${atan_bound} rad (electrical). */
-static uint32_t hc_angle(float a, float b)
+${atan2_fn}
+static void hc_publish(${pfx}_state *s, int32_t rev, float turns, uint32_t flags)
+{
+    const uint32_t q = s->seq + 1u;
+    s->pub[q & 1u].revolutions = rev;
+    s->pub[q & 1u].turns = turns;
+    s->pub[q & 1u].flags = flags;
+    s->seq = q;
+}
+
+${init_def}
+${before_update}${update_def}
+void ${pfx}_read(const ${pfx}_state *s, ${pfx}_reading *r)
+{
+    uint32_t before;
+    uint32_t after;
+    float turns;
+${read_locals}    do {
+        before = s->seq;
+        r->revolutions = s->pub[before & 1u].revolutions;
+        turns = s->pub[before & 1u].turns;
+        r->flags = s->pub[before & 1u].flags;
+${read_copy}        after = s->seq;
+    } while ((after - before) > 1u);
+    r->rejected = s->rejected;${read_after}
+    if (turns < 0.0f) { /* update keeps y_star in (-1/2, 3/2) turns of its revolution */
+        turns = turns + 1.0f;
+        r->revolutions = hc_s32((uint32_t)r->revolutions - 1u);
+    } else if (turns >= 1.0f) {
+        turns = turns - 1.0f;
+        r->revolutions = hc_s32((uint32_t)r->revolutions + 1u);
+    } else {
+        /* within the revolution */
+    }
+    r->angle = turns * 6.28318548f;
+    if (r->angle >= 6.28318548f) {
+        r->angle = 0.0f; /* rounded up to 2 pi: the start of the next revolution */
+        r->revolutions = hc_s32((uint32_t)r->revolutions + 1u);
+    }
+}
+
+void ${pfx}_clear_fault(${pfx}_state *s)
+{
+    s->fault = 0u;
+}
+$section_defs"""
+)
+
+#: The float variant's atan2 (the lean path's ``hc_angle``; the power-up decoder has a finer
+#: one for its table positions).
+_FLOAT_ATAN2 = string.Template(
+    r"""/* Electrical angle atan2(b, a) in Q0.32 turns${purpose}. Octant reduction, a rotation by
+ * -45 degrees above 22.5 degrees, 1/x from a linear seed valid for x in [${x_lo}, ${x_hi}]
+ * and ${newton} Newton step(s), an odd minimax polynomial of atan on [-tan(pi/8), tan(pi/8)]. For
+ * vectors in the radius window: |error| <= ${atan_bound} rad (electrical). */
+static uint32_t ${name}(float a, float b)
 {
     const uint32_t ua = hc_bits(a);
     const uint32_t ub = hc_bits(b);
@@ -764,17 +842,11 @@ ${newton_steps}
     th = (uint32_t)(int32_t)(t * ${poly}); /* atan(t) 2^32 / (2 pi), |.| <= 2^29 */
     return hc_base[k] + ((((0x96u >> o) & 1u) != 0u) ? (0u - th) : th);
 }
+"""
+)
 
-static void hc_publish(${pfx}_state *s, int32_t rev, float turns, uint32_t flags)
-{
-    const uint32_t q = s->seq + 1u;
-    s->pub[q & 1u].revolutions = rev;
-    s->pub[q & 1u].turns = turns;
-    s->pub[q & 1u].flags = flags;
-    s->seq = q;
-}
-
-void ${pfx}_init(${pfx}_state *s, int32_t revolutions, float angle)
+_FLOAT_INIT = string.Template(
+    r"""void ${pfx}_init(${pfx}_state *s, int32_t revolutions, float angle)
 {
     float a = angle * 0.159154943f; /* turns */
     float e;
@@ -798,8 +870,17 @@ void ${pfx}_init(${pfx}_state *s, int32_t revolutions, float angle)
     hc_publish(s, revolutions, a, 0u);
     hc_publish(s, revolutions, a, 0u);
 }
+"""
+)
 
-uint32_t ${pfx}_update(${pfx}_state *s, float d1, float d2, float d3)
+_INIT_DECL = """\
+/* Start at y = 2 pi revolutions + angle (angle in [0, 2 pi) rad, else 0); 0, 0 by convention. */
+void ${pfx}_init(${pfx}_state *s, int32_t revolutions, float angle);
+"""
+
+#: The lean sample path (with the power-up decoder, it runs once the pole pair is identified).
+_FLOAT_UPDATE = string.Template(
+    r"""uint32_t ${pfx}_update(${pfx}_state *s, float d1, float d2, float d3)
 {
     uint32_t flags;
     /* f_init: alpha, beta = P (d - o) */
@@ -876,41 +957,7 @@ ${index}
     }
     return flags;
 }
-
-void ${pfx}_read(const ${pfx}_state *s, ${pfx}_reading *r)
-{
-    uint32_t before;
-    uint32_t after;
-    float turns;
-    do {
-        before = s->seq;
-        r->revolutions = s->pub[before & 1u].revolutions;
-        turns = s->pub[before & 1u].turns;
-        r->flags = s->pub[before & 1u].flags;
-        after = s->seq;
-    } while ((after - before) > 1u);
-    r->rejected = s->rejected;
-    if (turns < 0.0f) { /* update keeps y_star in (-1/2, 3/2) turns of its revolution */
-        turns = turns + 1.0f;
-        r->revolutions = hc_s32((uint32_t)r->revolutions - 1u);
-    } else if (turns >= 1.0f) {
-        turns = turns - 1.0f;
-        r->revolutions = hc_s32((uint32_t)r->revolutions + 1u);
-    } else {
-        /* within the revolution */
-    }
-    r->angle = turns * 6.28318548f;
-    if (r->angle >= 6.28318548f) {
-        r->angle = 0.0f; /* rounded up to 2 pi: the start of the next revolution */
-        r->revolutions = hc_s32((uint32_t)r->revolutions + 1u);
-    }
-}
-
-void ${pfx}_clear_fault(${pfx}_state *s)
-{
-    s->fault = 0u;
-}
-$section_defs"""
+"""
 )
 
 # --------------------------------------------------------------------------------------------
@@ -1279,6 +1326,8 @@ class _Context:
     pfx: str
     PFX: str
     variant: str  # "float" or "fixed"
+    subs: Mapping[str, Any] = field(default_factory=dict)  # the lean templates' substitutions
+    powerup: Any = None  # hallcal.output.firmware.PowerUpFirmware
 
 
 def _int_sub(var: str, value: int) -> str:
@@ -1334,7 +1383,50 @@ def _range_check(lo: NDArray, hi: NDArray) -> str:
     return "\n        || ".join(parts)
 
 
-def _float_source(ctx: _Context, fn: _FloatNumbers, banner: str, defs: str) -> str:
+def _atan2_c(
+    name: str, purpose: str, x_lo: float, x_hi: float, seed: tuple[float, float], newton: int,
+    poly_turns: NDArray[np.float64], atan_bound: float,
+) -> str:  # fmt: skip
+    """A float atan2 (Q0.32 turns out) with its own reciprocal seed, Newton steps and polynomial
+    (coefficients of atan in turns, odd powers ascending)."""
+    steps = "\n".join(
+        ["    {", "        float u;"]
+        + ["        u = 1.0f - (x * rc);\n        rc = rc + (rc * u);"] * newton
+        + ["    }"]
+    )
+    scaled = poly_turns * 2.0**32
+    poly = _cf(scaled[-1])
+    for c in scaled[-2::-1]:
+        poly = f"({_cf(c)} + (t2 * {poly}))"
+    return _FLOAT_ATAN2.substitute(
+        name=name,
+        purpose=purpose,
+        x_lo=f"{x_lo:.6g}",
+        x_hi=f"{x_hi:.6g}",
+        newton=newton,
+        atan_bound=f"{atan_bound:.2e}",
+        tan8=_cf(_TAN_PI_8),
+        rsqrt2=_cf(math.sqrt(0.5)),
+        c0=_cf(seed[0], "reciprocal seed"),
+        c1=_cf(seed[1], "reciprocal seed"),
+        newton_steps=steps,
+        poly=poly,
+    )
+
+
+#: Insertion points of the float variant's templates an optional Section may fill (``hooks``;
+#: ``state_members`` go after the lean members, whose offsets stay those of the lean build).
+#: ``init_decl`` and ``init_def`` replace the default ``init`` (angle given: homing);
+#: ``update_dispatch`` is ``(condition, function)``-like text "cond|name": while the condition
+#: holds, ``update`` hands the sample to that function instead of running the lean path.
+FLOAT_HOOKS = (
+    "api_macros", "reading_members", "state_members", "init_decl", "init_def",
+    "read_locals", "read_copy", "read_after", "before_update", "update_dispatch",
+)  # fmt: skip
+
+
+def _float_subs(ctx: _Context, fn: _FloatNumbers) -> dict[str, Any]:
+    """The substitutions of the lean float templates (shared with the optional sections)."""
     d = ctx.design
     n, m = d.pole_pairs, d.table.points
     P, o = d.projection, d.offset
@@ -1361,15 +1453,6 @@ def _float_source(ctx: _Context, fn: _FloatNumbers, banner: str, defs: str) -> s
                 f"({_cf(P[1, 2])} * d3)) - {_cf(ab0[1], 'P o')};",
             ]
         )
-    newton = "\n".join(
-        ["    {", "        float u;"]
-        + ["        u = 1.0f - (x * rc);\n        rc = rc + (rc * u);"] * fn.newton
-        + ["    }"]
-    )
-    scaled = fn.poly * 2.0**32
-    poly = _cf(scaled[-1])
-    for c in scaled[-2::-1]:
-        poly = f"({_cf(c)} + (t2 * {poly}))"
     t = d.table
     pl = d.plausibility
     kbits = (m // n).bit_length() - 1  # M = n 2^k
@@ -1406,24 +1489,16 @@ def _float_source(ctx: _Context, fn: _FloatNumbers, banner: str, defs: str) -> s
     )
     curv = curv.replace("\n                 + ", "\n                             + ")
     x_lo = math.cos(math.pi / 8.0) * pl.radius_lo
-    return _FLOAT_C.substitute(
-        banner=banner,
+    return dict(
         header=f"{ctx.pfx}.h",
         pfx=ctx.pfx,
         PFX=ctx.PFX,
         m=m,
         m1=m + 1,
         table_decl=table_decl,
-        x_lo=f"{x_lo:.6g}",
-        x_hi=f"{pl.radius_hi:.6g}",
-        newton=fn.newton,
-        atan_bound=f"{fn.atan_bound:.2e}",
-        tan8=_cf(_TAN_PI_8),
-        rsqrt2=_cf(math.sqrt(0.5)),
-        c0=_cf(fn.seed[0], "reciprocal seed"),
-        c1=_cf(fn.seed[1], "reciprocal seed"),
-        newton_steps=newton,
-        poly=poly,
+        atan2_fn=_atan2_c(
+            "hc_angle", "", x_lo, pl.radius_hi, fn.seed, fn.newton, fn.poly, fn.atan_bound
+        ),  # fmt: skip
         n=n,
         n_minus_1=n - 1,
         projection=projection,
@@ -1438,7 +1513,70 @@ def _float_source(ctx: _Context, fn: _FloatNumbers, banner: str, defs: str) -> s
         curv=curv,
         lsb=_cf(2.0**-t.shift, "table unit"),
         inv_m16=_cf(1.0 / m / 65536.0),
-        section_defs=defs,
+    )
+
+
+def _hooks(secs: Sequence[Section], names: Sequence[str]) -> dict[str, str]:
+    """The sections' texts per insertion point (concatenated; empty where none fills it)."""
+    out = dict.fromkeys(names, "")
+    for sec in secs:
+        for key, text in sec.hooks.items():
+            if key not in out:
+                raise ValueError(f"unknown hook {key!r} of section {sec.name!r}")
+            out[key] += text
+    return out
+
+
+def _float_header(ctx: _Context, banner: str, secs: Sequence[Section]) -> str:
+    d = ctx.design
+    hooks = _hooks(secs, FLOAT_HOOKS)
+    init_decl = hooks["init_decl"] or string.Template(_INIT_DECL).substitute(
+        pfx=ctx.pfx, PFX=ctx.PFX
+    )
+    return _FLOAT_H.substitute(
+        banner=banner,
+        pfx=ctx.pfx,
+        PFX=ctx.PFX,
+        n=d.pole_pairs,
+        m=d.table.points,
+        fault_after=d.plausibility.fault_after,
+        section_decls="".join(s.header for s in secs),
+        api_macros=hooks["api_macros"],
+        reading_members=hooks["reading_members"],
+        state_members=hooks["state_members"],
+        init_decl=init_decl,
+    )
+
+
+def _float_source(ctx: _Context, banner: str, secs: Sequence[Section]) -> str:
+    subs = dict(ctx.subs)
+    hooks = _hooks(secs, FLOAT_HOOKS)
+    update = _FLOAT_UPDATE.substitute(subs)
+    if hooks["update_dispatch"]:
+        # the lean path in an else branch; while the condition holds, the other function
+        cond, func = hooks["update_dispatch"].split("|")
+        head, rest = update.split("    uint32_t flags;\n", 1)
+        body, tail = rest.rsplit("    return flags;\n", 1)
+        update = (
+            head
+            + "    uint32_t flags;\n"
+            + f"    if ({cond}) {{\n"
+            + f"        flags = {func}(s, d1, d2, d3);\n"
+            + "    } else {\n"
+            + "\n".join(("    " + line) if line else line for line in body.split("\n"))
+            + "    }\n    return flags;\n"
+            + tail
+        )
+    return _FLOAT_C.substitute(
+        subs,
+        banner=banner,
+        init_def=hooks["init_def"] or _FLOAT_INIT.substitute(subs),
+        before_update=hooks["before_update"],
+        update_def=update,
+        read_locals=hooks["read_locals"],
+        read_copy=hooks["read_copy"],
+        read_after=hooks["read_after"],
+        section_defs="".join(s.source for s in secs),
     )
 
 
@@ -1693,11 +1831,502 @@ def _anticogging_section(ctx: _Context) -> Section | None:
     return Section("anticogging", header, source, notes)
 
 
+# --------------------------------------------------------------------------------------------
+# Optional section: power-up identification of the pole pair (float variant)
+# --------------------------------------------------------------------------------------------
+
+#: Largest error of the decoder's own atan2 polynomial [rad, electrical]; with the conversion to
+#: Q0.32 turns the table position is within about 1e-7 rad (the lean atan2 may be 100 times
+#: coarser: its error moves a hypothesis's cost by up to 3e-3 per sample at the bench's slopes).
+POWERUP_ATAN2_POLY = 1e-8
+#: Stated relative error of one term exp(-v / 2) of the lock rule as the C computes it (the
+#: rounding of v / (2 ln 2), 6e-8 relative on exponents up to ~30, i.e. 1.2e-6; the polynomial
+#: 2.5e-9; Horner and the product 3 roundings), checked by tests/test_codegen_powerup.py.
+POWERUP_TERM_ERROR = 2e-6
+
+_PU_INIT = string.Template(
+    r"""static void hc_publish_id(${pfx}_state *s, int32_t rev, float turns, uint32_t flags,
+                          uint32_t ident)
+{
+    const uint32_t q = s->seq + 1u;
+    s->pub[q & 1u].revolutions = rev;
+    s->pub[q & 1u].turns = turns;
+    s->pub[q & 1u].flags = flags;
+    s->pub_ident[q & 1u] = ident;
+    s->seq = q;
+}
+
+void ${pfx}_init(${pfx}_state *s)
+{
+    s->rev = 0; /* f_init from y = 0 before the first sample, as the calibration run */
+    s->turn = 0;
+    s->phase = 0u;
+    s->limit = 0xFFFFFFFFu; /* no step limit before the first accepted sample */
+    s->held = 0u;
+    s->rejected = 0u;
+    s->fault = 0u;
+    s->locked = 0u;
+    s->best = 0u;
+    s->samples = 0u; /* lam is set by the first sample of evidence (no loop: no memset) */
+    s->seq = 0u;
+    hc_publish_id(s, 0, 0.0f, 0u, 0u);
+    hc_publish_id(s, 0, 0.0f, 0u, 0u);
+}
+"""
+)
+
+_PU_C = string.Template(
+    r"""
+/* ---- Power-up identification of the pole pair (artifact key "identifiability") ----
+ * The decoder of hallcal.sensor.absolute (module doc, "Decoder specification"; the Python
+ * reference is PowerUpIdentifier), in noise-sigma units (sigma = ${sigma} artifact units): R[q] and
+ * Z[q] are the model flux's alpha/beta radius and its component along the projection's null
+ * vector at the calibration frame's f_init angle 2 pi q / M, M = ${n} x ${grid}, divided by sigma;
+ * R[M] = R[0], Z[M] = Z[0] (the wrap-around without a branch). ${table_bytes} bytes. */
+static const float hc_pu_r[${m1}] = {
+${radius}
+};
+static const float hc_pu_z[${m1}] = {
+${zero}
+};
+
+${atan2_fine}
+/* 2^-x for x >= 0: the integer part k goes into the exponent bits (exact), 2^-f of the fraction
+ * f = x - k is a polynomial (relative error ${exp2_error}); 0 for x >= ${cut} (below 2^-${cut}). */
+static float hc_exp2m(float x)
+{
+    float r = 0.0f;
+    if (x < ${cut}.0f) {
+        const uint32_t k = (uint32_t)x; /* floor: x >= 0 */
+        const float f = x - (float)k;   /* exact: x < 2^7 has at most 17 fraction bits */
+        r = ${exp2_poly} * hc_float((127u - k) << 23);
+    }
+    return r;
+}
+
+/* The lock rule (step 7): 1 when W = sum_(j != best) exp(-lam_j / 2) <= alpha / (1 - alpha), i.e.
+ * the posterior 1 / (1 + W) of the best pole pair is at least 1 - alpha = ${confidence}. exp is
+ * taken in base 2, exp(-v / 2) = 2^-(v / (2 ln 2)), with hc_exp2m: each term within ${term_error}
+ * relative, so the rule differs from the exact one only when W is within that of the threshold
+ * (ln W within it of ln(alpha / (1 - alpha))). */
+static uint32_t hc_lock_rule(const float lam[${n}], uint32_t best)
+{
+    float w = 0.0f;
+    uint32_t j;
+    for (j = 0u; j < ${n}u; j = j + 1u) {
+        if (j != best) {
+            w = w + hc_exp2m(lam[j] * 0.72134752f);
+        }
+    }
+    return (w <= ${theta}) ? 1u : 0u;
+}
+
+/* One sample of evidence (steps 4 to 7 of the specification): the cost of every pole-pair
+ * hypothesis j (squared Mahalanobis distance of the sample to the model curve of j, the tangent
+ * projected out, censored at ${cap_text}), the maximum-likelihood choice, and the lock rule
+ * sum_(j != best) exp(-Lambda_j / 2) <= alpha / (1 - alpha) = ${theta_text}, evaluated in base 2
+ * (exp(-L / 2) = 2^-(L / (2 ln 2))): no library call. a, b: alpha/beta; r2 = a^2 + b^2 (in the
+ * amplitude window); zeta in sigmas; turn, p: f_init's electrical turn and angle (the fine atan2).
+ * n_m hypotheses: a loop of ${n} iterations, no other data-dependent work. */
+static void hc_evidence(${pfx}_state *s, float a, float b, float r2, float zeta, uint32_t turn,
+                        uint32_t p)
+{
+    float y = ${rs_c0} - (${rs_c1} * r2); /* 1/sqrt(r2): linear seed, Newton */
+    float c;
+    float sn;
+    float rho;
+${gram_decls}    float f;
+    float lmin;
+    uint32_t e;
+    uint32_t lo;
+    uint32_t j;
+    uint32_t best = 0u;
+${rsqrt_steps}
+    c = a * y; /* cos and sin of the electrical angle */
+    sn = b * y;
+    rho = (r2 * y) * ${inv_sigma}; /* radius in sigmas */
+    /* the metric S in the frame (u, v, n) of this angle${gram_note} */
+${gram_calc}
+    /* table position of hypothesis j: electrical turn (turn + j) mod n_m, then the angle */
+    e = turn;
+    lo = p >> ${g_shift};                             /* interval within the turn */
+    f = (float)((p << ${g}) >> 8) * 5.96046448e-8f; /* fraction, 2^-24 */
+    for (j = 0u; j < ${n}u; j = j + 1u) {
+        const uint32_t i = (e << ${g}) + lo;
+        const float r0 = hc_pu_r[i];
+        const float z0 = hc_pu_z[i];
+        const float dr = hc_pu_r[i + 1u] - r0;
+        const float dz = hc_pu_z[i + 1u] - z0;
+        const float rj = r0 + (f * dr);    /* R_j, Z_j */
+        const float zj = z0 + (f * dz);
+        const float tr = dr * ${slope};    /* dR_j, dZ_j per electrical rad */
+        const float tz = dz * ${slope};
+        const float ea = rho - rj;         /* residual r = ea u + eb n */
+        const float eb = zeta - zj;
+        /* tangent t = dR u + R v + dZ n: <t, u>, <t, v>, <t, n> in the metric S */
+${tangent_calc}
+        float q = ${tt_c0} - (${tt_c1} * tt); /* 1/tt: seed on [${tt_lo}, ${tt_hi}], Newton */
+        float cost;
+${tt_steps}
+        cost = rr - ((rt * rt) * q);
+        if (cost > ${cap}) {
+            cost = ${cap};
+        }
+        s->lam[j] = (s->samples != 0u) ? (s->lam[j] + cost) : cost; /* 0 + cost, exactly */
+        e = (e == ${n_minus_1}u) ? 0u : (e + 1u);
+    }
+    s->samples = s->samples + 1u;
+    lmin = s->lam[0];
+    for (j = 1u; j < ${n}u; j = j + 1u) {
+        if (s->lam[j] < lmin) {
+            lmin = s->lam[j];
+            best = j;
+        }
+    }
+    for (j = 0u; j < ${n}u; j = j + 1u) {
+        s->lam[j] = s->lam[j] - lmin;
+    }
+    s->best = best;
+    s->locked = hc_lock_rule(s->lam, best);
+}
+
+"""
+)
+
+
+def _pu_newton(var: str, expr: str, steps: int, indent: str) -> str:
+    return "\n".join(f"{indent}{var} = {expr};" for _ in range(steps))
+
+
+def _powerup_identify(ctx: _Context) -> str:
+    """``<prefix>_identify_sample``: the lean sample path with the evidence and the output in
+    the frame of the current maximum-likelihood pole pair, derived from the lean template's
+    text (so the checks, the unwrap and the table are literally the lean path's)."""
+    n = ctx.design.pole_pairs
+    text = _FLOAT_UPDATE.template
+
+    def swap(old: str, new: str) -> None:
+        nonlocal text
+        if text.count(old) != 1:  # pragma: no cover - guards the template's shape
+            raise AssertionError(f"the lean update template changed: {old[:60]!r}")
+        text = text.replace(old, new)
+
+    swap(
+        "uint32_t ${pfx}_update(${pfx}_state *s, float d1, float d2, float d3)\n{",
+        "/* The sample path until the pole pair is identified: the lean path's checks and f_init,\n"
+        " * the evidence of every hypothesis, and the output in the frame of the current\n"
+        " * maximum-likelihood pole pair; once identified, the state moves to that frame for good\n"
+        " * and the lean path takes over. */\n"
+        "uint32_t ${pfx}_identify_sample(${pfx}_state *s, float d1, float d2, float d3)\n{",
+    )
+    swap(
+        "        if (mag <= s->limit) {\n",
+        "        if (mag <= s->limit) {\n"
+        "            /* zeta: along the projection's null vector, in sigmas */\n"
+        "            const float zeta = ${zeta};\n"
+        "            int32_t oturn;\n"
+        "            int32_t orev = rev;\n"
+        "            uint32_t ident;\n"
+        "            hc_evidence(s, a, b, r2, zeta, (uint32_t)turn, p);\n"
+        "            ident = s->best;\n"
+        "            oturn = turn + (int32_t)ident; /* the output in the frame of the best */\n"
+        "            if (oturn > ${n_minus_1}) {\n"
+        "                oturn = oturn - ${n};\n"
+        "                orev = hc_s32((uint32_t)rev + 1u);\n"
+        "            }\n",
+    )
+    swap("${index}\n", "${index_o}\n")
+    # the decoder's finer atan2 for f_init too (the table positions need it; hc_angle stays
+    # called once, so compilers keep it inlined in the lean path, whose cycles must not change)
+    swap(
+        "const uint32_t p = hc_angle(a, b); /* electrical angle, Q0.32 turns */",
+        "const uint32_t p = hc_angle_fine(a, b); /* electrical angle, Q0.32 turns */",
+    )
+    swap(
+        "            s->phase = p;\n"
+        "            s->turn = turn;\n"
+        "            s->rev = rev;\n"
+        "            s->limit = ${step_limit}u;\n"
+        "            s->held = 0u;\n"
+        "            flags = s->fault; /* 0 or ${PFX}_FAULT (latched) */\n"
+        "            hc_publish(s, rev, y, flags);\n",
+        "            s->phase = p;\n"
+        "            s->limit = ${step_limit}u;\n"
+        "            s->held = 0u;\n"
+        "            flags = s->fault; /* 0 or ${PFX}_FAULT (latched) */\n"
+        "            if (s->locked != 0u) {\n"
+        "                /* identified: f_init moves to the calibration's frame for good; both\n"
+        "                 * buffers get the identification (a reader of the older one retries) */\n"
+        "                s->turn = oturn;\n"
+        "                s->rev = orev;\n"
+        "                ident = ident | 0x10000u;\n"
+        "                hc_publish_id(s, orev, y, flags, ident);\n"
+        "            } else {\n"
+        "                s->turn = turn;\n"
+        "                s->rev = rev;\n"
+        "            }\n"
+        "            hc_publish_id(s, orev, y, flags, ident);\n",
+    )
+    swap(
+        "        hc_publish(s, s->pub[last].revolutions, s->pub[last].turns, flags);\n",
+        "        hc_publish_id(s, s->pub[last].revolutions, s->pub[last].turns, flags,\n"
+        "                      s->pub_ident[last]);\n",
+    )
+    swap(
+        "    if (flags > ${PFX}_FAULT) { /* rejected: count it and hold the last reading */",
+        "    if (flags > ${PFX}_FAULT) { /* rejected: counted, last reading held, no evidence */",
+    )
+    pu = ctx.powerup
+    nv = pu.null
+    subs = dict(ctx.subs)
+    subs["index_o"] = subs["index"].replace("(uint32_t)turn <<", "(uint32_t)oturn <<")
+    assert subs["index_o"] != subs["index"]
+    subs["zeta"] = (
+        f"((({_cf(nv[0], 'null vector')} * d1) + ({_cf(nv[1], 'null vector')} * d2)) + "
+        f"({_cf(nv[2], 'null vector')} * d3)) - {_cf(pu.null_offset, 'null offset')}"
+        if pu.null_offset != 0.0
+        else f"(({_cf(nv[0], 'null vector')} * d1) + ({_cf(nv[1], 'null vector')} * d2)) + "
+        f"({_cf(nv[2], 'null vector')} * d3)"
+    )
+    return string.Template(text).substitute(subs, n=n, n_minus_1=n - 1)
+
+
+def _sum_c(terms: Sequence[tuple[float | None, str]], what: str) -> str:
+    """C sum of ``coef * expr`` terms (coef None: the bare expression), zero coefficients left
+    out, left to right: ``((t1 + t2) + t3)``; ``0.0f`` when nothing is left."""
+    parts = []
+    for coef, expr in terms:
+        if coef is None:
+            parts.append(expr)
+        elif coef != 0.0:
+            parts.append(f"({_cf(coef, what)} * {expr})")
+    if not parts:
+        return "0.0f"
+    out = parts[0]
+    for p in parts[1:]:
+        out = f"({out} + {p})"
+    return out
+
+
+def _powerup_metric(pu: PowerUpFirmware) -> tuple[str, str, str, str]:
+    """Declarations and computation of the metric terms and of the per-hypothesis tangent
+    products, with the terms that vanish for this projection (e.g. all cross terms of the
+    Clarke rows with isotropic noise) left out; entries below 1e-12 of the largest count as
+    zero (their effect on a cost is below 1e-12 relative)."""
+    A, B, C = pu.gram_a, pu.gram_b, pu.gram_c
+    big = max(float(np.max(np.abs(A))), float(np.max(np.abs(B))), abs(C))
+
+    def z(v: float) -> float:
+        return 0.0 if abs(v) <= 1e-12 * big else float(v)
+
+    a00, a01, a11, b0, b1 = z(A[0, 0]), z(A[0, 1]), z(A[1, 1]), z(B[0]), z(B[1])
+    d = z(A[1, 1] - A[0, 0])
+    has_uv = a01 != 0.0 or d != 0.0
+    has_n = b0 != 0.0 or b1 != 0.0
+    w = "Gram"
+    lines = [
+        f"    guu = {_sum_c([(a00, '(c * c)'), (2 * a01, '(c * sn)'), (a11, '(sn * sn)')], w)};",
+        f"    gvv = {_sum_c([(a00, '(sn * sn)'), (-2 * a01, '(c * sn)'), (a11, '(c * c)')], w)};",
+    ]
+    decls = ["    float guu;", "    float gvv;"]
+    if has_uv:
+        decls.append("    float guv;")
+        lines.append(f"    guv = {_sum_c([(d, '(c * sn)'), (a01, '((c * c) - (sn * sn))')], w)};")
+    if has_n:
+        decls += ["    float gun;", "    float gvn;"]
+        lines.append(f"    gun = {_sum_c([(b0, 'c'), (b1, 'sn')], w)};")
+        lines.append(f"    gvn = {_sum_c([(b1, 'c'), (-b0, 'sn')], w)};")
+
+    def prod(coef: str, var: str, present: bool) -> tuple[float | None, str]:
+        return (None if present else 0.0, f"({coef} * {var})")
+
+    cnn = _cf(C, w)
+    tu = _sum_c([prod("tr", "guu", True), prod("rj", "guv", has_uv), prod("tz", "gun", has_n)], w)
+    tv = _sum_c([prod("tr", "guv", has_uv), prod("rj", "gvv", True), prod("tz", "gvn", has_n)], w)
+    tn = _sum_c([prod("tr", "gun", has_n), prod("rj", "gvn", has_n), (C, "tz")], w)
+    cross = "(((2.0f * ea) * eb) * gun)"
+    rr = _sum_c([(None, "((ea * ea) * guu)"), (None if has_n else 0.0, cross),
+                 (None, f"((eb * eb) * {cnn})")], w)  # fmt: skip
+    tangent = "\n".join(
+        [
+            f"        const float tu = {tu};",
+            f"        const float tv = {tv};",
+            f"        const float tn = {tn};",
+            "        const float tt = ((tr * tu) + (rj * tv)) + (tz * tn);",
+            "        const float rt = (ea * tu) + (eb * tn);",
+            f"        const float rr = {rr};",
+        ]
+    )
+    note = (
+        ""
+        if has_uv and has_n
+        else (
+            ": "
+            + ", ".join(
+                ([] if has_uv else ["<u, v> = 0"]) + ([] if has_n else ["<u, n> = <v, n> = 0"])
+            )
+            + " here"
+        )
+    )
+    return "\n".join(decls) + "\n", "\n".join(lines), tangent, note
+
+
+def _powerup_section(ctx: _Context) -> Section | None:
+    """Pole-pair identification at power-up in the float variant (see :data:`_PU_C`) when the
+    artifact's identifiability verdict allows it; the fixed-point variant keeps the homing API."""
+    pu = ctx.powerup
+    if ctx.variant != "float" or pu is None or not pu.emitted:
+        return None
+    d = ctx.design
+    n, L = d.pole_pairs, pu.grid
+    g = L.bit_length() - 1
+    pfx, PFX = ctx.pfx, ctx.PFX
+    pl = d.plausibility
+    # the finer atan2: same octant reduction, more Newton steps and polynomial terms
+    x_lo = math.cos(math.pi / 8.0) * pl.radius_lo * (1.0 - 1e-6)
+    x_hi = pl.radius_hi * (1.0 + 1e-6)
+    c0, c1, eps = _reciprocal_seed(x_lo, x_hi)
+    newton, e = 1, eps * eps
+    while 0.354 * e > POWERUP_ATAN2_POLY and newton < 6:
+        e, newton = e * e, newton + 1
+    terms = 3
+    coef, poly_err = _atan_poly(terms)
+    while poly_err > POWERUP_ATAN2_POLY and terms < 8:
+        terms += 1
+        coef, poly_err = _atan_poly(terms)
+    # float rounding: 12 roundings relative to tan(pi/8), and t * poly to Q0.32 (2^29: 64 units)
+    fine_bound = poly_err + 0.354 * e + 12.0 * _EPS_F32 * _TAN_PI_8 + 64.0 * TWO_PI / _U32
+    atan2_fine = _atan2_c("hc_angle_fine", " (the decoder's, finer than the lean path's)",
+                          x_lo, x_hi, (c0, c1), newton, coef / TWO_PI, fine_bound)  # fmt: skip
+    exp2 = pu.exp2
+    poly = f"{_cf(exp2[-1], 'exp2')}"
+    for cf in exp2[-2::-1]:
+        poly = f"({_cf(cf, 'exp2')} + (f * {poly}))"
+    gram_decls, gram_calc, tangent_calc, gram_note = _powerup_metric(pu)
+    source = _PU_C.substitute(
+        pfx=pfx,
+        PFX=PFX,
+        n=n,
+        n_minus_1=n - 1,
+        grid=L,
+        g=g,
+        g_shift=32 - g,
+        m1=n * L + 1,
+        sigma=f"{pu.sigma:.6g}",
+        table_bytes=pu.table_bytes,
+        radius=_c_list([_cf(float(v), "power-up table") for v in pu.radius], 6),
+        zero=_c_list(
+            [_cf(float(v), "power-up table") if abs(v) >= 1e-30 else "0.0f" for v in pu.zero], 6
+        ),  # fmt: skip
+        atan2_fine=atan2_fine,
+        exp2_error=f"{pu.exp2_error:.1e}",
+        cut=EXP2_CUT,
+        exp2_poly=poly,
+        cap_text=f"{pu.cost_cap:.4g}",
+        theta_text=f"{pu.threshold:.4g}",
+        rs_c0=_cf(pu.rsqrt_seed[0], "rsqrt seed"),
+        rs_c1=_cf(pu.rsqrt_seed[1], "rsqrt seed"),
+        rsqrt_steps=_pu_newton(
+            "y", "y * (1.5f - ((0.5f * r2) * (y * y)))", pu.rsqrt_steps, "    "
+        ),  # fmt: skip
+        inv_sigma=_cf(1.0 / pu.sigma, "1 / sigma"),
+        gram_decls=gram_decls,
+        gram_calc=gram_calc,
+        gram_note=gram_note,
+        tangent_calc=tangent_calc,
+        slope=_cf(pu.slope, "grid"),
+        tt_c0=_cf(pu.tangent_seed[0], "tangent seed"),
+        tt_c1=_cf(pu.tangent_seed[1], "tangent seed"),
+        tt_lo=f"{pu.tangent_window[0]:.4g}",
+        tt_hi=f"{pu.tangent_window[1]:.4g}",
+        tt_steps=_pu_newton("q", "q * (2.0f - (tt * q))", pu.tangent_steps, "        "),
+        cap=_cf(pu.cost_cap, "cost cap"),
+        theta=_cf(pu.threshold, "lock threshold"),
+        confidence=f"{1.0 - pu.report.error_target:g}",
+        term_error=f"{POWERUP_TERM_ERROR:.0e}",
+    )
+    source += _powerup_identify(ctx) + "\n"
+    rep = pu.report
+    hooks = {
+        "api_macros": (
+            f"/* This code identifies the pole pair at power-up by itself: {pfx}_init takes no\n"
+            f" * angle, reading.identified says when the angle is in the calibration's frame. */\n"
+            f"#define {PFX}_POWERUP 1\n"
+            f"#define {PFX}_POWERUP_GRID {L}\n"
+        ),
+        "reading_members": (
+            "    uint32_t identified; /* 1 once the pole pair is identified (the test locked) */\n"
+            "    uint32_t pole_pair;  /* j: the calibration frame is f_init's + j pole pitches;\n"
+            "                          * the current maximum-likelihood j until identified */\n"
+        ),
+        "state_members": (
+            "    /* power-up identification (after the lean path's members: their offsets, and so\n"
+            "     * the lean path's code, are those of the build without it) */\n"
+            "    volatile uint32_t pub_ident[2]; /* of pub[i]: pole pair j, + 0x10000 once\n"
+            "                                     * identified */\n"
+            "    uint32_t locked;   /* pole pair identified: the lean path runs */\n"
+            "    uint32_t best;     /* maximum-likelihood pole-pair offset j */\n"
+            "    uint32_t samples;  /* samples of evidence so far (until identified) */\n"
+            f"    float lam[{n}];    /* Lambda_j - min Lambda [noise sigma^2] */\n"
+        ),
+        "init_decl": (
+            f"/* Until the pole pair is identified, {pfx}_update hands each sample to this\n"
+            " * function; it has external linkage only so that compilers keep it out of the lean\n"
+            f" * path (whose cycles it would lengthen). Call {pfx}_update, not this. */\n"
+            f"uint32_t {pfx}_identify_sample({pfx}_state *s, float d1, float d2, float d3);\n\n"
+            "/* Start after power-up wherever the rotor is: no angle and no homing. The first\n"
+            " * readings are in the frame of the current maximum-likelihood pole pair (angle\n"
+            " * right within the electrical period from the first sample); reading.identified\n"
+            " * becomes 1 when the probability of a wrong pole pair is below "
+            f"{rep.error_target:g}. */\n"
+            f"void {pfx}_init({pfx}_state *s);\n"
+        ),
+        "init_def": _PU_INIT.substitute(pfx=pfx, n=n),
+        "read_locals": "    uint32_t ident;\n",
+        "read_copy": "        ident = s->pub_ident[before & 1u];\n",
+        "read_after": "\n    r->pole_pair = ident & 0xFFFFu;\n    r->identified = ident >> 16;",
+        "before_update": source,
+        "update_dispatch": f"s->locked == 0u|{pfx}_identify_sample",
+    }
+    notes = (
+        "",
+        f"Power-up: the pole pair is identified after {pfx}_init (no angle, no homing): maximum",
+        f"  likelihood over the {n} pole pairs from the magnets' signatures, sequential test to a",
+        f"  wrong-pole-pair probability below {rep.error_target:g} (hallcal.sensor.absolute,",
+        f"  PowerUpIdentifier). Until identified each sample evaluates all {n} hypotheses (bounded",
+        "  loop), then the lean path runs alone. Verdict: "
+        + comment_text(rep.status.value, limit=30)
+        + f"; tables {pu.table_bytes} bytes.",
+    )
+    return Section("powerup", "", "", notes, hooks)
+
+
+def _homing_note(pu: PowerUpFirmware, *, fixed: bool = False) -> list[str]:
+    """Banner lines of a variant that does not identify the pole pair (homing API)."""
+    if pu.status is PowerUpCode.SINGLE_POLE_PAIR:
+        text = comment_text("Power-up: " + pu.message.replace("'", ""), limit=600)
+        return ["", *textwrap.wrap(text, 90, subsequent_indent="  ")]
+    if fixed and pu.emitted:
+        why = (
+            "the decoder needs single precision (24-bit mantissa arithmetic on every hypothesis, "
+            "see the firmware guide), the float variant of this export identifies it"
+        )
+    else:
+        why = pu.message
+    why = comment_text(why.replace("'", "").replace(";", ","), limit=600)
+    return [
+        "",
+        "Power-up: this code does NOT identify the pole pair. Init it with the calibration run",
+        "  starting position (the same rotor position, or a homed axis). Why:",
+        *("  " + line for line in textwrap.wrap(why, 88)),
+    ]
+
+
 #: Optional sections: (artifact key, builder). A builder returns a Section for a variant, or
-#: None when it has nothing for that variant. New parts (e.g. power-up pole-pair
-#: identification) are added here as further (key, builder) pairs.
+#: None when it has nothing for that variant.
 _SECTIONS: list[tuple[str, Callable[[_Context], Section | None]]] = [
     ("cogging", _anticogging_section),
+    ("identifiability", _powerup_section),
 ]
 
 
@@ -1754,6 +2383,7 @@ def export_c(
     tolerance: float = DEFAULT_TOLERANCE,
     max_speed: float | None = None,
     fault_after: int = DEFAULT_FAULT_AFTER,
+    powerup: bool = True,
 ) -> ExportResult:
     """Generate lean C99 sources of f_star (eq. (f_final)) from a calibration artifact.
 
@@ -1766,6 +2396,10 @@ def export_c(
         void hallcal_read(const hallcal_state *s, hallcal_reading *r);  /* consistent */
         void hallcal_clear_fault(hallcal_state *s);
         /* hallcal_q_...: the same with int32 counts in and Q0.32 turns out */
+
+    With the power-up identification (the artifact's identifiability verdict allows it; float
+    variant only) ``void hallcal_init(hallcal_state *s);`` takes no angle and the reading has
+    ``identified`` and ``pole_pair`` (see :func:`_powerup_section`).
 
     Parameters
     ----------
@@ -1793,6 +2427,10 @@ def export_c(
         sample.
     fault_after : int, keyword-only
         Rejected samples in a row before the fault flag (default 8).
+    powerup : bool, keyword-only
+        Put the power-up identification of the pole pair into the float variant when the
+        artifact's identifiability verdict allows it (then ``<prefix>_init(s)`` takes no angle;
+        see :data:`_PU_C`); False keeps the homing API (and saves the decoder's tables).
 
     Returns
     -------
@@ -1880,8 +2518,13 @@ def export_c(
         'Method: van Meer et al., "Self-Calibrating Position Measurements: Applied to Imperfect',
         'Hall Sensors": f_init (Clarke + atan2 + unwrap) and y_star = y + eta(mod(y, 2 pi)).',
         "",
-        f"Table: {t.points} uniform intervals per revolution, piecewise quadratic (int16 values,",
-        f"  int8 curvatures), {t.nbytes} bytes; differs from the calibration's table by at most",
+        f"Table: {t.points} uniform intervals per revolution, "
+        + (
+            "piecewise quadratic (int16 values, int8 curvatures),"
+            if t.quadratic
+            else "piecewise linear (int16 values),"
+        ),
+        f"  {t.nbytes} bytes; differs from the calibration's table by at most",
         f"  {t.error:.2e} rad (RMS {t.rms_error:.2e}); budget {design.budget:.2e} rad = "
         + (
             f"min(0.1 x noise floor {design.noise_floor:.2e}, 1e-5)"
@@ -1898,7 +2541,24 @@ def export_c(
     paths: list[Path] = []
     texts: list[tuple[str, str]] = []
     section_names: list[str] = []
-    ctx_f = _Context(artifact, design, pfx, PFX, "float")
+    pu = (
+        design_powerup(artifact, design, source=src)
+        if powerup
+        else PowerUpFirmware(PowerUpCode.DISABLED, "left out on request (powerup=False)")
+    )
+    if pu.emitted:
+        messages.append(
+            f"the float variant identifies the pole pair at power-up by itself ({prefix}_init "
+            f"takes no angle; tables {pu.table_bytes} bytes); the fixed-point variant needs "
+            "the calibration's starting position as before"
+            if fixed_point
+            else f"the float variant identifies the pole pair at power-up by itself "
+            f"({prefix}_init takes no angle; tables {pu.table_bytes} bytes)"
+        )
+    elif pu.status is not PowerUpCode.SINGLE_POLE_PAIR:
+        messages.append(f"no power-up identification in the C (homing needed): {pu.message}")
+    ctx_f = _Context(artifact, design, pfx, PFX, "float", powerup=pu)
+    ctx_f = dataclasses.replace(ctx_f, subs=_float_subs(ctx_f, fn))
     secs = _sections(ctx_f)
     section_names += [s.name for s in secs]
     lines_f = (
@@ -1909,28 +2569,11 @@ def export_c(
             f"  stated bound vs hallcal reconstruct: {fn.bound:.2e} rad (mechanical)",
             f"  atan2: |error| <= {fn.atan_bound:.2e} rad (electrical)",
         ]
+        + ([] if pu.emitted else _homing_note(pu))
         + [note for s in secs for note in s.notes]
     )
-    texts.append(
-        (
-            f"{pfx}.h",
-            _FLOAT_H.substitute(
-                banner=_banner(f"{pfx}.h", lines_f),
-                pfx=pfx,
-                PFX=PFX,
-                n=n,
-                m=t.points,
-                fault_after=pl.fault_after,
-                section_decls="".join(s.header for s in secs),
-            ),
-        )
-    )
-    texts.append(
-        (
-            f"{pfx}.c",
-            _float_source(ctx_f, fn, _banner(f"{pfx}.c", lines_f), "".join(s.source for s in secs)),
-        )
-    )
+    texts.append((f"{pfx}.h", _float_header(ctx_f, _banner(f"{pfx}.h", lines_f), secs)))
+    texts.append((f"{pfx}.c", _float_source(ctx_f, _banner(f"{pfx}.c", lines_f), secs)))
     if q is not None:
         ctx_q = _Context(artifact, design, pfx, PFX, "fixed")
         secs_q = _sections(ctx_q)
@@ -1945,6 +2588,7 @@ def export_c(
                 f"  rounding the artifact's signals to counts adds {q.quant_rms:.2e} rad RMS "
                 f"(at most {q.quant_max:.2e})",
             ]
+            + _homing_note(pu, fixed=True)
             + [note for s in secs_q for note in s.notes]
         )
         texts.append(
@@ -2001,4 +2645,8 @@ def export_c(
         sections=tuple(dict.fromkeys(section_names)),
         messages=tuple(messages),
         design=design,
+        identifies_pole_pair=pu.emitted,
+        powerup_message=pu.message,
+        powerup_table_bytes=pu.table_bytes,
+        powerup=pu,
     )

@@ -33,9 +33,10 @@ n_m times the mechanical ones. Hall signals are in the artifact's unit.
 
 from __future__ import annotations
 
+import enum
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -44,6 +45,11 @@ import scipy.sparse.linalg as sparse_linalg
 from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
+from hallcal.sensor.absolute import (
+    GRID_CHOICES,
+    IdentifiabilityReport,
+    PowerUpDecoder,
+)
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT
 
@@ -59,7 +65,10 @@ __all__ = [
     "CorrectionTable",
     "FirmwareDesign",
     "Plausibility",
+    "PowerUpCode",
+    "PowerUpFirmware",
     "design_firmware",
+    "design_powerup",
     "fit_table",
 ]
 
@@ -219,6 +228,8 @@ class FirmwareDesign:
     sha256 : str
         Of the artifact's canonical JSON.
     messages : tuple of str
+    flux : FluxModel or None
+        The artifact's flux model (the power-up decoder's tables come from it).
     """
 
     pole_pairs: int
@@ -233,6 +244,7 @@ class FirmwareDesign:
     sample_time: float | None
     sha256: str
     messages: tuple[str, ...] = ()
+    flux: FluxModel | None = None
 
     @property
     def step_rad_per_sample(self) -> float:
@@ -686,6 +698,7 @@ def design_firmware(
         sample_time=ts,
         sha256=sha256,
         messages=tuple(messages),
+        flux=flux,
     )
 
 
@@ -827,3 +840,317 @@ def cogging_table(cogging: Any, *, source: str = "<calibration artifact>") -> Co
     if not scale > 0.0:
         raise _bad(source, "cogging", "is zero everywhere")
     return CoggingTable(k, a, b, unit, vals, err, scale)
+
+
+# --------------------------------------------------------------------------------------------
+# Power-up identification of the pole pair (artifact key "identifiability")
+# --------------------------------------------------------------------------------------------
+
+#: Largest decoder table the exporter writes (points of each of R and Z).
+MAX_POWERUP_TABLE = 65536
+#: What the decoder's reciprocals and its 2^-x reach (relative): single precision.
+_F32_TARGET = 2.0**-25
+#: The exponent of 2^-x is built from its bits for x < this; beyond, the term is dropped
+#: (it is below 2^-126, against a lock threshold of at least 2^-40).
+EXP2_CUT = 126
+
+
+class PowerUpCode(enum.StrEnum):
+    """Whether the exported float variant identifies the pole pair at power-up."""
+
+    EMITTED = "emitted"  # the decoder is in the float variant
+    NO_ANALYSIS = "no-analysis"  # the artifact has no "identifiability" entry
+    NOT_IDENTIFIABLE = "not-identifiable"  # the analysis says the magnets are too alike
+    UNSUPPORTED = "unsupported"  # a grid the C cannot index with shifts, or a huge table
+    SINGLE_POLE_PAIR = "single-pole-pair"  # nothing to identify: f_init's frame is absolute
+    DISABLED = "disabled"  # left out on request (export_c(powerup=False), --no-powerup)
+
+    @property
+    def success(self) -> bool:
+        return self is PowerUpCode.EMITTED
+
+
+@dataclass(frozen=True)
+class PowerUpFirmware:
+    """The numbers of the power-up decoder in the float variant (module doc of
+    :mod:`hallcal.sensor.absolute`, "Decoder specification").
+
+    Costs are in noise-sigma units: every length (rho, zeta, R, Z) is divided by ``sigma``, the
+    Gram terms multiplied by ``sigma^2``, so the numbers of the C are of order 1 to 10^5 and a
+    sample's cost is the Python reference's exactly (in exact arithmetic).
+
+    Attributes
+    ----------
+    status : PowerUpCode
+    message : str
+        One line: the verdict, or why no decoder is written.
+    report : IdentifiabilityReport or None
+        The artifact's analysis.
+    decoder : PowerUpDecoder or None
+        The Python decoder it was built from (``reconstruct --absolute`` rebuilds the same).
+    sigma : float
+        Noise sigma the costs are normalized by (artifact unit).
+    radius, zero : ndarray of float32, shape (M + 1,)
+        R[q] / sigma and Z[q] / sigma, the last entry repeating the first (wrap-around).
+    null : ndarray, shape (3,)
+        nv / sigma; ``zeta = null . d - null_offset`` in sigmas.
+    null_offset : float
+        nv . o / sigma.
+    gram_a, gram_b, gram_c :
+        A sigma^2 (2 x 2), B sigma^2 (2), C sigma^2.
+    rsqrt_seed : tuple of float
+        ``c0 - c1 r2`` approximates 1/sqrt(r2) on the amplitude window ``rsqrt_window``.
+    rsqrt_steps : int
+        Newton steps ``y (3/2 - r2 y^2 / 2)`` after the seed.
+    rsqrt_error : float
+        Relative error after them (before rounding).
+    tangent_window : tuple of float
+        Range of tt = t' S t over all table positions (sigmas^2 per electrical rad^2), widened.
+    tangent_seed, tangent_steps, tangent_error :
+        Seed ``c0 - c1 tt`` of 1/tt, Newton steps ``r (2 - tt r)``, relative error after them.
+    slope : float
+        L / (2 pi): table intervals per electrical rad.
+    cost_cap, threshold : float
+        The censoring level c and the lock threshold alpha / (1 - alpha).
+    exp2 : ndarray
+        Polynomial of 2^-f on [0, 1] (ascending powers).
+    exp2_error : float
+        Its largest relative error.
+    """
+
+    status: PowerUpCode
+    message: str
+    report: IdentifiabilityReport | None = None
+    decoder: PowerUpDecoder | None = field(default=None, repr=False)
+    sigma: float = 0.0
+    radius: NDArray[np.float32] = field(default_factory=lambda: np.zeros(0, np.float32), repr=False)
+    zero: NDArray[np.float32] = field(default_factory=lambda: np.zeros(0, np.float32), repr=False)
+    null: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3), repr=False)
+    null_offset: float = 0.0
+    gram_a: NDArray[np.float64] = field(default_factory=lambda: np.zeros((2, 2)), repr=False)
+    gram_b: NDArray[np.float64] = field(default_factory=lambda: np.zeros(2), repr=False)
+    gram_c: float = 0.0
+    rsqrt_seed: tuple[float, float] = (0.0, 0.0)
+    rsqrt_window: tuple[float, float] = (0.0, 0.0)
+    rsqrt_steps: int = 0
+    rsqrt_error: float = 0.0
+    tangent_window: tuple[float, float] = (0.0, 0.0)
+    tangent_seed: tuple[float, float] = (0.0, 0.0)
+    tangent_steps: int = 0
+    tangent_error: float = 0.0
+    slope: float = 0.0
+    cost_cap: float = 0.0
+    threshold: float = 0.0
+    exp2: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0), repr=False)
+    exp2_error: float = 0.0
+
+    @property
+    def emitted(self) -> bool:
+        return self.status.success
+
+    @property
+    def pole_pairs(self) -> int:
+        return 0 if self.decoder is None else self.decoder.pole_pairs
+
+    @property
+    def grid(self) -> int:
+        """L, table points per electrical period."""
+        return 0 if self.decoder is None else self.decoder.grid
+
+    @property
+    def table_bytes(self) -> int:
+        """Flash of the two float tables (M + 1 points each)."""
+        return 8 * int(self.radius.size)
+
+
+def _reciprocal_seed(lo: float, hi: float) -> tuple[float, float, float]:
+    """Linear minimax seed ``c0 - c1 x`` of 1/x on [lo, hi] (relative error) and that error."""
+    c1 = 8.0 / (4.0 * lo * hi + (lo + hi) ** 2)
+    c0 = c1 * (lo + hi)
+    return c0, c1, abs(1.0 - c1 * lo * hi)
+
+
+def _rsqrt_seed(lo: float, hi: float) -> tuple[float, float, float]:
+    """Linear minimax seed ``c0 - c1 x`` of 1/sqrt(x) on [lo, hi] (relative error) and that
+    error. The error ``sqrt(x) (c0 - c1 x) - 1`` equioscillates at lo, hi and its maximum
+    ``x* = c0 / (3 c1)``: equal values at the ends give ``c0 / c1 = lo + sqrt(lo hi) + hi``,
+    opposite ones at an end and at x* fix c1."""
+    ratio = lo + math.sqrt(lo * hi) + hi
+    xs = ratio / 3.0
+    c1 = 2.0 / (math.sqrt(lo) * (ratio - lo) + 2.0 * xs**1.5)
+    return c1 * ratio, c1, c1 * 2.0 * xs**1.5 - 1.0
+
+
+def _exp2_poly(target: float = 2.0**-24) -> tuple[NDArray[np.float64], float]:
+    """Polynomial of 2^-f on [0, 1] (ascending powers) with the fewest terms whose relative error
+    is within ``target``: Chebyshev interpolation (within a factor 2 of minimax), the error
+    measured on a dense grid."""
+    from numpy.polynomial import Chebyshev
+
+    x = np.linspace(0.0, 1.0, 100_001)
+    y = 2.0**-x
+    for deg in range(4, 10):
+        poly = Chebyshev.interpolate(lambda t: 2.0**-t, deg, domain=[0.0, 1.0])
+        coef = poly.convert(kind=np.polynomial.Polynomial).coef
+        err = float(np.max(np.abs(np.polynomial.polynomial.polyval(x, coef) / y - 1.0)))
+        if err <= target:
+            break
+    return coef, err
+
+
+def _newton_steps(e0: float, square: float, limit: int = 6) -> tuple[int, float]:
+    """Newton steps from a relative error e0 until below single precision; each step takes e to
+    ``square e^2`` (plus the cube term for the reciprocal square root, covered by ``square``)."""
+    steps, e = 0, e0
+    while e > _F32_TARGET and steps < limit:
+        e = square * e * e
+        steps += 1
+    return steps, e
+
+
+def _tangent_range(dec: PowerUpDecoder, sigma: float, A, B, C) -> tuple[float, float]:
+    """Smallest and largest tt = t' S t (sigma units) over all table positions: 16 points per
+    interval and both ends (tt is smooth within an interval: a quadratic in the fraction times
+    trigonometric terms of the angle, which moves by 2 pi / L over it)."""
+    L, M = dec.grid, dec.table_size
+    R = dec.radius / sigma
+    Z = dec.zero / sigma
+    sub = 16
+    pos = np.arange(M * sub + 1) / sub
+    i = np.minimum(np.floor(pos).astype(np.int64), M - 1)
+    f = pos - i
+    i1 = np.where(i == M - 1, 0, i + 1)
+    k = L / TWO_PI
+    Rj = R[i] + f * (R[i1] - R[i])
+    dR = (R[i1] - R[i]) * k
+    dZ = (Z[i1] - Z[i]) * k
+    psi = TWO_PI * pos / L
+    c, s = np.cos(psi), np.sin(psi)
+    guu = A[0, 0] * c * c + 2 * A[0, 1] * c * s + A[1, 1] * s * s
+    gvv = A[0, 0] * s * s - 2 * A[0, 1] * c * s + A[1, 1] * c * c
+    guv = (A[1, 1] - A[0, 0]) * c * s + A[0, 1] * (c * c - s * s)
+    gun = B[0] * c + B[1] * s
+    gvn = B[1] * c - B[0] * s
+    tt = (
+        dR * dR * guu
+        + Rj * Rj * gvv
+        + dZ * dZ * C
+        + 2.0 * dR * Rj * guv
+        + 2.0 * dR * dZ * gun
+        + 2.0 * Rj * dZ * gvn
+    )
+    return float(np.min(tt)), float(np.max(tt))
+
+
+def design_powerup(
+    artifact: Mapping, design: FirmwareDesign, *, source: str = "<calibration artifact>"
+) -> PowerUpFirmware:
+    """Decide whether the float variant identifies the pole pair at power-up, and its numbers.
+
+    No decoder (and the homing API) when the artifact has no ``"identifiability"`` entry, when
+    its verdict is "not identifiable", or when its grid is not a power of two or its tables
+    would pass :data:`MAX_POWERUP_TABLE` points; none either for one pole pair, where f_init
+    from y = 0 already gives the calibration's frame (modulo one revolution). The decoder is
+    the one ``hallcal reconstruct --absolute`` rebuilds from the same artifact
+    (:meth:`IdentifiabilityReport.decoder`), so its tables are bit-identical to Python's before
+    the conversion to single precision.
+
+    Raises
+    ------
+    HallcalInputError
+        The ``"identifiability"`` entry is malformed (named).
+    """
+    entry = artifact.get("identifiability")
+    if entry is None:
+        return PowerUpFirmware(
+            PowerUpCode.NO_ANALYSIS,
+            "the artifact has no identifiability analysis (made before power-up identification "
+            "existed; calibrate again)",
+        )
+    if not isinstance(entry, Mapping):
+        raise _bad(source, "identifiability", "must be an object")
+    try:
+        report = IdentifiabilityReport.from_dict(entry)
+    except ValueError as exc:
+        raise HallcalInputError(f"{source}: {exc}") from None
+    if report.pole_pairs != design.pole_pairs:
+        raise _bad(source, "identifiability.pole_pairs", "differs from pole_pairs")
+    if design.pole_pairs == 1:
+        return PowerUpFirmware(
+            PowerUpCode.SINGLE_POLE_PAIR,
+            "one pole pair: f_init from y = 0 is in the frame of the calibration after any "
+            "power-up (init with revolutions 0 and angle 0)",
+            report,
+        )
+    if not report.status.success:
+        return PowerUpFirmware(PowerUpCode.NOT_IDENTIFIABLE, report.message, report)
+    L = report.grid
+    if L not in GRID_CHOICES and not (4 <= L <= 65536 and L & (L - 1) == 0):
+        return PowerUpFirmware(
+            PowerUpCode.UNSUPPORTED,
+            f"the decoder's grid ({L} points per electrical period) is not a power of two",
+            report,
+        )
+    if design.pole_pairs * L + 1 > MAX_POWERUP_TABLE:
+        return PowerUpFirmware(
+            PowerUpCode.UNSUPPORTED,
+            f"the decoder's tables would have {design.pole_pairs * L} points, more than "
+            f"{MAX_POWERUP_TABLE}",
+            report,
+        )
+    if not (math.isfinite(report.noise_std) and report.noise_std > 0.0):
+        raise _bad(source, "identifiability.noise_std", "must be a positive number")
+    if design.flux is None:  # pragma: no cover - design_firmware always sets it
+        raise ValueError("the design has no flux model")
+    try:
+        dec = report.decoder(design.flux, design.lut)
+    except ValueError as exc:
+        raise HallcalInputError(f"{source}: identifiability: {exc}") from None
+    sigma = dec.noise_std
+    s2 = sigma * sigma
+    A, B, C = dec.gram_a * s2, dec.gram_b * s2, float(dec.gram_c * s2)
+    radius = np.append(dec.radius, dec.radius[0]) / sigma
+    zero = np.append(dec.zero, dec.zero[0]) / sigma
+    if (
+        not (np.all(np.isfinite(radius)) and np.all(np.isfinite(zero)))
+        or float(np.max(np.abs(np.concatenate([radius, zero])))) > 1e30
+    ):
+        raise _bad(source, "identifiability.noise_std", "is implausible for the signals")
+    # 1/sqrt(r2) on the amplitude window the lean code admits
+    pl = design.plausibility
+    w_lo, w_hi = pl.radius_lo**2, pl.radius_hi**2
+    c0, c1, e0 = _rsqrt_seed(w_lo, w_hi)
+    rs_steps, rs_err = _newton_steps(e0, 1.5 + e0)
+    # 1/tt on the range of tt over the table, widened by 10 % both ways
+    t_lo, t_hi = _tangent_range(dec, sigma, A, B, C)
+    t_lo, t_hi = 0.9 * t_lo, 1.1 * t_hi
+    r0, r1, re0 = _reciprocal_seed(t_lo, t_hi)
+    tt_steps, tt_err = _newton_steps(re0, 1.0)
+    poly, p_err = _exp2_poly()
+    return PowerUpFirmware(
+        status=PowerUpCode.EMITTED,
+        message=report.message,
+        report=report,
+        decoder=dec,
+        sigma=sigma,
+        radius=radius.astype(np.float32),
+        zero=zero.astype(np.float32),
+        null=dec.null / sigma,
+        null_offset=float(dec.null @ dec.offset) / sigma,
+        gram_a=A,
+        gram_b=B,
+        gram_c=C,
+        rsqrt_seed=(c0, c1),
+        rsqrt_window=(w_lo, w_hi),
+        rsqrt_steps=rs_steps,
+        rsqrt_error=rs_err,
+        tangent_window=(t_lo, t_hi),
+        tangent_seed=(r0, r1),
+        tangent_steps=tt_steps,
+        tangent_error=tt_err,
+        slope=L / TWO_PI,
+        cost_cap=float(dec.cost_cap),
+        threshold=float(dec.lock_threshold),
+        exp2=poly,
+        exp2_error=p_err,
+    )
