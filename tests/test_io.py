@@ -25,9 +25,7 @@ from hallcal.io import (
     DATASET_EXTENSIONS,
     BenchSpec,
     BLASpec,
-    ContinuousTF,
     Dataset,
-    DiscreteTF,
     MissingColumnError,
     ModelSpec,
     Setup,
@@ -45,6 +43,7 @@ from hallcal.io import (
     write_json,
     write_setup,
 )
+from hallcal.sim.lti import ContinuousTF, DiscreteTF
 
 # ================================================================================================
 # Datasets

@@ -2,7 +2,7 @@
 
 Each case calibrates on one run and validates on a fresh run (other noise realization, other
 ramp) against the bench's true angle. The bound "within 10% of the noise floor" is the issue's;
-the noise floor is sigma sqrt(2/3) / (A n_m) (DESIGN.md).
+the noise floor is sigma sqrt(2/3) / (A n_m) (docs/design.md).
 """
 
 from __future__ import annotations

@@ -1,7 +1,15 @@
 """hallcal: self-calibration of analog linear Hall sensors without an encoder.
 
 The method of van Meer et al., "Self-Calibrating Position Measurements: Applied to Imperfect
-Hall Sensors" (Algorithm 1). Curated public API; the subpackages hold the details, one per step:
+Hall Sensors" (Algorithm 1). The front door::
+
+    import hallcal
+    cal = hallcal.calibrate("cal.csv", "setup.toml", bla_data="bla.csv")
+    print(cal.status, cal.predicted_error)
+    cal.save("cal.json")
+    angles = hallcal.load("cal.json").reconstruct("run.csv")
+
+The subpackages hold the details, one per step of the method:
 
 - :mod:`hallcal.sensor`: f_init, flux models g_theta, the lookup table f_star, error metrics
 - :mod:`hallcal.sim`: transfer functions, the closed loop and its sensitivities, the virtual bench
@@ -9,57 +17,95 @@ Hall Sensors" (Algorithm 1). Curated public API; the subpackages hold the detail
 - :mod:`hallcal.fit`: simulation-error minimization, model choice and adequacy, open-loop fit
 - :mod:`hallcal.io`: files; :mod:`hallcal.pipeline`: Algorithm 1 end to end
 - :mod:`hallcal.output`: figures, HTML report, C export
+
+Names are loaded on first use, so ``import hallcal`` (and ``hallcal --help``) stays fast.
 """
 
-from importlib.metadata import PackageNotFoundError, version
+from __future__ import annotations
 
-from hallcal.errors import HallcalInputError
-from hallcal.fit.sem import SEMResult, solve_sem
-from hallcal.sensor.flux import FluxModel, FourierBasis, sinusoidal_theta
-from hallcal.sensor.lut import LUT, NotBijectiveError, StarReconstructor, build_lut
-from hallcal.sensor.metrics import angle_error, spatial_spectrum
-from hallcal.sensor.reconstruction import (
-    InitReconstructor,
-    clarke_matrix,
-    f_init,
-    projection_matrix,
-)
-from hallcal.sim.bench import BenchConfig, BenchRun, noise_floor, ramp_run, simulate_run
-from hallcal.sim.loop import ClosedLoop, loop_jacobian, simulate_loop
-from hallcal.sim.lti import ContinuousTF, DiscreteTF, StateSpace
+import importlib
+from typing import TYPE_CHECKING, Any
 
-try:
-    __version__ = version("hallcal")
-except PackageNotFoundError:  # pragma: no cover - running from a source tree
-    __version__ = "0+unknown"
+from hallcal._version import __version__
+from hallcal.errors import CalibrationRefused, HallcalError, HallcalInputError
+
+if TYPE_CHECKING:
+    from hallcal.api import Calibration, calibrate, load
+    from hallcal.io import Dataset, Setup, read_dataset, read_setup
+    from hallcal.pipeline import CalibrationStatus, Reconstruction, Validation
+    from hallcal.sensor.flux import FluxModel, FourierBasis
+    from hallcal.sensor.lut import LUT, StarReconstructor
+    from hallcal.sensor.metrics import angle_error, spatial_spectrum
+    from hallcal.sensor.reconstruction import InitReconstructor, f_init
+    from hallcal.sim.bench import BenchConfig, noise_floor, simulate_run
+    from hallcal.sim.lti import ContinuousTF, DiscreteTF
+
+#: Public name -> module that defines it (imported on first access).
+_LAZY: dict[str, str] = {
+    "Calibration": "hallcal.api",
+    "calibrate": "hallcal.api",
+    "load": "hallcal.api",
+    "Dataset": "hallcal.io",
+    "Setup": "hallcal.io",
+    "read_dataset": "hallcal.io",
+    "read_setup": "hallcal.io",
+    "CalibrationStatus": "hallcal.pipeline",
+    "Reconstruction": "hallcal.pipeline",
+    "Validation": "hallcal.pipeline",
+    "FluxModel": "hallcal.sensor.flux",
+    "FourierBasis": "hallcal.sensor.flux",
+    "LUT": "hallcal.sensor.lut",
+    "StarReconstructor": "hallcal.sensor.lut",
+    "angle_error": "hallcal.sensor.metrics",
+    "spatial_spectrum": "hallcal.sensor.metrics",
+    "InitReconstructor": "hallcal.sensor.reconstruction",
+    "f_init": "hallcal.sensor.reconstruction",
+    "BenchConfig": "hallcal.sim.bench",
+    "noise_floor": "hallcal.sim.bench",
+    "simulate_run": "hallcal.sim.bench",
+    "ContinuousTF": "hallcal.sim.lti",
+    "DiscreteTF": "hallcal.sim.lti",
+}
 
 __all__ = [
     "LUT",
     "BenchConfig",
-    "BenchRun",
-    "ClosedLoop",
+    "Calibration",
+    "CalibrationRefused",
+    "CalibrationStatus",
     "ContinuousTF",
+    "Dataset",
     "DiscreteTF",
     "FluxModel",
     "FourierBasis",
+    "HallcalError",
     "HallcalInputError",
     "InitReconstructor",
-    "NotBijectiveError",
-    "SEMResult",
+    "Reconstruction",
+    "Setup",
     "StarReconstructor",
-    "StateSpace",
+    "Validation",
     "__version__",
     "angle_error",
-    "build_lut",
-    "clarke_matrix",
+    "calibrate",
     "f_init",
-    "loop_jacobian",
+    "load",
     "noise_floor",
-    "projection_matrix",
-    "ramp_run",
-    "simulate_loop",
+    "read_dataset",
+    "read_setup",
     "simulate_run",
-    "sinusoidal_theta",
-    "solve_sem",
     "spatial_spectrum",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'hallcal' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

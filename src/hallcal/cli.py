@@ -1,4 +1,4 @@
-"""The ``hallcal`` command line (contract in DESIGN.md, "Command line").
+"""The ``hallcal`` command line (contract in docs/design.md, "Command line").
 
 Exit status: 0 success; 2 bad input (one line naming the file, column or key; no traceback);
 3 calibration refused (model inadequate or table not bijective; use ``--force`` to write an
@@ -18,17 +18,21 @@ from typing import Any
 import click
 from rich.console import Console
 
-from hallcal.errors import HallcalInputError
+from hallcal.errors import CalibrationRefused, HallcalError, HallcalInputError
 
-EXIT_INPUT = 2
-EXIT_REFUSED = 3
+EXIT_INPUT = HallcalInputError.exit_status
+EXIT_REFUSED = CalibrationRefused.exit_status
 
 _err = Console(stderr=True, highlight=False, soft_wrap=True)
 _out = Console(highlight=False, soft_wrap=True)
 
 
-class Refused(Exception):
-    """The calibration ran but its result must not be used."""
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    if text.startswith("setup:") and _setup_path[0]:
+        # the numeric layers say "setup:"; the user wants the file's name
+        text = _setup_path[0] + text[len("setup") :]
+    return text
 
 
 def _handle_errors(func: Callable[..., Any]) -> Callable[..., Any]:
@@ -36,16 +40,12 @@ def _handle_errors(func: Callable[..., Any]) -> Callable[..., Any]:
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return func(*args, **kwargs)
-        except HallcalInputError as exc:
-            msg = str(exc)
-            if msg.startswith("setup:") and _setup_path[0]:
-                # the numeric layers say "setup:"; the user wants the file's name
-                msg = _setup_path[0] + msg[len("setup") :]
-            click.echo(f"hallcal: error: {msg}", err=True)
-            sys.exit(EXIT_INPUT)
-        except Refused as exc:
-            click.echo(f"hallcal: refused: {exc}", err=True)
-            sys.exit(EXIT_REFUSED)
+        except CalibrationRefused as exc:
+            click.echo(f"hallcal: refused: {_one_line(exc)}", err=True)
+            sys.exit(exc.exit_status)
+        except HallcalError as exc:
+            click.echo(f"hallcal: error: {_one_line(exc)}", err=True)
+            sys.exit(exc.exit_status)
 
     return wrapper
 
@@ -174,24 +174,12 @@ def bla(data: str, setup_path: str, out: str) -> None:
 @_handle_errors
 def calibrate(data: str, setup_path: str, bla_data: str | None, out: str, force: bool) -> None:
     """Calibrate: BLA (if needed), SEM, lookup table; write the JSON artifact."""
-    from hallcal import pipeline
-    from hallcal.io import read_dataset, write_artifact
+    from hallcal.api import calibrate as _calibrate
 
     setup = _setup(setup_path)
-    closed = setup.trajectory.kind == "closed-loop"
-    required = ("r", "d1", "d2", "d3") if closed else ("d1", "d2", "d3")
-    ds = read_dataset(data, required=required)
-    bla_ds = None
-    if bla_data is not None:
-        bla_ds = read_dataset(bla_data, required=("r", "u", "y", "realization"))
-    cal = pipeline.calibrate(ds, setup, bla_dataset=bla_ds, progress=_Progress())
+    cal = _calibrate(data, setup, bla_data=bla_data, progress=_Progress())
     _print_calibration(cal)
-    force = force or setup.model.force
-    if cal.status == "not-bijective":
-        raise Refused(cal.messages[0] + "; no artifact written")
-    if cal.status == "inadequate" and not force:
-        raise Refused(cal.messages[0] + "; no artifact written (use --force to write it anyway)")
-    write_artifact(out, pipeline.artifact_from_calibration(cal))
+    cal.save(out, force=force or setup.model.force)
     _out.print(f"wrote {out}")
 
 
@@ -210,8 +198,7 @@ def _ranges(values: list[int]) -> str:
 
 def _print_calibration(cal) -> None:
     sem = cal.sem
-    refused = cal.status in ("inadequate", "not-bijective")
-    for m in cal.messages[1:] if refused else cal.messages:  # the first comes with the refusal
+    for m in cal.messages:
         _err.print(m)
     info = cal.model_info
     if info.get("basis") == "fourier":
@@ -235,10 +222,14 @@ def _print_calibration(cal) -> None:
             f"({sem.status}), {sem.solve_time:.2f} s; noise variance {sem.noise_variance:.3g}"
         )
     _out.print(f"predicted f_star error: RMS {_mrad(cal.predicted_error)}")
-    if cal.adequacy is not None and hasattr(cal.adequacy, "verdict"):
+    if cal.adequacy is not None:
         _out.print(f"model adequacy: {cal.adequacy.verdict}")
     _out.print(f"lookup table: {cal.lut.points} points, bijective: {cal.lut.bijective}")
-    v = cal.validation
+    _print_validation(cal.validation)
+
+
+def _print_validation(v) -> None:
+    """One line: f_init and f_star against the recording's y_ref, when it has one."""
     if v is not None:
         _out.print(
             f"against y_ref: f_init RMS {_mrad(v.init.rms)} peak {_mrad(v.init.peak)}; "
@@ -253,20 +244,14 @@ def _print_calibration(cal) -> None:
 @_handle_errors
 def reconstruct(artifact: str, data: str, out: str) -> None:
     """Apply a calibration to a recording: columns y_init and y_star."""
-    from hallcal import pipeline
-    from hallcal.io import read_artifact, read_dataset, write_dataset
+    from hallcal.api import load
+    from hallcal.io import write_dataset
 
-    art = read_artifact(artifact)
-    ds = read_dataset(data)
-    rec = pipeline.reconstruct(art, ds)
-    write_dataset(out, {"y_init": rec.y_init, "y_star": rec.y_star})
-    _out.print(f"wrote {out} ({rec.y_star.size} samples)")
-    if rec.validation is not None:
-        v = rec.validation
-        _out.print(
-            f"against y_ref: f_init RMS {_mrad(v.init.rms)} peak {_mrad(v.init.peak)}; "
-            f"f_star RMS {_mrad(v.star.rms)} peak {_mrad(v.star.peak)}"
-        )
+    cal = load(artifact)
+    rec = cal.reconstruct(data)
+    write_dataset(out, rec.columns)
+    _out.print(f"wrote {out} ({len(rec)} samples)")
+    _print_validation(rec.validation)
 
 
 @cli.command("export-c")
@@ -308,18 +293,9 @@ def export_c(artifact: str, out: str, no_fixed_point: bool, adc_scale: float) ->
     default=None,
     help="A fresh run with y_ref to validate on.",
 )
-@click.option(
-    "--setup",
-    "setup_path",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Setup (default: the one stored in the artifact).",
-)
 @click.option("--out", required=True, type=click.Path(file_okay=False))
 @_handle_errors
-def report(
-    artifact: str, data: str, validation: str | None, setup_path: str | None, out: str
-) -> None:
+def report(artifact: str, data: str, validation: str | None, out: str) -> None:
     """Figures and an HTML report of a calibration."""
     from hallcal.output.report import write_report_from_files
 

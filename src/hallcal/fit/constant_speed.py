@@ -25,11 +25,9 @@ ADC counts: offsets are handled by the geometry and by the constant term of the 
 
 from __future__ import annotations
 
+import enum
 import math
-import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.linalg
@@ -40,22 +38,53 @@ from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sensor.reconstruction import f_init
 
-if TYPE_CHECKING:  # the adapter at the end works on the pipeline's types
-    from hallcal.io import Dataset, Setup
-    from hallcal.pipeline import Calibration
-
 __all__ = [
     "ConstantSpeedResult",
     "SensorGeometry",
     "SpeedSegment",
     "calibrate_constant_speed",
-    "calibrate_dataset_constant_speed",
     "default_harmonics",
     "estimate_sensor_geometry",
     "find_constant_speed",
+    "speed_deviation",
 ]
 
 TWO_PI = 2.0 * math.pi
+
+
+class GeometryStatus(enum.StrEnum):
+    """How well the three signals determine the sensor geometry (:class:`SensorGeometry`)."""
+
+    OK = "ok"
+    PARTIAL_COVERAGE = "partial-coverage"  # not every electrical angle seen: extrapolated
+    DEGENERATE = "degenerate"  # no ellipse: noise only, or no rotation
+
+    @property
+    def success(self) -> bool:
+        return self is GeometryStatus.OK
+
+
+class SegmentStatus(enum.StrEnum):
+    """Whether :func:`find_constant_speed` found a constant-speed part."""
+
+    OK = "ok"
+    NOT_FOUND = "not-found"
+
+    @property
+    def success(self) -> bool:
+        return self is SegmentStatus.OK
+
+
+class ConstantSpeedStatus(enum.StrEnum):
+    """Outcome of :func:`calibrate_constant_speed`."""
+
+    OK = "ok"
+    WARNING = "warning"  # see ConstantSpeedResult.warnings
+    NOT_CONVERGED = "not-converged"  # the speed estimate did not meet its tolerance
+
+    @property
+    def success(self) -> bool:
+        return self is ConstantSpeedStatus.OK
 
 
 # --------------------------------------------------------------------------------------------------
@@ -94,7 +123,7 @@ class SensorGeometry:
     fit_rms : float
         RMS of the residual of the three signals about the fitted ellipse, relative to the mean
         amplitude (harmonic distortion and noise; about 0.01-0.05 on real sensors).
-    status : str
+    status : GeometryStatus
         ``"ok"``, ``"partial-coverage"`` (the data does not sweep all electrical angles, so the
         ellipse is extrapolated) or ``"degenerate"`` (the signals do not span a plane or do not
         trace an ellipse; the phases are then the nominal ones and meaningless).
@@ -110,12 +139,12 @@ class SensorGeometry:
     electrical_cycles: float
     revolutions: float | None
     fit_rms: float
-    status: str
+    status: GeometryStatus
     message: str = ""
 
     @property
     def ok(self) -> bool:
-        return self.status == "ok"
+        return self.status is GeometryStatus.OK
 
     @property
     def phases_deg(self) -> NDArray[np.float64]:
@@ -294,19 +323,19 @@ def estimate_sensor_geometry(
     # coverage: fraction of 36 electrical sectors visited
     sectors = np.unique(np.floor(np.mod(psi, TWO_PI) / TWO_PI * 36).astype(int))
     if not fit_rms < max_fit_rms:
-        status = "degenerate"
+        status = GeometryStatus.DEGENERATE
         message = (
             f"the signals do not trace an ellipse (residual {fit_rms:.2f} of the amplitude): "
             "noise only, or no rotation?"
         )
     elif sectors.size < 36:
-        status = "partial-coverage"
+        status = GeometryStatus.PARTIAL_COVERAGE
         message = (
             f"the data sweeps {sectors.size} of 36 electrical 10-degree sectors; the ellipse is "
             "extrapolated elsewhere"
         )
     else:
-        status, message = "ok", ""
+        status, message = GeometryStatus.OK, ""
     revs = None if pole_pairs is None else cycles / int(pole_pairs)
     return SensorGeometry(phi, amp, o, P, direction, cycles, revs, fit_rms, status, message)
 
@@ -336,7 +365,7 @@ class SpeedSegment:
         Samples per electrical cycle at that speed (the smoothing window).
     revolutions : float
         Mechanical revolutions in the segment.
-    status : str
+    status : SegmentStatus
         ``"ok"`` or ``"not-found"``.
     """
 
@@ -345,11 +374,11 @@ class SpeedSegment:
     speed: float
     samples_per_cycle: int
     revolutions: float
-    status: str
+    status: SegmentStatus
 
     @property
     def ok(self) -> bool:
-        return self.status == "ok"
+        return self.status is SegmentStatus.OK
 
     def split(self, revolutions: float) -> tuple[int, int, int]:
         """Indices (start, mid, stop) with the first ``revolutions`` in start..mid."""
@@ -399,7 +428,7 @@ def find_constant_speed(
     N = e.size
     v = np.diff(e)
     if N < 16 or not np.any(v):
-        return SpeedSegment(0, 0, 0.0, 0, 0.0, "not-found")
+        return SpeedSegment(0, 0, 0.0, 0, 0.0, SegmentStatus.NOT_FOUND)
     # first guess of the cruise speed: a high quantile of |v| (robust to the rest phases)
     vq = float(np.quantile(np.abs(v), 0.75))
     W = 0
@@ -418,7 +447,7 @@ def find_constant_speed(
     idx = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
     starts, stops = idx[0::2], idx[1::2]
     if starts.size == 0:
-        return SpeedSegment(0, 0, 0.0, W, 0.0, "not-found")
+        return SpeedSegment(0, 0, 0.0, W, 0.0, SegmentStatus.NOT_FOUND)
     j = int(np.argmax(stops - starts))
     # vs[i] is the mean speed over samples i..i+W-1 (W + 1 angle samples); keep the samples k all
     # of whose windows i in [k - W + 1, k] are within tolerance, then drop the margins
@@ -426,11 +455,11 @@ def find_constant_speed(
     start = int(starts[j]) + W - 1 + margin
     stop = min(int(stops[j]) - margin, N)
     if stop - start < 2 * W:
-        return SpeedSegment(0, 0, 0.0, W, 0.0, "not-found")
+        return SpeedSegment(0, 0, 0.0, W, 0.0, SegmentStatus.NOT_FOUND)
     k = np.arange(start, stop, dtype=np.float64)
     slope = float(np.polyfit(k, e[start:stop], 1)[0]) / n
     revs = abs(slope) * (stop - start) / TWO_PI
-    return SpeedSegment(start, stop, slope, W, revs, "ok")
+    return SpeedSegment(start, stop, slope, W, revs, SegmentStatus.OK)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -533,7 +562,7 @@ class ConstantSpeedResult:
         Gauss-Newton iterations on b (summed over the robust reweighting rounds).
     converged : bool
         Whether the last Gauss-Newton run met ``tol``.
-    status : str
+    status : ConstantSpeedStatus
         ``"ok"``, ``"warning"`` (see ``warnings``) or ``"not-converged"``.
     warnings : tuple of str
         E.g. fewer than one revolution, non-bijective table, geometry status.
@@ -556,7 +585,7 @@ class ConstantSpeedResult:
     revolutions: float
     iterations: int
     converged: bool
-    status: str
+    status: ConstantSpeedStatus
     warnings: tuple[str, ...] = ()
 
     @property
@@ -776,25 +805,10 @@ def calibrate_constant_speed(
         Bad shapes or indices, a basis without the harmonic n_m, a segment too short for the basis,
         a degenerate sensor geometry, or no rotation in the segment.
     """
-    x = np.asarray(d, dtype=np.float64)
-    if x.ndim != 2 or x.shape[1] != 3:
-        raise ValueError("d must have shape (N, 3)")
-    N = x.shape[0]
+    x = _checked_signals(d, pole_pairs, basis, start, stop)
     n = int(pole_pairs)
-    start, stop = int(start), int(stop)
-    if not (0 <= start < stop <= N):
-        raise ValueError(f"need 0 <= start < stop <= {N}, got start={start}, stop={stop}")
-    if n not in basis.harmonics:
-        raise ValueError(f"the basis must contain the pole-pair harmonic {n}")
-    K = stop - start
-    if K < 2 * basis.size:
-        raise ValueError(
-            f"segment of {K} samples is too short for {basis.size} basis functions per channel"
-        )
-    if not np.all(np.isfinite(x)):
-        raise ValueError("d contains non-finite values")
     geo = estimate_sensor_geometry(x[start:stop], n) if geometry is None else geometry
-    if geo.status == "degenerate":
+    if geo.status is GeometryStatus.DEGENERATE:
         raise ValueError(f"cannot calibrate: sensor geometry: {geo.message}")
     warnings: list[str] = []
     if not geo.ok:
@@ -802,9 +816,109 @@ def calibrate_constant_speed(
 
     y = geo.f_init(x, n)
     k = np.arange(start, stop, dtype=np.float64)
+    D, ys = x[start:stop], y[start:stop]
+    with threadpool_limits(limits=1, user_api="blas"):
+        speed = _fit_speed(
+            D,
+            ys,
+            k,
+            n,
+            basis,
+            max_iterations=max_iterations,
+            tol=tol,
+            rounds=int(robust_iterations) if robust else 0,
+            threshold=robust_threshold,
+        )
+        # gauge: mean(f_init - y0) = 0 over the segment, in absolute sample index
+        a = float(np.mean(ys - speed.b * k))
+        B = basis.evaluate(a + speed.b * k)
+        thT, _ = _WeightedLS(B, np.sqrt(speed.weights)).solve(D)
+    model = FluxModel(basis, thT.T)
+    res = _residual_statistics(D, B, thT, basis, geo, n)
+    revs = abs(speed.b) * (stop - start) / TWO_PI
+    lut = build_lut(model, n, points=lut_points, projection=geo.projection, offset=geo.offsets)
+    warnings += _segment_warnings(revs, speed.b, n, lut)
+    if not speed.converged:
+        status = ConstantSpeedStatus.NOT_CONVERGED
+    elif warnings:
+        status = ConstantSpeedStatus.WARNING
+    else:
+        status = ConstantSpeedStatus.OK
+    return ConstantSpeedResult(
+        model=model,
+        a=a,
+        b=speed.b,
+        start=int(start),
+        stop=int(stop),
+        pole_pairs=n,
+        geometry=geo,
+        lut=lut,
+        cost=res.cost,
+        residual_rms=res.rms,
+        noise_std=res.noise,
+        angle_noise_floor=res.angle_floor,
+        motion_rms=res.motion,
+        weights=speed.weights,
+        revolutions=revs,
+        iterations=speed.iterations,
+        converged=speed.converged,
+        status=status,
+        warnings=tuple(warnings),
+    )
+
+
+def _checked_signals(
+    d: ArrayLike, pole_pairs: int, basis: FourierBasis, start: int, stop: int
+) -> NDArray[np.float64]:
+    """d as an (N, 3) float64 array, after checking the segment and the basis."""
+    x = np.asarray(d, dtype=np.float64)
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ValueError("d must have shape (N, 3)")
+    N = x.shape[0]
+    if not (0 <= int(start) < int(stop) <= N):
+        raise ValueError(f"need 0 <= start < stop <= {N}, got start={start}, stop={stop}")
+    if int(pole_pairs) not in basis.harmonics:
+        raise ValueError(f"the basis must contain the pole-pair harmonic {int(pole_pairs)}")
+    K = int(stop) - int(start)
+    if K < 2 * basis.size:
+        raise ValueError(
+            f"segment of {K} samples is too short for {basis.size} basis functions per channel"
+        )
+    if not np.all(np.isfinite(x)):
+        raise ValueError("d contains non-finite values")
+    return x
+
+
+@dataclass(frozen=True)
+class _SpeedFit:
+    """The speed b of the straight line y0 = a + b k, with the robust weights it ended with."""
+
+    b: float
+    weights: NDArray[np.float64]
+    iterations: int
+    converged: bool
+
+
+def _fit_speed(
+    D: NDArray,
+    ys: NDArray,
+    k: NDArray,
+    n: int,
+    basis: FourierBasis,
+    *,
+    max_iterations: int,
+    tol: float,
+    rounds: int,
+    threshold: float,
+) -> _SpeedFit:
+    """Variable-projection Gauss-Newton on b inside ``rounds`` IRLS reweighting rounds.
+
+    b starts from the slope of f_init's output over the segment; between rounds the weights come
+    from the local RMS of the tangential residual over one electrical cycle (see
+    :func:`calibrate_constant_speed`), until they change by less than 1e-3.
+    """
+    K = ys.size
     t = k - float(np.mean(k))  # centred time for conditioning
-    D = x[start:stop]
-    ys = y[start:stop]
     b = float(np.polyfit(t, ys, 1)[0])
     if not abs(b) * K * n >= TWO_PI:
         raise ValueError(
@@ -812,95 +926,85 @@ def calibrate_constant_speed(
             "calibrate from"
         )
     a_c = float(np.mean(ys))  # any fixed value: the cost does not depend on it
-
     w = np.ones(K)
     iterations = 0
     converged = False
-    rounds = int(robust_iterations) if robust else 0
-    W = int(np.clip(round(TWO_PI / (n * abs(b))), 1, K))
-    with threadpool_limits(limits=1, user_api="blas"):
-        for rnd in range(rounds + 1):
+    window = int(np.clip(round(TWO_PI / (n * abs(b))), 1, K))
+    for rnd in range(rounds + 1):
+        b, its, converged = _gauss_newton_b(
+            D, basis, t, a_c, b, np.sqrt(w), max_iterations=max_iterations, tol=tol
+        )
+        iterations += its
+        if rnd == rounds:
+            break
+        thT, _ = _WeightedLS(basis.evaluate(a_c + b * t), np.sqrt(w)).solve(D)
+        w_new = _robust_weights(D, basis, thT, a_c + b * t, window, threshold)
+        done = float(np.max(np.abs(w_new - w))) < 1e-3
+        w = w_new
+        window = int(np.clip(round(TWO_PI / (n * abs(b))), 1, K))
+        if done:
             b, its, converged = _gauss_newton_b(
                 D, basis, t, a_c, b, np.sqrt(w), max_iterations=max_iterations, tol=tol
             )
             iterations += its
-            if rnd == rounds:
-                break
-            thT, _ = _WeightedLS(basis.evaluate(a_c + b * t), np.sqrt(w)).solve(D)
-            w_new = _robust_weights(D, basis, thT, a_c + b * t, W, robust_threshold)
-            done = float(np.max(np.abs(w_new - w))) < 1e-3
-            w = w_new
-            W = int(np.clip(round(TWO_PI / (n * abs(b))), 1, K))
-            if done:
-                b, its, converged = _gauss_newton_b(
-                    D, basis, t, a_c, b, np.sqrt(w), max_iterations=max_iterations, tol=tol
-                )
-                iterations += its
-                break
+            break
+    return _SpeedFit(b, w, iterations, converged)
 
-        # gauge: mean(f_init - y0) = 0 over the segment, in absolute sample index
-        a = float(np.mean(ys - b * k))
-        y0 = a + b * k
-        B = basis.evaluate(y0)
-        thT, _ = _WeightedLS(B, np.sqrt(w)).solve(D)
-        r = D - B @ thT
-        G = _basis_derivative(B, basis) @ thT
-    model = FluxModel(basis, thT.T)
-    cost = float(np.sum(r * r))
-    rms = np.sqrt(np.mean(r * r, axis=0))
+
+@dataclass(frozen=True)
+class _Residuals:
+    cost: float
+    rms: NDArray[np.float64]
+    noise: float
+    angle_floor: float
+    motion: float
+
+
+def _residual_statistics(
+    D: NDArray, B: NDArray, thT: NDArray, basis: FourierBasis, geo: SensorGeometry, n: int
+) -> _Residuals:
+    """Cost, noise level, angle noise floor and rotor motion from the final residual.
+
+    White noise: second differences of the residual component orthogonal to the model curve
+    (variance 6 sigma^2 in each of the two orthogonal dimensions); smooth model errors and rotor
+    motion hardly enter. Motion: the tangential component expressed as an angle.
+    """
+    r = D - B @ thT
+    G = _basis_derivative(B, basis) @ thT
     g2 = np.maximum(np.sum(G * G, axis=1), np.finfo(float).tiny)
     tang = np.sum(r * G, axis=1) / g2  # angle error along the curve [rad]
     orth = r - tang[:, None] * G
-    # white noise: second differences of the orthogonal residual (variance 6 sigma^2 in each of the
-    # two orthogonal dimensions); smooth model errors and rotor motion hardly enter
     dd = np.diff(orth, 2, axis=0)
+    K = D.shape[0]
     noise = float(np.sqrt(np.sum(dd * dd) / (12.0 * max(K - 2, 1))))
     Pn = geo.projection / float(np.mean(geo.amplitudes))  # unit-circle alpha/beta
-    angle_floor = float(noise * math.sqrt(0.5 * np.trace(Pn @ Pn.T)) / n)
-    motion = float(np.sqrt(np.mean(tang * tang)))
-    revs = abs(b) * K / TWO_PI
+    return _Residuals(
+        cost=float(np.sum(r * r)),
+        rms=np.sqrt(np.mean(r * r, axis=0)),
+        noise=noise,
+        angle_floor=float(noise * math.sqrt(0.5 * np.trace(Pn @ Pn.T)) / n),
+        motion=float(np.sqrt(np.mean(tang * tang))),
+    )
+
+
+def _segment_warnings(revs: float, b: float, n: int, lut: LUT) -> list[str]:
+    """Less than a revolution, too few samples per electrical cycle, a folded table."""
+    out = []
     if revs < 1.0:
-        warnings.append(
+        out.append(
             f"the segment covers {revs:.2f} < 1 revolution: per-magnet harmonics are not "
             "identifiable and part of the ring is unseen; the table extrapolates there"
         )
-    if W < 4:
-        warnings.append(
+    if TWO_PI / (n * abs(b)) < 3.5:
+        out.append(
             f"only {TWO_PI / (n * abs(b)):.1f} samples per electrical cycle: spin slower or "
             "sample faster"
         )
-    lut = build_lut(model, n, points=lut_points, projection=geo.projection, offset=geo.offsets)
     if not lut.bijective:
-        warnings.append(
+        out.append(
             f"the table is not bijective (min slope {lut.min_slope:.3g}): f_star is unavailable"
         )
-    if not converged:
-        status = "not-converged"
-    elif warnings:
-        status = "warning"
-    else:
-        status = "ok"
-    return ConstantSpeedResult(
-        model=model,
-        a=a,
-        b=b,
-        start=start,
-        stop=stop,
-        pole_pairs=n,
-        geometry=geo,
-        lut=lut,
-        cost=cost,
-        residual_rms=rms,
-        noise_std=noise,
-        angle_noise_floor=angle_floor,
-        motion_rms=motion,
-        weights=w,
-        revolutions=revs,
-        iterations=iterations,
-        converged=converged,
-        status=status,
-        warnings=tuple(warnings),
-    )
+    return out
 
 
 def _robust_weights(
@@ -920,119 +1024,7 @@ def _robust_weights(
     return np.minimum(1.0, (c * med / np.maximum(local, np.finfo(float).tiny)) ** 2)
 
 
-# --------------------------------------------------------------------------------------------------
-# Adapter for hallcal.pipeline.calibrate ([trajectory] kind = "constant-speed")
-# --------------------------------------------------------------------------------------------------
-
-
-def calibrate_dataset_constant_speed(
-    dataset: Dataset,
-    setup: Setup,
-    *,
-    progress: Callable[[str], None] | None = None,
-) -> Calibration:
-    """Run :func:`calibrate_constant_speed` for :func:`hallcal.pipeline.calibrate` (Algorithm 1).
-
-    Uses ``[trajectory] start``/``stop`` (``stop`` omitted: end of the data), ``pole_pairs``, the
-    ``[model]`` harmonics (``"auto"``: :func:`default_harmonics`), ``lut_points`` and
-    ``max_iterations``; ``sample_time`` is not needed (time in samples). Only the columns d1, d2,
-    d3 are required; ``y_ref``, when present, is used for validation only.
-
-    Raises
-    ------
-    HallcalInputError
-        Naming the file, column or setup key at fault.
-    """
-    from hallcal.errors import HallcalInputError
-    from hallcal.pipeline import Calibration, validate
-
-    def say(msg: str) -> None:
-        if progress is not None:
-            progress(msg)
-
-    dataset.require("d1", "d2", "d3")
-    d = np.ascontiguousarray(dataset.d)
-    n = int(setup.pole_pairs)
-    N = d.shape[0]
-    traj = setup.trajectory
-    start = int(traj.start)
-    stop = N if traj.stop is None else int(traj.stop)
-    if not 0 <= start < stop <= N:
-        raise HallcalInputError(
-            f"setup: trajectory.start..stop = {start}..{stop} is outside {dataset.source} "
-            f"({N} samples)"
-        )
-    if setup.model.basis != "fourier":
-        raise HallcalInputError(
-            f'setup: model.basis = "{setup.model.basis}" is not available with trajectory.kind = '
-            '"constant-speed"; use "fourier"'
-        )
-    h = setup.model.harmonics
-    harmonics = default_harmonics(n) if h == "auto" else tuple(int(v) for v in h)
-    if n not in harmonics:
-        raise HallcalInputError(
-            f"setup: model.harmonics must contain the pole-pair harmonic {n} (pole_pairs)"
-        )
-    messages: list[str] = []
-    deviation = _speed_deviation(d[start:stop], n)
-    if deviation > 0.1:
-        seg = find_constant_speed(d, n)
-        hint = f"; the constant-speed part looks like {seg.start}..{seg.stop}" if seg.ok else ""
-        messages.append(
-            f"warning: f_init's speed varies by {100 * deviation:.0f}% within trajectory.start.."
-            f"stop = {start}..{stop} (averaged over electrical cycles){hint}"
-        )
-    say(f"constant-speed calibration on samples {start}..{stop} ({len(harmonics)} harmonics)")
-    t0 = time.perf_counter()
-    try:
-        res = calibrate_constant_speed(
-            d,
-            n,
-            FourierBasis(harmonics),
-            start=start,
-            stop=stop,
-            max_iterations=setup.model.max_iterations,
-            lut_points=setup.model.lut_points,
-        )
-    except ValueError as exc:
-        raise HallcalInputError(f"{dataset.source}: {exc}") from None
-    timings = {"constant_speed": time.perf_counter() - t0}
-    messages.extend(f"warning: {w}" for w in res.warnings)
-    if res.status == "not-converged":
-        messages.append("warning: the speed estimate did not converge")
-    if not res.lut.bijective:
-        status = "not-bijective"
-    elif res.status != "ok" or messages:
-        status = "warning"
-    else:
-        status = "ok"
-    validation = None
-    if "y_ref" in dataset and res.lut.bijective:
-        validation = validate(res.lut, dataset, noise_floor=res.angle_noise_floor)
-    return Calibration(
-        setup=setup,
-        flux=res.model,
-        lut=res.lut,
-        sem=None,
-        plant=None,
-        gain=None,
-        bla=None,
-        predicted_error=res.angle_noise_floor,
-        adequacy=None,
-        validation=validation,
-        status=status,
-        messages=messages,
-        timings=timings,
-        model_info={
-            "basis": "fourier",
-            "harmonics": list(harmonics),
-            "theta": res.model.theta.tolist(),
-        },
-        extra={"constant_speed": res},
-    )
-
-
-def _speed_deviation(d: NDArray, pole_pairs: int) -> float:
+def speed_deviation(d: NDArray, pole_pairs: int) -> float:
     """Largest relative deviation of f_init's one-electrical-cycle mean speed from its median."""
     if d.shape[0] < 8:
         return 0.0

@@ -3,22 +3,27 @@
 Problem (problem) of van Meer et al.: ``min_theta J(theta) = sum_k ||d(t_k) - d_sim_theta(t_k)||^2``
 where d_sim comes from the closed loop (state_eq) simulated from the recorded reference with the
 plant model, the known controller, f_init and ``g_theta(y0) = psi(y0) theta``, zero initial
-conditions.
+conditions. Optionally the parameters also hold the plant input gain c (eq. c_hat, refined
+jointly) and a cogging torque ``T_c(y0) = sum_k a_k cos(k y0) + b_k sin(k y0)`` at the plant input
+(the cause of the experiment's residual error named in the paper's discussion).
 
 Instead of the paper's interior-point method on finite differences (2 hours), this module uses
-Levenberg-Marquardt (More 1978, "The Levenberg-Marquardt algorithm: implementation and theory") on
-the exact Jacobian from forward sensitivities (:func:`hallcal.sim.loop.loop_jacobian`), including
-the feedback term d y0_sim / d theta. One iteration costs one sensitivity pass, one Gram product
-J^T J (BLAS, pinned to one thread, see DESIGN.md) and one or two plain simulations.
+Levenberg-Marquardt (More 1978, "The Levenberg-Marquardt algorithm: implementation and theory";
+Nocedal & Wright 2006, sec. 10.3) on the exact Gauss-Newton system from forward sensitivities,
+including the feedback term d y0_sim / d theta. The system J^T J, J^T e, e^T e is formed without
+the dense Jacobian (:mod:`hallcal.fit.gauss_newton`), so time and memory grow gently with the
+number of parameters. One iteration costs one sensitivity pass and one or two plain simulations.
 
 Parameter covariance (Ljung 1999, "System Identification", sec. 9.3): for white Hall noise,
-``cov(theta) ~ sigma^2 (J^T J)^-1`` with ``sigma^2 = J(theta*) / (3 N - p)``.
+``cov(x) ~ sigma^2 (J^T J)^-1`` with ``sigma^2 = J(x*) / (3 N - p)``.
 """
 
 from __future__ import annotations
 
+import enum
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -26,13 +31,47 @@ import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
+from hallcal.fit.gauss_newton import (
+    GaussNewtonSystem,
+    ParameterLayout,
+    gauss_newton_system,
+    regression_normal_equations,
+    simulate_model,
+)
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.reconstruction import f_init
-from hallcal.sim.loop import ClosedLoop, loop_jacobian, simulate_loop
+from hallcal.sim.cogging import CoggingTorque
+from hallcal.sim.loop import ClosedLoop
 
-__all__ = ["SEMResult", "least_squares_start", "predicted_angle_error", "solve_sem"]
+__all__ = [
+    "SEMResult",
+    "SEMStatus",
+    "least_squares_start",
+    "predicted_angle_error",
+    "solve_sem",
+]
 
 TWO_PI = 2.0 * math.pi
+
+
+class SEMStatus(enum.StrEnum):
+    """How a SEM solve ended."""
+
+    #: the Gauss-Newton step predicts a relative cost decrease below the tolerance
+    CONVERGED = "converged"
+    MAX_ITERATIONS = "max_iterations"
+    #: no damped step reduced the cost
+    STALLED = "stalled"
+    #: the closed loop with the starting model is unstable
+    DIVERGED = "diverged"
+    #: a wall-time budget ran out (kernel solver)
+    TIME_BUDGET = "time_budget"
+    #: not known (a result rebuilt from an artifact without the solver's status)
+    UNKNOWN = "unknown"
+
+    @property
+    def success(self) -> bool:
+        return self is SEMStatus.CONVERGED
 
 
 @dataclass(frozen=True)
@@ -49,32 +88,50 @@ class SEMResult:
         J(theta) at the start and after each accepted iteration.
     iterations : int
         Accepted Levenberg-Marquardt steps.
-    status : str
-        "converged" (predicted relative decrease below ``tol``), "max_iterations", "stalled"
-        (no step reduced the cost) or "diverged" (the loop is unstable at the start).
+    status : SEMStatus
+        CONVERGED, MAX_ITERATIONS, STALLED or DIVERGED (see :class:`SEMStatus`).
     solve_time : float
         Wall time [s], compilation excluded when warm.
     noise_variance : float
         sigma^2 = J(theta*) / (3 N - p), per Hall channel.
-    covariance : ndarray (p, p)
-        sigma^2 (J^T J)^-1, theta flattened sensor-major.
+    covariance : ndarray (3 m, 3 m)
+        Covariance of theta (flattened sensor-major): its block of sigma^2 (J^T J)^-1 over all
+        parameters, so it includes the uncertainty that the gain and the cogging torque add.
     n_samples : int
         N.
     d_sim : ndarray (N, 3)
-        Simulated Hall signals at theta*.
+        Simulated Hall signals at the solution (NaN when the loop diverged).
     y0_sim : ndarray (N,)
-        Simulated angle at theta*.
+        Simulated angle at the solution (NaN when the loop diverged).
     gain : float
         Factor c on the plant input matrix found jointly with theta (1 unless ``fit_gain``).
     gain_std : float
         Its standard deviation from the covariance (first order, c * std(log c)).
+    cogging : CoggingTorque or None
+        The cogging torque identified jointly (with the covariance of its coefficients), None
+        when no cogging orders were fitted.
+    parameter_covariance : ndarray (p, p) or None
+        sigma^2 (J^T J + R)^-1 over all parameters in the layout of ``layout``.
+    batch_covariance : ndarray (p, p) or None
+        The batch-means (long-run) covariance ``A^-1 M A^-1`` with ``A = J^T J + R`` and M the
+        covariance of the scores J^T e summed over batches of consecutive samples, times the
+        number of batches: valid when the residual is coloured (unmodelled motion) as long as
+        its correlation is shorter than a batch (Ljung 1999, sec. 9.3; the batch-means method
+        of simulation output analysis). Its rank is at most ``batches - 1``: use it for a few
+        parameters at a time.
+    batches : int
+        Number of batches B.
+    layout : ParameterLayout or None
+        What the parameter vector holds.
+    message : str
+        One line on how the solve ended.
     """
 
     flux: FluxModel
     theta0: NDArray[np.float64] = field(repr=False)
     cost_history: NDArray[np.float64] = field(repr=False)
     iterations: int
-    status: str
+    status: SEMStatus
     solve_time: float
     noise_variance: float
     covariance: NDArray[np.float64] = field(repr=False)
@@ -83,6 +140,15 @@ class SEMResult:
     y0_sim: NDArray[np.float64] = field(repr=False)
     gain: float = 1.0
     gain_std: float = 0.0
+    cogging: CoggingTorque | None = field(default=None, repr=False)
+    parameter_covariance: NDArray[np.float64] | None = field(default=None, repr=False)
+    layout: ParameterLayout | None = field(default=None, repr=False)
+    message: str = ""
+    batch_covariance: NDArray[np.float64] | None = field(default=None, repr=False)
+    batches: int = 0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "status", SEMStatus(self.status))
 
     @property
     def cost(self) -> float:
@@ -104,29 +170,175 @@ def least_squares_start(basis: FourierBasis, d: ArrayLike, y: ArrayLike) -> NDAr
     Treats the measured f_init angle as if it were y0. The resulting model reproduces f_init's
     view of the sensors (its LUT is close to zero) but already carries the harmonic shape of the
     data, which makes the SEM start much closer than pure sinusoids when the flux is distorted.
+    The normal equations come from trigonometric moments
+    (:func:`hallcal.fit.gauss_newton.regression_normal_equations`: no N x m matrix).
     """
-    Phi = basis.evaluate(np.asarray(y, dtype=np.float64))
+    yy = np.asarray(y, dtype=np.float64)
     dd = np.asarray(d, dtype=np.float64)
-    # Normal equations: over whole revolutions the Fourier columns are nearly orthogonal, so
-    # Phi^T Phi is well conditioned and a Cholesky solve is as accurate as an SVD, 30x faster.
+    G, rhs, _ = regression_normal_equations(yy, dd, basis.harmonics)
+    # Over whole revolutions the Fourier columns are nearly orthogonal, so G is well conditioned
+    # and a Cholesky solve is as accurate as an SVD of the regressors.
     with threadpool_limits(limits=1, user_api="blas"):
-        G = Phi.T @ Phi
-        rhs = Phi.T @ dd
-    try:
-        cho = scipy.linalg.cho_factor(G)
-        if np.linalg.cond(G) > 1e10:
-            raise np.linalg.LinAlgError
-        sol = scipy.linalg.cho_solve(cho, rhs)
-    except np.linalg.LinAlgError:  # less than a revolution of data: fall back to the SVD
-        sol = np.linalg.lstsq(Phi, dd, rcond=None)[0]
+        try:
+            if np.linalg.cond(G) > 1e10:
+                raise np.linalg.LinAlgError
+            sol = scipy.linalg.cho_solve(scipy.linalg.cho_factor(G), rhs)
+        except np.linalg.LinAlgError:  # less than a revolution of data: the SVD of the regressors
+            sol = np.linalg.lstsq(basis.evaluate(yy), dd, rcond=None)[0]
     return sol.T.copy()
 
 
-def _gram(J: NDArray, e: NDArray) -> tuple[NDArray, NDArray]:
+# ------------------------------------------------------------------------------------------------
+# The problem and its Levenberg-Marquardt iterations
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """Problem (problem) with a diagonal ridge R: F(x) = ||d - d_sim(x)||^2 + x^T R x."""
+
+    loop: ClosedLoop
+    layout: ParameterLayout
+    r: NDArray[np.float64] = field(repr=False)
+    d: NDArray[np.float64] = field(repr=False)
+    ridge: NDArray[np.float64] = field(repr=False)
+    stride: int
+    threads: int | None
+    chunk: int
+
+    def system(self, x: NDArray, *, exact: bool = False) -> GaussNewtonSystem:
+        return gauss_newton_system(
+            self.loop, self.layout, x, self.r, self.d, chunk=self.chunk,
+            stride=1 if exact else self.stride, threads=self.threads,
+        )  # fmt: skip
+
+    def objective(self, system: GaussNewtonSystem, x: NDArray) -> float:
+        return float(system.sse + self.ridge @ x**2)
+
+    def cost(self, x: NDArray) -> float:
+        """F(x) from one plain simulation (inf when the loop diverges)."""
+        sim = simulate_model(self.loop, self.layout, x, self.r)
+        if not sim.status.success:
+            return math.inf
+        e = self.d - sim.d
+        return float(np.vdot(e, e) + self.ridge @ x**2)
+
+
+@dataclass
+class _Iterate:
+    x: NDArray[np.float64]
+    system: GaussNewtonSystem
+    history: list[float]
+    iterations: int
+    status: SEMStatus
+
+
+def _normal_matrix(problem: _Problem, system: GaussNewtonSystem, x: NDArray):
+    """(J^T J + R, J^T e - R x) of the regularized problem."""
+    return system.gram + np.diag(problem.ridge), system.gradient - problem.ridge * x
+
+
+def _decrement(A: NDArray, g: NDArray) -> float:
+    """g^T A^-1 g: twice the decrease a full Gauss-Newton step predicts (inf if singular)."""
+    try:
+        return float(g @ scipy.linalg.cho_solve(scipy.linalg.cho_factor(A), g))
+    except (np.linalg.LinAlgError, ValueError):
+        try:
+            return float(g @ np.linalg.solve(A, g))
+        except np.linalg.LinAlgError:
+            return math.inf
+
+
+def _damped_step(problem: _Problem, A: NDArray, g: NDArray, x: NDArray, F: float, lam: float):
+    """Raise lambda until ``(A + lam diag(A)) s = g`` reduces F (More 1978, sec. 2).
+
+    Returns (step, F(x + step), lam) or (None, F, lam) when 30 tries fail.
+    """
+    dA = np.diag(A).copy()
+    dA[dA <= 0] = 1.0
+    for _ in range(30):
+        try:
+            step = np.linalg.solve(A + lam * np.diag(dA), g)
+        except np.linalg.LinAlgError:
+            lam *= 10.0
+            continue
+        F_new = problem.cost(x + step)
+        if F_new < F:
+            return step, F_new, lam
+        lam *= 4.0
+    return None, F, lam
+
+
+def _levenberg_marquardt(
+    problem: _Problem, x0: NDArray, *, max_iterations: int, tol: float, damping: float
+) -> _Iterate:
+    """Levenberg-Marquardt iterations from x0 until the decrement test passes.
+
+    Stops when the full Gauss-Newton step predicts a relative decrease below tol (Dennis &
+    Schnabel 1996, sec. 7.2): it needs no further simulation.
+    """
+    x = np.array(x0, dtype=np.float64)
+    system = problem.system(x)
+    if not system.status.success:
+        return _Iterate(x, system, [math.inf], 0, SEMStatus.DIVERGED)
+    F = problem.objective(system, x)
+    history = [F]
+    lam = damping
+    iterations = 0
     with threadpool_limits(limits=1, user_api="blas"):
-        JtJ = J.T @ J
-        g = J.T @ e
-    return JtJ, g
+        while True:
+            A, g = _normal_matrix(problem, system, x)
+            if _decrement(A, g) <= tol * F:
+                return _Iterate(x, system, history, iterations, SEMStatus.CONVERGED)
+            if iterations >= max_iterations:
+                return _Iterate(x, system, history, iterations, SEMStatus.MAX_ITERATIONS)
+            step, F_new, lam = _damped_step(problem, A, g, x, F, lam)
+            if step is None:
+                return _Iterate(x, system, history, iterations, SEMStatus.STALLED)
+            x = x + step
+            iterations += 1
+            history.append(F_new)
+            lam = max(lam / 5.0, 1e-12)
+            system = problem.system(x)
+            F = problem.objective(system, x)
+
+
+def _covariance(system: GaussNewtonSystem, ridge: NDArray, sigma2: float) -> NDArray[np.float64]:
+    """sigma^2 (J^T J + R)^-1 (NaN when singular or unavailable)."""
+    p = ridge.size
+    if not system.status.success:
+        return np.full((p, p), math.nan)
+    with threadpool_limits(limits=1, user_api="blas"):
+        try:
+            return sigma2 * np.linalg.inv(system.gram + np.diag(ridge))
+        except np.linalg.LinAlgError:
+            return np.full((p, p), math.nan)
+
+
+def _batch_covariance(
+    system: GaussNewtonSystem, cov: NDArray, sigma2: float
+) -> NDArray[np.float64] | None:
+    """``A^-1 M A^-1`` with M the centred batch-score covariance times B/(B-1) (B batches)."""
+    S = system.batch_gradients
+    B = S.shape[0]
+    if B < 3 or not system.status.success or not np.all(np.isfinite(cov)) or not sigma2 > 0:
+        return None
+    Sc = S - S.mean(axis=0)
+    Ainv = cov / sigma2
+    with threadpool_limits(limits=1, user_api="blas"):
+        L = Ainv @ Sc.T  # (p, B)
+        return (B / (B - 1)) * (L @ L.T)
+
+
+def _default_stride(p: int) -> int:
+    """Rank-one products from every sample up to 128 parameters, every 4th beyond.
+
+    The exact products cost O(N p^2) against O(N p n^2) for the recursion (n = 8 loop states):
+    below about 128 columns they are the smaller part; beyond, every 4th sample keeps the
+    Hessian of the iterations within about 4 / N of the exact one (see
+    :mod:`hallcal.fit.gauss_newton`) at a quarter of the cost.
+    """
+    return 1 if p <= 128 else 4
 
 
 def solve_sem(
@@ -142,6 +354,11 @@ def solve_sem(
     damping: float = 1e-6,
     regularization: ArrayLike | None = None,
     fit_gain: bool = False,
+    gain0: float = 1.0,
+    cogging: Sequence[int] | CoggingTorque = (),
+    stride: int | None = None,
+    threads: int | None = None,
+    chunk: int = 4096,
 ) -> SEMResult:
     """Solve problem (problem) by Levenberg-Marquardt on exact sensitivities.
 
@@ -154,7 +371,7 @@ def solve_sem(
     d : array_like (N, 3)
         Recorded Hall signals.
     basis : FourierBasis
-        The model's basis beta(y0).
+        The model's basis beta(y0) (any set of harmonics).
     theta0 : array_like (3, m), keyword-only, optional
         Start. Default: :func:`least_squares_start` at ``y`` (or at f_init(d) when y is None).
     y : array_like (N,), optional
@@ -165,13 +382,26 @@ def solve_sem(
         Stop when the Gauss-Newton step predicts a relative cost decrease below tol.
     damping : float
         Initial Levenberg-Marquardt parameter lambda (relative to diag(J^T J)).
-    regularization : array_like (p,), optional
-        Diagonal Tikhonov weights w: the cost becomes J(theta) + sum_j w_j theta_j^2 (used by the
-        kernel basis, whose prior is diagonal in the Fourier modes).
+    regularization : array_like (3 m,), optional
+        Diagonal Tikhonov weights w on theta: the cost becomes J(theta) + sum_j w_j theta_j^2
+        (used by the kernel basis, whose prior is diagonal in the Fourier modes).
     fit_gain : bool
         Also estimate a factor c on the plant's input matrix (parametrized as log c, exact
         sensitivity), refining the gain correction of eq. (c_hat) at the SEM optimum where the
         flux model no longer masks it.
+    gain0 : float
+        Start of c with ``fit_gain`` (the result's ``gain`` is relative to ``loop`` as well).
+    cogging : sequence of int or CoggingTorque
+        Orders k of a cogging torque ``T_c(y0) = sum a_k cos(k y0) + b_k sin(k y0)`` at the plant
+        input, identified jointly (a CoggingTorque also gives the start of its coefficients;
+        default start zero).
+    stride : int, optional
+        Rank-one part of J^T J from every stride-th sample during the iterations (default:
+        :func:`_default_stride`); the covariance always uses the exact system.
+    threads : int, optional
+        Threads of the sensitivity pass (1 or 2; default 2 on machines with two cores or more).
+    chunk : int
+        Samples per chunk of the sensitivity pass.
 
     Returns
     -------
@@ -183,107 +413,70 @@ def solve_sem(
     N = r.size
     if d.shape != (N, 3):
         raise ValueError("d must have shape (N, 3) with N = len(r)")
+    cog0 = cogging if isinstance(cogging, CoggingTorque) else None
+    orders = cog0.orders if cog0 is not None else tuple(int(k) for k in cogging)
+    layout = ParameterLayout(basis, fit_gain=fit_gain, cogging_orders=orders)
     if theta0 is None:
         yy = f_init(d, loop.pole_pairs, projection=loop.projection, offset=loop.offset)
         theta0 = least_squares_start(basis, d, yy if y is None else y)
-    theta = np.array(theta0, dtype=np.float64).reshape(3, basis.size)
-    ng = 1 if fit_gain else 0
-    p = theta.size + ng
-    wreg = np.zeros(theta.size) if regularization is None else np.asarray(regularization, float)
-    wreg = np.r_[wreg, np.zeros(ng)]
-    jac = np.empty((N, 3, p))
-    log_gain = 0.0
-
-    def loop_at(lg: float) -> ClosedLoop:
-        return loop.with_plant_gain(math.exp(lg)) if fit_gain else loop
-
-    def jacobian_at(th: NDArray, lg: float):
-        return loop_jacobian(loop_at(lg), FluxModel(basis, th), r, out=jac, fit_gain=fit_gain)
-
-    def cost_of(th: NDArray, lg: float) -> float:
-        res = simulate_loop(loop_at(lg), FluxModel(basis, th), r)
-        if res.status != "ok":
-            return math.inf
-        e = d - res.d
-        return float(np.vdot(e, e) + wreg[: th.size] @ (th.ravel() ** 2))
-
-    lam = damping
-    history = []
-    status = "max_iterations"
-    iterations = 0
-    lj = jacobian_at(theta, log_gain)
-    if lj.status != "ok":
-        status = "diverged"
-    JtJ = np.eye(p)
-    while status not in ("diverged",):
-        e = (d - lj.d).ravel()
-        th = np.r_[theta.ravel(), [log_gain] * ng]
-        cost = float(e @ e + wreg @ th**2)
-        if not history:
-            history.append(cost)
-        J2 = jac.reshape(3 * N, p)
-        JtJ, g = _gram(J2, e)
-        JtJ_reg = JtJ + np.diag(wreg)
-        g = g - wreg * th
-        # Stop when the full Gauss-Newton step predicts a relative decrease below tol
-        # (Dennis & Schnabel 1996, sec. 7.2): it needs no further simulation.
-        try:
-            predicted = float(g @ np.linalg.solve(JtJ_reg, g))
-        except np.linalg.LinAlgError:
-            predicted = math.inf
-        if predicted <= tol * cost:
-            status = "converged"
-            break
-        if iterations >= max_iterations:
-            break
-        diag = np.diag(JtJ_reg).copy()
-        diag[diag <= 0] = 1.0
-        accepted = False
-        for _ in range(30):
-            A = JtJ_reg + lam * np.diag(diag)
-            try:
-                step = np.linalg.solve(A, g)
-            except np.linalg.LinAlgError:
-                lam *= 10.0
-                continue
-            new_theta = theta + step[: theta.size].reshape(theta.shape)
-            new_log_gain = log_gain + (float(step[-1]) if fit_gain else 0.0)
-            new_cost = cost_of(new_theta, new_log_gain)
-            if new_cost < cost:
-                accepted = True
-                break
-            lam *= 4.0
-        if not accepted:
-            status = "stalled"
-            break
-        theta, log_gain = new_theta, new_log_gain
-        iterations += 1
-        history.append(new_cost)
-        lam = max(lam / 5.0, 1e-12)
-        lj = jacobian_at(theta, log_gain)
-    final_flux = FluxModel(basis, theta)
-    sigma2 = history[-1] / max(3 * N - p, 1) if history else math.nan
-    try:
-        cov_all = sigma2 * np.linalg.inv(JtJ + np.diag(wreg))
-    except np.linalg.LinAlgError:
-        cov_all = np.full((p, p), np.nan)
-    cov = cov_all[: theta.size, : theta.size]
-    gain = math.exp(log_gain)
-    gain_std = gain * math.sqrt(max(cov_all[-1, -1], 0.0)) if fit_gain else 0.0
+    theta_start = np.array(theta0, dtype=np.float64).reshape(3, basis.size)
+    ridge = np.zeros(layout.size)
+    if regularization is not None:
+        ridge[: layout.n_theta] = np.asarray(regularization, dtype=np.float64)
+    p = layout.size
+    problem = _Problem(
+        loop, layout, r, d, ridge, _default_stride(p) if stride is None else max(1, int(stride)),
+        threads, int(chunk),
+    )  # fmt: skip
+    it = _levenberg_marquardt(
+        problem, layout.pack(theta_start, math.log(gain0) if fit_gain else 0.0, cog0),
+        max_iterations=max_iterations, tol=tol, damping=damping,
+    )  # fmt: skip
+    system = it.system
+    if problem.stride != 1 and system.status.success:
+        system = problem.system(it.x, exact=True)  # the exact system for the covariance
+    sigma2 = it.history[-1] / max(3 * N - p, 1)
+    cov_all = _covariance(system, ridge, sigma2)
+    batch_cov = _batch_covariance(system, cov_all, sigma2)
+    gain = math.exp(layout.log_gain(it.x))
+    gain_std = (
+        gain * math.sqrt(max(cov_all[layout.gain_index, layout.gain_index], 0.0))
+        if fit_gain
+        else 0.0
+    )
     return SEMResult(
-        flux=final_flux,
-        theta0=np.asarray(theta0, float).reshape(3, -1),
-        cost_history=np.asarray(history if history else [math.inf]),
-        iterations=iterations,
-        status=status,
+        flux=FluxModel(basis, layout.theta(it.x)),
+        theta0=theta_start,
+        cost_history=np.asarray(it.history),
+        iterations=it.iterations,
+        status=it.status,
         solve_time=time.perf_counter() - t_start,
         noise_variance=sigma2,
-        covariance=cov,
+        covariance=cov_all[: layout.n_theta, : layout.n_theta].copy(),
         n_samples=N,
-        d_sim=lj.d,
-        y0_sim=lj.y0,
+        d_sim=system.d,
+        y0_sim=system.y0,
         gain=gain,
         gain_std=gain_std,
+        cogging=layout.cogging(it.x, cov_all) if orders else None,
+        parameter_covariance=cov_all,
+        layout=layout,
+        message=_message(it, p),
+        batch_covariance=batch_cov,
+        batches=int(system.batch_gradients.shape[0]),
+    )
+
+
+def _message(it: _Iterate, p: int) -> str:
+    what = {
+        SEMStatus.CONVERGED: "converged",
+        SEMStatus.MAX_ITERATIONS: "stopped at the iteration limit",
+        SEMStatus.STALLED: "stalled (no damped step reduced the cost)",
+        SEMStatus.DIVERGED: "the closed loop with the starting model diverges",
+    }.get(it.status, str(it.status))
+    return (
+        f"SEM {what}: {p} parameters, {it.iterations} iterations, cost "
+        f"{it.history[0]:.6g} -> {it.history[-1]:.6g}"
     )
 
 

@@ -5,7 +5,9 @@ identified model (Figs. sim_g and exp_g), the angle error of f_init and f_star (
 exp_eta) and its cumulative power spectral density over spatial frequency (Fig. exp_spectrum).
 Diagnostics beyond the paper: the closed-loop BLA (section "Obtaining a Best Linear
 Approximation"), the SEM cost per iteration (problem (problem)), the lookup table eta with its
-uncertainty band (eq. f_final) and the correction f_star - f_init applied along a recording.
+uncertainty band (eq. f_final), the correction f_star - f_init applied along a recording and the
+cogging torque identified with the flux (the cause of residual errors named in the paper's
+discussion).
 
 Compute first, plot separately: every function takes arrays or result objects that are already
 computed (:mod:`hallcal.pipeline`, :mod:`hallcal.sensor.metrics`, :mod:`hallcal.fit.sem`, ...)
@@ -34,6 +36,7 @@ if TYPE_CHECKING:
     from hallcal.fit.sem import SEMResult
     from hallcal.pipeline import BLAIdentification, Validation
     from hallcal.sensor.lut import LUT
+    from hallcal.sim.cogging import CoggingTorque
     from hallcal.sim.lti import ContinuousTF
 
 __all__ = [
@@ -44,6 +47,7 @@ __all__ = [
     "TRUTH_COLOR",
     "plot_angle_error",
     "plot_bla",
+    "plot_cogging",
     "plot_correction",
     "plot_error_spectrum",
     "plot_hall_model",
@@ -775,6 +779,61 @@ def plot_lut(
         ax2.margins(x=0)
         _legend_above(ax2, ncols=2)
     axes[-1].set_xlabel("mechanical angle y₀ [deg]")
+    return fig
+
+
+def plot_cogging(
+    cogging: CoggingTorque,
+    *,
+    true_cogging: CoggingTorque | None = None,
+    points: int = 2048,
+) -> Figure:
+    """The cogging map T_c(y0) identified jointly with the flux, with its +-2 sigma band.
+
+    ``T_c(y0) = sum_k a_k cos(k y0) + b_k sin(k y0)`` in plant input units (the unit of the
+    torque command: firmware subtracts it as a feed-forward). The band is ``2 std T_c(y0)`` from
+    the covariance of the coefficients (:meth:`CoggingTorque.std`, exact for a torque linear in
+    its coefficients). The second panel zooms on one period of the lowest order.
+
+    Parameters
+    ----------
+    cogging : CoggingTorque
+        The identified torque (with its covariance for the band).
+    true_cogging : CoggingTorque, optional
+        The virtual bench's torque, drawn black dashed.
+    points : int
+        Samples per revolution.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    k_low = min(cogging.orders) if cogging.size else 1
+    y = TWO_PI * np.arange(points) / points
+    span = TWO_PI / k_low
+    zoom = np.linspace(0.0, span, 400)
+    fig, axes = _figure(2, 6.0, sharex=False, ratios=(1.2, 1))
+    for ax, yy in zip(axes, (y, zoom), strict=True):
+        t = cogging(yy)
+        sd = cogging.std(yy)
+        ax.plot(_deg(yy), t, color=STAR_COLOR, lw=1.0, label="identified T_c(y₀)")
+        if np.all(np.isfinite(sd)):
+            ax.fill_between(_deg(yy), t - 2 * sd, t + 2 * sd, color=STAR_COLOR, alpha=0.25,
+                            lw=0, label="±2σ from the covariance")  # fmt: skip
+        if true_cogging is not None:
+            ax.plot(_deg(yy), true_cogging(yy), color=TRUTH_COLOR, lw=0.9, ls="--",
+                    label="true T_c(y₀)")  # fmt: skip
+        ax.axhline(0.0, color=NOISE_COLOR, lw=0.6)
+        ax.set_ylabel("torque [plant input]")
+        ax.margins(x=0)
+    axes[0].set_xlabel("mechanical angle y₀ [deg]")
+    axes[1].set_xlabel(f"mechanical angle y₀ [deg], one period of order {k_low}")
+    _legend_above(axes[0], ncols=3)
+    terms = ", ".join(
+        f"{k}/rev: {A:.3g} at {math.degrees(ph):.1f}°"
+        for k, A, ph in zip(cogging.orders, cogging.amplitude, cogging.phase, strict=True)
+    )
+    _title(fig, f"Cogging torque T_c(y₀) = Σ A_k cos(k y₀ − φ_k)\n{terms}")
     return fig
 
 

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from hallcal._version import __version__
 from hallcal.errors import HallcalInputError
 from hallcal.io import (
     Dataset,
@@ -42,6 +43,7 @@ from hallcal.io import (
     setup_from_dict,
     setup_to_toml,
 )
+from hallcal.pipeline.calibration import Calibration
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sim.lti import ContinuousTF
@@ -53,6 +55,7 @@ __all__ = [
     "content_from_calibration",
     "make_figures",
     "render_html",
+    "write_calibration_report",
     "write_demo_report",
     "write_report",
     "write_report_from_files",
@@ -63,8 +66,6 @@ TWO_PI = 2.0 * math.pi
 REPORT_NAME = "report.html"
 FIGURE_DIR = "figures"
 _DPI = 120
-#: Largest Jacobian (bytes) the file-based report computes for the LUT uncertainty band.
-_MAX_JACOBIAN_BYTES = 800 * 2**20
 
 
 def _say(progress: Progress, message: str) -> None:
@@ -148,6 +149,10 @@ class ReportContent:
         Input files (or "in memory") by role.
     notes : list of str
         What could not be shown, and why.
+    cogging : CoggingTorque or None
+        The cogging torque identified with the flux (with the covariance of its coefficients).
+    true_cogging : CoggingTorque or None
+        The virtual bench's cogging torque.
     """
 
     title: str
@@ -181,6 +186,8 @@ class ReportContent:
     notes: list[str] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     model_info: dict[str, Any] = field(default_factory=dict)
+    cogging: Any = None
+    true_cogging: Any = None
 
     @property
     def pole_pairs(self) -> int:
@@ -197,13 +204,28 @@ def _amplitude(flux: FluxModel, n_m: int) -> float:
 
 
 def _estimated_floor(noise_variance: float | None, flux: FluxModel, n_m: int) -> float | None:
-    """sigma sqrt(2/3) / (A n_m): the RMS angle error white Hall noise alone causes (DESIGN.md)."""
+    """sigma sqrt(2/3) / (A n_m): the RMS angle error of white Hall noise alone (docs/design.md)."""
     if noise_variance is None or not math.isfinite(noise_variance) or noise_variance < 0:
         return None
     a = _amplitude(flux, n_m)
     if not a > 0:
         return None
     return math.sqrt(noise_variance) * math.sqrt(2.0 / 3.0) / (a * n_m)
+
+
+_ESTIMATED_FLOOR = "estimated from the calibration data (model-free Hall noise level)"
+
+
+def _artifact_floor(diag: Mapping[str, Any], flux: FluxModel, n_m: int) -> tuple[float | None, str]:
+    """The artifact's noise floor (the calibration's own), or for artifacts written before it
+    was stored, the estimate from the SEM's noise variance."""
+    stored = diag.get("noise_floor")
+    if isinstance(stored, int | float) and math.isfinite(stored):
+        return float(stored), _ESTIMATED_FLOOR
+    return (
+        _estimated_floor(diag.get("noise_variance"), flux, n_m),
+        "estimated from the SEM residual",
+    )
 
 
 def _traces(lut: LUT, dataset: Dataset) -> Traces:
@@ -289,6 +311,7 @@ def content_from_calibration(
     sources: Mapping[str, str] | None = None,
     title: str = "hallcal calibration report",
     noise_floor_source: str = "given",
+    true_cogging: Any = None,
 ) -> ReportContent:
     """Gather a report's content from an in-memory :class:`~hallcal.pipeline.Calibration`.
 
@@ -305,7 +328,7 @@ def content_from_calibration(
         Already computed errors on ``validation_data`` (recomputed when None).
     noise_floor : float, optional
         RMS angle error of Hall noise alone [rad]; default: estimated from the SEM residual.
-    true_flux, true_plant, true_noise_variance : optional
+    true_flux, true_plant, true_noise_variance, true_cogging : optional
         The virtual bench's truth, drawn for comparison.
     sources : mapping, optional
         Input names by role, listed in the report.
@@ -347,9 +370,9 @@ def content_from_calibration(
             "f_init is shown."
         )
     floor_source = noise_floor_source
-    if noise_floor is None and sem is not None:
-        noise_floor = _estimated_floor(sem.noise_variance, flux, n_m)
-        floor_source = "estimated from the SEM residual"
+    if noise_floor is None and math.isfinite(cal.noise_floor):
+        noise_floor = cal.noise_floor
+        floor_source = _ESTIMATED_FLOOR
     d_model, label = _model_signals(sem, flux, d, cal_traces)
     true_lut = None
     if true_flux is not None:
@@ -358,7 +381,7 @@ def content_from_calibration(
         )
     t = np.asarray(data["t"], dtype=np.float64) if "t" in data else None
     if t is None:
-        # sample_time = 1.0 means time in samples (DESIGN.md): plot over the sample index
+        # sample_time = 1.0 means time in samples (docs/design.md): plot over the sample index
         t = None if cal.setup.sample_time == 1.0 else cal.setup.sample_time * np.arange(d.shape[0])
     return ReportContent(
         title=title,
@@ -392,6 +415,8 @@ def content_from_calibration(
         notes=notes,
         timings=dict(cal.timings),
         model_info={k: v for k, v in cal.model_info.items() if k not in ("theta", "weights")},
+        cogging=getattr(cal, "cogging", None),
+        true_cogging=true_cogging,
     )
 
 
@@ -458,11 +483,16 @@ def _resimulate(
     progress: Progress,
     notes: list[str],
 ) -> Any:
-    """The SEM result of an artifact: cost history stored, d_sim/y0_sim and covariance redone."""
-    from threadpoolctl import threadpool_limits
+    """The SEM result of an artifact: cost history stored, d_sim/y0_sim and covariance redone.
 
+    The loop includes the artifact's cogging torque; for a Fourier model one structured
+    Gauss-Newton pass (:mod:`hallcal.fit.gauss_newton`, with the cogging coefficients as
+    parameters, as in the calibration) gives cov(theta) for the table's band.
+    """
+    from hallcal.fit.gauss_newton import ParameterLayout, gauss_newton_system
     from hallcal.fit.sem import SEMResult
-    from hallcal.sim.loop import ClosedLoop, loop_jacobian, simulate_loop
+    from hallcal.sim.cogging import CoggingTorque
+    from hallcal.sim.loop import ClosedLoop
 
     diag = art.get("diagnostics", {})
     history = np.asarray(diag.get("cost_history", []), dtype=np.float64)
@@ -474,6 +504,7 @@ def _resimulate(
     cov = None
     s2 = float(diag.get("noise_variance", math.nan))
     closed = setup.trajectory.kind == "closed-loop"
+    cogging = CoggingTorque.from_dict(art["cogging"]) if "cogging" in art else None
     if not (closed and plant is not None and setup.controller is not None and "r" in data):
         notes.append(
             "The model fit is shown at the calibrated angle f_star: re-simulating the closed loop "
@@ -490,36 +521,34 @@ def _resimulate(
             offset=lut.offset,
         )
         r = np.ascontiguousarray(data["r"], dtype=np.float64)
-        res = simulate_loop(loop, flux, r)
-        if res.status != "ok":
+        layout = ParameterLayout(flux.basis, cogging_orders=() if cogging is None
+                                 else cogging.orders)  # fmt: skip
+        x = layout.pack(flux.theta, 0.0, cogging)
+        basis_kind = art.get("model", {}).get("basis", "fourier")
+        fourier = basis_kind == "fourier"
+        if fourier:
+            _say(progress, "parameter covariance (one sensitivity pass) for the LUT band")
+        gn = gauss_newton_system(loop, layout, x, r, d, gram=fourier)
+        if not gn.status.success:
             notes.append("Re-simulating the closed loop with the identified model diverged.")
         else:
-            d_sim, y0_sim = res.d, res.y0
-            e = d - d_sim
-            cost = float(np.vdot(e, e))
+            d_sim, y0_sim = gn.d, gn.y0
+            cost = gn.sse
             stored = float(diag.get("cost", cost))
             if not math.isclose(cost, stored, rel_tol=1e-3):
                 notes.append(
                     f"The data's simulation cost ({cost:.6g}) differs from the artifact's "
                     f"({stored:.6g}): the data may not be the calibration recording."
                 )
-            p = flux.theta.size
-            basis_kind = art.get("model", {}).get("basis", "fourier")
-            if basis_kind == "fourier" and n * 3 * p * 8 <= _MAX_JACOBIAN_BYTES:
-                _say(progress, "parameter covariance (one sensitivity pass) for the LUT band")
-                lj = loop_jacobian(loop, flux, r)
-                if lj.status == "ok":
-                    J = lj.jac.reshape(3 * n, p)
-                    with threadpool_limits(limits=1, user_api="blas"):
-                        jtj = J.T @ J
-                    del J, lj
-                    if not math.isfinite(s2):
-                        s2 = cost / max(3 * n - p, 1)
-                    try:
-                        cov = s2 * np.linalg.inv(jtj)
-                    except np.linalg.LinAlgError:
-                        cov = None
-            elif basis_kind != "fourier":
+            if fourier:
+                if not math.isfinite(s2):
+                    s2 = cost / max(3 * n - layout.size, 1)
+                try:
+                    p = flux.theta.size
+                    cov = (s2 * np.linalg.inv(gn.gram))[:p, :p]
+                except np.linalg.LinAlgError:
+                    cov = None
+            else:
                 notes.append(
                     "No uncertainty band for the lookup table: the covariance of a kernel model "
                     "is only available in the calibrating process."
@@ -536,6 +565,7 @@ def _resimulate(
         n_samples=int(diag.get("n_samples", n)),
         d_sim=d_sim,
         y0_sim=y0_sim,
+        cogging=cogging,
     )
 
 
@@ -554,7 +584,7 @@ def content_from_artifact(
     The lookup table and the flux model come from the artifact; the closed loop is re-simulated
     with the stored plant and controller to show the model fit (Fig. sim_g), and for a Fourier
     model one sensitivity pass gives cov(theta) for the table's uncertainty band. The noise
-    floor is estimated from the SEM residual (``sigma sqrt(2/3) / (A n_m)``).
+    floor is the calibration's own (``diagnostics.noise_floor``).
 
     Parameters
     ----------
@@ -587,7 +617,7 @@ def content_from_artifact(
     notes: list[str] = []
     cal_traces = _traces(lut, data)
     sem = _resimulate(artifact, setup, flux, plant, data, lut, progress=progress, notes=notes)
-    noise_floor = _estimated_floor(diag.get("noise_variance"), flux, n_m)
+    noise_floor, floor_source = _artifact_floor(diag, flux, n_m)
     validation = None
     val_traces = None
     val_source = None
@@ -613,7 +643,7 @@ def content_from_artifact(
     d_model, label = _model_signals(sem, flux, d, cal_traces)
     t = np.asarray(data["t"], dtype=np.float64) if "t" in data else None
     if t is None:
-        # sample_time = 1.0 means time in samples (DESIGN.md): plot over the sample index
+        # sample_time = 1.0 means time in samples (docs/design.md): plot over the sample index
         t = None if setup.sample_time == 1.0 else setup.sample_time * np.arange(d.shape[0])
     p = artifact.get("plant") if isinstance(artifact.get("plant"), Mapping) else {}
     gain = p.get("gain_correction")
@@ -633,7 +663,7 @@ def content_from_artifact(
         else None,
         predicted_error=None if predicted is None else float(predicted),
         noise_floor=noise_floor,
-        noise_floor_source="estimated from the SEM residual",
+        noise_floor_source=floor_source,
         status=str(diag.get("status", "unknown")),
         messages=[str(m) for m in diag.get("messages", [])],
         adequacy=_adequacy_dict(diag.get("adequacy")),
@@ -652,6 +682,7 @@ def content_from_artifact(
         model_info={
             k: v for k, v in artifact.get("model", {}).items() if k not in ("theta", "weights")
         },
+        cogging=None if sem is None else sem.cogging,
     )
 
 
@@ -789,6 +820,28 @@ def make_figures(content: ReportContent) -> list[ReportFigure]:
                 "Simulation-error cost per accepted Levenberg-Marquardt step. A converged model "
                 f"ends at the noise level 3Nσ² ({which} σ², dashed).",
                 plots.plot_sem_cost(c.sem, noise_variance=c.true_noise_variance),
+            )
+        )
+    if c.cogging is not None and c.cogging.size:
+        figs.append(
+            ReportFigure(
+                "cogging",
+                "Cogging torque identified with the flux (paper sec. Discussion)",
+                "The position-periodic torque at the plant input that the closed-loop "
+                "simulation needed to reproduce the data, in the unit of the torque command"
+                + (
+                    ", with its ±2σ band from the covariance"
+                    if c.cogging.covariance is not None
+                    else ""
+                )
+                + (
+                    " and the virtual bench's torque (black dashed)"
+                    if c.true_cogging is not None
+                    else ""
+                )
+                + ". Identified jointly with the flux, it no longer leaks into the lookup "
+                "table; subtracted from the torque command it is an anticogging feed-forward.",
+                plots.plot_cogging(c.cogging, true_cogging=c.true_cogging),
             )
         )
     figs.append(
@@ -1045,7 +1098,7 @@ def render_html(content: ReportContent, images: list[tuple[ReportFigure, bytes]]
         f"<h1>{_esc(c.title)}</h1>",
         f'<p class="meta">{c.pole_pairs} pole pairs · sample time '
         f"{_num(c.setup.sample_time, '.4g')} s · inputs: {_esc(src)} · created {created} · "
-        f"hallcal {_esc(_version())}</p>",
+        f"hallcal {_esc(__version__)}</p>",
         f'<p><span class="status {_status_class(c.status)}">status: {_esc(c.status)}</span></p>',
     ]
     if c.messages or c.notes:
@@ -1076,15 +1129,6 @@ def render_html(content: ReportContent, images: list[tuple[ReportFigure, bytes]]
     )
     out.append("</main></body></html>")
     return "\n".join(out) + "\n"
-
-
-def _version() -> str:
-    try:
-        from importlib.metadata import PackageNotFoundError, version
-
-        return version("hallcal")
-    except (ImportError, PackageNotFoundError):
-        return "unknown"
 
 
 def _png(fig: Any) -> bytes:
@@ -1224,6 +1268,8 @@ def write_demo_report(
     out_dir : path-like
     noise_floor : float
         RMS angle error of the bench's Hall noise alone [rad].
+    progress : callable, optional
+        Called with a short message per step.
 
     Returns
     -------
@@ -1248,4 +1294,42 @@ def write_demo_report(
         title="hallcal demo: the paper's simulation study",
         noise_floor_source="virtual bench: σ·√(2/3)/(A·n_m) with the true σ and A",
     )
+    return write_report(content, out_dir, progress=progress)
+
+
+def write_calibration_report(
+    cal: Calibration,
+    data: Dataset,
+    out_dir: str | os.PathLike[str],
+    *,
+    validation: Dataset | None = None,
+    progress: Progress = None,
+) -> Path:
+    """The report of a calibration object (``Calibration.report``), computed or loaded.
+
+    A calibration computed in this process reports its in-memory results; one loaded from an
+    artifact (:attr:`Calibration.artifact`) is reported as ``hallcal report`` does it.
+
+    Parameters
+    ----------
+    cal : Calibration
+    data : Dataset
+        The calibration recording.
+    out_dir : path-like
+    validation : Dataset, optional
+        A fresh recording with ``y_ref``.
+    progress : callable, optional
+        Called with a short message per step.
+
+    Returns
+    -------
+    pathlib.Path
+        The HTML file.
+    """
+    if cal.artifact is not None:
+        content = content_from_artifact(
+            cal.artifact, data, validation_data=validation, progress=progress
+        )
+    else:
+        content = content_from_calibration(cal, data, validation_data=validation)
     return write_report(content, out_dir, progress=progress)

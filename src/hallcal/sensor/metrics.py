@@ -42,6 +42,10 @@ def angle_error(y_est: ArrayLike, y_ref: ArrayLike, *, remove_mean: bool = True)
 
     Parameters
     ----------
+    y_est : array_like (N,)
+        Estimated angle [rad].
+    y_ref : array_like (N,)
+        Reference angle (encoder or the bench's truth) [rad].
     remove_mean : bool, keyword-only
         Whether ``rms`` and ``peak`` are taken about the mean error (default) or about zero.
     """

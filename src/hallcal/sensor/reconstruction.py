@@ -136,6 +136,8 @@ def f_init_step(
         Previous estimate y(t_{k-1}) [rad, mechanical].
     pole_pairs : int
         n_m.
+    projection, offset : array_like, optional
+        As in :func:`f_init`.
 
     Returns
     -------
@@ -154,7 +156,7 @@ class InitReconstructor:
     pole_pairs : int
         n_m.
     y_initial : float, optional
-        The estimate before the first sample [rad]; 0 by the convention of DESIGN.md.
+        The estimate before the first sample [rad]; 0 by the convention of docs/design.md.
     projection, offset : optional
         As in :func:`alpha_beta`.
     """
@@ -206,6 +208,11 @@ def f_init(
         n_m >= 1.
     y_initial : float
         Estimate before the first sample [rad].
+    projection : array_like (2, 3), optional
+        Rows giving (alpha, beta) from the three signals; default the Clarke rows (nominal
+        0/120/240 degree sensors).
+    offset : array_like (3,), optional
+        Sensor offsets subtracted first; default zero.
 
     Returns
     -------

@@ -22,7 +22,8 @@ in the mechanical angle), built from physical knobs:
   pattern, different under every pole pair, seen by each sensor at its own position; energy at all
   mechanical harmonics 1..``shape_harmonics`` n_m, every sideband k n_m +- j included;
 - Hall noise ``v_h`` with variance ``noise_variance``, a random low-frequency torque disturbance
-  and a cogging torque ``cogging sin(cogging_periods y0)`` added to the plant input.
+  and a cogging torque ``cogging sin(cogging_periods y0) + sum A cos(k y0 - phase)``
+  (``cogging_terms``) added to the plant input (:class:`~hallcal.sim.cogging.CoggingTorque`).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ import scipy.signal
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sim.cogging import CoggingTorque
 from hallcal.sim.loop import ClosedLoop, simulate_loop
 from hallcal.sim.lti import ContinuousTF, DiscreteTF
 
@@ -50,7 +52,7 @@ __all__ = [
 ]
 
 TWO_PI = 2.0 * math.pi
-#: G(s) of the paper's simulation (with the physical sign of the delay, see DESIGN.md).
+#: G(s) of the paper's simulation (with the physical sign of the delay, see docs/design.md).
 PAPER_PLANT = ContinuousTF((1.663e5,), (1.0, 632.6, 2702.0, 0.0), 1.2e-4)
 #: C(q) of eq. (controller).
 PAPER_CONTROLLER = DiscreteTF((2.94, -3.29, -2.10, 2.45), (1.0, -3.45, 4.52, -2.68, 0.61))
@@ -61,7 +63,7 @@ def noise_floor(noise_variance: float, pole_pairs: int, amplitude: float = 1.0) 
 
     The alpha/beta projection of three channels with variance sigma^2 has variance
     (2/3) sigma^2 per component; the tangential part gives an electrical angle error of
-    sigma sqrt(2/3) / A, i.e. sigma sqrt(2/3) / (A n_m) mechanical (DESIGN.md).
+    sigma sqrt(2/3) / A, i.e. sigma sqrt(2/3) / (A n_m) mechanical (docs/design.md).
     """
     return math.sqrt(noise_variance) * math.sqrt(2.0 / 3.0) / (amplitude * pole_pairs)
 
@@ -99,7 +101,11 @@ class BenchConfig:
         in plant input units.
     cogging, cogging_periods : float, int
         Cogging torque amplitude (plant input units) and periods per revolution
-        (0 = 6 n_m, the sixth electrical harmonic of a three-phase machine).
+        (0 = 6 n_m, the sixth electrical harmonic of a three-phase machine): a term
+        ``cogging sin(cogging_periods y0)``.
+    cogging_terms : tuple of (int, float, float)
+        Further cogging terms ``(k, A, phase_deg)``, each ``A cos(k y0 - phase)`` (plant input
+        units): real cogging has several orders (multiples of the slot/pole pattern) with phases.
     shape_variation : float
         Per-magnet shape variation s: RMS, relative to A, of the random deformation of each pole
         pair's flux waveform (:func:`shape_deformation`; 0 = none, the default).
@@ -125,6 +131,7 @@ class BenchConfig:
     torque_disturbance: float = 0.0
     cogging: float = 0.0
     cogging_periods: int = 0
+    cogging_terms: tuple[tuple[int, float, float], ...] = ()
     shape_variation: float = 0.0
     shape_harmonics: int = 5
     seed: int = 0
@@ -155,6 +162,19 @@ class BenchConfig:
     def truth(self) -> FluxModel:
         """The true flux g(y0) as an exact Fourier series (see the module docstring)."""
         return _truth(self)
+
+    def cogging_torque(self) -> CoggingTorque:
+        """The true cogging torque T_c(y0): ``cogging`` and ``cogging_terms`` summed per order."""
+        coef: dict[int, complex] = {}
+        if self.cogging:
+            k = int(self.cogging_periods or 6 * self.pole_pairs)
+            coef[k] = coef.get(k, 0j) + 1j * float(self.cogging)  # sin: b = amplitude
+        for k, amp, phase_deg in self.cogging_terms:
+            z = float(amp) * complex(math.cos(math.radians(phase_deg)),
+                                     math.sin(math.radians(phase_deg)))  # fmt: skip
+            coef[int(k)] = coef.get(int(k), 0j) + z
+        orders = tuple(sorted(coef))
+        return CoggingTorque(orders, [coef[k].real for k in orders], [coef[k].imag for k in orders])
 
 
 def shape_deformation(
@@ -315,7 +335,7 @@ class BenchRun:
         return int(self.r.size)
 
     def columns(self, *, with_encoder: bool = True) -> dict[str, NDArray[np.float64]]:
-        """Dataset columns of DESIGN.md (``y_ref`` = the true angle, validation only)."""
+        """Dataset columns of docs/design.md (``y_ref`` = the true angle, validation only)."""
         cols = {
             "t": self.t,
             "r": self.r,
@@ -383,15 +403,8 @@ def simulate_run(
     noise = sigma * rng.standard_normal((N, 3))
     td = _lowpass_noise(rng, N, config.torque_disturbance, config.sample_time)
     truth = config.truth()
-    cog_per = config.cogging_periods or 6 * config.pole_pairs
     res = simulate_loop(
-        config.loop(),
-        truth,
-        r,
-        noise=noise,
-        torque_disturbance=td,
-        cogging_amplitude=config.cogging,
-        cogging_periods=cog_per,
+        config.loop(), truth, r, noise=noise, torque_disturbance=td, cogging=config.cogging_torque()
     )
     return BenchRun(
         t=config.sample_time * np.arange(N),

@@ -8,7 +8,7 @@ Per sample k (zero initial conditions, y(t_{-1}) = y_initial):
     e[k]   = r[k] - y[k]
     u[k]   = C_C x_C[k] + D_C e[k]                   torque command
     x_C[k+1] = A_C x_C[k] + B_C e[k]
-    x_G[k+1] = A_G x_G[k] + B_G (u[k] + T_d[k] + T_cog(y0[k]))
+    x_G[k+1] = A_G x_G[k] + B_G (u[k] + T_d[k] + T_c(y0[k]))     (T_c: cogging torque)
 
 The plant is the exact ZOH discretization of G(s) with its input delay (:mod:`hallcal.sim.lti`), so
 it has no direct feedthrough and the loop is explicit.
@@ -22,17 +22,20 @@ Sensitivities (forward mode, exact). With ``g_h(y0) = beta(y0) theta_h`` and
     dd_h  = g_h'(y0) dy0 + e_h kron beta(y0)          (feedback term + direct term)
     dy    = (P_alpha dd, P_beta dd) -> as above
     du    = C_C S_C - D_C dy
+    dw    = du + T_c'(y0) dy0 (+ [cos k y0, sin k y0] for the cogging coefficients)
     S_C+  = A_C S_C - B_C dy
-    S_G+  = A_G S_G + B_G du
+    S_G+  = A_G S_G + B_G dw (+ B_G w for log c, the plant input gain)
 
-The feedback term ``g'(y0) dy0`` is what makes simulation-error minimization converge (DESIGN.md).
+The feedback term ``g'(y0) dy0`` is what makes simulation-error minimization converge
+(docs/design.md).
 The hot loops are compiled with numba; float64 throughout.
 """
 
 from __future__ import annotations
 
+import enum
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numba as nb
 import numpy as np
@@ -40,11 +43,31 @@ from numpy.typing import ArrayLike, NDArray
 
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.reconstruction import clarke_matrix
+from hallcal.sim.cogging import CoggingTorque
 from hallcal.sim.lti import ContinuousTF, DiscreteTF, StateSpace
 
-__all__ = ["ClosedLoop", "LoopJacobian", "LoopResult", "loop_jacobian", "simulate_loop"]
+__all__ = [
+    "ClosedLoop",
+    "LoopJacobian",
+    "LoopResult",
+    "LoopStatus",
+    "loop_jacobian",
+    "simulate_loop",
+]
 
 TWO_PI = 2.0 * math.pi
+
+
+class LoopStatus(enum.StrEnum):
+    """Outcome of a closed-loop simulation or sensitivity pass."""
+
+    OK = "ok"
+    #: the states left a sane range or the angle moved half an electrical period in one sample
+    DIVERGED = "diverged"
+
+    @property
+    def success(self) -> bool:
+        return self is LoopStatus.OK
 
 
 @dataclass(frozen=True)
@@ -63,6 +86,9 @@ class ClosedLoop:
         f_init's projection (Clarke rows by default).
     offset : ndarray (3,)
         f_init's sensor offsets.
+    cogging : CoggingTorque or None
+        A known cogging torque T_c(y0) at the plant input, part of the plant model (e.g. one
+        identified earlier); the simulations and sensitivities include it.
     """
 
     plant: StateSpace
@@ -70,6 +96,7 @@ class ClosedLoop:
     pole_pairs: int
     projection: NDArray[np.float64] = field(default_factory=lambda: clarke_matrix()[:2])
     offset: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    cogging: CoggingTorque | None = None
 
     def __post_init__(self) -> None:
         if self.plant.D != 0.0:
@@ -100,13 +127,11 @@ class ClosedLoop:
     def with_plant_gain(self, c: float) -> ClosedLoop:
         """The loop with the plant input matrix scaled by c (eq. c_hat: B_G -> c B_G)."""
         p = self.plant
-        return ClosedLoop(
-            StateSpace(p.A, c * p.B, p.C, p.D, p.dt),
-            self.controller,
-            self.pole_pairs,
-            self.projection,
-            self.offset,
-        )
+        return replace(self, plant=StateSpace(p.A, c * p.B, p.C, p.D, p.dt))
+
+    def with_cogging(self, cogging: CoggingTorque | None) -> ClosedLoop:
+        """The loop with a known cogging torque at the plant input (None: without)."""
+        return replace(self, cogging=cogging)
 
     def _arrays(self) -> tuple:
         p, c = self.plant, self.controller
@@ -130,10 +155,10 @@ class LoopResult:
     Attributes
     ----------
     y0 : true (simulated) angle [rad]; y : f_init output [rad]; u : torque command;
-    d : Hall signals (N, 3) including noise; torque : total plant input u + T_d + T_cog;
-    status : "ok", or "diverged" when the loop went unstable: the states left a sane range or the
-    angle moved more than half an electrical period in one sample, so that f_init aliases
-    (the remaining samples are NaN).
+    d : Hall signals (N, 3) including noise; torque : total plant input u + T_d + T_c(y0);
+    status : LoopStatus.OK, or DIVERGED when the loop went unstable: the states left a sane
+    range or the angle moved more than half an electrical period in one sample, so that f_init
+    aliases (the remaining samples are NaN).
     """
 
     y0: NDArray[np.float64] = field(repr=False)
@@ -141,7 +166,7 @@ class LoopResult:
     u: NDArray[np.float64] = field(repr=False)
     d: NDArray[np.float64] = field(repr=False)
     torque: NDArray[np.float64] = field(repr=False)
-    status: str = "ok"
+    status: LoopStatus = LoopStatus.OK
 
 
 @dataclass(frozen=True)
@@ -156,8 +181,8 @@ class LoopJacobian:
         Simulated angle, f_init output and torque command.
     jac : ndarray (N, 3, p)
         d d_sim[k, h] / d theta_j with theta flattened row-major (sensor-major, 3 x m).
-    status : str
-        "ok" or "diverged".
+    status : LoopStatus
+        OK or DIVERGED.
     """
 
     d: NDArray[np.float64] = field(repr=False)
@@ -165,7 +190,7 @@ class LoopJacobian:
     y: NDArray[np.float64] = field(repr=False)
     u: NDArray[np.float64] = field(repr=False)
     jac: NDArray[np.float64] = field(repr=False)
-    status: str = "ok"
+    status: LoopStatus = LoopStatus.OK
 
 
 @nb.njit(cache=True, fastmath=False)
@@ -274,9 +299,23 @@ def _output(C, x, D, e):
     return u
 
 
+@nb.njit(cache=True, inline="always")
+def _cogging(orders, coef, y0):
+    """T_c(y0) and dT_c/dy0 for interleaved coefficients [a_1, b_1, ...] (direct sin/cos)."""
+    t = 0.0
+    dt = 0.0
+    for i in range(orders.size):
+        k = orders[i]
+        c = math.cos(k * y0)
+        s = math.sin(k * y0)
+        t += coef[2 * i] * c + coef[2 * i + 1] * s
+        dt += k * (coef[2 * i + 1] * c - coef[2 * i] * s)
+    return t, dt
+
+
 @nb.njit(cache=True)
 def _simulate_kernel(
-    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, noise, td, cog_amp, cog_per, y_init
+    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, noise, td, cog_k, cog_x, y_init
 ):
     N = r.size
     ng = Ag.shape[0]
@@ -312,9 +351,7 @@ def _simulate_kernel(
         y = _unwrap(math.atan2(be, al), yprev, n_m)
         e = r[k] - y
         u = _output(Cc, xc, Dc, e)
-        tq = u + td[k]
-        if cog_amp != 0.0:
-            tq += cog_amp * math.sin(cog_per * y0)
+        tq = u + td[k] + _cogging(cog_k, cog_x, y0)[0]
         _advance(Ac, Bc, xc, e, xc2)
         _advance(Ag, Bg, xg, tq, xg2)
         y0s[k] = y0
@@ -339,13 +376,16 @@ def _simulate_kernel(
 
 @nb.njit(cache=True)
 def _jacobian_kernel(
-    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, y_init, jac, fit_gain
-):
+    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, y_init, jac, fit_gain, cog_k, cog_x,
+    n_cog_fit,
+):  # fmt: skip
     N = r.size
     ng = Ag.shape[0]
     nc = Ac.shape[0]
     m = theta.shape[1]
-    p = 3 * m + (1 if fit_gain else 0)  # last column: d / d log(c), plant input gain
+    jg = 3 * m  # column d / d log(c), plant input gain (when fit_gain)
+    jc0 = 3 * m + (1 if fit_gain else 0)  # first cogging column (a_1, b_1, a_2, ...)
+    p = jc0 + 2 * n_cog_fit  # the first n_cog_fit cogging terms are fitted
     xg = np.zeros(ng)
     xc = np.zeros(nc)
     xg2 = np.zeros(ng)
@@ -359,10 +399,10 @@ def _jacobian_kernel(
     du = np.empty(p)
     b = np.empty(m)
     db = np.empty(m)
-    y0s = np.empty(N)
-    ys = np.empty(N)
-    us = np.empty(N)
-    ds = np.empty((N, 3))
+    y0s = np.full(N, np.nan)
+    ys = np.full(N, np.nan)
+    us = np.full(N, np.nan)
+    ds = np.full((N, 3), np.nan)
     gp = np.empty(3)
     dk = np.empty(3)
     yprev = y_init
@@ -372,8 +412,6 @@ def _jacobian_kernel(
         y0 = _angle_and_sensitivity(Cg, xg, Sg, dy0)
         _basis(y0, harm, b, db)
         _flux_and_slope(theta, b, db, dk, gp)
-        for h in range(3):
-            ds[k, h] = dk[h]
         al, be = _alpha_beta(P, off, dk)
         rho2 = al * al + be * be
         # d psi / d d_h
@@ -398,40 +436,63 @@ def _jacobian_kernel(
         y = _unwrap(math.atan2(be, al), yprev, n_m)
         e = r[k] - y
         u = _output(Cc, xc, Dc, e)
+        tc, dtc = _cogging(cog_k, cog_x, y0)
+        w = u + tc  # plant input
+        # dw = du + T_c'(y0) dy0 (+ the cogging regressors in their own columns)
         for j in range(p):
-            du[j] = -Dc * dy[j]
+            du[j] = -Dc * dy[j] + dtc * dy0[j]
         for i in range(nc):
             ci = Cc[i]
             if ci != 0.0:
                 for j in range(p):
                     du[j] += ci * Sc[i, j]
+        for i in range(n_cog_fit):
+            du[jc0 + 2 * i] += math.cos(cog_k[i] * y0)
+            du[jc0 + 2 * i + 1] += math.sin(cog_k[i] * y0)
         # state and sensitivity updates
         for j in range(p):
             dy[j] = -dy[j]  # de = -dy drives the controller
         _advance_sensitivity(Ac, Bc, Sc, dy, Sc2)
         _advance_sensitivity(Ag, Bg, Sg, du, Sg2)
         if fit_gain:
-            # x+ = A x + c B u with Bg = c B: d/d log c adds Bg u
+            # x+ = A x + c B w with Bg = c B: d/d log c adds Bg w
             for i in range(ng):
-                Sg2[i, p - 1] += Bg[i] * u
+                Sg2[i, jg] += Bg[i] * w
         _advance(Ac, Bc, xc, e, xc2)
-        _advance(Ag, Bg, xg, u, xg2)
+        _advance(Ag, Bg, xg, w, xg2)
         Sc, Sc2 = Sc2, Sc
         Sg, Sg2 = Sg2, Sg
-        y0s[k] = y0
-        ys[k] = y
-        us[k] = u
-        yprev = y
         bad = _diverged(y0, y0_last, u, n_m)
         y0_last = y0
         if bad:
             ok = False
             break
+        y0s[k] = y0
+        ys[k] = y
+        us[k] = u
+        for h in range(3):
+            ds[k, h] = dk[h]
+        yprev = y
+    if not ok:  # never hand out uninitialised rows
+        for kk in range(k, N):
+            for h in range(3):
+                for j in range(p):
+                    jac[kk, h, j] = np.nan
     return y0s, ys, us, ds, ok
 
 
 def _harmonics_of(flux: FluxModel) -> NDArray[np.float64]:
     return np.ascontiguousarray(flux.basis.harmonic_array)
+
+
+def _cogging_arrays(*torques: CoggingTorque | None) -> tuple[NDArray, NDArray]:
+    """Orders (float64) and interleaved coefficients of the terms of several cogging torques,
+    concatenated in order (the kernels sum all terms; an order may repeat)."""
+    ts = [t for t in torques if t is not None and t.size]
+    if not ts:
+        return np.zeros(0), np.zeros(0)
+    orders = np.concatenate([np.asarray(t.orders, dtype=np.float64) for t in ts])
+    return orders, np.concatenate([t.coefficients for t in ts])
 
 
 def simulate_loop(
@@ -441,8 +502,7 @@ def simulate_loop(
     *,
     noise: ArrayLike | None = None,
     torque_disturbance: ArrayLike | None = None,
-    cogging_amplitude: float = 0.0,
-    cogging_periods: int = 0,
+    cogging: CoggingTorque | None = None,
     y_initial: float = 0.0,
 ) -> LoopResult:
     """Simulate eq. (state_eq) with optional sensor noise, torque disturbance and cogging.
@@ -458,8 +518,8 @@ def simulate_loop(
         Additive Hall noise v[k].
     torque_disturbance : array_like (N,), optional
         T_d[k], added to the plant input.
-    cogging_amplitude, cogging_periods : keyword-only
-        Position-dependent torque ``a sin(periods * y0)`` added to the plant input.
+    cogging : CoggingTorque, keyword-only, optional
+        Position-periodic torque T_c(y0) added to the plant input.
     y_initial : float
         f_init's estimate before the first sample [rad].
 
@@ -485,11 +545,10 @@ def simulate_loop(
         r,
         v,
         td,
-        float(cogging_amplitude),
-        float(cogging_periods),
+        *_cogging_arrays(loop.cogging, cogging),
         float(y_initial),
     )
-    return LoopResult(y0, y, u, d, tq, "ok" if ok else "diverged")
+    return LoopResult(y0, y, u, d, tq, LoopStatus.OK if ok else LoopStatus.DIVERGED)
 
 
 def loop_jacobian(
@@ -500,16 +559,30 @@ def loop_jacobian(
     y_initial: float = 0.0,
     out: NDArray[np.float64] | None = None,
     fit_gain: bool = False,
+    cogging: CoggingTorque | None = None,
+    fit_cogging: bool = False,
 ) -> LoopJacobian:
-    """Noise-free simulation of eq. (state_eq) with the exact Jacobian d d_sim / d theta.
+    """Noise-free simulation of eq. (state_eq) with the exact, dense Jacobian d d_sim / d x.
+
+    The straightforward forward-sensitivity recursion of the module docstring, one dense
+    (N, 3, p) array: the reference against which the structured Gauss-Newton system of
+    :mod:`hallcal.fit.gauss_newton` is tested (the fit itself never forms it).
 
     Parameters
     ----------
-    out : ndarray (N, 3, 3 m [+ 1]), optional
-        Preallocated Jacobian storage (reused between Gauss-Newton iterations).
+    out : ndarray (N, 3, p), optional
+        Preallocated Jacobian storage.
     fit_gain : bool, keyword-only
         Append the column d d_sim / d log(c) for a factor c on the plant input matrix
         (``B_G -> c B_G``, the unknown BLA gain of eq. c_hat), so that c can be refined jointly.
+    cogging : CoggingTorque, optional
+        Cogging torque T_c(y0) at the plant input (part of the simulated loop).
+    fit_cogging : bool
+        Append the columns d d_sim / d (a_1, b_1, a_2, b_2, ...) of the cogging coefficients,
+        including the feedback term ``dT_c/dy0 dy0`` in every column.
+
+    Columns: theta (3 m, sensor-major), then log c (fit_gain), then the cogging coefficients.
+    After a divergence the remaining samples and Jacobian rows are NaN.
 
     Returns
     -------
@@ -517,7 +590,10 @@ def loop_jacobian(
     """
     r = np.ascontiguousarray(r, dtype=np.float64)
     N = r.size
-    p = flux.theta.size + (1 if fit_gain else 0)
+    n_fit = len(cogging.orders) if (fit_cogging and cogging is not None) else 0
+    # the fitted orders first (their columns), then the loop's own, fixed cogging torque
+    cog_k, cog_x = _cogging_arrays(cogging, loop.cogging)
+    p = flux.theta.size + (1 if fit_gain else 0) + 2 * n_fit
     jac = np.empty((N, 3, p)) if out is None else out
     if jac.shape != (N, 3, p):
         raise ValueError(f"out must have shape {(N, 3, p)}")
@@ -530,5 +606,8 @@ def loop_jacobian(
         float(y_initial),
         jac,
         bool(fit_gain),
+        cog_k,
+        cog_x,
+        n_fit,
     )
-    return LoopJacobian(d, y0, y, u, jac, "ok" if ok else "diverged")
+    return LoopJacobian(d, y0, y, u, jac, LoopStatus.OK if ok else LoopStatus.DIVERGED)

@@ -99,7 +99,7 @@ class ContinuousTF:
         Polynomial coefficients.
     delay : float
         Input delay tau >= 0 [s]. (The paper prints exp(+1.2e-4 s); a physical delay is
-        exp(-tau s), see DESIGN.md.)
+        exp(-tau s), see docs/design.md.)
     """
 
     num: tuple[float, ...]

@@ -1,0 +1,166 @@
+"""The front door for notebooks and scripts: :func:`calibrate`, :func:`load`, :class:`Calibration`.
+
+>>> import hallcal
+>>> cal = hallcal.calibrate("cal.csv", "setup.toml")           # doctest: +SKIP
+>>> cal.status, cal.predicted_error                             # doctest: +SKIP
+>>> cal.save("cal.json"); cal.report("report/"); cal.export_c("fw/")   # doctest: +SKIP
+>>> angles = hallcal.load("cal.json").reconstruct("run.csv")   # doctest: +SKIP
+>>> angles["y_star"]                                            # doctest: +SKIP
+
+Data may be a file path, a :class:`~hallcal.io.Dataset` or a mapping of column name to array;
+a setup a path, a :class:`~hallcal.io.Setup` or a mapping with the layout of the TOML file. The
+command line is a thin layer over these calls.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+from hallcal.errors import HallcalInputError
+from hallcal.io.artifact import read_artifact
+from hallcal.io.dataset import Dataset, read_dataset
+from hallcal.io.setup import Setup, read_setup, setup_from_dict
+from hallcal.pipeline import calibrate as _calibrate
+from hallcal.pipeline.calibration import Calibration as _Result
+from hallcal.pipeline.calibration import Reconstruction, calibration_from_artifact
+
+__all__ = ["Calibration", "DataLike", "SetupLike", "as_dataset", "as_setup", "calibrate", "load"]
+
+DataLike = str | os.PathLike[str] | Dataset | Mapping[str, Any]
+SetupLike = str | os.PathLike[str] | Setup | Mapping[str, Any]
+
+
+def as_dataset(data: DataLike, *, required: tuple[str, ...] = ("d1", "d2", "d3")) -> Dataset:
+    """A :class:`~hallcal.io.Dataset` from a path, a dataset or a mapping of columns."""
+    if isinstance(data, Dataset):
+        data.require(*required)
+        return data
+    if isinstance(data, str | os.PathLike):
+        return read_dataset(data, required=required)
+    if isinstance(data, Mapping):
+        return Dataset.from_columns(data, required=required)
+    raise HallcalInputError(
+        f"data must be a file path, a Dataset or a mapping of columns, not {type(data).__name__}"
+    )
+
+
+def as_setup(setup: SetupLike) -> Setup:
+    """A :class:`~hallcal.io.Setup` from a path, a setup or a mapping (the TOML layout)."""
+    if isinstance(setup, Setup):
+        return setup
+    if isinstance(setup, str | os.PathLike):
+        return read_setup(setup)
+    if isinstance(setup, Mapping):
+        return setup_from_dict(setup)
+    raise HallcalInputError(
+        f"setup must be a file path, a Setup or a mapping, not {type(setup).__name__}"
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class Calibration(_Result):
+    """A calibration (see :class:`hallcal.pipeline.Calibration` for its fields) with the verbs a
+    notebook user needs: :meth:`save`, :meth:`reconstruct`, :meth:`report`, :meth:`export_c`.
+    """
+
+    @classmethod
+    def _from_result(cls, result: _Result) -> Calibration:
+        return cls(**{f.name: getattr(result, f.name) for f in dataclasses.fields(_Result)})
+
+    def reconstruct(self, data: DataLike, *, y_initial: float = 0.0) -> Reconstruction:  # type: ignore[override]
+        """f_init and f_star over a recording: ``rec["y_init"]``, ``rec["y_star"]`` [rad].
+
+        Parameters
+        ----------
+        data : path, Dataset or mapping
+            Columns d1, d2, d3 (``y_ref``, when present, validates the result).
+        y_initial : float, keyword-only
+            f_init's angle before the first sample [rad] (the calibration run started at 0).
+        """
+        return super().reconstruct(as_dataset(data), y_initial=y_initial)
+
+    def report(
+        self,
+        out_dir: str | os.PathLike[str],
+        *,
+        data: DataLike | None = None,
+        validation: DataLike | None = None,
+    ) -> Path:
+        """Write the figures and the HTML report; returns the HTML file's path.
+
+        Parameters
+        ----------
+        out_dir : path
+            Folder (created if needed).
+        data : path, Dataset or mapping, optional
+            The calibration recording (needed for the model-fit figures).
+        validation : path, Dataset or mapping, optional
+            A fresh recording with ``y_ref`` to validate on.
+        """
+        from hallcal.output.report import write_calibration_report
+
+        return write_calibration_report(
+            self,
+            None if data is None else as_dataset(data),
+            out_dir,
+            validation=None if validation is None else as_dataset(validation, required=("y_ref",)),
+        )
+
+    def export_c(self, out_dir: str | os.PathLike[str], **options: Any) -> Any:
+        """Generate the C99 sources of f_star for firmware.
+
+        ``options`` are those of :func:`hallcal.output.codegen.export_c` (``fixed_point``,
+        ``adc_scale``, ...).
+        """
+        from hallcal.output.codegen import export_c
+
+        return export_c(self.to_artifact(), out_dir, **options)
+
+
+def calibrate(
+    data: DataLike,
+    setup: SetupLike,
+    *,
+    bla_data: DataLike | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> Calibration:
+    """Calibrate the Hall sensors of one motor (Algorithm 1 of van Meer et al.).
+
+    Parameters
+    ----------
+    data : path, Dataset or mapping of columns
+        The calibration run: r, y, d1..d3 (closed loop) or d1..d3 (constant speed).
+    setup : path, Setup or mapping
+        The setup (TOML layout): pole pairs, sample time, controller, plant or ``[bla]``, model.
+    bla_data : path, Dataset or mapping, optional
+        Multisine experiment (r, u, y, realization) for the plant's BLA.
+    progress : callable, optional
+        Called with one short message per step.
+
+    Returns
+    -------
+    Calibration
+        Look at ``cal.status`` (``cal.refusal`` says why a refused one must not be used),
+        ``cal.predicted_error`` and ``cal.messages``.
+
+    Raises
+    ------
+    HallcalInputError
+        A file, column or setup key that cannot be used (the message names it).
+    """
+    s = as_setup(setup)
+    closed = s.trajectory.kind == "closed-loop"
+    ds = as_dataset(data, required=("r", "d1", "d2", "d3") if closed else ("d1", "d2", "d3"))
+    bla_ds = None
+    if bla_data is not None:
+        bla_ds = as_dataset(bla_data, required=("r", "u", "y", "realization"))
+    return Calibration._from_result(_calibrate(ds, s, bla_dataset=bla_ds, progress=progress))
+
+
+def load(path: str | os.PathLike[str]) -> Calibration:
+    """Read a calibration artifact (JSON) written by :meth:`Calibration.save` or the CLI."""
+    return Calibration._from_result(calibration_from_artifact(read_artifact(path)))

@@ -1,0 +1,410 @@
+"""Cogging torque identified jointly with the flux model: which orders, and how large.
+
+The paper's discussion attributes its experiment's residual error to "nonlinear dynamics that are
+periodic in y0 with period 2 pi, such as cogging": a torque ``T_c(y0)`` at the plant input moves
+the rotor in a way that a flux model alone would explain as a sensor error. hallcal puts
+``T_c(y0) = sum_k a_k cos(k y0) + b_k sin(k y0)`` into the simulated loop (eq. state_eq with
+``u + T_c(y0)`` as the plant input, :mod:`hallcal.sim.cogging`) and identifies its coefficients
+jointly with theta by the SEM (:func:`hallcal.fit.sem.solve_sem`, exact sensitivities including
+the feedback term ``dT_c/dy0 dy0``).
+
+Choosing the orders (``cogging = "auto"``), in two tests:
+
+1. **Evidence in the residual** (:func:`shift_spectrum`). A motion error shows in the SEM residual
+   as a shift of the samples *along* the model's flux curve (the curve projection of
+   :func:`hallcal.fit.adequacy.curve_projection`, which the adequacy check uses to tell motion
+   from flux shape). A cogging torque of order k makes this shift periodic in the mechanical
+   angle with k periods per revolution: a line in its spectrum over the angle. The spectrum is the
+   least-squares amplitude of each order, weighted by the shift's inverse noise variance
+   ``|g'|^2 / sigma^2``; an order is a candidate when its power stands out from the local level
+   of the spectrum (the median of the neighbouring orders, robust to other lines) by more than
+   the chi-square(2) quantile at the family-wise false-alarm level over all orders searched
+   (Bonferroni), and is a local maximum (a strong line leaks into its neighbours on a
+   non-integer number of revolutions). The local level makes the test valid for the coloured
+   spectrum that a random torque disturbance leaves (its power falls with the order).
+2. **Significance of the fitted coefficients** (:func:`select_cogging`). The candidates are fitted
+   jointly with theta (and the plant gain when the plant comes from the BLA). Each order is kept
+   when its two coefficients differ from zero by Hotelling's T^2 test with the batch-means
+   (long-run) covariance of the SEM's scores (:attr:`hallcal.fit.sem.SEMResult.batch_covariance`;
+   Ljung 1999, sec. 9.3 on the covariance of prediction-error estimates under coloured
+   residuals): ``T^2 (B - 2) / (2 (B - 1)) ~ F(2, B - 2)`` for B batches, Bonferroni over the
+   candidates. Orders that fail are dropped and the rest refitted. Nothing is added when nothing
+   passes, so a motor without cogging keeps exactly the fit it had.
+
+Orders searched by default: 1..24 n_m. The fundamental cogging order of a machine with Q stator
+slots and 2 n_m poles is LCM(Q, 2 n_m) periods per revolution, followed by its multiples (for
+11 pole pairs: 66 with 33 slots, 132 with 12 slots); well beyond that range the rotor's position
+response to a torque (the plant falls off as 1 / frequency^2 above the loop bandwidth) is far
+below the Hall noise at the usual calibration speeds. Other orders can be given explicitly
+(``cogging = [orders]``).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.stats
+from numpy.typing import ArrayLike, NDArray
+
+from hallcal.fit.adequacy import curve_projection
+from hallcal.fit.gauss_newton import _moments
+from hallcal.fit.sem import SEMResult, solve_sem
+from hallcal.sim.cogging import CoggingTorque
+from hallcal.sim.loop import ClosedLoop
+
+__all__ = [
+    "CoggingSelection",
+    "CoggingStatus",
+    "ShiftSpectrum",
+    "default_max_order",
+    "select_cogging",
+    "shift_spectrum",
+]
+
+
+def default_max_order(pole_pairs: int) -> int:
+    """Highest cogging order searched by default: 24 n_m (see the module docstring)."""
+    return 24 * int(pole_pairs)
+
+
+# ------------------------------------------------------------------------------------------------
+# 1. Evidence: the spectrum of the shift along the flux curve
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ShiftSpectrum:
+    """Spectrum over the mechanical angle of the residual's shift along the flux curve.
+
+    Attributes
+    ----------
+    orders : ndarray of int (K,)
+        Orders 1..K (periods per revolution).
+    amplitude : ndarray (K,)
+        Least-squares amplitude of each order in the shift [rad].
+    power : ndarray (K,)
+        Squared amplitude.
+    level : ndarray (K,)
+        Local level: the median power of the ``window`` orders on each side (not the order
+        itself), divided by ln 2 (the median of an exponential law is ln 2 times its mean).
+    threshold : float
+        Critical value of ``power / level`` (chi-square(2) / 2 at the family-wise level).
+    candidates : tuple of int
+        Orders whose ratio exceeds the threshold and that are local maxima of the power.
+    revolutions : float
+        Angle range of the run [revolutions].
+    """
+
+    orders: NDArray[np.int64] = field(repr=False)
+    amplitude: NDArray[np.float64] = field(repr=False)
+    power: NDArray[np.float64] = field(repr=False)
+    level: NDArray[np.float64] = field(repr=False)
+    threshold: float
+    candidates: tuple[int, ...]
+    revolutions: float
+
+    @property
+    def ratio(self) -> NDArray[np.float64]:
+        """power / level."""
+        return self.power / np.maximum(self.level, 1e-300)
+
+    def to_dict(self) -> dict:
+        return {
+            "max_order": int(self.orders[-1]) if self.orders.size else 0,
+            "threshold": float(self.threshold),
+            "candidates": [int(k) for k in self.candidates],
+            "candidate_ratio": [float(self.ratio[k - 1]) for k in self.candidates],
+            "candidate_shift_amplitude": [float(self.amplitude[k - 1]) for k in self.candidates],
+        }
+
+
+def shift_spectrum(
+    sem: SEMResult,
+    d: ArrayLike,
+    *,
+    max_order: int,
+    window: int = 10,
+    significance: float = 1e-3,
+    max_candidates: int = 6,
+) -> ShiftSpectrum:
+    """Candidate cogging orders: lines in the spectrum of the shift along the flux curve.
+
+    Parameters
+    ----------
+    sem : SEMResult
+        A fit without the cogging orders in question (its flux and simulated angle).
+    d : array_like (N, 3)
+        Recorded Hall signals.
+    max_order : int
+        Orders 1..max_order are searched.
+    window : int
+        Neighbouring orders on each side for the local level.
+    significance : float
+        Family-wise false-alarm probability over the orders searched.
+    max_candidates : int
+        At most this many candidates (the strongest ratios).
+
+    Returns
+    -------
+    ShiftSpectrum
+    """
+    y0 = np.ascontiguousarray(sem.y0_sim, dtype=np.float64)
+    K = int(max_order)
+    if K < 1:
+        raise ValueError("max_order must be >= 1")
+    delta, _, speed2 = curve_projection(sem.flux, y0, d)
+    w = speed2 / max(float(np.mean(speed2)), 1e-300)  # inverse noise variance of the shift
+    delta = delta - float(np.sum(w * delta) / np.sum(w))
+    C, S = _moments(y0, np.ascontiguousarray(np.column_stack([w * delta, w])), K)
+    # per order, the weighted least-squares sinusoid: a = 2 sum w delta cos / sum w (the
+    # cross terms are small over whole revolutions and vanish on average)
+    wsum = C[1, 0]
+    a = 2.0 * C[0, 1:] / wsum
+    b = 2.0 * S[0, 1:] / wsum
+    power = a * a + b * b
+    level = np.empty(K)
+    for i in range(K):
+        lo, hi = max(0, i - window), min(K, i + window + 1)
+        neighbours = np.r_[power[lo:i], power[i + 1 : hi]]
+        level[i] = float(np.median(neighbours)) / math.log(2.0) if neighbours.size else math.inf
+    # power / mean level ~ chi-square(2) / 2 = Exp(1) without a line; the level is estimated
+    # from 2 window orders by a median (efficiency about 1 / 2.08 of a mean), hence F(2, dof)
+    dof = max(2.0 * 2 * window / 2.08, 2.0)
+    threshold = float(scipy.stats.f.isf(significance / K, 2, dof))
+    ratio = power / np.maximum(level, 1e-300)
+    peak = np.ones(K, dtype=bool)
+    peak[1:] &= power[1:] >= power[:-1]
+    peak[:-1] &= power[:-1] >= power[1:]
+    hits = np.flatnonzero((ratio > threshold) & peak)
+    hits = hits[np.argsort(-ratio[hits])][: int(max_candidates)]
+    revs = float((np.nanmax(y0) - np.nanmin(y0)) / (2.0 * math.pi)) if y0.size else 0.0
+    return ShiftSpectrum(
+        orders=np.arange(1, K + 1),
+        amplitude=np.sqrt(power),
+        power=power,
+        level=level,
+        threshold=threshold,
+        candidates=tuple(sorted(int(i) + 1 for i in hits)),
+        revolutions=revs,
+    )
+
+
+# ------------------------------------------------------------------------------------------------
+# 2. Joint fit and the significance of the fitted coefficients
+# ------------------------------------------------------------------------------------------------
+
+
+class CoggingStatus(enum.StrEnum):
+    """How the cogging orders were settled."""
+
+    #: no order passed the tests: nothing added
+    NONE = "none"
+    #: orders chosen from the data ("auto")
+    FOUND = "found"
+    #: orders given in the setup
+    GIVEN = "given"
+    #: cogging switched off ("none" in the setup)
+    OFF = "off"
+
+    @property
+    def success(self) -> bool:
+        return True
+
+
+@dataclass(frozen=True)
+class OrderTest:
+    """Hotelling's T^2 test of one order's coefficients (a_k, b_k) = 0."""
+
+    order: int
+    amplitude: float
+    statistic: float
+    threshold: float
+
+    @property
+    def significant(self) -> bool:
+        return self.statistic > self.threshold
+
+    def to_dict(self) -> dict:
+        return {
+            "order": self.order,
+            "amplitude": float(self.amplitude),
+            "statistic": float(self.statistic),
+            "threshold": float(self.threshold),
+            "significant": bool(self.significant),
+        }
+
+
+@dataclass(frozen=True)
+class CoggingSelection:
+    """Outcome of :func:`select_cogging`.
+
+    Attributes
+    ----------
+    status : CoggingStatus
+    orders : tuple of int
+        Orders in the final model (empty for NONE and OFF).
+    cogging : CoggingTorque or None
+        The identified torque with the covariance of its coefficients.
+    sem : SEMResult
+        The final fit (the given one when nothing was added).
+    spectrum : ShiftSpectrum or None
+        The evidence (``"auto"`` only).
+    tests : tuple of OrderTest
+        The significance test of every fitted candidate (last fit with each order).
+    message : str
+        One line for the user.
+    """
+
+    status: CoggingStatus
+    orders: tuple[int, ...]
+    cogging: CoggingTorque | None = field(repr=False)
+    sem: SEMResult = field(repr=False)
+    spectrum: ShiftSpectrum | None = field(default=None, repr=False)
+    tests: tuple[OrderTest, ...] = ()
+    message: str = ""
+
+    def to_dict(self) -> dict:
+        out: dict = {
+            "status": self.status.value,
+            "orders": [int(k) for k in self.orders],
+            "tests": [t.to_dict() for t in self.tests],
+            "message": self.message,
+        }
+        if self.spectrum is not None:
+            out["evidence"] = self.spectrum.to_dict()
+        return out
+
+
+def order_tests(sem: SEMResult, *, significance: float = 1e-3) -> tuple[OrderTest, ...]:
+    """Hotelling's T^2 of each fitted cogging order with the batch-means covariance.
+
+    ``T^2 = c_k^T V_k^-1 c_k`` for the coefficients c_k = (a_k, b_k) and their 2 x 2 block V_k of
+    :attr:`SEMResult.batch_covariance`; ``T^2 (B - 2) / (2 (B - 1)) ~ F(2, B - 2)`` when c_k = 0,
+    with B batches (Bonferroni over the orders).
+    """
+    cog = sem.cogging
+    layout = sem.layout
+    if cog is None or layout is None or sem.batch_covariance is None:
+        return ()
+    B = max(int(sem.batches), 3)
+    n = cog.size
+    crit = float(scipy.stats.f.isf(significance / max(n, 1), 2, B - 2)) * 2 * (B - 1) / (B - 2)
+    tests = []
+    x = cog.coefficients
+    for i, k in enumerate(cog.orders):
+        j = layout.cogging_start + 2 * i
+        V = sem.batch_covariance[j : j + 2, j : j + 2]
+        c = x[2 * i : 2 * i + 2]
+        try:
+            t2 = float(c @ np.linalg.solve(V, c))
+        except np.linalg.LinAlgError:
+            t2 = 0.0
+        tests.append(OrderTest(int(k), float(np.hypot(*c)), t2, crit))
+    return tuple(tests)
+
+
+def _fit(
+    loop: ClosedLoop,
+    r: NDArray,
+    d: NDArray,
+    start: SEMResult,
+    orders: tuple[int, ...],
+    *,
+    fit_gain: bool,
+    max_iterations: int,
+) -> SEMResult:
+    """SEM with the start's flux (and gain) and cogging at ``orders`` (start: zero torque)."""
+    return solve_sem(
+        loop, r, d, start.flux.basis, theta0=start.flux.theta, fit_gain=fit_gain,
+        gain0=start.gain if fit_gain else 1.0,
+        cogging=CoggingTorque(orders, np.zeros(len(orders)), np.zeros(len(orders))),
+        max_iterations=max_iterations,
+    )  # fmt: skip
+
+
+def select_cogging(
+    loop: ClosedLoop,
+    r: ArrayLike,
+    d: ArrayLike,
+    sem: SEMResult,
+    *,
+    orders: str | tuple[int, ...] = "auto",
+    fit_gain: bool = False,
+    max_order: int | None = None,
+    significance: float = 1e-3,
+    max_iterations: int = 50,
+) -> CoggingSelection:
+    """Cogging orders and coefficients, identified jointly with theta (see the module docstring).
+
+    Parameters
+    ----------
+    loop : ClosedLoop
+        The loop model of ``sem`` (plant, controller, f_init).
+    r, d : array_like
+        Recorded reference (N,) and Hall signals (N, 3).
+    sem : SEMResult
+        The fit of the flux without cogging (its basis and theta start the joint fit).
+    orders : "auto", "none" or tuple of int
+        Choose the orders from the data, add nothing, or fit the given orders.
+    fit_gain : bool
+        Refine the plant input gain jointly (a BLA plant); ``loop`` is the loop ``sem`` was
+        solved with, and the result's gain is relative to it.
+    max_order : int, optional
+        Highest order searched by "auto" (default :func:`default_max_order`).
+    significance : float
+        Family-wise false-alarm level of each of the two tests.
+    max_iterations : int
+        Of each SEM.
+
+    Returns
+    -------
+    CoggingSelection
+    """
+    rr = np.ascontiguousarray(r, dtype=np.float64)
+    dd = np.ascontiguousarray(d, dtype=np.float64)
+    if orders == "none":
+        return CoggingSelection(CoggingStatus.OFF, (), None, sem, message="cogging: not modelled")
+    if orders != "auto":
+        given = tuple(int(k) for k in orders)  # type: ignore[union-attr]
+        joint = _fit(loop, rr, dd, sem, given, fit_gain=fit_gain, max_iterations=max_iterations)
+        return CoggingSelection(
+            CoggingStatus.GIVEN, given, joint.cogging, joint, None,
+            order_tests(joint, significance=significance), _describe(joint.cogging, "given"),
+        )  # fmt: skip
+    if not sem.status.success and not np.isfinite(sem.cost):
+        return CoggingSelection(CoggingStatus.NONE, (), None, sem,
+                                message="cogging: no search (the SEM fit failed)")  # fmt: skip
+    K = int(max_order) if max_order else default_max_order(loop.pole_pairs)
+    spectrum = shift_spectrum(sem, dd, max_order=K, significance=significance)
+    candidates = spectrum.candidates
+    tests: tuple[OrderTest, ...] = ()
+    joint = sem
+    while candidates:
+        joint = _fit(loop, rr, dd, sem, candidates, fit_gain=fit_gain,
+                     max_iterations=max_iterations)  # fmt: skip
+        tests = order_tests(joint, significance=significance)
+        kept = tuple(t.order for t in tests if t.significant)
+        if kept == candidates:
+            break
+        candidates = kept
+    if not candidates:
+        msg = "cogging: none found (no line in the residual's shift along the flux curve"
+        msg += " passed both tests)" if spectrum.candidates else ")"
+        return CoggingSelection(CoggingStatus.NONE, (), None, sem, spectrum, tests, msg)
+    return CoggingSelection(
+        CoggingStatus.FOUND, candidates, joint.cogging, joint, spectrum, tests,
+        _describe(joint.cogging, "found in the data"),
+    )  # fmt: skip
+
+
+def _describe(cog: CoggingTorque | None, how: str) -> str:
+    if cog is None or not cog.size:
+        return "cogging: none"
+    parts = [
+        f"{k}/rev {A:.3g} at {math.degrees(p):.1f} deg"
+        for k, A, p in zip(cog.orders, cog.amplitude, cog.phase, strict=True)
+    ]
+    return f"cogging torque ({how}, plant input units): " + ", ".join(parts)

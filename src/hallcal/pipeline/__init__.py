@@ -1,0 +1,101 @@
+"""Algorithm 1 of van Meer et al. end to end, on top of the numeric packages.
+
+Steps (Algorithm 1): (1) the calibration data (closed-loop ramp with f_init feedback, or an
+open-loop constant-speed spin); (2) the plant: ``[plant]`` or the BLA of multisine experiments
+with its gain correction c_hat (:mod:`~hallcal.pipeline.plant`); (3) simulation-error
+minimization of g_theta; (4) the lookup table and f_star; (5) validation against an encoder when
+one was logged (:mod:`~hallcal.pipeline.closed_loop`, :mod:`~hallcal.pipeline.open_loop`).
+
+No printing and no plotting here: it takes :class:`~hallcal.io.Dataset` and
+:class:`~hallcal.io.Setup` objects and returns a :class:`Calibration`; the command line, the
+report and the front door :func:`hallcal.calibrate` sit on top. ``progress`` callbacks receive
+one short message per step.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from hallcal.io.dataset import Dataset
+from hallcal.io.setup import Setup
+from hallcal.pipeline.calibration import (
+    Calibration,
+    CalibrationStatus,
+    Reconstruction,
+    Validation,
+    artifact_from_calibration,
+    calibration_from_artifact,
+    lut_from_artifact,
+    reconstruct,
+    validate,
+)
+from hallcal.pipeline.plant import (
+    BLAIdentification,
+    GainCorrection,
+    PlantModel,
+    estimate_gain,
+    identify_bla,
+    plant_model,
+)
+from hallcal.pipeline.simulate import bench_config, simulate
+
+__all__ = [
+    "BLAIdentification",
+    "Calibration",
+    "CalibrationStatus",
+    "GainCorrection",
+    "PlantModel",
+    "Reconstruction",
+    "Validation",
+    "artifact_from_calibration",
+    "bench_config",
+    "calibrate",
+    "calibration_from_artifact",
+    "estimate_gain",
+    "identify_bla",
+    "lut_from_artifact",
+    "plant_model",
+    "reconstruct",
+    "simulate",
+    "validate",
+]
+
+
+def calibrate(
+    dataset: Dataset,
+    setup: Setup,
+    *,
+    bla_dataset: Dataset | None = None,
+    bla: BLAIdentification | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> Calibration:
+    """Algorithm 1: from calibration data (and a BLA experiment) to the table f_star.
+
+    Parameters
+    ----------
+    dataset : Dataset
+        Calibration run (closed loop: r, y, d1..d3; constant speed: d1..d3).
+    setup : Setup
+        ``[trajectory] kind`` chooses the closed-loop (the paper) or the constant-speed route.
+    bla_dataset : Dataset, optional
+        Multisine experiment for step 2 (closed loop).
+    bla : BLAIdentification, optional
+        An already identified BLA.
+    progress : callable, optional
+        Called with a short message at each step.
+
+    Returns
+    -------
+    Calibration
+        Check :attr:`Calibration.status`: a refused calibration carries its reason in
+        :attr:`Calibration.refusal`.
+    """
+    if setup.trajectory.kind == "constant-speed":
+        from hallcal.pipeline.open_loop import calibrate_open_loop
+
+        return calibrate_open_loop(dataset, setup, progress=progress)
+    from hallcal.pipeline.closed_loop import calibrate_closed_loop
+
+    return calibrate_closed_loop(
+        dataset, setup, bla_dataset=bla_dataset, bla=bla, progress=progress
+    )

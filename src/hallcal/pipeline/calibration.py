@@ -1,0 +1,410 @@
+"""The result of a calibration, its artifact, and applying it to a recording.
+
+:class:`Calibration` is what :func:`hallcal.pipeline.calibrate` returns and what
+:func:`calibration_from_artifact` rebuilds from a JSON artifact; :func:`reconstruct` applies it
+(f_init then the table, the paper's eq. for f_star), :func:`validate` measures it against an
+encoder or the bench's truth (step 5 of Algorithm 1).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import enum
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hallcal.errors import CalibrationRefused, HallcalInputError
+from hallcal.io.artifact import ARTIFACT_FORMAT, write_artifact
+from hallcal.io.dataset import Dataset
+from hallcal.io.setup import Setup, setup_from_dict
+from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sensor.lut import LUT
+from hallcal.sensor.metrics import AngleError, SpatialSpectrum, angle_error, spatial_spectrum
+from hallcal.sim.cogging import CoggingTorque
+from hallcal.sim.lti import ContinuousTF
+
+if TYPE_CHECKING:  # result types of the steps, for annotations only (keeps the import light)
+    from hallcal.fit.adequacy import AdequacyReport
+    from hallcal.fit.cogging import CoggingSelection
+    from hallcal.fit.constant_speed import ConstantSpeedResult
+    from hallcal.fit.kernel import KernelSEMResult
+    from hallcal.fit.order import HarmonicSelection
+    from hallcal.fit.sem import SEMResult
+    from hallcal.pipeline.plant import BLAIdentification, GainCorrection
+
+__all__ = [
+    "Calibration",
+    "CalibrationStatus",
+    "Reconstruction",
+    "Validation",
+    "artifact_from_calibration",
+    "calibration_from_artifact",
+    "lut_from_artifact",
+    "reconstruct",
+    "validate",
+]
+
+
+class CalibrationStatus(enum.StrEnum):
+    """Outcome of a calibration; the string values are the artifact's ``diagnostics.status``.
+
+    ``OK`` and ``WARNING`` give a usable table (a warning says what to look at);
+    ``INADEQUATE`` (the model does not explain the data) and ``NOT_BIJECTIVE`` (no table can
+    invert the sensor map, the paper's bijectivity condition) are refusals.
+    """
+
+    OK = "ok"
+    WARNING = "warning"
+    INADEQUATE = "inadequate"
+    NOT_BIJECTIVE = "not-bijective"
+
+    @property
+    def success(self) -> bool:
+        """True when the table may be used."""
+        return self in (CalibrationStatus.OK, CalibrationStatus.WARNING)
+
+    @property
+    def refused(self) -> bool:
+        """True when the table must not be used."""
+        return not self.success
+
+
+@dataclass(frozen=True)
+class Validation:
+    """Angle errors of f_init and f_star against an encoder (y_ref) or the bench's truth.
+
+    Attributes
+    ----------
+    init, star : AngleError
+        RMS and peak error [rad] of f_init and f_star (about their means).
+    spectrum_init, spectrum_star : SpatialSpectrum
+        Cumulative spatial PSD of the errors (cycles per revolution).
+    noise_floor : float or None
+        The angle noise floor [rad RMS] the errors are compared with, when known.
+    """
+
+    init: AngleError
+    star: AngleError
+    spectrum_init: SpatialSpectrum = field(repr=False)
+    spectrum_star: SpatialSpectrum = field(repr=False)
+    noise_floor: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "f_init": self.init.to_dict(),
+            "f_star": self.star.to_dict(),
+            "noise_floor": self.noise_floor,
+            "improvement_rms": self.init.rms / self.star.rms if self.star.rms > 0 else None,
+        }
+
+
+def validate(lut: LUT, dataset: Dataset, *, noise_floor: float | None = None) -> Validation:
+    """Errors of f_init and f_star on a dataset with ``y_ref`` (encoder or bench truth)."""
+    y_ref = dataset["y_ref"]
+    yi = lut.f_init(dataset.d)
+    ys = yi + lut.correction(yi)
+    ei, es = angle_error(yi, y_ref), angle_error(ys, y_ref)
+    return Validation(
+        ei,
+        es,
+        spatial_spectrum(yi - y_ref, y_ref),
+        spatial_spectrum(ys - y_ref, y_ref),
+        noise_floor,
+    )
+
+
+@dataclass(frozen=True)
+class Reconstruction:
+    """f_init and f_star over a recording, run sequentially from y = y_initial.
+
+    A small table: ``rec["y_init"]``, ``rec["y_star"]`` or :attr:`columns`.
+
+    Attributes
+    ----------
+    y_init, y_star : ndarray (N,)
+        The angles [rad], mechanical.
+    validation : Validation or None
+        Against the recording's ``y_ref`` when it has one.
+    """
+
+    y_init: NDArray[np.float64] = field(repr=False)
+    y_star: NDArray[np.float64] = field(repr=False)
+    validation: Validation | None = None
+
+    @property
+    def columns(self) -> dict[str, NDArray[np.float64]]:
+        """``{"y_init": ..., "y_star": ...}`` (the columns ``hallcal reconstruct`` writes)."""
+        return {"y_init": self.y_init, "y_star": self.y_star}
+
+    def __getitem__(self, name: str) -> NDArray[np.float64]:
+        return self.columns[name]
+
+    def __len__(self) -> int:
+        return int(self.y_star.size)
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Result of a calibration (Algorithm 1), or one rebuilt from its artifact.
+
+    Attributes
+    ----------
+    setup : Setup
+    flux : FluxModel
+        Identified g_theta* (Fourier coefficients; the kernel model in its exact Fourier form).
+    lut : LUT
+        The table and the f_init it corrects.
+    status : CalibrationStatus
+    refusal : str or None
+        Why the table must not be used (``status.refused``), else None.
+    messages : tuple of str
+        Warnings and notes for the user, most important first.
+    predicted_error : float
+        Predicted RMS angle error of f_star [rad]: the noise floor and the table's uncertainty
+        from cov(theta), in quadrature (:class:`~hallcal.fit.adequacy.AdequacyReport`).
+    noise_floor : float
+        RMS angle error [rad] that the Hall noise alone causes with this sensor map.
+    plant : ContinuousTF or None
+        The plant model used in SEM (gain correction applied); None for open-loop runs.
+    plant_source : {"setup", "bla"} or None
+    gain : GainCorrection or None
+    sem : SEMResult or None
+        The SEM solve (closed-loop runs computed in this process).
+    bla : BLAIdentification or None
+    adequacy : AdequacyReport or None
+    validation : Validation or None
+        Errors against ``y_ref`` when the calibration data had it (validation only).
+    timings : dict
+        Seconds per step.
+    model_info : dict
+        Basis description for the artifact (basis, harmonics, theta, kernel hyperparameters).
+    selection : HarmonicSelection or None
+        The automatic choice of harmonics (``harmonics = "auto"``).
+    kernel : KernelSEMResult or None
+        The kernel-basis solve (``basis = "kernel"``).
+    constant_speed : ConstantSpeedResult or None
+        The open-loop constant-speed fit (``[trajectory] kind = "constant-speed"``).
+    cogging : CoggingTorque or None
+        The cogging torque identified jointly with the flux (``[model] cogging``), with the
+        covariance of its coefficients; None when none was modelled or found.
+    cogging_selection : CoggingSelection or None
+        How its orders were chosen (evidence and tests).
+    artifact : dict or None
+        The artifact this calibration was loaded from (None when computed here).
+    """
+
+    setup: Setup
+    flux: FluxModel
+    lut: LUT
+    status: CalibrationStatus
+    predicted_error: float
+    noise_floor: float
+    refusal: str | None = None
+    messages: tuple[str, ...] = ()
+    plant: ContinuousTF | None = None
+    plant_source: str | None = None
+    gain: GainCorrection | None = None
+    sem: SEMResult | None = field(default=None, repr=False)
+    bla: BLAIdentification | None = field(default=None, repr=False)
+    adequacy: AdequacyReport | None = field(default=None, repr=False)
+    validation: Validation | None = None
+    timings: Mapping[str, float] = field(default_factory=dict, repr=False)
+    model_info: Mapping[str, Any] = field(default_factory=dict, repr=False)
+    selection: HarmonicSelection | None = field(default=None, repr=False)
+    kernel: KernelSEMResult | None = field(default=None, repr=False)
+    constant_speed: ConstantSpeedResult | None = field(default=None, repr=False)
+    cogging: CoggingTorque | None = field(default=None, repr=False)
+    cogging_selection: CoggingSelection | None = field(default=None, repr=False)
+    artifact: Mapping[str, Any] | None = field(default=None, repr=False)
+
+    @property
+    def pole_pairs(self) -> int:
+        """n_m."""
+        return self.setup.pole_pairs
+
+    def to_artifact(self) -> dict[str, Any]:
+        """The JSON artifact (a plain dict; see :func:`artifact_from_calibration`); for a
+        calibration loaded from an artifact, that artifact."""
+        if self.artifact is not None:
+            return dict(self.artifact)
+        return artifact_from_calibration(self)
+
+    def save(self, path: str | os.PathLike[str], *, force: bool = False) -> None:
+        """Write the JSON artifact atomically.
+
+        Raises
+        ------
+        CalibrationRefused
+            When the table is not bijective, or the model was judged inadequate and ``force``
+            is False; nothing is written.
+        """
+        if self.status is CalibrationStatus.NOT_BIJECTIVE or (self.status.refused and not force):
+            hint = (
+                ""
+                if self.status is CalibrationStatus.NOT_BIJECTIVE
+                else " (use --force, or force=True, to write it anyway)"
+            )
+            raise CalibrationRefused(f"{self.refusal}; no artifact written{hint}")
+        write_artifact(path, self.to_artifact())
+
+    def reconstruct(self, data: Dataset, *, y_initial: float = 0.0) -> Reconstruction:
+        """Apply the calibration to a recording (``hallcal reconstruct``)."""
+        return reconstruct_with(self.lut, data, y_initial=y_initial)
+
+
+def _diagnostics(cal: Calibration) -> dict[str, Any]:
+    diag: dict[str, Any] = {
+        "status": cal.status.value,
+        "refusal": cal.refusal,
+        "messages": list(cal.messages),
+        "bijective": bool(cal.lut.bijective),
+        "min_slope": cal.lut.min_slope,
+        "predicted_angle_error_rms": cal.predicted_error,
+        "noise_floor": cal.noise_floor,
+        "timings": dict(cal.timings),
+    }
+    sem = cal.sem
+    if sem is not None:
+        diag.update(
+            {
+                "cost_initial": sem.initial_cost,
+                "cost": sem.cost,
+                "cost_history": sem.cost_history.tolist(),
+                "iterations": sem.iterations,
+                "sem_status": str(sem.status),
+                "solve_time": sem.solve_time,
+                "noise_variance": sem.noise_variance,
+                "n_samples": sem.n_samples,
+            }
+        )
+    if cal.adequacy is not None:
+        diag["adequacy"] = cal.adequacy.to_dict()
+    if cal.validation is not None:
+        diag["validation"] = cal.validation.to_dict()
+    if cal.gain is not None:
+        diag["gain_correction"] = cal.gain.to_dict()
+    if cal.constant_speed is not None:
+        diag["constant_speed"] = cal.constant_speed.to_dict()
+    if cal.cogging_selection is not None:
+        diag["cogging"] = cal.cogging_selection.to_dict()
+    return diag
+
+
+def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
+    """The versioned JSON calibration artifact of docs/design.md (a plain dict)."""
+    art: dict[str, Any] = {
+        "format": ARTIFACT_FORMAT,
+        "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "pole_pairs": cal.setup.pole_pairs,
+        "reconstruction": {
+            "method": "f_init (Clarke/projection, atan2, unwrap) + lookup table (f_star)",
+            "projection": cal.lut.projection.tolist(),
+            "offset": cal.lut.offset.tolist(),
+        },
+        "model": dict(cal.model_info),
+        "lut": cal.lut.to_dict(),
+        "setup": cal.setup,
+        "diagnostics": _diagnostics(cal),
+    }
+    if cal.plant is not None:
+        art["plant"] = {
+            "num": list(cal.plant.num),
+            "den": list(cal.plant.den),
+            "delay": cal.plant.delay,
+            "gain_correction": None if cal.gain is None else cal.gain.value,
+            "source": cal.plant_source,
+        }
+    if cal.cogging is not None:
+        art["cogging"] = cal.cogging.to_dict()
+    return art
+
+
+def lut_from_artifact(artifact: Mapping[str, Any]) -> LUT:
+    """Rebuild the table (and its f_init) from an artifact, re-checking bijectivity."""
+    rec = artifact["reconstruction"]
+    t = artifact["lut"]
+    return LUT.from_arrays(
+        artifact["pole_pairs"], rec["projection"], rec["offset"], t["y_hat"], t["eta"]
+    )
+
+
+def _float_or_nan(value: Any) -> float:
+    return float(value) if isinstance(value, int | float) else math.nan
+
+
+def calibration_from_artifact(artifact: Mapping[str, Any]) -> Calibration:
+    """Rebuild a :class:`Calibration` from a (checked) artifact, e.g. :func:`read_artifact`'s.
+
+    The flux model, table, setup, status, messages, predicted error and plant come back; the
+    solver's internals (SEM iterates, BLA spectra) stay in :attr:`Calibration.artifact`.
+    """
+    setup = setup_from_dict(artifact["setup"], source="artifact")
+    model = artifact["model"]
+    diag = artifact["diagnostics"]
+    lut = lut_from_artifact(artifact)
+    harmonics = tuple(int(h) for h in model.get("harmonics", ()))
+    theta = np.asarray(model.get("theta", np.zeros((3, 2 * len(harmonics) + 1))), float)
+    flux = FluxModel(FourierBasis(harmonics), theta)
+    status = CalibrationStatus(diag.get("status", "ok"))
+    plant = None
+    plant_source = None
+    if "plant" in artifact:
+        p = artifact["plant"]
+        plant = ContinuousTF(tuple(p["num"]), tuple(p["den"]), float(p["delay"]))
+        plant_source = p.get("source")
+    cogging = CoggingTorque.from_dict(artifact["cogging"]) if "cogging" in artifact else None
+    return Calibration(
+        setup=setup,
+        flux=flux,
+        lut=lut,
+        status=status,
+        predicted_error=_float_or_nan(diag.get("predicted_angle_error_rms")),
+        noise_floor=_float_or_nan(diag.get("noise_floor")),
+        refusal=diag.get("refusal"),
+        messages=tuple(diag.get("messages", ())),
+        plant=plant,
+        plant_source=plant_source,
+        timings=dict(diag.get("timings", {})),
+        model_info=dict(model),
+        artifact=artifact,
+        cogging=cogging,
+    )
+
+
+def reconstruct_with(lut: LUT, dataset: Dataset, *, y_initial: float = 0.0) -> Reconstruction:
+    """f_init and f_star of a recording with a table, validated when it has ``y_ref``.
+
+    Raises
+    ------
+    CalibrationRefused
+        When the table is not bijective.
+    """
+    if not lut.bijective:
+        raise CalibrationRefused("the lookup table is not bijective; refusing to use it")
+    yi = lut.f_init(dataset.d, y_initial=y_initial)
+    ys = yi + lut.correction(yi)
+    val = validate(lut, dataset) if "y_ref" in dataset else None
+    return Reconstruction(yi, ys, val)
+
+
+def reconstruct(
+    artifact: Mapping[str, Any], dataset: Dataset, *, y_initial: float = 0.0
+) -> Reconstruction:
+    """Apply a calibration artifact to a recording (``hallcal reconstruct``).
+
+    Raises
+    ------
+    CalibrationRefused
+        When the artifact's table is not bijective.
+    """
+    try:
+        lut = lut_from_artifact(artifact)
+    except ValueError as exc:
+        raise HallcalInputError(f"artifact: {exc}") from None
+    return reconstruct_with(lut, dataset, y_initial=y_initial)

@@ -1,0 +1,393 @@
+"""Algorithm 1 on a closed-loop calibration run (the paper's setting), step by step.
+
+(1) the calibration data: reference r, f_init output y and Hall signals d of a ramp tracked with
+f_init feedback; (2) the plant: ``[plant]`` or the BLA with its gain correction
+(:mod:`hallcal.pipeline.plant`); (3) simulation-error minimization of g_theta through the closed
+loop (:mod:`hallcal.fit.sem`, the kernel basis in :mod:`hallcal.fit.kernel`, the automatic
+harmonics in :mod:`hallcal.fit.order`); (4) the lookup table and its bijectivity check; the
+model-adequacy verdict (:mod:`hallcal.fit.adequacy`); (5) validation against ``y_ref`` when the
+recording has one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hallcal.errors import HallcalInputError
+from hallcal.fit.adequacy import AdequacyReport, assess
+from hallcal.fit.cogging import CoggingSelection, CoggingStatus, select_cogging
+from hallcal.fit.kernel import KernelSEMResult, solve_kernel_sem
+from hallcal.fit.order import HarmonicSelection, select_harmonics
+from hallcal.fit.sem import SEMResult, solve_sem
+from hallcal.io.dataset import Dataset
+from hallcal.io.setup import Setup
+from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
+from hallcal.pipeline.plant import BLAIdentification, PlantModel, closed_loop, plant_model
+from hallcal.pipeline.progress import Progress, say
+from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sensor.lut import LUT, build_lut
+from hallcal.sensor.reconstruction import f_init
+from hallcal.sim.loop import ClosedLoop
+
+__all__ = ["calibrate_closed_loop"]
+
+TWO_PI = 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class _Signals:
+    """Step 1: the recorded signals as contiguous float64 arrays."""
+
+    r: NDArray[np.float64]
+    d: NDArray[np.float64]
+    y: NDArray[np.float64]
+    messages: tuple[str, ...]
+
+
+def _signals(dataset: Dataset, pole_pairs: int) -> _Signals:
+    """r, d and y of the run; y is recomputed from d when the column is absent.
+
+    Raises
+    ------
+    HallcalInputError
+        Missing columns, or a run shorter than one revolution (the flux model is periodic over
+        one revolution and must see all of it).
+    """
+    dataset.require("r", "d1", "d2", "d3")
+    d = np.ascontiguousarray(dataset.d)
+    y_clarke = f_init(d, pole_pairs)
+    span = float(np.ptp(y_clarke))
+    if span * pole_pairs < TWO_PI:
+        raise HallcalInputError(
+            f"{dataset.source}: the recording covers less than one electrical period "
+            f"({span * pole_pairs / TWO_PI:.2f}); nothing to calibrate"
+        )
+    if span < TWO_PI:
+        raise HallcalInputError(
+            f"{dataset.source}: the recording covers {span / TWO_PI:.2f} revolutions; the flux "
+            "model is periodic over one revolution and needs at least one full revolution"
+        )
+    messages: tuple[str, ...] = ()
+    if "y" in dataset:
+        y = np.ascontiguousarray(dataset["y"])
+        mismatch = float(np.max(np.abs(y - y_clarke)))
+        if mismatch > 1e-6 * max(1.0, float(np.max(np.abs(y)))) + 1e-9:
+            messages = (
+                f"warning: column 'y' differs from the Clarke/atan2 f_init of d by up to "
+                f"{mismatch:.3g} rad; the loop is simulated with the paper's f_init",
+            )
+    else:
+        y = y_clarke
+    return _Signals(np.ascontiguousarray(dataset["r"]), d, y, messages)
+
+
+@dataclass(frozen=True)
+class _ModelFit:
+    """Step 3: the identified flux model and how it was found."""
+
+    sem: SEMResult
+    flux: FluxModel
+    model_info: dict[str, Any]
+    gain_factor: float = 1.0
+    gain_factor_std: float = 0.0
+    selection: HarmonicSelection | None = None
+    kernel: KernelSEMResult | None = None
+    adequacy: AdequacyReport | None = None
+    cogging: CoggingSelection | None = None
+
+
+def _fit_kernel(loop: ClosedLoop, s: _Signals, setup: Setup, *, progress: Progress) -> _ModelFit:
+    say(progress, f"SEM with the periodic kernel basis (m = {setup.model.points})")
+    kres = solve_kernel_sem(
+        loop,
+        s.r,
+        s.d,
+        points=setup.model.points,
+        lengthscale=setup.model.lengthscale,
+        y=s.y,
+        max_iterations=setup.model.max_iterations,
+    )
+    info: dict[str, Any] = {
+        "basis": "kernel",
+        "points": int(kres.basis.points),
+        "lengthscale": float(kres.lengthscale),
+        "sf": float(kres.sf),
+        "penalty": float(kres.penalty),
+        "criterion": str(kres.criterion),
+        "weights": np.asarray(kres.weights).tolist(),
+        "harmonics": list(kres.flux.basis.harmonics),
+        "theta": kres.flux.theta.tolist(),
+    }
+    return _ModelFit(sem=kres.sem, flux=kres.flux, model_info=info, kernel=kres)
+
+
+def _fourier_info(flux: FluxModel) -> dict[str, Any]:
+    return {
+        "basis": "fourier",
+        "harmonics": list(flux.basis.harmonics),
+        "theta": flux.theta.tolist(),
+    }
+
+
+def _fit_fourier(
+    loop: ClosedLoop, s: _Signals, setup: Setup, *, fit_gain: bool, progress: Progress
+) -> _ModelFit:
+    """SEM with the given harmonics, or with the harmonics chosen from the data ("auto").
+
+    With a BLA plant (``fit_gain``) the gain c is refined jointly with theta at the end.
+    """
+    harmonics = setup.model.harmonics
+    max_it = setup.model.max_iterations
+    selection = None
+    adequacy = None
+    if harmonics == "auto":
+        say(progress, "choosing the harmonics from the data")
+        selection = select_harmonics(
+            loop, s.r, s.d, y=s.y, pole_pairs=setup.pole_pairs, max_iterations=max_it
+        )
+        sem = selection.sem
+        adequacy = selection.report
+        if fit_gain:
+            say(progress, "SEM with the chosen harmonics, refining the plant gain c")
+            sem = solve_sem(
+                loop,
+                s.r,
+                s.d,
+                sem.flux.basis,
+                theta0=sem.flux.theta,
+                max_iterations=max_it,
+                fit_gain=True,
+            )
+            adequacy = None  # judged again on the refined fit
+    else:
+        basis = FourierBasis(tuple(harmonics))
+        gain_note = ", refining the plant gain c" if fit_gain else ""
+        say(progress, f"SEM, Fourier basis with {len(harmonics)} harmonics{gain_note}")
+        sem = solve_sem(loop, s.r, s.d, basis, y=s.y, max_iterations=max_it, fit_gain=fit_gain)
+    return _ModelFit(
+        sem=sem,
+        flux=sem.flux,
+        model_info=_fourier_info(sem.flux),
+        gain_factor=sem.gain,
+        gain_factor_std=sem.gain_std,
+        selection=selection,
+        adequacy=adequacy,
+    )
+
+
+def _with_cogging(
+    loop: ClosedLoop, s: _Signals, setup: Setup, fit: _ModelFit, *, fit_gain: bool,
+    progress: Progress,
+) -> _ModelFit:  # fmt: skip
+    """The cogging torque at the plant input, identified jointly with the flux.
+
+    ``[model] cogging``: "none" keeps the fit; given orders are fitted jointly; "auto" looks for
+    cogging in the fit's residual and keeps only orders whose coefficients are significant
+    (:func:`hallcal.fit.cogging.select_cogging`). When cogging is found and the harmonics are
+    chosen from the data, they are chosen again with the identified torque in the loop (so that
+    no flux harmonic is picked to absorb the cogging motion), and the final fit is joint.
+    """
+    orders = setup.model.cogging
+    if orders == "none":
+        return fit
+    say(progress, "cogging torque" + (" (looking for it in the residual)" if orders == "auto"
+                                       else f" at orders {list(orders)}"))  # fmt: skip
+    sel = select_cogging(
+        loop, s.r, s.d, fit.sem, orders=orders, fit_gain=fit_gain,
+        max_iterations=setup.model.max_iterations,
+    )  # fmt: skip
+    if sel.status is CoggingStatus.NONE:
+        return dataclasses.replace(fit, cogging=sel)
+    sem, selection = sel.sem, fit.selection
+    if setup.model.harmonics == "auto" and sel.cogging is not None:
+        say(progress, "choosing the harmonics again with the cogging torque in the loop")
+        known = loop.with_plant_gain(sem.gain).with_cogging(sel.cogging)
+        selection = select_harmonics(
+            known, s.r, s.d, y=s.y, pole_pairs=setup.pole_pairs,
+            max_iterations=setup.model.max_iterations,
+        )  # fmt: skip
+        sem = solve_sem(
+            loop, s.r, s.d, selection.sem.flux.basis, theta0=selection.sem.flux.theta,
+            fit_gain=fit_gain, gain0=sem.gain, cogging=sel.cogging,
+            max_iterations=setup.model.max_iterations,
+        )  # fmt: skip
+        sel = dataclasses.replace(sel, sem=sem, cogging=sem.cogging)
+    return dataclasses.replace(
+        fit, sem=sem, flux=sem.flux, model_info=_fourier_info(sem.flux), gain_factor=sem.gain,
+        gain_factor_std=sem.gain_std, selection=selection, adequacy=None, cogging=sel,
+    )  # fmt: skip
+
+
+def _motion_bias(
+    loop: ClosedLoop, s: _Signals, setup: Setup, fit: _ModelFit, lut: LUT
+) -> tuple[float, str | None]:
+    """How far unmodelled cogging may have moved the table, when cogging is not modelled.
+
+    A position-periodic motion error that the model lacks is partly absorbed by flux harmonics
+    at its sidebands: a bias of the table that no covariance shows (the residual no longer
+    carries it). With ``cogging = "none"`` and a warning from the adequacy check, the cogging
+    search is run as a diagnostic; when it finds cogging, the RMS difference (about the mean)
+    between the two tables estimates that bias, and is added to the predicted error. ``loop``
+    is the final one (a BLA plant with its refined gain), so the gain stays fixed here.
+    """
+    if setup.model.cogging != "none" or setup.model.basis != "fourier":
+        return 0.0, None
+    diag = select_cogging(loop, s.r, s.d, fit.sem, orders="auto",
+                          max_iterations=setup.model.max_iterations)  # fmt: skip
+    if diag.cogging is None:
+        return 0.0, None
+    alt = build_lut(diag.sem.flux, setup.pole_pairs, points=setup.model.lut_points,
+                    projection=loop.projection, offset=loop.offset)  # fmt: skip
+    y = TWO_PI * np.arange(4096) / 4096
+    delta = lut.correction(y) - alt.correction(y)
+    bias = float(np.std(delta))
+    orders = ", ".join(str(k) for k in diag.orders)
+    return bias, (
+        f"warning: the residual shows a cogging torque at {orders}/rev that is not modelled "
+        f'(cogging = "none"); modelled, it moves the table by {1e3 * bias:.3g} mrad RMS, '
+        'which the predicted error includes: set cogging = "auto"'
+    )
+
+
+def _refined_plant(pm: PlantModel, fit: _ModelFit) -> PlantModel:
+    """Apply the gain refined jointly with theta to a BLA plant (no-op for a given plant)."""
+    if pm.gain is None or pm.bla is None:
+        return pm
+    gain = dataclasses.replace(
+        pm.gain,
+        c_refined=pm.gain.c * fit.gain_factor,
+        c_refined_std=pm.gain.c * fit.gain_factor_std,
+    )
+    return dataclasses.replace(pm, plant=pm.bla.plant.scaled(gain.c_refined), gain=gain)
+
+
+def _verdict(
+    lut: LUT, adequacy: AdequacyReport
+) -> tuple[CalibrationStatus, str | None, tuple[str, ...]]:
+    """Status, refusal reason and leading warning from the table and the adequacy report."""
+    if not lut.bijective:
+        return (
+            CalibrationStatus.NOT_BIJECTIVE,
+            "the identified model's map y0 -> f_init(g(y0)) is not bijective (the paper's "
+            "bijectivity condition): a lookup table would give wrong angles",
+            (),
+        )
+    if adequacy.verdict == "inadequate":
+        return CalibrationStatus.INADEQUATE, adequacy.message, ()
+    if adequacy.verdict == "warning":
+        msg = adequacy.message
+        return (
+            CalibrationStatus.WARNING,
+            None,
+            (msg if msg.startswith("warning") else f"warning: {msg}",),
+        )
+    return CalibrationStatus.OK, None, ()
+
+
+def calibrate_closed_loop(
+    dataset: Dataset,
+    setup: Setup,
+    *,
+    bla_dataset: Dataset | None = None,
+    bla: BLAIdentification | None = None,
+    progress: Progress = None,
+) -> Calibration:
+    """Algorithm 1 on a closed-loop run: plant, SEM, table, verdict, validation.
+
+    Parameters
+    ----------
+    dataset : Dataset
+        Calibration run with columns r, d1..d3 (and y, needed with a BLA plant).
+    setup : Setup
+    bla_dataset : Dataset, optional
+        Multisine experiment for the plant (wins over ``[plant]``, see
+        :func:`~hallcal.pipeline.plant.plant_model`).
+    bla : BLAIdentification, optional
+        An already identified BLA.
+    progress : callable, optional
+        Called with a short message at each step.
+    """
+    timings: dict[str, float] = {}
+    s = _signals(dataset, setup.pole_pairs)
+
+    t0 = time.perf_counter()
+    harmonics = setup.model.harmonics
+    pm = plant_model(
+        dataset,
+        setup,
+        bla_dataset=bla_dataset,
+        bla=bla,
+        start_harmonics=None if harmonics == "auto" else tuple(harmonics),
+        progress=progress,
+    )
+    if pm.source == "bla":
+        timings["plant"] = time.perf_counter() - t0
+    loop = closed_loop(setup, pm.plant)
+    messages = list(s.messages) + [pm.note]
+    if pm.gain is not None and pm.gain.status != "ok":
+        messages.append(f"warning: gain correction c = {pm.gain.c:.3g} hit its search bound")
+
+    t0 = time.perf_counter()
+    if setup.model.basis == "kernel":
+        fit = _fit_kernel(loop, s, setup, progress=progress)
+    else:
+        fit = _fit_fourier(loop, s, setup, fit_gain=pm.gain is not None, progress=progress)
+        fit = _with_cogging(loop, s, setup, fit, fit_gain=pm.gain is not None, progress=progress)
+    timings["sem"] = time.perf_counter() - t0
+    pm = _refined_plant(pm, fit)
+    cogging = fit.cogging.cogging if fit.cogging is not None else None
+    if fit.cogging is not None and fit.cogging.status is not CoggingStatus.NONE:
+        messages.append(fit.cogging.message)
+    loop = closed_loop(setup, pm.plant).with_cogging(cogging)
+
+    adequacy = fit.adequacy or assess(
+        fit.sem, s.d, pole_pairs=setup.pole_pairs, projection=loop.projection, offset=loop.offset
+    )
+    say(progress, "lookup table and bijectivity check")
+    lut = build_lut(
+        fit.flux,
+        setup.pole_pairs,
+        points=setup.model.lut_points,
+        projection=loop.projection,
+        offset=loop.offset,
+    )
+    status, refusal, leading = _verdict(lut, adequacy)
+    predicted = adequacy.predicted_error
+    if status is CalibrationStatus.WARNING:
+        bias, note = _motion_bias(loop, s, setup, fit, lut)
+        predicted = math.hypot(predicted, bias)
+        if note is not None:
+            messages.append(note)
+    validation = None
+    if "y_ref" in dataset and lut.bijective:
+        validation = validate(lut, dataset, noise_floor=adequacy.noise_floor)
+    return Calibration(
+        setup=setup,
+        flux=fit.flux,
+        lut=lut,
+        status=status,
+        predicted_error=predicted,
+        noise_floor=adequacy.noise_floor,
+        refusal=refusal,
+        messages=leading + tuple(messages),
+        plant=pm.plant,
+        plant_source=pm.source,
+        gain=pm.gain,
+        sem=fit.sem,
+        bla=pm.bla,
+        adequacy=adequacy,
+        validation=validation,
+        timings=timings,
+        model_info=fit.model_info,
+        selection=fit.selection,
+        kernel=fit.kernel,
+        cogging=cogging,
+        cogging_selection=fit.cogging,
+    )

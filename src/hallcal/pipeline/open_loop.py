@@ -1,0 +1,152 @@
+"""Algorithm 1 on an open-loop constant-speed run (``[trajectory] kind = "constant-speed"``).
+
+The numeric part is :func:`hallcal.fit.constant_speed.calibrate_constant_speed` (the flux model
+and the straight-line angle y0 = a + b k by variable projection, the sensor geometry from raw
+data); this module takes the dataset and the setup, checks the options and returns a
+:class:`~hallcal.pipeline.calibration.Calibration`.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from hallcal.errors import HallcalInputError
+from hallcal.fit.constant_speed import (
+    ConstantSpeedStatus,
+    calibrate_constant_speed,
+    default_harmonics,
+    find_constant_speed,
+    speed_deviation,
+)
+from hallcal.io.dataset import Dataset
+from hallcal.io.setup import Setup
+from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
+from hallcal.pipeline.progress import Progress
+from hallcal.sensor.flux import FourierBasis
+
+__all__ = ["calibrate_open_loop"]
+
+
+def _segment(dataset: Dataset, setup: Setup) -> tuple[int, int]:
+    """``[trajectory] start``/``stop`` checked against the recording (``stop`` None: the end)."""
+    n = dataset.n_samples
+    traj = setup.trajectory
+    start = int(traj.start)
+    stop = n if traj.stop is None else int(traj.stop)
+    if not 0 <= start < stop <= n:
+        raise HallcalInputError(
+            f"setup: trajectory.start..stop = {start}..{stop} is outside {dataset.source} "
+            f"({n} samples)",
+            key="trajectory.stop",
+        )
+    return start, stop
+
+
+def _harmonics(setup: Setup) -> tuple[int, ...]:
+    n = setup.pole_pairs
+    if setup.model.basis != "fourier":
+        raise HallcalInputError(
+            f'setup: model.basis = "{setup.model.basis}" is not available with trajectory.kind = '
+            '"constant-speed"; use "fourier"',
+            key="model.basis",
+        )
+    h = setup.model.harmonics
+    harmonics = default_harmonics(n) if h == "auto" else tuple(int(v) for v in h)
+    if n not in harmonics:
+        raise HallcalInputError(
+            f"setup: model.harmonics must contain the pole-pair harmonic {n} (pole_pairs)",
+            key="model.harmonics",
+        )
+    return harmonics
+
+
+def _speed_warning(d: np.ndarray, start: int, stop: int, pole_pairs: int) -> str | None:
+    """A warning when f_init's speed is not constant over the chosen samples."""
+    deviation = speed_deviation(d[start:stop], pole_pairs)
+    if deviation <= 0.1:
+        return None
+    seg = find_constant_speed(d, pole_pairs)
+    hint = f"; the constant-speed part looks like {seg.start}..{seg.stop}" if seg.ok else ""
+    return (
+        f"warning: f_init's speed varies by {100 * deviation:.0f}% within trajectory.start.."
+        f"stop = {start}..{stop} (averaged over electrical cycles){hint}"
+    )
+
+
+def calibrate_open_loop(
+    dataset: Dataset, setup: Setup, *, progress: Progress = None
+) -> Calibration:
+    """Calibrate from a constant-speed run; see :func:`calibrate_constant_speed`.
+
+    Uses ``[trajectory] start``/``stop``, ``pole_pairs``, the ``[model]`` harmonics (``"auto"``:
+    :func:`~hallcal.fit.constant_speed.default_harmonics`), ``lut_points`` and
+    ``max_iterations``; ``sample_time`` is not needed (time in samples). Only the columns d1,
+    d2, d3 are required; ``y_ref``, when present, is used for validation only.
+
+    Raises
+    ------
+    HallcalInputError
+        Naming the file, column or setup key at fault.
+    """
+    dataset.require("d1", "d2", "d3")
+    d = np.ascontiguousarray(dataset.d)
+    n = int(setup.pole_pairs)
+    start, stop = _segment(dataset, setup)
+    harmonics = _harmonics(setup)
+    warning = _speed_warning(d, start, stop, n)
+    messages: list[str] = [] if warning is None else [warning]
+    if progress is not None:
+        progress(
+            f"constant-speed calibration on samples {start}..{stop} ({len(harmonics)} harmonics)"
+        )
+    t0 = time.perf_counter()
+    try:
+        res = calibrate_constant_speed(
+            d,
+            n,
+            FourierBasis(harmonics),
+            start=start,
+            stop=stop,
+            max_iterations=setup.model.max_iterations,
+            lut_points=setup.model.lut_points,
+        )
+    except ValueError as exc:
+        raise HallcalInputError(f"{dataset.source}: {exc}") from None
+    timings = {"constant_speed": time.perf_counter() - t0}
+    messages.extend(f"warning: {w}" for w in res.warnings)
+    if res.status is ConstantSpeedStatus.NOT_CONVERGED:
+        messages.append("warning: the speed estimate did not converge")
+    refusal = None
+    if not res.lut.bijective:
+        status = CalibrationStatus.NOT_BIJECTIVE
+        refusal = (
+            f"the table is not bijective (min slope {res.lut.min_slope:.3g}): the identified "
+            "sensor map folds, f_star is unavailable"
+        )
+    elif not res.status.success or messages:
+        status = CalibrationStatus.WARNING
+    else:
+        status = CalibrationStatus.OK
+    validation = None
+    if "y_ref" in dataset and res.lut.bijective:
+        validation = validate(res.lut, dataset, noise_floor=res.angle_noise_floor)
+    return Calibration(
+        setup=setup,
+        flux=res.model,
+        lut=res.lut,
+        status=status,
+        predicted_error=res.angle_noise_floor,
+        noise_floor=res.angle_noise_floor,
+        refusal=refusal,
+        messages=tuple(messages),
+        validation=validation,
+        timings=timings,
+        model_info={
+            "basis": "fourier",
+            "harmonics": list(harmonics),
+            "theta": res.model.theta.tolist(),
+        },
+        constant_speed=res,
+    )

@@ -1,0 +1,319 @@
+"""Step 2 of Algorithm 1: the plant model, from the setup or from a BLA experiment.
+
+The BLA of the plant is identified in closed loop from multisine experiments (Pintelon &
+Schoukens 2012, sec. 3.8, :mod:`hallcal.identify.bla`); because the measured position comes from
+the imperfect f_init, the BLA is known up to a gain c, estimated from the calibration run
+(the paper's eq. for c_hat, :func:`estimate_gain`) and refined jointly with theta in SEM.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+import scipy.optimize
+from numpy.typing import NDArray
+
+from hallcal.errors import HallcalInputError
+from hallcal.fit.sem import least_squares_start
+from hallcal.identify import bla as _bla
+from hallcal.io.dataset import Dataset
+from hallcal.io.setup import Setup
+from hallcal.pipeline.progress import Progress, say
+from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sim.loop import ClosedLoop, simulate_loop
+from hallcal.sim.lti import ContinuousTF
+
+__all__ = [
+    "BLAIdentification",
+    "GainCorrection",
+    "PlantModel",
+    "closed_loop",
+    "estimate_gain",
+    "identify_bla",
+    "plant_model",
+]
+
+TWO_PI = 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class BLAIdentification:
+    """The nonparametric BLA, its parametric fit and the plant model G(s) with its delay.
+
+    Attributes
+    ----------
+    nonparametric : NonparametricBLA
+    parametric : ParametricBLA
+    plant : ContinuousTF
+        The fitted G(s) with its delay (before the gain correction).
+    status : str
+        "ok", or the two fits' statuses joined by "/" when one is not "ok".
+    """
+
+    nonparametric: _bla.NonparametricBLA = field(repr=False)
+    parametric: _bla.ParametricBLA = field(repr=False)
+    plant: ContinuousTF
+    status: str
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``hallcal-bla/1`` JSON document written by ``hallcal bla``."""
+        return {
+            "format": "hallcal-bla/1",
+            "plant": {
+                "num": list(self.plant.num),
+                "den": list(self.plant.den),
+                "delay": self.plant.delay,
+            },
+            "status": self.status,
+            "nonparametric": self.nonparametric.to_dict(),
+            "parametric": self.parametric.to_dict(),
+        }
+
+
+def identify_bla(dataset: Dataset, setup: Setup, *, progress: Progress = None) -> BLAIdentification:
+    """Closed-loop BLA from a multisine dataset (Pintelon & Schoukens 2012, sec. 3.8).
+
+    The dataset needs columns r, u, y and realization; ``[bla]`` gives the period, the number of
+    transient periods and the parametric model orders.
+    """
+    spec = setup.bla
+    if spec is None:
+        raise HallcalInputError(
+            f"{dataset.source}: a BLA experiment needs a [bla] table in the setup", key="bla"
+        )
+    dataset.require("r", "u", "y", "realization")
+    say(progress, "nonparametric BLA (indirect closed-loop method)")
+    npb = _bla.nonparametric_bla(
+        dataset["r"],
+        dataset["u"],
+        dataset["y"],
+        dataset["realization"].astype(int),
+        period_samples=spec.period_samples,
+        transient_periods=spec.transient_periods,
+        sample_time=setup.sample_time,
+    )
+    say(progress, "parametric fit of G(s) with input delay")
+    par = _bla.fit_parametric(
+        npb,
+        numerator_order=spec.numerator_order,
+        denominator_order=spec.denominator_order,
+        integrator=spec.integrator,
+        fit_delay=spec.fit_delay,
+    )
+    plant = ContinuousTF(tuple(par.num), tuple(par.den), max(float(par.delay), 0.0))
+    status = "ok" if (npb.status == "ok" and par.status == "ok") else f"{npb.status}/{par.status}"
+    return BLAIdentification(npb, par, plant, status)
+
+
+@dataclass(frozen=True)
+class GainCorrection:
+    """The gain correction c_hat of the paper: the BLA is known up to a constant c.
+
+    Attributes
+    ----------
+    c : float
+        Estimated factor; the corrected plant is c_hat * G_BLA (the paper writes
+        G_BLA / c_hat with c the BLA's error; same thing).
+    cost : float
+        Mean square mismatch of y_sim and y [rad^2] at c.
+    cost_unit : float
+        The same at c = 1.
+    rotations_data, rotations_sim : int
+        Full rotations of the data and of the simulation at c (the paper's check).
+    status : {"ok", "at-bound"}
+        "at-bound" when the search ended on its bound (c outside the plausible range).
+    c_refined, c_refined_std : float or None
+        c after joint refinement with theta in SEM (``solve_sem(fit_gain=True)``) and its
+        standard deviation: at the SEM optimum the flux model no longer masks the loop gain.
+    """
+
+    c: float
+    cost: float
+    cost_unit: float
+    rotations_data: int
+    rotations_sim: int
+    status: Literal["ok", "at-bound"]
+    c_refined: float | None = None
+    c_refined_std: float | None = None
+
+    @property
+    def value(self) -> float:
+        """The factor applied to the BLA: refined jointly with theta when available."""
+        return self.c if self.c_refined is None else self.c_refined
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            k: getattr(self, k)
+            for k in (
+                "c",
+                "c_refined",
+                "c_refined_std",
+                "cost",
+                "cost_unit",
+                "rotations_data",
+                "rotations_sim",
+                "status",
+            )
+        }
+
+
+def estimate_gain(
+    loop: ClosedLoop,
+    r: NDArray[np.float64],
+    y: NDArray[np.float64],
+    flux: FluxModel,
+    *,
+    bounds: tuple[float, float] = (0.2, 5.0),
+) -> GainCorrection:
+    """Estimate the plant gain factor c (the paper's c_hat) from the calibration run.
+
+    The paper matches the instant of the last full rotation between the closed-loop simulation
+    (with theta_0 and the plant scaled by c) and the data. In a type-1 loop tracking a ramp the
+    lag of y behind r is inversely proportional to the loop gain, so that instant moves with c.
+    Here the whole trajectory is matched instead of one instant: ``c = argmin mean (y_sim,c -
+    y)^2`` (a bounded scalar search on log c), which uses the same information with all samples
+    and is insensitive to where the last rotation falls; the number of full rotations of both is
+    reported as the paper's check.
+    """
+
+    def cost(logc: float) -> float:
+        res = simulate_loop(loop.with_plant_gain(math.exp(logc)), flux, r)
+        if res.status != "ok":
+            return 1e6
+        return float(np.mean((res.y - y) ** 2))
+
+    lo, hi = math.log(bounds[0]), math.log(bounds[1])
+    grid = np.linspace(lo, hi, 13)
+    vals = [cost(g) for g in grid]
+    i = int(np.argmin(vals))
+    a, b = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+    opt = scipy.optimize.minimize_scalar(
+        cost, bounds=(a, b), method="bounded", options={"xatol": 1e-5}
+    )
+    c = float(math.exp(opt.x))
+    sim = simulate_loop(loop.with_plant_gain(c), flux, r)
+    at_edge = abs(opt.x - lo) < 1e-3 or abs(opt.x - hi) < 1e-3
+    return GainCorrection(
+        c=c,
+        cost=float(opt.fun),
+        cost_unit=cost(0.0),
+        rotations_data=_full_rotations(y),
+        rotations_sim=_full_rotations(sim.y) if sim.status == "ok" else -1,
+        status="at-bound" if at_edge else "ok",
+    )
+
+
+def _full_rotations(y: NDArray[np.float64]) -> int:
+    return int(math.floor(np.max(y) / TWO_PI))
+
+
+def closed_loop(setup: Setup, plant: ContinuousTF) -> ClosedLoop:
+    """The loop of the setup's controller around ``plant`` (exact ZOH with delay).
+
+    Raises
+    ------
+    HallcalInputError
+        No ``[controller]``, or a plant/controller the loop cannot use (named).
+    """
+    if setup.controller is None:
+        raise HallcalInputError(
+            "setup: closed-loop calibration needs a [controller] table", key="controller"
+        )
+    try:
+        return ClosedLoop.from_transfer_functions(
+            plant, setup.controller, setup.sample_time, setup.pole_pairs
+        )
+    except ValueError as exc:
+        raise HallcalInputError(f"setup: [plant] and [controller]: {exc}", key="plant") from None
+
+
+@dataclass(frozen=True)
+class PlantModel:
+    """The plant the calibration simulates, and where it came from.
+
+    Attributes
+    ----------
+    plant : ContinuousTF
+        G(s) with its delay, the gain correction applied.
+    source : {"setup", "bla"}
+        ``[plant]`` of the setup, or the BLA of a multisine experiment.
+    note : str
+        One sentence for the user: which plant is used and why.
+    bla : BLAIdentification or None
+    gain : GainCorrection or None
+        Gain correction of the BLA (None for a given plant).
+    """
+
+    plant: ContinuousTF
+    source: Literal["setup", "bla"]
+    note: str
+    bla: BLAIdentification | None = None
+    gain: GainCorrection | None = None
+
+
+def plant_model(
+    dataset: Dataset,
+    setup: Setup,
+    *,
+    bla_dataset: Dataset | None = None,
+    bla: BLAIdentification | None = None,
+    start_harmonics: tuple[int, ...] | None = None,
+    progress: Progress = None,
+) -> PlantModel:
+    """Choose and, if needed, identify the plant model (step 2 of Algorithm 1).
+
+    A BLA experiment (``bla_dataset`` or an identified ``bla``) wins over ``[plant]``: it is the
+    measurement of this motor, while ``[plant]`` also serves the virtual bench; the returned
+    :attr:`PlantModel.note` says which one is used. Without either, the plant is unknown.
+
+    Parameters
+    ----------
+    dataset : Dataset
+        The calibration run (columns r, y, d1..d3) for the gain correction c_hat.
+    setup : Setup
+    bla_dataset : Dataset, optional
+        Multisine experiment.
+    bla : BLAIdentification, optional
+        An already identified BLA.
+    start_harmonics : tuple of int, optional
+        Harmonics of the least-squares flux model used for the gain search (default 1..n_m).
+    progress : callable, optional
+        Called with a short message per step.
+
+    Returns
+    -------
+    PlantModel
+    """
+    if bla is None and bla_dataset is None:
+        if setup.plant is None:
+            raise HallcalInputError(
+                "setup: no [plant] table and no BLA experiment (--bla-data): the plant model G "
+                "is unknown",
+                key="plant",
+            )
+        return PlantModel(setup.plant, "setup", "plant: G(s) from the setup's [plant] table")
+    if bla is None:
+        assert bla_dataset is not None
+        bla = identify_bla(bla_dataset, setup, progress=progress)
+        where = bla_dataset.source
+    else:
+        where = "the given BLA"
+    if "y" not in dataset:
+        raise HallcalInputError(
+            f"{dataset.source}: column 'y' is missing (needed for the gain correction c)",
+            key="y",
+        )
+    say(progress, "gain correction c_hat of the BLA")
+    n_m = setup.pole_pairs
+    basis = FourierBasis(start_harmonics or tuple(range(1, n_m + 1)))
+    d = np.ascontiguousarray(dataset.d)
+    y = np.ascontiguousarray(dataset["y"])
+    flux0 = FluxModel(basis, least_squares_start(basis, d, y))
+    gain = estimate_gain(closed_loop(setup, bla.plant), dataset["r"], y, flux0)
+    note = f"plant: the BLA identified from {where}, gain-corrected with the calibration run"
+    if setup.plant is not None:
+        note += " (the setup's [plant] is not used for calibration; it serves the virtual bench)"
+    return PlantModel(bla.plant.scaled(gain.c), "bla", note, bla=bla, gain=gain)

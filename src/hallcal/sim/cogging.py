@@ -1,0 +1,190 @@
+"""Cogging torque: a torque periodic in the mechanical angle, added to the plant input.
+
+The paper's discussion names cogging as the likely cause of its experiment's residual error: a
+position-periodic torque moves the rotor in a way that a flux model alone attributes to the
+sensors. hallcal models it as a Fourier series in the mechanical angle y0,
+
+    T_c(y0) = sum_k a_k cos(k y0) + b_k sin(k y0) = sum_k A_k cos(k y0 - phi_k),
+
+with ``A_k = hypot(a_k, b_k)`` and ``phi_k = atan2(b_k, a_k)``, in plant input units (the unit of
+the torque command u, so that firmware can subtract it from its command as a feed-forward), added
+to the plant input of eq. (state_eq): ``x_G[k+1] = A_G x_G[k] + B_G (u[k] + T_c(y0[k]))``.
+
+The artifact stores it under the key ``"cogging"`` (:meth:`CoggingTorque.to_dict`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = ["CoggingTorque"]
+
+
+@dataclass(frozen=True)
+class CoggingTorque:
+    """T_c(y0) = sum_k a_k cos(k y0) + b_k sin(k y0) [plant input units], y0 in mechanical rad.
+
+    Parameters
+    ----------
+    orders : sequence of int
+        Distinct orders k >= 1 (periods per revolution).
+    a, b : array_like (n,)
+        Cosine and sine coefficients, one per order.
+    covariance : array_like (2n, 2n), optional
+        Covariance of the interleaved coefficients ``[a_1, b_1, a_2, b_2, ...]`` (an estimate's
+        uncertainty; None for a known torque).
+    """
+
+    orders: tuple[int, ...] = ()
+    a: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0), repr=False)
+    b: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0), repr=False)
+    covariance: NDArray[np.float64] | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        k = tuple(int(v) for v in self.orders)
+        if len(set(k)) != len(k) or any(v < 1 for v in k):
+            raise ValueError("cogging orders must be distinct integers >= 1")
+        a = np.array(self.a, dtype=np.float64).reshape(-1)
+        b = np.array(self.b, dtype=np.float64).reshape(-1)
+        if a.shape != (len(k),) or b.shape != (len(k),):
+            raise ValueError("cogging coefficients a and b need one entry per order")
+        for arr in (a, b):
+            arr.setflags(write=False)
+        object.__setattr__(self, "orders", k)
+        object.__setattr__(self, "a", a)
+        object.__setattr__(self, "b", b)
+        if self.covariance is not None:
+            c = np.array(self.covariance, dtype=np.float64)
+            if c.shape != (2 * len(k), 2 * len(k)):
+                raise ValueError("cogging covariance must be (2n, 2n) for n orders")
+            c.setflags(write=False)
+            object.__setattr__(self, "covariance", c)
+
+    # -- construction -------------------------------------------------------------------------
+    @classmethod
+    def from_coefficients(
+        cls, orders: ArrayLike, x: ArrayLike, covariance: ArrayLike | None = None
+    ) -> CoggingTorque:
+        """From interleaved coefficients ``x = [a_1, b_1, a_2, b_2, ...]``."""
+        xx = np.asarray(x, dtype=np.float64).reshape(-1)
+        return cls(tuple(np.atleast_1d(orders).tolist()), xx[0::2], xx[1::2], covariance)
+
+    @classmethod
+    def from_amplitudes(
+        cls, orders: ArrayLike, amplitude: ArrayLike, phase_deg: ArrayLike = 0.0
+    ) -> CoggingTorque:
+        """``T_c = sum_k A_k cos(k y0 - phi_k)`` with phases in degrees."""
+        k = tuple(int(v) for v in np.atleast_1d(orders))
+        A = np.broadcast_to(np.asarray(amplitude, dtype=np.float64), (len(k),))
+        phi = np.radians(np.broadcast_to(np.asarray(phase_deg, dtype=np.float64), (len(k),)))
+        return cls(k, A * np.cos(phi), A * np.sin(phi))
+
+    # -- evaluation ---------------------------------------------------------------------------
+    @property
+    def size(self) -> int:
+        """Number of orders n."""
+        return len(self.orders)
+
+    @property
+    def coefficients(self) -> NDArray[np.float64]:
+        """Interleaved ``[a_1, b_1, a_2, b_2, ...]`` (the layout of the parameter vector)."""
+        x = np.empty(2 * self.size)
+        x[0::2] = self.a
+        x[1::2] = self.b
+        return x
+
+    @property
+    def amplitude(self) -> NDArray[np.float64]:
+        """A_k = hypot(a_k, b_k) per order."""
+        return np.hypot(self.a, self.b)
+
+    @property
+    def phase(self) -> NDArray[np.float64]:
+        """phi_k = atan2(b_k, a_k) [rad] per order: ``T_c = sum A_k cos(k y0 - phi_k)``."""
+        return np.arctan2(self.b, self.a)
+
+    def _regressors(self, y0: ArrayLike) -> tuple[NDArray, NDArray, NDArray]:
+        y = np.atleast_1d(np.asarray(y0, dtype=np.float64))
+        k = np.asarray(self.orders, dtype=np.float64)
+        arg = np.multiply.outer(y, k)
+        return y, np.cos(arg), np.sin(arg)
+
+    def __call__(self, y0: ArrayLike) -> NDArray[np.float64]:
+        """T_c(y0), shape (N,)."""
+        y, c, s = self._regressors(y0)
+        if not self.size:
+            return np.zeros(y.size)
+        return c @ self.a + s @ self.b
+
+    def derivative(self, y0: ArrayLike) -> NDArray[np.float64]:
+        """d T_c / d y0 [per rad], shape (N,)."""
+        y, c, s = self._regressors(y0)
+        if not self.size:
+            return np.zeros(y.size)
+        k = np.asarray(self.orders, dtype=np.float64)
+        return s @ (-k * self.a) + c @ (k * self.b)
+
+    def std(self, y0: ArrayLike) -> NDArray[np.float64]:
+        """First-order standard deviation of T_c(y0) from :attr:`covariance` (NaN without it).
+
+        ``var T_c(y0) = r(y0)^T Cov r(y0)`` with ``r = [cos k_1 y0, sin k_1 y0, ...]``: T_c is
+        linear in the coefficients, so this is exact for Gaussian coefficients.
+        """
+        y, c, s = self._regressors(y0)
+        if self.covariance is None:
+            return np.full(y.size, math.nan)
+        R = np.empty((y.size, 2 * self.size))
+        R[:, 0::2] = c
+        R[:, 1::2] = s
+        var = np.einsum("ij,jk,ik->i", R, self.covariance, R)
+        return np.sqrt(np.maximum(var, 0.0))
+
+    def coefficient_std(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Standard deviations of a_k and b_k (NaN without a covariance)."""
+        if self.covariance is None:
+            nan = np.full(self.size, math.nan)
+            return nan, nan.copy()
+        sd = np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
+        return sd[0::2].copy(), sd[1::2].copy()
+
+    # -- artifact -----------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        """The artifact's ``"cogging"`` entry (PLAN.md): orders, a, b, their std, the unit.
+
+        With a covariance, the full matrix of the interleaved coefficients is added under
+        ``"covariance"`` (the +-2 sigma band of the map needs the correlations).
+        """
+        sa, sb = self.coefficient_std()
+        out: dict = {
+            "orders": [int(k) for k in self.orders],
+            "a": [float(v) for v in self.a],
+            "b": [float(v) for v in self.b],
+            "std_a": [None if not math.isfinite(v) else float(v) for v in sa],
+            "std_b": [None if not math.isfinite(v) else float(v) for v in sb],
+            "unit": "plant input",
+        }
+        if self.covariance is not None and np.all(np.isfinite(self.covariance)):
+            out["covariance"] = self.covariance.tolist()
+        return out
+
+    @classmethod
+    def from_dict(cls, entry: dict) -> CoggingTorque:
+        """Inverse of :meth:`to_dict` (without ``"covariance"``, a diagonal one from the std)."""
+        orders = tuple(int(k) for k in entry.get("orders", ()))
+        a = np.asarray(entry.get("a", ()), dtype=np.float64)
+        b = np.asarray(entry.get("b", ()), dtype=np.float64)
+        if entry.get("covariance") is not None:
+            return cls(orders, a, b, np.asarray(entry["covariance"], dtype=np.float64))
+        sa, sb = entry.get("std_a"), entry.get("std_b")
+        cov = None
+        if sa is not None and sb is not None and len(sa) == len(orders) == len(sb):
+            v = np.empty(2 * len(orders))
+            v[0::2] = [math.nan if s is None else float(s) for s in sa]
+            v[1::2] = [math.nan if s is None else float(s) for s in sb]
+            if np.all(np.isfinite(v)):
+                cov = np.diag(v**2)
+        return cls(orders, a, b, cov)
