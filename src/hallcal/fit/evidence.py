@@ -389,19 +389,20 @@ def _group_tests(
     s_eff = np.zeros((ng, m))
     q2 = np.zeros((ng, m))
     act = np.isfinite(alpha)
-    for k in range(ng):
-        idx = np.nonzero(grp == k)[0]
-        Sk = G[np.ix_(idx, idx)] / s2 - W[idx] @ X[idx].T
-        ev, V = np.linalg.eigh(0.5 * (Sk + Sk.T))
-        q = V.T @ resid[idx]
-        if act[k]:
-            den = alpha[k] - ev
-            ok = den > 0
-            safe = np.where(ok, den, 1.0)
-            ev = np.where(ok, alpha[k] * ev / safe, 0.0)
-            q = np.where(ok, alpha[k] * q / safe, 0.0)
-        s_eff[k, : idx.size] = np.maximum(ev, 0.0)
-        q2[k, : idx.size] = q**2
+    for size in np.unique(sizes):  # one batched eigendecomposition per group size
+        ks = np.nonzero(sizes == size)[0]
+        idx = np.stack([np.nonzero(grp == k)[0] for k in ks])  # (g, size)
+        Sk = G[idx[:, :, None], idx[:, None, :]] / s2 - np.einsum("gip,gjp->gij", W[idx], X[idx])
+        ev, V = np.linalg.eigh(0.5 * (Sk + Sk.transpose(0, 2, 1)))
+        q = np.einsum("gij,gi->gj", V, resid[idx])
+        a = np.where(act[ks], alpha[ks], 0.0)[:, None]
+        den = a - ev
+        ok = act[ks][:, None] & (den > 0)
+        safe = np.where(ok, den, 1.0)
+        ev = np.where(act[ks][:, None], np.where(ok, a * ev / safe, 0.0), ev)
+        q = np.where(act[ks][:, None], np.where(ok, a * q / safe, 0.0), q)
+        s_eff[ks, :size] = np.maximum(ev, 0.0)
+        q2[ks, :size] = q**2
     return _block_gain(s_eff, q2)
 
 

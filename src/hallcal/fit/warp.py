@@ -165,19 +165,35 @@ class Unwarp:
 
     def warp_at(self, x: ArrayLike) -> NDArray[np.float64]:
         """w(x) [rad]."""
-        xx = np.asarray(x, dtype=np.float64)
+        xx = np.ascontiguousarray(np.atleast_1d(np.asarray(x, dtype=np.float64)))
         J = self.warp.size // 2
-        j = np.arange(1, J + 1)
-        A = np.multiply.outer(xx, j)
-        return np.cos(A) @ self.warp[:J] + np.sin(A) @ self.warp[J:]
+        return _series(xx, np.ascontiguousarray(self.warp[:J]), np.ascontiguousarray(self.warp[J:]))
 
     def parametrize(self, y: ArrayLike, *, iterations: int = 8) -> NDArray[np.float64]:
-        """The un-warped angle x of samples at f_init angles y: ``x + w(x) = y`` (fixed point)."""
+        """The un-warped angle x of samples at f_init angles y: ``x + w(x) = y`` (fixed point,
+        a contraction while ``|w'| < 1``; 8 steps reach 1e-12 rad for |w'| < 0.03)."""
         yy = np.asarray(y, dtype=np.float64)
         x = yy.copy()
         for _ in range(int(iterations)):
             x = yy - self.warp_at(x)
         return x
+
+
+@nb.njit(cache=True, nogil=True)
+def _series(x, a, b):  # pragma: no cover - numba
+    """sum_j a_j cos(j x) + b_j sin(j x) at every x (angle-addition recursion)."""
+    out = np.empty(x.size)
+    for i in range(x.size):
+        c1 = math.cos(x[i])
+        s1 = math.sin(x[i])
+        c = 1.0
+        s = 0.0
+        acc = 0.0
+        for j in range(a.size):
+            c, s = c * c1 - s * s1, s * c1 + c * s1
+            acc += a[j] * c + b[j] * s
+        out[i] = acc
+    return out
 
 
 @nb.njit(cache=True, nogil=True)
