@@ -519,7 +519,9 @@ def group_evidence(
             new[keep_mask] = np.minimum(new[keep_mask], 1e300)
             # a precision above `prune` times the group's data precision holds its posterior
             # mean below 1/prune of its least-squares value: the group is out (Tipping 2001)
-            pruned = act & ~keep_mask & (new > prune * np.maximum(data_prec / s2, 1e-300))
+            with np.errstate(over="ignore"):
+                limit = prune * np.maximum(data_prec / s2, 1e-300)
+            pruned = act & ~keep_mask & (new > limit)
             new[pruned] = np.inf
             det = act & ~pruned & (gam > 1e-2) & np.isfinite(new)
             with np.errstate(divide="ignore", invalid="ignore"):

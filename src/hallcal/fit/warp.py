@@ -311,6 +311,9 @@ class BandEdgeStatus(enum.StrEnum):
     FOUND = "found"
     #: no band up to the upper bound leaves only noise: the bound is used
     AT_BOUND = "at_bound"
+    #: the f_init angle covers less than a revolution: harmonics are not separable, no band
+    #: is chosen (the fundamental's band 1..n_m, at f_init's parametrization, is returned)
+    TOO_SHORT = "too_short"
 
     @property
     def success(self) -> bool:
@@ -407,6 +410,9 @@ def band_edge(
     t0 = time.perf_counter()
     n = int(pole_pairs)
     top = int(max_edge) if max_edge else 8 * n
+    yy = np.asarray(y, dtype=np.float64)
+    if yy.size == 0 or float(yy.max() - yy.min()) < TWO_PI:
+        return _too_short(yy, d, n, noise_variance, t0)
     if view_harmonics is None:
         probe = f_init_view(y, d, harmonics=32 * n, noise_variance=noise_variance)
         L = min(view_band(probe.amplitude(), math.sqrt(probe.coefficient_variance),
@@ -446,3 +452,15 @@ def band_edge(
         if not trial(hi):
             status = BandEdgeStatus.AT_BOUND
     return BandEdge(hi, done[hi], view, tuple(trials), status, time.perf_counter() - t0)
+
+
+def _too_short(y: NDArray, d: ArrayLike, n: int, noise_variance: float, t0: float) -> BandEdge:
+    """Less than a revolution: harmonics 1..n_m by least squares at y, no warp."""
+    basis = FourierBasis(tuple(range(1, n + 1)))
+    dd = np.asarray(d, dtype=np.float64)
+    theta = np.linalg.lstsq(basis.evaluate(y), dd, rcond=None)[0].T if y.size else np.zeros(
+        (3, basis.size)
+    )
+    view = FInitView(np.ascontiguousarray(theta), math.nan, float(noise_variance))
+    u = Unwarp(n, np.zeros(0), FluxModel(basis, theta), math.nan, 0, 0, UnwarpStatus.CONVERGED)
+    return BandEdge(n, u, view, (), BandEdgeStatus.TOO_SHORT, time.perf_counter() - t0)
