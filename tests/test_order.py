@@ -18,8 +18,8 @@ import pytest
 
 from hallcal.fit.adequacy import estimate_noise_variance
 from hallcal.fit.order import select_harmonics
-from hallcal.fit.warp import band_edge, unwarp
 from hallcal.fit.sem import solve_sem
+from hallcal.fit.warp import band_edge, unwarp
 from hallcal.sensor.flux import FourierBasis
 from hallcal.sensor.lut import build_lut
 from hallcal.sensor.metrics import angle_error

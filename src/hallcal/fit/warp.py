@@ -458,8 +458,10 @@ def _too_short(y: NDArray, d: ArrayLike, n: int, noise_variance: float, t0: floa
     """Less than a revolution: harmonics 1..n_m by least squares at y, no warp."""
     basis = FourierBasis(tuple(range(1, n + 1)))
     dd = np.asarray(d, dtype=np.float64)
-    theta = np.linalg.lstsq(basis.evaluate(y), dd, rcond=None)[0].T if y.size else np.zeros(
-        (3, basis.size)
+    theta = (
+        np.linalg.lstsq(basis.evaluate(y), dd, rcond=None)[0].T
+        if y.size
+        else np.zeros((3, basis.size))
     )
     view = FInitView(np.ascontiguousarray(theta), math.nan, float(noise_variance))
     u = Unwarp(n, np.zeros(0), FluxModel(basis, theta), math.nan, 0, 0, UnwarpStatus.CONVERGED)
