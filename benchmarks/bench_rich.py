@@ -9,8 +9,9 @@ pair's waveform deformed on its own, truth on mechanical harmonics 1..55) at two
 0 -> 18 rad in 36 s) against the true angle.
 
 Each calibration is :func:`hallcal.calibrate` (the whole pipeline: model, adequacy, table) in a
-fresh Python process, so that the wall time and the peak resident memory (``ru_maxrss`` of the
-child, imports included) belong to that calibration alone. Models: ``harmonics = "auto"``,
+fresh Python process, so that the wall time, the CPU time (both cores: up to twice the wall
+time when the machine is free for it) and the peak resident memory (``ru_maxrss`` of the child,
+imports included) belong to that calibration alone. Models: ``harmonics = "auto"``,
 ``basis = "kernel"`` (m = 400, the defaults), and, as a reference, the Fourier model with the
 truth's harmonics 1..55 given by hand.
 
@@ -77,9 +78,9 @@ def one(data: str, model: str) -> None:
     z = np.load(data)
     cal_cols = {k: z[k] for k in ("r", "y", "u", "d1", "d2", "d3")}
     cfg = config(int(z["seed"]), float(z["strength"]))
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     cal = hallcal.calibrate(cal_cols, setup(cfg, MODELS[model]))
-    wall = time.perf_counter() - t
+    wall, cpu = time.perf_counter() - t, time.process_time() - c
     d_val = np.column_stack([z["v_d1"], z["v_d2"], z["v_d3"]])
     y_star = cal.lut.f_star(d_val)
     e = y_star - z["v_y0"]
@@ -87,6 +88,7 @@ def one(data: str, model: str) -> None:
     e0 = cal.lut.f_init(d_val) - z["v_y0"]
     out = {
         "wall": wall,
+        "cpu": cpu,
         "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "f_star": e_star,
         "f_init": float(np.std(e0 - np.mean(e0))),
@@ -139,7 +141,8 @@ def main() -> None:
                     rows.append(r)
                     print(
                         f"  s={strength:<6} seed {seed} {model:<7} f_init {1e3 * r['f_init']:.2f} "
-                        f"mrad  f_star/floor {r['f_star'] / r['floor']:.3f}  {r['wall']:5.1f} s  "
+                        f"mrad  f_star/floor {r['f_star'] / r['floor']:.3f}  {r['wall']:5.1f} s "
+                        f"(cpu {r['cpu']:5.1f} s)  "
                         f"{r['rss_mb']:4.0f} MB  {r['status']:<8} {r['harmonics']} harmonics "
                         f"(max {r['max_harmonic']})  load {r['load']:.1f}",
                         flush=True,
@@ -147,7 +150,7 @@ def main() -> None:
     print("\nSummary (f_star / noise floor on the validation run; wall time and peak RSS of one")
     print("calibrate in a fresh process):")
     head = f"{'strength':>8} {'model':<8}{'f_init mrad':>12}{'f*/floor per seed':>40}"
-    head += f"{'max':>7}{'time s (max)':>14}{'RSS MB (max)':>14}"
+    head += f"{'max':>7}{'time s (max)':>14}{'cpu s':>8}{'RSS MB (max)':>14}"
     print(head + "\n" + "-" * len(head))
     for strength in STRENGTHS:
         for model in MODELS:
@@ -158,6 +161,7 @@ def main() -> None:
                 f"{strength:>8} {model:<8}{fi:>12.2f}"
                 f"{' '.join(f'{x:.3f}' for x in ratios):>40}{max(ratios):>7.3f}"
                 f"{np.median([r['wall'] for r in rs]):>7.1f} ({max(r['wall'] for r in rs):.1f})"
+                f"{np.median([r['cpu'] for r in rs]):>8.1f}"
                 f"{np.median([r['rss_mb'] for r in rs]):>8.0f} ({max(r['rss_mb'] for r in rs):.0f})"
             )
     print(f"\nload average at the end {os.getloadavg()[0]:.2f}")
