@@ -425,19 +425,23 @@ def band_edge(
     yy = np.asarray(y, dtype=np.float64)
     if yy.size == 0 or float(yy.max() - yy.min()) < TWO_PI:
         return _too_short(yy, d, n, noise_variance, t0)
+    # a view needs a few samples per coefficient (1 + 2 L < N / 8)
+    L0 = min(32 * n, max(yy.size // 16, n + 1))
+    try:
+        if view_harmonics is None:
+            probe = f_init_view(y, d, harmonics=L0, noise_variance=noise_variance)
+        else:
+            probe = f_init_view(y, d, harmonics=int(view_harmonics), noise_variance=noise_variance)
+    except ValueError:  # the angle does not cover the view's harmonics well enough
+        return _too_short(yy, d, n, noise_variance, t0)
+    view = probe
     if view_harmonics is None:
-        probe = f_init_view(y, d, harmonics=32 * n, noise_variance=noise_variance)
-        L = min(view_band(probe.amplitude(), math.sqrt(probe.coefficient_variance),
-                          pole_pairs=n), 32 * n)  # fmt: skip
-        L = max(L, top + 2 * n)
-        # refit only when it saves much (the regression costs O(N L))
-        view = (
-            probe if L > 24 * n else f_init_view(y, d, harmonics=L, noise_variance=noise_variance)
-        )
-    else:
-        view = f_init_view(y, d, harmonics=int(view_harmonics), noise_variance=noise_variance)
+        amp, std = probe.amplitude(), math.sqrt(probe.coefficient_variance)
+        L = min(max(view_band(amp, std, pole_pairs=n), top + 2 * n), L0)
+        if L < 0.75 * L0:  # refit only when it saves much (the regression costs O(N L))
+            view = f_init_view(y, d, harmonics=L, noise_variance=noise_variance)
     L = view.harmonics
-    top = min(top, L - 1)
+    top = max(min(top, L - 1), n)
     J = max(L // 2, 1)
     done: dict[int, Unwarp] = {}
     trials: list[EdgeTrial] = []
