@@ -203,15 +203,16 @@ def shape_deformation(
     (harmonics 1..n_m-1) and ``pole_modulation`` (sidebands +-1..3).
 
     Physical meaning. s is the magnet shape tolerance expressed in flux: each pole pair's
-    waveform deviates from the nominal one by s A RMS (for s = 0.01, about 1 % of the peak flux
-    density at the sensor) with its own shape (width, position, edges, strength, magnetization
-    angle all mixed). On the paper's loop with 11 pole pairs, the trapezoidal flux of issue 13
-    (electrical harmonics 3 and 5 at 10 % and 4 %) and 2 degrees misalignment, f_init's error is
-    2.3-2.7 mrad RMS without it, 3.0-3.3 mrad at s = 0.008 and 5.6-6.5 mrad at s = 0.02 over seeds
-    1..5 (``benchmarks/bench_rich.txt``): the error grows roughly as 0.29 s / n_m rad RMS, the
-    tangential part of the deformation (sqrt(2/3) of it for uncorrelated sensors, less here since
-    the three sensors see the same pattern and its triplen bands are nearly common-mode) turned
-    into a mechanical angle.
+    waveform deviates from the nominal one by s A RMS (s = 0.02: 2 % of the fundamental's
+    amplitude at the sensor) with a shape of its own (width, position, edges, strength and
+    magnetization angle all mixed). Its effect on f_init: the deformation's component along the
+    flux curve turns into an angle error of about 0.8 s / n_m rad RMS on top of the nominal
+    waveform's (the three sensors see the same pattern, so its triplen bands are nearly common
+    mode and do not count). Measured on the issue-13 bench (paper loop, 11 pole pairs,
+    trapezoidal flux with electrical harmonics 3 and 5 at 10 % and 4 %, 2 degrees misalignment,
+    seeds 1..5, ``benchmarks/bench_rich.txt``): f_init 2.6 mrad RMS without shape variation,
+    2.8-3.1 mrad at s = 0.02, 5.2-6.8 mrad at s = 0.075; the map y0 -> f_init stays monotone
+    (minimum slope 0.42-0.65 at s = 0.07, 0.27-0.59 at s = 0.1).
 
     Parameters
     ----------
