@@ -96,6 +96,21 @@ def main() -> None:
                   f"min {mn:.3f} s, median {md:.3f} s")  # fmt: skip
     mn, md = best_of(lambda: simulate_model(big.loop(), lay, xb, rb), repeats=3)
     print(f"  simulate_model: min {mn * 1e3:.0f} ms, median {md * 1e3:.0f} ms")
+    print("one pass against the model size (harmonics 1..K, same run, one thread, min of 3):")
+    for K in (11, 33, 55, 88):
+        bk = FourierBasis(tuple(range(1, K + 1)))
+        lk = ParameterLayout(bk)
+        xk = _theta(big.truth(), bk).ravel()
+        row = []
+        for stride in (1, 4):
+            mn, _ = best_of(
+                lambda s=stride, lk=lk, xk=xk: gauss_newton_system(
+                    big.loop(), lk, xk, rb, db, threads=1, stride=s
+                ),
+                repeats=3,
+            )  # fmt: skip
+            row.append(f"stride {stride}: {mn:.3f} s")
+        print(f"  K = {K:>2d}, p = {lk.size:>3d}: " + ", ".join(row))
     print(f"uptime: {_uptime()}")
 
 

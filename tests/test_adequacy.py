@@ -19,6 +19,7 @@ import scipy.signal
 
 from hallcal.fit.adequacy import (
     assess,
+    chi2_isf_even,
     curve_projection,
     estimate_noise_variance,
     harmonic_content,
@@ -249,3 +250,17 @@ def test_a_failed_fit_is_refused():
     rep = assess(failed, run.d, pole_pairs=11)
     assert rep.verdict == "inadequate" and rep.status == "failed"
     json.dumps(rep.to_dict())
+
+
+@pytest.mark.parametrize("df", [2, 4, 6, 8, 12, 40])
+def test_chi2_quantile_matches_scipy_stats(df):
+    """The few lines of Newton's method give scipy.stats.chi2.isf (the oracle) to rounding."""
+    import scipy.stats
+
+    for q in np.logspace(-300, np.log10(0.9), 120):
+        expected = scipy.stats.chi2.isf(q, df)
+        assert chi2_isf_even(q, df) == pytest.approx(expected, rel=1e-14)
+    with pytest.raises(ValueError, match="even"):
+        chi2_isf_even(0.01, 3)
+    with pytest.raises(ValueError, match="q must"):
+        chi2_isf_even(1.0, 2)

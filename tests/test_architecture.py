@@ -149,6 +149,114 @@ def test_import_hallcal_loads_no_numeric_stack(heavy):
     assert out.stdout.strip() == "False"
 
 
+#: Runs the command line in a fresh interpreter and writes the names in sys.modules to a file.
+_RUN_AND_LIST_MODULES = """
+import sys
+from hallcal.cli import main
+sys.argv = ["hallcal", *{args!r}]
+try:
+    main()
+except SystemExit as exc:
+    status = exc.code
+else:
+    status = 0
+with open({listing!r}, "w") as f:
+    f.write("\\n".join(sorted(sys.modules)))
+sys.exit(status)
+"""
+
+
+def _modules_after(args: list[str], cwd: Path) -> set[str]:
+    listing = cwd / "modules.txt"
+    code = _RUN_AND_LIST_MODULES.format(args=args, listing=str(listing))
+    res = subprocess.run(
+        [sys.executable, "-c", code], cwd=cwd, capture_output=True, text=True, timeout=600
+    )
+    assert res.returncode == 0, res.stderr
+    return set(listing.read_text().split())
+
+
+def _loaded(modules: set[str], heavy: list[str]) -> list[str]:
+    """The entries of `heavy` that are loaded (a package or any of its submodules)."""
+    return [h for h in heavy if any(m == h or m.startswith(h + ".") for m in modules)]
+
+
+NUMERIC_STACK = ["numpy", "scipy", "numba", "pyarrow", "matplotlib", "h5py", "rich"]
+NUMERIC_STACK += ["hallcal.io", "hallcal.pipeline", "hallcal.sim", "hallcal.fit", "hallcal.api"]
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["--help"],
+        ["calibrate", "--help"],
+        ["reconstruct", "--help"],
+        ["simulate", "--help"],
+        ["report", "--help"],
+        ["export-c", "--help"],
+        ["--version"],
+    ],
+)
+def test_help_loads_no_numeric_stack(tmp_path, args):
+    """``hallcal --help`` and ``hallcal <cmd> --help`` load click and hallcal's front only."""
+    modules = _modules_after(args, tmp_path)
+    assert "click" in modules  # the listing is real
+    assert _loaded(modules, NUMERIC_STACK) == []
+
+
+@pytest.fixture(scope="module")
+def paper_like_run(tmp_path_factory):
+    """A short closed-loop run (6 s, 1.1 revolutions of the paper's bench) as CSV, and its setup."""
+    from hallcal.io import default_setup, write_dataset, write_setup
+    from hallcal.pipeline import simulate
+
+    d = tmp_path_factory.mktemp("modules")
+    setup = default_setup()
+    run = simulate(setup, ramp_end=7.0, duration=6.0)
+    write_dataset(d / "cal.csv", run.columns())
+    write_setup(d / "s.toml", setup)
+    return d
+
+
+def test_calibrate_loads_only_what_it_uses(paper_like_run):
+    """A Fourier calibration from CSV: no plotting, HDF5, MAT, Parquet, kernel solver, bench."""
+    modules = _modules_after(
+        ["calibrate", "cal.csv", "--setup", "s.toml", "--out", "cal.json"], paper_like_run
+    )
+    assert _loaded(modules, ["numba", "hallcal.fit.sem", "pyarrow.csv"]) == [
+        "numba",
+        "hallcal.fit.sem",
+        "pyarrow.csv",
+    ]
+    unused = ["matplotlib", "h5py", "scipy.io", "scipy.signal", "scipy.stats", "scipy.optimize"]
+    unused += ["scipy.special"]
+    unused += ["pyarrow.parquet", "hallcal.fit.kernel", "hallcal.sim.bench", "hallcal.output"]
+    unused += ["rich"]
+    assert _loaded(modules, unused) == []
+
+
+def test_reconstruct_needs_neither_numba_nor_scipy(paper_like_run):
+    """Applying a table is NumPy work: reading the artifact must not load the solver stack."""
+    if not (paper_like_run / "cal.json").exists():
+        _modules_after(
+            ["calibrate", "cal.csv", "--setup", "s.toml", "--out", "cal.json"], paper_like_run
+        )
+    modules = _modules_after(
+        ["reconstruct", "cal.json", "cal.csv", "--out", "angles.npz"], paper_like_run
+    )
+    assert _loaded(modules, ["numpy", "hallcal.sensor.lut"]) == ["numpy", "hallcal.sensor.lut"]
+    unused = ["numba", "scipy", "matplotlib", "h5py", "pyarrow.parquet", "hallcal.fit"]
+    unused += ["hallcal.sim.loop", "hallcal.output", "rich"]
+    assert _loaded(modules, unused) == []
+
+
+def test_the_module_listing_sees_a_planted_import(tmp_path):
+    """The check can fail: a command that loads matplotlib is reported."""
+    modules = _modules_after(["--help"], tmp_path)
+    assert _loaded(modules | {"matplotlib.figure"}, ["matplotlib"]) == ["matplotlib"]
+    assert _loaded(modules | {"matplotlibx"}, ["matplotlib"]) == []
+
+
 def test_front_door_names_resolve():
     import hallcal
 

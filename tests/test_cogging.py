@@ -259,10 +259,10 @@ def test_report_draws_the_cogging_map(bench_data, tmp_path):
     content = content_from_calibration(cal, data, true_cogging=cfg.cogging_torque())
     figs = {f.key: f for f in make_figures(content)}
     assert "cogging" in figs
-    ax = figs["cogging"].figure.axes[0]
-    assert len(ax.lines) >= 2 and len(ax.collections) >= 1  # map, truth, band
+    axes = figs["cogging"].figure.axes
+    assert len(axes) == 3 and len(axes[0].lines) >= 2 and len(axes[0].collections) >= 1
     fig = plots.plot_cogging(CoggingTorque((66,), [0.0], [1e-3]))  # no covariance: no band
-    assert len(fig.axes[0].collections) == 0
+    assert len(fig.axes) == 2 and len(fig.axes[0].collections) == 0
 
 
 @pytest.mark.parametrize("cogging", ["auto", "none"])
@@ -290,3 +290,15 @@ def test_predicted_error_stays_honest_when_the_table_absorbs_motion(cogging):
         assert any("cogging torque at 66/rev that is not modelled" in m for m in cal.messages)
     else:
         assert cal.status.value == "ok" and actual < 1.10 * cfg.noise_floor
+
+
+@given(alpha=st.floats(1e-7, 0.5), dof=st.floats(2.0, 500.0))
+def test_f2_quantile_matches_scipy(alpha, dof):
+    """The closed-form F(2, dof) quantile against scipy.stats (the oracle), at the levels used
+    (1e-3 over up to a few hundred orders); scipy's numerical inversion is good to about 1e-8
+    relative there (deeper in the tail it is the less accurate of the two)."""
+    import scipy.stats
+
+    from hallcal.fit.cogging import f2_isf
+
+    assert f2_isf(alpha, dof) == pytest.approx(float(scipy.stats.f.isf(alpha, 2, dof)), rel=1e-7)

@@ -735,8 +735,17 @@ def _bad(update: dict[str, Any], *, drop: tuple[str, ...] = ()) -> str:
             'key \'bla.lines\' must be one of "full", "odd", "random-odd", got "even"',
         ),
         (
-            {"bla.period_samples": 4000, "bla.periods": 2, "bla.numerator_order": 4},
+            {
+                "bla.period_samples": 4000,
+                "bla.periods": 2,
+                "bla.numerator_order": 4,
+                "bla.denominator_order": 2,
+            },
             "key 'bla.numerator_order' must not exceed 'bla.denominator_order' (2), got 4",
+        ),
+        (
+            {"bla.period_samples": 4000, "bla.periods": 2, "bla.denominator_order": "two"},
+            'key \'bla.denominator_order\' must be an integer >= 0 or "auto", got "two"',
         ),
         ({"bench.experiment": "multisine"}, "key 'bench.experiment' is \"multisine\" but there"),
         ({"bench.noise_variance": -1.0}, "key 'bench.noise_variance' must be a number >= 0"),

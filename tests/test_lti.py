@@ -89,3 +89,33 @@ def test_feedthrough_with_delay_moves_to_a_delayed_input():
     ref = continuous_step(tf, np.arange(200) * TS)
     # the continuous step of a biproper system jumps by 1 at t = tau: compare after the jump
     np.testing.assert_allclose(y[1:], ref[1:], atol=1e-6)
+
+
+_coefficients = st.lists(
+    st.floats(-1e3, 1e3, allow_nan=False).filter(lambda v: abs(v) > 1e-3), min_size=1, max_size=6
+)
+
+
+@given(num=_coefficients, den=_coefficients)
+def test_tf2ss_matches_scipy_signal(num, den):
+    """The few lines of NumPy give scipy.signal.tf2ss's controllable canonical form exactly."""
+    if len(num) > len(den):
+        num, den = den, num
+    ss = tf2ss(num, den)
+    A, B, C, D = scipy.signal.tf2ss(num, den)
+    if len(den) == 1:
+        assert ss.order == 0 and ss.D == pytest.approx(float(D.ravel()[0]), rel=1e-12)
+        return
+    np.testing.assert_allclose(ss.A, A, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(ss.B, B[:, 0], rtol=1e-12, atol=0)
+    np.testing.assert_allclose(ss.C, C[0], rtol=1e-12, atol=1e-12 * np.abs(C).max())
+    assert ss.D == pytest.approx(float(D[0, 0]), rel=1e-12, abs=1e-300)
+
+
+def test_tf2ss_leading_zeros_and_scaling():
+    """Leading zeros are trimmed and a non-monic denominator is normalized, as scipy does."""
+    ss = tf2ss([0.0, 2.0, 4.0], [2.0, 6.0, 8.0])
+    A, B, C, D = scipy.signal.tf2ss([2.0, 4.0], [2.0, 6.0, 8.0])
+    np.testing.assert_array_equal(ss.A, A)
+    np.testing.assert_array_equal(ss.C, C[0])
+    assert ss.D == D[0, 0] == 0.0

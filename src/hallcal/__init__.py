@@ -26,10 +26,10 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
-from hallcal._version import __version__
 from hallcal.errors import CalibrationRefused, HallcalError, HallcalInputError
 
 if TYPE_CHECKING:
+    from hallcal._version import __version__
     from hallcal.api import Calibration, calibrate, load
     from hallcal.io import Dataset, Setup, read_dataset, read_setup
     from hallcal.pipeline import CalibrationStatus, Reconstruction, Validation
@@ -42,6 +42,7 @@ if TYPE_CHECKING:
 
 #: Public name -> module that defines it (imported on first access).
 _LAZY: dict[str, str] = {
+    "__version__": "hallcal._version",
     "Calibration": "hallcal.api",
     "calibrate": "hallcal.api",
     "load": "hallcal.api",

@@ -71,7 +71,9 @@ class Calibration(_Result):
     def _from_result(cls, result: _Result) -> Calibration:
         return cls(**{f.name: getattr(result, f.name) for f in dataclasses.fields(_Result)})
 
-    def reconstruct(self, data: DataLike, *, y_initial: float = 0.0) -> Reconstruction:  # type: ignore[override]
+    def reconstruct(  # type: ignore[override]
+        self, data: DataLike, *, y_initial: float = 0.0, absolute: bool = False
+    ) -> Reconstruction:
         """f_init and f_star over a recording: ``rec["y_init"]``, ``rec["y_star"]`` [rad].
 
         Parameters
@@ -80,8 +82,14 @@ class Calibration(_Result):
             Columns d1, d2, d3 (``y_ref``, when present, validates the result).
         y_initial : float, keyword-only
             f_init's angle before the first sample [rad] (the calibration run started at 0).
+        absolute : bool, keyword-only
+            The recording starts at power-up wherever the rotor stopped (no homing): the pole
+            pair is identified from the magnets' signatures and the angles are in the
+            calibration's frame, modulo one revolution (``rec.identification`` says when it
+            was certain). Raises :class:`~hallcal.errors.CalibrationRefused` when
+            ``cal.identifiability`` says the pole pair is not identifiable.
         """
-        return super().reconstruct(as_dataset(data), y_initial=y_initial)
+        return super().reconstruct(as_dataset(data), y_initial=y_initial, absolute=absolute)
 
     def report(
         self,
@@ -89,6 +97,7 @@ class Calibration(_Result):
         *,
         data: DataLike | None = None,
         validation: DataLike | None = None,
+        units: str = "mrad",
     ) -> Path:
         """Write the figures and the HTML report; returns the HTML file's path.
 
@@ -100,6 +109,8 @@ class Calibration(_Result):
             The calibration recording (needed for the model-fit figures).
         validation : path, Dataset or mapping, optional
             A fresh recording with ``y_ref`` to validate on.
+        units : {"mrad", "electrical-deg"}
+            Units of the angle errors in the report's text.
         """
         from hallcal.output.report import write_calibration_report
 
@@ -108,6 +119,7 @@ class Calibration(_Result):
             None if data is None else as_dataset(data),
             out_dir,
             validation=None if validation is None else as_dataset(validation, required=("y_ref",)),
+            units=units,
         )
 
     def export_c(self, out_dir: str | os.PathLike[str], **options: Any) -> Any:

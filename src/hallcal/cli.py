@@ -1,8 +1,9 @@
 """The ``hallcal`` command line (contract in docs/design.md, "Command line").
 
 Exit status: 0 success; 2 bad input (one line naming the file, column or key; no traceback);
-3 calibration refused (model inadequate or table not bijective; use ``--force`` to write an
-inadequate model anyway). Progress goes to stderr, results to stdout.
+3 refused (calibration: model inadequate or table not bijective, use ``--force`` to write an
+inadequate model anyway; BLA: the fitted plant model is unstable). Progress and notes go to
+stderr, results to stdout.
 """
 
 from __future__ import annotations
@@ -16,15 +17,34 @@ from pathlib import Path
 from typing import Any
 
 import click
-from rich.console import Console
 
 from hallcal.errors import CalibrationRefused, HallcalError, HallcalInputError
 
 EXIT_INPUT = HallcalInputError.exit_status
 EXIT_REFUSED = CalibrationRefused.exit_status
 
-_err = Console(stderr=True, highlight=False, soft_wrap=True)
-_out = Console(highlight=False, soft_wrap=True)
+
+class _Stream:
+    """Plain lines on stdout or stderr through :func:`click.echo`.
+
+    Progress and results are one line each, so rich (40 ms to import, and it would read
+    ``[plant]`` in a message as markup) is not used here; styles are dropped when the stream
+    is not a terminal.
+    """
+
+    def __init__(self, *, err: bool) -> None:
+        self.err = err
+
+    def print(self, message: object = "") -> None:
+        click.echo(str(message), err=self.err)
+
+
+_err = _Stream(err=True)
+_out = _Stream(err=False)
+
+UNITS = ("mrad", "electrical-deg")
+_EXITS = "0 success, 2 bad input (one line naming the file, column or key)"
+_EXITS_REFUSED = _EXITS + ", 3 refused"
 
 
 def _one_line(exc: BaseException) -> str:
@@ -59,7 +79,8 @@ class _Progress:
 
     def __call__(self, message: str) -> None:
         if not self.quiet:
-            _err.print(f"[dim]{time.perf_counter() - self.t0:6.1f} s[/dim]  {message}")
+            elapsed = click.style(f"{time.perf_counter() - self.t0:6.1f} s", dim=True)
+            _err.print(f"{elapsed}  {message}")
 
 
 _setup_path: list[str | None] = [None]  # the setup file of this command, for error messages
@@ -76,21 +97,73 @@ def _mrad(x: float | None) -> str:
     return "-" if x is None or not math.isfinite(x) else f"{1e3 * x:.4f} mrad"
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def _angle(x: float | None, units: str, pole_pairs: int) -> str:
+    """An angle error [rad, mechanical] in the chosen units."""
+    if x is None or not math.isfinite(x):
+        return "-"
+    if units == "electrical-deg":
+        return f"{math.degrees(x) * pole_pairs:.4f} electrical deg"
+    return _mrad(x)
+
+
+def _plural(count: int, word: str) -> str:
+    return f"{count} {word}" + ("" if count == 1 else "s")
+
+
+def _epilog(*examples: str, exits: str = _EXITS) -> str:
+    """A command's help epilog: examples and the exit statuses (``\\b`` keeps the layout)."""
+    lines = "\n".join(f"  {e}" for e in examples)
+    return f"\b\nExamples:\n{lines}\n\n\b\nExit status: {exits}."
+
+
+_units_option = click.option(
+    "--units",
+    type=click.Choice(UNITS),
+    default="mrad",
+    show_default=True,
+    help="Angle errors in mechanical mrad or in electrical degrees (mechanical x pole pairs).",
+)
+
+
+def _notes(messages: tuple[str, ...] | list[str]) -> None:
+    """Notes and warnings on stderr, once each."""
+    seen: set[str] = set()
+    for m in messages:
+        if m not in seen:
+            seen.add(m)
+            _err.print(m if m.startswith(("warning", "note", "plant")) else f"note: {m}")
+
+
+@click.group(
+    context_settings={"help_option_names": ["-h", "--help"]},
+    epilog=_epilog(
+        "hallcal demo --out hallcal-demo",
+        "hallcal inspect run.csv --setup setup.toml",
+        "hallcal calibrate cal.csv --setup setup.toml --bla-data bla.csv --out cal.json",
+        exits=_EXITS_REFUSED + " (the result must not be used)",
+    ),
+)
 @click.version_option(package_name="hallcal")
 def cli() -> None:
     """Self-calibration of analog linear Hall sensors without an encoder.
 
     The method of van Meer et al., "Self-Calibrating Position Measurements: Applied to Imperfect
     Hall Sensors": closed-loop data, a BLA of the motor, simulation-error minimization of a
-    flux model and a lookup-table correction f_star.
+    flux model and a lookup-table correction f_star. The setup file's keys are documented in
+    docs/setup-reference.md.
     """
 
 
 # ------------------------------------------------------------------------------------------------
 
 
-@cli.command()
+@cli.command(
+    epilog=_epilog(
+        "hallcal simulate --setup setup.toml --out cal.csv",
+        "hallcal simulate --setup setup.toml --experiment multisine --out bla.csv",
+        "hallcal simulate --setup setup.toml --seed 2 --out run.csv   # a fresh validation run",
+    )
+)
 @click.option(
     "--setup",
     "setup_path",
@@ -109,18 +182,29 @@ def cli() -> None:
     "--experiment",
     type=click.Choice(["ramp", "multisine"]),
     default=None,
-    help="Override [bench] experiment.",
+    help="Override [bench] experiment: the calibration ramp or the BLA multisines of [bla].",
 )
-@click.option("--seed", type=int, default=None, help="Noise seed of this run (truth unchanged).")
+@click.option(
+    "--seed",
+    type=int,
+    default=None,
+    help="Noise seed of this run (the motor's truth stays that of [bench] seed).",
+)
 @_handle_errors
 def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int | None) -> None:
-    """Run the virtual bench and write a dataset (truth in OUT's .truth.json sidecar)."""
+    """Run the virtual bench and write a dataset (truth in OUT's .truth.json sidecar).
+
+    The simulated motor is the setup's [plant] with the [bench] sensor imperfections; the
+    recording has the encoder column y_ref (the true angle), so it can serve as a validation run.
+    """
     from hallcal import pipeline
     from hallcal.io import write_dataset, write_json
 
     setup = _setup(setup_path)
     prog = _Progress()
     kind = experiment or setup.bench.experiment
+    if setup.controller is None:
+        _err.print("note: the setup has no [controller]: the virtual bench uses the paper's C(q)")
     prog(f"simulating the {kind} experiment")
     run = pipeline.simulate(setup, experiment=experiment, seed=seed)
     if run.status != "ok":
@@ -141,44 +225,202 @@ def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int
     )
 
 
-@cli.command()
+@cli.command(
+    epilog=_epilog(
+        "hallcal inspect run.csv",
+        "hallcal inspect ring.txt --pole-pairs 25",
+        "hallcal inspect cal.csv --setup setup.toml",
+    )
+)
 @click.argument("data", type=click.Path(dir_okay=False))
-@click.option("--setup", "setup_path", required=True, type=click.Path(dir_okay=False))
-@click.option("--out", required=True, type=click.Path(dir_okay=False), help="BLA JSON to write.")
+@click.option(
+    "--setup",
+    "setup_path",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Setup TOML: its pole_pairs, sample_time and [trajectory] are checked against the data.",
+)
+@click.option(
+    "--pole-pairs",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Pole pairs to check (default: the setup's, else the count the data suggest).",
+)
+@_handle_errors
+def inspect(data: str, setup_path: str | None, pole_pairs: int | None) -> None:
+    """Look at a recording before calibrating it.
+
+    Samples, sample time, revolutions and direction, the pole-pair count the data show (from the
+    reference r or an encoder y_ref, else from the magnets' signature), the sensors' electrical
+    spacing, amplitudes and offsets, ADC clipping, the constant-speed window and the [trajectory]
+    start/stop to use for an open-loop calibration.
+    """
+    from hallcal.io import read_dataset
+    from hallcal.pipeline.inspect import inspect_recording
+
+    setup = None if setup_path is None else _setup(setup_path)
+    ds = read_dataset(data, required=("d1", "d2", "d3"))
+    found = inspect_recording(ds, setup=setup, pole_pairs=pole_pairs)
+    for line in found.lines():
+        (_err if line.startswith(("warning", "note")) else _out).print(line)
+    toml = found.trajectory_toml()
+    if toml is not None and "r" not in ds:
+        _out.print("setup lines for a constant-speed calibration:")
+        _out.print(toml)
+
+
+def _poly_text(coefficients: tuple[float, ...]) -> str:
+    n = len(coefficients) - 1
+    terms = []
+    for i, a in enumerate(coefficients):
+        if a == 0.0:
+            continue
+        p = n - i
+        s = "" if p == 0 else ("s" if p == 1 else f"s^{p}")
+        coef = f"{a:.4g}"
+        terms.append(coef if not s else (s if coef == "1" else f"{coef} {s}"))
+    return " + ".join(terms).replace("+ -", "- ") or "0"
+
+
+def _tf_text(num: tuple[float, ...], den: tuple[float, ...], delay: float) -> str:
+    text = f"G(s) = {_poly_text(num)} / ({_poly_text(den)})"
+    if delay > 0:
+        text += f", input delay {1e3 * delay:.4g} ms"
+    return text
+
+
+def _pole_list(poles: tuple[complex, ...]) -> str:
+    if not poles:
+        return "-"
+    out = []
+    for p in poles:
+        if abs(p.imag) < 1e-9 * max(abs(p), 1.0):
+            out.append(f"{p.real:.4g}")
+        elif p.imag > 0:
+            out.append(f"{p.real:.4g}±{p.imag:.3g}j")
+    return ", ".join(out)
+
+
+@cli.command(
+    epilog=_epilog(
+        "hallcal bla bla.csv --setup setup.toml --out bla.json   # also writes bla.png",
+        exits=_EXITS_REFUSED + " (the fitted plant model is unstable; bla.json and bla.png are "
+        "written for inspection)",
+    )
+)
+@click.argument("data", type=click.Path(dir_okay=False))
+@click.option(
+    "--setup",
+    "setup_path",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Setup TOML with [bla] (period, periods, model orders) and sample_time.",
+)
+@click.option(
+    "--out",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="BLA JSON to write; its Bode plot goes next to it with the suffix .png.",
+)
 @_handle_errors
 def bla(data: str, setup_path: str, out: str) -> None:
-    """Identify the closed-loop BLA of the plant from a multisine dataset."""
+    """Identify the closed-loop BLA of the plant from a multisine dataset.
+
+    Prints the model order chosen (or checked), the fitted G(s) with its poles and the fit's
+    cost against the BLA's variance, and writes the Bode plot (BLA, its standard deviations and
+    the fit). An unstable fit is refused with the [bla] setting to change.
+    """
     from hallcal import pipeline
     from hallcal.io import read_dataset, write_json
 
     setup = _setup(setup_path)
     ds = read_dataset(data, required=("r", "u", "y", "realization"))
     res = pipeline.identify_bla(ds, setup, progress=_Progress())
-    write_json(out, res.to_dict())
+    out_path = Path(out)
+    write_json(out_path, res.to_dict())
+    png = out_path.with_suffix(".png")
+    _write_bla_plot(res, png)
+    npb, par = res.nonparametric, res.parametric
+    _out.print(
+        f"BLA of {data}: {_plural(npb.realizations, 'realization')} x "
+        f"{_plural(npb.periods, 'steady-state period')}, {npb.freq.size} lines from "
+        f"{npb.freq.min():.4g} to {npb.freq.max():.4g} Hz"
+    )
+    sel = res.selection
+    if sel is not None:
+        _out.print("model orders tried (cost: weighted output error, about the number of lines")
+        _out.print(f"for a model that explains the BLA within its variance, here {sel.lines}):")
+        _out.print("  denominator order  parameters  cost        criterion   poles [rad/s]")
+        given = setup.bla.denominator_order if setup.bla is not None else "auto"
+        for c in sel.candidates:
+            mark = "  unstable" if not c.stable else ""
+            if sel.chosen is c:
+                mark += "  <- chosen" if given == "auto" else "  <- the data's choice"
+            if given != "auto" and c.denominator_order == given:
+                mark += "  <- [bla] denominator_order"
+            _out.print(
+                f"  {c.denominator_order:<17d}  {c.parameters:<10d}  {c.cost:<10.4g}  "
+                f"{c.criterion:<10.4g}  {_pole_list(c.poles)}{mark}"
+            )
     p = res.plant
-    _out.print(f"G(s) = {list(p.num)} / {list(p.den)} * exp(-{p.delay:.3g} s)   [{res.status}]")
-    _out.print(f"wrote {out}")
+    _out.print(_tf_text(p.num, p.den, p.delay))
+    if res.check is not None:
+        _out.print(f"poles (besides the integrator): {_pole_list(res.check.poles)} rad/s")
+    _out.print(f"fit cost {par.cost:.4g} for {par.freq.size} lines; status {res.status}")
+    _notes(res.messages)
+    _out.print(f"wrote {out_path} and {png} (Bode plot with the standard deviations)")
+    if not res.status.success:
+        raise CalibrationRefused(f"{data}: {res.refusal}")
 
 
-@cli.command()
+def _write_bla_plot(res: Any, path: Path) -> None:
+    from hallcal.io.files import atomic_write
+    from hallcal.output.plots import plot_bla
+
+    fig = plot_bla(res)
+    with atomic_write(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=110)
+
+
+@cli.command(
+    epilog=_epilog(
+        "hallcal calibrate cal.csv --setup setup.toml --bla-data bla.csv --out cal.json",
+        "hallcal calibrate ring.csv --setup ring.toml --out cal.json --units electrical-deg",
+        exits=_EXITS_REFUSED + " (model inadequate or table not bijective; nothing written "
+        "unless --force)",
+    )
+)
 @click.argument("data", type=click.Path(dir_okay=False))
-@click.option("--setup", "setup_path", required=True, type=click.Path(dir_okay=False))
+@click.option(
+    "--setup",
+    "setup_path",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Setup TOML (docs/setup-reference.md).",
+)
 @click.option(
     "--bla-data",
     type=click.Path(dir_okay=False),
     default=None,
-    help="Multisine experiment for the BLA (when the setup has no [plant]).",
+    help="Multisine experiment for the BLA of the plant; wins over the setup's [plant].",
 )
 @click.option("--out", required=True, type=click.Path(dir_okay=False), help="Artifact to write.")
 @click.option("--force", is_flag=True, help="Write the artifact even if the model is inadequate.")
+@_units_option
 @_handle_errors
-def calibrate(data: str, setup_path: str, bla_data: str | None, out: str, force: bool) -> None:
-    """Calibrate: BLA (if needed), SEM, lookup table; write the JSON artifact."""
+def calibrate(
+    data: str, setup_path: str, bla_data: str | None, out: str, force: bool, units: str
+) -> None:
+    """Calibrate: checks, plant (BLA if given), SEM, lookup table; write the JSON artifact.
+
+    Before the expensive steps the pole-pair count, the direction of rotation and the stability
+    of the loop of [controller] and the plant are checked; each failure names the fix.
+    """
     from hallcal.api import calibrate as _calibrate
 
     setup = _setup(setup_path)
     cal = _calibrate(data, setup, bla_data=bla_data, progress=_Progress())
-    _print_calibration(cal)
+    _print_calibration(cal, units)
     cal.save(out, force=force or setup.model.force)
     _out.print(f"wrote {out}")
 
@@ -196,10 +438,10 @@ def _ranges(values: list[int]) -> str:
     return ", ".join(out)
 
 
-def _print_calibration(cal) -> None:
+def _print_calibration(cal, units: str = "mrad") -> None:
+    n_m = cal.pole_pairs
     sem = cal.sem
-    for m in cal.messages:
-        _err.print(m)
+    _notes(cal.messages)
     info = cal.model_info
     if info.get("basis") == "fourier":
         _out.print(f"model: Fourier basis, mechanical harmonics {_ranges(info['harmonics'])}")
@@ -212,51 +454,113 @@ def _print_calibration(cal) -> None:
         g = cal.gain
         refined = (
             ""
-            if g.c_refined is None
-            else (f", refined with theta: {g.c_refined:.4f} +- {g.c_refined_std:.4f}")
+            if g.c_refined is None or not math.isfinite(g.c_refined_std or math.nan)
+            else f", refined with the flux model: {g.c_refined:.4f} ± {g.c_refined_std:.4f}"
         )
-        _out.print(f"gain correction c_hat (eq. c_hat) = {g.c:.4f}{refined}")
+        _out.print(f"gain correction of the BLA (the paper's c-hat): c = {g.c:.4f}{refined}")
     if sem is not None:
         _out.print(
-            f"cost {sem.initial_cost:.6g} -> {sem.cost:.6g} in {sem.iterations} iterations "
-            f"({sem.status}), {sem.solve_time:.2f} s; noise variance {sem.noise_variance:.3g}"
+            f"SEM cost {sem.initial_cost:.6g} -> {sem.cost:.6g} in "
+            f"{_plural(int(sem.iterations), 'iteration')} ({sem.status}), {sem.solve_time:.2f} s; "
+            f"noise variance {sem.noise_variance:.3g}"
         )
-    _out.print(f"predicted f_star error: RMS {_mrad(cal.predicted_error)}")
+    cs = cal.constant_speed
+    if cs is not None:
+        _out.print(
+            f"constant-speed fit: {cs.revolutions:.2f} revolutions, rotor motion off the straight "
+            f"line {_angle(cs.motion_rms, units, n_m)} RMS"
+        )
+    _out.print(
+        f"predicted f_star error: RMS {_angle(cal.predicted_error, units, n_m)} "
+        f"(noise floor {_angle(cal.noise_floor, units, n_m)})"
+    )
     if cal.adequacy is not None:
         _out.print(f"model adequacy: {cal.adequacy.verdict}")
     _out.print(f"lookup table: {cal.lut.points} points, bijective: {cal.lut.bijective}")
-    _print_validation(cal.validation)
+    if cal.identifiability is not None:
+        _out.print(cal.identifiability.message)
+    _print_validation(cal.validation, units, n_m)
 
 
-def _print_validation(v) -> None:
+def _print_validation(v, units: str, n_m: int) -> None:
     """One line: f_init and f_star against the recording's y_ref, when it has one."""
     if v is not None:
         _out.print(
-            f"against y_ref: f_init RMS {_mrad(v.init.rms)} peak {_mrad(v.init.peak)}; "
-            f"f_star RMS {_mrad(v.star.rms)} peak {_mrad(v.star.peak)}"
+            f"against y_ref: f_init RMS {_angle(v.init.rms, units, n_m)} peak "
+            f"{_angle(v.init.peak, units, n_m)}; f_star RMS {_angle(v.star.rms, units, n_m)} "
+            f"peak {_angle(v.star.peak, units, n_m)}"
         )
 
 
-@cli.command()
+@cli.command(
+    epilog=_epilog(
+        "hallcal reconstruct cal.json run.csv --out angles.csv",
+        "hallcal reconstruct cal.json powerup.csv --absolute --out angles.csv",
+        exits=_EXITS + ", 3 the artifact's table is not bijective",
+    )
+)
 @click.argument("artifact", type=click.Path(dir_okay=False))
 @click.argument("data", type=click.Path(dir_okay=False))
-@click.option("--out", required=True, type=click.Path(dir_okay=False))
+@click.option(
+    "--out",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Table to write: columns y_init and y_star [rad, mechanical], one row per sample.",
+)
+@click.option(
+    "--absolute",
+    is_flag=True,
+    help="The recording starts at power-up anywhere (no homing): identify the pole pair from "
+    "the magnets' signatures; angles in the calibration's frame.",
+)
+@_units_option
 @_handle_errors
-def reconstruct(artifact: str, data: str, out: str) -> None:
-    """Apply a calibration to a recording: columns y_init and y_star."""
+def reconstruct(artifact: str, data: str, out: str, absolute: bool, units: str) -> None:
+    """Apply a calibration to a recording: columns y_init and y_star.
+
+    f_init and f_star run over the recording from y = 0 before the first sample (the frame of
+    the calibration run), or, with --absolute, from the pole pair identified at power-up. With
+    an encoder column y_ref both are compared with it.
+    """
     from hallcal.api import load
     from hallcal.io import write_dataset
 
     cal = load(artifact)
-    rec = cal.reconstruct(data)
+    rec = cal.reconstruct(data, absolute=absolute)
     write_dataset(out, rec.columns)
     _out.print(f"wrote {out} ({len(rec)} samples)")
-    _print_validation(rec.validation)
+    if rec.identification is not None:
+        _print_identification(rec.identification, cal.pole_pairs)
+    _print_validation(rec.validation, units, cal.pole_pairs)
 
 
-@cli.command("export-c")
+def _print_identification(ident, pole_pairs: int) -> None:
+    """One line: which pole pair the recording started in, and how certain that is."""
+    where = f"pole pair offset {ident.offset} of {pole_pairs}"
+    if ident.status.success:
+        _out.print(
+            f"{where}: identified after {ident.lock_sample + 1} samples "
+            f"(posterior {ident.posterior:.6f}, margin {ident.margin:.1f} sigma)"
+        )
+    else:
+        _err.print(
+            f"warning: {where} is the most likely one but not certain after all "
+            f"{ident.samples} samples (posterior {ident.posterior:.3f}); the rotor stood at a "
+            "weak position: move it, or record longer"
+        )
+
+
+@cli.command(
+    "export-c",
+    epilog=_epilog(
+        "hallcal export-c cal.json --out firmware/",
+        "hallcal export-c cal.json --out firmware/ --adc-scale 4096 --no-fixed-point",
+    ),
+)
 @click.argument("artifact", type=click.Path(dir_okay=False))
-@click.option("--out", required=True, type=click.Path(file_okay=False))
+@click.option(
+    "--out", required=True, type=click.Path(file_okay=False), help="Folder for the C files."
+)
 @click.option("--no-fixed-point", is_flag=True, help="Only the float variant.")
 @click.option(
     "--adc-scale",
@@ -265,25 +569,93 @@ def reconstruct(artifact: str, data: str, out: str) -> None:
     show_default=True,
     help="ADC counts per unit of the calibration's Hall signals (fixed point input).",
 )
+@click.option(
+    "--max-speed",
+    type=float,
+    default=None,
+    help="Largest mechanical speed [rad/s] for the step limit (default: 45 electrical "
+    "degrees per sample).",
+)
+@click.option(
+    "--table-points",
+    type=int,
+    default=None,
+    help="Intervals of the correction table, pole pairs x 2^k (default: from the error budget).",
+)
+@click.option(
+    "--tolerance",
+    type=float,
+    default=0.25,
+    show_default=True,
+    help="Relative widening of the calibrated amplitude windows.",
+)
+@click.option(
+    "--fault-after",
+    type=int,
+    default=8,
+    show_default=True,
+    help="Rejected samples in a row before the fault flag.",
+)
+@click.option("--prefix", default="hallcal", show_default=True, help="C name prefix.")
 @_handle_errors
-def export_c(artifact: str, out: str, no_fixed_point: bool, adc_scale: float) -> None:
-    """Generate C99 sources of f_star (float and fixed point) for firmware."""
+def export_c(
+    artifact: str,
+    out: str,
+    no_fixed_point: bool,
+    adc_scale: float,
+    max_speed: float | None,
+    table_points: int | None,
+    tolerance: float,
+    fault_after: int,
+    prefix: str,
+) -> None:
+    """Generate lean C99 sources of f_star (float and fixed point) for firmware.
+
+    The API, the plausibility checks and the error bounds: docs/firmware.md.
+    """
     from hallcal.io import read_artifact
     from hallcal.output.codegen import export_c as _export
 
     art = read_artifact(artifact)
-    res = _export(art, out, fixed_point=not no_fixed_point, source=artifact, adc_scale=adc_scale)
+    res = _export(
+        art,
+        out,
+        fixed_point=not no_fixed_point,
+        source=artifact,
+        adc_scale=adc_scale,
+        max_speed=max_speed,
+        table_points=table_points,
+        tolerance=tolerance,
+        fault_after=fault_after,
+        prefix=prefix,
+    )
     for m in res.messages:
-        _err.print(f"note: {m}")
+        _echo(f"note: {m}", err=True)
     for p in res.paths:
-        _out.print(f"wrote {p}")
-    _out.print(
-        f"table {res.table_bytes} bytes (float); stated error bounds: float "
-        f"{res.float_bound:.2g} rad, fixed point {res.fixed_bound:.2g} rad"
+        _echo(f"wrote {p}")
+    bounds = f"float {res.float_bound:.2g} rad"
+    if res.fixed_bound is not None:
+        bounds += f", fixed point {res.fixed_bound:.2g} rad"
+    _echo(
+        f"table {res.table_points} intervals ({res.table_bytes} bytes), "
+        f"{res.table_error:.2g} rad from the calibration's; stated bounds: {bounds}"
     )
 
 
-@cli.command()
+def _echo(text: str, *, err: bool = False) -> None:
+    """One line to stdout or stderr, whatever characters the stream's encoding lacks (a file
+    name in an ASCII locale) written as escapes rather than failing."""
+    stream = sys.stderr if err else sys.stdout
+    encoding = getattr(stream, "encoding", None) or "ascii"
+    click.echo(text.encode(encoding, "backslashreplace").decode(encoding), err=err)
+
+
+@cli.command(
+    epilog=_epilog(
+        "hallcal report cal.json cal.csv --validation run.csv --out report/",
+        "hallcal report cal.json ring.csv --out report/ --units electrical-deg",
+    )
+)
 @click.argument("artifact", type=click.Path(dir_okay=False))
 @click.argument("data", type=click.Path(dir_okay=False))
 @click.option(
@@ -293,19 +665,26 @@ def export_c(artifact: str, out: str, no_fixed_point: bool, adc_scale: float) ->
     default=None,
     help="A fresh run with y_ref to validate on.",
 )
-@click.option("--out", required=True, type=click.Path(file_okay=False))
+@click.option(
+    "--out", required=True, type=click.Path(file_okay=False), help="Folder for the report."
+)
+@_units_option
 @_handle_errors
-def report(artifact: str, data: str, validation: str | None, out: str) -> None:
-    """Figures and an HTML report of a calibration."""
+def report(artifact: str, data: str, validation: str | None, out: str, units: str) -> None:
+    """Figures and an HTML report of a calibration (docs/report.md).
+
+    DATA is the calibration recording; a bla.json next to the artifact is plotted when the
+    plant came from a BLA.
+    """
     from hallcal.output.report import write_report_from_files
 
     path = write_report_from_files(
-        artifact, data, validation=validation, out_dir=out, progress=_Progress()
+        artifact, data, validation=validation, out_dir=out, progress=_Progress(), units=units
     )
     _out.print(f"wrote {path}")
 
 
-@cli.command()
+@cli.command(epilog=_epilog("hallcal demo --out hallcal-demo", "hallcal demo --no-report"))
 @click.option(
     "--out",
     default="hallcal-demo",
@@ -313,7 +692,7 @@ def report(artifact: str, data: str, validation: str | None, out: str) -> None:
     show_default=True,
     help="Folder for data, artifact, figures and report.",
 )
-@click.option("--seed", type=int, default=1, show_default=True)
+@click.option("--seed", type=int, default=1, show_default=True, help="Seed of the simulated motor.")
 @click.option("--no-report", is_flag=True, help="Skip figures and the HTML report.")
 @_handle_errors
 def demo(out: str, seed: int, no_report: bool) -> None:

@@ -51,7 +51,8 @@ class DemoResult:
         if cal.sem is not None:
             lines.append(
                 f"SEM: cost {cal.sem.initial_cost:.4g} -> {cal.sem.cost:.4g}, "
-                f"{cal.sem.iterations} iterations, {cal.sem.solve_time:.2f} s"
+                f"{cal.sem.iterations} iteration{'' if cal.sem.iterations == 1 else 's'}, "
+                f"{cal.sem.solve_time:.2f} s"
             )
         lines += [
             "validation on a fresh run (against the true angle):",

@@ -2,20 +2,22 @@
 
 The paper (van Meer et al., "Self-Calibrating Position Measurements: Applied to Imperfect Hall
 Sensors") identifies the flux model g_theta by simulation-error minimization of a closed loop,
-eq. (problem). Many benches instead spin the rotor open loop at a constant speed. There the true
-angle is known up to two numbers, ``y0_k = a + b k`` (k the sample index), and eq. (problem) becomes
+the SEM problem. Many benches instead spin the rotor open loop at a constant speed. There the true
+angle is known up to two numbers, ``y0_k = a + b k`` (k the sample index), and the SEM problem
+becomes
 
     min_{theta, a, b}  sum_k || d_k - psi(a + b k) theta ||^2 ,
 
 a separable nonlinear least-squares problem: linear in theta for fixed (a, b). It is solved by
 variable projection (Golub & Pereyra, SIAM J. Numer. Anal. 10, 1973; Kaufman's Jacobian, BIT 15,
 1975): theta is eliminated by linear least squares and Gauss-Newton runs on the nonlinear
-parameters only. For a Fourier basis (eq. basis) the set {g_theta(y0 + c)} equals {g_theta(y0)}, so
+parameters only. For a Fourier basis the set {g_theta(y0 + c)} equals {g_theta(y0)}, so
 the cost does not depend on ``a`` at all: the only nonlinear parameter is the speed ``b``, and ``a``
 is a gauge fixed afterwards (see :func:`calibrate_constant_speed`).
 
 The module also estimates the electrical geometry of the three sensors from raw data
-(:func:`estimate_sensor_geometry`), so that f_init, eq. (fimp), can use the measured sensor
+(:func:`estimate_sensor_geometry`), so that f_init (Clarke + atan2 + unwrap) can use the measured
+sensor
 spacing, gains and offsets instead of the nominal Clarke transform, and it locates the
 constant-speed part of a recording (:func:`find_constant_speed`).
 
@@ -98,7 +100,7 @@ class SensorGeometry:
 
     psi is the electrical angle (``n_m y0`` up to a constant). The phases are relative to sensor 1
     (``phases[0] = 0``) and oriented so that the sensor order is the positive direction:
-    ``0 < phases[1] < phases[2] < 2 pi``. For the nominal wiring of the paper (eq. fimp, Clarke)
+    ``0 < phases[1] < phases[2] < 2 pi``. For the nominal wiring of the paper (f_init with Clarke)
     the phases are 0, 120 and 240 degrees.
 
     Attributes
@@ -158,7 +160,7 @@ class SensorGeometry:
         return np.degrees(np.diff(p))
 
     def f_init(self, d: ArrayLike, pole_pairs: int, *, y_initial: float = 0.0) -> NDArray:
-        """f_init, eq. (fimp), with this geometry's projection and offsets [rad]."""
+        """f_init (Clarke + atan2 + unwrap) with this geometry's projection and offsets [rad]."""
         return f_init(
             d, pole_pairs, y_initial=y_initial, projection=self.projection, offset=self.offsets
         )
@@ -398,7 +400,7 @@ def find_constant_speed(
 
     f_init's angle (with the estimated geometry) is differentiated and averaged over a sliding
     window of exactly one electrical cycle, which removes f_init's errors that are periodic in
-    the electrical angle (the bulk of them, see eq. fimp). The cruise speed is the median of that
+    the electrical angle (the bulk of them). The cruise speed is the median of that
     smoothed speed where it exceeds half its maximum magnitude. The segment is the longest run of
     samples all of whose one-cycle windows have a speed within ``tolerance`` (relative) of the
     cruise speed, shrunk by ``margin_cycles`` electrical cycles on each side.
@@ -476,7 +478,7 @@ def default_harmonics(
     """Mechanical harmonics for a ring of ``pole_pairs`` pole pairs with per-pole variations.
 
     The flux of a ring of n_m identical pole pairs is periodic in the electrical angle n_m y0
-    (mechanical harmonics j n_m, eq. basis); magnets that differ from each other modulate it, which
+    (mechanical harmonics j n_m); magnets that differ from each other modulate it, which
     puts energy in the sidebands ``j n_m +- s`` (an eccentric or tilted ring: s = 1; an arbitrary
     per-pole pattern of amplitudes and offsets: every s up to n_m / 2).
 
@@ -538,9 +540,11 @@ class ConstantSpeedResult:
     geometry : SensorGeometry
         The geometry of f_init (projection and offsets) used for the table.
     lut : LUT
-        The table of eq. (f_final) built from the model with the geometry's projection/offset.
+        The table of f_star = f_init + eta built from the model with the geometry's
+        projection/offset.
     cost : float
-        Unweighted cost of eq. (problem) at the solution: sum of squared residuals over the segment.
+        Unweighted cost of the SEM problem at the solution: sum of squared residuals over the
+        segment.
     residual_rms : ndarray, shape (3,)
         RMS residual per channel [sensor unit].
     noise_std : float
@@ -669,7 +673,7 @@ class _WeightedLS:
 
 
 def _basis_derivative(B: NDArray, basis: FourierBasis) -> NDArray:
-    """d beta / d y0 from beta itself (columns 1, sin h y, cos h y, ... of eq. basis)."""
+    """d beta / d y0 from beta itself (columns 1, sin h y, cos h y, ... of the Fourier basis)."""
     h = basis.harmonic_array
     out = np.zeros_like(B)
     out[:, 1::2] = h * B[:, 2::2]
@@ -732,7 +736,7 @@ def calibrate_constant_speed(
     robust_threshold: float = 2.0,
     lut_points: int = 4096,
 ) -> ConstantSpeedResult:
-    """Identify g_theta from a constant-speed stretch: eq. (problem) with ``y0_k = a + b k``.
+    """Identify g_theta from a constant-speed stretch: the SEM problem with ``y0_k = a + b k``.
 
     The cost ``J(theta, a, b) = sum_{k=start}^{stop-1} w_k ||d_k - psi(a + b k) theta||^2`` is
     separable (Golub & Pereyra 1973). For fixed (a, b), theta is the linear least-squares solution
@@ -750,10 +754,11 @@ def calibrate_constant_speed(
     result then carries a warning, and the table extrapolates there.
 
     Gauge. Replacing a by a + c and theta by the correspondingly rotated theta gives the same fit,
-    so a is fixed by convention. f_star = f_init + eta(f_init mod 2 pi), eq. (f_final), needs the
+    so a is fixed by convention. f_star = f_init + eta(f_init mod 2 pi) needs the
     model's angle to be f_init's own angle up to f_init's (small, periodic) error: f_init's frame
     starts at y = 0 before the first sample of the recording and counts electrical cycles from
-    there, and the table's unwrapping, eq. (recon_biject), assumes ``|y0 - y_hat| < pi / n_m``.
+    there, and the table's unwrapping (the bijectivity condition) assumes
+    ``|y0 - y_hat| < pi / n_m``.
     We choose a such that the (unweighted) mean of ``f_init(d_k) - (a + b k)`` over the segment is
     zero: f_star agrees with f_init on average and removes only its periodic error (over whole
     revolutions the table's eta has zero mean). An absolute mechanical zero is not observable

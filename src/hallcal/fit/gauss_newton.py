@@ -61,7 +61,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
-from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sensor.flux import FourierBasis
 from hallcal.sim.cogging import CoggingTorque
 from hallcal.sim.loop import (
     ClosedLoop,
@@ -72,6 +72,7 @@ from hallcal.sim.loop import (
     _angle_and_sensitivity,
     _diverged,
     _flux_and_slope,
+    _kernel_array,
     _output,
     _unwrap,
 )
@@ -407,8 +408,13 @@ def _sens_block(
     return ok, sse
 
 
+def _moments(y0: ArrayLike, W: ArrayLike, nmax: int) -> tuple[NDArray, NDArray]:
+    """C[w, n] = sum_k W[k, w] cos(n y0_k), S[w, n] = sum_k W[k, w] sin(n y0_k), n = 0..nmax."""
+    return _moments_kernel(_kernel_array(y0), _kernel_array(W), int(nmax))
+
+
 @nb.njit(cache=True, nogil=True)
-def _moments(y0, W, nmax):
+def _moments_kernel(y0, W, nmax):
     """C[w, n] = sum_k W[k, w] cos(n y0_k), S[w, n] = sum_k W[k, w] sin(n y0_k), n = 0..nmax."""
     N = y0.size
     nw = W.shape[1]
@@ -428,14 +434,20 @@ def _moments(y0, W, nmax):
 
 
 def _moments_threaded(y0: NDArray, W: NDArray, nmax: int, threads: int) -> tuple[NDArray, NDArray]:
-    """:func:`_moments` over sample halves in two threads (nogil), summed."""
+    """:func:`_moments` over the two halves of the samples, summed: in two threads (nogil) or
+    one after the other, with the same result to the bit."""
     N = y0.size
-    if threads < 2 or N < 4096:
-        return _moments(y0, W, nmax)
+    y0, W = _kernel_array(y0), _kernel_array(W)
+    if N < 4096:
+        return _moments_kernel(y0, W, int(nmax))
     h = N // 2
+    if threads < 2:
+        C0, S0 = _moments_kernel(y0[:h], W[:h], int(nmax))
+        C1, S1 = _moments_kernel(y0[h:], W[h:], int(nmax))
+        return C0 + C1, S0 + S1
     with ThreadPoolExecutor(1) as pool:
-        fut = pool.submit(_moments, y0[h:], W[h:], nmax)
-        C0, S0 = _moments(y0[:h], W[:h], nmax)
+        fut = pool.submit(_moments_kernel, y0[h:], W[h:], int(nmax))
+        C0, S0 = _moments_kernel(y0[:h], W[:h], int(nmax))
         C1, S1 = fut.result()
     return C0 + C1, S0 + S1
 
@@ -474,11 +486,11 @@ def regression_normal_equations(
     From trigonometric moments (O(N max(harmonics)) time, no N x m matrix): the normal
     equations of the linear least-squares fit ``d ~ beta(y) theta^T``.
     """
-    yy = np.ascontiguousarray(y, dtype=np.float64)
+    yy = _kernel_array(y)
     dd = np.asarray(d, dtype=np.float64)
     dd = dd[:, None] if dd.ndim == 1 else dd
     h = np.asarray(harmonics, dtype=np.int64)
-    W = np.ascontiguousarray(np.column_stack([np.ones(yy.size), dd]))
+    W = np.column_stack([np.ones(yy.size), dd])
     C, S = _moments(yy, W, 2 * int(h.max()) if h.size else 0)
     M = _gram_from_moments(C[0], S[0], h)
     Btd = np.empty((1 + 2 * h.size, dd.shape[1]))
@@ -514,10 +526,10 @@ def _model_arrays(loop: ClosedLoop, layout: ParameterLayout, x: ArrayLike) -> tu
         arrs[1] = arrs[1] * math.exp(layout.log_gain(xx))
     harm = np.asarray(layout.basis.harmonics, dtype=np.int64)
     hmax = int(harm.max()) if harm.size else 0
-    theta = np.ascontiguousarray(layout.theta(xx))
+    theta = _kernel_array(layout.theta(xx))
     # the fitted cogging orders first (their columns), then the loop's own, fixed cogging torque
     cog_k = np.asarray(layout.cogging_orders, dtype=np.float64)
-    cog_x = np.ascontiguousarray(xx[layout.cogging_start :])
+    cog_x = _kernel_array(xx[layout.cogging_start :])
     if loop.cogging is not None and loop.cogging.size:
         cog_k = np.concatenate([cog_k, np.asarray(loop.cogging.orders, dtype=np.float64)])
         cog_x = np.concatenate([cog_x, loop.cogging.coefficients])
@@ -537,7 +549,7 @@ def simulate_model(
     Same equations as :func:`hallcal.sim.loop.simulate_loop`; the basis comes from a
     trigonometric recursion (one sine and cosine per sample).
     """
-    r = np.ascontiguousarray(r, dtype=np.float64)
+    r = _kernel_array(r)
     y0, y, u, d, ok = _simulate_kernel(*_model_arrays(loop, layout, x), r, float(y_initial))
     return SimulatedLoop(y0, y, u, d, PassStatus.OK if ok else PassStatus.DIVERGED)
 
@@ -603,15 +615,14 @@ class _Block:
         )  # fmt: skip
 
 
-def _gram_shares(p: int, parts: int) -> list[tuple[slice, slice]]:
-    """Blocks (rows, columns) of the upper triangle of a p x p Gram matrix, as equal shares.
+def _gram_shares(p: int) -> list[tuple[slice, slice]]:
+    """Blocks (rows, columns) of the upper triangle of a p x p Gram matrix, as two equal shares.
 
-    Two parts: [0, s) x [0, s) (a symmetric rank-k update, s^2 / 2 multiply-adds per row of U)
-    and [0, p) x [s, p) (a general product, p (p - s)): 0.25 p^2 and 0.29 p^2 for
-    s = p / sqrt(2). Only the upper triangle is used.
+    [0, s) x [0, s) (a symmetric rank-k update, s^2 / 2 multiply-adds per row of U) and
+    [0, p) x [s, p) (a general product, p (p - s)): 0.25 p^2 and 0.29 p^2 for s = p / sqrt(2).
+    Only the upper triangle is used. One thread adds both, two threads one each: the same BLAS
+    calls, so the same result to the bit.
     """
-    if parts < 2:
-        return [(slice(0, p), slice(0, p))]
     s = int(round(p / math.sqrt(2.0)))
     return [(slice(0, s), slice(0, s)), (slice(0, p), slice(s, p))]
 
@@ -672,8 +683,8 @@ def gauss_newton_system(
     -------
     GaussNewtonSystem
     """
-    r = np.ascontiguousarray(r, dtype=np.float64)
-    d = np.ascontiguousarray(d, dtype=np.float64)
+    r = _kernel_array(r)
+    d = _kernel_array(d)
     N = r.size
     if d.shape != (N, 3):
         raise ValueError("d must have shape (N, 3)")
@@ -699,8 +710,17 @@ def gauss_newton_system(
 
 
 def _threads(threads: int | None, p: int) -> int:
+    """Threads of a pass: the given number (1 or 2), else 2 when a second core is idle.
+
+    The second thread pays only on an idle core: on these 2-core machines it gave 1.3-1.5x with
+    the other core free, but cost 30-50 % more with the 1-minute load average above 3 (each
+    thread repeats the nominal simulation and waits for the other at each chunk). The results
+    do not depend on the choice (same column sums, same BLAS calls, see :func:`_gram_shares`).
+    """
     if threads is None:
-        threads = 2 if (os.cpu_count() or 1) >= 2 else 1
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        cores = cores or 1
+        threads = 2 if cores >= 2 and os.getloadavg()[0] < cores - 0.5 else 1
     # a column block needs enough columns to amortize its own nominal simulation
     return 2 if int(threads) >= 2 and p >= 16 else 1
 
@@ -730,7 +750,7 @@ def _normal_part(
     )
     harm = np.asarray(layout.basis.harmonics, dtype=np.int64)
     hmax = int(harm.max()) if harm.size else 0
-    C, S = _moments_threaded(y0, np.ascontiguousarray(W), 2 * hmax, threads)
+    C, S = _moments_threaded(y0, W, 2 * hmax, threads)
     mb = layout.basis.size
     out = np.zeros((3 * mb, 3 * mb))
     pairs = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]
@@ -771,7 +791,7 @@ class _SensitivityPass:
         rows = -(-T // ustride) if ustride else 1
         self.ring = max(2, int(ring)) if ustride else 1
         self.bufs = [np.empty((rows, p)) for _ in range(self.ring)]
-        self.shares = _gram_shares(p, nthreads)
+        self.shares = _gram_shares(p)
         self.gram = np.zeros((p, p)) if ustride else np.zeros((0, 0))
         self.n_chunks = -(-N // T)
         self.batch_grad = np.zeros((self.n_chunks, p))
@@ -805,9 +825,10 @@ class _SensitivityPass:
         k0, k1 = self._bounds(i)
         s = self.ustride
         n_rows = (k1 + s - 1) // s - (k0 + s - 1) // s  # multiples of s in [k0, k1)
-        rows, cols = self.shares[b]
         buf = self.bufs[i % self.ring][:n_rows]
-        _add_gram_share(self.gram, buf, rows, cols, float(self.ustride))
+        mine = self.shares if len(self.blocks) == 1 else [self.shares[b]]
+        for rows, cols in mine:
+            _add_gram_share(self.gram, buf, rows, cols, float(self.ustride))
 
     def _wait(self, ready) -> bool:
         """Wait until ready() or a failure; False on failure."""
@@ -899,8 +920,3 @@ def fourier_gauss_newton(
         loop, layout, th.ravel(), r, d, y_initial=y_initial, chunk=chunk, gram=gram,
         stride=stride, threads=threads,
     )  # fmt: skip
-
-
-def flux_of(layout: ParameterLayout, x: ArrayLike) -> FluxModel:
-    """The flux model g_theta of x."""
-    return FluxModel(layout.basis, layout.theta(x))

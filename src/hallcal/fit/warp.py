@@ -37,10 +37,10 @@ from dataclasses import dataclass, field
 import numba as nb
 import numpy as np
 import scipy.linalg
-import scipy.stats
 from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
+from hallcal.fit.adequacy import chi2_isf_even
 from hallcal.fit.gauss_newton import regression_normal_equations
 from hallcal.sensor.flux import FluxModel, FourierBasis
 
@@ -402,7 +402,8 @@ def band_edge(
     2. Bisection on E in ``[n_m, max_edge]`` (default 8 n_m, the 7th electrical harmonic with
        its pole-to-pole sidebands): a band is adequate when the content left above it by the
        best warp (:func:`unwarp`, J = L // 2 warp harmonics, from f_init's parametrization) is
-       within ``(1 + slack) chi2.isf(significance, dof)``. The
+       within ``(1 + slack) chi2.isf(significance, dof)`` (dof = 6 (L - E) - 2 J is even:
+       :func:`hallcal.fit.adequacy.chi2_isf_even`). The
        residual only decreases as E grows, so the smallest adequate E is found in
        ``log2(7 n_m)`` trials. ``slack`` allows for the approximations in the bound (dof count,
        coefficient variance averaged over the band); measured on the issue-13 bench the
@@ -452,7 +453,7 @@ def band_edge(
         u = unwarp(view, E, warp_harmonics=J)
         done[E] = u
         dof = max(u.dof, 1)
-        thr = (1.0 + slack) * float(scipy.stats.chi2.isf(significance, dof))
+        thr = (1.0 + slack) * chi2_isf_even(significance, 2 * ((dof + 1) // 2))
         trials.append(EdgeTrial(E, u.residual, u.dof, thr))
         return u.residual <= thr
 

@@ -11,8 +11,10 @@ frequency-domain estimators of ch. 9: Levy (1959) linear least squares, Sanathan
 (1963) iterations, and a weighted nonlinear least-squares refinement.
 
 The measured position ``y`` comes from the imperfect Hall reconstruction ``f_init``, so the BLA
-is ``c G`` with an unknown gain ``c``; the paper corrects it elsewhere (eq. ``c_hat``), see
-:meth:`ParametricBLA.scaled`.
+is ``c G`` with an unknown gain ``c``; the paper corrects it elsewhere (its gain-correction
+equation for c-hat), see :meth:`ParametricBLA.scaled`. The model order can be chosen from the data
+(:func:`select_order`: weighted output-error cost against the BLA's variance, with Rissanen's
+minimum-description-length criterion, stable fits preferred).
 """
 
 from __future__ import annotations
@@ -23,15 +25,18 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from hallcal.errors import HallcalInputError
 
 __all__ = [
     "NonparametricBLA",
+    "OrderCandidate",
+    "OrderSelection",
     "ParametricBLA",
     "fit_parametric",
+    "model_poles",
     "nonparametric_bla",
+    "select_order",
 ]
 
 _POWER_THRESHOLD = 1e-8  # excited line: reference power above this fraction of the largest line
@@ -475,7 +480,7 @@ class ParametricBLA:
         """The same model with its gain multiplied by ``c`` (numerator times ``c``).
 
         The paper corrects the BLA gain with ``G_BLA <- G_BLA / c_hat`` (Algorithm 1, step
-        "correct"; eq. ``c_hat``); that is ``model.scaled(1 / c_hat)``.
+        "correct"; the gain-correction equation for c-hat); that is ``model.scaled(1 / c_hat)``.
         """
         c = float(c)
         if not np.isfinite(c) or c == 0.0:
@@ -730,6 +735,8 @@ def fit_parametric(
     lower = np.full(theta0.size, -np.inf)
     if fit_delay:
         lower[-1] = 0.0
+    from scipy.optimize import least_squares  # only when a BLA is fitted (0.15 s import)
+
     sol = least_squares(
         residual,
         theta0,
@@ -771,6 +778,172 @@ def fit_parametric(
         nfev=int(sol.nfev),
         status="ok" if sol.status > 0 else "not-converged",
     )
+
+
+def model_poles(model: ParametricBLA) -> np.ndarray:
+    """Poles [rad/s] of a fitted model other than its imposed integrators, fastest first."""
+    den = np.asarray(model.den, dtype=np.float64)
+    core = den[: den.size - int(model.integrator)] if model.integrator else den
+    poles = np.roots(core) if core.size > 1 else np.array([], dtype=np.complex128)
+    return poles[np.argsort(-np.abs(poles))]
+
+
+@dataclass(frozen=True, eq=False)
+class OrderCandidate:
+    """One model structure tried by :func:`select_order`.
+
+    Attributes
+    ----------
+    numerator_order, denominator_order : int
+        Orders of ``B`` and of the monic ``A`` (integrators not counted).
+    parameters : int
+        Real parameters fitted: ``numerator_order + 1 + denominator_order`` (+ 1 for the delay).
+    cost : float
+        Weighted output-error cost ``V = sum_k |G_model - G_data|^2 / var_total`` at the optimum.
+    criterion : float
+        Minimum description length ``V + parameters / 2 * ln(2 F)`` (F lines, 2F real data).
+    stable : bool
+        All poles other than the integrators in the open left half-plane.
+    poles : tuple of complex
+        Those poles [rad/s], fastest first.
+    fit : ParametricBLA
+        The fitted model.
+    """
+
+    numerator_order: int
+    denominator_order: int
+    parameters: int
+    cost: float
+    criterion: float
+    stable: bool
+    poles: tuple[complex, ...]
+    fit: ParametricBLA = field(repr=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (poles as ``[re, im]`` pairs in rad/s)."""
+        return {
+            "numerator_order": self.numerator_order,
+            "denominator_order": self.denominator_order,
+            "parameters": self.parameters,
+            "cost": _float_or_none(self.cost),
+            "criterion": _float_or_none(self.criterion),
+            "stable": self.stable,
+            "poles": _complex_pairs(np.asarray(self.poles, dtype=np.complex128)),
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class OrderSelection:
+    """The model order chosen from the data (:func:`select_order`).
+
+    Attributes
+    ----------
+    candidates : tuple of OrderCandidate
+        Every structure tried, in increasing denominator order.
+    chosen : OrderCandidate or None
+        The stable candidate with the smallest criterion; None when no candidate is stable.
+    lines : int
+        Number F of frequency lines fitted.
+    """
+
+    candidates: tuple[OrderCandidate, ...]
+    chosen: OrderCandidate | None
+    lines: int
+
+    @property
+    def best_unstable(self) -> OrderCandidate | None:
+        """The candidate with the smallest criterion when it is unstable (then not chosen)."""
+        best = min(self.candidates, key=lambda c: c.criterion)
+        return None if best.stable else best
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "criterion": "minimum description length: cost + parameters / 2 * ln(2 lines)",
+            "lines": self.lines,
+            "chosen_denominator_order": (
+                None if self.chosen is None else self.chosen.denominator_order
+            ),
+            "chosen_numerator_order": None if self.chosen is None else self.chosen.numerator_order,
+            "candidates": [c.to_dict() for c in self.candidates],
+        }
+
+
+def select_order(
+    bla: NonparametricBLA,
+    *,
+    numerator_order: int = 0,
+    denominator_orders: Sequence[int] = (0, 1, 2, 3),
+    integrator: bool | int = True,
+    fit_delay: bool = True,
+    **options: Any,
+) -> OrderSelection:
+    """Choose the denominator order of ``G(s) = exp(-s tau) B(s) / (s^I A(s))`` from the data.
+
+    Every order in ``denominator_orders`` (from ``numerator_order`` up; the integrators are
+    imposed, not counted) is fitted with :func:`fit_parametric` and weights ``1 / var_total``.
+    For a model that explains the BLA within its variance the cost ``V`` is about the number of
+    lines F, so a structure with too few poles shows as ``V >> F`` and extra poles buy little;
+    the minimum description length ``V + n / 2 * ln(2 F)`` (n parameters, 2F real data; Pintelon
+    & Schoukens 2012, ch. 11, model selection) weighs the two. Unstable fits (a pole in the right
+    half-plane, typically an order the data do not support) are never chosen: the stable
+    candidate with the smallest criterion is.
+
+    Parameters
+    ----------
+    bla : NonparametricBLA
+    numerator_order : int
+        Order of ``B`` for every candidate (orders below it are skipped).
+    denominator_orders : sequence of int
+        Orders of ``A`` to try.
+    integrator, fit_delay
+        As for :func:`fit_parametric`.
+    **options
+        Passed to :func:`fit_parametric` (``weights``, ``hold``, ...).
+
+    Returns
+    -------
+    OrderSelection
+    """
+    nb = _int_option(numerator_order, "numerator_order", minimum=0)
+    n_int = _int_option(int(integrator), "integrator", minimum=0)
+    orders = sorted({int(o) for o in denominator_orders if int(o) >= 0})
+    lines = int(np.count_nonzero(np.isfinite(np.asarray(bla.G)) & (np.asarray(bla.freq) > 0)))
+    candidates = []
+    for na in orders:
+        if nb > na + n_int:
+            continue  # improper
+        n_par = nb + 1 + na + (1 if fit_delay else 0)
+        if 2 * lines < n_par + 1:
+            continue
+        fit = fit_parametric(
+            bla,
+            numerator_order=nb,
+            denominator_order=na,
+            integrator=n_int,
+            fit_delay=fit_delay,
+            **options,
+        )
+        poles = model_poles(fit)
+        cost = float(fit.cost) if np.isfinite(fit.cost) else math.inf
+        candidates.append(
+            OrderCandidate(
+                numerator_order=nb,
+                denominator_order=na,
+                parameters=n_par,
+                cost=cost,
+                criterion=cost + 0.5 * n_par * math.log(2 * max(lines, 1)),
+                stable=bool(np.all(poles.real < 0.0)),
+                poles=tuple(complex(p) for p in poles),
+                fit=fit,
+            )
+        )
+    if not candidates:
+        raise HallcalInputError(
+            f"no model order in {orders} can be fitted to {lines} lines with numerator order {nb}"
+        )
+    stable = [c for c in candidates if c.stable]
+    chosen = min(stable, key=lambda c: c.criterion) if stable else None
+    return OrderSelection(tuple(candidates), chosen, lines)
 
 
 def _levy_sk(

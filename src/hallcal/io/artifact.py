@@ -9,7 +9,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NoReturn
 
-from hallcal._version import __version__
+from hallcal import _version
 from hallcal.errors import HallcalInputError
 from hallcal.io.files import _dump_json, atomic_write, read_json
 from hallcal.io.setup import _is_int, _is_number, _parse_setup, _show
@@ -112,7 +112,7 @@ def write_artifact(path: str | os.PathLike[str], artifact: Mapping[str, Any]) ->
     p = Path(path)
     data = dict(artifact)
     data.setdefault("format", ARTIFACT_FORMAT)
-    data.setdefault("hallcal_version", __version__)
+    data.setdefault("hallcal_version", _version.__version__)
     ordered = {"format": data.pop("format"), **data}
     text = _dump_json(p, ordered)
     _validate_artifact(json.loads(text), str(p))

@@ -10,6 +10,12 @@ One table, one row per sample; the format is chosen by the file extension:
     lines starting with ``#`` are skipped, except that a ``#`` line directly followed by numbers
     is the header (``numpy.savetxt(..., header="d1,d2,d3")`` writes one). Rows are counted from
     1 at the first data row; error messages also give the line number in the file.
+``.txt``, ``.dat``
+    UTF-8 text, columns separated by runs of spaces or tabs (or commas or semicolons), with the
+    same header, comment and blank-line rules as CSV, except that the header may be left out
+    when the file has exactly three columns: they are then ``d1``, ``d2``, ``d3`` (an open-loop
+    recording of the Hall signals, like ``shared/data/real/ring-jig/*.txt``). With any other
+    number of columns a headerless file is refused, since the names cannot be guessed.
 ``.parquet``
     One Parquet table (pyarrow); integer, floating-point and boolean columns.
 ``.h5``, ``.hdf5``
@@ -33,11 +39,14 @@ length. The known columns are ``r``, ``y``, ``u``, ``d1``, ``d2``, ``d3``, ``t``
 
 from __future__ import annotations
 
-import csv
 import io
+import math
+import mmap
 import os
 import re
+import struct
 import zipfile
+import zlib
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,14 +55,8 @@ from typing import Any
 import numpy as np
 
 from hallcal.errors import HallcalInputError
-from hallcal.io.files import (
-    _decode_text,
-    _existing_file,
-    _read_bytes,
-    _suggest,
-    atomic_path,
-    atomic_write,
-)
+from hallcal.io.files import _existing_file, _suggest, atomic_path, atomic_write
+from hallcal.io.text import TEXT_EXTENSIONS, read_text_table, write_text_table
 
 __all__ = [
     "DATASET_EXTENSIONS",
@@ -68,7 +71,16 @@ __all__ = [
 KNOWN_COLUMNS: tuple[str, ...] = ("r", "y", "u", "d1", "d2", "d3", "t", "y_ref", "realization")
 
 #: Dataset file extensions (lower case) understood by :func:`read_dataset`/:func:`write_dataset`.
-DATASET_EXTENSIONS: tuple[str, ...] = (".csv", ".parquet", ".h5", ".hdf5", ".mat", ".npz")
+DATASET_EXTENSIONS: tuple[str, ...] = (
+    ".csv",
+    ".txt",
+    ".dat",
+    ".parquet",
+    ".h5",
+    ".hdf5",
+    ".mat",
+    ".npz",
+)
 
 
 class MissingColumnError(HallcalInputError, KeyError):
@@ -196,8 +208,13 @@ def _finish_columns(
     required: Sequence[str],
     min_samples: int,
     row_lines: Sequence[int] | None = None,
+    copy: bool = True,
 ) -> dict[str, np.ndarray]:
-    """Check presence, length, finiteness and whole-number realizations; return float64 copies."""
+    """Check presence, length, finiteness and whole-number realizations; return float64 arrays.
+
+    With ``copy=False`` (for arrays a reader has just made, which nobody else holds) a
+    contiguous float64 column is kept as it is, only marked read-only; otherwise it is copied.
+    """
 
     def where(i: int) -> str:
         line = f", line {row_lines[i]}" if row_lines is not None and i < len(row_lines) else ""
@@ -226,10 +243,13 @@ def _finish_columns(
         raise HallcalInputError(f"{source}: {n} data rows, at least {min_samples} needed")
     out: dict[str, np.ndarray] = {}
     for name, arr in cols.items():
-        values = np.array(arr, dtype=np.float64)
-        bad = ~np.isfinite(values)
-        if bad.any():
-            i = int(np.argmax(bad))
+        if copy:
+            values = np.array(arr, dtype=np.float64)
+        else:
+            values = np.ascontiguousarray(arr, dtype=np.float64)
+        finite = np.isfinite(values)
+        if not finite.all():
+            i = int(np.argmin(finite))
             raise HallcalInputError(f"{source}: column '{name}' contains NaN or inf ({where(i)})")
         if name == "realization":
             frac = values != np.round(values)
@@ -266,8 +286,8 @@ def read_dataset(
     Parameters
     ----------
     path : path-like
-        ``.csv``, ``.parquet``, ``.h5``/``.hdf5``, ``.mat`` or ``.npz`` file (see the module
-        documentation for the layout of each).
+        ``.csv``, ``.txt``/``.dat``, ``.parquet``, ``.h5``/``.hdf5``, ``.mat`` or ``.npz`` file
+        (see the module documentation for the layout of each).
     required : sequence of str
         Columns that must be present.
     min_samples : int
@@ -290,9 +310,9 @@ def read_dataset(
     ext = _check_extension(p)
     if p.stat().st_size == 0:
         raise HallcalInputError(f"{p}: file is empty")
-    row_lines: list[int] | None = None
-    if ext == ".csv":
-        cols, row_lines = _read_csv(p)
+    row_lines: Sequence[int] | None = None
+    if ext in TEXT_EXTENSIONS:
+        cols, row_lines = read_text_table(p, headerless_ok=ext != ".csv")
     elif ext == ".parquet":
         cols = _read_parquet(p)
     elif ext in (".h5", ".hdf5"):
@@ -302,116 +322,9 @@ def read_dataset(
     else:
         cols = _read_npz(p)
     checked = _finish_columns(
-        cols, str(p), required=required, min_samples=min_samples, row_lines=row_lines
+        cols, str(p), required=required, min_samples=min_samples, row_lines=row_lines, copy=False
     )
     return Dataset(checked, p)
-
-
-# ---- CSV ---------------------------------------------------------------------------------------
-
-
-def _parse_numbers(name: str, values: list[str], source: str, lines: Sequence[int]) -> np.ndarray:
-    try:
-        return np.array(values, dtype=np.float64)
-    except ValueError:
-        pass
-    out = np.empty(len(values), dtype=np.float64)
-    for i, text in enumerate(values):
-        try:
-            out[i] = float(text)
-        except ValueError:
-            stripped = text.strip()
-            what = "a missing value" if not stripped else f"a non-numeric value {stripped[:30]!r}"
-            raise HallcalInputError(
-                f"{source}: column '{name}' has {what} in row {i + 1} (line {lines[i]})"
-            ) from None
-    return out
-
-
-def _read_csv(p: Path) -> tuple[dict[str, np.ndarray], list[int]]:
-    source = str(p)
-    text = _decode_text(p, _read_bytes(p))
-    lines = text.splitlines()
-    header_index = _find_header(lines)
-    if header_index is None:
-        raise HallcalInputError(f"{source}: file is empty")
-    header_line = lines[header_index].strip()
-    if header_line.startswith("#"):
-        header_line = header_line[1:].strip()
-    delimiter = ","
-    if "," not in header_line:
-        if "\t" in header_line:
-            delimiter = "\t"
-        elif ";" in header_line:
-            delimiter = ";"
-    header = [name.strip() for name in next(csv.reader([header_line], delimiter=delimiter))]
-    trailing_empty = len(header) > 1 and header[-1] == ""
-    if trailing_empty:
-        header.pop()
-    for j, name in enumerate(header):
-        if not name:
-            raise HallcalInputError(f"{source}: column {j + 1} of the header has no name")
-        if header.index(name) != j:
-            raise HallcalInputError(f"{source}: column '{name}' appears twice in the header")
-        if _looks_numeric(name):
-            raise HallcalInputError(
-                f"{source}: the first line must be a header of column names, "
-                f"found the number {name!r}"
-            )
-    width = len(header)
-    values: list[list[str]] = [[] for _ in header]
-    row_lines: list[int] = []
-    body = lines[header_index + 1 :]
-    reader = csv.reader(body, delimiter=delimiter)
-    for record in reader:
-        line_no = header_index + 1 + reader.line_num
-        if not record or (len(record) == 1 and not record[0].strip()):
-            continue
-        if record[0].lstrip().startswith("#"):
-            continue
-        if trailing_empty and len(record) == width + 1 and not record[-1].strip():
-            record.pop()
-        if len(record) != width:
-            raise HallcalInputError(
-                f"{source}: row {len(row_lines) + 1} (line {line_no}) has {len(record)} "
-                f"fields, the header has {width}"
-            )
-        row_lines.append(line_no)
-        for j, item in enumerate(record):
-            values[j].append(item)
-    if not row_lines:
-        raise HallcalInputError(f"{source}: no data rows")
-    cols = {
-        name: _parse_numbers(name, vals, source, row_lines)
-        for name, vals in zip(header, values, strict=True)
-    }
-    return cols, row_lines
-
-
-def _find_header(lines: Sequence[str]) -> int | None:
-    """Index of the header line: the first non-blank line that is not a ``#`` comment, unless
-    that line holds numbers, in which case the last ``#`` line before it (``numpy.savetxt``)."""
-    last_comment = None
-    for i, line in enumerate(lines):
-        text = line.strip()
-        if not text:
-            continue
-        if text.startswith("#"):
-            last_comment = i
-            continue
-        first_field = re.split(r"[,;\t]", text, maxsplit=1)[0].strip().strip('"')
-        if _looks_numeric(first_field) and last_comment is not None:
-            return last_comment
-        return i
-    return last_comment
-
-
-def _looks_numeric(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return text.strip().lower() not in ("nan", "inf", "infinity", "-inf", "+inf")
 
 
 # ---- Parquet -----------------------------------------------------------------------------------
@@ -580,11 +493,12 @@ def _read_npz(p: Path) -> dict[str, np.ndarray]:
         raise HallcalInputError(f"{source}: not a valid .npz archive") from None
     if not isinstance(archive, np.lib.npyio.NpzFile):
         raise HallcalInputError(f"{source}: not a valid .npz archive")
+    mapped = _map_stored_members(p)
     with archive:
         arrays: list[tuple[str, np.ndarray | None, str]] = []
         for name in archive.files:
             try:
-                arr = archive[name]
+                arr = mapped[name] if name in mapped else archive[name]
             except ValueError as exc:
                 if "pickle" in str(exc) or "Object arrays" in str(exc):
                     raise HallcalInputError(
@@ -599,6 +513,64 @@ def _read_npz(p: Path) -> dict[str, np.ndarray]:
             else:
                 arrays.append((name, None, f"an array of dtype {arr.dtype}"))
     return _container_columns(arrays, source)
+
+
+def _map_stored_members(p: Path) -> dict[str, np.ndarray]:
+    """Arrays of the uncompressed members of an ``.npz`` file, mapped from the file, not read.
+
+    ``numpy.savez`` and :func:`write_dataset` store members uncompressed, so each array's bytes
+    lie in the file as they are: mapping them costs nothing until they are used, and memory is
+    the page cache's, not a private copy (``numpy.load`` of a 10 million-row archive copies the
+    data through 256 KiB reads). Each member's CRC is checked as ``zipfile`` would. Members that
+    are compressed, encrypted, hold objects or are not plain ``.npy`` data are left out; the
+    caller reads those with ``numpy.load``.
+    """
+    out: dict[str, np.ndarray] = {}
+    try:
+        with open(p, "rb") as f, zipfile.ZipFile(f) as zf:
+            infos = zf.infolist()
+            mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+    except (OSError, ValueError, zipfile.BadZipFile):
+        return out
+    for info in infos:
+        name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+        arr = _mapped_npy(mm, info)
+        if arr is not None:
+            out[name] = arr
+    return out
+
+
+def _mapped_npy(mm: mmap.mmap, info: zipfile.ZipInfo) -> np.ndarray | None:
+    if info.compress_type != zipfile.ZIP_STORED or info.flag_bits & 0x1:
+        return None
+    at = info.header_offset
+    local = mm[at : at + 30]
+    if len(local) != 30 or local[:4] != b"PK\x03\x04":
+        return None
+    name_length, extra_length = struct.unpack("<HH", local[26:30])
+    start = at + 30 + name_length + extra_length
+    end = start + info.file_size
+    if end > len(mm) or zlib.crc32(memoryview(mm)[start:end]) != info.CRC:
+        return None
+    head = io.BytesIO(mm[start : min(end, start + (1 << 20))])
+    try:
+        version = np.lib.format.read_magic(head)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(head)
+        elif version == (2, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(head)
+        else:
+            return None
+    except ValueError:
+        return None
+    if dtype.hasobject:
+        return None
+    count = math.prod(shape)
+    offset = start + head.tell()
+    if offset + count * dtype.itemsize > end:
+        return None
+    arr = np.frombuffer(mm, dtype=dtype, count=count, offset=offset)
+    return arr.reshape(shape, order="F" if fortran else "C")
 
 
 # ---- Writing -----------------------------------------------------------------------------------
@@ -634,8 +606,10 @@ def _columns_for_writing(p: Path, columns: Mapping[str, Any]) -> dict[str, np.nd
 def write_dataset(path: str | os.PathLike[str], columns: Mapping[str, Any]) -> None:
     """Write columns to a dataset file, the format chosen by the extension (atomically).
 
-    Floating-point columns are written as float64 (CSV: shortest text that reads back to the
-    same value), integer and boolean columns as int64 (CSV: integers). HDF5 files get one
+    Floating-point columns are written as float64 (text: the shortest digits that read back to
+    the same value, with ``.0`` on whole numbers), integer and boolean columns as int64 (text:
+    integers). CSV files are comma-separated with a header row; ``.txt``/``.dat`` files are
+    separated by one space, with a header row (names with spaces are refused). HDF5 files get one
     dataset per column at the root; MATLAB files one column-vector variable per column;
     ``.npz`` archives one array per column (never pickled).
 
@@ -656,16 +630,8 @@ def write_dataset(path: str | os.PathLike[str], columns: Mapping[str, Any]) -> N
     p = Path(path)
     ext = _check_extension(p)
     cols = _columns_for_writing(p, columns)
-    if ext == ".csv":
-        texts = [
-            list(map(repr, a.tolist())) if a.dtype.kind == "f" else list(map(str, a.tolist()))
-            for a in cols.values()
-        ]
-        header = io.StringIO()
-        csv.writer(header, lineterminator="\n").writerow(list(cols))
-        with atomic_write(p, "w") as f:
-            f.write(header.getvalue())
-            f.writelines(",".join(row) + "\n" for row in zip(*texts, strict=True))
+    if ext in TEXT_EXTENSIONS:
+        write_text_table(p, cols, delimiter="," if ext == ".csv" else " ")
     elif ext == ".parquet":
         import pyarrow as pa
         import pyarrow.parquet as pq
@@ -696,4 +662,7 @@ def write_dataset(path: str | os.PathLike[str], columns: Mapping[str, Any]) -> N
         with atomic_write(p, "wb") as f, zipfile.ZipFile(f, "w", zipfile.ZIP_STORED) as zf:
             for name, arr in cols.items():
                 with zf.open(f"{name}.npy", "w", force_zip64=True) as member:
-                    np.lib.format.write_array(member, arr, allow_pickle=False)
+                    # the bytes numpy.lib.format.write_array writes, without its 16 MiB copies
+                    header = np.lib.format.header_data_from_array_1_0(arr)
+                    np.lib.format.write_array_header_1_0(member, header)
+                    member.write(memoryview(np.ascontiguousarray(arr)).cast("B"))

@@ -131,9 +131,12 @@ class BLASpec:
         Which frequency lines in the band are excited.
     drift : float
         Speed in rad/s of the slow ramp the multisine rides on.
-    numerator_order, denominator_order : int
-        Orders of the parametric model fitted to the BLA; the denominator order excludes the
-        integrator pole (the paper's G(s) is numerator 0, denominator 2, integrator).
+    numerator_order : int
+        Order of the numerator of the parametric model fitted to the BLA.
+    denominator_order : int or "auto"
+        Order of its denominator, the integrator pole excluded (the paper's G(s) is numerator
+        0, denominator 2, integrator; a motor with one mechanical pole is denominator 1);
+        ``"auto"`` chooses 0..3 from the data (stable fits only, minimum description length).
     integrator : bool
         Whether the parametric model has a pole at s = 0.
     fit_delay : bool
@@ -149,7 +152,7 @@ class BLASpec:
     lines: Literal["full", "odd", "random-odd"] = "random-odd"
     drift: float = 1.0
     numerator_order: int = 0
-    denominator_order: int = 2
+    denominator_order: int | Literal["auto"] = "auto"
     integrator: bool = True
     fit_delay: bool = True
 
@@ -628,8 +631,13 @@ def _parse_bla(t: _Table | None, sample_time: float) -> BLASpec | None:
             f"1/(period_samples*sample_time) = {f0:g} Hz), got {_show(list(band))}"
         )
     numerator_order = t.integer("numerator_order", default=0, minimum=0)
-    denominator_order = t.integer("denominator_order", default=2, minimum=0)
-    if numerator_order > denominator_order:
+    denominator_order: int | str = "auto"
+    value = t.data.get("denominator_order", "auto")
+    if not (isinstance(value, str) and value == "auto"):
+        if not _is_int(value) or value < 0:
+            t.fail("denominator_order", 'an integer >= 0 or "auto"')
+        denominator_order = int(value)
+    if denominator_order != "auto" and numerator_order > int(denominator_order):
         t.error(
             f"key '{t.key('numerator_order')}' must not exceed "
             f"'{t.key('denominator_order')}' ({denominator_order}), got {numerator_order}"
@@ -644,7 +652,7 @@ def _parse_bla(t: _Table | None, sample_time: float) -> BLASpec | None:
         lines=t.choice("lines", ("full", "odd", "random-odd"), default="random-odd"),
         drift=t.number("drift", default=1.0),
         numerator_order=numerator_order,
-        denominator_order=denominator_order,
+        denominator_order=denominator_order,  # type: ignore[arg-type]
         integrator=t.boolean("integrator", default=True),
         fit_delay=t.boolean("fit_delay", default=True),
     )

@@ -1,28 +1,40 @@
-"""Firmware export: eq. (f_final) as C99 for microcontrollers, in float and in fixed point.
+"""Firmware export: eq. (f_final) as lean C99 for microcontrollers, in float and in fixed point.
 
-``export_c(artifact, out_dir)`` turns a calibration artifact (``"hallcal-calibration/1"``) into
-``<prefix>.h`` / ``<prefix>.c`` (single-precision float, for MCUs with an FPU) and, optionally,
-``<prefix>_q.h`` / ``<prefix>_q.c`` (int32 arithmetic with int64 intermediate products, no float,
-no ``<math.h>``, for MCUs without an FPU). Both mirror :meth:`hallcal.sensor.lut.LUT.f_star`:
+``export_c(artifact, out_dir)`` writes ``<prefix>.h`` / ``<prefix>.c`` (single-precision float,
+for MCUs with an FPU) and ``<prefix>_q.h`` / ``<prefix>_q.c`` (32-bit integers only: no float, no
+64-bit arithmetic, no division; for Cortex-M0+/M3 and FPU-less M4). Both compute f_star of
+eq. (f_final), y_star = f_init(d) + eta(f_init(d)), with f_init of eq. (fimp) running on its own
+unwrap state, and both check each sample for plausibility first. The numbers come from
+:func:`hallcal.output.firmware.design_firmware`; this module turns them into C.
 
-* f_init, eq. (fimp): ``alpha, beta = P (d - o)``, ``psi = atan2(beta, alpha)``, unwrapped against
-  the previous electrical angle with the rule Gamma (``mod(dpsi + pi, 2 pi) - pi``, ties to
-  ``-pi``) and divided by the pole pairs n_m; the unwrap runs on its own uncorrected state.
-* the correction ``eta(mod(y, 2 pi))`` of eq. (f_final): the very same piecewise-linear interpolant
-  with wrap-around as ``np.interp(..., period=2 pi)`` over the stored nodes (y_hat_i, eta_i). The
-  nodes are kept as they are (no resampling, so no extra interpolation error); an O(1) search finds
-  the interval: a bucket table over a uniform grid of the angle gives the last node at or below the
-  bucket start and a short forward scan, whose worst-case length is computed at export, finishes.
+What the generated code does per sample (constant worst-case path, no loop, no libm, no double,
+no division, no compiler builtin):
 
-The angle is never stored as one growing number: the state holds the revolution count (int32), the
-electrical turn within the revolution (0 .. n_m - 1) and the wrapped electrical angle, so the
-accuracy after 10^6 revolutions is the accuracy of the first one. The float variant's returned
-``float`` is the full angle and therefore has the float's resolution (6e-8 |y|); the revolution
-count and the angle within the revolution (or the double helper) keep the stated bound forever.
+1. plausibility of the raw sample: each channel within its calibrated range, then the alpha/beta
+   radius within its calibrated window;
+2. alpha/beta = P (d - o); the float variant forms d2 - d1 and d3 - d1 when P's rows sum to zero,
+   the fixed variant's integer rows sum to exactly zero, so a common mode cancels exactly;
+3. the electrical angle: float: octant reduction on the IEEE bit patterns, a rotation by 45
+   degrees above 22.5 degrees, a reciprocal by Newton steps from a linear seed valid on the
+   radius window, and an odd minimax polynomial of atan on [-tan(pi/8), tan(pi/8)], then Q0.32
+   turns; fixed: ``CORDIC_STEPS`` sign-magnitude CORDIC steps in unsigned arithmetic, then
+   atan(y/x) ~ t - t^3/3 on the small residual with a 16-bit Newton reciprocal, all scaled to
+   mechanical Q0.32 units;
+4. the unwrap Gamma of eq. (fimp) (ties to -pi) in integers, then the step limit from the last
+   accepted sample (grown for each sample held; none before the first accepted sample);
+5. eta from the uniform table of M = n_m 2^k intervals (int16 values, linear, or with int8
+   curvatures, quadratic) at f_init's angle within the revolution, found with shifts from the
+   turn count and the electrical angle; y_star = revolutions + angle within the revolution;
+6. a rejected sample (range, amplitude or step) is counted and the last reading held; after
+   ``fault_after`` rejections in a row the fault flag latches until ``_clear_fault``;
+7. the reading (revolutions, angle, flags) is published into one of two buffers and a sequence
+   counter advanced, so ``_read`` returns a consistent pair from any context (the main loop
+   of an ISR's update, or a higher-priority interrupt).
 
-Error bounds against the Python f_star are derived here from the float and fixed-point formats and
-stated in the generated files and in :class:`ExportResult`; ``tests/test_codegen.py`` measures
-them with the compiled code.
+Generated files contain only numbers and comment text that is sanitized so that it cannot end the
+comment: file names are reduced to their base name and to the characters ``A-Za-z0-9 ._-+=,:()[]``.
+Optional parts (e.g. the anticogging feed-forward when the artifact has ``"cogging"``) are
+separate :class:`Section` objects appended to a variant (see ``_SECTIONS``).
 """
 
 from __future__ import annotations
@@ -33,458 +45,565 @@ import math
 import os
 import re
 import string
-import tempfile
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
-from hallcal.sensor.lut import LUT
+from hallcal.io import atomic_write
+from hallcal.output.firmware import (
+    ARTIFACT_FORMAT,
+    DEFAULT_FAULT_AFTER,
+    DEFAULT_TOLERANCE,
+    FirmwareDesign,
+    design_firmware,
+    table_sizes,
+)
 
 __all__ = [
     "ARTIFACT_FORMAT",
-    "CORDIC_ITERATIONS",
+    "CORDIC_STEPS",
     "ExportResult",
-    "cordic_error_bound",
+    "Section",
+    "comment_text",
     "export_c",
 ]
 
 TWO_PI = 2.0 * math.pi
-#: The artifact format this exporter reads.
-ARTIFACT_FORMAT = "hallcal-calibration/1"
-#: CORDIC iterations of the integer atan2 of the fixed-point variant.
-CORDIC_ITERATIONS = 26
-#: Vectors enter the CORDIC with max(|a|, |b|) in [2^(NORM_BITS-1), 2^NORM_BITS).
-_NORM_BITS = 29
 _U32 = 1 << 32
-_LSB_RAD = TWO_PI / _U32  # one unit of a Q0.32 turn
 _EPS_F32 = 2.0**-24  # unit roundoff of IEEE single precision
+#: The generated code's stated error bound against Python should not exceed this [rad]; a larger
+#: table is chosen when the arithmetic would take it above.
+MAX_TOTAL_ERROR = 1e-5
+#: CORDIC steps of the fixed-point atan2 before the residual is taken as atan(t) ~ t - t^3/3.
+CORDIC_STEPS = 5
+_TAN_PI_8 = math.tan(math.pi / 8.0)
+_C_KEYWORDS = frozenset(
+    "auto break case char const continue default do double else enum extern float for goto if "
+    "inline int long register restrict return short signed sizeof static struct switch typedef "
+    "union unsigned void volatile while _Bool _Complex _Imaginary".split()
+)
 
 
 @dataclass(frozen=True)
 class ExportResult:
     """What :func:`export_c` wrote and the accuracy it states.
 
-    All bounds are mechanical rad of ``|y_C - y_python|``, y_python being
-    :meth:`hallcal.sensor.lut.LUT.f_star` in double precision on the same input samples.
+    Bounds are mechanical rad of ``|y_C - y_python|``, y_python being ``hallcal reconstruct``
+    (:meth:`hallcal.sensor.lut.LUT.f_star` in double precision) on the same input samples.
 
     Attributes
     ----------
-    status : str
-        ``"ok"``, or ``"warning"`` when ``messages`` says something needs the user's attention.
     paths : tuple of Path
         Files written (``.h`` then ``.c``, float variant first).
     pole_pairs : int
         n_m.
-    points : int
-        M, table nodes per revolution (as in the artifact, not resampled).
-    buckets : int
-        Entries of the bucket table of the O(1) node search (a power of two).
-    max_search_steps : int
-        Worst-case forward steps of the node search after the bucket lookup (both variants).
+    table_points : int
+        M, intervals of the uniform table per revolution.
     table_bytes : int
-        Bytes of ``static const`` data of the float variant.
-    table_bytes_q : int or None
-        Bytes of ``static const`` data of the fixed-point variant (None if not written).
+        Bytes of the correction table (int16 values and int8 curvatures).
+    table_error : float
+        Largest difference of the table to the artifact's interpolant [rad] (exact).
+    budget : float
+        What the table may differ [rad]: a tenth of the noise floor, at most 1e-5 rad.
+    noise_floor : float or None
+        From the artifact [rad].
     float_bound : float
-        Bound for the float variant's revolution count + angle within the revolution (and its
-        double helper). The returned ``float`` adds its own rounding, 0.5 ulp(|y|).
+        Bound of the float variant (table error included).
+    atan2_bound : float
+        Bound of the float variant's atan2 [rad, electrical].
     fixed_bound : float or None
-        Bound for the fixed-point variant's output (revolutions + Q0.32 angle).
-    atan2_bound : float or None
-        Bound on the error of the integer atan2 [rad, electrical].
-    assumed_amplitude : float
-        Smallest Hall amplitude (artifact signal unit) the offset-rounding terms assume.
+        Bound of the fixed-point variant on the same integer samples (table error included).
+    fixed_atan2_bound : float or None
+        Bound of the fixed-point atan2 [rad, electrical].
+    quantization_rms, quantization_max : float or None
+        What rounding the artifact's signals to integer counts (``adc_scale``) adds [rad].
+    adc_scale : float
+    step_limit : float
+        Largest electrical step per sample [turns] before a sample is rejected.
+    glitch_safe_speed : float
+        Speed up to which one glitch sample cannot make the angle slip [rad per sample,
+        mechanical].
+    fault_after : int
     sha256 : str
         SHA-256 of the artifact's canonical JSON (also written into the files).
+    sections : tuple of str
+        Optional parts emitted (e.g. ``"anticogging"``).
     messages : tuple of str
         Warnings and notes.
+    design : FirmwareDesign
+        The numbers behind the files.
     """
 
-    status: str
     paths: tuple[Path, ...]
     pole_pairs: int
-    points: int
-    buckets: int
-    max_search_steps: int
+    table_points: int
     table_bytes: int
-    table_bytes_q: int | None
+    table_error: float
+    budget: float
+    noise_floor: float | None
     float_bound: float
+    atan2_bound: float
     fixed_bound: float | None
-    atan2_bound: float | None
-    assumed_amplitude: float
+    fixed_atan2_bound: float | None
+    quantization_rms: float | None
+    quantization_max: float | None
+    adc_scale: float
+    step_limit: float
+    glitch_safe_speed: float
+    fault_after: int
     sha256: str
+    sections: tuple[str, ...] = ()
     messages: tuple[str, ...] = ()
+    design: FirmwareDesign | None = field(default=None, repr=False, compare=False)
 
 
-def cordic_error_bound(iterations: int = CORDIC_ITERATIONS) -> float:
-    """Worst-case error [rad] of the generated integer atan2 (CORDIC, vectoring mode).
+@dataclass(frozen=True)
+class Section:
+    """An optional piece of a generated variant.
 
-    Terms: the convergence residual ``atan(2^-(N-1))``; the truncation of ``b >> i`` and ``a >> i``
-    (at most sqrt(2) units per iteration on a vector of length >= 2^28: ``N sqrt(2) / 2^28``); the
-    rounding of the N arctangent constants to Q0.32 turns (half a unit each); the truncation of the
-    input to 29 bits (``sqrt(2) / 2^28``).
+    Attributes
+    ----------
+    name : str
+        Short name (reported in :attr:`ExportResult.sections`).
+    header : str
+        Declarations for the header (inside ``extern "C"``).
+    source : str
+        Definitions for the source file.
+    notes : tuple of str
+        Lines for the banner comment.
     """
-    n = int(iterations)
-    lo = 2.0 ** (_NORM_BITS - 1)
-    return (
-        math.atan(2.0 ** -(n - 1))
-        + n * math.sqrt(2.0) / lo
-        + 0.5 * n * _LSB_RAD
-        + math.sqrt(2.0) / lo
-    )
+
+    name: str
+    header: str
+    source: str
+    notes: tuple[str, ...] = ()
 
 
 # --------------------------------------------------------------------------------------------
-# Reading and checking the artifact
+# Text that reaches the C files
 # --------------------------------------------------------------------------------------------
 
-
-@dataclass(frozen=True)
-class _Calibration:
-    pole_pairs: int
-    projection: NDArray[np.float64]
-    offset: NDArray[np.float64]
-    y_hat: NDArray[np.float64]
-    eta: NDArray[np.float64]
-    lut: LUT
-    sha256: str
-    fmt: str
+_COMMENT_SAFE = re.compile(r"[^A-Za-z0-9 ._+=,:()\[\]-]")
 
 
-def _bad(source: str, key: str, why: str) -> HallcalInputError:
-    return HallcalInputError(f"{source}: key '{key}' {why}")
+def comment_text(text: str, *, limit: int = 80) -> str:
+    """Text safe inside a C block comment on one line.
+
+    Only ``A-Za-z0-9``, space and ``._+=,:()[]-`` survive; anything else (``*``, ``/``, ``\\``,
+    ``?``, quotes, control characters, non-ASCII) becomes ``_``. So the result cannot end the
+    comment (``*/``), splice a line (backslash-newline), form a trigraph (``??/``) or open a
+    nested comment, and has no newline. Truncated to ``limit`` characters.
+    """
+    out = _COMMENT_SAFE.sub("_", str(text))
+    return out if len(out) <= limit else out[: limit - 3] + "..."
 
 
-def _need(obj, key: str, path: str, source: str):
-    if not isinstance(obj, Mapping) or key not in obj:
-        raise _bad(source, path, "is missing")
-    return obj[key]
+def _source_name(source: str | os.PathLike[str] | None) -> str:
+    """The base name of the artifact's path, sanitized (never an absolute path)."""
+    if source is None:
+        return "(in memory)"
+    name = os.path.basename(os.fspath(source).replace("\\", "/").rstrip("/")) or "(unnamed)"
+    return comment_text(name, limit=60)
 
 
-def _array(value, shape: tuple[int, ...] | None, key: str, source: str) -> NDArray[np.float64]:
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise _bad(source, key, "must be numbers") from None
-    if shape is not None and arr.shape != shape:
-        raise _bad(source, key, f"must have shape {shape}, got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise _bad(source, key, "must be finite numbers")
-    return arr
-
-
-def _read_artifact(artifact: Mapping, source: str) -> _Calibration:
-    if not isinstance(artifact, Mapping):
-        raise HallcalInputError(f"{source}: the calibration artifact must be a JSON object")
-    fmt = _need(artifact, "format", "format", source)
-    if fmt != ARTIFACT_FORMAT:
-        raise _bad(source, "format", f"is {fmt!r}, expected {ARTIFACT_FORMAT!r}")
-    n = _need(artifact, "pole_pairs", "pole_pairs", source)
-    if isinstance(n, bool) or not isinstance(n, int | np.integer) or not 1 <= int(n) <= 10000:
-        raise _bad(source, "pole_pairs", "must be an integer in 1..10000")
-    rec = _need(artifact, "reconstruction", "reconstruction", source)
-    P = _need(rec, "projection", "reconstruction.projection", source)
-    P = _array(P, (2, 3), "reconstruction.projection", source)
-    if np.linalg.matrix_rank(P) < 2:
-        raise _bad(source, "reconstruction.projection", "must have rank 2")
-    o = _need(rec, "offset", "reconstruction.offset", source)
-    o = _array(o, (3,), "reconstruction.offset", source)
-    lut_d = _need(artifact, "lut", "lut", source)
-    y_hat = _need(lut_d, "y_hat", "lut.y_hat", source)
-    eta = _need(lut_d, "eta", "lut.eta", source)
-    y_hat = _array(y_hat, None, "lut.y_hat", source)
-    eta = _array(eta, None, "lut.eta", source)
-    if y_hat.ndim != 1 or y_hat.shape != eta.shape:
-        raise _bad(source, "lut.eta", "must be a list as long as lut.y_hat")
-    m = y_hat.size
-    if not 4 <= m <= 65000:
-        raise _bad(source, "lut.y_hat", f"must have 4..65000 nodes, got {m}")
-    if "points" in lut_d:
-        points = lut_d["points"]
-        if isinstance(points, bool) or not isinstance(points, int | np.integer) or points != m:
-            raise _bad(source, "lut.points", f"is {points!r} but lut.y_hat has {m} nodes")
-    if np.max(np.abs(eta)) >= math.pi:
-        raise _bad(source, "lut.eta", "has corrections of pi rad or more")
-    lut = LUT.from_arrays(int(n), P, o, y_hat, eta)
-    # eq. (recon_biject): y_hat strictly increasing over one revolution (checked on the nodes
-    # themselves too, so that a table with reordered nodes is refused as well)
-    monotone = bool(np.all(np.diff(y_hat) > 0) and y_hat[-1] < y_hat[0] + TWO_PI)
-    if not (lut.bijective and monotone):
-        raise _bad(
-            source,
-            "lut",
-            f"is not bijective (min slope {lut.min_slope:.3g}): the table would give wrong angles",
-        )
-    canon = json.dumps(artifact, sort_keys=True, separators=(",", ":"), default=_json_default)
-    sha = hashlib.sha256(canon.encode()).hexdigest()
-    return _Calibration(int(n), P, o, y_hat, eta, lut, sha, str(fmt))
-
-
-def _json_default(obj):
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    return str(obj)
-
-
-# --------------------------------------------------------------------------------------------
-# Tables
-# --------------------------------------------------------------------------------------------
-
-
-def _periodic_nodes(y_hat: NDArray, eta: NDArray) -> tuple[NDArray, NDArray]:
-    """The nodes ``np.interp(x, y_hat, eta, period=2 pi)`` uses: sorted mod 2 pi, with the last
-    node before 0 and the first node after 2 pi appended (M + 2 nodes)."""
-    x = np.mod(y_hat, TWO_PI)
-    order = np.argsort(x, kind="stable")
-    xs, es = x[order], eta[order]
-    return (
-        np.concatenate([[xs[-1] - TWO_PI], xs, [xs[0] + TWO_PI]]),
-        np.concatenate([[es[-1]], es, [es[0]]]),
-    )
-
-
-def _bucket_table(nodes: NDArray, starts: NDArray, margin: float) -> tuple[NDArray, int]:
-    """For each bucket the last interval j with nodes[j] <= start - margin, and the worst-case
-    forward scan to any point below the next bucket's start + margin."""
-    m = nodes.size - 2
-    first = np.clip(np.searchsorted(nodes, starts - margin, side="right") - 1, 0, m)
-    ends = np.append(starts[1:], starts[-1] + (starts[-1] - starts[-2]))
-    last = np.clip(np.searchsorted(nodes, ends + margin, side="right") - 1, 0, m)
-    return first.astype(np.int64), int(np.max(last - first))
-
-
-@dataclass(frozen=True)
-class _FloatTables:
-    x: NDArray[np.float32]
-    eta: NDArray[np.float32]
-    bucket: NDArray[np.int64]
-    max_scan: int
-    bytes: int
-
-
-@dataclass(frozen=True)
-class _FixedTables:
-    x: NDArray[np.int64]  # linear Q0.32-turn positions (may be < 0 or >= 2^32 at the sentinels)
-    eta: NDArray[np.int64]
-    slope: NDArray[np.int64]
-    slope_bits: int
-    bucket: NDArray[np.int64]
-    max_scan: int
-    max_width: int
-    max_slope: float
-    offset: NDArray[np.int64]
-    offset_bits: int
-    projection: NDArray[np.int64]
-    projection_exp: int
-    turn_base: NDArray[np.int64]
-    atan: NDArray[np.int64]
-    bytes: int
-
-
-def _float_tables(cal: _Calibration, buckets: int) -> _FloatTables:
-    xl, el = _periodic_nodes(cal.y_hat, cal.eta)
-    xf = xl.astype(np.float32)
-    ef = el.astype(np.float32)
-    if not np.all(np.diff(xf.astype(np.float64)) > 0):
+def _f32(value: float, what: str) -> float:
+    """``value`` as single precision; refuse what float cannot hold (the C would be wrong)."""
+    v = float(np.float32(value))
+    if not math.isfinite(v) or (v != 0.0 and abs(v) < 1e-30) or abs(v) > 1e30:
         raise HallcalInputError(
-            "lut: two nodes y_hat coincide in single precision; use fewer points"
+            f"the calibration's numbers do not fit single precision ({what} = {value:.3g})"
         )
-    starts = TWO_PI * np.arange(buckets) / buckets
-    # The C code finds the bucket of x by a float product; 1e-5 rad of margin covers its rounding.
-    bucket, scan = _bucket_table(xf.astype(np.float64), starts, 1e-5)
-    m, n = cal.y_hat.size, cal.pole_pairs
-    nbytes = 4 * 2 * (m + 2) + 2 * buckets + 4 * n + 4 * 9
-    return _FloatTables(xf, ef, bucket, scan, nbytes)
+    return v
 
 
-def _fixed_tables(cal: _Calibration, buckets: int, adc_scale: float) -> _FixedTables:
-    xl, el = _periodic_nodes(cal.y_hat, cal.eta)
-    xq = np.array([round(v / TWO_PI * _U32) for v in xl], dtype=np.int64)
-    eq = np.array([round(v / TWO_PI * _U32) for v in el], dtype=np.int64)
-    widths = np.diff(xq)
-    if not np.all(widths > 0):
-        raise HallcalInputError("lut: two nodes y_hat coincide in Q0.32 turns; use fewer points")
-    if np.max(np.abs(eq)) >= 2**31:
-        raise HallcalInputError("lut: eta does not fit in a signed Q0.32 turn")
-    slopes = np.diff(eq) / widths
-    max_slope = float(np.max(np.abs(slopes)))
-    max_width = int(np.max(widths))
-    # Slope in Q(31-F).F with |slope| * 2^F < 2^30 and |slope_q| * width < 2^62.
-    sbits = 30
-    while sbits > 0 and (max_slope * 2.0**sbits >= 2.0**30):
-        sbits -= 1
-    while sbits > 0 and max_slope * 2.0**sbits * max_width >= 2.0**62:
-        sbits -= 1
-    if sbits < 1:
-        raise HallcalInputError("lut: the table is too steep for the fixed-point variant")
-    slope_q = np.array([round(float(s) * 2.0**sbits) for s in slopes], dtype=np.int64)
-    bucket_shift = 32 - int(round(math.log2(buckets)))
-    starts = np.arange(buckets, dtype=np.int64) << bucket_shift
-    bucket, scan = _bucket_table(xq, starts, 0)
-    # Offsets in counts, Q(31-F).F with F <= 16 fractional bits.
-    oc = cal.offset * float(adc_scale)
-    obits = 16
-    while obits > 0 and np.max(np.abs(oc)) * 2.0**obits >= 2.0**30:
-        obits -= 1
-    if np.max(np.abs(oc)) >= 2.0**30:
-        raise HallcalInputError("reconstruction.offset: offsets of 2^30 ADC counts or more")
-    off_q = np.array([round(float(v) * 2.0**obits) for v in oc], dtype=np.int64)
-    # Projection scaled by a power of two (atan2 does not see a common scale) to 30 bits.
-    pmax = float(np.max(np.abs(cal.projection)))
-    pexp = 29 - math.floor(math.log2(pmax))
-    proj_q = np.array(
-        [[round(float(v) * 2.0**pexp) for v in row] for row in cal.projection], dtype=np.int64
-    )
-    if np.max(np.abs(proj_q)) >= 2**30:  # log2 rounding at an exact power of two
-        pexp -= 1
-        proj_q = np.array(
-            [[round(float(v) * 2.0**pexp) for v in row] for row in cal.projection],
-            dtype=np.int64,
-        )
-    n = cal.pole_pairs
-    turn_base = np.array([(t * _U32) // n for t in range(n)], dtype=np.int64)
-    atan = np.array(
-        [round(math.atan(2.0**-i) / TWO_PI * _U32) for i in range(CORDIC_ITERATIONS)],
-        dtype=np.int64,
-    )
-    m = cal.y_hat.size
-    nbytes = 4 * (m + 2) * 2 + 4 * (m + 1) + 2 * buckets + 4 * n + 4 * 9
-    return _FixedTables(
-        xq, eq, slope_q, sbits, bucket, scan, max_width, max_slope, off_q, obits, proj_q, pexp,
-        turn_base, atan, nbytes,
-    )  # fmt: skip
-
-
-# --------------------------------------------------------------------------------------------
-# Error bounds
-# --------------------------------------------------------------------------------------------
-
-
-def _condition(P: NDArray) -> float:
-    s = np.linalg.svd(P, compute_uv=False)
-    return float(s[0] / s[-1])
-
-
-def _float_bound(cal: _Calibration, ft: _FloatTables, amplitude: float) -> float:
-    """Single-precision rounding, propagated to the output (mechanical rad).
-
-    Electrical angle: atan2f within 2 ulp of pi; the projection, about 8 roundings relative to
-    the alpha/beta vector amplified by the condition number of P; the offsets' rounding relative
-    to the amplitude. Within the revolution: 6 roundings of numbers below 8 (the scale by 1/n_m,
-    the turn base, their sum, the wrap by 2 pi for the look-up, y + eta and its normalization).
-    An error in the looked-up angle moves eta by the table's largest slope.
-    """
-    n = cal.pole_pairs
-    kappa = _condition(cal.projection)
-    slope = float(np.max(np.abs(np.diff(ft.eta.astype(float)) / np.diff(ft.x.astype(float)))))
-    e_el = (
-        4 * 2.0**-22  # atan2f: 4 ulp at pi (glibc and newlib are within 2)
-        + 8 * _EPS_F32 * kappa
-        + math.sqrt(2.0) * kappa * _EPS_F32 * float(np.max(np.abs(cal.offset))) / amplitude
-    )
-    e_y = e_el / n + 6 * _EPS_F32 * 8.0
-    e_tab = 4 * _EPS_F32 * float(np.max(np.abs(cal.eta)))
-    return e_y * (1.0 + slope) + e_tab
-
-
-def _fixed_bound(
-    cal: _Calibration, qt: _FixedTables, amplitude: float, adc_scale: float
-) -> tuple[float, float]:
-    """Fixed-point error bound (mechanical rad) and the integer atan2's bound (electrical rad).
-
-    Electrical angle: the CORDIC (:func:`cordic_error_bound`); the projection's rounding to 30
-    bits and the truncation of very large inputs to 31 bits (2^-28 relative, times the condition
-    number of P); the offsets' rounding to 2^-(F+1) counts relative to the amplitude. Within the
-    revolution: the turn base and p / n_m round down (2 units of 2^-32 turn); table nodes, values
-    and slopes round to half a unit each; an error of the looked-up angle moves eta by the
-    table's largest slope.
-    """
-    n = cal.pole_pairs
-    kappa = _condition(cal.projection)
-    e_atan = cordic_error_bound(CORDIC_ITERATIONS)
-    d_off = 2.0 ** -(qt.offset_bits + 1) / float(adc_scale)  # artifact units
-    e_el = e_atan + kappa * 2.0**-28 + math.sqrt(2.0) * kappa * d_off / amplitude
-    e_u = e_el / n + 2 * _LSB_RAD
-    s = qt.max_slope
-    e_tab = _LSB_RAD * (0.5 + 0.5 * s + 0.5 + 2.0 ** -(qt.slope_bits + 1) * qt.max_width)
-    return e_u * (1.0 + s) + e_tab, e_atan
-
-
-# --------------------------------------------------------------------------------------------
-# C formatting
-# --------------------------------------------------------------------------------------------
-
-
-def _c_float(v: float) -> str:
-    s = f"{float(np.float32(v)):.9g}"
-    if not any(c in s for c in ".eEn"):
+def _cf(value: float, what: str = "constant") -> str:
+    """A float literal that reads back as the same single-precision number."""
+    v = _f32(value, what)
+    s = f"{v:.9g}"
+    if not any(ch in s for ch in ".e"):
         s += ".0"
     return s + "f"
 
 
-def _c_list(values: Sequence[str], per_line: int, indent: str = "    ") -> str:
-    lines = []
-    for i in range(0, len(values), per_line):
-        lines.append(indent + ", ".join(values[i : i + per_line]) + ",")
-    return "\n".join(lines)
-
-
-def _c_u32(v: int) -> str:
-    return f"{int(v) % _U32}u"
-
-
-def _c_i32(v: int) -> str:
-    v = int(v)
-    if not -(2**31) <= v < 2**31:
+def _cu(value: int) -> str:
+    v = int(value)
+    if not 0 <= v < _U32:
         raise ValueError(v)
-    if v == -(2**31):
-        return "(-2147483647 - 1)"
-    return str(v)
+    return f"{v}u"
 
 
-def _banner(
-    fname: str,
-    cal: _Calibration,
-    source: str,
-    version: str,
-    lines: Sequence[str],
-) -> str:
-    body = [
-        f"{fname} -- generated by hallcal {version} (hallcal.output.codegen). Do not edit.",
-        "",
-        f"Source artifact : {source}",
-        f"  format        : {cal.fmt}",
-        f"  sha256        : {cal.sha256}",
-        f"Pole pairs n_m  : {cal.pole_pairs}",
-        f"Table           : M = {cal.y_hat.size} nodes (y_hat_i, eta_i) per revolution, as stored",
-        "",
-        'Method: van Meer et al., "Self-Calibrating Position Measurements: Applied to Imperfect',
-        'Hall Sensors": f_init of eq. (fimp) and y_star = y + eta(mod(y, 2 pi)) of eq. (f_final).',
-        *lines,
-    ]
-    for text in body:
-        if "*/" in text:
-            raise HallcalInputError("the source name must not contain '*/'")
-    return "/*\n" + "\n".join((" * " + t).rstrip() for t in body) + "\n */\n"
+def _c_list(values: Sequence[str], per_line: int, indent: str = "    ") -> str:
+    return "\n".join(
+        indent + ", ".join(values[i : i + per_line]) + "," for i in range(0, len(values), per_line)
+    )
+
+
+def _banner(fname: str, lines: Sequence[str]) -> str:
+    body = [comment_text(t, limit=100) for t in lines]
+    return (
+        "/*\n" + "\n".join((" * " + t).rstrip() for t in [comment_text(fname)] + body) + "\n */\n"
+    )
 
 
 def _version() -> str:
-    try:
-        from importlib.metadata import version
+    from hallcal._version import __version__
 
-        return version("hallcal")
-    except Exception:  # noqa: BLE001 - not installed as a distribution
-        return "(unknown version)"
+    return comment_text(__version__, limit=20)
 
 
 # --------------------------------------------------------------------------------------------
-# C templates
+# Float variant: numbers
+# --------------------------------------------------------------------------------------------
+
+
+def _atan_poly(terms: int = 5) -> tuple[NDArray[np.float64], float]:
+    """Odd minimax polynomial of atan on [0, tan(pi/8)] (Lawson iterations) and its max error."""
+    t = np.sort(np.cos(np.linspace(0.0, math.pi, 4001)) * 0.5 * _TAN_PI_8 + 0.5 * _TAN_PI_8)
+    V = np.stack([t ** (2 * k + 1) for k in range(terms)], axis=1)
+    f = np.arctan(t)
+    w = np.full(t.size, 1.0 / t.size)
+    coef = np.zeros(terms)
+    for _ in range(300):
+        sw = np.sqrt(w)
+        coef = np.linalg.lstsq(V * sw[:, None], f * sw, rcond=None)[0]
+        e = np.abs(V @ coef - f)
+        w = w * e
+        w /= w.sum()
+    tt = np.linspace(0.0, _TAN_PI_8, 100_001)
+    err = float(np.max(np.abs(np.stack([tt ** (2 * k + 1) for k in range(terms)], 1) @ coef
+                              - np.arctan(tt))))  # fmt: skip
+    return coef, err
+
+
+def _reciprocal_seed(lo: float, hi: float) -> tuple[float, float, float]:
+    """Linear minimax seed c0 - c1 x of 1/x on [lo, hi] (relative error) and that error."""
+    c1 = 8.0 / (4.0 * lo * hi + (lo + hi) ** 2)
+    c0 = c1 * (lo + hi)
+    return c0, c1, abs(1.0 - c1 * lo * hi)
+
+
+@dataclass(frozen=True)
+class _FloatNumbers:
+    lo: NDArray[np.float64]
+    hi: NDArray[np.float64]
+    r2_lo: float
+    r2_hi: float
+    seed: tuple[float, float]
+    newton: int
+    poly: NDArray[np.float64]  # in turns
+    atan_bound: float  # rad electrical
+    bound: float  # rad mechanical
+
+
+def _float_numbers(d: FirmwareDesign) -> _FloatNumbers:
+    """Constants of the float variant and its stated bounds.
+
+    The atan2 may use a tenth of the budget (electrical: times n_m): the fewest Newton steps
+    and polynomial terms within it (at least 1 and 3), so that the hot path does no more work
+    than the accuracy needs.
+    """
+    pl = d.plausibility
+    n = d.pole_pairs
+    # the reciprocal is of x = max(|a|, |b|) (after the rotation: r cos(th), |th| <= pi/8)
+    x_lo = math.cos(math.pi / 8.0) * pl.radius_lo * (1.0 - 1e-6)
+    x_hi = pl.radius_hi * (1.0 + 1e-6)
+    c0, c1, eps = _reciprocal_seed(x_lo, x_hi)
+    target = min(0.25 * d.budget * n, 2e-5)
+    # reciprocal: relative error e of t turns the angle by at most e t / (1 + t^2) <= 0.354 e
+    newton, e = 1, eps * eps
+    while 0.354 * e > 0.5 * target and newton < 5:
+        e, newton = e * e, newton + 1
+    terms = 3
+    coef, poly_err = _atan_poly(terms)
+    while poly_err > 0.25 * target and terms < 6:
+        terms += 1
+        coef, poly_err = _atan_poly(terms)
+    # atan2 [rad, electrical]: polynomial; reciprocal; single-precision rounding: about 12
+    # roundings of t and the Horner sum (relative to tan(pi/8)) and 2 of the octant assembly
+    # on values up to one turn.
+    atan_bound = (
+        poly_err
+        + 0.354 * (e + 4.0 * _EPS_F32)
+        + 12.0 * _EPS_F32 * _TAN_PI_8
+        + 2.0 * _EPS_F32 * TWO_PI
+    )
+    # alpha/beta: the float offsets and about 4 roundings of the products and sums, relative
+    # to the smallest radius; an error delta of (a, b) turns the angle by delta / r.
+    P = d.projection
+    span = np.maximum(np.abs(pl.channel_lo), np.abs(pl.channel_hi))
+    row = np.abs(P).sum(axis=1)
+    # (rows summing to zero: differences d2 - d1, d3 - d1, exact for integer counts below 2^24;
+    # otherwise P d - P o, whose roundings are relative to |d|, not to |d - o|)
+    ab_err = float(np.max(row)) * (
+        _EPS_F32 * float(np.max(np.abs(P @ d.offset))) + 4.0 * _EPS_F32 * float(np.max(span))
+    )
+    e_el = atan_bound + math.sqrt(2.0) * ab_err / pl.radius_lo
+    slope = _table_slope(d)
+    m = d.table.points
+    # The table position comes from the integer angle, truncated to 2^-16 of an interval: an
+    # error there moves both the position and eta (slope). The output in turns: the position
+    # converted (1 rounding), scaled by 1/M (1), the sum (1, of at most 1.5 turns: half an ulp
+    # is 2^-24 turn), and the reading's conversion to rad (1 rounding and the single-precision
+    # 2 pi, 1.7e-7 rad per turn): each 2^-24 turn = 3.7e-7 rad.
+    e_pos = e_el / n + TWO_PI / m * 2.0**-16
+    e_out = 4.0 * _EPS_F32 * TWO_PI + 1.8e-7
+    eta_round = 4.0 * _EPS_F32 * 32768.0 * d.table.lsb_rad
+    bound = d.table.error + (1.0 + slope) * e_pos + e_out + eta_round
+    return _FloatNumbers(
+        lo=pl.channel_lo,
+        hi=pl.channel_hi,
+        r2_lo=pl.radius_lo**2,
+        r2_hi=pl.radius_hi**2,
+        seed=(c0, c1),
+        newton=newton,
+        poly=coef / TWO_PI,
+        atan_bound=atan_bound,
+        bound=bound,
+    )
+
+
+def _table_slope(d: FirmwareDesign) -> float:
+    """Largest |d eta / d x| of the table (rad per rad)."""
+    t = d.table
+    v = t.values.astype(np.float64)
+    c = t.curvature.astype(np.float64) * 2.0**t.curvature_shift
+    # derivative of T_i (1-f) + T_(i+1) f + c f (1-f) in f is dT + c (1 - 2f): at most |dT| + |c|
+    per_f = np.abs(np.diff(np.append(v, v[0]))) + np.abs(c)
+    return float(np.max(per_f)) * t.lsb_rad * t.points / TWO_PI
+
+
+# --------------------------------------------------------------------------------------------
+# Fixed variant: numbers
+# --------------------------------------------------------------------------------------------
+
+
+def _bitlen(v: int) -> int:
+    return int(v).bit_length()
+
+
+@dataclass(frozen=True)
+class _FixedNumbers:
+    lo: list[int]
+    hi: list[int]
+    centre: list[int]
+    proj_hi: list[list[int]]
+    proj_lo: list[list[int]]
+    lo_shift: int
+    bias: int
+    a0: list[int]
+    proj_shift: int
+    r2_lo: int
+    r2_hi: int
+    period: int  # electrical period in mechanical Q0.32 units (0 for n = 1: 2^32)
+    half: int
+    quarter: int
+    eighth: int
+    turn_base: list[int]
+    cordic: list[int]
+    sx: int
+    kr: int
+    seed_a: int
+    seed_b: int
+    seed_shift: int
+    sy: int
+    cube_shift: int
+    cube_mul: int
+    cube_post: int
+    d_shift: int
+    s_mul: int
+    s_post: int
+    step_limit: int
+    atan_bound: float
+    bound: float
+    quant_rms: float
+    quant_max: float
+
+
+def _fixed_numbers(d: FirmwareDesign, adc_scale: float) -> _FixedNumbers:
+    """Integer constants of the fixed-point variant and its bounds.
+
+    Raises HallcalInputError when ``adc_scale`` puts the signals outside the int32 arithmetic
+    or makes the rounding to counts noisier than the Hall sensors themselves.
+    """
+    pl = d.plausibility
+    n = d.pole_pairs
+    s = float(adc_scale)
+    P = d.projection
+    lo_f = np.floor(pl.channel_lo * s)
+    hi_f = np.ceil(pl.channel_hi * s)
+    limit = 2.0**30
+    if not (np.all(np.abs(lo_f) < limit) and np.all(np.abs(hi_f) < limit)):
+        raise HallcalInputError(
+            f"adc_scale {adc_scale:g} puts the Hall signals at {np.max(np.abs(hi_f)):.3g} counts; "
+            "the fixed-point variant takes signals up to 2^30 counts"
+        )
+    # input rounding to counts: worst case and RMS angle error [rad, mechanical]
+    row1 = float(np.max(np.abs(P).sum(axis=1)))
+    quant_max = 0.5 * row1 * math.sqrt(2.0) / (s * pl.radius_model[0]) / n
+    r_mean = 0.5 * sum(pl.radius_model)
+    quant_rms = (
+        (1.0 / math.sqrt(12.0)) * float(np.linalg.norm(P)) / (math.sqrt(2.0) * s * r_mean) / n
+    )
+    if d.noise_floor is not None:
+        if quant_rms > d.noise_floor:
+            raise HallcalInputError(
+                f"adc_scale {adc_scale:g}: rounding the signals to counts adds {quant_rms:.2g} rad "
+                f"RMS, more than the Hall noise floor {d.noise_floor:.2g} rad (the artifact is "
+                "not in ADC counts: give the counts per unit)"
+            )
+    elif s * pl.radius_model[0] / row1 < 64.0:
+        raise HallcalInputError(
+            f"adc_scale {adc_scale:g}: the Hall amplitude would be "
+            f"{s * pl.radius_model[0] / row1:.3g} counts, under 64 (give the counts per unit)"
+        )
+    centre = [int(round(v * s)) for v in d.offset]
+    lo = [int(v) for v in lo_f]
+    hi = [int(v) for v in hi_f]
+    xr = max(max(h - c, c - lo_) for lo_, h, c in zip(lo, hi, centre, strict=True))
+    xr = max(xr, 1)
+    frac = np.array([v * s - c for v, c in zip(d.offset, centre, strict=True)])
+    # Projection P 2^(ps + kl) in two parts, PA = PH 2^kl + PL with 0 <= PL < 2^kl:
+    # a = sum PH x + ((sum PL (x + xb)) >> kl) - a0, with x + xb >= 0 (unsigned, no shift of a
+    # negative number) and every partial sum within 32 bits:
+    #   sum |PH| x_max < 2^29 (signed part), 3 2^kl 2 xb < 2^32 (unsigned part).
+    xb = xr
+    kl = int(math.floor(math.log2(2.0**32 / (3.0 * (2 * xb + 1))))) - 1
+    kl = max(0, min(kl, 20))
+    ps = 60
+    while ps > -60:
+        if all(float(np.abs(P[r]).sum()) * 2.0**ps * (xr + 2.0) < 2.0**28 for r in range(2)):
+            break
+        ps -= 1
+    proj = []
+    for r in range(2):
+        qa = [int(round(v)) for v in P[r] * 2.0 ** (ps + kl)]
+        if d.rejects_common_mode:  # make the integer row sum exactly zero
+            j = int(np.argmax([abs(v) for v in qa]))
+            qa[j] -= sum(qa)
+        proj.append(qa)
+    hi_parts = [[v >> kl for v in row] for row in proj]  # floor: PL = PA - PH 2^kl in [0, 2^kl)
+    lo_parts = [[v - (h << kl) for v, h in zip(row, hrow, strict=True)]
+                for row, hrow in zip(proj, hi_parts, strict=True)]  # fmt: skip
+    # a0 (units of a): the fractional offsets and the bias of the unsigned part
+    a0 = [
+        int(round(float(np.dot(proj[r], frac)) / 2.0**kl + sum(lo_parts[r]) * xb / 2.0**kl))
+        for r in range(2)
+    ]
+    scale = 2.0**ps * s
+    r_lo_a = pl.radius_lo * scale
+    r_hi_a = pl.radius_hi * scale
+    if r_hi_a >= 2.0**30.5 or r_lo_a < 2.0**24:
+        raise HallcalInputError(
+            "the fixed-point variant cannot scale this sensor map"
+        )  # pragma: no cover
+    # radius check on (|a| >> 15, |b| >> 15): r_s in [r / 2^15 - sqrt 2, r / 2^15]
+    r2_lo = int(math.floor((r_lo_a / 2.0**15) ** 2))
+    r2_hi = int(math.ceil((r_hi_a / 2.0**15) ** 2))
+    # what the check lets through, in true radius
+    r_true_lo = math.sqrt(r2_lo) * 2.0**15
+    r_true_hi = (math.sqrt(r2_hi) + math.sqrt(2.0)) * 2.0**15
+    # electrical period in mechanical Q0.32 units
+    if n == 1:
+        period, half = 0, 1 << 31
+        pe = float(_U32)
+    else:
+        period = _U32 // n
+        half = period // 2
+        pe = float(period)
+    quarter = int(round(pe / 4.0))
+    eighth = int(round(pe / 8.0))
+    turn_base = [(t * _U32) // n for t in range(n)]
+    S = pe / TWO_PI  # mechanical units per electrical rad
+    cordic = [int(round(math.atan(2.0**-i) * S)) for i in range(CORDIC_STEPS)]
+    # after the steps: x = K r cos(theta), |theta| <= sum_{i >= N} atan(2^-i) < 2^-(N-1)
+    K = math.prod(math.sqrt(1.0 + 4.0**-i) for i in range(CORDIC_STEPS))
+    theta_max = 2.0 ** -(CORDIC_STEPS - 1) * 1.01
+    x8_hi = K * r_true_hi * (1.0 + 1e-6) + 16.0
+    x8_lo = K * r_true_lo * math.cos(theta_max) - 16.0 * CORDIC_STEPS
+    sx = _bitlen(int(math.ceil(x8_hi))) - 16
+    xh_hi = int(math.ceil(x8_hi)) >> sx
+    xh_lo = max(1, (int(math.floor(x8_lo)) >> sx) - 1)
+    if xh_lo < 2**12:
+        raise HallcalInputError(
+            "the amplitude window is too wide for the fixed-point reciprocal (lower the tolerance)"
+        )
+    kr = 15 + int(math.floor(math.log2(xh_lo)))  # R ~ 2^kr / xh < 2^16
+    c0, c1, eps0 = _reciprocal_seed(float(xh_lo), float(xh_hi + 1))
+    seed_shift = 15 - int(math.floor(math.log2(c1 * 2.0**kr)))
+    seed_b = int(round(c1 * 2.0**kr * 2.0**seed_shift))
+    seed_a = int(round(c0 * 2.0**kr))
+    assert 2**15 <= seed_b < 2**16 and seed_a < 2**17, (seed_a, seed_b)
+    # y after the steps: |y| <= x tan(theta_max)
+    y8_hi = x8_hi * math.tan(theta_max) + 16.0 * CORDIC_STEPS
+    sy = max(0, _bitlen(int(math.ceil(y8_hi))) - 16)
+    e_tau = kr + sx - sy  # tau_q = yh R = tau 2^e_tau
+    tau_q_max = math.tan(theta_max) * 2.0**e_tau * 1.01
+    assert tau_q_max < 2.0**32
+    # cube: c = tau_q >> cube_shift < 2^10; tau^3 / 3 in tau_q units = c^3 2^(3 cs - 2 e) / 3
+    cube_shift = max(0, _bitlen(int(tau_q_max)) - 10)
+    fexp = 3 * cube_shift - 2 * e_tau  # c^3 2^fexp / 3
+    # ((c^3 >> 8) * mul) >> post with mul in [2^7, 2^8)
+    f = 2.0 ** (fexp + 8) / 3.0
+    post = 7 - int(math.floor(math.log2(f)))
+    cube_mul = int(round(f * 2.0**post))
+    if cube_mul >= 256:
+        cube_mul, post = int(round(f * 2.0 ** (post - 1))), post - 1
+    assert post >= 0 and 2**7 <= cube_mul < 2**8, (post, cube_mul)
+    # delta (tau_q units) to mechanical units: delta 2^-e_tau S = (dh * s_mul) >> s_post
+    d_shift = max(0, _bitlen(int(tau_q_max)) - 16)
+    j = 15 - int(math.floor(math.log2(S)))
+    s_mul = int(round(S * 2.0**j))
+    s_post = e_tau - d_shift + j
+    if s_mul >= 2**16:
+        s_mul, s_post = int(round(S * 2.0 ** (j - 1))), s_post - 1
+    assert 2**15 <= s_mul < 2**16 and 0 <= s_post < 32, (s_mul, s_post)
+    step = pl.step_limit * pe
+    step_limit = int(math.floor(step))
+    # --- bounds ---
+    # atan2 [rad, electrical]: the reciprocal's relative error (two Newton steps of a 16-bit
+    # product: eps^4 plus 3 truncations of 2^-15) times tan(theta_max); the truncation of y to
+    # 16 bits; the residual of atan(t) ~ t - t^3/3 and the 8-bit cube; the CORDIC shifts (one
+    # unit per step on vectors of at least r_lo); the rounded constants (half a unit each, plus
+    # the 16-bit scale to mechanical units).
+    eps2 = eps0**4 + 3.0 * 2.0**-15
+    tau_max = math.tan(theta_max)
+    atan_bound = (
+        tau_max * eps2
+        + 2.0**sy / x8_lo
+        + tau_max**5 / 5.0
+        + tau_max**3 / 3.0 * 2.0**-6
+        + 2.0 * CORDIC_STEPS / (r_true_lo * 0.5)
+        + (0.5 * CORDIC_STEPS + 2.0) / S
+        + tau_max * 2.0**-15
+    )
+    # the integer projection: rounding of a0 and the floor of the unsigned part (1.5 units of
+    # a), and the rounding of P 2^(ps + kl) (half a unit on each of 3 inputs up to xr)
+    proj_err = (1.5 + 1.5 * 3.0 * xr / 2.0**kl) * math.sqrt(2.0) / r_true_lo
+    e_el = atan_bound + proj_err
+    slope = _table_slope(d)
+    lsb = TWO_PI / _U32
+    e_u = e_el / n + 3.0 * lsb  # turn starts, octant constants
+    eta_round = (2.0 + 2.0**-16 * 65536.0) * lsb + 2.0**-16 * 32768.0 * d.table.lsb_rad
+    bound = d.table.error + (1.0 + slope) * e_u + eta_round
+    return _FixedNumbers(
+        lo=lo, hi=hi, centre=centre, proj_hi=hi_parts, proj_lo=lo_parts, lo_shift=kl, bias=xb,
+        a0=a0,
+        proj_shift=ps + kl, r2_lo=r2_lo, r2_hi=r2_hi,
+        period=period, half=half, quarter=quarter, eighth=eighth, turn_base=turn_base,
+        cordic=cordic, sx=sx, kr=kr, seed_a=seed_a, seed_b=seed_b, seed_shift=seed_shift, sy=sy,
+        cube_shift=cube_shift, cube_mul=cube_mul, cube_post=post, d_shift=d_shift, s_mul=s_mul,
+        s_post=s_post, step_limit=step_limit,
+        atan_bound=atan_bound, bound=bound, quant_rms=quant_rms, quant_max=quant_max,
+    )  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------------
+# C templates: float variant
 # --------------------------------------------------------------------------------------------
 
 _FLOAT_H = string.Template(
@@ -498,38 +617,57 @@ _FLOAT_H = string.Template(
 extern "C" {
 #endif
 
-#define ${PFX}_POLE_PAIRS $n
-#define ${PFX}_POINTS $m
+#define ${PFX}_POLE_PAIRS ${n}
+#define ${PFX}_TABLE_POINTS ${m}
+#define ${PFX}_FAULT_AFTER ${fault_after}
 
-/* State of one sensor set. Treat as opaque: use the functions below. No dynamic memory. */
+/* Flags of a reading (bit mask). */
+#define ${PFX}_HELD 1u           /* this sample was rejected: the reading is the last accepted */
+#define ${PFX}_FAULT 2u          /* ${PFX}_FAULT_AFTER rejected in a row; latched until cleared */
+#define ${PFX}_REJ_RANGE 4u      /* a channel outside its calibrated range, or not a number */
+#define ${PFX}_REJ_AMPLITUDE 8u  /* alpha/beta radius outside its calibrated window */
+#define ${PFX}_REJ_STEP 16u      /* step from the last accepted angle above the limit */
+
+/* One consistent reading: y_star = 2 pi revolutions + angle [rad]. */
 typedef struct {
-    int32_t rev;       /* whole revolutions of f_init (uncorrected unwrap state) */
-    int32_t turn;      /* electrical turn within the revolution, 0 .. n_m - 1 */
-    float psi;         /* last electrical angle atan2(beta, alpha) [rad], [-pi, pi] */
-    int32_t out_rev;   /* whole revolutions of the last y_star */
-    float out_angle;   /* last y_star within its revolution [rad], [0, 2 pi) */
-    uint32_t rejected; /* samples without angle information (NaN/inf/zero alpha-beta), held */
+    int32_t revolutions; /* whole revolutions (wraps after 2^31) */
+    float angle;         /* within the revolution, [0, 2 pi) rad */
+    uint32_t flags;      /* of the last sample: ${PFX}_HELD, ${PFX}_FAULT, ${PFX}_REJ_... */
+    uint32_t rejected;   /* rejected samples since init (saturates) */
+} ${pfx}_reading;
+
+/* State of one sensor set; its members are private (use the functions). No dynamic memory. */
+typedef struct {
+    int32_t rev;       /* f_init: whole revolutions of its own (uncorrected) unwrap state */
+    int32_t turn;      /* f_init: electrical turn within the revolution, 0 .. n_m - 1 */
+    uint32_t phase;    /* f_init: electrical angle within the turn, Q0.32 turns */
+    uint32_t limit;    /* step limit for the next sample, Q0.32 electrical turns */
+    uint32_t held;     /* rejected samples in a row */
+    volatile uint32_t rejected; /* rejected samples since init */
+    uint32_t fault;    /* ${PFX}_FAULT once ${PFX}_FAULT_AFTER samples in a row were rejected */
+    volatile uint32_t seq; /* readings published; the last one is pub[seq & 1] */
+    volatile struct {
+        int32_t revolutions;
+        float turns; /* y_star within the revolution [turns] */
+        uint32_t flags;
+    } pub[2];
 } ${pfx}_state;
 
-/* Start at y_initial [rad] (the estimate before the first sample; 0 by convention).
- * A NaN, infinite or |y_initial| >= 1e9 value starts at 0. */
-void ${pfx}_init(${pfx}_state *s, float y_initial);
+/* Start at y = 2 pi revolutions + angle (angle in [0, 2 pi) rad, else 0); 0, 0 by convention. */
+void ${pfx}_init(${pfx}_state *s, int32_t revolutions, float angle);
 
-/* One sample of the three Hall signals (raw, in the artifact's unit: ADC counts or volts).
- * Returns y_star [rad], the full corrected mechanical angle, rounded to float (resolution
- * 6e-8 |y|: use ${pfx}_revolutions + ${pfx}_angle_in_rev for long runs). A sample whose
- * alpha/beta is NaN, infinite or exactly zero carries no angle: the state is held, the last
- * y_star is returned and ${pfx}_rejected counts it. Do not compile with -ffast-math. */
-float ${pfx}_update(${pfx}_state *s, float d1, float d2, float d3);
+/* One sample of the three Hall signals in the calibration's unit. Returns the flags of the
+ * reading it publishes (0: accepted). Constant worst-case time, no library call. */
+uint32_t ${pfx}_update(${pfx}_state *s, float d1, float d2, float d3);
 
-/* y_star = 2 pi * revolutions + angle_in_rev, angle_in_rev in [0, 2 pi). Exact bookkeeping:
- * the accuracy does not decay with the number of revolutions (the count wraps at 2^31). */
-int32_t ${pfx}_revolutions(const ${pfx}_state *s);
-float ${pfx}_angle_in_rev(const ${pfx}_state *s);
-/* The full angle in double precision [rad] (software double on MCUs without a double FPU). */
-double ${pfx}_angle_f64(const ${pfx}_state *s);
-uint32_t ${pfx}_rejected(const ${pfx}_state *s);
+/* The last reading, consistent (revolutions and angle of the same sample) from any context:
+ * the main loop while ${pfx}_update runs in an ISR, or an ISR that interrupts ${pfx}_update.
+ * Single core only (one writer). */
+void ${pfx}_read(const ${pfx}_state *s, ${pfx}_reading *r);
 
+/* Clear the latched fault flag (after the cause is removed and the angle re-referenced). */
+void ${pfx}_clear_fault(${pfx}_state *s);
+$section_decls
 #ifdef __cplusplus
 }
 #endif
@@ -540,177 +678,244 @@ uint32_t ${pfx}_rejected(const ${pfx}_state *s);
 
 _FLOAT_C = string.Template(
     r"""$banner
-#include <math.h>
 #include <stdint.h>
 
-#include "$header"
+#include "${header}"
 
-/* atan2f may be replaced (e.g. by a faster vendor routine with the same contract). */
-#ifndef ${PFX}_ATAN2F
-#define ${PFX}_ATAN2F atan2f
-#endif
+/* The sign, absolute value and range checks read the IEEE 754 binary32 pattern of a float
+ * through a union (MISRA C:2012 Rule 19.2, advisory, deviated here: hc_bits and hc_float). The
+ * patterns of non-negative floats are ordered as the numbers are, so a range [lo, hi] of
+ * positive numbers is one unsigned comparison: bits(x) - bits(lo) <= bits(hi) - bits(lo);
+ * negative numbers and NaN fall outside. */
+typedef char hc_float_is_binary32[(sizeof(float) == sizeof(uint32_t)) ? 1 : -1];
 
-#define HC_N $n                /* pole pairs n_m */
-#define HC_M $m              /* table nodes per revolution */
-#define HC_B $b              /* buckets of the node search */
-#define HC_MAX_SCAN $scan         /* worst-case forward steps after the bucket look-up */
-#define HC_PI_F 3.14159274f    /* float(pi) */
-#define HC_2PI_F 6.28318548f   /* float(2 pi) */
-/* 2 pi = HC_2PI_HI + HC_2PI_LO; HC_2PI_HI has 8 significant bits, so (x + HC_2PI_HI) + HC_2PI_LO
- * and r * HC_2PI_HI for |r| < 2^16 add only the rounding of a float, not the error of 2 pi's. */
-#define HC_2PI_HI 6.28125f
-#define HC_2PI_LO 1.93530717958647692528676655901e-3f
-#define HC_2PI_D 6.283185307179586476925286766559
-#define HC_PI_D 3.141592653589793238462643383280
+${table_decl}
 
-static const float hc_inv_n = $inv_n;           /* 1 / n_m */
-static const float hc_bucket_scale = $bucket_scale;   /* HC_B / (2 pi) */
-
-/* f_init, eq. (fimp): alpha, beta = P (d - offset). */
-static const float hc_proj[2][3] = {
-    {$p0},
-    {$p1},
-};
-static const float hc_offset[3] = {$offset};
-
-/* 2 pi t / n_m [rad], t = 0 .. n_m - 1: the start of each electrical turn. */
-static const float hc_turn_base[HC_N] = {
-$turn_base
+/* atan2 from the first-octant angle th: base +- th (Q0.32 turns), by octant (a < 0, b < 0,
+ * |b| > |a|) and by the 45-degree rotation (which adds 1/8 turn to th); th is subtracted in the
+ * octants of bit mask 0x96. */
+static const uint32_t hc_base[16] = {
+    0x00000000u, 0x20000000u, 0x40000000u, 0x20000000u, 0x00000000u, 0xE0000000u, 0xC0000000u,
+    0xE0000000u, 0x80000000u, 0x60000000u, 0x40000000u, 0x60000000u, 0x80000000u, 0xA0000000u,
+    0xC0000000u, 0xA0000000u,
 };
 
-/* eq. (f_final): nodes y_hat_i mod 2 pi, sorted, with the last node - 2 pi prepended and the
- * first node + 2 pi appended (the wrap-around of np.interp(..., period=2 pi)) [rad]. */
-static const float hc_x[HC_M + 2] = {
-$x
-};
-/* eta_i = y0_i - y_hat_i at those nodes [rad]. */
-static const float hc_eta[HC_M + 2] = {
-$eta
-};
-/* Bucket k = [2 pi k / HC_B, 2 pi (k + 1) / HC_B): last interval j with hc_x[j] <= its start. */
-static const uint16_t hc_bucket[HC_B] = {
-$bucket
-};
-
-static int32_t hc_s32(uint32_t u) /* two's complement, without implementation-defined casts */
+static uint32_t hc_bits(float f)
 {
-    return u <= 0x7FFFFFFFu ? (int32_t)u : (int32_t)(u - 0x80000000u) - 0x7FFFFFFF - 1;
+    union {
+        float f;
+        uint32_t u;
+    } c;
+    c.f = f;
+    return c.u;
 }
 
-static float hc_output(const ${pfx}_state *s)
+static float hc_float(uint32_t u)
 {
-    const float r = (float)s->out_rev;
-    return r * HC_2PI_HI + (r * HC_2PI_LO + s->out_angle);
+    union {
+        uint32_t u;
+        float f;
+    } c;
+    c.u = u;
+    return c.f;
 }
 
-void ${pfx}_init(${pfx}_state *s, float y_initial)
+static int32_t hc_s32(uint32_t u) /* two's complement without implementation-defined casts */
 {
-    double y = (double)y_initial, rev, rem, e, t;
-    if (!(y > -1e9 && y < 1e9)) {
-        y = 0.0; /* NaN, inf or out of range */
+    int32_t v;
+    if (u <= 0x7FFFFFFFu) {
+        v = (int32_t)u;
+    } else {
+        v = (int32_t)(u - 0x80000000u) - 0x7FFFFFFF - 1;
     }
-    rev = floor(y / HC_2PI_D);
-    rem = y - rev * HC_2PI_D;
-    if (rem < 0.0) {
-        rem += HC_2PI_D;
-        rev -= 1.0;
+    return v;
+}
+
+/* Electrical angle atan2(b, a) in Q0.32 turns. Octant reduction, a rotation by -45 degrees
+ * above 22.5 degrees, 1/x from a linear seed valid for x in [${x_lo}, ${x_hi}] and ${newton} Newton
+ * step(s), an odd minimax polynomial of atan on [-tan(pi/8), tan(pi/8)]. For vectors in the
+ * radius window: |error| <= ${atan_bound} rad (electrical). */
+static uint32_t hc_angle(float a, float b)
+{
+    const uint32_t ua = hc_bits(a);
+    const uint32_t ub = hc_bits(b);
+    const uint32_t ma = ua & 0x7FFFFFFFu; /* |a|: non-negative floats order as their bits do */
+    const uint32_t mb = ub & 0x7FFFFFFFu; /* |b| */
+    const uint32_t sw = (mb > ma) ? 1u : 0u;
+    /* octant: a < 0, b < 0, |b| > |a| */
+    const uint32_t o = ((ua >> 31) << 2) | ((ub >> 31) << 1) | sw;
+    uint32_t k = o << 1;
+    float x = hc_float((sw != 0u) ? mb : ma); /* max(|a|, |b|) */
+    float y = hc_float((sw != 0u) ? ma : mb); /* min(|a|, |b|) */
+    float rc;
+    float t;
+    float t2;
+    uint32_t th;
+    if (y > (${tan8} * x)) {
+        const float xr = (x + y) * ${rsqrt2};
+        y = (y - x) * ${rsqrt2};
+        x = xr;
+        k = k | 1u;
     }
-    if (rem >= HC_2PI_D) {
-        rem -= HC_2PI_D;
-        rev += 1.0;
+    rc = ${c0} - (${c1} * x);
+${newton_steps}
+    t = y * rc;
+    t2 = t * t;
+    th = (uint32_t)(int32_t)(t * ${poly}); /* atan(t) 2^32 / (2 pi), |.| <= 2^29 */
+    return hc_base[k] + ((((0x96u >> o) & 1u) != 0u) ? (0u - th) : th);
+}
+
+static void hc_publish(${pfx}_state *s, int32_t rev, float turns, uint32_t flags)
+{
+    const uint32_t q = s->seq + 1u;
+    s->pub[q & 1u].revolutions = rev;
+    s->pub[q & 1u].turns = turns;
+    s->pub[q & 1u].flags = flags;
+    s->seq = q;
+}
+
+void ${pfx}_init(${pfx}_state *s, int32_t revolutions, float angle)
+{
+    float a = angle * 0.159154943f; /* turns */
+    float e;
+    int32_t t;
+    if (!((a >= 0.0f) && (a < 1.0f))) {
+        a = 0.0f;
     }
-    s->out_rev = (int32_t)rev;
-    s->out_angle = (float)rem;
-    if (s->out_angle >= HC_2PI_F) {
-        s->out_angle = 0.0f;
-        s->out_rev += 1;
+    e = a * ${n}.0f; /* electrical turns within the revolution */
+    t = (int32_t)e;
+    if (t > ${n_minus_1}) {
+        t = ${n_minus_1};
     }
-    /* electrical angle n_m y = 2 pi (n_m rev + t) + psi with psi in [-pi, pi) */
-    e = rem * HC_N;
-    t = floor((e + HC_PI_D) / HC_2PI_D);
-    s->psi = (float)(e - t * HC_2PI_D);
-    if (t >= HC_N) {
-        t -= HC_N;
-        rev += 1.0;
-    }
-    s->rev = (int32_t)rev;
-    s->turn = (int32_t)t;
+    s->rev = revolutions;
+    s->turn = t;
+    s->phase = (uint32_t)((e - (float)t) * 4294967296.0f);
+    s->limit = 0xFFFFFFFFu; /* no step limit before the first accepted sample */
+    s->held = 0u;
     s->rejected = 0u;
+    s->fault = 0u;
+    s->seq = 0u;
+    hc_publish(s, revolutions, a, 0u);
+    hc_publish(s, revolutions, a, 0u);
 }
 
-float ${pfx}_update(${pfx}_state *s, float d1, float d2, float d3)
+uint32_t ${pfx}_update(${pfx}_state *s, float d1, float d2, float d3)
 {
-    const float x1 = d1 - hc_offset[0], x2 = d2 - hc_offset[1], x3 = d3 - hc_offset[2];
-    const float a = hc_proj[0][0] * x1 + hc_proj[0][1] * x2 + hc_proj[0][2] * x3;
-    const float b = hc_proj[1][0] * x1 + hc_proj[1][1] * x2 + hc_proj[1][2] * x3;
-    float psi, dpsi, r, x, eta, y;
-    int32_t turn, rev, k, j;
-
-    if (!(isfinite(a) && isfinite(b)) || (a == 0.0f && b == 0.0f)) {
-        s->rejected += 1u; /* no angle information: hold the last estimate */
-        return hc_output(s);
-    }
-    psi = ${PFX}_ATAN2F(b, a);
-    /* Gamma of eq. (fimp): the step mod(dpsi + pi, 2 pi) - pi moves the turn count by -1, 0, 1 */
-    dpsi = psi - s->psi;
-    turn = s->turn;
-    rev = s->rev;
-    if (dpsi < -HC_PI_F) {
-        if (++turn == HC_N) {
-            turn = 0;
-            rev = hc_s32((uint32_t)rev + 1u);
+    uint32_t flags;
+    /* f_init: alpha, beta = P (d - o) */
+${projection}
+    const float r2 = (a * a) + (b * b);
+    /* plausibility: each channel in its calibrated range (NaN is not), then the radius */
+    if (${range_check}) {
+        flags = ${PFX}_REJ_RANGE;
+    } else if ((hc_bits(r2) - ${r2_lo_bits}u) <= ${r2_span_bits}u) {
+        /* r2 in [${r2_lo}, ${r2_hi}] */
+        const uint32_t p = hc_angle(a, b); /* electrical angle, Q0.32 turns */
+        const int32_t step = hc_s32(p - s->phase);         /* wrapped into [-1/2, 1/2) turn */
+        const uint32_t mag = (step < 0) ? (0u - (uint32_t)step) : (uint32_t)step;
+        int32_t turn = s->turn;
+        int32_t rev = s->rev;
+        /* the unwrap of f_init: crossing the start of the turn moves the turn count */
+        if ((step >= 0) && (p < s->phase)) {
+            if (turn == ${n_minus_1}) {
+                turn = 0;
+                rev = hc_s32((uint32_t)rev + 1u);
+            } else {
+                turn = turn + 1;
+            }
+        } else if ((step < 0) && (p > s->phase)) {
+            if (turn == 0) {
+                turn = ${n_minus_1};
+                rev = hc_s32((uint32_t)rev - 1u);
+            } else {
+                turn = turn - 1;
+            }
+        } else {
+            /* no turn boundary crossed */
         }
-    } else if (dpsi >= HC_PI_F) {
-        if (--turn < 0) {
-            turn = HC_N - 1;
-            rev = hc_s32((uint32_t)rev - 1u);
+        /* step limit from the last accepted sample (grown while samples are held) */
+        if (mag <= s->limit) {
+            /* eta from the table at f_init's angle within the revolution: interval i of
+             * ${per_turn} per electrical turn, position i + f in Q16.16 */
+${index}
+            const float f = (float)(uint16_t)x * 1.52587891e-5f; /* 2^-16 */
+            const int32_t t0 = (int32_t)hc_t[i];
+            const int32_t dt = (int32_t)hc_t[i + 1u] - t0;
+            /* y_star within the revolution [turns], in (-1/2, 3/2): _read brings it to [0, 1) */
+            const float y = ((float)x * ${inv_m16})
+                            + ((((float)t0 + (f * (float)dt))${curv}) * ${lsb});
+            s->phase = p;
+            s->turn = turn;
+            s->rev = rev;
+            s->limit = ${step_limit}u;
+            s->held = 0u;
+            flags = s->fault; /* 0 or ${PFX}_FAULT (latched) */
+            hc_publish(s, rev, y, flags);
+        } else {
+            flags = ${PFX}_REJ_STEP;
         }
+    } else {
+        flags = ${PFX}_REJ_AMPLITUDE;
     }
-    s->psi = psi;
-    s->turn = turn;
-    s->rev = rev;
-
-    /* f_init within the revolution, in [-pi/n_m, 2 pi - pi/n_m) */
-    r = psi * hc_inv_n + hc_turn_base[turn];
-    /* eta(mod(y, 2 pi)): piecewise-linear with wrap-around, O(1) node search */
-    x = r < 0.0f ? (r + HC_2PI_HI) + HC_2PI_LO : r;
-    k = (int32_t)(x * hc_bucket_scale);
-    if (k > HC_B - 1) {
-        k = HC_B - 1;
+    if (flags > ${PFX}_FAULT) { /* rejected: count it and hold the last reading */
+        const uint32_t last = s->seq & 1u;
+        if (s->rejected < 0xFFFFFFFFu) {
+            s->rejected = s->rejected + 1u;
+        }
+        if (s->held < ${PFX}_FAULT_AFTER) {
+            s->held = s->held + 1u;
+        }
+        if (s->held >= ${PFX}_FAULT_AFTER) {
+            s->fault = ${PFX}_FAULT;
+        }
+        if (s->limit < 0x80000000u) {
+            s->limit = s->limit + ${step_limit}u;
+        }
+        flags = flags | ${PFX}_HELD | s->fault;
+        hc_publish(s, s->pub[last].revolutions, s->pub[last].turns, flags);
     }
-    j = hc_bucket[k];
-    while (j < HC_M && x >= hc_x[j + 1]) {
-        ++j;
-    }
-    eta = (hc_eta[j + 1] - hc_eta[j]) / (hc_x[j + 1] - hc_x[j]) * (x - hc_x[j]) + hc_eta[j];
-
-    /* y_star = 2 pi rev + r + eta, kept as revolutions + [0, 2 pi) */
-    y = r + eta;
-    if (y < 0.0f) {
-        y = (y + HC_2PI_HI) + HC_2PI_LO;
-        rev = hc_s32((uint32_t)rev - 1u);
-    }
-    if (y >= HC_2PI_F) {
-        y = (y - HC_2PI_HI) - HC_2PI_LO;
-        rev = hc_s32((uint32_t)rev + 1u);
-    }
-    s->out_rev = rev;
-    s->out_angle = y;
-    return hc_output(s);
+    return flags;
 }
 
-int32_t ${pfx}_revolutions(const ${pfx}_state *s) { return s->out_rev; }
-
-float ${pfx}_angle_in_rev(const ${pfx}_state *s) { return s->out_angle; }
-
-double ${pfx}_angle_f64(const ${pfx}_state *s)
+void ${pfx}_read(const ${pfx}_state *s, ${pfx}_reading *r)
 {
-    return (double)s->out_rev * HC_2PI_D + (double)s->out_angle;
+    uint32_t before;
+    uint32_t after;
+    float turns;
+    do {
+        before = s->seq;
+        r->revolutions = s->pub[before & 1u].revolutions;
+        turns = s->pub[before & 1u].turns;
+        r->flags = s->pub[before & 1u].flags;
+        after = s->seq;
+    } while ((after - before) > 1u);
+    r->rejected = s->rejected;
+    if (turns < 0.0f) { /* update keeps y_star in (-1/2, 3/2) turns of its revolution */
+        turns = turns + 1.0f;
+        r->revolutions = hc_s32((uint32_t)r->revolutions - 1u);
+    } else if (turns >= 1.0f) {
+        turns = turns - 1.0f;
+        r->revolutions = hc_s32((uint32_t)r->revolutions + 1u);
+    } else {
+        /* within the revolution */
+    }
+    r->angle = turns * 6.28318548f;
+    if (r->angle >= 6.28318548f) {
+        r->angle = 0.0f; /* rounded up to 2 pi: the start of the next revolution */
+        r->revolutions = hc_s32((uint32_t)r->revolutions + 1u);
+    }
 }
 
-uint32_t ${pfx}_rejected(const ${pfx}_state *s) { return s->rejected; }
-"""
+void ${pfx}_clear_fault(${pfx}_state *s)
+{
+    s->fault = 0u;
+}
+$section_defs"""
 )
+
+# --------------------------------------------------------------------------------------------
+# C templates: fixed-point variant
+# --------------------------------------------------------------------------------------------
 
 _FIXED_H = string.Template(
     r"""$banner
@@ -723,35 +928,59 @@ _FIXED_H = string.Template(
 extern "C" {
 #endif
 
-#define ${PFX}_Q_POLE_PAIRS $n
-#define ${PFX}_Q_POINTS $m
-/* Angles are Q0.32 turns: 2^32 = one revolution = 2 pi rad, i.e. this many rad per unit: */
+#define ${PFX}_Q_POLE_PAIRS ${n}
+#define ${PFX}_Q_TABLE_POINTS ${m}
+#define ${PFX}_Q_FAULT_AFTER ${fault_after}
+/* Angles are Q0.32 turns: 2^32 = one revolution = 2 pi rad; one unit is this many rad: */
 #define ${PFX}_Q_RAD_PER_LSB 1.4629180792671596e-9
 
-/* State of one sensor set. Treat as opaque: use the functions below. No dynamic memory. */
+/* Flags of a reading (bit mask). */
+#define ${PFX}_Q_HELD 1u           /* this sample was rejected: the reading is the last accepted */
+#define ${PFX}_Q_FAULT 2u          /* ${PFX}_Q_FAULT_AFTER rejected in a row; latched */
+#define ${PFX}_Q_REJ_RANGE 4u      /* a channel outside its calibrated range */
+#define ${PFX}_Q_REJ_AMPLITUDE 8u  /* alpha/beta radius outside its calibrated window */
+#define ${PFX}_Q_REJ_STEP 16u      /* step from the last accepted angle above the limit */
+
+/* One consistent reading: y_star = revolutions turns + angle / 2^32 turn. */
 typedef struct {
-    int32_t rev;        /* whole revolutions of f_init (uncorrected unwrap state) */
-    int32_t turn;       /* electrical turn within the revolution, 0 .. n_m - 1 */
-    uint32_t phase;     /* last electrical angle, Q0.32 turns */
-    int32_t out_rev;    /* whole revolutions of the last y_star */
-    uint32_t out_angle; /* last y_star within its revolution, Q0.32 turns */
-    uint32_t rejected;  /* samples without angle information (alpha = beta = 0), held */
+    int32_t revolutions; /* whole revolutions (wraps after 2^31) */
+    uint32_t angle;      /* within the revolution, Q0.32 turns */
+    uint32_t flags;      /* of the last sample: ${PFX}_Q_HELD, ${PFX}_Q_FAULT, ${PFX}_Q_REJ_... */
+    uint32_t rejected;   /* rejected samples since init (saturates) */
+} ${pfx}_q_reading;
+
+/* State of one sensor set; its members are private (use the functions). No dynamic memory. */
+typedef struct {
+    int32_t rev;       /* f_init: whole revolutions of its own (uncorrected) unwrap state */
+    int32_t turn;      /* f_init: electrical turn within the revolution, 0 .. n_m - 1 */
+    uint32_t phase;    /* f_init: electrical angle within the turn, Q0.32 mechanical turns */
+    uint32_t limit;    /* step limit for the next sample, Q0.32 mechanical turns */
+    uint32_t held;     /* rejected samples in a row */
+    volatile uint32_t rejected; /* rejected samples since init */
+    uint32_t fault;    /* ${PFX}_Q_FAULT once ${PFX}_Q_FAULT_AFTER samples in a row were rejected */
+    volatile uint32_t seq; /* readings published; the last one is pub[seq & 1] */
+    volatile struct {
+        int32_t revolutions;
+        uint32_t angle; /* Q0.32 turns */
+        uint32_t flags;
+    } pub[2];
 } ${pfx}_q_state;
 
-/* Start at y_initial = revolutions * 2^32 + angle, Q32.32 turns (0 by convention). */
-void ${pfx}_q_init(${pfx}_q_state *s, int64_t y_initial);
+/* Start at y = revolutions + angle / 2^32 turns (0, 0 by convention). */
+void ${pfx}_q_init(${pfx}_q_state *s, int32_t revolutions, uint32_t angle);
 
-/* One sample of the three Hall signals as raw ADC integers (any int32 is safe). Returns y_star
- * within the revolution, Q0.32 turns (unsigned; wraps naturally); the revolution count is
- * ${pfx}_q_revolutions. A sample with alpha = beta = 0 carries no angle: the state is held. */
+/* One sample of the three Hall signals as raw ADC counts (any int32 is safe). Returns the flags
+ * of the reading it publishes (0: accepted). Constant worst-case time, 32-bit integers only. */
 uint32_t ${pfx}_q_update(${pfx}_q_state *s, int32_t d1, int32_t d2, int32_t d3);
 
-int32_t ${pfx}_q_revolutions(const ${pfx}_q_state *s);
-uint32_t ${pfx}_q_angle(const ${pfx}_q_state *s);
-/* The full angle, revolutions * 2^32 + angle (Q32.32 turns). */
-int64_t ${pfx}_q_angle_i64(const ${pfx}_q_state *s);
-uint32_t ${pfx}_q_rejected(const ${pfx}_q_state *s);
+/* The last reading, consistent (revolutions and angle of the same sample) from any context:
+ * the main loop while ${pfx}_q_update runs in an ISR, or an ISR that interrupts it.
+ * Single core only (one writer). */
+void ${pfx}_q_read(const ${pfx}_q_state *s, ${pfx}_q_reading *r);
 
+/* Clear the latched fault flag (after the cause is removed and the angle re-referenced). */
+void ${pfx}_q_clear_fault(${pfx}_q_state *s);
+$section_decls
 #ifdef __cplusplus
 }
 #endif
@@ -764,208 +993,722 @@ _FIXED_C = string.Template(
     r"""$banner
 #include <stdint.h>
 
-#include "$header"
+#include "${header}"
 
-/* Integer arithmetic only: int32, with int64 for the products P (d - o), the slope times the
- * offset in a table interval and a few 64-bit sums. No float, no <math.h>, no division except
- * by the constant n_m. Right shifts of negative integers must be arithmetic (checked below);
- * that holds for GCC, Clang, IAR, ARM Compiler and every common MCU compiler. */
-typedef char hc_requires_arithmetic_shift[
-    (((int32_t)-1 >> 1) == -1 && ((int64_t)-1 >> 1) == -1) ? 1 : -1];
-
-#define HC_N $n                  /* pole pairs n_m */
-#define HC_M $m                /* table nodes per revolution */
-#define HC_BUCKET_SHIFT $bshift       /* bucket = angle >> HC_BUCKET_SHIFT ($b buckets) */
-#define HC_MAX_SCAN $scan           /* worst-case forward steps after the bucket look-up */
-#define HC_OFFSET_BITS $obits        /* offsets are Q(31-F).F ADC counts, F = HC_OFFSET_BITS */
-#define HC_SLOPE_BITS $sbits         /* table slopes are Q(31-F).F, F = HC_SLOPE_BITS */
-#define HC_CORDIC_ITERATIONS $iters
-#define HC_NORM_BITS $normbits          /* CORDIC input: max(|a|, |b|) in [2^(B-1), 2^B) */
-
-/* f_init, eq. (fimp). Offsets [counts * 2^HC_OFFSET_BITS]; projection P * 2^$pexp (any common
- * scale of alpha and beta leaves atan2 unchanged). */
-static const int32_t hc_offset[3] = {$offset};
-static const int32_t hc_proj[2][3] = {
-    {$p0},
-    {$p1},
+${fixed_table}
+/* floor(t 2^32 / n_m): start of electrical turn t, Q0.32 mechanical turns. */
+static const uint32_t hc_turn[${n}] = {
+${turn_base}
 };
 
-/* floor(t * 2^32 / n_m), t = 0 .. n_m - 1: the start of each electrical turn, Q0.32 turns. */
-static const uint32_t hc_turn_base[HC_N] = {
-$turn_base
-};
-
-/* eq. (f_final): nodes y_hat_i mod 2 pi, sorted, with the last node - 1 turn prepended and the
- * first node + 1 turn appended (the wrap-around of np.interp(..., period=2 pi)), Q0.32 turns
- * modulo 2^32. */
-static const uint32_t hc_x[HC_M + 2] = {
-$x
-};
-/* eta_i at those nodes, signed Q0.32 turns. */
-static const int32_t hc_eta[HC_M + 2] = {
-$eta
-};
-/* (eta_{j+1} - eta_j) / (x_{j+1} - x_j), Q(31-F).F with F = HC_SLOPE_BITS. */
-static const int32_t hc_slope[HC_M + 1] = {
-$slope
-};
-/* Bucket k = [k, k + 1) << HC_BUCKET_SHIFT: last interval j with hc_x[j] <= its start. */
-static const uint16_t hc_bucket[$b] = {
-$bucket
-};
-
-static int32_t hc_s32(uint32_t u) /* two's complement, without implementation-defined casts */
+static int32_t hc_s32(uint32_t u) /* two's complement without implementation-defined casts */
 {
-    return u <= 0x7FFFFFFFu ? (int32_t)u : (int32_t)(u - 0x80000000u) - 0x7FFFFFFF - 1;
-}
-
-static uint64_t hc_abs64(int64_t v) { return v < 0 ? 0u - (uint64_t)v : (uint64_t)v; }
-
-static int hc_bitlen64(uint64_t v) /* number of significant bits, 0 for 0 */
-{
-#if defined(__GNUC__) && !defined(${PFX}_PORTABLE)
-    return v ? 64 - __builtin_clzll(v) : 0;
-#else
-    int n = 0;
-    if (v >= ((uint64_t)1 << 32)) { v >>= 32; n += 32; }
-    if (v >= ((uint64_t)1 << 16)) { v >>= 16; n += 16; }
-    if (v >= ((uint64_t)1 << 8)) { v >>= 8; n += 8; }
-    if (v >= ((uint64_t)1 << 4)) { v >>= 4; n += 4; }
-    if (v >= ((uint64_t)1 << 2)) { v >>= 2; n += 2; }
-    if (v >= 2u) { v >>= 1; n += 1; }
-    return n + (int)v;
-#endif
-}
-
-/* Integer atan2(B, A) as a Q0.32 turn (2^32 = 2 pi): the vector is scaled by a power of two to
- * HC_NORM_BITS bits, rotated into the right half plane and rotated to the x axis by CORDIC
- * (vectoring mode). Worst-case error $atan_bound rad. Returns 0 for the zero vector. */
-static int hc_atan2_q(int64_t A, int64_t B, uint32_t *turns)
-{
-    const int len = hc_bitlen64(hc_abs64(A) | hc_abs64(B));
-    int32_t a, b;
-    uint32_t z = 0u;
-    if (len == 0) {
-        return 0;
-    }
-    if (len > HC_NORM_BITS) {
-        a = (int32_t)(A >> (len - HC_NORM_BITS));
-        b = (int32_t)(B >> (len - HC_NORM_BITS));
+    int32_t v;
+    if (u <= 0x7FFFFFFFu) {
+        v = (int32_t)u;
     } else {
-        a = (int32_t)A * ((int32_t)1 << (HC_NORM_BITS - len));
-        b = (int32_t)B * ((int32_t)1 << (HC_NORM_BITS - len));
+        v = (int32_t)(u - 0x80000000u) - 0x7FFFFFFF - 1;
     }
-    if (a < 0) { /* rotate by pi */
-        a = -a;
-        b = -b;
-        z = 0x80000000u;
-    }
-    /* CORDIC step i: rotate by -+atan(2^-i) towards the x axis, z accumulates the angle.
-     * Branch-free: m = 0 if b > 0 (clockwise), m = -1 otherwise; (v ^ m) - m = +-v.
-     * Unrolled so that shifts and constants are immediates. */
-#define HC_STEP(i, atan_i)                                                                    \
-    do {                                                                                      \
-        const int32_t m = (b - 1) >> 31;                                                      \
-        const int32_t na = a + (((b >> (i)) ^ m) - m);                                        \
-        b -= ((a >> (i)) ^ m) - m;                                                            \
-        z += ((uint32_t)(atan_i) ^ (uint32_t)m) - (uint32_t)m;                                \
-        a = na;                                                                               \
-    } while (0)
-$cordic_steps
-#undef HC_STEP
-    *turns = z;
-    return 1;
+    return v;
 }
 
-void ${pfx}_q_init(${pfx}_q_state *s, int64_t y_initial)
+static uint32_t hc_abs(int32_t v) /* |v| for |v| < 2^31 */
 {
-    const uint32_t frac = (uint32_t)((uint64_t)y_initial & 0xFFFFFFFFu);
-    const int32_t rev = (int32_t)((y_initial - (int64_t)frac) / 4294967296LL);
-    const uint64_t e = (uint64_t)frac * HC_N; /* electrical angle within the revolution */
-    s->rev = rev;
-    s->turn = (int32_t)(e >> 32);
-    s->phase = (uint32_t)(e & 0xFFFFFFFFu);
-    s->out_rev = rev;
-    s->out_angle = frac;
+    return (v < 0) ? (0u - (uint32_t)v) : (uint32_t)v;
+}
+
+/* Electrical angle atan2(b, a) in mechanical Q0.32 units, [0, ${period_text}) (one electrical
+ * turn). Octant reduction; ${steps} CORDIC steps on magnitudes (x, |y|) with the sign of y apart,
+ * so every shift is of an unsigned number; the residual angle t = y / x (|t| < 2^-${last}) as
+ * t - t^3/3 with 1/x from a linear seed and two Newton steps in 16-bit products. For vectors in
+ * the radius window: |error| <= ${atan_bound} rad (electrical). */
+static uint32_t hc_angle(int32_t a, int32_t b)
+{
+    const uint32_t ua = hc_abs(a);
+    const uint32_t ub = hc_abs(b);
+    uint32_t x = ua;
+    uint32_t y = ub;
+    uint32_t neg = 0u; /* sign of the CORDIC's y: 0 positive, 0xFFFFFFFF negative */
+    uint32_t z = 0u;   /* angle turned so far, mechanical units, modulo 2^32 */
+    uint32_t xs;
+    uint32_t ys;
+    uint32_t xh;
+    uint32_t r;
+    uint32_t w;
+    uint32_t tq;
+    uint32_t c;
+    uint32_t dq;
+    uint32_t dm;
+    int32_t th;
+    uint32_t p;
+    if (ub > ua) {
+        x = ub;
+        y = ua;
+    }
+${cordic_steps}
+    /* residual t = (+-) y / x: 1/x on xh = x >> ${sx} in [${xh_lo}, ${xh_hi}], R ~ 2^${kr} / xh */
+    xh = x >> ${sx};
+    r = ${seed_a}u - ((${seed_b}u * xh) >> ${seed_shift});
+    w = ${two_kr1}u - (xh * r);
+    r = (r * (w >> ${kr_15})) >> 15;
+    w = ${two_kr1}u - (xh * r);
+    r = (r * (w >> ${kr_15})) >> 15;
+    tq = (y >> ${sy}) * r;                       /* t 2^${e_tau} */
+    c = tq >> ${cube_shift};
+    dq = tq - ((((c * c * c) >> 8) * ${cube_mul}u) >> ${cube_post}); /* t - t^3 / 3 */
+    dm = ((dq >> ${d_shift}) * ${s_mul}u) >> ${s_post};         /* in mechanical units */
+    th = hc_s32((neg != 0u) ? (z - dm) : (z + dm));
+    if (th < 0) {
+        th = 0;
+    }
+    if (th > ${eighth}) {
+        th = ${eighth};
+    }
+    p = (uint32_t)th;
+    if (ub > ua) {
+        p = ${quarter}u - p;
+    }
+    if (a < 0) {
+        p = ${half_turn}u - p;
+    }
+    if (b < 0) {
+        p = ${period}u - p;
+    }
+${wrap_period}
+    return p;
+}
+
+static void hc_publish(${pfx}_q_state *s, int32_t rev, uint32_t angle, uint32_t flags)
+{
+    const uint32_t q = s->seq + 1u;
+    s->pub[q & 1u].revolutions = rev;
+    s->pub[q & 1u].angle = angle;
+    s->pub[q & 1u].flags = flags;
+    s->seq = q;
+}
+
+void ${pfx}_q_init(${pfx}_q_state *s, int32_t revolutions, uint32_t angle)
+{
+    uint32_t t = ((angle >> 16) * ${n}u) >> 16; /* at or below the turn of angle */
+    if (t > ${n_minus_1}u) {
+        t = ${n_minus_1}u;
+    }
+    if ((t < ${n_minus_1}u) && (hc_turn[t + 1u] <= angle)) {
+        t = t + 1u;
+    }
+    s->rev = revolutions;
+    s->turn = (int32_t)t;
+    s->phase = angle - hc_turn[t];
+${init_wrap}
+    s->limit = 0xFFFFFFFFu; /* no step limit before the first accepted sample */
+    s->held = 0u;
     s->rejected = 0u;
+    s->fault = 0u;
+    s->seq = 0u;
+    hc_publish(s, revolutions, angle, 0u);
+    hc_publish(s, revolutions, angle, 0u);
 }
 
 uint32_t ${pfx}_q_update(${pfx}_q_state *s, int32_t d1, int32_t d2, int32_t d3)
 {
-    int64_t x1 = (int64_t)d1 * ((int64_t)1 << HC_OFFSET_BITS) - hc_offset[0];
-    int64_t x2 = (int64_t)d2 * ((int64_t)1 << HC_OFFSET_BITS) - hc_offset[1];
-    int64_t x3 = (int64_t)d3 * ((int64_t)1 << HC_OFFSET_BITS) - hc_offset[2];
-    int64_t A, B;
-    int32_t v1, v2, v3, turn, rev, j, eta;
-    uint32_t p, u, f;
-    const int len = hc_bitlen64(hc_abs64(x1) | hc_abs64(x2) | hc_abs64(x3));
-
-    if (len > 30) { /* only for inputs 2^(30 - HC_OFFSET_BITS) counts or more from the offset */
-        x1 >>= len - 30;
-        x2 >>= len - 30;
-        x3 >>= len - 30;
-    }
-    v1 = (int32_t)x1;
-    v2 = (int32_t)x2;
-    v3 = (int32_t)x3;
-    A = (int64_t)hc_proj[0][0] * v1 + (int64_t)hc_proj[0][1] * v2 + (int64_t)hc_proj[0][2] * v3;
-    B = (int64_t)hc_proj[1][0] * v1 + (int64_t)hc_proj[1][1] * v2 + (int64_t)hc_proj[1][2] * v3;
-    if (!hc_atan2_q(A, B, &p)) {
-        s->rejected += 1u; /* no angle information: hold the last estimate */
-        return s->out_angle;
-    }
-    /* Gamma of eq. (fimp): the wrapped step hc_s32(p - phase) in [-pi, pi) (ties to -pi);
-     * crossing the zero of the unsigned phase moves the electrical turn count */
-    turn = s->turn;
-    rev = s->rev;
-    if (hc_s32(p - s->phase) >= 0) {
-        if (p < s->phase && ++turn == HC_N) {
-            turn = 0;
-            rev = hc_s32((uint32_t)rev + 1u);
+    uint32_t flags;
+    /* plausibility: each channel in its calibrated range (unsigned: no overflow for any int32) */
+    if ((((uint32_t)d1 - ${lo1}u) > ${span1}u) || (((uint32_t)d2 - ${lo2}u) > ${span2}u)
+        || (((uint32_t)d3 - ${lo3}u) > ${span3}u)) {
+        flags = ${PFX}_Q_REJ_RANGE;
+    } else {
+        /* f_init: alpha, beta = P (d - o) 2^${pshift}, with
+         * P 2^${pshift} = PH 2^${kl} + PL (PL >= 0 acts on the shifted, non-negative inputs);
+         * its rows sum to ${rowsum} */
+        /* in unsigned (modular) arithmetic: the true values fit in int32, so no product or
+         * sum can overflow anything, and hc_s32 recovers the signed results */
+        const uint32_t x1 = (uint32_t)d1 - ${c1}u;
+        const uint32_t x2 = (uint32_t)d2 - ${c2}u;
+        const uint32_t x3 = (uint32_t)d3 - ${c3}u;
+        const uint32_t y1 = x1 + ${xb}u; /* x + xb >= 0: x is within the channel range */
+        const uint32_t y2 = x2 + ${xb}u;
+        const uint32_t y3 = x3 + ${xb}u;
+        const uint32_t la = (((${l00}u * y1) + (${l01}u * y2)) + (${l02}u * y3)) >> ${kl};
+        const uint32_t lb = (((${l10}u * y1) + (${l11}u * y2)) + (${l12}u * y3)) >> ${kl};
+        const uint32_t ha = ((${p00}u * x1) + (${p01}u * x2)) + (${p02}u * x3);
+        const uint32_t hb = ((${p10}u * x1) + (${p11}u * x2)) + (${p12}u * x3);
+        const int32_t a = hc_s32((ha + la) - ${a0}u);
+        const int32_t b = hc_s32((hb + lb) - ${b0}u);
+        const uint32_t as = hc_abs(a) >> 15;
+        const uint32_t bs = hc_abs(b) >> 15;
+        const uint32_t r2 = (as * as) + (bs * bs);
+        if ((r2 < ${r2_lo}u) || (r2 > ${r2_hi}u)) {
+            flags = ${PFX}_Q_REJ_AMPLITUDE;
+        } else {
+            const uint32_t p = hc_angle(a, b);
+            int32_t turn = s->turn;
+            int32_t rev = s->rev;
+            uint32_t mag;
+${unwrap}
+            /* step limit from the last accepted sample (grown while samples are held) */
+            if (mag <= s->limit) {
+                /* eta(u) from the table at f_init's angle u within the revolution */
+                const uint32_t u = hc_turn[turn] + p;
+${fixed_index}
+${fixed_eta}
+                const uint32_t out = (u + (acc >> ${eshift})) - ${ebias}u;
+                int32_t out_rev = rev;
+                if (acc >= 0x80000000u) {
+                    if (out < u) {
+                        out_rev = hc_s32((uint32_t)out_rev + 1u);
+                    }
+                } else if (out > u) {
+                    out_rev = hc_s32((uint32_t)out_rev - 1u);
+                } else {
+                    /* within the revolution */
+                }
+                s->phase = p;
+                s->turn = turn;
+                s->rev = rev;
+                s->limit = ${step_limit}u;
+                s->held = 0u;
+                flags = s->fault; /* 0 or ${PFX}_Q_FAULT (latched) */
+                hc_publish(s, out_rev, out, flags);
+            } else {
+                flags = ${PFX}_Q_REJ_STEP;
+            }
         }
-    } else if (p > s->phase && --turn < 0) {
-        turn = HC_N - 1;
-        rev = hc_s32((uint32_t)rev - 1u);
     }
-    s->phase = p;
-    s->turn = turn;
-    s->rev = rev;
-
-    /* f_init within the revolution, Q0.32 turns */
-    u = hc_turn_base[turn] + p / HC_N;
-    /* eta(u): piecewise-linear with wrap-around, O(1) node search */
-    j = hc_bucket[u >> HC_BUCKET_SHIFT];
-    while (j < HC_M && hc_s32(u - hc_x[j + 1]) >= 0) {
-        ++j;
-    }
-    eta = hc_eta[j] + (int32_t)(((int64_t)hc_slope[j] * (int64_t)(u - hc_x[j])
-                                 + ((int64_t)1 << (HC_SLOPE_BITS - 1))) >> HC_SLOPE_BITS);
-    /* y_star = rev + u + eta, kept as revolutions + Q0.32 turn */
-    f = u + (uint32_t)eta;
-    if (eta >= 0) {
-        if (f < u) {
-            rev = hc_s32((uint32_t)rev + 1u);
+    if (flags > ${PFX}_Q_FAULT) { /* rejected: count it and hold the last reading */
+        const uint32_t last = s->seq & 1u;
+        if (s->rejected < 0xFFFFFFFFu) {
+            s->rejected = s->rejected + 1u;
         }
-    } else if (f > u) {
-        rev = hc_s32((uint32_t)rev - 1u);
+        if (s->held < ${PFX}_Q_FAULT_AFTER) {
+            s->held = s->held + 1u;
+        }
+        if (s->held >= ${PFX}_Q_FAULT_AFTER) {
+            s->fault = ${PFX}_Q_FAULT;
+        }
+        if (s->limit < ${limit_cap}u) {
+            s->limit = s->limit + ${step_limit}u;
+        }
+        flags = flags | ${PFX}_Q_HELD | s->fault;
+        hc_publish(s, s->pub[last].revolutions, s->pub[last].angle, flags);
     }
-    s->out_rev = rev;
-    s->out_angle = f;
-    return f;
+    return flags;
 }
 
-int32_t ${pfx}_q_revolutions(const ${pfx}_q_state *s) { return s->out_rev; }
-
-uint32_t ${pfx}_q_angle(const ${pfx}_q_state *s) { return s->out_angle; }
-
-int64_t ${pfx}_q_angle_i64(const ${pfx}_q_state *s)
+void ${pfx}_q_read(const ${pfx}_q_state *s, ${pfx}_q_reading *r)
 {
-    return (int64_t)s->out_rev * 4294967296LL + (int64_t)s->out_angle;
+    uint32_t before;
+    uint32_t after;
+    do {
+        before = s->seq;
+        r->revolutions = s->pub[before & 1u].revolutions;
+        r->angle = s->pub[before & 1u].angle;
+        r->flags = s->pub[before & 1u].flags;
+        after = s->seq;
+    } while ((after - before) > 1u);
+    r->rejected = s->rejected;
 }
 
-uint32_t ${pfx}_q_rejected(const ${pfx}_q_state *s) { return s->rejected; }
+void ${pfx}_q_clear_fault(${pfx}_q_state *s)
+{
+    s->fault = 0u;
+}
+$section_defs"""
+)
+
+_CORDIC_STEP = """\
+    /* step {i}: rotate by -+atan(2^-{i}) towards the x axis */
+    xs = x >> {i}u;
+    ys = y >> {i}u;
+    x = x + ys;
+    z = (neg != 0u) ? (z - {atan}u) : (z + {atan}u);
+    if (y >= xs) {{
+        y = y - xs;
+    }} else {{
+        y = xs - y;
+        neg = ~neg;
+    }}"""
+
+_UNWRAP_N = """\
+            /* the unwrap of f_init: the step wrapped into [-1/2, 1/2) electrical turn */
+            int32_t step = hc_s32(p - s->phase);
+            if (step >= {half}) {{
+                step = step - {period};
+                if (turn == 0) {{
+                    turn = {n_minus_1};
+                    rev = hc_s32((uint32_t)rev - 1u);
+                }} else {{
+                    turn = turn - 1;
+                }}
+            }} else if (step < -{half}) {{
+                step = step + {period};
+                if (turn == {n_minus_1}) {{
+                    turn = 0;
+                    rev = hc_s32((uint32_t)rev + 1u);
+                }} else {{
+                    turn = turn + 1;
+                }}
+            }} else {{
+                /* no turn boundary crossed */
+            }}
+            mag = hc_abs(step);"""
+
+_UNWRAP_1 = """\
+            /* the unwrap of f_init for one pole pair: the step modulo 2^32 in [-1/2, 1/2) turn */
+            const int32_t step = hc_s32(p - s->phase);
+            if ((step >= 0) && (p < s->phase)) {
+                rev = hc_s32((uint32_t)rev + 1u);
+            } else if ((step < 0) && (p > s->phase)) {
+                rev = hc_s32((uint32_t)rev - 1u);
+            } else {
+                /* no revolution boundary crossed */
+            }
+            mag = (step < 0) ? (0u - (uint32_t)step) : (uint32_t)step;"""
+
+
+# --------------------------------------------------------------------------------------------
+# Assembling the variants
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Context:
+    """What every piece of a variant needs."""
+
+    artifact: Mapping[str, Any]
+    design: FirmwareDesign
+    pfx: str
+    PFX: str
+    variant: str  # "float" or "fixed"
+
+
+def _int_sub(var: str, value: int) -> str:
+    """``var - value`` for 0 < value <= 2^31 without a literal outside int32."""
+    if value >= 2**31:
+        return f"({var} - 2147483647) - 1"
+    return f"{var} - {value}"
+
+
+def _int_add(var: str, value: int) -> str:
+    if value >= 2**31:
+        return f"({var} + 2147483647) + 1"
+    return f"{var} + {value}"
+
+
+def _f32_down(v: float) -> np.float32:
+    x = np.float32(v)
+    return x if float(x) <= v else np.nextafter(x, np.float32(-np.inf))
+
+
+def _f32_up(v: float) -> np.float32:
+    x = np.float32(v)
+    return x if float(x) >= v else np.nextafter(x, np.float32(np.inf))
+
+
+def _bits(x: np.float32) -> int:
+    return int(np.array(x, dtype=np.float32).view(np.uint32))
+
+
+def _range_check(lo: NDArray, hi: NDArray) -> str:
+    """C expression, true when a channel is outside its range (or not a number).
+
+    Ranges of positive numbers compare the IEEE bit patterns as unsigned integers (their order
+    is the numbers' order; negative numbers and NaN fall outside); ranges about zero compare
+    the magnitude's bit pattern (the range is widened to be symmetric when its centre is within
+    5 % of its half width); other ranges compare as floats.
+    """
+    parts = []
+    for h in range(3):
+        d = f"d{h + 1}"
+        lo_f, hi_f = _f32_down(lo[h]), _f32_up(hi[h])
+        mid, half = 0.5 * (lo[h] + hi[h]), 0.5 * (hi[h] - lo[h])
+        for v in (lo_f, hi_f):
+            _f32(float(v), "channel range")
+        if lo_f > 0:
+            lob = _bits(lo_f)
+            parts.append(f"((hc_bits({d}) - {lob}u) > {_bits(hi_f) - lob}u)")
+        elif lo_f < 0 < hi_f and abs(mid) <= 0.05 * half:
+            m = _f32_up(max(-float(lo_f), float(hi_f)))
+            parts.append(f"((hc_bits({d}) & 0x7FFFFFFFu) > {_bits(m)}u)")
+        else:
+            parts.append(f"(!(({d} >= {_cf(float(lo_f))}) && ({d} <= {_cf(float(hi_f))})))")
+    return "\n        || ".join(parts)
+
+
+def _float_source(ctx: _Context, fn: _FloatNumbers, banner: str, defs: str) -> str:
+    d = ctx.design
+    n, m = d.pole_pairs, d.table.points
+    P, o = d.projection, d.offset
+    if d.rejects_common_mode:
+        ab0 = P @ o
+        projection = "\n".join(
+            [
+                "    const float e1 = d2 - d1; /* the rows of P sum to zero: P (d - o) = "
+                "P01 e1 + P02 e2 - P o */",
+                "    const float e2 = d3 - d1;",
+                f"    const float a = (({_cf(P[0, 1])} * e1) + ({_cf(P[0, 2])} * e2)) - "
+                f"{_cf(ab0[0], 'P o')};",
+                f"    const float b = (({_cf(P[1, 1])} * e1) + ({_cf(P[1, 2])} * e2)) - "
+                f"{_cf(ab0[1], 'P o')};",
+            ]
+        )
+    else:
+        ab0 = P @ o
+        projection = "\n".join(
+            [
+                f"    const float a = ((({_cf(P[0, 0])} * d1) + ({_cf(P[0, 1])} * d2)) + "
+                f"({_cf(P[0, 2])} * d3)) - {_cf(ab0[0], 'P o')};",
+                f"    const float b = ((({_cf(P[1, 0])} * d1) + ({_cf(P[1, 1])} * d2)) + "
+                f"({_cf(P[1, 2])} * d3)) - {_cf(ab0[1], 'P o')};",
+            ]
+        )
+    newton = "\n".join(
+        ["    {", "        float u;"]
+        + ["        u = 1.0f - (x * rc);\n        rc = rc + (rc * u);"] * fn.newton
+        + ["    }"]
+    )
+    scaled = fn.poly * 2.0**32
+    poly = _cf(scaled[-1])
+    for c in scaled[-2::-1]:
+        poly = f"({_cf(c)} + (t2 * {poly}))"
+    t = d.table
+    pl = d.plausibility
+    kbits = (m // n).bit_length() - 1  # M = n 2^k
+    values = list(t.values) + [t.values[0]]  # T[M] = T[0]: the wrap-around without a branch
+    if t.quadratic:
+        table_decl = (
+            f"/* eta table of f_star: value T[i] (int16) at mechanical angle i / {m} turn and "
+            f"curvature\n * C[i] (int8) of interval i: eta = (T[i] (1 - f) + T[i+1] f + "
+            f"2^{t.curvature_shift} C[i] f (1 - f)) 2^-{t.shift} turn\n"
+            " * (T[M] = T[0]). */\n"
+            f"static const int16_t hc_t[{m + 1}] = {{\n"
+            + _c_list([str(int(v)) for v in values], 12)
+            + f"\n}};\nstatic const int8_t hc_c[{m}] = {{\n"
+            + _c_list([str(int(v)) for v in t.curvature], 16)
+            + "\n};"
+        )
+        curv = (
+            "\n                 + ((f - (f * f)) * "
+            f"((float)hc_c[i] * {_cf(2.0**t.curvature_shift, 'table unit')}))"
+        )
+    else:
+        table_decl = (
+            f"/* eta table of f_star: value T[i] (int16) at mechanical angle i / {m} turn, "
+            f"linear in\n * between: eta = (T[i] (1 - f) + T[i+1] f) 2^-{t.shift} turn "
+            "(T[M] = T[0]). */\n"
+            f"static const int16_t hc_t[{m + 1}] = {{\n"
+            + _c_list([str(int(v)) for v in values], 12)
+            + "\n};"
+        )
+        curv = ""
+    index = (
+        f"            const uint32_t x = ((uint32_t)turn << {kbits + 16}) + (p >> {16 - kbits});\n"
+        "            const uint32_t i = x >> 16;"
+    )
+    curv = curv.replace("\n                 + ", "\n                             + ")
+    x_lo = math.cos(math.pi / 8.0) * pl.radius_lo
+    return _FLOAT_C.substitute(
+        banner=banner,
+        header=f"{ctx.pfx}.h",
+        pfx=ctx.pfx,
+        PFX=ctx.PFX,
+        m=m,
+        m1=m + 1,
+        table_decl=table_decl,
+        x_lo=f"{x_lo:.6g}",
+        x_hi=f"{pl.radius_hi:.6g}",
+        newton=fn.newton,
+        atan_bound=f"{fn.atan_bound:.2e}",
+        tan8=_cf(_TAN_PI_8),
+        rsqrt2=_cf(math.sqrt(0.5)),
+        c0=_cf(fn.seed[0], "reciprocal seed"),
+        c1=_cf(fn.seed[1], "reciprocal seed"),
+        newton_steps=newton,
+        poly=poly,
+        n=n,
+        n_minus_1=n - 1,
+        projection=projection,
+        range_check=_range_check(fn.lo, fn.hi),
+        r2_lo=_cf(float(_f32_down(fn.r2_lo)), "radius window"),
+        r2_hi=_cf(float(_f32_up(fn.r2_hi)), "radius window"),
+        r2_lo_bits=_bits(_f32_down(fn.r2_lo)),
+        r2_span_bits=_bits(_f32_up(fn.r2_hi)) - _bits(_f32_down(fn.r2_lo)),
+        step_limit=int(math.floor(pl.step_limit * 2.0**32)),
+        per_turn=m // n,
+        index=index,
+        curv=curv,
+        lsb=_cf(2.0**-t.shift, "table unit"),
+        inv_m16=_cf(1.0 / m / 65536.0),
+        section_defs=defs,
+    )
+
+
+def _fixed_source(ctx: _Context, q: _FixedNumbers, banner: str, defs: str) -> str:
+    d = ctx.design
+    n, t = d.pole_pairs, d.table
+    m = t.points
+    kbits = (m // n).bit_length() - 1  # M = n 2^k
+    steps = "\n".join(_CORDIC_STEP.format(i=i, atan=q.cordic[i]) for i in range(CORDIC_STEPS))
+    if n == 1:
+        unwrap = _UNWRAP_1
+        wrap_period = "    /* one pole pair: the electrical turn is the whole 2^32 */"
+        init_wrap = "    /* one pole pair: the phase is the angle */"
+        period_text = "2^32"
+    else:
+        unwrap = (
+            _UNWRAP_N.format(half=q.half, period=q.period, n_minus_1=n - 1)
+            .replace(f"step - {q.period};", _int_sub("step", q.period) + ";")
+            .replace(f"step + {q.period};", _int_add("step", q.period) + ";")
+        )
+        wrap_period = f"    if (p >= {q.period}u) {{\n        p = p - {q.period}u;\n    }}"
+        init_wrap = (
+            f"    if (s->phase >= {q.period}u) {{\n        s->phase = {q.period - 1}u;\n    }}"
+        )
+        period_text = str(q.period)
+    eshift = t.shift - 16
+    rowsum = "zero" if d.rejects_common_mode else "the float rows' sums"
+    values = list(t.values) + [t.values[0]]  # T[M] = T[0]
+    tb = _c_list([f"{int(v) + 32768}u" for v in values], 12)
+    if t.quadratic:
+        fixed_table = (
+            "/* eta table of f_star, offset binary: value TB[i] - 32768 at mechanical angle "
+            f"i / {m} turn\n * and curvature CB[i] - 128 of interval i, in units of 2^-{t.shift} "
+            f"turn (curvature 2^{t.curvature_shift}\n * units): eta = (T[i] (1 - f) + T[i+1] f + "
+            f"2^{t.curvature_shift} C[i] f (1 - f)) 2^-{t.shift} turn, T[M] = T[0]. */\n"
+            f"static const uint16_t hc_t[{m + 1}] = {{\n{tb}\n}};\n"
+            f"static const uint8_t hc_c[{m}] = {{\n"
+            + _c_list([f"{int(v) + 128}u" for v in t.curvature], 16)
+            + "\n};"
+        )
+        fixed_eta = (
+            "                const uint32_t g = (f * (65536u - f)) >> 16;\n"
+            "                const uint32_t acc = ((((uint32_t)hc_t[i] * (65536u - f))\n"
+            "                                       + ((uint32_t)hc_t[i + 1u] * f))\n"
+            "                                      + (((uint32_t)hc_c[i] * g) << "
+            f"{t.curvature_shift}))\n"
+            f"                                     - (g << {t.curvature_shift + 7});"
+        )
+    else:
+        fixed_table = (
+            "/* eta table of f_star, offset binary: value TB[i] - 32768 at mechanical angle "
+            f"i / {m} turn,\n * in units of 2^-{t.shift} turn, linear in between: eta = (T[i] "
+            f"(1 - f) + T[i+1] f) 2^-{t.shift} turn,\n * T[M] = T[0]. */\n"
+            f"static const uint16_t hc_t[{m + 1}] = {{\n{tb}\n}};"
+        )
+        fixed_eta = (
+            "                const uint32_t acc = ((uint32_t)hc_t[i] * (65536u - f))\n"
+            "                                     + ((uint32_t)hc_t[i + 1u] * f);"
+        )
+    # interval i = turn 2^k + the electrical fraction's top k bits; the electrical fraction is
+    # p n / 2^32 (p < 2^32 / n: no overflow), f its next 16 bits
+    if kbits == 0:
+        fixed_index = (
+            f"                const uint32_t e = p * {n}u; /* electrical angle, Q0.32 turns */\n"
+            "                const uint32_t i = (uint32_t)turn;\n"
+            "                const uint32_t f = e >> 16;"
+        )
+    else:
+        fixed_index = (
+            f"                const uint32_t e = p * {n}u; /* electrical angle, Q0.32 turns */\n"
+            f"                const uint32_t i = ((uint32_t)turn << {kbits})"
+            f" + (e >> {32 - kbits});\n"
+            f"                const uint32_t f = (e >> {16 - kbits}) & 0xFFFFu;"
+        )
+    return _FIXED_C.substitute(
+        banner=banner,
+        header=f"{ctx.pfx}_q.h",
+        pfx=ctx.pfx,
+        PFX=ctx.PFX,
+        m=m,
+        mask=m - 1,
+        n=n,
+        n_minus_1=n - 1,
+        tshift=t.shift,
+        kc=t.curvature_shift,
+        kc7=t.curvature_shift + 7,
+        table=_c_list([f"{int(v) + 32768}u" for v in t.values], 12),
+        curv=_c_list([f"{int(v) + 128}u" for v in t.curvature], 16),
+        turn_base=_c_list([_cu(v) for v in q.turn_base], 6),
+        period_text=period_text,
+        steps=CORDIC_STEPS,
+        last=CORDIC_STEPS - 1,
+        atan_bound=f"{q.atan_bound:.2e}",
+        cordic_steps=steps,
+        sx=q.sx,
+        xh_lo="computed",
+        xh_hi="2^16",
+        kr=q.kr,
+        seed_a=q.seed_a,
+        seed_b=q.seed_b,
+        seed_shift=q.seed_shift,
+        two_kr1=1 << (q.kr + 1),
+        kr_15=q.kr - 15,
+        sy=q.sy,
+        e_tau=q.kr + q.sx - q.sy,
+        cube_shift=q.cube_shift,
+        cube_mul=q.cube_mul,
+        cube_post=q.cube_post,
+        d_shift=q.d_shift,
+        s_mul=q.s_mul,
+        s_post=q.s_post,
+        eighth=q.eighth,
+        quarter=q.quarter,
+        half_turn=q.half if n > 1 else 1 << 31,
+        period=q.period,
+        wrap_period=wrap_period,
+        init_wrap=init_wrap,
+        lo1=q.lo[0] % _U32,
+        span1=q.hi[0] - q.lo[0],
+        lo2=q.lo[1] % _U32,
+        span2=q.hi[1] - q.lo[1],
+        lo3=q.lo[2] % _U32,
+        span3=q.hi[2] - q.lo[2],
+        limit_cap=(q.half if n > 1 else 1 << 31),
+        pshift=q.proj_shift,
+        rowsum=rowsum,
+        c1=q.centre[0] % _U32,
+        c2=q.centre[1] % _U32,
+        c3=q.centre[2] % _U32,
+        p00=q.proj_hi[0][0] % _U32,
+        p01=q.proj_hi[0][1] % _U32,
+        p02=q.proj_hi[0][2] % _U32,
+        p10=q.proj_hi[1][0] % _U32,
+        p11=q.proj_hi[1][1] % _U32,
+        p12=q.proj_hi[1][2] % _U32,
+        l00=q.proj_lo[0][0],
+        l01=q.proj_lo[0][1],
+        l02=q.proj_lo[0][2],
+        l10=q.proj_lo[1][0],
+        l11=q.proj_lo[1][1],
+        l12=q.proj_lo[1][2],
+        a0=q.a0[0] % _U32,
+        b0=q.a0[1] % _U32,
+        kl=q.lo_shift,
+        xb=q.bias,
+        r2_lo=q.r2_lo,
+        r2_hi=q.r2_hi,
+        unwrap=unwrap,
+        step_limit=q.step_limit,
+        fixed_table=fixed_table,
+        fixed_index=fixed_index,
+        fixed_eta=fixed_eta,
+        eshift=eshift,
+        ebias=(1 << 31) >> eshift,
+        section_defs=defs,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Optional sections
+# --------------------------------------------------------------------------------------------
+
+_ANTICOGGING_C = string.Template(
+    r"""
+/* Anticogging feed-forward (artifact key "cogging"): T_c(y0) = sum_k a_k cos(k y0) + b_k sin(k y0)
+ * [${unit}], k = ${orders}; ${points} values over one revolution, cubic interpolation
+ * through the four nearest (T[-1] and T[N], T[N+1] repeat the other end). Largest |T_c|:
+ * ${scale}; |table - map| <= ${error} (${relative} relative). In single precision the table
+ * position carries the angle's rounding, 2^-24 of a revolution (3.7e-7 rad), which moves T_c by
+ * up to ${slope_error} (its largest slope times that), and the sum about 1e-7 relative. */
+static const float hc_cog[${points3}] = {
+${values}
+};
+
+float ${pfx}_anticogging(float angle)
+{
+    float a = angle;
+    float q;
+    float u;
+    int32_t r;
+    uint32_t i;
+    float t;
+    if (!((a > -1.0e5f) && (a < 1.0e5f))) { /* NaN, infinite or far beyond one revolution */
+        a = 0.0f;
+    }
+    /* to one revolution: a - 2 pi floor(a / 2 pi), with 2 pi = 6.28125 + 1.93530717e-3 (the
+     * first part has 8 significant bits, so r times it is exact) */
+    q = a * 0.159154937f;
+    r = (int32_t)q;
+    if (q < (float)r) {
+        r = r - 1; /* floor */
+    }
+    a = (a - ((float)r * 6.28125f)) - ((float)r * 1.93530717e-3f);
+    u = a * ${n_over_2pi}; /* table position, ${points} per revolution */
+    if (!((u >= 0.0f) && (u < ${points}.0f))) {
+        u = 0.0f; /* rounding at the revolution boundary */
+    }
+    i = (uint32_t)u;
+    t = u - (float)i;
+    {
+        const float tm = t - 1.0f;
+        const float tp = t + 1.0f;
+        const float t2 = t - 2.0f;
+        return (((-0.166666672f * t) * (tm * t2)) * hc_cog[i])
+               + (((0.5f * tp) * (tm * t2)) * hc_cog[i + 1u])
+               + (((-0.5f * tp) * (t * t2)) * hc_cog[i + 2u])
+               + (((0.166666672f * tp) * (t * tm)) * hc_cog[i + 3u]);
+    }
+}
 """
 )
+
+
+def _anticogging_section(ctx: _Context) -> Section | None:
+    """``<prefix>_anticogging(angle)`` in the float variant when the artifact has "cogging"."""
+    if ctx.variant != "float":
+        return None
+    from hallcal.output.firmware import cogging_table
+
+    tab = cogging_table(ctx.artifact["cogging"], source="calibration artifact")
+    m = tab.points
+    vals = list(tab.values)
+    ext = [vals[-1], *vals, vals[0], vals[1]]
+    orders = ", ".join(str(int(k)) for k in tab.orders[:12]) + (
+        ", ..." if tab.orders.size > 12 else ""
+    )
+    unit = comment_text(tab.unit or "artifact unit", limit=40)
+    source = _ANTICOGGING_C.substitute(
+        unit=unit,
+        orders=orders,
+        points=m,
+        points3=m + 3,
+        scale=f"{tab.scale:.6g}",
+        error=f"{tab.error:.2e}",
+        relative=f"{tab.error / tab.scale:.1e}",
+        slope_error=f"{tab.slope * 2.0 * TWO_PI * 2.0**-24:.1e}",
+        values=_c_list([_cf(float(v), "anticogging table") for v in ext], 6),
+        pfx=ctx.pfx,
+        n_over_2pi=_cf(m / TWO_PI),
+    )
+    header = (
+        "\n/* Anticogging feed-forward T_c(y0) [" + unit + "] at the mechanical angle y0 [rad]\n"
+        " * (the reading's angle within the revolution; other values are reduced to it), from a\n"
+        f" * table of {m} floats in flash: within {tab.error / tab.scale:.1e} of the calibration's "
+        "map\n * relative to its largest value. */\n"
+        f"float {ctx.pfx}_anticogging(float angle);\n"
+    )
+    notes = (
+        f"Anticogging: {ctx.pfx}_anticogging(angle), {m} floats ({4 * (m + 3)} bytes), "
+        f"{tab.error / tab.scale:.1e} relative to the map",
+    )
+    return Section("anticogging", header, source, notes)
+
+
+#: Optional sections: (artifact key, builder). A builder returns a Section for a variant, or
+#: None when it has nothing for that variant. New parts (e.g. power-up pole-pair
+#: identification) are added here as further (key, builder) pairs.
+_SECTIONS: list[tuple[str, Callable[[_Context], Section | None]]] = [
+    ("cogging", _anticogging_section),
+]
+
+
+def _sections(ctx: _Context) -> list[Section]:
+    out = []
+    for key, build in _SECTIONS:
+        if key in ctx.artifact:
+            sec = build(ctx)
+            if sec is not None:
+                out.append(sec)
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -973,68 +1716,83 @@ uint32_t ${pfx}_q_rejected(const ${pfx}_q_state *s) { return s->rejected; }
 # --------------------------------------------------------------------------------------------
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", suffix=".tmp", dir=path.parent)
+def _canonical_sha256(artifact: Mapping) -> str:
+    def default(obj: Any) -> Any:
+        if isinstance(obj, np.ndarray):
+            return obj.tolist()
+        if isinstance(obj, np.generic):
+            return obj.item()
+        if hasattr(obj, "to_dict"):
+            return obj.to_dict()
+        return str(obj)
+
     try:
-        with os.fdopen(fd, "w", encoding="ascii", newline="\n") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+        canon = json.dumps(artifact, sort_keys=True, separators=(",", ":"), default=default)
+    except (TypeError, ValueError, RecursionError):
+        raise HallcalInputError("the calibration artifact cannot be serialized") from None
+    return hashlib.sha256(canon.encode("utf-8", "surrogatepass")).hexdigest()
+
+
+def _write(path: Path, text: str) -> None:
+    try:
+        text.encode("ascii")
+    except UnicodeEncodeError:  # pragma: no cover - comment_text keeps everything ASCII
+        raise AssertionError("generated C must be ASCII") from None
+    with atomic_write(path, "w", encoding="ascii") as fh:
+        fh.write(text)
 
 
 def export_c(
     artifact: Mapping,
-    out_dir: str | os.PathLike,
+    out_dir: str | os.PathLike[str],
     *,
     prefix: str = "hallcal",
     fixed_point: bool = True,
-    source: str | None = None,
-    buckets: int | None = None,
+    source: str | os.PathLike[str] | None = None,
     adc_scale: float = 1.0,
-    min_amplitude: float | None = None,
+    table_points: int | None = None,
+    tolerance: float = DEFAULT_TOLERANCE,
+    max_speed: float | None = None,
+    fault_after: int = DEFAULT_FAULT_AFTER,
 ) -> ExportResult:
-    """Generate C99 sources of f_star (eq. (f_final)) from a calibration artifact.
+    """Generate lean C99 sources of f_star (eq. (f_final)) from a calibration artifact.
 
     Writes ``<prefix>.h`` and ``<prefix>.c`` (float) and, with ``fixed_point``,
-    ``<prefix>_q.h`` and ``<prefix>_q.c`` (integer only), each atomically (temporary file and
-    ``os.replace``). The C API (names with the default prefix)::
+    ``<prefix>_q.h`` and ``<prefix>_q.c`` (32-bit integers only), each atomically, with the
+    usual permissions (``0666 & ~umask``). The C API (default prefix)::
 
-        void  hallcal_init(hallcal_state *s, float y_initial);
-        float hallcal_update(hallcal_state *s, float d1, float d2, float d3);
-        int32_t hallcal_revolutions(const hallcal_state *s);   /* + angle_in_rev, angle_f64 */
-        void  hallcal_q_init(hallcal_q_state *s, int64_t y_initial);         /* Q32.32 turns */
-        uint32_t hallcal_q_update(hallcal_q_state *s, int32_t d1, int32_t d2, int32_t d3);
+        void hallcal_init(hallcal_state *s, int32_t revolutions, float angle);
+        uint32_t hallcal_update(hallcal_state *s, float d1, float d2, float d3);  /* flags */
+        void hallcal_read(const hallcal_state *s, hallcal_reading *r);  /* consistent */
+        void hallcal_clear_fault(hallcal_state *s);
+        /* hallcal_q_...: the same with int32 counts in and Q0.32 turns out */
 
     Parameters
     ----------
     artifact : mapping
         The calibration artifact as read from JSON (``"format": "hallcal-calibration/1"``,
-        ``pole_pairs``, ``reconstruction.projection`` / ``offset``, ``lut.y_hat`` / ``eta``).
+        ``pole_pairs``, ``reconstruction``, ``lut``, ``model``; ``diagnostics.noise_floor`` and
+        ``setup.sample_time`` when present).
     out_dir : path
         Directory for the files (created if missing).
     prefix : str, keyword-only
-        C identifier prefix of files, types, functions and macros.
+        C identifier prefix of files, types, functions and macros (lower case recommended).
     fixed_point : bool, keyword-only
         Also write the fixed-point variant.
-    source : str, keyword-only
-        Name of the artifact (e.g. its path) for the generated comments and error messages.
-    buckets : int, keyword-only
-        Size of the bucket table of the node search, a power of two; default the smallest
-        power of two >= M (at most 2 search steps for tables with slope >= 0.5).
+    source : str or path, keyword-only
+        The artifact's file; only its sanitized base name goes into the comments.
     adc_scale : float, keyword-only
-        ADC counts per unit of the artifact's Hall signals (fixed point only: its inputs are
-        integer counts ``round(adc_scale * d)``). 1 when the artifact is in counts.
-    min_amplitude : float, keyword-only
-        Smallest Hall amplitude (artifact unit) for which the stated bounds hold (the offsets'
-        rounding is relative to it). Default: a quarter of the largest offset, or 1 if the offsets
-        are below 1 (signals centred on zero).
+        ADC counts per unit of the artifact's Hall signals (fixed point: its inputs are
+        ``round(adc_scale * d)``); 1 when the artifact is in counts.
+    table_points : int, keyword-only
+        Size of the uniform table (power of two); default from the error budget.
+    tolerance : float, keyword-only
+        Relative widening of the calibrated amplitude windows (default 0.25).
+    max_speed : float, keyword-only
+        Largest mechanical speed [rad/s] for the step limit; default 45 electrical degrees per
+        sample.
+    fault_after : int, keyword-only
+        Rejected samples in a row before the fault flag (default 8).
 
     Returns
     -------
@@ -1043,150 +1801,204 @@ def export_c(
     Raises
     ------
     HallcalInputError
-        The artifact is malformed (the message names the key) or its table is not bijective.
+        A malformed artifact (the message names the key), a table that is not bijective,
+        numbers the generated C could not represent, an ``adc_scale`` outside what the
+        fixed-point variant can take, or an option out of range. Nothing is written then.
     """
-    src = source if source is not None else "<calibration artifact>"
-    if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", prefix):
-        raise HallcalInputError(f"prefix {prefix!r} is not a C identifier")
-    if not (math.isfinite(adc_scale) and adc_scale > 0):
+    if not isinstance(prefix, str) or not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]{0,30}", prefix):
+        raise HallcalInputError(
+            f"prefix {str(prefix)[:40]!r} is not a C identifier (at most 31 letters, digits and "
+            "underscores, starting with a letter)"
+        )
+    if prefix in _C_KEYWORDS:
+        raise HallcalInputError(f"prefix {prefix!r} is a C keyword")
+    if isinstance(adc_scale, bool) or not isinstance(adc_scale, int | float):
         raise HallcalInputError("adc_scale must be a positive number")
-    cal = _read_artifact(artifact, src)
-    m, n = cal.y_hat.size, cal.pole_pairs
-    if buckets is None:
-        buckets = 1 << max(2, math.ceil(math.log2(m)))
-    if buckets < 4 or buckets > 65536 or buckets & (buckets - 1):
-        raise HallcalInputError("buckets must be a power of two in 4..65536")
-    omax = float(np.max(np.abs(cal.offset)))
-    amplitude = float(min_amplitude) if min_amplitude is not None else max(omax / 4.0, 1.0)
-    if not (math.isfinite(amplitude) and amplitude > 0):
-        raise HallcalInputError("min_amplitude must be a positive number")
-
-    messages: list[str] = []
-    ft = _float_tables(cal, buckets)
-    float_bound = _float_bound(cal, ft, amplitude)
-    qt = _fixed_tables(cal, buckets, adc_scale) if fixed_point else None
-    fixed_bound = atan_bound = None
-    if qt is not None:
-        fixed_bound, atan_bound = _fixed_bound(cal, qt, amplitude, adc_scale)
-        if amplitude * adc_scale < 64:
-            messages.append(
-                f"the Hall amplitude is about {amplitude * adc_scale:.3g} ADC counts: the "
-                "fixed-point variant takes integer counts (set adc_scale if the artifact is in "
-                "volts or normalized units)"
-            )
-    scan = max(ft.max_scan, qt.max_scan if qt is not None else 0)
-    if scan > 8:
-        messages.append(
-            f"the node search may take {scan} steps (steep table); more buckets make it shorter"
-        )
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    version = _version()
-    pfx, PFX = prefix, prefix.upper()
-    paths: list[Path] = []
-
-    bounds_f = [
-        "",
-        "Stated error bounds vs the Python f_star (hallcal.sensor.lut.LUT, double precision):",
-        f"  revolutions + angle_in_rev, angle_f64 : <= {float_bound:.2e} rad (mechanical)",
-        "  returned float y_star                 : the above + 0.5 ulp(|y|) = 6e-8 |y| rad",
-        f"  assumed Hall amplitude >= {amplitude:.6g} (artifact unit)",
-        f"Node search: {buckets} buckets, <= {ft.max_scan} forward steps.",
-        f"Tables: {ft.bytes} bytes (static const).",
-        "NaN/inf/zero alpha-beta samples are rejected and the last estimate is held.",
-    ]
-    header = _banner(f"{pfx}.h", cal, src, version, bounds_f)
-    h_text = _FLOAT_H.substitute(banner=header, pfx=pfx, PFX=PFX, n=n, m=m)
-    c_text = _FLOAT_C.substitute(
-        banner=_banner(f"{pfx}.c", cal, src, version, bounds_f),
-        header=f"{pfx}.h",
-        pfx=pfx,
-        PFX=PFX,
-        n=n,
-        m=m,
-        b=buckets,
-        scan=ft.max_scan,
-        inv_n=_c_float(1.0 / n),
-        bucket_scale=_c_float(buckets / TWO_PI),
-        p0=", ".join(_c_float(v) for v in cal.projection[0]),
-        p1=", ".join(_c_float(v) for v in cal.projection[1]),
-        offset=", ".join(_c_float(v) for v in cal.offset),
-        turn_base=_c_list([_c_float(TWO_PI * t / n) for t in range(n)], 6),
-        x=_c_list([_c_float(v) for v in ft.x], 6),
-        eta=_c_list([_c_float(v) for v in ft.eta], 6),
-        bucket=_c_list([str(int(v)) for v in ft.bucket], 12),
+    if not (math.isfinite(adc_scale) and adc_scale > 0):
+        raise HallcalInputError(f"adc_scale must be a positive number, got {adc_scale!r}")
+    src = _source_name(source)
+    sha = _canonical_sha256(artifact) if isinstance(artifact, Mapping) else ""
+    design = design_firmware(
+        artifact,
+        source=src,
+        table_points=table_points,
+        tolerance=tolerance,
+        max_speed=max_speed,
+        fault_after=fault_after,
+        sha256=sha,
     )
-    for name, text in ((f"{pfx}.h", h_text), (f"{pfx}.c", c_text)):
-        _write_atomic(out / name, text)
-        paths.append(out / name)
-
-    if qt is not None:
-        assert fixed_bound is not None and atan_bound is not None
-        bounds_q = [
+    fn = _float_numbers(design)
+    q = _fixed_numbers(design, adc_scale) if fixed_point else None
+    worst = max(fn.bound, q.bound if q is not None else 0.0)
+    if worst > MAX_TOTAL_ERROR and table_points is None:
+        # the table within its budget, but with the arithmetic above 1e-5 rad: a larger table
+        for m in table_sizes(design.pole_pairs):
+            if m <= design.table.points:
+                continue
+            bigger = design_firmware(
+                artifact, source=src, table_points=m, tolerance=tolerance,
+                max_speed=max_speed, fault_after=fault_after, sha256=sha,
+            )  # fmt: skip
+            fn2 = _float_numbers(bigger)
+            q2 = _fixed_numbers(bigger, adc_scale) if fixed_point else None
+            worst2 = max(fn2.bound, q2.bound if q2 is not None else 0.0)
+            if worst2 < worst:
+                design, fn, q, worst = bigger, fn2, q2, worst2
+            if worst <= MAX_TOTAL_ERROR:
+                break
+    n, t, pl = design.pole_pairs, design.table, design.plausibility
+    messages = list(design.messages)
+    if t.nbytes > 4096 and not any("bytes" in m for m in messages):
+        messages.append(
+            f"the table has {t.points} intervals ({t.nbytes} bytes): the calibration needs more "
+            "than 4 kB for a stated bound within 1e-5 rad"
+        )
+    limit = design.noise_floor if design.noise_floor is not None else 1e-3
+    if worst > limit:
+        raise HallcalInputError(
+            f"the generated code would differ from the calibration by up to {worst:.2g} rad, more "
+            f"than the noise floor {limit:.2g} rad: the calibration's numbers are implausible"
+        )
+    if worst > MAX_TOTAL_ERROR:
+        messages.append(
+            f"stated error bound {worst:.2g} rad is above {MAX_TOTAL_ERROR:g} rad (the table "
+            f"alone differs by {t.error:.2g} rad)"
+        )
+    pfx, PFX = prefix, prefix.upper()
+    version = _version()
+    ts = design.sample_time
+    safe = pl.glitch_safe_step * TWO_PI / n  # rad per sample
+    speed_text = (
+        f"{safe / ts:.4g} rad/s" if ts is not None and ts != 1.0 else f"{safe:.4g} rad/sample"
+    )
+    common = [
+        f"generated by hallcal {version} (hallcal.output.codegen). Do not edit.",
+        "",
+        f"Source artifact : {src}",
+        f"  sha256        : {sha}",
+        f"Pole pairs n_m  : {n}",
+        'Method: van Meer et al., "Self-Calibrating Position Measurements: Applied to Imperfect',
+        'Hall Sensors": f_init (Clarke + atan2 + unwrap) and y_star = y + eta(mod(y, 2 pi)).',
+        "",
+        f"Table: {t.points} uniform intervals per revolution, piecewise quadratic (int16 values,",
+        f"  int8 curvatures), {t.nbytes} bytes; differs from the calibration's table by at most",
+        f"  {t.error:.2e} rad (RMS {t.rms_error:.2e}); budget {design.budget:.2e} rad = "
+        + (
+            f"min(0.1 x noise floor {design.noise_floor:.2e}, 1e-5)"
+            if design.noise_floor is not None
+            else "no noise floor in the artifact"
+        ),
+        "Plausibility: channel ranges and alpha/beta radius window "
+        f"[{pl.radius_lo:.6g}, {pl.radius_hi:.6g}]",
+        f"  (calibrated {pl.radius_model[0]:.6g} .. {pl.radius_model[1]:.6g}, tolerance "
+        f"{pl.tolerance:g}, {6:d} noise sigmas); step limit {pl.step_limit:.4g} electrical turn",
+        f"  per sample (grows while samples are held); fault after {pl.fault_after} in a row.",
+        f"  One glitch sample cannot make the angle slip up to {speed_text}.",
+    ]
+    paths: list[Path] = []
+    texts: list[tuple[str, str]] = []
+    section_names: list[str] = []
+    ctx_f = _Context(artifact, design, pfx, PFX, "float")
+    secs = _sections(ctx_f)
+    section_names += [s.name for s in secs]
+    lines_f = (
+        common
+        + [
             "",
-            "Fixed point: int32 arithmetic, int64 intermediate products and sums; no float.",
-            "  inputs  : raw ADC counts, int32 (any value is safe)",
-            f"  offsets : Q{31 - qt.offset_bits}.{qt.offset_bits} counts"
-            f" (adc_scale {adc_scale:g} counts per artifact unit)",
-            "  angles  : Q0.32 turns (2^32 = 2 pi rad), revolutions in a separate int32",
-            f"Integer atan2 (CORDIC, {CORDIC_ITERATIONS} iterations): |error| <= "
-            f"{atan_bound:.2e} rad (electrical)",
-            "Stated error bound vs the Python f_star (hallcal.sensor.lut.LUT, double precision):",
-            f"  revolutions + angle : <= {fixed_bound:.2e} rad (mechanical)",
-            f"  assumed Hall amplitude >= {amplitude * adc_scale:.6g} counts",
-            f"Node search: {buckets} buckets, <= {qt.max_scan} forward steps.",
-            f"Tables: {qt.bytes} bytes (static const).",
+            "Float variant: single precision, no libm, no double, no division.",
+            f"  stated bound vs hallcal reconstruct: {fn.bound:.2e} rad (mechanical)",
+            f"  atan2: |error| <= {fn.atan_bound:.2e} rad (electrical)",
         ]
-        hq = _FIXED_H.substitute(
-            banner=_banner(f"{pfx}_q.h", cal, src, version, bounds_q), pfx=pfx, PFX=PFX, n=n, m=m
-        )
-        cq = _FIXED_C.substitute(
-            banner=_banner(f"{pfx}_q.c", cal, src, version, bounds_q),
-            header=f"{pfx}_q.h",
-            pfx=pfx,
-            PFX=PFX,
-            n=n,
-            m=m,
-            b=buckets,
-            bshift=32 - int(round(math.log2(buckets))),
-            scan=qt.max_scan,
-            obits=qt.offset_bits,
-            sbits=qt.slope_bits,
-            iters=CORDIC_ITERATIONS,
-            normbits=_NORM_BITS,
-            pexp=qt.projection_exp,
-            atan_bound=f"{atan_bound:.2e}",
-            offset=", ".join(_c_i32(v) for v in qt.offset),
-            p0=", ".join(_c_i32(v) for v in qt.projection[0]),
-            p1=", ".join(_c_i32(v) for v in qt.projection[1]),
-            turn_base=_c_list([_c_u32(v) for v in qt.turn_base], 6),
-            cordic_steps="\n".join(
-                f"    HC_STEP({i}, {_c_u32(v)}); /* atan(2^-{i}) in Q0.32 turns */"
-                for i, v in enumerate(qt.atan)
+        + [note for s in secs for note in s.notes]
+    )
+    texts.append(
+        (
+            f"{pfx}.h",
+            _FLOAT_H.substitute(
+                banner=_banner(f"{pfx}.h", lines_f),
+                pfx=pfx,
+                PFX=PFX,
+                n=n,
+                m=t.points,
+                fault_after=pl.fault_after,
+                section_decls="".join(s.header for s in secs),
             ),
-            x=_c_list([_c_u32(v) for v in qt.x], 8),
-            eta=_c_list([_c_i32(v) for v in qt.eta], 8),
-            slope=_c_list([_c_i32(v) for v in qt.slope], 8),
-            bucket=_c_list([str(int(v)) for v in qt.bucket], 12),
         )
-        for name, text in ((f"{pfx}_q.h", hq), (f"{pfx}_q.c", cq)):
-            _write_atomic(out / name, text)
-            paths.append(out / name)
-
+    )
+    texts.append(
+        (
+            f"{pfx}.c",
+            _float_source(ctx_f, fn, _banner(f"{pfx}.c", lines_f), "".join(s.source for s in secs)),
+        )
+    )
+    if q is not None:
+        ctx_q = _Context(artifact, design, pfx, PFX, "fixed")
+        secs_q = _sections(ctx_q)
+        lines_q = (
+            common
+            + [
+                "",
+                "Fixed-point variant: 32-bit integers only (no float, no 64-bit, no division).",
+                f"  inputs: ADC counts, adc_scale {adc_scale:g} counts per artifact unit",
+                f"  stated bound vs hallcal reconstruct on the same counts: {q.bound:.2e} rad",
+                f"  atan2: |error| <= {q.atan_bound:.2e} rad (electrical)",
+                f"  rounding the artifact's signals to counts adds {q.quant_rms:.2e} rad RMS "
+                f"(at most {q.quant_max:.2e})",
+            ]
+            + [note for s in secs_q for note in s.notes]
+        )
+        texts.append(
+            (
+                f"{pfx}_q.h",
+                _FIXED_H.substitute(
+                    banner=_banner(f"{pfx}_q.h", lines_q),
+                    pfx=pfx,
+                    PFX=PFX,
+                    n=n,
+                    m=t.points,
+                    fault_after=pl.fault_after,
+                    section_decls="".join(s.header for s in secs_q),
+                ),
+            )
+        )
+        texts.append(
+            (
+                f"{pfx}_q.c",
+                _fixed_source(
+                    ctx_q, q, _banner(f"{pfx}_q.c", lines_q), "".join(s.source for s in secs_q)
+                ),
+            )
+        )
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise HallcalInputError(
+            f"cannot create the output folder ({exc.strerror or type(exc).__name__})"
+        ) from None
+    for name, text in texts:
+        _write(out / name, text)
+        paths.append(out / name)
     return ExportResult(
-        status="warning" if messages else "ok",
         paths=tuple(paths),
         pole_pairs=n,
-        points=m,
-        buckets=buckets,
-        max_search_steps=scan,
-        table_bytes=ft.bytes,
-        table_bytes_q=qt.bytes if qt is not None else None,
-        float_bound=float_bound,
-        fixed_bound=fixed_bound,
-        atan2_bound=atan_bound,
-        assumed_amplitude=amplitude,
-        sha256=cal.sha256,
+        table_points=t.points,
+        table_bytes=t.nbytes,
+        table_error=t.error,
+        budget=design.budget,
+        noise_floor=design.noise_floor,
+        float_bound=fn.bound,
+        atan2_bound=fn.atan_bound,
+        fixed_bound=q.bound if q is not None else None,
+        fixed_atan2_bound=q.atan_bound if q is not None else None,
+        quantization_rms=q.quant_rms if q is not None else None,
+        quantization_max=q.quant_max if q is not None else None,
+        adc_scale=float(adc_scale),
+        step_limit=pl.step_limit,
+        glitch_safe_speed=safe,
+        fault_after=pl.fault_after,
+        sha256=sha,
+        sections=tuple(dict.fromkeys(section_names)),
         messages=tuple(messages),
+        design=design,
     )

@@ -7,17 +7,21 @@ the calibration recording) gather everything the report shows into a :class:`Rep
 writes the PNG files and one HTML file with the figures embedded as base64 PNG, inline CSS, no
 scripts and no external references, so it opens in a browser without network access.
 
-The report follows the paper's results sections (van Meer et al., Figs. example_ripple, sim_g,
-sim_eta/exp_eta and exp_spectrum) and adds the diagnostics of each step of Algorithm 1: the BLA,
-the SEM cost, and the lookup table with its uncertainty band. Errors against an encoder are only
+The report follows the paper's results sections (van Meer et al., Figs. 2 and 4-8) and adds
+the diagnostics of each step of Algorithm 1: the BLA, the SEM cost, and the lookup table with its
+uncertainty band. Errors against an encoder are only
 shown when a recording has the ``y_ref`` column (validation only, never used by calibration);
 without one the report says so and shows what needs no encoder: the model fit, the table, the
-cost and the correction f_star - f_init.
+cost and the correction f_star - f_init. For an open-loop (constant-speed) calibration the
+straight-line check stands in for the encoder: f_init and f_star against their best straight line
+on the constant-speed samples the calibration did not use. Angle errors are in mechanical mrad or,
+with ``angle_units="electrical-deg"``, in electrical degrees.
 """
 
 from __future__ import annotations
 
 import base64
+import dataclasses
 import datetime as _dt
 import html
 import io as _io
@@ -114,9 +118,10 @@ class ReportContent:
     plant : ContinuousTF or None
         Plant used in SEM (after the gain correction).
     gain_correction : float or None
-        c_hat of eq. (c_hat) as applied to the BLA (refined jointly with theta when it was).
+        The gain correction c-hat as applied to the BLA (refined jointly with theta when it was).
     gain_details : dict or None
-        ``c`` (eq. c_hat), ``c_refined``, ``c_refined_std`` and the rest of the gain report.
+        ``c`` (the gain correction c-hat), ``c_refined``, ``c_refined_std`` and the rest of the gain
+        report.
     predicted_error : float or None
         Predicted RMS error of f_star [rad].
     noise_floor : float or None
@@ -149,6 +154,17 @@ class ReportContent:
         Input files (or "in memory") by role.
     notes : list of str
         What could not be shown, and why.
+    timings : dict of str to float
+    model_info : dict
+    hall_noise_variance : float or None
+        Hall noise variance per channel from the calibration (constant speed: from the residual),
+        for the ±2σ lines when there is no SEM.
+    constant_speed : dict or None
+        The constant-speed fit's summary (``diagnostics.constant_speed`` of the artifact).
+    straight_line : StraightLineCheck or None
+        f_init and f_star against a straight line on held-out constant-speed samples.
+    angle_units : {"mrad", "electrical-deg"}
+        Units of the angle errors in the text.
     cogging : CoggingTorque or None
         The cogging torque identified with the flux (with the covariance of its coefficients).
     true_cogging : CoggingTorque or None
@@ -186,12 +202,104 @@ class ReportContent:
     notes: list[str] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     model_info: dict[str, Any] = field(default_factory=dict)
+    hall_noise_variance: float | None = None
+    constant_speed: dict[str, Any] | None = None
+    straight_line: StraightLineCheck | None = None
+    angle_units: str = "mrad"
     cogging: Any = None
     true_cogging: Any = None
 
     @property
     def pole_pairs(self) -> int:
         return int(self.setup.pole_pairs)
+
+    def angle(self, x: float | None) -> str:
+        """An angle error [rad, mechanical] in this report's units."""
+        if x is None or not math.isfinite(x):
+            return "–"
+        if self.angle_units == "electrical-deg":
+            return f"{math.degrees(x) * self.pole_pairs:.3f} electrical deg"
+        return f"{1e3 * x:.3f} mrad"
+
+
+@dataclass(frozen=True)
+class StraightLineCheck:
+    """f_init and f_star against their best straight line on constant-speed samples.
+
+    Without an encoder this is the check of an open-loop calibration (as in
+    ``tests/test_real_ringjig.py``): on samples of the constant-speed window that the
+    calibration did not use, the true angle is a straight line in the sample index, so the
+    residual of the best line through f_star is an upper bound of its error (rig motion included).
+
+    Attributes
+    ----------
+    start, stop : int
+        The held-out samples ``start <= k < stop``.
+    revolutions : float
+        Revolutions in them.
+    init_rms, star_rms : float
+        RMS residual of the best straight line through f_init and through f_star [rad].
+    held_out : bool
+        False when no samples were left over and the calibration samples themselves are used.
+    """
+
+    start: int
+    stop: int
+    revolutions: float
+    init_rms: float
+    star_rms: float
+    held_out: bool
+
+
+def _line_rms(y: NDArray[np.float64]) -> float:
+    k = np.arange(y.size, dtype=np.float64)
+    coef = np.polyfit(k, y, 1)
+    return float(np.sqrt(np.mean((y - np.polyval(coef, k)) ** 2)))
+
+
+#: Shortest held-out stretch for the straight-line check [revolutions].
+_MIN_HELD_OUT_REVOLUTIONS = 0.5
+
+
+def _straight_line(
+    cs: Mapping[str, Any], lut: LUT, data: Dataset, traces: Traces
+) -> StraightLineCheck | None:
+    """The straight-line check on the constant-speed samples after the calibration segment."""
+    from hallcal.fit.constant_speed import find_constant_speed
+
+    if traces.y_star is None:
+        return None
+    try:
+        start, stop = int(cs["start"]), int(cs["stop"])
+        speed = abs(float(cs["b"]))
+    except (KeyError, TypeError, ValueError):
+        return None
+    window = find_constant_speed(np.asarray(data.d), lut.pole_pairs)
+    end = min(window.stop, data.n_samples) if window.ok else stop
+    held = end > stop and speed * (end - stop) / TWO_PI >= _MIN_HELD_OUT_REVOLUTIONS
+    a, b = (stop, end) if held else (start, stop)
+    if b - a < 8:
+        return None
+    return StraightLineCheck(
+        start=a,
+        stop=b,
+        revolutions=speed * (b - a) / TWO_PI,
+        init_rms=_line_rms(traces.y_init[a:b]),
+        star_rms=_line_rms(traces.y_star[a:b]),
+        held_out=held,
+    )
+
+
+def _constant_speed_parts(
+    cs: Any, lut: LUT, data: Dataset, traces: Traces
+) -> tuple[dict[str, Any] | None, float | None, StraightLineCheck | None]:
+    """Summary, Hall noise variance and straight-line check of a constant-speed calibration."""
+    if cs is None:
+        return None, None, None
+    summary = dict(cs.to_dict()) if hasattr(cs, "to_dict") else dict(cs)
+    noise = summary.get("noise_std")
+    variance = float(noise) ** 2 if isinstance(noise, int | float) and noise > 0 else None
+    return summary, variance, _straight_line(summary, lut, data, traces)
 
 
 def _amplitude(flux: FluxModel, n_m: int) -> float:
@@ -258,11 +366,16 @@ def _model_signals(sem: Any, flux: FluxModel, d: NDArray, traces: Traces) -> tup
     return flux(traces.y_init), "model ĝ(f_init)"
 
 
-def _no_encoder_note() -> str:
+def _no_encoder_note(constant_speed: bool = False) -> str:
+    shown = (
+        "the straight-line check on held-out constant-speed samples, the model fit, the lookup "
+        "table and the correction f_star - f_init"
+        if constant_speed
+        else "the model fit, the lookup table, the SEM cost and the correction f_star - f_init"
+    )
     return (
         "No recording with an encoder column 'y_ref' was given: errors against an encoder are "
-        "unavailable. Shown instead: the model fit, the lookup table, the SEM cost and the "
-        "correction f_star - f_init. Pass a recording with y_ref (hallcal report ... "
+        f"unavailable. Shown instead: {shown}. Pass a recording with y_ref (hallcal report ... "
         "--validation RUN) to see the angle errors."
     )
 
@@ -363,11 +476,11 @@ def content_from_calibration(
         if validation is None and lut.bijective:
             validation = validate(lut, data, noise_floor=noise_floor)
     else:
-        notes.append(_no_encoder_note())
+        notes.append(_no_encoder_note(cal.constant_speed is not None))
     if not lut.bijective:
         notes.append(
-            "The lookup table is not bijective (eq. recon_biject): f_star is undefined, so only "
-            "f_init is shown."
+            "The lookup table is not bijective (the paper's bijectivity condition fails): "
+            "f_star is undefined, so only f_init is shown."
         )
     floor_source = noise_floor_source
     if noise_floor is None and math.isfinite(cal.noise_floor):
@@ -383,6 +496,9 @@ def content_from_calibration(
     if t is None:
         # sample_time = 1.0 means time in samples (docs/design.md): plot over the sample index
         t = None if cal.setup.sample_time == 1.0 else cal.setup.sample_time * np.arange(d.shape[0])
+    cs_summary, cs_noise, straight = _constant_speed_parts(
+        cal.constant_speed, lut, data, cal_traces
+    )
     return ReportContent(
         title=title,
         setup=cal.setup,
@@ -415,6 +531,9 @@ def content_from_calibration(
         notes=notes,
         timings=dict(cal.timings),
         model_info={k: v for k, v in cal.model_info.items() if k not in ("theta", "weights")},
+        hall_noise_variance=cs_noise,
+        constant_speed=cs_summary,
+        straight_line=straight,
         cogging=getattr(cal, "cogging", None),
         true_cogging=true_cogging,
     )
@@ -582,7 +701,7 @@ def content_from_artifact(
     """Gather a report's content from a calibration artifact and its calibration recording.
 
     The lookup table and the flux model come from the artifact; the closed loop is re-simulated
-    with the stored plant and controller to show the model fit (Fig. sim_g), and for a Fourier
+    with the stored plant and controller to show the model fit (Fig. 4), and for a Fourier
     model one sensitivity pass gives cov(theta) for the table's uncertainty band. The noise
     floor is the calibration's own (``diagnostics.noise_floor``).
 
@@ -633,11 +752,11 @@ def content_from_artifact(
         if lut.bijective:
             validation = validate(lut, data, noise_floor=noise_floor)
     else:
-        notes.insert(0, _no_encoder_note())
+        notes.insert(0, _no_encoder_note(isinstance(diag.get("constant_speed"), Mapping)))
     if not lut.bijective:
         notes.append(
-            "The lookup table is not bijective (eq. recon_biject): f_star is undefined, so only "
-            "f_init is shown."
+            "The lookup table is not bijective (the paper's bijectivity condition fails): "
+            "f_star is undefined, so only f_init is shown."
         )
     d = data.d
     d_model, label = _model_signals(sem, flux, d, cal_traces)
@@ -647,6 +766,12 @@ def content_from_artifact(
         t = None if setup.sample_time == 1.0 else setup.sample_time * np.arange(d.shape[0])
     p = artifact.get("plant") if isinstance(artifact.get("plant"), Mapping) else {}
     gain = p.get("gain_correction")
+    cs_summary, cs_noise, straight = _constant_speed_parts(
+        diag.get("constant_speed") if isinstance(diag.get("constant_speed"), Mapping) else None,
+        lut,
+        data,
+        cal_traces,
+    )
     predicted = diag.get("predicted_angle_error_rms")
     timings = diag.get("timings") if isinstance(diag.get("timings"), Mapping) else {}
     return ReportContent(
@@ -682,6 +807,9 @@ def content_from_artifact(
         model_info={
             k: v for k, v in artifact.get("model", {}).items() if k not in ("theta", "weights")
         },
+        hall_noise_variance=cs_noise,
+        constant_speed=cs_summary,
+        straight_line=straight,
         cogging=None if sem is None else sem.cogging,
     )
 
@@ -724,7 +852,7 @@ def make_figures(content: ReportContent) -> list[ReportFigure]:
         figs.append(
             ReportFigure(
                 "ripple",
-                "f_init against the true angle (paper Fig. example_ripple)",
+                "f_init against the true angle (the paper's Fig. 2)",
                 f"Two of the {n_m} pole pairs of {where}: the Clarke + atan2 angle f_init (blue) "
                 "against the reference (black dashed); below, the error itself, with f_star (red) "
                 "after calibration. The ripple repeats per pole pair and differs slightly from "
@@ -736,14 +864,25 @@ def make_figures(content: ReportContent) -> list[ReportFigure]:
         nv = c.true_noise_variance
         if nv is None and c.sem is not None:
             nv = float(c.sem.noise_variance)
+        if nv is None or not math.isfinite(nv):
+            nv = c.hall_noise_variance
+        simulated = "y₀_sim" in c.d_model_label
+        where = (
+            "evaluated at the angle the closed-loop simulation predicts, which needs no encoder"
+            if simulated
+            else "evaluated at the calibrated angle f_star"
+        )
+        lines = (
+            " it should look like white noise inside the ±2σ lines of the Hall noise."
+            if nv is not None and math.isfinite(nv)
+            else " it should look like white noise (the Hall noise level is unknown here)."
+        )
         figs.append(
             ReportFigure(
                 "hall_model",
-                "Hall signal and identified model (paper Figs. sim_g, exp_g)",
+                "Hall signal and identified model (the paper's Figs. 4 and 6)",
                 "The measured Hall signal d1 of the calibration recording (blue) and the model "
-                "(red dashed), evaluated at the angle the closed-loop simulation predicts, which "
-                "needs no encoder. Below, the residual over the whole recording: it should look "
-                "like white noise inside the ±2σ lines.",
+                f"(red dashed), {where}. Below, the residual over the whole recording:" + lines,
                 plots.plot_hall_model(
                     c.d,
                     c.d_model,
@@ -757,7 +896,7 @@ def make_figures(content: ReportContent) -> list[ReportFigure]:
         figs.append(
             ReportFigure(
                 "angle_error",
-                "Angle error before and after calibration (paper Figs. sim_eta, exp_eta)",
+                "Angle error before and after calibration (the paper's Figs. 5 and 7)",
                 f"Error of f_init (blue) and f_star (red) against the reference of "
                 f"{c.validation_source}, about its mean. The dashed lines are ±3 times the noise "
                 f"floor ({c.noise_floor_source}): white noise alone, and so a calibration at "
@@ -769,7 +908,7 @@ def make_figures(content: ReportContent) -> list[ReportFigure]:
         figs.append(
             ReportFigure(
                 "spectrum",
-                "Cumulative PSD of the angle error (paper Fig. exp_spectrum)",
+                "Cumulative PSD of the angle error (the paper's Fig. 8)",
                 f"Cumulative power of the error over spatial frequency. The step of f_init (blue) "
                 f"at n_m = {n_m} cycles/rev is the magnet pitch; after calibration (red) the "
                 "power grows evenly, as white noise does, towards the noise floor squared.",
@@ -794,15 +933,20 @@ def make_figures(content: ReportContent) -> list[ReportFigure]:
                 "bla",
                 "Closed-loop BLA of the plant (paper sec. Obtaining a BLA)",
                 "Nonparametric BLA (blue dots) with the standard deviations of the estimate from "
-                "noise (grey) and in total, including nonlinear distortions (orange); the "
-                "parametric fit (red)"
+                "realization to realization (orange squares: the total, used as the fit's "
+                "weights) and from period to period (grey: the noise), each with its running "
+                "median; the parametric fit (red)"
                 + (
                     ", the model after the gain correction (orange dash-dot)"
                     if c.gain_correction is not None
                     else ""
                 )
                 + (" and the true plant (black dashed)" if c.true_plant is not None else "")
-                + ". A total std well below |G| means a trustworthy BLA.",
+                + ". A total std well below |G| means a trustworthy BLA. The grey curve can lie "
+                "above the orange one: with few realizations single lines scatter (about 38 % "
+                "for 8), and in closed loop the period-to-period spread also holds the loop's "
+                "leakage and the sensor error swept by the drift, which cancel in each "
+                "realization's mean; the orange curve is the reliable one.",
                 plots.plot_bla(
                     c.bla,
                     true_plant=c.true_plant,
@@ -816,7 +960,7 @@ def make_figures(content: ReportContent) -> list[ReportFigure]:
         figs.append(
             ReportFigure(
                 "sem_cost",
-                "SEM cost per iteration (paper problem (problem))",
+                "SEM cost per iteration (the paper's SEM problem)",
                 "Simulation-error cost per accepted Levenberg-Marquardt step. A converged model "
                 f"ends at the noise level 3Nσ² ({which} σ², dashed).",
                 plots.plot_sem_cost(c.sem, noise_variance=c.true_noise_variance),
@@ -847,7 +991,7 @@ def make_figures(content: ReportContent) -> list[ReportFigure]:
     figs.append(
         ReportFigure(
             "lut",
-            "Lookup table η and its uncertainty (paper eq. f_final)",
+            "Lookup table η and its uncertainty (the paper's table correction f_star)",
             "The correction η over one revolution"
             + (" with its ±2σ band from cov(θ)" if c.eta_std is not None else "")
             + (
@@ -908,10 +1052,6 @@ def _esc(x: Any) -> str:
     return html.escape(str(x), quote=True)
 
 
-def _mrad(x: float | None) -> str:
-    return "–" if x is None or not math.isfinite(x) else f"{1e3 * x:.3f} mrad"
-
-
 def _num(x: Any, fmt: str = ".4g") -> str:
     try:
         v = float(x)
@@ -939,6 +1079,19 @@ def _tf_text(tf: ContinuousTF) -> str:
     return text
 
 
+def _ranges(values: Any) -> str:
+    """[1, 2, 3, 5, 33] -> '1..3, 5, 33'."""
+    v = sorted(int(x) for x in values)
+    out, i = [], 0
+    while i < len(v):
+        j = i
+        while j + 1 < len(v) and v[j + 1] == v[j] + 1:
+            j += 1
+        out.append(f"{v[i]}..{v[j]}" if j > i + 1 else ", ".join(map(str, v[i : j + 1])))
+        i = j + 1
+    return ", ".join(out)
+
+
 def _status_class(status: str) -> str:
     if status == "ok":
         return "status-ok"
@@ -962,10 +1115,10 @@ def _accuracy_table(c: ReportContent) -> str:
         pi = v.init.peak / v.star.peak if v.star.peak > 0 else math.nan
         parts.append(
             "<table><tr><th></th><th>RMS</th><th>peak</th></tr>"
-            f'<tr class="init"><td>f_init (before)</td><td class="num">{_mrad(v.init.rms)}</td>'
-            f'<td class="num">{_mrad(v.init.peak)}</td></tr>'
-            f'<tr class="star"><td>f_star (after)</td><td class="num">{_mrad(v.star.rms)}</td>'
-            f'<td class="num">{_mrad(v.star.peak)}</td></tr>'
+            f'<tr class="init"><td>f_init (before)</td><td class="num">{c.angle(v.init.rms)}</td>'
+            f'<td class="num">{c.angle(v.init.peak)}</td></tr>'
+            f'<tr class="star"><td>f_star (after)</td><td class="num">{c.angle(v.star.rms)}</td>'
+            f'<td class="num">{c.angle(v.star.peak)}</td></tr>'
             f'<tr><td>improvement</td><td class="num">×{_num(ri, ".3g")}</td>'
             f'<td class="num">×{_num(pi, ".3g")}</td></tr>'
             "</table>"
@@ -979,28 +1132,54 @@ def _accuracy_table(c: ReportContent) -> str:
         e = e - e.mean()
         parts.append(
             f"<p>f_init against y_ref of {_esc(c.validation_source)}: RMS "
-            f"{_mrad(float(np.sqrt(np.mean(e**2))))}, peak {_mrad(float(np.max(np.abs(e))))}; "
+            f"{c.angle(float(np.sqrt(np.mean(e**2))))}, peak {c.angle(float(np.max(np.abs(e))))}; "
             "no f_star (table not bijective).</p>"
         )
     else:
         parts.append("<p><b>Errors against an encoder: unavailable</b> (no y_ref column).</p>")
+        sl = c.straight_line
+        if sl is not None:
+            where = (
+                f"the held-out constant-speed samples {sl.start}..{sl.stop} "
+                f"({sl.revolutions:.2f} revolutions the calibration did not use)"
+                if sl.held_out
+                else f"the calibration samples {sl.start}..{sl.stop} (no held-out samples left)"
+            )
+            ratio = sl.init_rms / sl.star_rms if sl.star_rms > 0 else math.nan
+            parts.append(
+                "<table><tr><th>straight-line check</th><th>RMS from the best line</th></tr>"
+                f'<tr class="init"><td>f_init</td><td class="num">{c.angle(sl.init_rms)}</td>'
+                "</tr>"
+                f'<tr class="star"><td>f_star</td><td class="num">{c.angle(sl.star_rms)}</td>'
+                "</tr>"
+                f'<tr><td>improvement</td><td class="num">×{_num(ratio, ".3g")}</td></tr>'
+                "</table>"
+                f'<p class="meta">At constant speed the true angle is a straight line in the '
+                f"sample index, so on {_esc(where)} the residual of the best line bounds the "
+                "error from above (the rig's own speed ripple is included).</p>"
+            )
         cv = c.calibration
         if cv.y_star is not None:
             corr = cv.y_star - cv.y_init
             parts.append(
                 "<p>Correction f_star − f_init along the calibration recording (no encoder "
-                f"needed): RMS about the mean {_mrad(float(np.std(corr)))}, peak "
-                f"{_mrad(float(np.max(np.abs(corr))))}.</p>"
+                f"needed): RMS about the mean {c.angle(float(np.std(corr)))}, peak "
+                f"{c.angle(float(np.max(np.abs(corr))))}.</p>"
             )
     rows = [
         (
             "noise floor (RMS)",
-            f"{_mrad(c.noise_floor)} <span class='meta'>({_esc(c.noise_floor_source)})</span>",
+            f"{c.angle(c.noise_floor)} <span class='meta'>({_esc(c.noise_floor_source)})</span>",
         ),
         (
             "predicted f_star error (RMS)",
-            f"{_mrad(c.predicted_error)} <span class='meta'>"
-            "(noise floor and the table's uncertainty from cov(θ))</span>",
+            f"{c.angle(c.predicted_error)} <span class='meta'>"
+            + (
+                "(the noise floor: what the Hall noise alone leaves; the rig's motion is not "
+                "in it)</span>"
+                if c.constant_speed is not None
+                else "(noise floor and the table's uncertainty from cov(θ))</span>"
+            ),
         ),
     ]
     return "".join(parts) + _kv(rows)
@@ -1034,10 +1213,10 @@ def _calibration_rows(c: ReportContent) -> list[tuple[str, str]]:
             if std is not None:
                 text += f" ± {_num(std, '.2g')}"
             text += (
-                " <span class='meta'>(refined jointly with θ in SEM; the estimate of eq. c_hat "
+                " <span class='meta'>(refined jointly with θ in SEM; the gain-correction estimate "
                 f"was {_num(g.get('c'), '.5g')})</span>"
             )
-        rows.append(("gain correction ĉ (eq. c_hat)", text))
+        rows.append(("gain correction ĉ (the gain correction c-hat)", text))
     if c.plant is not None:
         rows.append(("plant model used in SEM", f"<code>{_esc(_tf_text(c.plant))}</code>"))
     lut = c.lut
@@ -1053,7 +1232,7 @@ def _calibration_rows(c: ReportContent) -> list[tuple[str, str]]:
         basis = info.get("basis", "?")
         desc = _esc(basis)
         if "harmonics" in info and basis == "fourier":
-            desc += f", harmonics {_esc(', '.join(str(h) for h in info['harmonics']))}"
+            desc += f", mechanical harmonics {_esc(_ranges(info['harmonics']))}"
         elif "points" in info:
             desc += f", {_esc(info['points'])} points"
         rows.append(("flux model", desc))
@@ -1064,6 +1243,34 @@ def _calibration_rows(c: ReportContent) -> list[tuple[str, str]]:
             msg = msg[len(str(verdict)) :].lstrip(" :,-")
         rows.append(
             ("model adequacy", f"<b>{_esc(verdict)}</b>" + (f": {_esc(msg)}" if msg else ""))
+        )
+    elif c.constant_speed is not None:
+        cs = c.constant_speed
+        motion = cs.get("motion_rms")
+        floor = cs.get("angle_noise_floor")
+        ratio = (
+            f" ({_num(motion / floor, '.3g')} × the noise floor)"
+            if isinstance(motion, int | float) and isinstance(floor, int | float) and floor > 0
+            else ""
+        )
+        warnings = [str(w) for w in cs.get("warnings", [])]
+        rows.append(
+            (
+                "model adequacy (constant speed)",
+                f"<b>{_esc(cs.get('status', '–'))}</b>: rotor motion off the straight line "
+                f"{c.angle(motion)} RMS{ratio}; "
+                f"{_num(100 * float(cs.get('downweighted_fraction', 0.0)), '.3g')} % of the "
+                "samples down-weighted as outliers"
+                + (f"; {_esc('; '.join(warnings))}" if warnings else ""),
+            )
+        )
+        rows.append(
+            (
+                "constant-speed segment",
+                f"samples {_esc(cs.get('start'))}..{_esc(cs.get('stop'))}, "
+                f"{_num(cs.get('revolutions'), '.3g')} revolutions, Hall noise "
+                f"{_num(cs.get('noise_std'), '.3g')} per channel",
+            )
         )
     else:
         rows.append(("model adequacy", "<span class='meta'>not assessed</span>"))
@@ -1096,9 +1303,15 @@ def render_html(content: ReportContent, images: list[tuple[ReportFigure, bytes]]
         '<meta name="viewport" content="width=device-width, initial-scale=1">',
         f"<title>{_esc(c.title)}</title><style>{_CSS}</style></head><body><main>",
         f"<h1>{_esc(c.title)}</h1>",
-        f'<p class="meta">{c.pole_pairs} pole pairs · sample time '
-        f"{_num(c.setup.sample_time, '.4g')} s · inputs: {_esc(src)} · created {created} · "
-        f"hallcal {_esc(__version__)}</p>",
+        f'<p class="meta">{c.pole_pairs} pole pairs · '
+        + (
+            "time in samples (sample_time = 1)"
+            if c.setup.sample_time == 1.0
+            else f"sample time {_num(c.setup.sample_time, '.4g')} s"
+        )
+        + " · angle errors in "
+        + ("electrical degrees" if c.angle_units == "electrical-deg" else "mechanical mrad")
+        + f" · inputs: {_esc(src)} · created {created} · hallcal {_esc(__version__)}</p>",
         f'<p><span class="status {_status_class(c.status)}">status: {_esc(c.status)}</span></p>',
     ]
     if c.messages or c.notes:
@@ -1191,8 +1404,9 @@ def write_report_from_files(
     bla: str | os.PathLike[str] | None = "auto",
     out_dir: str | os.PathLike[str],
     progress: Progress = None,
+    units: str = "mrad",
 ) -> Path:
-    """``hallcal report ARTIFACT DATA [--validation VAL] --out DIR``.
+    """``hallcal report ARTIFACT DATA [--validation VAL] --out DIR [--units U]``.
 
     Parameters
     ----------
@@ -1208,6 +1422,8 @@ def write_report_from_files(
     out_dir : path-like
         Folder for ``report.html`` and ``figures/``.
     progress : callable, optional
+    units : {"mrad", "electrical-deg"}
+        Units of the angle errors in the text (the figures stay in mrad).
 
     Returns
     -------
@@ -1244,6 +1460,7 @@ def write_report_from_files(
     content = content_from_artifact(
         art, data, validation_data=val, bla=bla_obj, sources=sources, progress=progress
     )
+    content = dataclasses.replace(content, angle_units=units)
     return write_report(content, out_dir, progress=progress)
 
 
@@ -1304,6 +1521,7 @@ def write_calibration_report(
     *,
     validation: Dataset | None = None,
     progress: Progress = None,
+    units: str = "mrad",
 ) -> Path:
     """The report of a calibration object (``Calibration.report``), computed or loaded.
 
@@ -1320,6 +1538,8 @@ def write_calibration_report(
         A fresh recording with ``y_ref``.
     progress : callable, optional
         Called with a short message per step.
+    units : {"mrad", "electrical-deg"}
+        Units of the angle errors in the text.
 
     Returns
     -------
@@ -1332,4 +1552,5 @@ def write_calibration_report(
         )
     else:
         content = content_from_calibration(cal, data, validation_data=validation)
+    content = dataclasses.replace(content, angle_units=units)
     return write_report(content, out_dir, progress=progress)

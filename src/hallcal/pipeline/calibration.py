@@ -23,6 +23,12 @@ from hallcal.errors import CalibrationRefused, HallcalInputError
 from hallcal.io.artifact import ARTIFACT_FORMAT, write_artifact
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup, setup_from_dict
+from hallcal.pipeline.powerup import (
+    identifiability_from_artifact,
+    reconstruct_absolute,
+    same_revolution,
+)
+from hallcal.sensor.absolute import IdentifiabilityReport, PowerUpIdentification
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT
 from hallcal.sensor.metrics import AngleError, SpatialSpectrum, angle_error, spatial_spectrum
@@ -104,11 +110,21 @@ class Validation:
         }
 
 
-def validate(lut: LUT, dataset: Dataset, *, noise_floor: float | None = None) -> Validation:
-    """Errors of f_init and f_star on a dataset with ``y_ref`` (encoder or bench truth)."""
+def validate(
+    lut: LUT,
+    dataset: Dataset,
+    *,
+    noise_floor: float | None = None,
+    angles: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+) -> Validation:
+    """Errors of f_init and f_star on a dataset with ``y_ref`` (encoder or bench truth).
+
+    ``angles``, when given, are the recording's (y_init, y_star) already computed with `lut`.
+    """
     y_ref = dataset["y_ref"]
-    yi = lut.f_init(dataset.d)
-    ys = yi + lut.correction(yi)
+    if angles is None:
+        angles = lut.reconstruct(dataset["d1"], dataset["d2"], dataset["d3"])
+    yi, ys = angles
     ei, es = angle_error(yi, y_ref), angle_error(ys, y_ref)
     return Validation(
         ei,
@@ -131,11 +147,15 @@ class Reconstruction:
         The angles [rad], mechanical.
     validation : Validation or None
         Against the recording's ``y_ref`` when it has one.
+    identification : PowerUpIdentification or None
+        With ``absolute=True``: which pole pair the recording started in, when the sequential
+        test was certain, with what posterior probability.
     """
 
     y_init: NDArray[np.float64] = field(repr=False)
     y_star: NDArray[np.float64] = field(repr=False)
     validation: Validation | None = None
+    identification: PowerUpIdentification | None = None
 
     @property
     def columns(self) -> dict[str, NDArray[np.float64]]:
@@ -195,6 +215,10 @@ class Calibration:
         covariance of its coefficients; None when none was modelled or found.
     cogging_selection : CoggingSelection or None
         How its orders were chosen (evidence and tests).
+    identifiability : IdentifiabilityReport or None
+        How well the pole pair can be identified at power-up from the magnets' signatures
+        (:mod:`hallcal.sensor.absolute`); None without a bijective table or for artifacts
+        made before it existed.
     artifact : dict or None
         The artifact this calibration was loaded from (None when computed here).
     """
@@ -221,6 +245,7 @@ class Calibration:
     constant_speed: ConstantSpeedResult | None = field(default=None, repr=False)
     cogging: CoggingTorque | None = field(default=None, repr=False)
     cogging_selection: CoggingSelection | None = field(default=None, repr=False)
+    identifiability: IdentifiabilityReport | None = field(default=None, repr=False)
     artifact: Mapping[str, Any] | None = field(default=None, repr=False)
 
     @property
@@ -253,8 +278,24 @@ class Calibration:
             raise CalibrationRefused(f"{self.refusal}; no artifact written{hint}")
         write_artifact(path, self.to_artifact())
 
-    def reconstruct(self, data: Dataset, *, y_initial: float = 0.0) -> Reconstruction:
-        """Apply the calibration to a recording (``hallcal reconstruct``)."""
+    def reconstruct(
+        self, data: Dataset, *, y_initial: float = 0.0, absolute: bool = False
+    ) -> Reconstruction:
+        """Apply the calibration to a recording (``hallcal reconstruct [--absolute]``).
+
+        Parameters
+        ----------
+        data : Dataset
+        y_initial : float, keyword-only
+            f_init's angle before the first sample [rad] (the calibration run started at 0).
+        absolute : bool, keyword-only
+            The recording starts at power-up anywhere: identify the pole pair from the
+            magnets' signatures and give the angles in the calibration's frame (modulo one
+            revolution; ``y_initial`` is not used). Raises :class:`CalibrationRefused` when
+            the calibration says the pole pair is not identifiable.
+        """
+        if absolute:
+            return _reconstruct_absolute(self, data)
         return reconstruct_with(self.lut, data, y_initial=y_initial)
 
 
@@ -312,6 +353,8 @@ def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
         "setup": cal.setup,
         "diagnostics": _diagnostics(cal),
     }
+    if cal.identifiability is not None:
+        art["identifiability"] = cal.identifiability.to_dict()
     if cal.plant is not None:
         art["plant"] = {
             "num": list(cal.plant.num),
@@ -352,6 +395,7 @@ def calibration_from_artifact(artifact: Mapping[str, Any]) -> Calibration:
     theta = np.asarray(model.get("theta", np.zeros((3, 2 * len(harmonics) + 1))), float)
     flux = FluxModel(FourierBasis(harmonics), theta)
     status = CalibrationStatus(diag.get("status", "ok"))
+    identifiability = identifiability_from_artifact(artifact)
     plant = None
     plant_source = None
     if "plant" in artifact:
@@ -372,6 +416,7 @@ def calibration_from_artifact(artifact: Mapping[str, Any]) -> Calibration:
         plant_source=plant_source,
         timings=dict(diag.get("timings", {})),
         model_info=dict(model),
+        identifiability=identifiability,
         artifact=artifact,
         cogging=cogging,
     )
@@ -387,22 +432,44 @@ def reconstruct_with(lut: LUT, dataset: Dataset, *, y_initial: float = 0.0) -> R
     """
     if not lut.bijective:
         raise CalibrationRefused("the lookup table is not bijective; refusing to use it")
-    yi = lut.f_init(dataset.d, y_initial=y_initial)
-    ys = yi + lut.correction(yi)
-    val = validate(lut, dataset) if "y_ref" in dataset else None
+    dataset.require("d1", "d2", "d3")
+    yi, ys = lut.reconstruct(dataset["d1"], dataset["d2"], dataset["d3"], y_initial=y_initial)
+    val = validate(lut, dataset, angles=(yi, ys)) if "y_ref" in dataset else None
     return Reconstruction(yi, ys, val)
 
 
+def _reconstruct_absolute(cal: Calibration, dataset: Dataset) -> Reconstruction:
+    """``Calibration.reconstruct(absolute=True)``: see :mod:`hallcal.pipeline.powerup`."""
+    out = reconstruct_absolute(cal.flux, cal.lut, cal.identifiability, dataset.d)
+    validation = None
+    if "y_ref" in dataset:
+        ref = same_revolution(out.y_star, dataset["y_ref"])
+        validation = Validation(
+            angle_error(out.y_init, ref),
+            angle_error(out.y_star, ref),
+            spatial_spectrum(out.y_init - ref, ref),
+            spatial_spectrum(out.y_star - ref, ref),
+        )
+    return Reconstruction(out.y_init, out.y_star, validation, out.identification)
+
+
 def reconstruct(
-    artifact: Mapping[str, Any], dataset: Dataset, *, y_initial: float = 0.0
+    artifact: Mapping[str, Any],
+    dataset: Dataset,
+    *,
+    y_initial: float = 0.0,
+    absolute: bool = False,
 ) -> Reconstruction:
-    """Apply a calibration artifact to a recording (``hallcal reconstruct``).
+    """Apply a calibration artifact to a recording (``hallcal reconstruct [--absolute]``).
 
     Raises
     ------
     CalibrationRefused
-        When the artifact's table is not bijective.
+        When the artifact's table is not bijective, or (``absolute``) when the pole pair is
+        not identifiable with this motor's sensors.
     """
+    if absolute:
+        return calibration_from_artifact(artifact).reconstruct(dataset, absolute=True)
     try:
         lut = lut_from_artifact(artifact)
     except ValueError as exc:

@@ -15,7 +15,7 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -23,18 +23,22 @@ from numpy.typing import NDArray
 from hallcal.errors import HallcalInputError
 from hallcal.fit.adequacy import AdequacyReport, assess
 from hallcal.fit.cogging import CoggingSelection, CoggingStatus, select_cogging
-from hallcal.fit.kernel import KernelSEMResult, solve_kernel_sem
 from hallcal.fit.order import HarmonicSelection, select_harmonics
 from hallcal.fit.sem import SEMResult, solve_sem
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
+from hallcal.pipeline.checks import CheckStatus, check_direction, check_loop, check_pole_pairs
 from hallcal.pipeline.plant import BLAIdentification, PlantModel, closed_loop, plant_model
+from hallcal.pipeline.powerup import power_up_analysis
 from hallcal.pipeline.progress import Progress, say
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.loop import ClosedLoop
+
+if TYPE_CHECKING:
+    from hallcal.fit.kernel import KernelSEMResult
 
 __all__ = ["calibrate_closed_loop"]
 
@@ -104,6 +108,8 @@ class _ModelFit:
 
 
 def _fit_kernel(loop: ClosedLoop, s: _Signals, setup: Setup, *, progress: Progress) -> _ModelFit:
+    from hallcal.fit.kernel import solve_kernel_sem  # loaded only for this basis
+
     say(progress, f"SEM with the periodic kernel basis (m = {setup.model.points})")
     kres = solve_kernel_sem(
         loop,
@@ -315,6 +321,11 @@ def calibrate_closed_loop(
         Called with a short message at each step.
     """
     timings: dict[str, float] = {}
+    dataset.require("r", "d1", "d2", "d3")
+    say(progress, "checking pole pairs and direction against the reference")
+    preflight = [check_pole_pairs(dataset, setup.pole_pairs), check_direction(dataset)]
+    for check in preflight:
+        check.raise_if_failed(dataset.source)
     s = _signals(dataset, setup.pole_pairs)
 
     t0 = time.perf_counter()
@@ -329,8 +340,13 @@ def calibrate_closed_loop(
     )
     if pm.source == "bla":
         timings["plant"] = time.perf_counter() - t0
+    loop_check = check_loop(setup.controller, pm.plant, setup.sample_time, plant_name=pm.name)
+    loop_check.raise_if_failed("setup")
     loop = closed_loop(setup, pm.plant)
     messages = list(s.messages) + [pm.note]
+    if pm.bla is not None:
+        messages += list(pm.bla.messages)
+    messages += [c.text for c in preflight if c.status is CheckStatus.WARNING]
     if pm.gain is not None and pm.gain.status != "ok":
         messages.append(f"warning: gain correction c = {pm.gain.c:.3g} hit its search bound")
 
@@ -365,6 +381,10 @@ def calibrate_closed_loop(
         predicted = math.hypot(predicted, bias)
         if note is not None:
             messages.append(note)
+    say(progress, "power-up identifiability of the pole pair")
+    t0 = time.perf_counter()
+    identifiability = power_up_analysis(fit.flux, lut, s.d)
+    timings["identifiability"] = time.perf_counter() - t0
     validation = None
     if "y_ref" in dataset and lut.bijective:
         validation = validate(lut, dataset, noise_floor=adequacy.noise_floor)
@@ -390,4 +410,5 @@ def calibrate_closed_loop(
         kernel=fit.kernel,
         cogging=cogging,
         cogging_selection=fit.cogging,
+        identifiability=identifiability,
     )

@@ -23,6 +23,8 @@ from hallcal.fit.constant_speed import (
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
+from hallcal.pipeline.checks import CheckStatus, check_pole_pairs
+from hallcal.pipeline.powerup import power_up_analysis
 from hallcal.pipeline.progress import Progress
 from hallcal.sensor.flux import FourierBasis
 
@@ -95,8 +97,20 @@ def calibrate_open_loop(
     n = int(setup.pole_pairs)
     start, stop = _segment(dataset, setup)
     harmonics = _harmonics(setup)
+    pole_pairs = check_pole_pairs(dataset, n)
+    pole_pairs.raise_if_failed(dataset.source)
     warning = _speed_warning(d, start, stop, n)
     messages: list[str] = [] if warning is None else [warning]
+    if pole_pairs.status is CheckStatus.WARNING:
+        messages.append(pole_pairs.text)
+    unused = [f"[{t}]" for t in ("controller", "plant") if getattr(setup, t) is not None]
+    if setup.model.cogging not in ("auto", "none"):
+        unused.append("[model] cogging")
+    if unused:
+        messages.append(
+            f"note: {' and '.join(unused)} {'is' if len(unused) == 1 else 'are'} not used by a "
+            'constant-speed calibration (trajectory.kind = "constant-speed")'
+        )
     if progress is not None:
         progress(
             f"constant-speed calibration on samples {start}..{stop} ({len(harmonics)} harmonics)"
@@ -129,6 +143,11 @@ def calibrate_open_loop(
         status = CalibrationStatus.WARNING
     else:
         status = CalibrationStatus.OK
+    if progress is not None:
+        progress("power-up identifiability of the pole pair")
+    t0 = time.perf_counter()
+    identifiability = power_up_analysis(res.model, res.lut, d, start=start, stop=stop)
+    timings["identifiability"] = time.perf_counter() - t0
     validation = None
     if "y_ref" in dataset and res.lut.bijective:
         validation = validate(res.lut, dataset, noise_floor=res.angle_noise_floor)
@@ -149,4 +168,5 @@ def calibrate_open_loop(
             "theta": res.model.theta.tolist(),
         },
         constant_speed=res,
+        identifiability=identifiability,
     )

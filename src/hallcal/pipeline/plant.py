@@ -8,26 +8,30 @@ the imperfect f_init, the BLA is known up to a gain c, estimated from the calibr
 
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
-import scipy.optimize
 from numpy.typing import NDArray
 
-from hallcal.errors import HallcalInputError
+from hallcal.errors import CalibrationRefused, HallcalInputError
 from hallcal.fit.sem import least_squares_start
-from hallcal.identify import bla as _bla
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
+from hallcal.pipeline.checks import BLAFitCheck, CheckStatus, check_bla_fit
 from hallcal.pipeline.progress import Progress, say
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sim.loop import ClosedLoop, simulate_loop
 from hallcal.sim.lti import ContinuousTF
 
+if TYPE_CHECKING:
+    from hallcal.identify import bla as _bla
+
 __all__ = [
     "BLAIdentification",
+    "BLAStatus",
     "GainCorrection",
     "PlantModel",
     "closed_loop",
@@ -37,6 +41,26 @@ __all__ = [
 ]
 
 TWO_PI = 2.0 * math.pi
+
+
+#: A fit whose weighted cost exceeds this many times the number of lines leaves structure the
+#: model lacks (a good fit gives about one per line; the variance estimate from M = 8
+#: realizations inflates that by about 15 %).
+COST_PER_LINE_WARNING = 3.0
+
+
+class BLAStatus(enum.StrEnum):
+    """Outcome of the BLA identification: ``ok``, ``warning`` (usable, look at the messages) or
+    ``refused`` (the plant model must not be used: :attr:`BLAIdentification.refusal` says why)."""
+
+    OK = "ok"
+    WARNING = "warning"
+    REFUSED = "refused"
+
+    @property
+    def success(self) -> bool:
+        """True when the plant model may be used."""
+        return self is not BLAStatus.REFUSED
 
 
 @dataclass(frozen=True)
@@ -49,35 +73,100 @@ class BLAIdentification:
     parametric : ParametricBLA
     plant : ContinuousTF
         The fitted G(s) with its delay (before the gain correction).
-    status : str
-        "ok", or the two fits' statuses joined by "/" when one is not "ok".
+    status : BLAStatus
+        A plain string is accepted and converted (``"ok"``; anything else is a warning).
+    messages : tuple of str
+        What was chosen (the model order) and what to look at, one line each.
+    refusal : str or None
+        Why the model must not be used (``status`` refused), with the fix.
+    selection : OrderSelection or None
+        The model orders tried when ``[bla] denominator_order = "auto"`` (or to suggest one when
+        the given order gave an unstable fit).
+    check : BLAFitCheck or None
+        Poles of the fitted model: unstable ones, ones the data do not determine.
     """
 
     nonparametric: _bla.NonparametricBLA = field(repr=False)
     parametric: _bla.ParametricBLA = field(repr=False)
     plant: ContinuousTF
-    status: str
+    status: BLAStatus = BLAStatus.OK
+    messages: tuple[str, ...] = ()
+    refusal: str | None = None
+    selection: _bla.OrderSelection | None = field(default=None, repr=False)
+    check: BLAFitCheck | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.status, BLAStatus):
+            value = str(self.status)
+            status = BLAStatus(value) if value in BLAStatus._value2member_map_ else None
+            object.__setattr__(self, "status", status or BLAStatus.WARNING)
 
     def to_dict(self) -> dict[str, Any]:
         """The ``hallcal-bla/1`` JSON document written by ``hallcal bla``."""
-        return {
+        out: dict[str, Any] = {
             "format": "hallcal-bla/1",
             "plant": {
                 "num": list(self.plant.num),
                 "den": list(self.plant.den),
                 "delay": self.plant.delay,
             },
-            "status": self.status,
+            "status": self.status.value,
+            "refusal": self.refusal,
+            "messages": list(self.messages),
             "nonparametric": self.nonparametric.to_dict(),
             "parametric": self.parametric.to_dict(),
         }
+        if self.selection is not None:
+            out["order_selection"] = self.selection.to_dict()
+        if self.check is not None:
+            out["poles"] = [[p.real, p.imag] for p in self.check.poles]
+        return out
+
+
+def _fit_with_order(
+    npb: _bla.NonparametricBLA, setup: Setup
+) -> tuple[_bla.ParametricBLA, int, _bla.OrderSelection | None, list[str]]:
+    """The parametric fit with the setup's order, or with the order chosen from the data."""
+    from hallcal.identify import bla as _bla  # loaded only when a BLA is identified
+
+    spec = setup.bla
+    assert spec is not None
+    options = dict(integrator=spec.integrator, fit_delay=spec.fit_delay)
+    messages: list[str] = []
+    if spec.denominator_order == "auto":
+        selection = _bla.select_order(npb, numerator_order=spec.numerator_order, **options)
+        chosen = selection.chosen or min(selection.candidates, key=lambda c: c.criterion)
+        messages.append(
+            f"plant model: denominator order {chosen.denominator_order} chosen from the data "
+            '([bla] denominator_order = "auto": of the orders 0..3 the stable one with the '
+            f"smallest description length; weighted cost {chosen.cost:.4g} for "
+            f"{selection.lines} lines)"
+        )
+        return chosen.fit, chosen.denominator_order, selection, messages
+    order = int(spec.denominator_order)
+    fit = _bla.fit_parametric(
+        npb, numerator_order=spec.numerator_order, denominator_order=order, **options
+    )
+    selection = None
+    if not fit.stable:  # find an order the data support, for the message
+        selection = _bla.select_order(npb, numerator_order=spec.numerator_order, **options)
+    return fit, order, selection, messages
 
 
 def identify_bla(dataset: Dataset, setup: Setup, *, progress: Progress = None) -> BLAIdentification:
     """Closed-loop BLA from a multisine dataset (Pintelon & Schoukens 2012, sec. 3.8).
 
     The dataset needs columns r, u, y and realization; ``[bla]`` gives the period, the number of
-    transient periods and the parametric model orders.
+    transient periods and the parametric model orders (``denominator_order = "auto"``: chosen
+    from the data, :func:`hallcal.identify.bla.select_order`). The fitted model is checked
+    (:func:`~hallcal.pipeline.checks.check_bla_fit`): an unstable one is refused with the order
+    to use named, poles the data cannot determine give a warning.
+
+    Returns
+    -------
+    BLAIdentification
+        Check :attr:`BLAIdentification.status`; a refused one carries the reason and the fix in
+        :attr:`BLAIdentification.refusal`.
     """
     spec = setup.bla
     if spec is None:
@@ -85,6 +174,8 @@ def identify_bla(dataset: Dataset, setup: Setup, *, progress: Progress = None) -
             f"{dataset.source}: a BLA experiment needs a [bla] table in the setup", key="bla"
         )
     dataset.require("r", "u", "y", "realization")
+    from hallcal.identify import bla as _bla  # loaded only when a BLA is identified
+
     say(progress, "nonparametric BLA (indirect closed-loop method)")
     npb = _bla.nonparametric_bla(
         dataset["r"],
@@ -95,17 +186,56 @@ def identify_bla(dataset: Dataset, setup: Setup, *, progress: Progress = None) -
         transient_periods=spec.transient_periods,
         sample_time=setup.sample_time,
     )
-    say(progress, "parametric fit of G(s) with input delay")
-    par = _bla.fit_parametric(
-        npb,
-        numerator_order=spec.numerator_order,
-        denominator_order=spec.denominator_order,
-        integrator=spec.integrator,
-        fit_delay=spec.fit_delay,
+    auto = spec.denominator_order == "auto"
+    say(
+        progress,
+        "parametric fit of G(s) with input delay"
+        + (", model orders 0..3 compared" if auto else ""),
     )
+    par, order, selection, messages = _fit_with_order(npb, setup)
     plant = ContinuousTF(tuple(par.num), tuple(par.den), max(float(par.delay), 0.0))
-    status = "ok" if (npb.status == "ok" and par.status == "ok") else f"{npb.status}/{par.status}"
-    return BLAIdentification(npb, par, plant, status)
+    suggestion = None
+    if selection is not None and selection.chosen is not None:
+        suggestion = selection.chosen.denominator_order
+    check = check_bla_fit(
+        par,
+        denominator_order=order,
+        max_frequency=float(np.max(npb.freq)),
+        suggestion=suggestion,
+        chosen_from_data=auto,
+    )
+    if npb.status != "ok":
+        messages.append(
+            f"warning: BLA experiment: {npb.status} ({npb.realizations} realizations x "
+            f"{npb.periods} steady-state periods); the variances are incomplete"
+        )
+    if par.status != "ok":
+        messages.append("warning: the parametric fit of G(s) did not converge")
+    lines = int(np.size(par.freq))
+    if lines >= 10 and par.cost > COST_PER_LINE_WARNING * lines:
+        messages.append(
+            f"warning: the plant model leaves {par.cost / lines:.3g} times the BLA's variance per "
+            "line (about 1 for a model that explains it): look at the Bode plot; raise [bla] "
+            'denominator_order or use "auto"'
+        )
+    refusal = None
+    if check.status is CheckStatus.FAILED:
+        status, refusal = BLAStatus.REFUSED, check.text
+    else:
+        if check.status is CheckStatus.WARNING:
+            messages.append(check.text)
+        warned = any(m.startswith("warning") for m in messages)
+        status = BLAStatus.WARNING if warned else BLAStatus.OK
+    return BLAIdentification(
+        npb,
+        par,
+        plant,
+        status,
+        messages=tuple(messages),
+        refusal=refusal,
+        selection=selection,
+        check=check,
+    )
 
 
 @dataclass(frozen=True)
@@ -190,6 +320,8 @@ def estimate_gain(
     vals = [cost(g) for g in grid]
     i = int(np.argmin(vals))
     a, b = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+    import scipy.optimize  # only when a gain is estimated (0.15 s import)
+
     opt = scipy.optimize.minimize_scalar(
         cost, bounds=(a, b), method="bounded", options={"xatol": 1e-5}
     )
@@ -245,6 +377,8 @@ class PlantModel:
     bla : BLAIdentification or None
     gain : GainCorrection or None
         Gain correction of the BLA (None for a given plant).
+    where : str
+        The BLA experiment's file (or ``"[plant]"``), for messages.
     """
 
     plant: ContinuousTF
@@ -252,6 +386,15 @@ class PlantModel:
     note: str
     bla: BLAIdentification | None = None
     gain: GainCorrection | None = None
+    where: str = "[plant]"
+
+    @property
+    def name(self) -> str:
+        """How messages name this plant: ``[plant]`` or ``the BLA of FILE (c = ...)``."""
+        if self.source == "setup":
+            return "[plant]"
+        c = "" if self.gain is None else f", gain-corrected with c = {self.gain.value:.4g}"
+        return f"the BLA of {self.where}{c}"
 
 
 def plant_model(
@@ -301,12 +444,16 @@ def plant_model(
         where = bla_dataset.source
     else:
         where = "the given BLA"
+    if bla.status is BLAStatus.REFUSED:
+        raise CalibrationRefused(
+            f"{where}: {bla.refusal} (nothing was calibrated)", key="bla.denominator_order"
+        )
     if "y" not in dataset:
         raise HallcalInputError(
             f"{dataset.source}: column 'y' is missing (needed for the gain correction c)",
             key="y",
         )
-    say(progress, "gain correction c_hat of the BLA")
+    say(progress, "gain correction c of the BLA (the paper's c-hat)")
     n_m = setup.pole_pairs
     basis = FourierBasis(start_harmonics or tuple(range(1, n_m + 1)))
     d = np.ascontiguousarray(dataset.d)
@@ -315,5 +462,8 @@ def plant_model(
     gain = estimate_gain(closed_loop(setup, bla.plant), dataset["r"], y, flux0)
     note = f"plant: the BLA identified from {where}, gain-corrected with the calibration run"
     if setup.plant is not None:
-        note += " (the setup's [plant] is not used for calibration; it serves the virtual bench)"
-    return PlantModel(bla.plant.scaled(gain.c), "bla", note, bla=bla, gain=gain)
+        note += (
+            " (it wins over the setup's [plant], which is not used for calibration and serves "
+            "only the virtual bench of `hallcal simulate`)"
+        )
+    return PlantModel(bla.plant.scaled(gain.c), "bla", note, bla=bla, gain=gain, where=where)

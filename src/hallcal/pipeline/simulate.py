@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from hallcal.errors import HallcalInputError
-from hallcal.identify.excitation import multisine_experiment
 from hallcal.io.setup import Setup
-from hallcal.sim.bench import PAPER_CONTROLLER, BenchConfig, BenchRun, simulate_run
+from hallcal.pipeline.checks import check_loop
+
+if TYPE_CHECKING:
+    from hallcal.sim.bench import BenchConfig, BenchRun
+
+# The bench (and scipy.signal, which it uses) is imported when a run is simulated, so that
+# importing the pipeline for a calibration does not pay for it.
 
 __all__ = ["bench_config", "simulate"]
 
@@ -20,6 +27,8 @@ def bench_config(setup: Setup) -> BenchConfig:
     HallcalInputError
         When the setup has no ``[plant]`` (the bench needs the true G(s)).
     """
+    from hallcal.sim.bench import PAPER_CONTROLLER, BenchConfig
+
     b = setup.bench
     if setup.plant is None:
         raise HallcalInputError(
@@ -73,8 +82,17 @@ def simulate(
     Returns
     -------
     BenchRun
+
+    Raises
+    ------
+    HallcalInputError
+        No ``[plant]``, or a controller and plant whose closed loop is unstable (the pole named,
+        :func:`~hallcal.pipeline.checks.check_loop`).
     """
+    from hallcal.sim.bench import simulate_run
+
     cfg = bench_config(setup)
+    check_loop(cfg.controller, cfg.plant, setup.sample_time).raise_if_failed("setup")
     kind = experiment or setup.bench.experiment
     if kind == "ramp":
         b = setup.bench
@@ -89,6 +107,8 @@ def simulate(
             raise HallcalInputError(
                 "setup: the multisine experiment needs a [bla] table", source="setup", key="bla"
             )
+        from hallcal.identify.excitation import multisine_experiment
+
         exp = multisine_experiment(
             spec.period_samples,
             setup.sample_time,

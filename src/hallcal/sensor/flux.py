@@ -4,7 +4,7 @@ Section "Model structure" of van Meer et al.: ``g_theta^T(y0) = psi(y0) theta`` 
 ``psi(y0) = I_3 kron beta(y0)`` and a periodic basis ``beta``. Here theta is stored as a 3 x m array
 (row h holds the weights of sensor h), i.e. ``g_h(y0) = beta(y0) @ theta[h]``.
 
-Fourier basis, eq. (basis): ``beta = [1, sin(h_1 y0), cos(h_1 y0), ..., sin(h_n y0), cos(h_n y0)]``
+Fourier basis: ``beta = [1, sin(h_1 y0), cos(h_1 y0), ..., sin(h_n y0), cos(h_n y0)]``
 with mechanical harmonics h (cycles per revolution). The periodic kernel basis of the experiment
 section is, on a uniform grid of centres, diagonalized by these same Fourier modes; it is
 provided by :mod:`hallcal.fit.kernel` on top of this module.
@@ -26,7 +26,7 @@ __all__ = ["FluxModel", "FourierBasis", "sinusoidal_theta"]
 
 @dataclass(frozen=True)
 class FourierBasis:
-    """Fourier basis of eq. (basis) with a constant term and chosen mechanical harmonics.
+    """Fourier basis of the Fourier basis with a constant term and chosen mechanical harmonics.
 
     Parameters
     ----------
@@ -121,7 +121,7 @@ def sinusoidal_theta(
 ) -> NDArray[np.float64]:
     """theta for pure sinusoids ``d_h = o_h + A_h cos(n_m y0 - phi_h)``: the inverse of f_init.
 
-    This is the paper's starting point theta_0 of problem (problem). Requires n_m in the
+    This is the paper's starting point theta_0 of the SEM problem. Requires n_m in the
     harmonics of the basis.
 
     Returns

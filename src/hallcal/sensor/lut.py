@@ -1,9 +1,10 @@
 """The lookup-table correction f_star (section "Designing a reconstruction function").
 
 On M equidistant grid points y0_i in [0, 2 pi) the model predicts what f_init would output,
-``y_hat_i = f_init(g_theta(y0_i))`` (eq. recon_biject, unwrapped around y0_i), and the error
+``y_hat_i = f_init(g_theta(y0_i))`` (unwrapped around y0_i; the bijectivity condition), and the
+error
 ``eta_i = y0_i - y_hat_i``. The correction ``eta(y_hat)`` interpolates the pairs (y_hat_i, eta_i)
-piecewise linearly with wrap-around, and eq. (f_final) gives
+piecewise linearly with wrap-around, and the table correction gives
 ``f_star(d) = f_init(d) + eta(f_init(d))``.
 
 The table is only valid when y0 -> y_hat is bijective (strictly increasing over one revolution);
@@ -12,6 +13,7 @@ The table is only valid when y0 -> y_hat is bijective (strictly increasing over 
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -19,7 +21,14 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from hallcal.sensor.reconstruction import InitReconstructor, clarke_matrix, electrical_angle, f_init
+from hallcal.sensor.reconstruction import (
+    BLOCK_ROWS,
+    InitReconstructor,
+    clarke_matrix,
+    electrical_angle,
+    f_init,
+    f_init_columns,
+)
 
 __all__ = ["LUT", "NotBijectiveError", "StarReconstructor", "build_lut"]
 
@@ -27,12 +36,13 @@ TWO_PI = 2.0 * math.pi
 
 
 class NotBijectiveError(ValueError):
-    """The model's map y0 -> y_hat is not bijective, so eq. (f_final) would give wrong angles."""
+    """The model's map y0 -> y_hat is not bijective, so f_star = f_init + eta would give wrong
+    angles."""
 
 
 @dataclass(frozen=True)
 class LUT:
-    """Lookup table of eq. (f_final) and the f_init it corrects.
+    """Lookup table of f_star = f_init + eta and the f_init it corrects.
 
     Attributes
     ----------
@@ -49,7 +59,7 @@ class LUT:
     eta : ndarray, shape (M,)
         eta_i = y0_i - y_hat_i [rad].
     bijective : bool
-        Whether y_hat is strictly increasing over the revolution, eq. (recon_biject).
+        Whether y_hat is strictly increasing over the revolution, the bijectivity condition.
     min_slope : float
         Smallest finite-difference slope d y_hat / d y0 on the grid (> 0 when bijective).
     """
@@ -67,18 +77,82 @@ class LUT:
     def points(self) -> int:
         return int(self.y_hat.size)
 
+    @functools.cached_property
+    def _periodic_table(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Nodes in [0, 2 pi), sorted, with one wrapped node at each end (what ``np.interp``
+        with ``period`` builds on every call), so that a lookup is a plain ``np.interp``."""
+        xp = np.mod(self.y_hat, TWO_PI)
+        order = np.argsort(xp, kind="stable")
+        xp, fp = xp[order], self.eta[order]
+        xp = np.concatenate([xp[-1:] - TWO_PI, xp, xp[:1] + TWO_PI])
+        fp = np.concatenate([fp[-1:], fp, fp[:1]])
+        return xp, fp
+
     def correction(self, y: ArrayLike) -> NDArray[np.float64]:
         """eta^LUT(y): piecewise-linear interpolation with wrap-around [rad]."""
         self._require_bijective()
-        return np.interp(np.mod(y, TWO_PI), self.y_hat, self.eta, period=TWO_PI)
+        xp, fp = self._periodic_table
+        return np.interp(np.mod(y, TWO_PI), xp, fp)
 
     def f_star(self, d: ArrayLike, *, y_initial: float = 0.0) -> NDArray[np.float64]:
-        """eq. (f_final) over a recording: f_init(d) + eta(f_init(d)), shape (N,) [rad]."""
+        """f_star over a recording: f_init(d) + eta(f_init(d)), shape (N,) [rad]."""
         y = self.f_init(d, y_initial=y_initial)
         return y + self.correction(y)
 
+    def reconstruct(
+        self, d1: ArrayLike, d2: ArrayLike, d3: ArrayLike, *, y_initial: float = 0.0
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """f_init and f_star, eq. (f_final), of a whole recording given as three columns.
+
+        Block by block (:data:`~hallcal.sensor.reconstruction.BLOCK_ROWS` rows), so that the
+        memory beyond the two results does not grow with the recording; the same numbers as
+        :meth:`f_init` and :meth:`f_star`.
+
+        Parameters
+        ----------
+        d1, d2, d3 : array_like, shape (N,)
+            Hall signals.
+        y_initial : float, keyword-only
+            Estimate before the first sample [rad].
+
+        Returns
+        -------
+        y_init, y_star : ndarray, shape (N,)
+            [rad], mechanical.
+
+        Raises
+        ------
+        NotBijectiveError
+            When the table is not bijective.
+        """
+        self._require_bijective()
+        y_init = f_init_columns(
+            d1,
+            d2,
+            d3,
+            self.pole_pairs,
+            y_initial=y_initial,
+            projection=self.projection,
+            offset=self.offset,
+        )
+        xp, fp = self._periodic_table
+        y_star = np.empty_like(y_init)
+        wrapped = np.empty(min(BLOCK_ROWS, y_init.size))
+        for start in range(0, y_init.size, BLOCK_ROWS):
+            y = y_init[start : start + BLOCK_ROWS]
+            w = wrapped[: y.size]
+            # y mod 2 pi as y - 2 pi floor(y / 2 pi): three quick passes instead of np.mod; a
+            # result a rounding error outside [0, 2 pi) still lies on the padded table
+            np.divide(y, TWO_PI, out=w)
+            np.floor(w, out=w)
+            w *= -TWO_PI
+            w += y
+            eta = np.interp(w, xp, fp)
+            np.add(y, eta, out=y_star[start : start + y.size])
+        return y_init, y_star
+
     def f_init(self, d: ArrayLike, *, y_initial: float = 0.0) -> NDArray[np.float64]:
-        """The f_init this table corrects, eq. (fimp) [rad]."""
+        """The f_init (Clarke + atan2 + unwrap) this table corrects [rad]."""
         return f_init(
             d, self.pole_pairs, y_initial=y_initial, projection=self.projection, offset=self.offset
         )
@@ -168,7 +242,7 @@ def build_lut(
     y0 = TWO_PI * np.arange(M) / M
     psi = electrical_angle(np.asarray(g(y0)), projection=projection, offset=offset)
     n = int(pole_pairs)
-    # Gamma(psi, n y0_i): f_init with the previous estimate phi = y0_i, eq. (recon_biject)
+    # Gamma(psi, n y0_i): f_init with the previous estimate phi = y0_i, the bijectivity condition
     y_hat = (n * y0 + np.mod(psi - n * y0 + math.pi, TWO_PI) - math.pi) / n
     eta = y0 - y_hat
     bij, slope = _bijectivity(y0, y_hat)
@@ -186,7 +260,7 @@ def build_lut(
 
 
 class StarReconstructor:
-    """Streaming f_star, eq. (f_final): one sample at a time, as firmware runs it.
+    """Streaming f_star = f_init + eta(f_init): one sample at a time, as firmware runs it.
 
     Note that the f_init inside runs on its own (uncorrected) previous estimate, as in the paper:
     the table corrects the output, not the unwrapping state.

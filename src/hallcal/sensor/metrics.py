@@ -1,6 +1,6 @@
 """Validation metrics: RMS and peak angle error and the cumulative PSD over spatial frequency.
 
-Section "Results" of van Meer et al. (Figs. sim_eta, exp_eta and exp_spectrum): the angle error
+Section "Results" of van Meer et al. (Figs. 5, 7 and 8): the angle error
 of f_init and f_star against an encoder (or the virtual bench's true angle), and the cumulative
 power spectral density of the error versus spatial frequency in cycles per revolution, where the
 pole-pair harmonic n_m stands out before calibration.
@@ -91,7 +91,7 @@ class SpatialSpectrum:
 def spatial_spectrum(
     error: ArrayLike, position: ArrayLike, *, points_per_rev: int | None = None
 ) -> SpatialSpectrum:
-    """Cumulative PSD of an angle error over spatial frequency (Fig. exp_spectrum).
+    """Cumulative PSD of an angle error over spatial frequency (Fig. 8).
 
     The samples are ordered by position and the error is taken at the nearest sample on a
     uniform grid of the position over a whole number of revolutions when possible, so that

@@ -1,6 +1,7 @@
 """Initial angle reconstruction f_init: Clarke transform, atan2 and unwrapping.
 
-Implements eq. (fimp) of van Meer et al., "Self-Calibrating Position Measurements: Applied to
+Implements f_init (Clarke + atan2 + unwrap) of van Meer et al., "Self-Calibrating Position
+Measurements: Applied to
 Imperfect Hall Sensors" (section "Collecting data"): the three Hall signals d = [d1, d2, d3] are
 projected on the electrical alpha/beta plane, the electrical angle atan2(beta, alpha) is unwrapped
 relative to n_m times the previous estimate (the unwrapping function Gamma), and the result is
@@ -28,18 +29,22 @@ __all__ = [
     "clarke_matrix",
     "electrical_angle",
     "f_init",
+    "f_init_columns",
     "f_init_step",
     "projection_matrix",
     "unwrap_to",
 ]
 
 TWO_PI = 2.0 * math.pi
+#: Rows per block of the whole-recording functions: memory beyond the result is a few work
+#: arrays of this many float64 (2 MiB each), whatever the length of the recording.
+BLOCK_ROWS = 1 << 18
 #: Nominal electrical phases of the three sensors [rad]: 0, 120 and 240 degrees.
 NOMINAL_PHASES = (0.0, TWO_PI / 3.0, 2.0 * TWO_PI / 3.0)
 
 
 def clarke_matrix() -> NDArray[np.float64]:
-    """The amplitude-invariant Clarke matrix C of eq. (fimp) (3 x 3).
+    """The amplitude-invariant Clarke matrix C of f_init (3 x 3).
 
     Rows give alpha, beta and the zero-sequence component of ``C @ d``.
     """
@@ -106,7 +111,7 @@ def electrical_angle(d: ArrayLike, **kwargs) -> NDArray[np.float64]:
 
 
 def unwrap_to(angle: float, reference: float) -> float:
-    """The unwrapping function Gamma of eq. (fimp).
+    """The unwrapping function Gamma of f_init.
 
     ``Gamma(angle, reference) = reference + mod(angle - reference + pi, 2 pi) - pi``: the value
     congruent to ``angle`` modulo 2 pi nearest to ``reference`` (ties go to ``reference - pi``).
@@ -126,7 +131,7 @@ def f_init_step(
     projection: ArrayLike | None = None,
     offset: ArrayLike | None = None,
 ) -> float:
-    """One sample of f_init, eq. (fimp): ``y_k = Gamma(atan2(beta, alpha), n_m y_{k-1}) / n_m``.
+    """One sample of f_init: ``y_k = Gamma(atan2(beta, alpha), n_m y_{k-1}) / n_m``.
 
     Parameters
     ----------
@@ -194,7 +199,7 @@ def f_init(
     projection: ArrayLike | None = None,
     offset: ArrayLike | None = None,
 ) -> NDArray[np.float64]:
-    """f_init over a whole recording, eq. (fimp), vectorized.
+    """f_init (Clarke + atan2 + unwrap) over a whole recording, vectorized.
 
     Equal to running :class:`InitReconstructor` sample by sample (to rounding, about 1e-13
     rad): each output is ``(psi_k + 2 pi m_k) / n_m`` with the wrapped electrical angle psi_k and
@@ -218,17 +223,109 @@ def f_init(
     -------
     ndarray, shape (N,)
         y [rad, mechanical].
+
+    See Also
+    --------
+    f_init_columns : the same from three separate columns, block by block.
     """
-    psi = electrical_angle(np.atleast_2d(d), projection=projection, offset=offset)
+    x = np.atleast_2d(np.asarray(d, dtype=np.float64))
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ValueError(f"d must have shape (N, 3), got {x.shape}")
+    return f_init_columns(
+        x[:, 0],
+        x[:, 1],
+        x[:, 2],
+        pole_pairs,
+        y_initial=y_initial,
+        projection=projection,
+        offset=offset,
+    )
+
+
+def f_init_columns(
+    d1: ArrayLike,
+    d2: ArrayLike,
+    d3: ArrayLike,
+    pole_pairs: int,
+    *,
+    y_initial: float = 0.0,
+    projection: ArrayLike | None = None,
+    offset: ArrayLike | None = None,
+    out: NDArray[np.float64] | None = None,
+) -> NDArray[np.float64]:
+    """f_init, eq. (fimp), of a recording given as three columns, in blocks of rows.
+
+    The same numbers as :func:`f_init` (the projection is evaluated term by term in the order of
+    :class:`InitReconstructor`), without forming the (N, 3) matrix: memory beyond the output is
+    a few blocks of :data:`BLOCK_ROWS` rows, whatever the length of the recording.
+
+    Parameters
+    ----------
+    d1, d2, d3 : array_like, shape (N,)
+        Hall signals.
+    pole_pairs : int
+        n_m >= 1.
+    y_initial : float
+        Estimate before the first sample [rad].
+    projection, offset : optional
+        As in :func:`alpha_beta`.
+    out : ndarray, shape (N,), optional
+        float64 array to write the result into.
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        y [rad, mechanical].
+    """
+    cols = [np.asarray(c, dtype=np.float64) for c in (d1, d2, d3)]
+    N = cols[0].shape[0]
+    if any(c.ndim != 1 or c.shape[0] != N for c in cols):
+        raise ValueError("d1, d2 and d3 must be 1-D arrays of the same length")
+    P = clarke_matrix()[:2] if projection is None else np.asarray(projection, dtype=np.float64)
+    o = np.zeros(3) if offset is None else np.asarray(offset, dtype=np.float64)
     n = int(pole_pairs)
-    if psi.size == 0:
-        return psi.copy()
-    # The turn count follows from the wrapped differences, anchored at n*y_initial.
-    e0 = n * float(y_initial)
-    first = unwrap_to(float(psi[0]), e0)
-    turns = np.empty(psi.shape, dtype=np.float64)
-    turns[0] = np.round((first - psi[0]) / TWO_PI)
-    dpsi = np.diff(psi)
-    jumps = -np.floor((dpsi + math.pi) / TWO_PI)  # mod(x + pi, 2 pi) - pi = x + 2 pi * jump
-    turns[1:] = turns[0] + np.cumsum(jumps)
-    return (psi + TWO_PI * turns) / n
+    y = np.empty(N) if out is None else out
+    if y.shape != (N,) or y.dtype != np.float64:
+        raise ValueError(f"out must be a float64 array of shape ({N},)")
+    if N == 0:
+        return y
+    # work arrays for one block, reused: every step below writes into them
+    size = min(BLOCK_ROWS, N)
+    x, tmp, alpha, beta, jumps = (np.empty(size) for _ in range(5))
+    turns = 0.0
+    psi_last = 0.0
+    for start in range(0, N, BLOCK_ROWS):
+        stop = min(start + BLOCK_ROWS, N)
+        k = stop - start
+        xk, tk, al, be, jp = x[:k], tmp[:k], alpha[:k], beta[:k], jumps[:k]
+        # alpha, beta = P (d - offset), term by term in the order of InitReconstructor
+        al.fill(0.0)
+        be.fill(0.0)
+        for h, c in enumerate(cols):
+            xh = c[start:stop] if o[h] == 0.0 else np.subtract(c[start:stop], o[h], out=xk)
+            np.multiply(xh, P[0, h], out=tk)
+            al += tk
+            np.multiply(xh, P[1, h], out=tk)
+            be += tk
+        psi = np.arctan2(be, al, out=al)
+        if start == 0:
+            # the turn count of the first sample is anchored at n * y_initial
+            first = unwrap_to(float(psi[0]), n * float(y_initial))
+            turns = float(np.round((first - psi[0]) / TWO_PI))
+            psi_last = float(psi[0])
+        # mod(x + pi, 2 pi) - pi = x + 2 pi * jump: the turn count changes by the jumps of psi
+        jp[0] = psi[0] - psi_last
+        np.subtract(psi[1:], psi[:-1], out=jp[1:])
+        jp += math.pi
+        jp /= TWO_PI
+        np.floor(jp, out=jp)
+        np.negative(jp, out=jp)
+        np.cumsum(jp, out=jp)
+        jp += turns  # whole numbers: the sums are exact, blocks change nothing
+        turns = float(jp[-1])
+        psi_last = float(psi[-1])
+        out_k = y[start:stop]
+        np.multiply(jp, TWO_PI, out=out_k)
+        out_k += psi
+        out_k /= n
+    return y

@@ -46,6 +46,8 @@ __all__ = [
     "BenchConfig",
     "BenchRun",
     "noise_floor",
+    "power_up_run",
+    "power_up_start",
     "ramp_run",
     "shape_deformation",
     "simulate_run",
@@ -385,6 +387,7 @@ def simulate_run(
     *,
     seed: int | None = None,
     realization: ArrayLike | None = None,
+    initial_angle: float = 0.0,
 ) -> BenchRun:
     """Run the closed loop of the bench on a reference r.
 
@@ -396,6 +399,13 @@ def simulate_run(
     seed : int, keyword-only
         Seed of this run's noise and disturbance (default: ``config.seed``); the truth depends on
         ``config.seed`` only, so runs with other seeds are fresh realizations on the same motor.
+    initial_angle : float, keyword-only
+        True rotor angle at the first sample [rad, in the truth's frame]: a power-up wherever
+        the rotor stopped. f_init (and so the loop) still starts from y = 0 before the first
+        sample, i.e. from its own atan2 within one electrical period, so ``y`` and ``y0`` differ
+        by about a whole number of pole pairs ``2 pi j / n_m``. The reference should start
+        near f_init's first value (:func:`power_up_start`) to avoid a step. Default 0: the
+        calibration convention (y0 = 0 at the first sample).
     """
     r = np.asarray(r, dtype=np.float64)
     N = r.size
@@ -405,7 +415,13 @@ def simulate_run(
     td = _lowpass_noise(rng, N, config.torque_disturbance, config.sample_time)
     truth = config.truth()
     res = simulate_loop(
-        config.loop(), truth, r, noise=noise, torque_disturbance=td, cogging=config.cogging_torque()
+        config.loop(),
+        truth,
+        r,
+        noise=noise,
+        torque_disturbance=td,
+        cogging=config.cogging_torque(),
+        initial_angle=float(initial_angle),
     )
     return BenchRun(
         t=config.sample_time * np.arange(N),
@@ -432,6 +448,39 @@ def ramp_run(
     N = int(round(duration / config.sample_time))
     r = np.linspace(0.0, ramp_end, N, endpoint=False)
     return simulate_run(config, r, seed=seed)
+
+
+def power_up_start(config: BenchConfig, initial_angle: float) -> float:
+    """f_init's noise-free first output [rad] when the rotor powers up at ``initial_angle``.
+
+    f_init starts from y = 0, so this is the true flux's electrical angle at ``initial_angle``
+    unwrapped into [-pi/n_m, pi/n_m): the value a power-up reference should start from.
+    """
+    g = config.truth()(np.array([float(initial_angle)]))[0]
+    P = config.loop().projection
+    a, b = P @ (g - config.loop().offset)
+    n = config.pole_pairs
+    return (math.fmod(math.fmod(math.atan2(b, a) + math.pi, TWO_PI) + TWO_PI, TWO_PI) - math.pi) / n
+
+
+def power_up_run(
+    config: BenchConfig,
+    initial_angle: float,
+    *,
+    samples: int,
+    speed: float = 0.0,
+    seed: int | None = None,
+) -> BenchRun:
+    """A run after a power-up at ``initial_angle`` [rad]: hold still (speed 0) or ramp.
+
+    The reference starts at f_init's first value (:func:`power_up_start`) and moves at
+    ``speed`` [rad/s] relative to f_init's frame, so the loop starts without a step. The true
+    angle ``y0`` is in the truth's frame (the calibration's frame when the calibration run
+    started at y0 = 0), while f_init starts within one electrical period of zero.
+    """
+    y_start = power_up_start(config, initial_angle)
+    r = y_start + speed * config.sample_time * np.arange(int(samples))
+    return simulate_run(config, r, seed=seed, initial_angle=initial_angle)
 
 
 def with_changes(config: BenchConfig, **changes) -> BenchConfig:

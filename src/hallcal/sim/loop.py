@@ -58,6 +58,15 @@ __all__ = [
 TWO_PI = 2.0 * math.pi
 
 
+def _kernel_array(a: ArrayLike) -> NDArray[np.float64]:
+    """float64, C-contiguous and writeable: the one array type the numba kernels are compiled for.
+
+    A read-only array (a dataset's column, a frozen theta) would make numba compile and cache a
+    second specialization of every kernel it reaches; a copy of such an input is cheap.
+    """
+    return np.require(a, dtype=np.float64, requirements=("C", "W"))
+
+
 class LoopStatus(enum.StrEnum):
     """Outcome of a closed-loop simulation or sensitivity pass."""
 
@@ -136,15 +145,15 @@ class ClosedLoop:
     def _arrays(self) -> tuple:
         p, c = self.plant, self.controller
         return (
-            np.ascontiguousarray(p.A, dtype=np.float64),
-            np.ascontiguousarray(p.B, dtype=np.float64),
-            np.ascontiguousarray(p.C, dtype=np.float64),
-            np.ascontiguousarray(c.A, dtype=np.float64),
-            np.ascontiguousarray(c.B, dtype=np.float64),
-            np.ascontiguousarray(c.C, dtype=np.float64),
+            _kernel_array(p.A),
+            _kernel_array(p.B),
+            _kernel_array(p.C),
+            _kernel_array(c.A),
+            _kernel_array(c.B),
+            _kernel_array(c.C),
             float(c.D),
-            np.ascontiguousarray(self.projection, dtype=np.float64),
-            np.ascontiguousarray(self.offset, dtype=np.float64),
+            _kernel_array(self.projection),
+            _kernel_array(self.offset),
         )
 
 
@@ -315,7 +324,25 @@ def _cogging(orders, coef, y0):
 
 @nb.njit(cache=True)
 def _simulate_kernel(
-    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, noise, td, cog_k, cog_x, y_init
+    Ag,
+    Bg,
+    Cg,
+    Ac,
+    Bc,
+    Cc,
+    Dc,
+    P,
+    off,
+    n_m,
+    harm,
+    theta,
+    r,
+    noise,
+    td,
+    cog_k,
+    cog_x,
+    y_init,
+    y0_start,
 ):
     N = r.size
     ng = Ag.shape[0]
@@ -333,11 +360,11 @@ def _simulate_kernel(
     ds = np.empty((N, 3))
     ts = np.empty(N)
     yprev = y_init
-    y0_last = 0.0
+    y0_last = y0_start
     ok = True
     dk = np.empty(3)
     for k in range(N):
-        y0 = 0.0
+        y0 = y0_start
         for i in range(ng):
             y0 += Cg[i] * xg[i]
         _basis(y0, harm, b, db)
@@ -482,7 +509,7 @@ def _jacobian_kernel(
 
 
 def _harmonics_of(flux: FluxModel) -> NDArray[np.float64]:
-    return np.ascontiguousarray(flux.basis.harmonic_array)
+    return _kernel_array(flux.basis.harmonic_array)
 
 
 def _cogging_arrays(*torques: CoggingTorque | None) -> tuple[NDArray, NDArray]:
@@ -504,6 +531,7 @@ def simulate_loop(
     torque_disturbance: ArrayLike | None = None,
     cogging: CoggingTorque | None = None,
     y_initial: float = 0.0,
+    initial_angle: float = 0.0,
 ) -> LoopResult:
     """Simulate eq. (state_eq) with optional sensor noise, torque disturbance and cogging.
 
@@ -522,31 +550,33 @@ def simulate_loop(
         Position-periodic torque T_c(y0) added to the plant input.
     y_initial : float
         f_init's estimate before the first sample [rad].
+    initial_angle : float, keyword-only
+        True angle at the first sample [rad]: the plant starts at rest with
+        ``y0 = initial_angle + C_G x_G`` (a power-up at an arbitrary rotor position; f_init still
+        starts from ``y_initial``). The flux, the cogging torque and the returned ``y0`` are all
+        at this true angle. Default 0, the convention of DESIGN.md.
 
     Returns
     -------
     LoopResult
     """
-    r = np.ascontiguousarray(r, dtype=np.float64)
+    r = _kernel_array(r)
     N = r.size
-    v = np.zeros((N, 3)) if noise is None else np.ascontiguousarray(noise, dtype=np.float64)
-    td = (
-        np.zeros(N)
-        if torque_disturbance is None
-        else np.ascontiguousarray(torque_disturbance, dtype=np.float64)
-    )
+    v = np.zeros((N, 3)) if noise is None else _kernel_array(noise)
+    td = np.zeros(N) if torque_disturbance is None else _kernel_array(torque_disturbance)
     if v.shape != (N, 3) or td.shape != (N,):
         raise ValueError("noise must be (N, 3) and torque_disturbance (N,)")
     y0, y, u, d, tq, ok = _simulate_kernel(
         *loop._arrays(),
         float(loop.pole_pairs),
         _harmonics_of(flux),
-        np.ascontiguousarray(flux.theta),
+        _kernel_array(flux.theta),
         r,
         v,
         td,
         *_cogging_arrays(loop.cogging, cogging),
         float(y_initial),
+        float(initial_angle),
     )
     return LoopResult(y0, y, u, d, tq, LoopStatus.OK if ok else LoopStatus.DIVERGED)
 
@@ -588,7 +618,7 @@ def loop_jacobian(
     -------
     LoopJacobian
     """
-    r = np.ascontiguousarray(r, dtype=np.float64)
+    r = _kernel_array(r)
     N = r.size
     n_fit = len(cogging.orders) if (fit_cogging and cogging is not None) else 0
     # the fitted orders first (their columns), then the loop's own, fixed cogging torque
@@ -601,7 +631,7 @@ def loop_jacobian(
         *loop._arrays(),
         float(loop.pole_pairs),
         _harmonics_of(flux),
-        np.ascontiguousarray(flux.theta),
+        _kernel_array(flux.theta),
         r,
         float(y_initial),
         jac,

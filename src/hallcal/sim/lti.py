@@ -19,8 +19,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
-import scipy.signal
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
@@ -85,8 +83,19 @@ def tf2ss(num: ArrayLike, den: ArrayLike, *, dt: float | None = None) -> StateSp
         raise ValueError("transfer function must be proper (deg num <= deg den)")
     if den.size == 1:
         return StateSpace(np.zeros((0, 0)), np.zeros(0), np.zeros(0), float(num[-1] / den[0]), dt)
-    A, B, C, D = scipy.signal.tf2ss(num, den)
-    return StateSpace(A, B[:, 0].copy(), C[0].copy(), float(D[0, 0]), dt)
+    # Controllable canonical form (the one of scipy.signal.tf2ss, which the tests use as the
+    # oracle): with den monic of degree n and num padded to n + 1 coefficients,
+    # A = [-den[1:]; I 0], B = e_1, D = num[0], C = num[1:] - num[0] den[1:].
+    n = den.size - 1
+    num = np.concatenate([np.zeros(den.size - num.size), num]) / den[0]
+    den = den / den[0]
+    A = np.zeros((n, n))
+    A[0] = -den[1:]
+    A[1:, :-1] = np.eye(n - 1)
+    B = np.zeros(n)
+    B[0] = 1.0
+    C = num[1:] - num[0] * den[1:]
+    return StateSpace(A, B, C, float(num[0]), dt)
 
 
 @dataclass(frozen=True)
@@ -120,7 +129,7 @@ class ContinuousTF:
         return np.polyval(self.num, s) / np.polyval(self.den, s) * np.exp(-s * self.delay)
 
     def scaled(self, c: float) -> ContinuousTF:
-        """c G(s) (the gain correction of eq. c_hat multiplies the plant by a constant)."""
+        """c G(s) (the gain correction c-hat multiplies the plant by a constant)."""
         return ContinuousTF(tuple(c * v for v in self.num), self.den, self.delay)
 
     def discretize(self, sample_time: float) -> StateSpace:
@@ -151,6 +160,8 @@ class DiscreteTF:
 
 def _zoh_integrals(A: NDArray, B: NDArray, t: float) -> tuple[NDArray, NDArray]:
     """(e^{A t}, int_0^t e^{A s} ds B) from one matrix exponential (Van Loan 1978)."""
+    import scipy.linalg  # here, not at module level: reading a setup should not load it
+
     n = A.shape[0]
     M = np.zeros((n + 1, n + 1))
     M[:n, :n] = A * t

@@ -1,0 +1,829 @@
+"""Numeric design of the generated firmware: the lean table, plausibility windows, error budget.
+
+:mod:`hallcal.output.codegen` writes C; this module decides the numbers it writes, so that they
+can be checked here without a C compiler:
+
+* :func:`design_firmware` reads a calibration artifact and returns a :class:`FirmwareDesign`:
+  the correction table resampled to a uniform grid over one mechanical revolution, the
+  plausibility windows of the samples, the step limit and the error budget.
+* The correction table (:class:`CorrectionTable`) replaces the artifact's M nodes
+  ``(y_hat_i, eta_i)`` (piecewise-linear, eq. (f_final)) by a uniform piecewise quadratic:
+  ``eta(x) = T_i (1 - f) + T_(i+1) f + c_i f (1 - f)`` with ``x = 2 pi (i + f) / M``, ``T`` in
+  int16 and ``c`` in int8, both in power-of-two fractions of a turn. The values are fitted by
+  least squares to the artifact's own interpolant (what ``hallcal reconstruct`` computes), and the
+  largest difference to it is computed exactly (both are piecewise polynomials: their difference
+  is checked at every breakpoint and at every vertex). The size is M = n_m 2^k intervals (a
+  power of two per electrical turn, so that the firmware finds the interval from f_init's turn
+  and electrical angle with shifts); the table is the cheapest whose difference is within the
+  budget: a tenth of the calibration's noise floor (so the table
+  adds at most 0.5 % to the RMS error in quadrature), and never more than 1e-5 rad.
+* Plausibility (:class:`Plausibility`): each Hall channel must lie in its calibrated range, and
+  the alpha/beta radius in its calibrated window, both widened by a relative ``tolerance`` (drift
+  of gain and magnet with temperature) and six noise sigmas; the electrical step from the last
+  accepted sample must be within ``step_limit`` (grown by ``step_limit`` for each sample held).
+  With ``step_limit = 2 w + m`` (w the largest speed, m six sigmas of the step noise), one
+  glitch sample cannot make the unwrap slip as long as ``6 w + m < 1/2`` electrical turn: an
+  accepted glitch is at most ``L + w`` away from the true angle, the following samples are held
+  until the grown limit admits them (at most two), and by then the true angle is at most
+  ``L + 4 w < 1/2`` turn away (:attr:`Plausibility.glitch_safe_step`).
+
+Units: angles in rad unless a name says turns (1 turn = 2 pi rad); "electrical" angles are
+n_m times the mechanical ones. Hall signals are in the artifact's unit.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sparse
+import scipy.sparse.linalg as sparse_linalg
+from numpy.typing import NDArray
+
+from hallcal.errors import HallcalInputError
+from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sensor.lut import LUT
+
+__all__ = [
+    "ARTIFACT_FORMAT",
+    "DEFAULT_BUDGET",
+    "DEFAULT_FAULT_AFTER",
+    "DEFAULT_STEP_LIMIT",
+    "DEFAULT_TOLERANCE",
+    "MAX_POLE_PAIRS",
+    "table_sizes",
+    "MAX_TABLE_POINTS",
+    "CorrectionTable",
+    "FirmwareDesign",
+    "Plausibility",
+    "design_firmware",
+    "fit_table",
+]
+
+TWO_PI = 2.0 * math.pi
+#: The artifact format this exporter reads.
+ARTIFACT_FORMAT = "hallcal-calibration/1"
+#: Largest table: M = n_m 2^k <= this many intervals.
+MAX_TABLE_POINTS = 16384
+#: Largest linear table the exporter chooses by itself (int16: 4 kB).
+MAX_LINEAR_POINTS = 2048
+#: Budget for the table's difference to the artifact's interpolant [rad] when the artifact
+#: states no noise floor.
+DEFAULT_BUDGET = 1e-6
+#: Budget never above this [rad] (the acceptance bound of the firmware against Python).
+MAX_BUDGET = 1e-5
+#: Fraction of the noise floor the table may use.
+BUDGET_FRACTION = 0.1
+#: Relative widening of the calibrated amplitude windows (gain and magnet drift).
+DEFAULT_TOLERANCE = 0.25
+#: Step limit without a maximum speed [electrical turns per sample]: 45 electrical degrees.
+DEFAULT_STEP_LIMIT = 0.125
+#: Consecutive rejected samples after which the state flags a fault.
+DEFAULT_FAULT_AFTER = 8
+#: Largest number of pole pairs (the fixed-point variant keeps a table of n_m turn starts).
+MAX_POLE_PAIRS = 1024
+#: Noise sigmas added to every window.
+NOISE_SIGMAS = 6.0
+_MODEL_GRID = 4096  # points per revolution to evaluate the flux model for the windows
+_FIT_PER_INTERVAL = 8  # least-squares points per table interval (besides the artifact's nodes)
+
+
+@dataclass(frozen=True)
+class CorrectionTable:
+    """The uniform piecewise-quadratic correction table of the firmware.
+
+    ``eta(x) = (T[i] (1 - f) + T[i+1] f + 2^k C[i] f (1 - f)) 2^-s`` turns, with
+    ``x / (2 pi) = (i + f) / M`` turns, ``0 <= f < 1``, indices modulo M (wrap-around). A linear
+    table has no curvatures (C = 0).
+
+    Attributes
+    ----------
+    points : int
+        M = n_m 2^k, intervals per revolution.
+    quadratic : bool
+        Whether the table has curvatures (piecewise quadratic) or not (piecewise linear).
+    values : ndarray of int16, shape (M,)
+        T, in units of 2^-s turn.
+    curvature : ndarray of int8, shape (M,)
+        C, in units of 2^(k - s) turn (zeros for a linear table).
+    shift : int
+        s: one unit of T is 2^-s turn.
+    curvature_shift : int
+        k: one unit of C is 2^k units of T.
+    error : float
+        Largest |eta_table - eta_artifact| over the revolution [rad], exact (in double).
+    rms_error : float
+        RMS of that difference over the revolution [rad].
+    """
+
+    points: int
+    quadratic: bool
+    values: NDArray[np.int16]
+    curvature: NDArray[np.int8]
+    shift: int
+    curvature_shift: int
+    error: float
+    rms_error: float
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the table(s) in flash."""
+        return 3 * self.points if self.quadratic else 2 * self.points
+
+    @property
+    def lsb_rad(self) -> float:
+        """One unit of T [rad]."""
+        return TWO_PI * 2.0**-self.shift
+
+    def correction(self, y: NDArray[np.float64] | float) -> NDArray[np.float64]:
+        """eta of the table at mechanical angles ``y`` [rad] (double precision)."""
+        pos = np.mod(np.asarray(y, dtype=np.float64), TWO_PI) * (self.points / TWO_PI)
+        i = np.minimum(np.floor(pos).astype(np.int64), self.points - 1)
+        f = pos - i
+        t = self.values.astype(np.float64)
+        c = self.curvature.astype(np.float64) * 2.0**self.curvature_shift
+        j = (i + 1) % self.points
+        return (t[i] * (1.0 - f) + t[j] * f + c[i] * f * (1.0 - f)) * self.lsb_rad
+
+
+@dataclass(frozen=True)
+class Plausibility:
+    """What a plausible sample looks like, from the calibration.
+
+    Attributes
+    ----------
+    tolerance : float
+        Relative widening of the calibrated ranges (gain and magnet drift).
+    channel_lo, channel_hi : ndarray, shape (3,)
+        Range of each Hall channel (artifact unit).
+    radius_lo, radius_hi : float
+        Window of the alpha/beta radius |P (d - o)| (artifact unit).
+    radius_model : tuple of float
+        Smallest and largest radius of the calibrated model over the revolution.
+    noise_sigma : float
+        Hall noise per channel used for the margins (artifact unit; 0 if unknown).
+    step_limit : float
+        Largest electrical step from the last accepted sample [turns per sample]; grows by
+        itself for each sample held.
+    step_noise : float
+        Six sigmas of the step's noise [electrical turns], included in ``step_limit``.
+    max_speed : float or None
+        The maximum speed the step limit was derived from [rad/s mechanical], or None for the
+        default limit.
+    glitch_safe_step : float
+        Largest true step [electrical turns per sample] at which one glitch sample cannot make
+        the unwrap slip.
+    fault_after : int
+        Consecutive rejected samples after which the state flags a fault (latched).
+    """
+
+    tolerance: float
+    channel_lo: NDArray[np.float64]
+    channel_hi: NDArray[np.float64]
+    radius_lo: float
+    radius_hi: float
+    radius_model: tuple[float, float]
+    noise_sigma: float
+    step_limit: float
+    step_noise: float
+    max_speed: float | None
+    glitch_safe_step: float
+    fault_after: int
+
+
+@dataclass(frozen=True)
+class FirmwareDesign:
+    """Everything the generated C needs, in double precision.
+
+    Attributes
+    ----------
+    pole_pairs : int
+    projection : ndarray, shape (2, 3)
+    offset : ndarray, shape (3,)
+    rejects_common_mode : bool
+        Whether each row of the projection sums to zero (then the firmware rejects a common
+        mode exactly).
+    lut : LUT
+        The artifact's table (the reference: ``hallcal reconstruct``).
+    table : CorrectionTable
+    plausibility : Plausibility
+    noise_floor : float or None
+        RMS angle error the Hall noise causes [rad], from the artifact.
+    budget : float
+        What the table may differ from the artifact's interpolant [rad].
+    sample_time : float or None
+        From the artifact's setup [s] (1.0: time in samples).
+    sha256 : str
+        Of the artifact's canonical JSON.
+    messages : tuple of str
+    """
+
+    pole_pairs: int
+    projection: NDArray[np.float64]
+    offset: NDArray[np.float64]
+    rejects_common_mode: bool
+    lut: LUT
+    table: CorrectionTable
+    plausibility: Plausibility
+    noise_floor: float | None
+    budget: float
+    sample_time: float | None
+    sha256: str
+    messages: tuple[str, ...] = ()
+
+    @property
+    def step_rad_per_sample(self) -> float:
+        """The step limit as a mechanical angle per sample [rad]."""
+        return self.plausibility.step_limit * TWO_PI / self.pole_pairs
+
+
+# --------------------------------------------------------------------------------------------
+# Reading the artifact
+# --------------------------------------------------------------------------------------------
+
+
+def _bad(source: str, key: str, why: str) -> HallcalInputError:
+    return HallcalInputError(f"{source}: key '{key}' {why}")
+
+
+def _need(obj: Any, key: str, path: str, source: str) -> Any:
+    if not isinstance(obj, Mapping) or key not in obj:
+        raise _bad(source, path, "is missing")
+    return obj[key]
+
+
+def _array(value: Any, shape: tuple[int, ...] | None, key: str, source: str) -> NDArray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):
+        raise _bad(source, key, "must be numbers") from None
+    if shape is not None and arr.shape != shape:
+        raise _bad(source, key, f"must have shape {shape}, got {arr.shape}")
+    if arr.ndim > 2 or not np.all(np.isfinite(arr)):
+        raise _bad(source, key, "must be finite numbers")
+    return arr
+
+
+def _integer(value: Any, key: str, lo: int, hi: int, source: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or not lo <= value <= hi:
+        raise _bad(source, key, f"must be an integer in {lo}..{hi}")
+    return int(value)
+
+
+def _lut(artifact: Mapping, n: int, P: NDArray, o: NDArray, source: str) -> LUT:
+    lut_d = _need(artifact, "lut", "lut", source)
+    y_hat = _array(_need(lut_d, "y_hat", "lut.y_hat", source), None, "lut.y_hat", source)
+    eta = _array(_need(lut_d, "eta", "lut.eta", source), None, "lut.eta", source)
+    if y_hat.ndim != 1 or y_hat.shape != eta.shape:
+        raise _bad(source, "lut.eta", "must be a list as long as lut.y_hat")
+    if not 16 <= y_hat.size <= 65536:
+        raise _bad(source, "lut.y_hat", f"must have 16..65536 nodes, got {y_hat.size}")
+    if "points" in lut_d:
+        points = lut_d["points"]
+        if isinstance(points, bool) or not isinstance(points, int) or points != y_hat.size:
+            raise _bad(source, "lut.points", f"is {points!r} but lut.y_hat has {y_hat.size} nodes")
+    if np.max(np.abs(eta)) >= math.pi / 2:
+        raise _bad(source, "lut.eta", "has corrections of pi/2 rad or more")
+    if np.max(np.abs(y_hat)) > 4 * TWO_PI:
+        raise _bad(source, "lut.y_hat", "has angles beyond one revolution")
+    lut = LUT.from_arrays(n, P, o, y_hat, eta)
+    # eq. (recon_biject): y_hat strictly increasing over one revolution, on the nodes as stored
+    monotone = bool(np.all(np.diff(y_hat) > 0) and y_hat[-1] < y_hat[0] + TWO_PI)
+    if not (lut.bijective and monotone):
+        raise _bad(source, "lut", "is not bijective: the table would give wrong angles")
+    return lut
+
+
+def _flux(artifact: Mapping, source: str) -> FluxModel:
+    model = _need(artifact, "model", "model", source)
+    harmonics = _need(model, "harmonics", "model.harmonics", source)
+    theta = _need(model, "theta", "model.theta", source)
+    if not isinstance(harmonics, list) or not 1 <= len(harmonics) <= 4096:
+        raise _bad(source, "model.harmonics", "must be a list of 1..4096 harmonics")
+    h = [_integer(v, "model.harmonics", 1, 100_000, source) for v in harmonics]
+    try:
+        basis = FourierBasis(tuple(h))
+    except ValueError as exc:
+        raise _bad(source, "model.harmonics", str(exc)) from None
+    th = _array(theta, (3, basis.size), "model.theta", source)
+    return FluxModel(basis, th)
+
+
+def _noise_floor(artifact: Mapping) -> float | None:
+    diag = artifact.get("diagnostics")
+    if not isinstance(diag, Mapping):
+        return None
+    value = diag.get("noise_floor")
+    if value is None and isinstance(diag.get("constant_speed"), Mapping):
+        value = diag["constant_speed"].get("angle_noise_floor")
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    value = float(value)
+    return value if math.isfinite(value) and 0.0 < value < 1.0 else None
+
+
+def _sample_time(artifact: Mapping) -> float | None:
+    setup = artifact.get("setup")
+    value = setup.get("sample_time") if isinstance(setup, Mapping) else None
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    value = float(value)
+    return value if math.isfinite(value) and value > 0.0 else None
+
+
+# --------------------------------------------------------------------------------------------
+# The table
+# --------------------------------------------------------------------------------------------
+
+
+def _reference_breaks(lut: LUT) -> tuple[NDArray, NDArray]:
+    """Breakpoints of the artifact's periodic interpolant on [0, 2 pi] and its values there."""
+    x = np.sort(np.mod(lut.y_hat, TWO_PI))
+    x = np.unique(np.concatenate([[0.0], x, [TWO_PI]]))
+    return x, lut.correction(x)
+
+
+def _table_error(table: CorrectionTable, lut: LUT) -> tuple[float, float]:
+    """Exact max and RMS of |table - artifact interpolant| over the revolution [rad].
+
+    On every piece between consecutive breakpoints of both, the difference is a quadratic: its
+    largest magnitude is at an end or at its vertex, which are all evaluated.
+    """
+    m = table.points
+    xb, _ = _reference_breaks(lut)
+    grid = TWO_PI * np.arange(m + 1) / m
+    pts = np.unique(np.concatenate([xb, grid]))
+    lo, hi = pts[:-1], pts[1:]
+    mid = 0.5 * (lo + hi)
+    # on (lo, hi): table quadratic of interval i, reference linear with slope s
+    i = np.minimum(np.floor(mid * m / TWO_PI).astype(np.int64), m - 1)
+    h = TWO_PI / m
+    lsb = table.lsb_rad
+    t0 = table.values[i].astype(np.float64) * lsb
+    t1 = table.values[(i + 1) % m].astype(np.float64) * lsb
+    c = table.curvature[i].astype(np.float64) * 2.0**table.curvature_shift * lsb
+    ref_lo, ref_hi = lut.correction(lo), lut.correction(hi)
+    slope = (ref_hi - ref_lo) / (hi - lo)
+    # d(x) = t0 (1 - f) + t1 f + c f (1 - f) - ref(x); d'(x) = 0 at f = (1 + (t1 - t0 - s h)/c)/2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        fv = 0.5 * (1.0 + (t1 - t0 - slope * h) / c)
+    xv = grid[i] + fv * h
+    inside = np.isfinite(fv) & (xv > lo) & (xv < hi)
+    cand = np.concatenate([pts, xv[inside]])
+    diff = table.correction(cand) - lut.correction(cand)
+    dense = np.linspace(0.0, TWO_PI, 16 * max(m, lut.points), endpoint=False)
+    d2 = table.correction(dense) - lut.correction(dense)
+    return float(np.max(np.abs(diff))), float(np.sqrt(np.mean(d2**2)))
+
+
+def fit_table(lut: LUT, points: int, *, quadratic: bool = True) -> CorrectionTable:
+    """Fit the uniform table of ``points`` intervals to a LUT.
+
+    Least squares (values, and curvatures when ``quadratic``) on the artifact's breakpoints and
+    ``_FIT_PER_INTERVAL`` points per interval; then the values are rounded to int16 units of a
+    power-of-two fraction of a turn, the curvatures refitted to the rounded values and rounded
+    to int8. The returned error is exact for the rounded table.
+
+    Parameters
+    ----------
+    lut : LUT
+        The artifact's table (reference).
+    points : int
+        M, intervals per revolution, 64..65536.
+    quadratic : bool, keyword-only
+        Piecewise quadratic (values and curvatures) or piecewise linear (values only).
+
+    Returns
+    -------
+    CorrectionTable
+    """
+    m = int(points)
+    if not 64 <= m <= 65536:
+        raise ValueError("points must be in 64..65536")
+    h = TWO_PI / m
+    xb, _ = _reference_breaks(lut)
+    grid = h * np.arange(m * _FIT_PER_INTERVAL) / _FIT_PER_INTERVAL
+    x = np.unique(np.concatenate([xb[:-1], grid]))
+    ref = lut.correction(x)
+    pos = x / h
+    i = np.minimum(np.floor(pos).astype(np.int64), m - 1)
+    f = pos - i
+    g = f * (1.0 - f)
+    rows = np.arange(x.size)
+    cols = [i, (i + 1) % m] + ([m + i] if quadratic else [])
+    vals = [1.0 - f, f] + ([g] if quadratic else [])
+    A = sparse.csr_matrix(
+        (np.concatenate(vals), (np.tile(rows, len(cols)), np.concatenate(cols))),
+        shape=(x.size, (2 if quadratic else 1) * m),
+    )
+    sol = sparse_linalg.spsolve((A.T @ A).tocsc(), A.T @ ref)
+    values = sol[:m] / TWO_PI  # turns
+    # int16 values: the largest power-of-two unit 2^-s turn with |T| <= 32767
+    vmax = float(np.max(np.abs(values))) or 2.0**-40
+    shift = min(int(math.floor(math.log2(32767.0 / vmax))), 47)
+    q = np.round(values * 2.0**shift)
+    if np.max(np.abs(q)) > 32767:  # log2 rounding at an exact power of two
+        shift -= 1
+        q = np.round(values * 2.0**shift)
+    cshift = 0
+    cq = np.zeros(m)
+    if quadratic:
+        # curvatures refitted per interval to the rounded values: c_i = <g, r> / <g, g>
+        resid = ref / TWO_PI * 2.0**shift - (q[i] * (1.0 - f) + q[(i + 1) % m] * f)
+        num = np.bincount(i, weights=g * resid, minlength=m)
+        den = np.bincount(i, weights=g * g, minlength=m)
+        c = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+        cmax = float(np.max(np.abs(c)))
+        cshift = max(0, int(math.ceil(math.log2(cmax / 127.0)))) if cmax > 127.0 else 0
+        cq = np.clip(np.round(c / 2.0**cshift), -127, 127)
+    table = CorrectionTable(
+        m, quadratic, q.astype(np.int16), cq.astype(np.int8), shift, cshift, math.inf, math.inf
+    )
+    err, rms = _table_error(table, lut)
+    return CorrectionTable(m, quadratic, table.values, table.curvature, shift, cshift, err, rms)
+
+
+def table_sizes(pole_pairs: int) -> list[int]:
+    """Candidate table sizes M = n_m 2^k (64 <= M <= :data:`MAX_TABLE_POINTS`), ascending."""
+    out = []
+    m = int(pole_pairs)
+    while m <= MAX_TABLE_POINTS:
+        if m >= 64:
+            out.append(m)
+        m *= 2
+    return out
+
+
+def _choose_table(lut: LUT, budget: float) -> CorrectionTable:
+    """The cheapest table within the budget: linear (one load and one multiply less per sample;
+    only if within half the budget, which leaves the other half to the arithmetic) of up to
+    :data:`MAX_LINEAR_POINTS` intervals, else quadratic, each size ascending from 256."""
+    sizes = [m for m in table_sizes(lut.pole_pairs) if m >= min(256, MAX_TABLE_POINTS)]
+    for m in sizes:
+        if m > MAX_LINEAR_POINTS:
+            break
+        table = fit_table(lut, m, quadratic=False)
+        if table.error <= 0.5 * budget:
+            return table
+    best = None
+    for m in sizes:
+        table = fit_table(lut, m, quadratic=True)
+        if table.error <= budget:
+            return table
+        if best is None or table.error < best.error:
+            best = table
+    assert best is not None
+    return best
+
+
+# --------------------------------------------------------------------------------------------
+# Plausibility
+# --------------------------------------------------------------------------------------------
+
+
+def _plausibility(
+    flux: FluxModel,
+    n: int,
+    P: NDArray,
+    o: NDArray,
+    noise_floor: float | None,
+    tolerance: float,
+    max_speed: float | None,
+    sample_time: float | None,
+    fault_after: int,
+    source: str,
+) -> Plausibility:
+    y0 = TWO_PI * np.arange(_MODEL_GRID) / _MODEL_GRID
+    g = flux(y0)
+    ab = (g - o) @ P.T
+    r = np.hypot(ab[:, 0], ab[:, 1])
+    r_min, r_max = float(np.min(r)), float(np.max(r))
+    if not r_min > 0.0:
+        raise _bad(source, "model", "gives a zero alpha/beta vector: no angle there")
+    # Hall noise per channel from the noise floor: floor = sigma |P|_F / (sqrt(2) r n)
+    sigma = 0.0
+    if noise_floor is not None:
+        sigma = noise_floor * math.sqrt(2.0) * float(np.mean(r)) * n / float(np.linalg.norm(P))
+    sigma_r = sigma * float(np.max(np.linalg.norm(P, axis=1)))
+    gmin, gmax = np.min(g, axis=0), np.max(g, axis=0)
+    centre, half = 0.5 * (gmax + gmin), 0.5 * (gmax - gmin)
+    widen = (1.0 + tolerance) * half + NOISE_SIGMAS * sigma
+    radius_lo = (1.0 - tolerance) * r_min - NOISE_SIGMAS * sigma_r
+    radius_hi = (1.0 + tolerance) * r_max + NOISE_SIGMAS * sigma_r
+    if not radius_lo > 0.05 * r_min:
+        raise HallcalInputError(
+            f"{source}: the amplitude window would reach zero (tolerance {tolerance:g} and the "
+            "noise are too large for this sensor map)"
+        )
+    # step: noise of the electrical angle between two samples, in turns
+    sigma_el = sigma_r / r_min  # rad, per sample
+    step_noise = NOISE_SIGMAS * math.sqrt(2.0) * sigma_el / TWO_PI
+    if max_speed is None:
+        limit = DEFAULT_STEP_LIMIT
+        w = max(0.0, 0.5 * (limit - step_noise))
+    else:
+        if sample_time is None:
+            raise _bad(source, "setup.sample_time", "is needed to turn max_speed into a step")
+        w = max_speed * sample_time * n / TWO_PI  # electrical turns per sample
+        limit = 2.0 * w + step_noise
+        if limit >= 0.5:
+            raise HallcalInputError(
+                f"max_speed {max_speed:g} rad/s is {w:.3g} electrical turns per sample: f_init "
+                "cannot follow a quarter turn per sample or more"
+            )
+    safe = min(max(0.0, 0.5 * (limit - step_noise)), max(0.0, (0.5 - limit) / 4.0))
+    return Plausibility(
+        tolerance=tolerance,
+        channel_lo=centre - widen,
+        channel_hi=centre + widen,
+        radius_lo=radius_lo,
+        radius_hi=radius_hi,
+        radius_model=(r_min, r_max),
+        noise_sigma=sigma,
+        step_limit=limit,
+        step_noise=step_noise,
+        max_speed=max_speed,
+        glitch_safe_step=safe,
+        fault_after=fault_after,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# The design
+# --------------------------------------------------------------------------------------------
+
+
+def design_firmware(
+    artifact: Mapping,
+    *,
+    source: str = "<calibration artifact>",
+    table_points: int | None = None,
+    tolerance: float = DEFAULT_TOLERANCE,
+    max_speed: float | None = None,
+    fault_after: int = DEFAULT_FAULT_AFTER,
+    sha256: str = "",
+) -> FirmwareDesign:
+    """Decide the numbers of the generated firmware from a calibration artifact.
+
+    Parameters
+    ----------
+    artifact : mapping
+        The artifact as read from JSON (``"format": "hallcal-calibration/1"``).
+    source : str, keyword-only
+        Name of the artifact for error messages.
+    table_points : int, keyword-only
+        M = n_m 2^k (64..16384, a quadratic table); default the cheapest table within the
+        budget.
+    tolerance : float, keyword-only
+        Relative widening of the calibrated amplitude windows, in [0, 0.9].
+    max_speed : float, keyword-only
+        Largest mechanical speed [rad/s] (with the setup's ``sample_time``); None: the default
+        step limit of 45 electrical degrees per sample.
+    fault_after : int, keyword-only
+        Consecutive rejected samples before the fault flag, 4..1000 (single glitches hold at
+        most three samples).
+    sha256 : str, keyword-only
+        The artifact's hash, carried into the design.
+
+    Returns
+    -------
+    FirmwareDesign
+
+    Raises
+    ------
+    HallcalInputError
+        A missing, malformed or implausible key (named), a table that is not bijective, or an
+        option out of range.
+    """
+    if not isinstance(artifact, Mapping):
+        raise HallcalInputError(f"{source}: the calibration artifact must be a JSON object")
+    fmt = _need(artifact, "format", "format", source)
+    if fmt != ARTIFACT_FORMAT:
+        raise _bad(source, "format", f"is {str(fmt)[:40]!r}, expected {ARTIFACT_FORMAT!r}")
+    n = _integer(_need(artifact, "pole_pairs", "pole_pairs", source), "pole_pairs", 1,
+                 MAX_POLE_PAIRS, source)  # fmt: skip
+    rec = _need(artifact, "reconstruction", "reconstruction", source)
+    P = _array(_need(rec, "projection", "reconstruction.projection", source), (2, 3),
+               "reconstruction.projection", source)  # fmt: skip
+    o = _array(_need(rec, "offset", "reconstruction.offset", source), (3,),
+               "reconstruction.offset", source)  # fmt: skip
+    pn = float(np.max(np.abs(P)))
+    if not 1e-12 <= pn <= 1e12:
+        raise _bad(source, "reconstruction.projection", "has an implausible scale")
+    s = np.linalg.svd(P, compute_uv=False)
+    if s[1] < 1e-6 * s[0]:
+        raise _bad(source, "reconstruction.projection", "must have rank 2")
+    if float(np.max(np.abs(o))) > 1e12:
+        raise _bad(source, "reconstruction.offset", "has an implausible scale")
+    if isinstance(tolerance, bool) or not (0.0 <= float(tolerance) <= 0.9):
+        raise HallcalInputError(f"tolerance must be in [0, 0.9], got {tolerance!r}")
+    if (
+        isinstance(fault_after, bool)
+        or not isinstance(fault_after, int)
+        or not (4 <= fault_after <= 1000)
+    ):
+        raise HallcalInputError(f"fault_after must be an integer in 4..1000, got {fault_after!r}")
+    if max_speed is not None and not (math.isfinite(max_speed) and max_speed > 0.0):
+        raise HallcalInputError(f"max_speed must be a positive number, got {max_speed!r}")
+    lut = _lut(artifact, n, P, o, source)
+    flux = _flux(artifact, source)
+    floor = _noise_floor(artifact)
+    ts = _sample_time(artifact)
+    rows = np.abs(P.sum(axis=1))
+    rejects = bool(np.all(rows <= 1e-9 * np.abs(P).sum(axis=1)))
+
+    messages: list[str] = []
+    budget = DEFAULT_BUDGET if floor is None else min(BUDGET_FRACTION * floor, MAX_BUDGET)
+    if floor is None:
+        messages.append(f"the artifact states no noise floor: table budget {DEFAULT_BUDGET:g} rad")
+    if table_points is not None:
+        if (
+            isinstance(table_points, bool)
+            or not isinstance(table_points, int)
+            or table_points not in table_sizes(n)
+        ):
+            raise HallcalInputError(
+                f"table_points must be n_m 2^k in 64..{MAX_TABLE_POINTS} ({n} 2^k here), "
+                f"got {table_points!r}"
+            )
+        table = fit_table(lut, table_points, quadratic=True)
+        if table.error > budget:
+            messages.append(
+                f"table of {table_points} points differs by {table.error:.2g} rad from the "
+                f"calibration, more than the budget {budget:.2g} rad"
+            )
+    else:
+        table = _choose_table(lut, budget)
+        if table.error > budget:
+            messages.append(
+                f"even {table.points} points differ by {table.error:.2g} rad from the "
+                f"calibration, more than the budget {budget:.2g} rad"
+            )
+        elif table.nbytes > 4096:
+            messages.append(
+                f"the budget {budget:.2g} rad needs {table.points} points ({table.nbytes} bytes)"
+            )
+    plaus = _plausibility(flux, n, P, o, floor, float(tolerance), max_speed, ts, fault_after,
+                          source)  # fmt: skip
+    if max_speed is not None and plaus.glitch_safe_step * TWO_PI / n < max_speed * (ts or 1.0):
+        messages.append(
+            "at this max_speed a single glitch sample may make the angle slip by a pole pitch "
+            f"(safe up to {plaus.glitch_safe_step * TWO_PI / n / (ts or 1.0):.4g} rad/s)"
+        )
+    return FirmwareDesign(
+        pole_pairs=n,
+        projection=P,
+        offset=o,
+        rejects_common_mode=rejects,
+        lut=lut,
+        table=table,
+        plausibility=plaus,
+        noise_floor=floor,
+        budget=budget,
+        sample_time=ts,
+        sha256=sha256,
+        messages=tuple(messages),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Anticogging feed-forward (artifact key "cogging")
+# --------------------------------------------------------------------------------------------
+
+#: Relative accuracy of the anticogging table against the Fourier map.
+COGGING_RELATIVE_ERROR = 1e-6
+#: Largest anticogging table (float values).
+MAX_COGGING_POINTS = 65536
+
+
+@dataclass(frozen=True)
+class CoggingTable:
+    """The anticogging feed-forward T_c(y0) as a uniform float table, cubic interpolation.
+
+    ``T_c(y0) = sum_k a_k cos(k y0) + b_k sin(k y0)`` (artifact key ``"cogging"``, y0 the
+    mechanical angle), tabulated at ``y0 = 2 pi i / N`` and interpolated by the cubic through the
+    four nearest values (periodic).
+
+    Attributes
+    ----------
+    orders, a, b : ndarray
+        The map's harmonics and coefficients.
+    unit : str
+        As the artifact states it (``"plant input"``).
+    values : ndarray of float32, shape (N,)
+        The table.
+    error : float
+        Largest |table - map| over the revolution (dense evaluation with the table's float32
+        values, in double), in the map's unit.
+    scale : float
+        Largest |T_c| over the revolution.
+    """
+
+    orders: NDArray[np.int64]
+    a: NDArray[np.float64]
+    b: NDArray[np.float64]
+    unit: str
+    values: NDArray[np.float32]
+    error: float
+    scale: float
+
+    @property
+    def points(self) -> int:
+        return int(self.values.size)
+
+    @property
+    def slope(self) -> float:
+        """Largest |d T_c / d y0| over the revolution (sum of k sqrt(a_k^2 + b_k^2))."""
+        return float(np.sum(self.orders * np.hypot(self.a, self.b)))
+
+    def torque(self, y0: NDArray[np.float64] | float) -> NDArray[np.float64]:
+        """The Fourier map T_c(y0) (double precision)."""
+        return cogging_map(self.orders, self.a, self.b, y0)
+
+    def interpolate(self, y0: NDArray[np.float64] | float) -> NDArray[np.float64]:
+        """The table's value at y0 as the firmware computes it (in double)."""
+        return _cubic(self.values.astype(np.float64), y0)
+
+
+def cogging_map(orders, a, b, y0) -> NDArray[np.float64]:
+    """``sum_k a_k cos(k y0) + b_k sin(k y0)`` at mechanical angles y0 [rad]."""
+    arg = np.multiply.outer(np.atleast_1d(np.asarray(y0, dtype=np.float64)), orders)
+    return np.cos(arg) @ np.asarray(a, float) + np.sin(arg) @ np.asarray(b, float)
+
+
+def _uniform(orders, a, b, n: int) -> NDArray[np.float64]:
+    """The map on y0 = 2 pi i / n, i = 0 .. n - 1 (inverse real FFT; n > 2 max order)."""
+    spec = np.zeros(n // 2 + 1, dtype=np.complex128)
+    np.add.at(spec, np.asarray(orders), (np.asarray(a) - 1j * np.asarray(b)) * (n / 2.0))
+    return np.fft.irfft(spec, n)
+
+
+def _cubic(values: NDArray[np.float64], y0) -> NDArray[np.float64]:
+    n = values.size
+    pos = np.mod(np.atleast_1d(np.asarray(y0, dtype=np.float64)), TWO_PI) * (n / TWO_PI)
+    return _cubic_at(values, pos)
+
+
+def _cubic_at(values: NDArray[np.float64], pos: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Cubic through the 4 nearest of the periodic values, at positions in [0, N)."""
+    n = values.size
+    i = np.minimum(np.floor(pos).astype(np.int64), n - 1)
+    t = pos - i
+    p0, p1, p2, p3 = (values[(i + k) % n] for k in (-1, 0, 1, 2))
+    return (
+        -t * (t - 1) * (t - 2) / 6 * p0
+        + (t + 1) * (t - 1) * (t - 2) / 2 * p1
+        - (t + 1) * t * (t - 2) / 2 * p2
+        + (t + 1) * t * (t - 1) / 6 * p3
+    )
+
+
+def cogging_table(cogging: Any, *, source: str = "<calibration artifact>") -> CoggingTable:
+    """Check the artifact's ``"cogging"`` key and tabulate the map within 1e-6 relative.
+
+    The table has the fewest points (a power of two, 64..65536, more than twice the largest
+    order) whose cubic interpolation of the float32 values stays within half of
+    :data:`COGGING_RELATIVE_ERROR` of the largest |T_c| (the other half is for the firmware's
+    single-precision arithmetic) at 16 points per interval (dense enough
+    for a cubic's error curve); the map on uniform grids comes from an inverse FFT.
+
+    Raises
+    ------
+    HallcalInputError
+        The key is malformed (named), or no table up to 65536 points reaches the accuracy.
+    """
+    if not isinstance(cogging, Mapping):
+        raise _bad(source, "cogging", "must be an object")
+    orders = _need(cogging, "orders", "cogging.orders", source)
+    if not isinstance(orders, list) or not 1 <= len(orders) <= 4096:
+        raise _bad(source, "cogging.orders", "must be a list of 1..4096 harmonics")
+    k = np.array([_integer(v, "cogging.orders", 1, 4096, source) for v in orders])
+    if len(set(k.tolist())) != k.size:
+        raise _bad(source, "cogging.orders", "has repeated harmonics")
+    a = _array(_need(cogging, "a", "cogging.a", source), (k.size,), "cogging.a", source)
+    b = _array(_need(cogging, "b", "cogging.b", source), (k.size,), "cogging.b", source)
+    if float(np.max(np.abs(np.concatenate([a, b])))) > 1e30:
+        raise _bad(source, "cogging.a", "has an implausible scale")
+    unit = cogging.get("unit", "")
+    unit = unit if isinstance(unit, str) else ""
+    scale = 0.0
+    m = 64
+    while True:
+        if 2 * int(k.max()) < m:
+            sub = 16  # 16 points per interval: dense enough for a cubic's error curve
+            ref = _uniform(k, a, b, sub * m)
+            scale = max(scale, float(np.max(np.abs(ref))))
+            vals = ref[::sub].astype(np.float32)
+            pos = np.arange(sub * m) / sub
+            err = float(np.max(np.abs(_cubic_at(vals.astype(np.float64), pos) - ref)))
+            if err <= 0.5 * COGGING_RELATIVE_ERROR * scale:  # half for float32 arithmetic
+                break
+        if m >= MAX_COGGING_POINTS:
+            raise _bad(source, "cogging.orders", "needs more than 65536 table points for 1e-6")
+        m *= 2
+    if not scale > 0.0:
+        raise _bad(source, "cogging", "is zero everywhere")
+    return CoggingTable(k, a, b, unit, vals, err, scale)

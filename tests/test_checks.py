@@ -1,0 +1,219 @@
+"""Sanity checks before the expensive steps (hallcal.pipeline.checks), each with the fix named.
+
+The motor is the README's: 4 pole pairs at 10 kHz, G(s) = 5000 / (s^2 + 50 s) with a 150 us delay,
+under a PID; the ring-jig recordings (25 pole pairs, open loop, no reference) test the check that
+needs no reference.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hallcal import pipeline
+from hallcal.errors import HallcalInputError
+from hallcal.io import Dataset, setup_from_dict
+from hallcal.pipeline.checks import (
+    UNSTABLE_MARGIN,
+    CheckStatus,
+    check_direction,
+    check_loop,
+    check_pole_pairs,
+    closed_loop_poles,
+    pole_pairs_from_signature,
+)
+from hallcal.sim.lti import ContinuousTF, DiscreteTF
+
+RING = Path(__file__).resolve().parent / "data" / "ring-jig"
+
+MOTOR = {
+    "pole_pairs": 4,
+    "sample_time": 1e-4,
+    "controller": {"num": [9.8472, -19.6285, 9.7814], "den": [1.0, -1.962998, 0.962998]},
+    "plant": {"num": [5000.0], "den": [1.0, 50.0, 0.0], "delay": 1.5e-4},
+    "model": {"harmonics": [1, 2, 3, 4]},
+    "bench": {"ramp_end": 7.0, "duration": 8.0, "seed": 3},
+}
+
+
+@pytest.fixture(scope="module")
+def run():
+    """A closed-loop calibration ramp of the motor (1.1 revolutions, 80 000 samples)."""
+    res = pipeline.simulate(setup_from_dict(MOTOR))
+    assert res.status == "ok"
+    return res.columns()
+
+
+def _dataset(columns, drop=(), **replace) -> Dataset:
+    cols = {k: v for k, v in columns.items() if k not in drop}
+    cols.update(replace)
+    return Dataset.from_columns(cols, path="run.csv")
+
+
+def _ring(i: int = 1) -> Dataset:
+    raw = np.loadtxt(RING / f"hall_calibration_one_rotation_{i}.txt")
+    return Dataset.from_columns({f"d{h + 1}": raw[:, h] for h in range(3)}, path="ring.txt")
+
+
+# ------------------------------------------------------------------------------------------------
+# pole pairs
+
+
+@pytest.mark.parametrize("reference", ["r", "y_ref"])
+@pytest.mark.parametrize("wrong", [3, 5, 8])
+def test_wrong_pole_pairs_suggest_the_right_count(run, reference, wrong):
+    other = {"r": "y_ref", "y_ref": "r"}[reference]
+    ds = _dataset(run, drop=(other,))
+    t0 = time.perf_counter()
+    check = check_pole_pairs(ds, wrong)
+    elapsed = time.perf_counter() - t0
+    assert check.status is CheckStatus.FAILED
+    assert check.suggested == 4 and check.key == "pole_pairs"
+    assert "set pole_pairs = 4" in check.text and f"pole_pairs = {wrong}" in check.text
+    # the loop tracks the ramp with a constant lag: the measured ratio is 4 to within 1 %
+    assert check.estimate == pytest.approx(4.0, rel=0.01)
+    assert elapsed < 2.0  # measured 0.03-0.3 s for 80 000 samples on a shared 2-core machine
+    assert check_pole_pairs(ds, 4).status is CheckStatus.OK
+
+
+def test_wrong_pole_pairs_stop_calibration_within_two_seconds(run):
+    """The issue's case: pole_pairs = 5 for a 4-pole-pair motor used to run 20 s into 'not
+    bijective'; now calibrate fails at once, naming the right count, before any SEM."""
+    setup = setup_from_dict({**MOTOR, "pole_pairs": 5})
+    messages: list[str] = []
+    t0 = time.perf_counter()
+    with pytest.raises(HallcalInputError, match="set pole_pairs = 4") as exc:
+        pipeline.calibrate(_dataset(run, drop=("y_ref",)), setup, progress=messages.append)
+    assert time.perf_counter() - t0 < 2.0  # measured 0.1-0.4 s
+    assert exc.value.key == "pole_pairs"
+    assert not any("SEM" in m or "harmonics" in m for m in messages), messages
+
+
+def test_pole_pairs_from_the_magnets_signature_on_the_ring_jig():
+    """No reference at all (open loop): the per-cycle amplitudes and offsets repeat every 25."""
+    for i in (1, 2, 3):
+        ds = _ring(i)
+        sig = pole_pairs_from_signature(ds.d)
+        assert sig.best == 25, i
+        # F statistic: 116-269 at 25, about half at 50, at most 4 elsewhere above 5
+        assert sig.f_statistic[25] > 50.0
+        assert max(v for q, v in sig.f_statistic.items() if q > 5 and q % 25) < 10.0
+        assert check_pole_pairs(ds, 25).status is CheckStatus.OK
+        for wrong in (24, 26, 50):
+            c = check_pole_pairs(ds, wrong)
+            assert c.status is CheckStatus.FAILED, (i, wrong, c.text)
+            assert c.suggested == 25 and "set pole_pairs = 25" in c.text
+
+
+def test_pole_pairs_from_the_signature_on_a_simulated_run(run):
+    """Per-magnet variations of 4 % (the bench default) are enough without a reference."""
+    long = pipeline.simulate(
+        setup_from_dict({**MOTOR, "bench": {**MOTOR["bench"], "ramp_end": 26.0}})
+    ).columns()
+    ds = _dataset(long, drop=("r", "y_ref"))  # 4.1 revolutions, 16 electrical cycles
+    check = check_pole_pairs(ds, 4)
+    assert check.status is CheckStatus.OK and check.method == "magnet signature"
+    wrong = check_pole_pairs(ds, 5)
+    assert wrong.status is CheckStatus.FAILED and wrong.suggested == 4
+    # the short run has 4 complete cycles: fewer than two revolutions, nothing to test
+    short = _dataset(run, drop=("r", "y_ref"))
+    assert check_pole_pairs(short, 4).status is CheckStatus.SKIPPED
+
+
+def test_too_little_motion_is_skipped_not_guessed(run):
+    n = 5000  # 0.5 s of the ramp: 0.07 revolutions
+    ds = _dataset({k: v[:n] for k, v in run.items()})
+    assert check_pole_pairs(ds, 7).status is CheckStatus.SKIPPED
+
+
+# ------------------------------------------------------------------------------------------------
+# direction
+
+
+def test_reversed_sensor_order_is_named(run):
+    ds = _dataset(run, d2=run["d3"], d3=run["d2"])
+    check = check_direction(ds)
+    assert check.status is CheckStatus.FAILED and check.sign == -1
+    assert "swap two Hall columns" in check.text
+    assert check_direction(_dataset(run)).status is CheckStatus.OK
+    with pytest.raises(HallcalInputError, match="runs against the"):
+        pipeline.calibrate(ds, setup_from_dict(MOTOR))
+
+
+# ------------------------------------------------------------------------------------------------
+# loop stability
+
+
+def _motor_loop():
+    s = setup_from_dict(MOTOR)
+    return s.controller, s.plant, s.sample_time
+
+
+def test_stable_loop_passes_and_the_cancelled_integrator_is_not_unstable():
+    c, p, ts = _motor_loop()
+    assert check_loop(c, p, ts).status is CheckStatus.OK
+    # the paper's C(q) cancels the plant's integrator with a zero at q = 1: |z| = 1 within 1e-9
+    paper = setup_from_dict(
+        {
+            "pole_pairs": 11,
+            "sample_time": 2.5e-4,
+            "controller": {
+                "num": [2.94, -3.29, -2.10, 2.45],
+                "den": [1, -3.45, 4.52, -2.68, 0.61],
+            },
+            "plant": {"num": [1.663e5], "den": [1, 632.6, 2702, 0], "delay": 1.2e-4},
+        }
+    )
+    z = closed_loop_poles(paper.controller, paper.plant, paper.sample_time)
+    assert abs(np.max(np.abs(z)) - 1.0) < 1e-8
+    assert check_loop(paper.controller, paper.plant, paper.sample_time).status is CheckStatus.OK
+    assert 1e-8 < UNSTABLE_MARGIN
+
+
+def test_unstable_loop_is_named_with_its_pole():
+    c, p, ts = _motor_loop()
+    flipped = DiscreteTF(tuple(-v for v in c.num), c.den)
+    check = check_loop(flipped, p, ts)
+    assert check.status is CheckStatus.FAILED
+    assert "unstable" in check.text and "pole at z = " in check.text
+    assert "sign and scaling of [controller]" in check.text
+    assert check.max_abs > 1.0
+
+
+def test_the_delay_is_in_the_poles():
+    """A loop that is stable without the delay and unstable with a long one (exact ZOH)."""
+    c, p, ts = _motor_loop()
+    assert check_loop(c, ContinuousTF(p.num, p.den, 0.0), ts).status is CheckStatus.OK
+    # phase margin 62 deg at 20 Hz: 8.7 ms of delay more make it unstable; 15 ms does
+    long = check_loop(c, ContinuousTF(p.num, p.den, 150 * ts), ts)
+    assert long.status is CheckStatus.FAILED, long.text
+    assert "oscillation at" in long.text
+
+
+def test_unstable_loop_is_named_before_sem(run):
+    setup = setup_from_dict(
+        {
+            **MOTOR,
+            "controller": {"num": [-9.8472, 19.6285, -9.7814], "den": [1.0, -1.962998, 0.962998]},
+        }
+    )
+    messages: list[str] = []
+    with pytest.raises(
+        HallcalInputError, match="closed loop of .controller. and .plant. is unstable"
+    ):
+        pipeline.calibrate(_dataset(run), setup, progress=messages.append)
+    assert not any("SEM" in m or "harmonics" in m for m in messages), messages
+    with pytest.raises(HallcalInputError, match="is unstable: pole at z"):
+        pipeline.simulate(setup)
+
+
+def test_checks_are_typed():
+    c, p, ts = _motor_loop()
+    check = check_loop(c, p, ts)
+    assert isinstance(check.status, CheckStatus) and check.status.success
+    assert dataclasses.is_dataclass(check)
+    assert not CheckStatus.FAILED.success

@@ -1,0 +1,236 @@
+"""The generated firmware on ARM: Cortex-M4F and Cortex-M0+ code under QEMU, against Python.
+
+Skipped only when the toolchain is absent (Debian: ``gcc-arm-none-eabi``,
+``libnewlib-arm-none-eabi``, ``qemu-system-arm``; ``.ci/run`` installs them). The float variant
+runs on ``mps2-an386`` (Cortex-M4 with FPU), the fixed-point variant on ``microbit`` (the M0
+core; the code is compiled for the M0+, whose instruction set is the same), both bare metal
+with semihosting (``tests/arm_harness.py``). Checked:
+
+* the objects of the generated code need nothing from any library (``arm-none-eabi-nm -u``
+  is empty: no libm, no libgcc helper, no double), and the demo's table fits in 4 kB;
+* on the demo's validation run (96 000 samples) and on the three ring-jig recordings, both
+  variants are within their stated bounds and 1e-5 rad of ``hallcal reconstruct``, give the
+  same validation figures as Python, and the same bits as the host build;
+* the float variant's worst traced path is at most 200 Cortex-M4 cycles (estimated from the
+  QEMU instruction trace with the M4 timing table) and the fixed-point one at most 400
+  Cortex-M0+ instructions, on the validation run and on a fast spin through every octant;
+* 10 000 single glitches at random angles and speeds make no slip on either core.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import arm_harness as ah
+import firmware_support as fs
+import numpy as np
+import pytest
+
+from hallcal.io import read_artifact, read_dataset
+from hallcal.output.codegen import export_c
+from hallcal.pipeline.calibration import lut_from_artifact
+from hallcal.sensor.metrics import angle_error
+
+TWO_PI = 2.0 * math.pi
+MISSING = ah.toolchain()
+pytestmark = pytest.mark.skipif(
+    MISSING is not None, reason=f"ARM toolchain incomplete ({MISSING} not found)"
+)
+DEMO_ADC_SCALE = 2.0**14  # the demo's signals are normalized: 16384 counts per unit
+
+
+def _ringjig_dir() -> Path:
+    env = os.environ.get("HALLCAL_REAL_DATA")
+    if env:
+        return Path(env)
+    beside = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "ring-jig"
+    return beside if beside.exists() else Path("/work/shared/data/real/ring-jig")
+
+
+RINGJIG = [_ringjig_dir() / f"hall_calibration_one_rotation_{i}.txt" for i in (1, 2, 3)]
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """The demo's calibration and validation run, exported (float and fixed point)."""
+    from hallcal.demo import run_demo
+
+    out = tmp_path_factory.mktemp("demo")
+    run_demo(out, report=False)
+    art = read_artifact(out / "calibration.json")
+    gen = out / "fw"
+    res = export_c(art, gen, source="calibration.json", adc_scale=DEMO_ADC_SCALE)
+    val = read_dataset(out / "validation.npz")
+    return {"art": art, "gen": gen, "res": res, "d": val.d, "y_ref": val["y_ref"], "dir": out}
+
+
+def _builds(gen: Path, workdir: Path, n: int) -> dict[str, ah.Build]:
+    return {
+        "float": ah.build(gen, workdir / "m4f", target="m4f", fixed=False),
+        "fixed": ah.build(gen, workdir / "m0plus", target="m0plus", fixed=True),
+    }
+
+
+@pytest.fixture(scope="module")
+def demo_builds(demo):
+    return _builds(demo["gen"], demo["dir"] / "arm", demo["art"]["pole_pairs"])
+
+
+def _rms(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(x))))
+
+
+def test_objects_need_no_library(demo, demo_builds):
+    res = demo["res"]
+    assert res.table_bytes <= 4096
+    for variant, b in demo_builds.items():
+        assert ah.undefined_symbols(b.obj) == [], variant
+        size = ah.sizes(b.obj)
+        print(f"{variant} on {b.target.name}: {size} (table {res.table_bytes} bytes)")
+        assert size["data"] == 0 and size["bss"] == 0  # tables in flash, no static state
+    # the fixed variant built for the M4 (no FPU use) needs nothing either
+    b = ah.build(demo["gen"], demo["dir"] / "arm" / "m4q", target="m4f", fixed=True)
+    assert ah.undefined_symbols(b.obj) == []
+
+
+@pytest.mark.parametrize("variant", ["float", "fixed"])
+def test_demo_on_arm_matches_python(demo, demo_builds, variant, tmp_path):
+    fixed = variant == "fixed"
+    b = demo_builds[variant]
+    res = demo["res"]
+    d = demo["d"]
+    x = np.round(d * DEMO_ADC_SCALE) if fixed else d.astype(np.float32)
+    raw = ah.run(b, x)
+    assert not np.any(raw[:, 2])  # nothing rejected on the validation run
+    y = ah.angles(b, raw)
+    lut = lut_from_artifact(demo["art"])
+    y_py = lut.f_star(x / DEMO_ADC_SCALE if fixed else x.astype(np.float64))
+    err = float(np.max(np.abs(y - y_py)))
+    bound = res.fixed_bound if fixed else res.float_bound
+    # the validation figure (hallcal.pipeline's: RMS about the mean error against the encoder),
+    # C and Python (Python on the unrounded signals, as hallcal reconstruct computes it)
+    rms_c = angle_error(y, demo["y_ref"]).rms
+    rms_py = angle_error(lut.f_star(d), demo["y_ref"]).rms
+    print(f"demo {variant} on {b.target.name}: max |C - python| {err:.2e} rad (bound "
+          f"{bound:.2e}); validation RMS {1e3 * rms_c:.4f} mrad vs {1e3 * rms_py:.4f}")  # fmt: skip
+    assert err <= bound <= 1e-5
+    assert abs(rms_c - rms_py) <= 1e-3 * rms_py  # the same figure to 3 digits
+    # the same bits as the host build (IEEE single precision without contraction; integers)
+    host = fs.compile_driver(res.paths[0].parent, fixed=fixed, flags=["-O2"],
+                             name=f"host_{variant}", pole_pairs=res.pole_pairs)  # fmt: skip
+    np.testing.assert_array_equal(fs.run(host, x, fixed=fixed), raw)
+
+
+def _line_residual(y: np.ndarray, k: np.ndarray) -> np.ndarray:
+    A = np.column_stack([np.ones_like(k, dtype=float), k.astype(float)])
+    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+    return y - A @ coef
+
+
+@pytest.mark.skipif(not all(f.exists() for f in RINGJIG), reason="ring-jig data not available")
+@pytest.mark.parametrize("i", [1, 2, 3])
+def test_ringjig_on_arm_matches_python(tmp_path, i):
+    """The real recordings (raw 16-bit counts), calibrated as tests/test_real_ringjig.py does;
+    the whole file reconstructed from y = 0; held-out residual in electrical degrees."""
+    import hallcal
+    from hallcal.fit.constant_speed import find_constant_speed
+
+    raw = np.loadtxt(RINGJIG[i - 1], dtype=np.int64)
+    d = raw.astype(np.float64)
+    seg = find_constant_speed(d, 25)
+    start, mid, stop = seg.split(2.0)
+    setup = {"pole_pairs": 25, "sample_time": 1.0,
+             "trajectory": {"kind": "constant-speed", "start": start, "stop": mid}}  # fmt: skip
+    cal = hallcal.calibrate({f"d{h + 1}": d[:, h] for h in range(3)}, setup)
+    art_path = tmp_path / "cal.json"
+    cal.save(art_path)
+    art = read_artifact(art_path)
+    res = export_c(art, tmp_path / "fw", source="cal.json")
+    lut = lut_from_artifact(art)
+    y_py = lut.f_star(d)
+    k = np.arange(mid, stop)
+    deg_py = math.degrees(_rms(_line_residual(y_py[mid:stop], k))) * 25
+    for variant, b in _builds(tmp_path / "fw", tmp_path / "arm", 25).items():
+        fixed = variant == "fixed"
+        out = ah.run(b, raw.astype(np.int32) if fixed else raw.astype(np.float32))
+        assert not np.any(out[:, 2])
+        y = ah.angles(b, out)
+        err = float(np.max(np.abs(y - y_py)))
+        bound = res.fixed_bound if fixed else res.float_bound
+        deg = math.degrees(_rms(_line_residual(y[mid:stop], k))) * 25
+        print(f"ring-jig {i} {variant}: max |C - python| {err:.2e} rad (bound {bound:.2e}); "
+              f"held-out {deg:.3f} vs {deg_py:.3f} electrical degrees RMS")  # fmt: skip
+        assert err <= bound <= 1e-5
+        assert abs(deg - deg_py) < 0.005
+
+
+def _fast_spin(art: dict, adc_scale: float, fixed: bool) -> np.ndarray:
+    """A spin at 0.055 electrical turn per sample forward then back: every octant, the
+    45-degree rotation and the turn boundaries both ways."""
+    c = art
+    from hallcal.sensor.flux import FluxModel, FourierBasis
+
+    flux = FluxModel(FourierBasis(tuple(c["model"]["harmonics"])), np.array(c["model"]["theta"]))
+    n = c["pole_pairs"]
+    k = np.arange(3000)
+    y0 = 0.3 + np.cumsum(0.055 * TWO_PI / n * np.where(k < 1500, 1.0, -1.0))
+    d = flux(y0)
+    return np.round(d * adc_scale) if fixed else d.astype(np.float32)
+
+
+def test_cycles_and_instructions_per_sample(demo, demo_builds):
+    """The worst traced path: the float variant within 200 Cortex-M4 cycles, the fixed
+    variant within 400 Cortex-M0+ instructions (validation run and fast spin)."""
+    d = demo["d"][:2000]
+    worst = {}
+    for variant, b in demo_builds.items():
+        fixed = variant == "fixed"
+        x = np.concatenate([
+            np.round(d * DEMO_ADC_SCALE) if fixed else d.astype(np.float32),
+            _fast_spin(demo["art"], DEMO_ADC_SCALE, fixed),
+        ])  # fmt: skip
+        tr = ah.trace(b, x)
+        assert len(tr.counts) == len(x)  # every call traced
+        assert not tr.unknown, tr.unknown
+        worst[variant] = (int(np.median(tr.counts)), int(tr.counts.max()),
+                          int(np.median(tr.cycles)), int(tr.cycles.max()))  # fmt: skip
+        print(f"{variant} on {b.target.name}: instructions median/max {worst[variant][:2]}, "
+              f"M4 cycle estimate median/max {worst[variant][2:]}")  # fmt: skip
+    assert worst["float"][3] <= 200
+    assert worst["fixed"][1] <= 400
+
+
+@pytest.mark.parametrize("variant", ["float", "fixed"])
+def test_glitches_on_arm(demo, demo_builds, variant):
+    """10 000 single glitches at random angles and speeds up to the glitch-safe speed: the
+    reading after the glitch is the clean run's, bit for bit, on the target itself."""
+    fixed = variant == "fixed"
+    b = demo_builds[variant]
+    res = demo["res"]
+    art = demo["art"]
+    from hallcal.sensor.flux import FluxModel, FourierBasis
+
+    flux = FluxModel(
+        FourierBasis(tuple(art["model"]["harmonics"])), np.array(art["model"]["theta"])
+    )
+    rng = np.random.default_rng(7)
+    trials, length = 10_000, 32
+    w = rng.uniform(-0.98, 0.98, trials) * res.glitch_safe_speed
+    y0 = rng.uniform(0, TWO_PI, trials)[:, None] + w[:, None] * np.arange(length)[None, :]
+    noise = rng.normal(0.0, 2.7e-3, (trials, length, 3))
+    d = flux(y0.ravel()).reshape(trials, length, 3) + noise
+    dirty = d.copy()
+    at = rng.integers(5, 16, trials)
+    dirty[np.arange(trials), at] = flux(rng.uniform(0, TWO_PI, trials))
+    scale = DEMO_ADC_SCALE if fixed else 1.0
+    conv = (lambda v: np.round(v * scale)) if fixed else (lambda v: v.astype(np.float32))
+    clean = ah.run(b, conv(d.reshape(-1, 3)), block=length).reshape(trials, length, 3)
+    raw = ah.run(b, conv(dirty.reshape(-1, 3)), block=length).reshape(trials, length, 3)
+    y_c = ah.angles(b, clean[:, -1])
+    y_d = ah.angles(b, raw[:, -1])
+    slips = int(np.sum(np.abs(y_d - y_c) > math.pi / art["pole_pairs"]))
+    print(f"{variant} on {b.target.name}: {trials} glitches, {slips} slips")
+    assert slips == 0
+    np.testing.assert_array_equal(raw[:, -1], clean[:, -1])
