@@ -170,13 +170,15 @@ def chi2_isf_even(q: float, df: int) -> float:
     # log-concave): from any start where the slope is not tiny, Newton's first step lands on or
     # right of the root and the next ones approach it monotonically from the right.
     t = max(-log_q, k - 1.0)
+    i = np.arange(k, dtype=np.float64)
+    lgam = np.array([math.lgamma(v + 1.0) for v in i])
     for _ in range(100):
-        term, total = 1.0, 1.0  # t^i / i! and their sum over i < k
-        for i in range(1, k):
-            term *= t / i
-            total += term
-        f = -t + math.log(total) - log_q
-        slope = -term / total  # d/dt log Q(2 t) = -(t^(k-1) / (k-1)!) / sum_{i<k} t^i / i!
+        # the Poisson sum in logarithms: t^i / i! overflows a double beyond df ~ 1300
+        logs = i * math.log(t) - lgam  # log(t^i / i!), i < k
+        top = float(logs.max())
+        log_total = top + math.log(float(np.sum(np.exp(logs - top))))
+        f = -t + log_total - log_q
+        slope = -math.exp(float(logs[-1]) - log_total)  # d/dt log Q(2 t)
         if slope == 0.0:  # only for q within rounding of 1 and many degrees of freedom
             break
         step = f / slope

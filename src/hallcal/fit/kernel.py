@@ -593,8 +593,8 @@ class KernelSEMResult:
         Whether the chosen l lies strictly inside the search range (always True when given).
     settled : bool
         Whether the learned spectrum, re-estimated at the final SEM solution, confirmed the one
-        the solution was computed with (same harmonics, prior variances within a factor 2), or
-        the kernel's own spectrum was used.
+        the solution was computed with (the same strongly supported harmonics, their prior
+        variances within a factor 2: :func:`_settled`), or the kernel's own spectrum was used.
     sem : SEMResult
         The final regularized SEM (theta on the kept harmonics, costs, covariance
         sigma^2 (J^T J + R)^-1, d_sim, y0_sim).
@@ -757,11 +757,20 @@ def _on_band(flux: FluxModel, K: int) -> FluxModel:
     return FluxModel(basis, theta)
 
 
-def _settled(a: HarmonicRelevance, b: HarmonicRelevance) -> bool:
-    """Same harmonics kept, and every determined prior variance within a factor 2."""
-    if a.active != b.active:
+def _settled(a: HarmonicRelevance, b: HarmonicRelevance, *, strong: float = 3.0) -> bool:
+    """The same strongly supported harmonics, and their prior variances within a factor 2.
+
+    Strong: an evidence gain above ``strong`` nats (a Bayes factor of 20, "strong" in Kass &
+    Raftery 1995). Weaker groups are the evidence's verdict on chance content: they come and go
+    between linearization points with prior variances near the coefficients' noise, too small to
+    move the solution.
+    """
+    sa = {h for h, g in zip(a.harmonics, a.gain[1:], strict=True) if g > strong}
+    sb = {h for h, g in zip(b.harmonics, b.gain[1:], strict=True) if g > strong}
+    if sa != sb:
         return False
-    va, vb = a.prior_variance, b.prior_variance
+    idx = [0] + [1 + a.harmonics.index(h) for h in sorted(sa)]
+    va, vb = a.prior_variance[idx], b.prior_variance[idx]
     both = (va > 0) & (vb > 0)
     return bool(np.all(np.abs(np.log(va[both] / vb[both])) <= math.log(2.0)))
 

@@ -376,7 +376,7 @@ class BandEdge:
         return self.unwarp.flux
 
 
-def view_band(view_amplitude: NDArray, coefficient_std: float, *, pole_pairs: int) -> int:
+def _view_band(view_amplitude: NDArray, coefficient_std: float, *, pole_pairs: int) -> int:
     """Harmonics of the view worth fitting: the last one with 3-sigma content, plus 4 n_m."""
     strong = np.nonzero(view_amplitude > 3.0 * coefficient_std)[0]
     top = int(strong[-1]) + 1 if strong.size else int(pole_pairs)
@@ -398,7 +398,7 @@ def band_edge(
 
     1. The view (:func:`f_init_view`) on ``L0 = 32 n_m`` harmonics shows how far f_init's
        view of the flux reaches; it is refitted on L = the last harmonic with 3-sigma content
-       plus 4 n_m (:func:`view_band`), or on ``view_harmonics``.
+       plus 4 n_m (:func:`_view_band`), or on ``view_harmonics``.
     2. Bisection on E in ``[n_m, max_edge]`` (default 8 n_m, the 7th electrical harmonic with
        its pole-to-pole sidebands): a band is adequate when the content left above it by the
        best warp (:func:`unwarp`, J = L // 2 warp harmonics, from f_init's parametrization) is
@@ -438,7 +438,7 @@ def band_edge(
     view = probe
     if view_harmonics is None:
         amp, std = probe.amplitude(), math.sqrt(probe.coefficient_variance)
-        L = min(max(view_band(amp, std, pole_pairs=n), top + 2 * n), L0)
+        L = min(max(_view_band(amp, std, pole_pairs=n), top + 2 * n), L0)
         if L < 0.75 * L0:  # refit only when it saves much (the regression costs O(N L))
             view = f_init_view(y, d, harmonics=L, noise_variance=noise_variance)
     L = view.harmonics
