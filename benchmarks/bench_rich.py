@@ -11,9 +11,11 @@ pair's waveform deformed on its own, truth on mechanical harmonics 1..55) at two
 Each calibration is :func:`hallcal.calibrate` (the whole pipeline: model, adequacy, table) in a
 fresh Python process, so that the wall time, the CPU time (both cores: up to twice the wall
 time when the machine is free for it) and the peak resident memory (``ru_maxrss`` of the child,
-imports included) belong to that calibration alone. Models: ``harmonics = "auto"``,
-``basis = "kernel"`` (m = 400, the defaults), and, as a reference, the Fourier model with the
-truth's harmonics 1..55 given by hand.
+imports included) belong to that calibration alone; the model step (choosing the harmonics, or
+the kernel SEM) is timed on its own from the pipeline's progress messages, with the peak memory
+at its end (the later power-up identifiability step raises the peak to about 610 MB).
+Models: ``harmonics = "auto"``, ``basis = "kernel"`` (m = 400, the defaults), and, as a
+reference, the Fourier model with the truth's harmonics 1..55 given by hand.
 
 Run: ``python benchmarks/bench_rich.py > benchmarks/bench_rich.txt`` (about 10 minutes on two
 cores). Times are wall-clock on a shared 2-core machine; the load average is printed.
@@ -78,9 +80,19 @@ def one(data: str, model: str) -> None:
     z = np.load(data)
     cal_cols = {k: z[k] for k in ("r", "y", "u", "d1", "d2", "d3")}
     cfg = config(int(z["seed"]), float(z["strength"]))
+    steps: list[tuple[float, float, str]] = []
+
+    def progress(message: str) -> None:  # wall time and peak RSS at the start of every step
+        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        steps.append((time.perf_counter(), rss, message))
+
     t, c = time.perf_counter(), time.process_time()
-    cal = hallcal.calibrate(cal_cols, setup(cfg, MODELS[model]))
+    cal = hallcal.calibrate(cal_cols, setup(cfg, MODELS[model]), progress=progress)
     wall, cpu = time.perf_counter() - t, time.process_time() - c
+    # the model step: from "choosing the harmonics" / "SEM ..." to the next step
+    first = next(i for i, s in enumerate(steps) if s[2].startswith(("choosing", "SEM")))
+    model_wall = steps[first + 1][0] - steps[first][0]
+    model_rss = steps[first + 1][1]
     d_val = np.column_stack([z["v_d1"], z["v_d2"], z["v_d3"]])
     y_star = cal.lut.f_star(d_val)
     e = y_star - z["v_y0"]
@@ -89,6 +101,8 @@ def one(data: str, model: str) -> None:
     out = {
         "wall": wall,
         "cpu": cpu,
+        "model_wall": model_wall,
+        "model_rss_mb": model_rss,
         "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "f_star": e_star,
         "f_init": float(np.std(e0 - np.mean(e0))),
@@ -142,15 +156,17 @@ def main() -> None:
                     print(
                         f"  s={strength:<6} seed {seed} {model:<7} f_init {1e3 * r['f_init']:.2f} "
                         f"mrad  f_star/floor {r['f_star'] / r['floor']:.3f}  {r['wall']:5.1f} s "
-                        f"(cpu {r['cpu']:5.1f} s)  "
-                        f"{r['rss_mb']:4.0f} MB  {r['status']:<8} {r['harmonics']} harmonics "
+                        f"(cpu {r['cpu']:5.1f} s, model {r['model_wall']:4.1f} s)  "
+                        f"{r['rss_mb']:4.0f} MB (after the model {r['model_rss_mb']:3.0f} MB)  "
+                        f"{r['status']:<8} {r['harmonics']} harmonics "
                         f"(max {r['max_harmonic']})  load {r['load']:.1f}",
                         flush=True,
                     )
     print("\nSummary (f_star / noise floor on the validation run; wall time and peak RSS of one")
     print("calibrate in a fresh process):")
     head = f"{'strength':>8} {'model':<8}{'f_init mrad':>12}{'f*/floor per seed':>40}"
-    head += f"{'max':>7}{'time s (max)':>14}{'cpu s':>8}{'RSS MB (max)':>14}"
+    head += f"{'max':>7}{'time s (max)':>14}{'cpu s':>8}{'model s':>9}{'RSS MB (max)':>14}"
+    head += f"{'model MB':>10}"
     print(head + "\n" + "-" * len(head))
     for strength in STRENGTHS:
         for model in MODELS:
@@ -162,7 +178,9 @@ def main() -> None:
                 f"{' '.join(f'{x:.3f}' for x in ratios):>40}{max(ratios):>7.3f}"
                 f"{np.median([r['wall'] for r in rs]):>7.1f} ({max(r['wall'] for r in rs):.1f})"
                 f"{np.median([r['cpu'] for r in rs]):>8.1f}"
+                f"{np.median([r['model_wall'] for r in rs]):>9.1f}"
                 f"{np.median([r['rss_mb'] for r in rs]):>8.0f} ({max(r['rss_mb'] for r in rs):.0f})"
+                f"{max(r['model_rss_mb'] for r in rs):>10.0f}"
             )
     print(f"\nload average at the end {os.getloadavg()[0]:.2f}")
 
