@@ -23,6 +23,7 @@ from hallcal.errors import HallcalInputError
 from hallcal.io import (
     ARTIFACT_FORMAT,
     DATASET_EXTENSIONS,
+    KNOWN_COLUMNS,
     BenchSpec,
     BLASpec,
     Dataset,
@@ -77,6 +78,12 @@ def _message(excinfo: pytest.ExceptionInfo[BaseException]) -> str:
 
 _column_names = st.from_regex(r"[a-z][a-z0-9_]{0,8}", fullmatch=True)
 _finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
+#: Hall readings from 1e-2 to 1e2 of either sign, and zeros of both signs: the largest value is
+#: within 2e4 of any nonzero median (the mean of 0 and 1e-2 at the least), far inside
+#: limits.SPIKE_RATIO = 1e6.
+_hall_value = st.one_of(st.sampled_from([0.0, -0.0]), st.floats(1e-2, 1e2), st.floats(-1e2, -1e-2))
+#: Other known columns (angles, time): within limits.MAX_ABS_VALUE.
+_known = st.floats(-1e12, 1e12)
 
 
 @st.composite
@@ -86,7 +93,10 @@ def _tables(draw: st.DrawFn) -> dict[str, np.ndarray]:
     names = ["d1", "d2", "d3", *[name for name in names if name not in HALL]]
     out: dict[str, np.ndarray] = {}
     for name in names:
-        out[name] = draw(hnp.arrays(np.float64, n, elements=_finite))
+        # known columns must be plausible (no 1e300, no Hall value of 1e-300: hallcal.limits);
+        # the others are any finite numbers
+        elements = _hall_value if name in HALL else _known if name in KNOWN_COLUMNS else _finite
+        out[name] = draw(hnp.arrays(np.float64, n, elements=elements))
     if draw(st.booleans()):
         out["realization"] = draw(hnp.arrays(np.int64, n, elements=st.integers(0, 50)))
     return out
@@ -856,7 +866,7 @@ def _artifact(n: int = 32) -> dict[str, Any]:
             "offset": np.zeros(3),
         },
         "lut": {"y_hat": grid, "eta": 1e-3 * np.sin(grid)},
-        "model": {"basis": "fourier", "harmonics": list(range(1, 12)), "theta": np.ones((23, 3))},
+        "model": {"basis": "fourier", "harmonics": list(range(1, 12)), "theta": np.ones((3, 23))},
         "setup": default_setup(),
         "diagnostics": {"cost": np.float64(0.1), "iterations": np.int64(4), "bijective": True},
     }
@@ -872,7 +882,7 @@ def test_artifact_round_trip(tmp_path: Path) -> None:
     assert data["diagnostics"] == {"cost": 0.1, "iterations": 4, "bijective": True}
     assert setup_from_dict(data["setup"]) == default_setup()
     np.testing.assert_array_equal(data["lut"]["eta"], _artifact()["lut"]["eta"])
-    assert np.array(data["model"]["theta"]).shape == (23, 3)
+    assert np.array(data["model"]["theta"]).shape == (3, 23)
     assert path.read_text().startswith('{\n "format": "hallcal-calibration/1",')
     assert os.listdir(tmp_path) == ["CAL.json"]
 

@@ -226,21 +226,22 @@ def test_real_ringjig_files_read_as_hall_signals() -> None:
 def test_text_writer_batches_and_whole_numbers(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     """Rows written in several batches; whole floats keep '.0', exponents and -0.0 survive."""
     monkeypatch.setattr(text_module, "_ROWS_PER_BATCH", 3)
+    # "v", not a known column: 1e22 and 5e-324 are no angle (hallcal.limits refuses them in "y")
     y = np.array([0.1, 1.0, -0.0, 1e22, 2.5e-8, 123456789.0, 5e-324, -7.0])
     n = np.arange(y.size)
     path = tmp_path / "out.csv"
-    write_dataset(path, {"y": y, "n": n})
+    write_dataset(path, {"v": y, "n": n})
     lines = path.read_text().splitlines()
-    assert lines[0] == "y,n"
+    assert lines[0] == "v,n"
     assert [line.split(",")[0] for line in lines[1:]][:3] == ["0.1", "1.0", "-0.0"]
     assert lines[4].split(",")[0] in ("1e+22", "1e22")
     assert [line.split(",")[1] for line in lines[1:]] == [str(k) for k in range(y.size)]
     back = read_dataset(path, required=())
-    assert back["y"].tobytes() == y.tobytes()
+    assert back["v"].tobytes() == y.tobytes()
     txt = tmp_path / "out.txt"
-    write_dataset(txt, {"y": y, "n": n})
-    assert txt.read_text().splitlines()[:2] == ["y n", "0.1 0"]
-    assert read_dataset(txt, required=())["y"].tobytes() == y.tobytes()
+    write_dataset(txt, {"v": y, "n": n})
+    assert txt.read_text().splitlines()[:2] == ["v n", "0.1 0"]
+    assert read_dataset(txt, required=())["v"].tobytes() == y.tobytes()
 
 
 def test_text_writer_refuses_names_whitespace_cannot_hold(tmp_path: Path) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -19,6 +20,7 @@ from typing import Any
 import click
 
 from hallcal.errors import CalibrationRefused, HallcalError, HallcalInputError
+from hallcal.limits import MAX_POLE_PAIRS
 
 EXIT_INPUT = HallcalInputError.exit_status
 EXIT_REFUSED = CalibrationRefused.exit_status
@@ -42,6 +44,9 @@ class _Stream:
 _err = _Stream(err=True)
 _out = _Stream(err=False)
 
+#: Seeds of the random generators: non-negative and within 64 bits with room for the demo's
+#: validation run (seed + 1000), so that they fit the artifact's JSON.
+_SEED = click.IntRange(0, 2**62)
 UNITS = ("mrad", "electrical-deg")
 _EXITS = "0 success, 2 bad input (one line naming the file, column or key)"
 _EXITS_REFUSED = _EXITS + ", 3 refused"
@@ -97,6 +102,81 @@ def _mrad(x: float | None) -> str:
     return "-" if x is None or not math.isfinite(x) else f"{1e3 * x:.4f} mrad"
 
 
+def _output_dir(path: str) -> Path:
+    """Check, before any work, that the output folder of report, export-c or demo can be written.
+
+    A missing folder is created and removed again (with any missing parents): the command
+    creates it only when it has something to write, so a failure leaves nothing behind.
+    """
+    out = Path(path)
+    if out.exists():
+        if not out.is_dir():
+            raise HallcalInputError(f"{out}: exists and is not a directory")
+        if not os.access(out, os.W_OK | os.X_OK):
+            raise HallcalInputError(f"{out}: the directory is not writable")
+        return out
+    missing = []
+    p = out
+    while not p.exists() and p != p.parent:
+        missing.append(p)
+        p = p.parent
+    try:
+        out.mkdir(parents=True)
+    except OSError as exc:
+        why = exc.strerror or exc
+        raise HallcalInputError(f"{out}: cannot create the directory ({why})") from None
+    for m in missing:  # innermost first
+        m.rmdir()
+    return out
+
+
+def _output_file(path: str, *, dataset: bool = False) -> Path:
+    """Check an output file's folder (and a dataset's extension) before any work is done."""
+    out = Path(path)
+    if out.is_dir():
+        raise HallcalInputError(f"{out}: is a directory")
+    if dataset:
+        from hallcal.io import DATASET_EXTENSIONS
+
+        if out.suffix.lower() not in DATASET_EXTENSIONS:
+            shown = f"'{out.suffix}'" if out.suffix else "(none)"
+            raise HallcalInputError(
+                f"{out}: unknown dataset extension {shown} (expected one of "
+                f"{', '.join(DATASET_EXTENSIONS)})"
+            )
+    if not out.parent.is_dir():
+        raise HallcalInputError(f"{out}: directory '{out.parent}' does not exist")
+    if not os.access(out.parent, os.W_OK | os.X_OK):
+        raise HallcalInputError(f"{out}: the directory '{out.parent}' is not writable")
+    return out
+
+
+class _Group(click.Group):
+    """The command group, with click's own usage errors in hallcal's one-line form.
+
+    ``hallcal calibrate`` without ``--out`` prints ``hallcal: error: Missing option '--out'
+    (see 'hallcal calibrate --help')`` and exits with status 2, like every other input error.
+    """
+
+    def main(self, *args: Any, standalone_mode: bool = True, **kwargs: Any) -> Any:
+        if not standalone_mode:
+            return super().main(*args, standalone_mode=False, **kwargs)
+        try:
+            rv = super().main(*args, standalone_mode=False, **kwargs)
+        except click.ClickException as exc:
+            ctx = getattr(exc, "ctx", None)
+            hint = f" (see '{ctx.command_path} --help')" if ctx is not None else ""
+            message = _one_line(exc.format_message())
+            if type(exc).__name__ == "NoArgsIsHelpError":  # its message is the whole help
+                message = "no command given"
+            click.echo(f"hallcal: error: {message}{hint}", err=True)
+            sys.exit(exc.exit_code)
+        except click.exceptions.Abort:
+            click.echo("hallcal: aborted", err=True)
+            sys.exit(1)
+        sys.exit(rv if isinstance(rv, int) else 0)
+
+
 def _angle(x: float | None, units: str, pole_pairs: int) -> str:
     """An angle error [rad, mechanical] in the chosen units."""
     if x is None or not math.isfinite(x):
@@ -135,6 +215,7 @@ def _notes(messages: tuple[str, ...] | list[str]) -> None:
 
 
 @click.group(
+    cls=_Group,
     context_settings={"help_option_names": ["-h", "--help"]},
     epilog=_epilog(
         "hallcal demo --out hallcal-demo",
@@ -186,7 +267,7 @@ def cli() -> None:
 )
 @click.option(
     "--seed",
-    type=int,
+    type=_SEED,
     default=None,
     help="Noise seed of this run (the motor's truth stays that of [bench] seed).",
 )
@@ -201,6 +282,8 @@ def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int
     from hallcal.io import write_dataset, write_json
 
     setup = _setup(setup_path)
+    _output_file(out, dataset=True)
+    _output_file(str(Path(out).with_suffix(".truth.json")))  # the sidecar: both or neither
     prog = _Progress()
     kind = experiment or setup.bench.experiment
     if setup.controller is None:
@@ -242,7 +325,7 @@ def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int
 )
 @click.option(
     "--pole-pairs",
-    type=click.IntRange(min=1),
+    type=click.IntRange(1, MAX_POLE_PAIRS),
     default=None,
     help="Pole pairs to check (default: the setup's, else the count the data suggest).",
 )
@@ -334,6 +417,7 @@ def bla(data: str, setup_path: str, out: str) -> None:
     from hallcal.io import read_dataset, write_json
 
     setup = _setup(setup_path)
+    _output_file(out)
     ds = read_dataset(data, required=("r", "u", "y", "realization"))
     res = pipeline.identify_bla(ds, setup, progress=_Progress())
     out_path = Path(out)
@@ -419,6 +503,7 @@ def calibrate(
     from hallcal.api import calibrate as _calibrate
 
     setup = _setup(setup_path)
+    _output_file(out)
     cal = _calibrate(data, setup, bla_data=bla_data, progress=_Progress())
     _print_calibration(cal, units)
     cal.save(out, force=force or setup.model.force)
@@ -526,6 +611,7 @@ def reconstruct(artifact: str, data: str, out: str, absolute: bool, units: str) 
     from hallcal.io import write_dataset
 
     cal = load(artifact)
+    _output_file(out, dataset=True)
     rec = cal.reconstruct(data, absolute=absolute)
     write_dataset(out, rec.columns)
     _out.print(f"wrote {out} ({len(rec)} samples)")
@@ -617,9 +703,10 @@ def export_c(
     from hallcal.output.codegen import export_c as _export
 
     art = read_artifact(artifact)
+    out_dir = _output_dir(out)
     res = _export(
         art,
-        out,
+        out_dir,
         fixed_point=not no_fixed_point,
         source=artifact,
         adc_scale=adc_scale,
@@ -678,6 +765,7 @@ def report(artifact: str, data: str, validation: str | None, out: str, units: st
     """
     from hallcal.output.report import write_report_from_files
 
+    _output_dir(out)
     path = write_report_from_files(
         artifact, data, validation=validation, out_dir=out, progress=_Progress(), units=units
     )
@@ -692,13 +780,16 @@ def report(artifact: str, data: str, validation: str | None, out: str, units: st
     show_default=True,
     help="Folder for data, artifact, figures and report.",
 )
-@click.option("--seed", type=int, default=1, show_default=True, help="Seed of the simulated motor.")
+@click.option(
+    "--seed", type=_SEED, default=1, show_default=True, help="Seed of the simulated motor."
+)
 @click.option("--no-report", is_flag=True, help="Skip figures and the HTML report.")
 @_handle_errors
 def demo(out: str, seed: int, no_report: bool) -> None:
     """The paper's simulation study end to end on the built-in defaults."""
     from hallcal.demo import run_demo
 
+    _output_dir(out)
     res = run_demo(out, seed=seed, report=not no_report, progress=_Progress())
     for line in res.summary_lines():
         _out.print(line)

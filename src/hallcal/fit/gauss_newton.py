@@ -61,6 +61,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
+from hallcal.limits import check_work_memory
 from hallcal.sensor.flux import FourierBasis
 from hallcal.sim.cogging import CoggingTorque
 from hallcal.sim.loop import (
@@ -329,6 +330,9 @@ def _sens_block(
             ek[h] = d[k, h] - gk[h]
         al, be = _alpha_beta(P, off, gk)
         rho2 = al * al + be * be
+        if not rho2 > 0.0:  # no angle at alpha = beta = 0 (or NaN): the model is degenerate
+            ok = False
+            break
         for h in range(3):
             ck[h] = (al * P[1, h] - be * P[0, h]) / (rho2 * n_m)  # d y / d d_h
         q = ck[0] * gp[0] + ck[1] * gp[1] + ck[2] * gp[2]
@@ -693,6 +697,13 @@ def gauss_newton_system(
     nthreads = _threads(threads, p)
     stride = max(1, int(stride))
     T = max(64, min(int(chunk), N))
+    # before allocating: the Gram matrix and its symmetrized copies (p x p), the sensitivity
+    # buffers of each thread (T x p, twice) and the gradient of every chunk (N / T x p)
+    check_work_memory(
+        8.0 * p * (3 * p + 4 * nthreads * T + -(-N // T)),
+        f"the Gauss-Newton system ({p} parameters, {N} samples)",
+        "use fewer harmonics (or kernel points) or a shorter recording",
+    )
     passes = _SensitivityPass(args, layout, r, d, y_initial, T, stride if gram else 0, nthreads)
     with threadpool_limits(limits=1, user_api="blas"):
         if not passes.run(gram):

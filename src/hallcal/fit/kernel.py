@@ -102,6 +102,7 @@ from hallcal.fit.gauss_newton import (
 )
 from hallcal.fit.sem import SEMResult, SEMStatus, solve_sem
 from hallcal.fit.warp import BandEdge, band_edge
+from hallcal.limits import check_hall_scale
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.loop import ClosedLoop
@@ -864,6 +865,7 @@ def solve_kernel_sem(
     N = r.size
     if d.shape != (N, 3):
         raise ValueError("d must have shape (N, 3) with N = len(r)")
+    check_hall_scale(float(np.max(np.abs(d))) if d.size else 0.0)
     o = _options(points, lengthscale, lengthscale_range, criterion, spectrum, max_harmonics,
                  max_iterations, tol, stride, time_budget, ard_rounds, t_start)  # fmt: skip
     yy = (

@@ -38,6 +38,7 @@ from hallcal.fit.gauss_newton import (
     regression_normal_equations,
     simulate_model,
 )
+from hallcal.limits import check_hall_scale, check_work_memory
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.cogging import CoggingTorque
@@ -184,6 +185,11 @@ def least_squares_start(basis: FourierBasis, d: ArrayLike, y: ArrayLike) -> NDAr
                 raise np.linalg.LinAlgError
             sol = scipy.linalg.cho_solve(scipy.linalg.cho_factor(G), rhs)
         except np.linalg.LinAlgError:  # less than a revolution of data: the SVD of the regressors
+            check_work_memory(
+                8.0 * yy.size * basis.size,
+                f"the least-squares start ({yy.size} samples x {basis.size} basis functions)",
+                "use fewer harmonics or a shorter recording",
+            )
             sol = np.linalg.lstsq(basis.evaluate(yy), dd, rcond=None)[0]
     return sol.T.copy()
 
@@ -413,6 +419,7 @@ def solve_sem(
     N = r.size
     if d.shape != (N, 3):
         raise ValueError("d must have shape (N, 3) with N = len(r)")
+    check_hall_scale(float(np.max(np.abs(d))) if d.size else 0.0)
     cog0 = cogging if isinstance(cogging, CoggingTorque) else None
     orders = cog0.orders if cog0 is not None else tuple(int(k) for k in cogging)
     layout = ParameterLayout(basis, fit_gain=fit_gain, cogging_orders=orders)

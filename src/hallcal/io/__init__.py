@@ -7,7 +7,14 @@ anything. Modules: :mod:`~hallcal.io.dataset`, :mod:`~hallcal.io.setup`,
 :mod:`~hallcal.io.artifact`, :mod:`~hallcal.io.files`.
 """
 
-from hallcal.io.artifact import ARTIFACT_FORMAT, read_artifact, write_artifact
+from hallcal.io.artifact import (
+    ARTIFACT_FORMAT,
+    ArtifactData,
+    load_artifact,
+    read_artifact,
+    validate_artifact,
+    write_artifact,
+)
 from hallcal.io.dataset import (
     DATASET_EXTENSIONS,
     KNOWN_COLUMNS,
@@ -32,6 +39,7 @@ from hallcal.io.setup import (
 
 __all__ = [
     "ARTIFACT_FORMAT",
+    "ArtifactData",
     "DATASET_EXTENSIONS",
     "KNOWN_COLUMNS",
     "BLASpec",
@@ -44,6 +52,7 @@ __all__ = [
     "atomic_path",
     "atomic_write",
     "default_setup",
+    "load_artifact",
     "read_artifact",
     "read_dataset",
     "read_json",
@@ -51,6 +60,7 @@ __all__ = [
     "setup_from_dict",
     "setup_to_toml",
     "to_jsonable",
+    "validate_artifact",
     "write_artifact",
     "write_dataset",
     "write_json",

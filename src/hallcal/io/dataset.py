@@ -39,6 +39,7 @@ length. The known columns are ``r``, ``y``, ``u``, ``d1``, ``d2``, ``d3``, ``t``
 
 from __future__ import annotations
 
+import contextlib
 import io
 import math
 import mmap
@@ -50,13 +51,21 @@ import zlib
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any, NoReturn
 
 import numpy as np
 
 from hallcal.errors import HallcalInputError
 from hallcal.io.files import _existing_file, _suggest, atomic_path, atomic_write
 from hallcal.io.text import TEXT_EXTENSIONS, read_text_table, write_text_table
+from hallcal.limits import (
+    MAX_ABS_VALUE,
+    MAX_COLUMNS,
+    MAX_DATASET_VALUES,
+    MAX_SAMPLES,
+    MIN_HALL_MAGNITUDE,
+    SPIKE_RATIO,
+)
 
 __all__ = [
     "DATASET_EXTENSIONS",
@@ -237,6 +246,7 @@ def _finish_columns(
             f"'{other}': {lengths[other]} rows)"
         )
     n = lengths[next(iter(lengths))]
+    _check_table_size(source, n, len(cols))
     if n == 0:
         raise HallcalInputError(f"{source}: no data rows")
     if n < min_samples:
@@ -261,7 +271,53 @@ def _finish_columns(
                 )
         values.setflags(write=False)
         out[name] = values
+    _check_plausible(out, source, where)
     return out
+
+
+#: The Hall signal columns: their values have a physical scale.
+_HALL_COLUMNS = ("d1", "d2", "d3")
+
+
+def _check_plausible(cols: Mapping[str, np.ndarray], source: str, where: Any) -> None:
+    """Refuse values no recording holds (see :mod:`hallcal.limits`): a corrupt file, not data.
+
+    Binary formats carry no checksum over their data (HDF5, MATLAB, uncompressed Parquet), so
+    damaged bytes read as float64 give values of random exponent. Refused, in the known
+    columns: any value above MAX_ABS_VALUE in magnitude; in the Hall columns, nonzero values
+    below MIN_HALL_MAGNITUDE and values more than SPIKE_RATIO times the column's typical
+    magnitude.
+    """
+
+    def fail(name: str, i: int, value: float, why: str) -> NoReturn:
+        raise HallcalInputError(
+            f"{source}: column '{name}' {where(i)}: the value {value:.4g} is implausible "
+            f"({why}): the file is corrupt, or the column is in a wrong unit"
+        )
+
+    for name, values in cols.items():
+        if values.size == 0 or name not in KNOWN_COLUMNS:
+            continue  # other columns are the user's, with units hallcal does not know
+        mag = np.abs(values)
+        i = int(np.argmax(mag))
+        if mag[i] > MAX_ABS_VALUE:
+            fail(name, i, float(values[i]), f"above {MAX_ABS_VALUE:g} in magnitude")
+        if name not in _HALL_COLUMNS:
+            continue
+        tiny = (mag < MIN_HALL_MAGNITUDE) & (mag > 0.0)
+        if tiny.any():
+            j = int(np.argmax(tiny))
+            fail(name, j, float(values[j]), f"nonzero but below {MIN_HALL_MAGNITUDE:g}")
+        # the typical magnitude from at most 2^16 evenly spaced samples (a median of 10 M
+        # samples costs 0.1 s per column and tells nothing more)
+        typical = float(np.median(mag[:: max(1, mag.size // 65536)]))
+        if typical > 0.0 and mag[i] > SPIKE_RATIO * typical:
+            fail(
+                name,
+                i,
+                float(values[i]),
+                f"{mag[i] / typical:.3g} times the column's typical magnitude {typical:.3g}",
+            )
 
 
 def _check_extension(p: Path) -> str:
@@ -312,7 +368,10 @@ def read_dataset(
         raise HallcalInputError(f"{p}: file is empty")
     row_lines: Sequence[int] | None = None
     if ext in TEXT_EXTENSIONS:
-        cols, row_lines = read_text_table(p, headerless_ok=ext != ".csv")
+        # what the text readers' libraries raise themselves (the csv module's field-size limit,
+        # pyarrow's parser) is one line too
+        with _library_errors(p, "CSV file" if ext == ".csv" else "text table", recognized=False):
+            cols, row_lines = read_text_table(p, headerless_ok=ext != ".csv")
     elif ext == ".parquet":
         cols = _read_parquet(p)
     elif ext in (".h5", ".hdf5"):
@@ -327,6 +386,72 @@ def read_dataset(
     return Dataset(checked, p)
 
 
+# ---- Binary formats: the library boundary -----------------------------------------------------
+
+
+@contextlib.contextmanager
+def _library_errors(p: Path, what: str, *, recognized: bool = True) -> Iterator[None]:
+    """Turn whatever a file-format library raises on a corrupt or truncated file into one line.
+
+    h5py, scipy.io, zipfile, numpy's .npy format and pyarrow raise anything from OSError to
+    IndexError, KeyError or their own classes on damaged input; each reader wraps its library
+    calls (and only those) in this block. Errors hallcal raised on purpose pass through.
+
+    Parameters
+    ----------
+    p : Path
+    what : str
+        The format, e.g. ``"HDF5 file"``.
+    recognized : bool
+        Whether the file starts like one of `what` (its signature): then it is "corrupt or
+        truncated", else "not a valid" one.
+    """
+    try:
+        yield
+    except HallcalInputError:
+        raise
+    except MemoryError:
+        raise HallcalInputError(
+            f"{p}: corrupt {what}: it declares more data than fits in memory"
+        ) from None
+    except Exception as exc:  # every library exception of a damaged file, see above
+        state = "corrupt or truncated" if recognized else "not a valid"
+        raise HallcalInputError(f"{p}: {state} {what} ({_why(exc)})") from None
+
+
+def _head(p: Path, n: int) -> bytes:
+    """The first `n` bytes of the file."""
+    try:
+        with open(p, "rb") as f:
+            return f.read(n)
+    except OSError as exc:
+        raise HallcalInputError(f"{p}: cannot read ({exc.strerror or exc})") from None
+
+
+def _why(exc: BaseException) -> str:
+    """``"OSError: first line of the message"``, at most 150 characters."""
+    text = " ".join(str(exc).split())
+    text = f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+    return text if len(text) <= 150 else text[:147] + "..."
+
+
+def _check_table_size(source: str, rows: int, columns: int) -> None:
+    """Rows, columns and values of a table against :mod:`hallcal.limits`, before reading it."""
+    if rows > MAX_SAMPLES:
+        raise HallcalInputError(
+            f"{source}: {rows} rows, above the limit of {MAX_SAMPLES} samples of one dataset"
+        )
+    if columns > MAX_COLUMNS:
+        raise HallcalInputError(
+            f"{source}: {columns} columns, above the limit of {MAX_COLUMNS} columns of one dataset"
+        )
+    if rows * columns > MAX_DATASET_VALUES:
+        raise HallcalInputError(
+            f"{source}: {rows} rows x {columns} columns, above the limit of "
+            f"{MAX_DATASET_VALUES} values of one dataset"
+        )
+
+
 # ---- Parquet -----------------------------------------------------------------------------------
 
 
@@ -335,29 +460,40 @@ def _read_parquet(p: Path) -> dict[str, np.ndarray]:
     import pyarrow.parquet as pq
 
     source = str(p)
-    try:
-        table = pq.read_table(p)
-    except (pa.ArrowException, OSError, ValueError) as exc:
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise HallcalInputError(f"{source}: not a valid Parquet file ({first})") from None
+    if _head(p, 4) != b"PAR1":
+        raise HallcalInputError(f"{source}: not a valid Parquet file (no PAR1 signature)")
     cols: dict[str, np.ndarray] = {}
-    for j, name in enumerate(table.column_names):
-        if not name:
-            raise HallcalInputError(f"{source}: column {j + 1} has no name")
-        if name in cols:
-            raise HallcalInputError(f"{source}: column '{name}' appears twice")
-        column = table.column(j)
-        typ = column.type
-        if pa.types.is_dictionary(typ):
-            column = column.cast(typ.value_type)
+    with _library_errors(p, "Parquet file"):
+        pf = pq.ParquetFile(p)
+        meta = pf.metadata
+        _check_table_size(source, int(meta.num_rows), int(meta.num_columns))
+        table = pf.read()
+        if table.num_rows != meta.num_rows:
+            raise HallcalInputError(
+                f"{source}: corrupt Parquet file ({table.num_rows} rows read, "
+                f"{meta.num_rows} declared)"
+            )
+        for j, name in enumerate(table.column_names):
+            if not name:
+                raise HallcalInputError(f"{source}: column {j + 1} has no name")
+            if name in cols:
+                raise HallcalInputError(f"{source}: column '{name}' appears twice")
+            column = table.column(j)
             typ = column.type
-        if not (pa.types.is_integer(typ) or pa.types.is_floating(typ) or pa.types.is_boolean(typ)):
-            raise HallcalInputError(f"{source}: column '{name}' is not numeric (type {typ})")
-        if column.null_count:
-            nulls = column.is_null().to_numpy(zero_copy_only=False)
-            i = int(np.argmax(nulls))
-            raise HallcalInputError(f"{source}: column '{name}' has a missing value in row {i + 1}")
-        cols[name] = np.asarray(column.to_numpy(), dtype=np.float64)
+            if pa.types.is_dictionary(typ):
+                column = column.cast(typ.value_type)
+                typ = column.type
+            if not (
+                pa.types.is_integer(typ) or pa.types.is_floating(typ) or pa.types.is_boolean(typ)
+            ):
+                raise HallcalInputError(f"{source}: column '{name}' is not numeric (type {typ})")
+            if column.null_count:
+                nulls = column.is_null().to_numpy(zero_copy_only=False)
+                i = int(np.argmax(nulls))
+                raise HallcalInputError(
+                    f"{source}: column '{name}' has a missing value in row {i + 1}"
+                )
+            cols[name] = np.asarray(column.to_numpy(), dtype=np.float64)
     if not cols:
         raise HallcalInputError(f"{source}: no columns")
     return cols
@@ -365,154 +501,293 @@ def _read_parquet(p: Path) -> dict[str, np.ndarray]:
 
 # ---- Containers: HDF5, MATLAB, NumPy -----------------------------------------------------------
 
+#: Members of one container file looked at: far more than any dataset's columns (MAX_COLUMNS),
+#: few enough that listing them is instant.
+_MAX_MEMBERS = 16 * MAX_COLUMNS
 
-def _container_columns(
-    members: Iterable[tuple[str, np.ndarray | None, str]], source: str
-) -> dict[str, np.ndarray]:
-    """Pick the columns among named container members.
 
-    `members` yields ``(name, array or None, description)``; ``None`` means "not a numeric
-    array" and `description` says what it is. Known columns must be numeric vectors; other
-    members are kept only when they are numeric vectors of the known columns' length.
+@dataclass(frozen=True)
+class _Member:
+    """One named member of a container file, described before its data are read.
+
+    Attributes
+    ----------
+    name : str
+    shape : tuple of int or None
+        Shape of a numeric array; None when the member is not one (then `description` says what).
+    description : str
+        What the member is, for messages.
     """
-    known: dict[str, np.ndarray] = {}
-    others: dict[str, np.ndarray] = {}
+
+    name: str
+    shape: tuple[int, ...] | None
+    description: str
+
+
+def _vector_length(member: _Member) -> int | None:
+    """Length of a numeric vector member (row, column or 1-D), None for anything else."""
+    shape = member.shape
+    if shape is None:
+        return None
+    size = math.prod(shape)
+    if size == 0:
+        return 0
+    if len(shape) == 1:
+        return shape[0]
+    if len(shape) >= 2 and sum(s != 1 for s in shape) <= 1:
+        return size
+    if len(shape) == 0 and member.name in KNOWN_COLUMNS:
+        return 1
+    return None
+
+
+def _select_columns(members: Iterable[_Member], source: str) -> dict[str, int]:
+    """Pick the columns among a container's members from their shapes, before reading any.
+
+    Known columns must be numeric vectors; other members are kept only when they are numeric
+    vectors of the known columns' length. Returns ``{name: length}`` in file order; the sizes
+    are checked against :mod:`hallcal.limits`.
+    """
+    known: dict[str, int] = {}
+    others: dict[str, int] = {}
     order: list[str] = []
-    for name, arr, description in members:
-        vector = None
-        if arr is not None and arr.dtype.kind in "biuf":
-            if arr.size == 0:
-                vector = arr.reshape(0)
-            elif arr.ndim == 1:
-                vector = arr
-            elif arr.ndim >= 2 and sum(s != 1 for s in arr.shape) <= 1:
-                vector = arr.reshape(-1)
-            elif arr.ndim == 0:
-                vector = arr.reshape(1) if name in KNOWN_COLUMNS else None
+    count = 0
+    for member in members:
+        count += 1
+        if count > _MAX_MEMBERS:
+            raise HallcalInputError(
+                f"{source}: more than {_MAX_MEMBERS} members, above the limit for a dataset file"
+            )
+        name = member.name
+        length = _vector_length(member)
         if name in KNOWN_COLUMNS:
-            if vector is None:
-                what = f"shape {arr.shape}" if arr is not None else description
+            if length is None:
+                what = f"shape {member.shape}" if member.shape is not None else member.description
                 raise HallcalInputError(
                     f"{source}: column '{name}' must be a numeric vector, got {what}"
                 )
-            known[name] = vector
-        elif vector is not None and vector.shape[0] > 1:
-            others[name] = vector
+            if length > MAX_SAMPLES:
+                raise HallcalInputError(
+                    f"{source}: column '{name}' has {length} rows, above the limit of "
+                    f"{MAX_SAMPLES} samples of one dataset"
+                )
+            known[name] = length
+        elif length is not None and 1 < length <= MAX_SAMPLES:
+            others[name] = length
         else:
             continue
         order.append(name)
-    lengths = {a.shape[0] for a in known.values()}
+    lengths = set(known.values())
     if len(lengths) == 1:
         n = lengths.pop()
-        others = {k: v for k, v in others.items() if v.shape[0] == n}
+        others = {k: v for k, v in others.items() if v == n}
     elif lengths:
         others = {}  # known columns disagree: report them, not the others
-    elif len({a.shape[0] for a in others.values()}) > 1:
+    elif len(set(others.values())) > 1:
         raise HallcalInputError(
             f"{source}: vectors of different lengths and no known column "
             f"({', '.join(KNOWN_COLUMNS)}) to tell which are columns"
         )
-    cols = {**known, **others}
-    return {name: cols[name] for name in order if name in cols}
+    chosen = {**known, **others}
+    out = {name: chosen[name] for name in order if name in chosen}
+    if out:
+        _check_table_size(source, max(out.values()), len(out))
+    return out
+
+
+def _as_vector(arr: Any, name: str, length: int, source: str, what: str) -> np.ndarray:
+    """A member's data as the vector its header declared; anything else is a corrupt file."""
+    if not isinstance(arr, np.ndarray) or arr.dtype.kind not in "biuf" or arr.size != length:
+        got = f"{arr.size} values" if isinstance(arr, np.ndarray) else type(arr).__name__
+        raise HallcalInputError(
+            f"{source}: corrupt {what}: column '{name}' declares {length} values, holds {got}"
+        )
+    return arr.reshape(-1)
+
+
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
 
 def _read_hdf5(p: Path) -> dict[str, np.ndarray]:
     import h5py
 
     source = str(p)
-    try:
-        handle = h5py.File(p, "r")
-    except OSError:
-        raise HallcalInputError(f"{source}: not a valid HDF5 file") from None
-    with handle:
-        group = handle["data"] if isinstance(handle.get("data"), h5py.Group) else handle
-        return _container_columns(_hdf5_members(group), source)
+    with _library_errors(p, "HDF5 file", recognized=False):
+        recognized = h5py.is_hdf5(p)
+    if not recognized:
+        raise HallcalInputError(f"{source}: not a valid HDF5 file (no HDF5 signature)")
+    with _library_errors(p, "HDF5 file"):
+        with h5py.File(p, "r") as handle:
+            group = handle
+            if isinstance(handle.get("data", getlink=True), h5py.HardLink) and isinstance(
+                handle["data"], h5py.Group
+            ):
+                group = handle["data"]
+            chosen = _select_columns(_hdf5_members(group), source)
+            return {
+                name: _as_vector(np.asarray(group[name][()]), name, n, source, "HDF5 file")
+                for name, n in chosen.items()
+            }
 
 
-def _hdf5_members(group: Any) -> Iterator[tuple[str, np.ndarray | None, str]]:
+def _hdf5_members(group: Any) -> Iterator[_Member]:
+    """The members of an HDF5 group, described from their headers (no data read).
+
+    Only datasets stored in this file are numeric members: links (soft or to other files),
+    virtual datasets and datasets with external storage could make the reader open any file on
+    the machine, so they are not columns.
+    """
     import h5py
 
-    for name, item in group.items():
+    for name in group:
+        if not isinstance(group.get(name, getlink=True), h5py.HardLink):
+            yield _Member(name, None, "a link to another object or file")
+            continue
+        item = group[name]
         if not isinstance(item, h5py.Dataset):
-            yield name, None, "a group"
+            yield _Member(name, None, "a group")
+            continue
+        if item.is_virtual or item.external:
+            yield _Member(name, None, "a dataset stored in other files")
             continue
         if "MATLAB_empty" in item.attrs and bool(np.asarray(item.attrs["MATLAB_empty"]).any()):
-            yield name, np.zeros(0), "an empty array"
+            yield _Member(name, (0,), "an empty array")
             continue
         matlab_class = item.attrs.get("MATLAB_class")
         if isinstance(matlab_class, bytes):
             matlab_class = matlab_class.decode("ascii", "replace")
-        if matlab_class in ("char", "cell", "struct") or item.dtype.kind not in "biuf":
-            yield name, None, f"a non-numeric dataset ({item.dtype})"
+        if (
+            matlab_class in ("char", "cell", "struct")
+            or item.dtype.kind not in "biuf"
+            or item.shape is None
+        ):
+            yield _Member(name, None, f"a non-numeric dataset ({item.dtype})")
             continue
-        yield name, np.asarray(item[()]), "a dataset"
+        yield _Member(name, tuple(int(s) for s in item.shape), "a dataset")
+
+
+#: MATLAB classes that hold numbers (whosmat's third field).
+_MATLAB_NUMERIC = frozenset(
+    ["double", "single", "logical", "int8", "uint8", "int16", "uint16", "int32", "uint32"]
+    + ["int64", "uint64"]
+)
 
 
 def _read_mat(p: Path) -> dict[str, np.ndarray]:
+    import h5py
     import scipy.io
 
     source = str(p)
+    head = _head(p, 128)
+    # MATLAB 5 and 7.3 files: a text header "MATLAB 5.0 MAT-file..." and the endian indicator
+    # "IM" or "MI" at bytes 126-127 (MATLAB 4 files have no signature)
+    recognized = head[126:128] in (b"IM", b"MI") or (
+        len(head) < 128 and b"MATLAB".startswith(head[:6])
+    )
     try:
-        contents = scipy.io.loadmat(p, squeeze_me=False, chars_as_strings=True)
-    except NotImplementedError:
-        # MATLAB v7.3 files are HDF5 files: variables are datasets at the root.
-        return _read_hdf5(p)
-    except (ValueError, TypeError, OSError, EOFError) as exc:
-        import h5py
-
+        with _library_errors(p, "MATLAB .mat file", recognized=recognized):
+            try:
+                listing = scipy.io.whosmat(p)
+            except NotImplementedError:
+                listing = None
+    except HallcalInputError:
         if h5py.is_hdf5(p):  # an HDF5 file saved under .mat, read it like MATLAB v7.3
             return _read_hdf5(p)
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise HallcalInputError(f"{source}: not a valid MATLAB .mat file ({first})") from None
+        raise
+    if listing is None:  # MATLAB v7.3 files are HDF5 files: variables are datasets at the root
+        return _read_hdf5(p)
 
-    def members() -> Iterator[tuple[str, np.ndarray | None, str]]:
-        for name, value in contents.items():
+    def members() -> Iterator[_Member]:
+        for name, shape, cls in listing:
             if name.startswith("__"):
                 continue
-            arr = np.asarray(value) if isinstance(value, np.ndarray) else None
-            if arr is not None and arr.dtype.kind in "biuf":
-                yield name, arr, "a variable"
+            if cls in _MATLAB_NUMERIC:
+                yield _Member(name, tuple(int(s) for s in shape), "a variable")
             else:
-                kind = "a string" if arr is not None and arr.dtype.kind == "U" else "not numeric"
-                yield name, None, f"a variable that is {kind}"
+                kind = "a string" if cls == "char" else f"of class {cls}"
+                yield _Member(name, None, f"a variable that is {kind}")
 
-    return _container_columns(members(), source)
+    chosen = _select_columns(members(), source)
+    if not chosen:
+        return {}
+    with _library_errors(p, "MATLAB .mat file", recognized=recognized):
+        contents = scipy.io.loadmat(
+            p, squeeze_me=False, chars_as_strings=True, variable_names=list(chosen)
+        )
+    return {
+        name: _as_vector(contents.get(name), name, n, source, "MATLAB .mat file")
+        for name, n in chosen.items()
+    }
+
+
+def _npy_header(f: IO[bytes], name: str, source: str) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and dtype of a .npy member from its header, refusing object (pickled) arrays."""
+    version = np.lib.format.read_magic(f)
+    if version == (1, 0):
+        shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+    elif version == (2, 0):
+        shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+    else:
+        raise HallcalInputError(f"{source}: array '{name}' has an unsupported .npy version")
+    if dtype.hasobject:
+        raise HallcalInputError(
+            f"{source}: array '{name}' holds Python objects (object dtype); hallcal never "
+            "unpickles data, save numeric arrays"
+        )
+    return tuple(int(s) for s in shape), dtype
 
 
 def _read_npz(p: Path) -> dict[str, np.ndarray]:
     source = str(p)
-    with open(p, "rb") as f:
-        magic = f.read(6)
+    magic = _head(p, 6)
     if magic == b"\x93NUMPY":
         raise HallcalInputError(f"{source}: a single .npy array, not a .npz archive of columns")
     if not magic.startswith(b"PK"):
         raise HallcalInputError(f"{source}: not a valid .npz archive (not a zip file)")
-    try:
-        archive = np.load(p, allow_pickle=False)
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile):
-        raise HallcalInputError(f"{source}: not a valid .npz archive") from None
-    if not isinstance(archive, np.lib.npyio.NpzFile):
-        raise HallcalInputError(f"{source}: not a valid .npz archive")
-    mapped = _map_stored_members(p)
-    with archive:
-        arrays: list[tuple[str, np.ndarray | None, str]] = []
-        for name in archive.files:
-            try:
-                arr = mapped[name] if name in mapped else archive[name]
-            except ValueError as exc:
-                if "pickle" in str(exc) or "Object arrays" in str(exc):
-                    raise HallcalInputError(
-                        f"{source}: array '{name}' holds Python objects (object dtype); hallcal "
-                        "never unpickles data, save numeric arrays"
-                    ) from None
-                raise HallcalInputError(f"{source}: array '{name}' cannot be read") from None
-            except (OSError, EOFError, zipfile.BadZipFile):
-                raise HallcalInputError(f"{source}: array '{name}' cannot be read") from None
-            if arr.dtype.kind in "biuf":
-                arrays.append((name, arr, "an array"))
-            else:
-                arrays.append((name, None, f"an array of dtype {arr.dtype}"))
-    return _container_columns(arrays, source)
+    with _library_errors(p, ".npz archive"), zipfile.ZipFile(p) as archive:
+        infos = archive.infolist()
+        if len(infos) > _MAX_MEMBERS:
+            raise HallcalInputError(
+                f"{source}: {len(infos)} members, above the limit of {_MAX_MEMBERS} for a "
+                "dataset file"
+            )
+        by_name: dict[str, zipfile.ZipInfo] = {}
+        members: list[_Member] = []
+        for info in infos:
+            name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+            if name in by_name:
+                raise HallcalInputError(f"{source}: array '{name}' appears twice")
+            by_name[name] = info
+            with archive.open(info) as f:
+                try:
+                    shape, dtype = _npy_header(f, name, source)
+                except ValueError:
+                    if not info.filename.endswith(".npy"):
+                        members.append(_Member(name, None, "not a .npy array"))
+                        continue
+                    raise
+            if dtype.kind not in "biuf":
+                members.append(_Member(name, None, f"an array of dtype {dtype}"))
+                continue
+            if math.prod(shape) * dtype.itemsize > info.file_size:
+                raise HallcalInputError(
+                    f"{source}: corrupt .npz archive: array '{name}' declares "
+                    f"{math.prod(shape)} values of {dtype}, the archive holds "
+                    f"{info.file_size} bytes"
+                )
+            members.append(_Member(name, shape, "an array"))
+        chosen = _select_columns(members, source)
+        # stored members are mapped from the file (their CRC checked), the others read
+        mapped = _map_stored_members(p) if chosen else {}
+        out: dict[str, np.ndarray] = {}
+        for name, n in chosen.items():
+            arr = mapped.get(name)
+            if arr is None:
+                with archive.open(by_name[name]) as f:
+                    arr = np.lib.format.read_array(f, allow_pickle=False)
+                    f.read()  # to the end of the member: the zip's CRC-32 is checked there
+            out[name] = _as_vector(arr, name, n, source, ".npz archive")
+    return out
 
 
 def _map_stored_members(p: Path) -> dict[str, np.ndarray]:

@@ -22,6 +22,7 @@ from typing import IO, Any, Literal, NoReturn
 import numpy as np
 
 from hallcal.errors import HallcalInputError
+from hallcal.limits import MAX_JSON_BYTES, MAX_JSON_DEPTH
 
 __all__ = ["atomic_path", "atomic_write", "read_json", "to_jsonable", "write_json"]
 
@@ -165,11 +166,40 @@ def _existing_file(path: str | os.PathLike[str]) -> Path:
     return p
 
 
-def _read_bytes(p: Path) -> bytes:
+def _size_text(nbytes: float) -> str:
+    """``"3.2 MB"``: a byte count for messages."""
+    for unit, scale in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if nbytes >= scale:
+            return f"{nbytes / scale:.3g} {unit}"
+    return f"{int(nbytes)} bytes"
+
+
+def _check_size(p: Path, limit: int | None, what: str) -> None:
+    """Refuse a file larger than `limit` bytes before reading it."""
+    if limit is None:
+        return
     try:
-        return p.read_bytes()
+        size = p.stat().st_size
     except OSError as exc:
         raise HallcalInputError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    if size > limit:
+        raise HallcalInputError(
+            f"{p}: {_size_text(size)}, above the limit of {_size_text(limit)} for {what}"
+        )
+
+
+def _read_bytes(p: Path, *, limit: int | None = None, what: str = "this file") -> bytes:
+    """The file's content, refusing files above `limit` bytes (checked before reading)."""
+    _check_size(p, limit, what)
+    try:
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise HallcalInputError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    if limit is not None and len(raw) > limit:  # the file grew while we looked at it
+        raise HallcalInputError(
+            f"{p}: {_size_text(len(raw))}, above the limit of {_size_text(limit)} for {what}"
+        )
+    return raw
 
 
 def _decode_text(p: Path, raw: bytes) -> str:
@@ -178,6 +208,50 @@ def _decode_text(p: Path, raw: bytes) -> str:
     except UnicodeDecodeError as exc:
         line = raw[: exc.start].count(b"\n") + 1
         raise HallcalInputError(f"{p}: not UTF-8 text (line {line})") from None
+
+
+def _check_parsed(p: str | os.PathLike[str], data: Any) -> None:
+    """Nesting at most MAX_JSON_DEPTH levels, every float finite, every integer within 64 bits.
+
+    For parsed JSON or TOML; iterative (the data may be deep). The message names the key path of
+    the first offender.
+    """
+    stack: list[tuple[Any, str, int]] = [(data, "", 0)]
+    while stack:
+        value, where, depth = stack.pop()
+        if isinstance(value, bool) or value is None or isinstance(value, str):
+            continue
+        if isinstance(value, float):
+            if not math.isfinite(value):
+                raise HallcalInputError(
+                    f"{p}: key '{where or '(top level)'}' holds a number out of the range of "
+                    "a 64-bit float (1e999 and the like are infinite)"
+                )
+            continue
+        if isinstance(value, int):
+            if not -(2**63) <= value < 2**63:
+                raise HallcalInputError(
+                    f"{p}: key '{where or '(top level)'}' holds an integer out of the 64-bit range"
+                )
+            continue
+        if isinstance(value, dict | list):
+            if depth >= MAX_JSON_DEPTH:
+                raise HallcalInputError(
+                    f"{p}: key '{where or '(top level)'}' is nested more than {MAX_JSON_DEPTH} "
+                    "levels deep (the limit)"
+                )
+            items = value.items() if isinstance(value, dict) else enumerate(value)
+            for key, item in items:
+                if isinstance(value, dict):
+                    path = f"{where}.{key}" if where else str(key)
+                else:
+                    path = f"{where}[{key}]"
+                stack.append((item, path, depth + 1))
+
+
+def _nested_too_deeply(p: str | os.PathLike[str]) -> HallcalInputError:
+    """The parsers recurse once per level; Python stops them at about a thousand."""
+    return HallcalInputError(f"{p}: nested far more than {MAX_JSON_DEPTH} levels deep (the limit)")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -283,18 +357,27 @@ def _reject_constant(name: str) -> NoReturn:
 def read_json(path: str | os.PathLike[str]) -> Any:
     """Read a JSON file (NaN and Infinity are refused, as JSON says).
 
+    The size is checked before reading (at most :data:`~hallcal.limits.MAX_JSON_BYTES`); after
+    parsing, the nesting depth (at most :data:`~hallcal.limits.MAX_JSON_DEPTH`), and that every
+    number is finite (``1e999`` parses to infinity) and every integer fits in 64 bits.
+
     Raises
     ------
     HallcalInputError
-        Missing file, invalid UTF-8 or invalid JSON (with its line and column).
+        Missing file, invalid UTF-8, invalid JSON (with its line and column), a file above the
+        size or depth limit, or a number out of range (with its key path).
     """
     p = _existing_file(path)
-    text = _decode_text(p, _read_bytes(p))
+    text = _decode_text(p, _read_bytes(p, limit=MAX_JSON_BYTES, what="a JSON file"))
     try:
-        return json.loads(text, parse_constant=_reject_constant)
+        data = json.loads(text, parse_constant=_reject_constant)
     except json.JSONDecodeError as exc:
         raise HallcalInputError(
             f"{p}: invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}"
         ) from None
-    except ValueError as exc:
-        raise HallcalInputError(f"{p}: invalid JSON: {exc}") from None
+    except ValueError as exc:  # NaN/Infinity, integers of more than 4300 digits
+        raise HallcalInputError(f"{p}: invalid JSON: {' '.join(str(exc).split())}") from None
+    except RecursionError:
+        raise _nested_too_deeply(p) from None
+    _check_parsed(p, data)
+    return data

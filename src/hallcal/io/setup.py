@@ -20,12 +20,30 @@ import numpy as np
 
 from hallcal.errors import HallcalInputError
 from hallcal.io.files import (
+    _check_parsed,
     _closest,
     _decode_text,
     _existing_file,
+    _nested_too_deeply,
     _read_bytes,
     _suggest,
     atomic_write,
+)
+from hallcal.limits import (
+    MAX_ABS_VALUE,
+    MAX_BENCH_ELECTRICAL_HARMONICS,
+    MAX_DELAY_SAMPLES,
+    MAX_HARMONIC,
+    MAX_HARMONICS,
+    MAX_ITERATIONS,
+    MAX_KERNEL_POINTS,
+    MAX_LUT_POINTS,
+    MAX_POLE_PAIRS,
+    MAX_REALIZATIONS,
+    MAX_SAMPLES,
+    MAX_SETUP_BYTES,
+    MAX_TF_ORDER,
+    MIN_LUT_POINTS,
 )
 from hallcal.sim.lti import ContinuousTF, DiscreteTF
 
@@ -385,6 +403,14 @@ def _is_number(value: Any) -> bool:
     return _is_int(value) or (isinstance(value, float | np.floating))
 
 
+def _finite(value: Any) -> bool:
+    """A number that converts to a finite float (an integer of 400 digits does not)."""
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
 class _Table:
     """One table of the setup, with typed getters whose errors name the key."""
 
@@ -428,14 +454,30 @@ class _Table:
             self.error(f"key '{self.key(name)}' is missing (it must be {what})")
         return default
 
-    def integer(self, name: str, *, default: Any = _REQUIRED, minimum: int | None = None) -> Any:
+    def integer(
+        self,
+        name: str,
+        *,
+        default: Any = _REQUIRED,
+        minimum: int | None = None,
+        maximum: int | None = None,
+    ) -> Any:
         what = "an integer" + (f" >= {minimum}" if minimum is not None else "")
         value = self._get(name, default, what)
         if value is default and name not in self.data:
             return value
         if not _is_int(value) or (minimum is not None and value < minimum):
             self.fail(name, what)
+        if maximum is not None and value > maximum:
+            self.above(name, maximum)
         return int(value)
+
+    def above(self, name: str, maximum: float, what: str = "") -> NoReturn:
+        """The value of `name` exceeds hallcal's limit `maximum` (:mod:`hallcal.limits`)."""
+        shown = what or _show(self.data[name])
+        exact = float(maximum).is_integer() and maximum < 1e15
+        limit = str(int(maximum)) if exact else f"{maximum:g}"
+        self.error(f"key '{self.key(name)}' is {shown}, above the limit of {limit}")
 
     def number(
         self,
@@ -444,6 +486,7 @@ class _Table:
         default: Any = _REQUIRED,
         minimum: float | None = None,
         positive: bool = False,
+        maximum: float | None = None,
     ) -> Any:
         what = "a number"
         if positive:
@@ -453,10 +496,12 @@ class _Table:
         value = self._get(name, default, what)
         if value is default and name not in self.data:
             return value
-        if not _is_number(value) or not math.isfinite(value):
+        if not _is_number(value) or not _finite(value):
             self.fail(name, "a finite number" if _is_number(value) else what)
         if (positive and value <= 0) or (minimum is not None and value < minimum):
             self.fail(name, what)
+        if maximum is not None and abs(value) > maximum:
+            self.above(name, maximum)
         return float(value)
 
     def boolean(self, name: str, *, default: Any = _REQUIRED) -> Any:
@@ -472,7 +517,15 @@ class _Table:
             self.fail(name, what, _suggest(value, options) if isinstance(value, str) else "")
         return value
 
-    def numbers(self, name: str, *, default: Any = _REQUIRED, length: int | None = None) -> Any:
+    def numbers(
+        self,
+        name: str,
+        *,
+        default: Any = _REQUIRED,
+        length: int | None = None,
+        max_length: int | None = None,
+        maximum: float | None = None,
+    ) -> Any:
         what = (
             f"a list of {length} numbers" if length is not None else "a non-empty list of numbers"
         )
@@ -486,8 +539,12 @@ class _Table:
             or not all(_is_number(v) for v in value)
         ):
             self.fail(name, what)
-        if not all(math.isfinite(v) for v in value):
+        if not all(_finite(v) for v in value):
             self.fail(name, "a list of finite numbers")
+        if max_length is not None and len(value) > max_length:
+            self.above(name, max_length, f"a list of {len(value)} numbers")
+        if maximum is not None and any(abs(v) > maximum for v in value):
+            self.above(name, maximum, "a list with " + _show(max(value, key=abs)))
         return tuple(float(v) for v in value)
 
     def table_at(self, name: str) -> _Table | None:
@@ -500,8 +557,9 @@ class _Table:
 
 
 def _parse_tf(t: _Table, *, continuous: bool) -> tuple[tuple[float, ...], tuple[float, ...]]:
-    num = t.numbers("num")
-    den = t.numbers("den")
+    # limits.MAX_TF_ORDER: the loop's cost grows with the square of its states
+    num = t.numbers("num", max_length=MAX_TF_ORDER + 1)
+    den = t.numbers("den", max_length=MAX_TF_ORDER + 1)
     if den[0] == 0.0:
         t.error(f"key '{t.key('den')}' must have a nonzero leading coefficient, got {_show(den)}")
     stripped = num
@@ -543,12 +601,16 @@ def _parse_model(t: _Table | None) -> ModelSpec:
                 or not all(_is_int(h) and h >= 1 for h in value)
             ):
                 t.fail("harmonics", what)
+            if len(value) > MAX_HARMONICS:
+                t.above("harmonics", MAX_HARMONICS, f"a list of {len(value)} harmonics")
+            if max(value) > MAX_HARMONIC:
+                t.above("harmonics", MAX_HARMONIC, f"a list with the harmonic {max(value)}")
             if len(set(value)) != len(value):
                 t.error(f"key '{t.key('harmonics')}' lists a harmonic twice: {_show(value)}")
             harmonics = tuple(int(h) for h in value)
     else:
         _only_for(t, ("harmonics",), 'basis = "fourier"')
-        points = t.integer("points", default=400, minimum=8)
+        points = t.integer("points", default=400, minimum=8, maximum=MAX_KERNEL_POINTS)
         value = t.data.get("lengthscale", "auto")
         if not (isinstance(value, str) and value == "auto"):
             if not _is_number(value) or not math.isfinite(value) or value <= 0:
@@ -559,8 +621,10 @@ def _parse_model(t: _Table | None) -> ModelSpec:
         harmonics=harmonics,  # type: ignore[arg-type]
         points=points,
         lengthscale=lengthscale,  # type: ignore[arg-type]
-        lut_points=t.integer("lut_points", default=4096, minimum=16),
-        max_iterations=t.integer("max_iterations", default=50, minimum=1),
+        lut_points=t.integer(
+            "lut_points", default=4096, minimum=MIN_LUT_POINTS, maximum=MAX_LUT_POINTS
+        ),
+        max_iterations=t.integer("max_iterations", default=50, minimum=1, maximum=MAX_ITERATIONS),
         force=t.boolean("force", default=False),
         cogging=_parse_cogging(t, basis),  # type: ignore[arg-type]
     )
@@ -593,8 +657,8 @@ def _parse_trajectory(t: _Table | None) -> TrajectorySpec:
     if kind == "closed-loop":
         _only_for(t, ("start", "stop"), 'kind = "constant-speed"')
         return TrajectorySpec(kind=kind)
-    start = t.integer("start", default=0, minimum=0)
-    stop = t.integer("stop", default=None, minimum=1)
+    start = t.integer("start", default=0, minimum=0, maximum=MAX_SAMPLES)
+    stop = t.integer("stop", default=None, minimum=1, maximum=MAX_SAMPLES)
     if stop is not None and stop <= start:
         t.error(
             f"key '{t.key('stop')}' must be greater than '{t.key('start')}' ({start}), got {stop}"
@@ -606,8 +670,8 @@ def _parse_bla(t: _Table | None, sample_time: float) -> BLASpec | None:
     if t is None:
         return None
     t.check_keys()
-    period_samples = t.integer("period_samples", minimum=8)
-    periods = t.integer("periods", minimum=2)
+    period_samples = t.integer("period_samples", minimum=8, maximum=MAX_SAMPLES)
+    periods = t.integer("periods", minimum=2, maximum=MAX_SAMPLES)
     transient = t.integer("transient_periods", default=1, minimum=0)
     if transient >= periods:
         t.error(
@@ -630,12 +694,22 @@ def _parse_bla(t: _Table | None, sample_time: float) -> BLASpec | None:
             f"key '{t.key('band')}' holds no frequency line (lines are multiples of "
             f"1/(period_samples*sample_time) = {f0:g} Hz), got {_show(list(band))}"
         )
-    numerator_order = t.integer("numerator_order", default=0, minimum=0)
+    realizations = t.integer("realizations", default=8, minimum=1, maximum=MAX_REALIZATIONS)
+    total = period_samples * periods * realizations
+    if total > MAX_SAMPLES:
+        t.error(
+            f"keys '{t.key('period_samples')}' x '{t.key('periods')}' x "
+            f"'{t.key('realizations')}' = {total} samples, above the limit of {MAX_SAMPLES} "
+            "samples of one experiment"
+        )
+    numerator_order = t.integer("numerator_order", default=0, minimum=0, maximum=MAX_TF_ORDER)
     denominator_order: int | str = "auto"
     value = t.data.get("denominator_order", "auto")
     if not (isinstance(value, str) and value == "auto"):
         if not _is_int(value) or value < 0:
             t.fail("denominator_order", 'an integer >= 0 or "auto"')
+        if value > MAX_TF_ORDER:
+            t.above("denominator_order", MAX_TF_ORDER)
         denominator_order = int(value)
     if denominator_order != "auto" and numerator_order > int(denominator_order):
         t.error(
@@ -646,7 +720,7 @@ def _parse_bla(t: _Table | None, sample_time: float) -> BLASpec | None:
         period_samples=period_samples,
         periods=periods,
         transient_periods=transient,
-        realizations=t.integer("realizations", default=8, minimum=1),
+        realizations=realizations,
         band=band,  # type: ignore[arg-type]
         rms=t.number("rms", default=0.05, positive=True),
         lines=t.choice("lines", ("full", "odd", "random-odd"), default="random-odd"),
@@ -658,7 +732,7 @@ def _parse_bla(t: _Table | None, sample_time: float) -> BLASpec | None:
     )
 
 
-def _parse_bench(t: _Table | None) -> BenchSpec:
+def _parse_bench(t: _Table | None, pole_pairs: int) -> BenchSpec:
     if t is None:
         return BenchSpec()
     t.check_keys()
@@ -670,6 +744,8 @@ def _parse_bench(t: _Table | None) -> BenchSpec:
     what = "a list of [harmonic >= 2, relative amplitude] pairs"
     if not isinstance(value, list | tuple):
         t.fail("electrical_harmonics", what)
+    if len(value) > MAX_BENCH_ELECTRICAL_HARMONICS:
+        t.above("electrical_harmonics", MAX_BENCH_ELECTRICAL_HARMONICS, f"{len(value)} pairs")
     for pair in value:
         if (
             not isinstance(pair, list | tuple)
@@ -677,26 +753,32 @@ def _parse_bench(t: _Table | None) -> BenchSpec:
             or not _is_int(pair[0])
             or pair[0] < 2
             or not _is_number(pair[1])
-            or not math.isfinite(pair[1])
+            or not _finite(pair[1])
         ):
             t.fail("electrical_harmonics", what)
         pairs.append((int(pair[0]), float(pair[1])))
     if len({h for h, _ in pairs}) != len(pairs):
         t.error(f"key '{t.key('electrical_harmonics')}' lists a harmonic twice: {_show(value)}")
+    if pairs and max(h for h, _ in pairs) * pole_pairs > MAX_HARMONIC:
+        highest = max(h for h, _ in pairs)
+        t.error(
+            f"key '{t.key('electrical_harmonics')}' has the electrical harmonic {highest}, "
+            f"mechanical harmonic {highest * pole_pairs}, above the limit of {MAX_HARMONIC}"
+        )
     return BenchSpec(
         experiment=t.choice("experiment", ("ramp", "multisine"), default="ramp"),
         seed=t.integer("seed", default=0, minimum=0),
         noise_variance=t.number("noise_variance", default=7.5e-6, minimum=0.0),
         ramp_end=t.number("ramp_end", default=13.0),
         duration=t.number("duration", default=26.0, positive=True),
-        amplitude=t.number("amplitude", default=1.0, positive=True),
+        amplitude=t.number("amplitude", default=1.0, positive=True, maximum=MAX_ABS_VALUE),
         magnet_variation=t.number("magnet_variation", default=0.04, minimum=0.0),
         pole_modulation=t.number("pole_modulation", default=0.0, minimum=0.0),
         shape_variation=t.number("shape_variation", default=0.0, minimum=0.0),
         shape_harmonics=t.integer("shape_harmonics", default=5, minimum=1),
         misalignment_deg=t.numbers("misalignment_deg", default=(0.0, 0.0, 0.0), length=3),
         gain_mismatch=gain,
-        offset=t.numbers("offset", default=(0.0, 0.0, 0.0), length=3),
+        offset=t.numbers("offset", default=(0.0, 0.0, 0.0), length=3, maximum=MAX_ABS_VALUE),
         electrical_harmonics=tuple(pairs),
         torque_disturbance=t.number("torque_disturbance", default=0.0, minimum=0.0),
         cogging=t.number("cogging", default=0.0, minimum=0.0),
@@ -710,7 +792,7 @@ def _parse_setup(data: Mapping[str, Any], source: str, prefix: str = "") -> Setu
         raise HallcalInputError(f"{source}: {what} must be a table")
     top = _Table(data, source, "", prefix)
     top.check_keys()
-    pole_pairs = top.integer("pole_pairs", minimum=1)
+    pole_pairs = top.integer("pole_pairs", minimum=1, maximum=MAX_POLE_PAIRS)
     sample_time = top.number("sample_time", positive=True)
     controller_t = top.table_at("controller")
     plant_t = top.table_at("plant")
@@ -736,9 +818,16 @@ def _parse_setup(data: Mapping[str, Any], source: str, prefix: str = "") -> Setu
     if plant_t is not None:
         plant_t.check_keys()
         num, den = _parse_tf(plant_t, continuous=True)
-        plant = ContinuousTF(num, den, plant_t.number("delay", default=0.0, minimum=0.0))
+        delay = plant_t.number("delay", default=0.0, minimum=0.0)
+        if delay / sample_time > MAX_DELAY_SAMPLES:
+            plant_t.error(
+                f"key '{plant_t.key('delay')}' is {delay / sample_time:.4g} samples "
+                f"({_show(delay)} s at sample_time {_show(sample_time)} s), above the limit of "
+                f"{MAX_DELAY_SAMPLES} samples"
+            )
+        plant = ContinuousTF(num, den, delay)
     bla = _parse_bla(bla_t, sample_time)
-    bench = _parse_bench(bench_t)
+    bench = _parse_bench(bench_t, pole_pairs)
     if bench.experiment == "multisine" and bla is None:
         top.error(f"key '{prefix}bench.experiment' is \"multisine\" but there is no [bla] table")
     return Setup(
@@ -770,8 +859,9 @@ def setup_from_dict(d: Mapping[str, Any], *, source: str = "<setup>") -> Setup:
     Raises
     ------
     HallcalInputError
-        Unknown key (with a did-you-mean suggestion), missing required key, wrong type or
-        value out of range; the message names `source` and the dotted key.
+        Unknown key (with a did-you-mean suggestion), missing required key, wrong type, value
+        out of range, or above one of the resource limits of :mod:`hallcal.limits`; the message
+        names `source` and the dotted key (and the limit).
     """
     return _parse_setup(d, source)
 
@@ -791,16 +881,20 @@ def read_setup(path: str | os.PathLike[str]) -> Setup:
     Raises
     ------
     HallcalInputError
-        Missing file, invalid UTF-8, malformed TOML (with its line), or any problem
-        :func:`setup_from_dict` reports.
+        Missing file, a file above :data:`~hallcal.limits.MAX_SETUP_BYTES` or nested deeper than
+        :data:`~hallcal.limits.MAX_JSON_DEPTH`, invalid UTF-8, malformed TOML (with its line), a
+        number out of range, or any problem :func:`setup_from_dict` reports.
     """
     p = _existing_file(path)
-    text = _decode_text(p, _read_bytes(p))
+    text = _decode_text(p, _read_bytes(p, limit=MAX_SETUP_BYTES, what="a setup file"))
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         message = " ".join(str(exc).split())
         raise HallcalInputError(f"{p}: invalid TOML: {message}") from None
+    except RecursionError:
+        raise _nested_too_deeply(p) from None
+    _check_parsed(p, data)
     return _parse_setup(data, str(p))
 
 

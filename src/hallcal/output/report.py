@@ -27,6 +27,7 @@ import html
 import io as _io
 import math
 import os
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -1346,7 +1347,11 @@ def render_html(content: ReportContent, images: list[tuple[ReportFigure, bytes]]
 
 def _png(fig: Any) -> bytes:
     buf = _io.BytesIO()
-    fig.savefig(buf, format="png", dpi=_DPI, metadata={"Software": None})
+    with warnings.catch_warnings():
+        # a figure of degenerate data (a flat trace, a tiny run) may not fit constrained layout;
+        # matplotlib then draws it without and says so on stderr, which is no news to the user
+        warnings.filterwarnings("ignore", message="constrained_layout not applied")
+        fig.savefig(buf, format="png", dpi=_DPI, metadata={"Software": None})
     return buf.getvalue()
 
 

@@ -20,9 +20,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hallcal.errors import CalibrationRefused, HallcalInputError
-from hallcal.io.artifact import ARTIFACT_FORMAT, write_artifact
+from hallcal.io.artifact import ARTIFACT_FORMAT, ArtifactData, validate_artifact, write_artifact
 from hallcal.io.dataset import Dataset
-from hallcal.io.setup import Setup, setup_from_dict
+from hallcal.io.setup import Setup
 from hallcal.pipeline.powerup import (
     identifiability_from_artifact,
     reconstruct_absolute,
@@ -368,41 +368,79 @@ def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
     return art
 
 
-def lut_from_artifact(artifact: Mapping[str, Any]) -> LUT:
-    """Rebuild the table (and its f_init) from an artifact, re-checking bijectivity."""
-    rec = artifact["reconstruction"]
-    t = artifact["lut"]
-    return LUT.from_arrays(
-        artifact["pole_pairs"], rec["projection"], rec["offset"], t["y_hat"], t["eta"]
-    )
+def _checked(artifact: ArtifactData | Mapping[str, Any]) -> ArtifactData:
+    """The typed view of an artifact: as given, or from the one validator."""
+    if isinstance(artifact, ArtifactData):
+        return artifact
+    return validate_artifact(artifact, "artifact")
+
+
+def lut_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> LUT:
+    """Rebuild the table (and its f_init) from an artifact (checked by
+    :func:`~hallcal.io.validate_artifact` unless it is an :class:`~hallcal.io.ArtifactData`).
+
+    Raises
+    ------
+    HallcalInputError
+        The artifact does not pass :func:`~hallcal.io.validate_artifact`.
+    """
+    return _checked(artifact).lut()
 
 
 def _float_or_nan(value: Any) -> float:
     return float(value) if isinstance(value, int | float) else math.nan
 
 
-def calibration_from_artifact(artifact: Mapping[str, Any]) -> Calibration:
-    """Rebuild a :class:`Calibration` from a (checked) artifact, e.g. :func:`read_artifact`'s.
+def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Calibration:
+    """Rebuild a :class:`Calibration` from an artifact (:func:`~hallcal.io.load_artifact`'s, or
+    a mapping, which is checked by :func:`~hallcal.io.validate_artifact` first).
 
     The flux model, table, setup, status, messages, predicted error and plant come back; the
     solver's internals (SEM iterates, BLA spectra) stay in :attr:`Calibration.artifact`.
+
+    Raises
+    ------
+    HallcalInputError
+        The artifact does not pass the validator, or its ``diagnostics.status`` is not one of
+        :class:`CalibrationStatus`.
     """
-    setup = setup_from_dict(artifact["setup"], source="artifact")
-    model = artifact["model"]
-    diag = artifact["diagnostics"]
-    lut = lut_from_artifact(artifact)
-    harmonics = tuple(int(h) for h in model.get("harmonics", ()))
-    theta = np.asarray(model.get("theta", np.zeros((3, 2 * len(harmonics) + 1))), float)
-    flux = FluxModel(FourierBasis(harmonics), theta)
-    status = CalibrationStatus(diag.get("status", "ok"))
-    identifiability = identifiability_from_artifact(artifact)
+    art = _checked(artifact)
+    setup = art.setup
+    model = art.model
+    diag = art.diagnostics
+    lut = art.lut()
+    harmonics = tuple(int(h) for h in model["harmonics"])
+    flux = FluxModel(FourierBasis(harmonics), np.asarray(model["theta"], dtype=np.float64))
+    try:
+        status = CalibrationStatus(diag.get("status", "ok"))
+    except ValueError:
+        options = ", ".join(f'"{s.value}"' for s in CalibrationStatus)
+        raise HallcalInputError(
+            f"{art.source}: key 'diagnostics.status' must be one of {options}",
+            source=art.source,
+            key="diagnostics.status",
+        ) from None
+    try:
+        identifiability = identifiability_from_artifact(art.data)
+    except HallcalInputError as exc:  # it says "artifact:"; name the file
+        text = str(exc).removeprefix("artifact:").strip()
+        raise HallcalInputError(
+            f"{art.source}: {text}", source=art.source, key=exc.key or "identifiability"
+        ) from None
     plant = None
     plant_source = None
-    if "plant" in artifact:
-        p = artifact["plant"]
+    if art.plant is not None:
+        p = art.plant
         plant = ContinuousTF(tuple(p["num"]), tuple(p["den"]), float(p["delay"]))
         plant_source = p.get("source")
-    cogging = CoggingTorque.from_dict(artifact["cogging"]) if "cogging" in artifact else None
+    cogging = None
+    if art.data.get("cogging") is not None:
+        try:
+            cogging = CoggingTorque.from_dict(art.data["cogging"])
+        except ValueError as exc:  # the validator checked the shapes; the model may still refuse
+            raise HallcalInputError(
+                f"{art.source}: key 'cogging': {exc}", source=art.source, key="cogging"
+            ) from None
     return Calibration(
         setup=setup,
         flux=flux,
@@ -417,7 +455,7 @@ def calibration_from_artifact(artifact: Mapping[str, Any]) -> Calibration:
         timings=dict(diag.get("timings", {})),
         model_info=dict(model),
         identifiability=identifiability,
-        artifact=artifact,
+        artifact=art.data,
         cogging=cogging,
     )
 
@@ -454,7 +492,7 @@ def _reconstruct_absolute(cal: Calibration, dataset: Dataset) -> Reconstruction:
 
 
 def reconstruct(
-    artifact: Mapping[str, Any],
+    artifact: ArtifactData | Mapping[str, Any],
     dataset: Dataset,
     *,
     y_initial: float = 0.0,
@@ -464,14 +502,12 @@ def reconstruct(
 
     Raises
     ------
+    HallcalInputError
+        The artifact does not pass :func:`~hallcal.io.validate_artifact` (a table that is not
+        bijective included).
     CalibrationRefused
-        When the artifact's table is not bijective, or (``absolute``) when the pole pair is
-        not identifiable with this motor's sensors.
+        (``absolute``) When the pole pair is not identifiable with this motor's sensors.
     """
     if absolute:
         return calibration_from_artifact(artifact).reconstruct(dataset, absolute=True)
-    try:
-        lut = lut_from_artifact(artifact)
-    except ValueError as exc:
-        raise HallcalInputError(f"artifact: {exc}") from None
-    return reconstruct_with(lut, dataset, y_initial=y_initial)
+    return reconstruct_with(lut_from_artifact(artifact), dataset, y_initial=y_initial)

@@ -27,6 +27,7 @@ from hallcal.fit.order import HarmonicSelection, select_harmonics
 from hallcal.fit.sem import SEMResult, solve_sem
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
+from hallcal.pipeline.boundary import numeric_errors
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
 from hallcal.pipeline.checks import CheckStatus, check_direction, check_loop, check_pole_pairs
 from hallcal.pipeline.plant import BLAIdentification, PlantModel, closed_loop, plant_model
@@ -351,11 +352,14 @@ def calibrate_closed_loop(
         messages.append(f"warning: gain correction c = {pm.gain.c:.3g} hit its search bound")
 
     t0 = time.perf_counter()
-    if setup.model.basis == "kernel":
-        fit = _fit_kernel(loop, s, setup, progress=progress)
-    else:
-        fit = _fit_fourier(loop, s, setup, fit_gain=pm.gain is not None, progress=progress)
-        fit = _with_cogging(loop, s, setup, fit, fit_gain=pm.gain is not None, progress=progress)
+    with numeric_errors("setup", "model"):
+        if setup.model.basis == "kernel":
+            fit = _fit_kernel(loop, s, setup, progress=progress)
+        else:
+            fit = _fit_fourier(loop, s, setup, fit_gain=pm.gain is not None, progress=progress)
+            fit = _with_cogging(
+                loop, s, setup, fit, fit_gain=pm.gain is not None, progress=progress
+            )
     timings["sem"] = time.perf_counter() - t0
     pm = _refined_plant(pm, fit)
     cogging = fit.cogging.cogging if fit.cogging is not None else None
@@ -363,17 +367,22 @@ def calibrate_closed_loop(
         messages.append(fit.cogging.message)
     loop = closed_loop(setup, pm.plant).with_cogging(cogging)
 
-    adequacy = fit.adequacy or assess(
-        fit.sem, s.d, pole_pairs=setup.pole_pairs, projection=loop.projection, offset=loop.offset
-    )
-    say(progress, "lookup table and bijectivity check")
-    lut = build_lut(
-        fit.flux,
-        setup.pole_pairs,
-        points=setup.model.lut_points,
-        projection=loop.projection,
-        offset=loop.offset,
-    )
+    with numeric_errors("setup", "model"):
+        adequacy = fit.adequacy or assess(
+            fit.sem,
+            s.d,
+            pole_pairs=setup.pole_pairs,
+            projection=loop.projection,
+            offset=loop.offset,
+        )
+        say(progress, "lookup table and bijectivity check")
+        lut = build_lut(
+            fit.flux,
+            setup.pole_pairs,
+            points=setup.model.lut_points,
+            projection=loop.projection,
+            offset=loop.offset,
+        )
     status, refusal, leading = _verdict(lut, adequacy)
     predicted = adequacy.predicted_error
     if status is CalibrationStatus.WARNING:

@@ -20,6 +20,7 @@ from hallcal.errors import CalibrationRefused, HallcalInputError
 from hallcal.fit.sem import least_squares_start
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
+from hallcal.pipeline.boundary import numeric_errors
 from hallcal.pipeline.checks import BLAFitCheck, CheckStatus, check_bla_fit
 from hallcal.pipeline.progress import Progress, say
 from hallcal.sensor.flux import FluxModel, FourierBasis
@@ -177,33 +178,34 @@ def identify_bla(dataset: Dataset, setup: Setup, *, progress: Progress = None) -
     from hallcal.identify import bla as _bla  # loaded only when a BLA is identified
 
     say(progress, "nonparametric BLA (indirect closed-loop method)")
-    npb = _bla.nonparametric_bla(
-        dataset["r"],
-        dataset["u"],
-        dataset["y"],
-        dataset["realization"].astype(int),
-        period_samples=spec.period_samples,
-        transient_periods=spec.transient_periods,
-        sample_time=setup.sample_time,
-    )
-    auto = spec.denominator_order == "auto"
-    say(
-        progress,
-        "parametric fit of G(s) with input delay"
-        + (", model orders 0..3 compared" if auto else ""),
-    )
-    par, order, selection, messages = _fit_with_order(npb, setup)
-    plant = ContinuousTF(tuple(par.num), tuple(par.den), max(float(par.delay), 0.0))
-    suggestion = None
-    if selection is not None and selection.chosen is not None:
-        suggestion = selection.chosen.denominator_order
-    check = check_bla_fit(
-        par,
-        denominator_order=order,
-        max_frequency=float(np.max(npb.freq)),
-        suggestion=suggestion,
-        chosen_from_data=auto,
-    )
+    with numeric_errors(dataset.source, "bla"):
+        npb = _bla.nonparametric_bla(
+            dataset["r"],
+            dataset["u"],
+            dataset["y"],
+            dataset["realization"].astype(int),
+            period_samples=spec.period_samples,
+            transient_periods=spec.transient_periods,
+            sample_time=setup.sample_time,
+        )
+        auto = spec.denominator_order == "auto"
+        say(
+            progress,
+            "parametric fit of G(s) with input delay"
+            + (", model orders 0..3 compared" if auto else ""),
+        )
+        par, order, selection, messages = _fit_with_order(npb, setup)
+        plant = ContinuousTF(tuple(par.num), tuple(par.den), max(float(par.delay), 0.0))
+        suggestion = None
+        if selection is not None and selection.chosen is not None:
+            suggestion = selection.chosen.denominator_order
+        check = check_bla_fit(
+            par,
+            denominator_order=order,
+            max_frequency=float(np.max(npb.freq)),
+            suggestion=suggestion,
+            chosen_from_data=auto,
+        )
     if npb.status != "ok":
         messages.append(
             f"warning: BLA experiment: {npb.status} ({npb.realizations} realizations x "
@@ -458,8 +460,10 @@ def plant_model(
     basis = FourierBasis(start_harmonics or tuple(range(1, n_m + 1)))
     d = np.ascontiguousarray(dataset.d)
     y = np.ascontiguousarray(dataset["y"])
-    flux0 = FluxModel(basis, least_squares_start(basis, d, y))
-    gain = estimate_gain(closed_loop(setup, bla.plant), dataset["r"], y, flux0)
+    loop = closed_loop(setup, bla.plant)
+    with numeric_errors(dataset.source, "plant"):
+        flux0 = FluxModel(basis, least_squares_start(basis, d, y))
+        gain = estimate_gain(loop, dataset["r"], y, flux0)
     note = f"plant: the BLA identified from {where}, gain-corrected with the calibration run"
     if setup.plant is not None:
         note += (

@@ -8,6 +8,8 @@ import numpy as np
 
 from hallcal.errors import HallcalInputError
 from hallcal.io.setup import Setup
+from hallcal.limits import MAX_SAMPLES
+from hallcal.pipeline.boundary import numeric_errors
 from hallcal.pipeline.checks import check_loop
 
 if TYPE_CHECKING:
@@ -86,21 +88,32 @@ def simulate(
     Raises
     ------
     HallcalInputError
-        No ``[plant]``, or a controller and plant whose closed loop is unstable (the pole named,
-        :func:`~hallcal.pipeline.checks.check_loop`).
+        No ``[plant]``, a ramp of fewer than 2 or more than :data:`~hallcal.limits.MAX_SAMPLES`
+        samples, a plant and controller the loop cannot use (named), or whose closed loop is
+        unstable (the pole named, :func:`~hallcal.pipeline.checks.check_loop`).
     """
     from hallcal.sim.bench import simulate_run
 
-    cfg = bench_config(setup)
-    check_loop(cfg.controller, cfg.plant, setup.sample_time).raise_if_failed("setup")
+    with numeric_errors("setup", "plant"):
+        cfg = bench_config(setup)
+        check_loop(cfg.controller, cfg.plant, setup.sample_time).raise_if_failed("setup")
     kind = experiment or setup.bench.experiment
     if kind == "ramp":
         b = setup.bench
         end = b.ramp_end if ramp_end is None else ramp_end
         dur = b.duration if duration is None else duration
-        n = int(round(dur / setup.sample_time))
+        samples = dur / setup.sample_time
+        if not 2 <= samples <= MAX_SAMPLES:
+            raise HallcalInputError(
+                f"setup: key 'bench.duration' is {samples:.4g} samples ({dur:g} s at sample_time "
+                f"{setup.sample_time:g} s), outside 2 .. {MAX_SAMPLES} samples (the limit)",
+                source="setup",
+                key="bench.duration",
+            )
+        n = int(round(samples))
         r = end * np.arange(n) / n
-        return simulate_run(cfg, r, seed=seed)
+        with numeric_errors("setup", "plant"):
+            return simulate_run(cfg, r, seed=seed)
     if kind == "multisine":
         spec = setup.bla
         if spec is None:
@@ -109,18 +122,20 @@ def simulate(
             )
         from hallcal.identify.excitation import multisine_experiment
 
-        exp = multisine_experiment(
-            spec.period_samples,
-            setup.sample_time,
-            periods=spec.periods,
-            realizations=spec.realizations,
-            band=spec.band,
-            rms=spec.rms,
-            lines=spec.lines,
-            seed=setup.bench.seed if seed is None else seed,
-            drift=spec.drift,
-        )
-        return simulate_run(cfg, exp.r, seed=seed, realization=exp.realization)
+        with numeric_errors("setup", "bla"):
+            exp = multisine_experiment(
+                spec.period_samples,
+                setup.sample_time,
+                periods=spec.periods,
+                realizations=spec.realizations,
+                band=spec.band,
+                rms=spec.rms,
+                lines=spec.lines,
+                seed=setup.bench.seed if seed is None else seed,
+                drift=spec.drift,
+            )
+        with numeric_errors("setup", "plant"):
+            return simulate_run(cfg, exp.r, seed=seed, realization=exp.realization)
     raise HallcalInputError(
         f"setup: unknown experiment '{kind}'", source="setup", key="bench.experiment"
     )

@@ -109,7 +109,10 @@ class ClosedLoop:
 
     def __post_init__(self) -> None:
         if self.plant.D != 0.0:
-            raise ValueError("the discrete plant must have no direct feedthrough")
+            raise ValueError(
+                "the plant has a direct feedthrough (as many zeros as poles and no delay): the "
+                "loop through f_init would be algebraic"
+            )
         if self.plant.dt is None or self.controller.dt is None:
             raise ValueError("plant and controller must be discrete")
 
@@ -441,6 +444,9 @@ def _jacobian_kernel(
         _flux_and_slope(theta, b, db, dk, gp)
         al, be = _alpha_beta(P, off, dk)
         rho2 = al * al + be * be
+        if not rho2 > 0.0:  # no angle at alpha = beta = 0 (or NaN): the model is degenerate
+            ok = False
+            break
         # d psi / d d_h
         c0 = (al * P[1, 0] - be * P[0, 0]) / (rho2 * n_m)
         c1 = (al * P[1, 1] - be * P[0, 1]) / (rho2 * n_m)

@@ -1,0 +1,382 @@
+"""The standing adversarial suite: hostile files, setups, artifacts, paths and options.
+
+Every case of :mod:`hostile_cases` (800 of them, each class the issue "Hostile input" lists) runs
+through the command line and must keep the contract of :mod:`hostile_support`: exit status 0, 2
+or 3 as the case expects (2 for a bad input, and a corrupt or truncated file said to be one),
+exactly one error line, never a traceback or a warning, never output left behind by a failure;
+export-c's C must compile with no symbol or macro beyond those of a valid export; a report must
+escape the artifact's texts. Each case must finish within 30 s and 2 GB.
+
+How they run: interpreter start-up costs about a second per command, so the cases run in two
+worker processes (:mod:`hostile_worker`) that call the command line in-process, one case after
+the other. The workers run under an address-space limit (``RLIMIT_AS`` = 2 GiB: a case that
+allocates more fails with MemoryError) and a watchdog ends a worker whose case runs over 30 s
+(the case fails as a timeout; the worker restarts with the next one). A sample of cases per
+subcommand also runs as a real ``python -m hallcal.cli`` subprocess under the same limits.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import resource
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from hostile_cases import (
+    ADC_SCALE,
+    BASE_SETUP,
+    BLA_TABLE,
+    Base,
+    Case,
+    all_cases,
+    remove,
+)
+from hostile_support import (
+    Outcome,
+    contract_violations,
+    files_under,
+    run_in_process,
+    to_toml,
+)
+
+from hallcal.io import read_dataset
+
+HERE = Path(__file__).resolve().parent
+WORKER = HERE / "hostile_worker.py"
+#: The issue's bounds for one case.
+CASE_SECONDS = 30.0
+CASE_BYTES = 2 * 2**30
+#: Two workers: the machine has two cores.
+WORKERS = 2
+#: Exit status of a worker ended by its watchdog (hostile_worker.WATCHDOG_EXIT).
+WATCHDOG_EXIT = 86
+
+CASES = all_cases()
+CC = shutil.which("gcc") or shutil.which("cc")
+
+
+def _limits() -> None:
+    """In the child: the address-space limit of one case (its whole worker, in fact)."""
+    resource.setrlimit(resource.RLIMIT_AS, (CASE_BYTES, CASE_BYTES))
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    # one thread per library: thread stacks and BLAS buffers would count against RLIMIT_AS
+    for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+        env[name] = "1"
+    # pyarrow's jemalloc reserves a gigabyte of address space up front: RLIMIT_AS would count the
+    # reservation as memory; the system allocator reserves only what it uses
+    env["ARROW_DEFAULT_MEMORY_POOL"] = "system"
+    env["MPLBACKEND"] = "Agg"
+    env["HOSTILE_CASE_SECONDS"] = str(CASE_SECONDS)
+    env["PYTHONPATH"] = os.pathsep.join(
+        [str(HERE.parent / "src"), str(HERE), env.get("PYTHONPATH", "")]
+    )
+    return env
+
+
+def _build_base(d: Path) -> Base:
+    """The valid inputs: the paper's bench, 1.5 s (6000 samples), its artifact, a multisine."""
+    setup_text = to_toml(BASE_SETUP)
+    bla_text = to_toml({**BASE_SETUP, "bla": BLA_TABLE})
+    (d / "s.toml").write_text(setup_text)
+    (d / "b.toml").write_text(bla_text)
+    for args in (
+        ["simulate", "--setup", "s.toml", "--out", "cal.npz"],
+        ["simulate", "--setup", "b.toml", "--experiment", "multisine", "--out", "ms.npz"],
+        ["calibrate", "cal.npz", "--setup", "s.toml", "--out", "a.json"],
+        ["export-c", *ADC_SCALE, "a.json", "--out", "fw"],
+    ):
+        cwd = os.getcwd()
+        os.chdir(d)
+        try:
+            outcome = run_in_process(args)
+        finally:
+            os.chdir(cwd)
+        assert outcome.exit_code == 0, (args, outcome.stderr, outcome.exception)
+    columns = {k: np.array(v) for k, v in read_dataset(d / "cal.npz").columns.items()}
+    ms = read_dataset(d / "ms.npz", required=("r", "u", "y", "realization"))
+    multisine = {k: np.array(v) for k, v in ms.columns.items()}
+    artifact = json.loads((d / "a.json").read_text())
+    return Base(d, setup_text, bla_text, columns, multisine, artifact)
+
+
+def _run_workers(cases: list[dict[str, Any]], d: Path) -> dict[str, dict[str, Any]]:
+    """Run the cases in WORKERS processes; a case that kills its worker is recorded as such."""
+    shares = [cases[i::WORKERS] for i in range(WORKERS)]
+    jobs = []
+    for i, share in enumerate(shares):
+        manifest = d / f"cases-{i}.json"
+        manifest.write_text(json.dumps(share))
+        jobs.append((manifest, d / f"results-{i}.jsonl", {c["id"] for c in share}))
+    results: dict[str, dict[str, Any]] = {}
+    pending = list(jobs)
+    while pending:
+        procs = [
+            (
+                job,
+                subprocess.Popen(
+                    [sys.executable, str(WORKER), str(job[0]), str(job[1])],
+                    env=_env(),
+                    preexec_fn=_limits,
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.PIPE,
+                    text=True,
+                ),
+            )
+            for job in pending
+        ]
+        pending = []
+        for job, proc in procs:
+            _, stderr = proc.communicate()
+            manifest, out, ids = job
+            lines = [json.loads(x) for x in out.read_text().splitlines() if x.strip()]
+            finished = {x["id"] for x in lines if "exit_code" in x}
+            started = [x["id"] for x in lines if x.get("started")]
+            for x in lines:
+                if "exit_code" in x:
+                    results[x["id"]] = x
+            if proc.returncode != 0:
+                crashed = [i for i in started if i not in finished]
+                if not crashed:  # the worker died outside a case: that is the suite's failure
+                    raise AssertionError(f"hostile worker failed: {stderr[-3000:]}")
+                why = "timeout" if proc.returncode == WATCHDOG_EXIT else "crash"
+                for case_id in crashed:
+                    record = {"id": case_id, "exit_code": None, "killed": why}
+                    record["stderr"] = stderr[-3000:]
+                    results[case_id] = record
+                    with open(out, "a", encoding="utf-8") as f:
+                        f.write(json.dumps(record) + "\n")
+                if ids - set(results):
+                    pending.append(job)
+    return results
+
+
+def _macros(path: Path | None) -> set[str]:
+    """Names of the macros defined at the end of preprocessing `path` (None: stdint.h alone)."""
+    source = ["-x", "c", str(path)] if path is not None else ["-x", "c", "-"]
+    res = subprocess.run(
+        [CC, "-std=c99", "-dM", "-E", *source],
+        input="#include <stdint.h>\n" if path is None else None,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    return {ln.split()[1].split("(")[0] for ln in res.stdout.splitlines() if ln.startswith("#")}
+
+
+def _c_symbols(path: Path) -> tuple[bool, str, set[str], set[str]]:
+    """Compile one generated file with gcc -std=c99 (trigraphs on, as ISO C99 has them).
+
+    Returns (compiled, compiler output, global symbols it defines, macros it defines beyond the
+    compiler's and <stdint.h>'s).
+    """
+    obj = path.parent / (path.name + ".o")
+    res = subprocess.run(
+        [CC, "-std=c99", "-c", "-o", str(obj), "-x", "c", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    if res.returncode != 0:
+        return False, res.stderr[-2000:], set(), set()
+    nm = subprocess.run(["nm", "-g", "--defined-only", str(obj)], capture_output=True, text=True)
+    obj.unlink()
+    symbols = {ln.split()[-1] for ln in nm.stdout.splitlines() if ln.strip()}
+    return True, "", symbols, _macros(path) - _macros(None)
+
+
+def _c_api(folder: Path) -> tuple[set[str], set[str]]:
+    """Symbols and macros of the valid export (the API)."""
+    symbols: set[str] = set()
+    macros: set[str] = set()
+    for p in sorted(folder.iterdir()):
+        ok, err, s, m = _c_symbols(p)
+        assert ok, err
+        symbols |= s
+        macros |= m
+    return symbols, macros
+
+
+@pytest.fixture(scope="module")
+def hostile(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
+    """Build every case's inputs, run them all, and keep the results by case id."""
+    d = tmp_path_factory.mktemp("hostile")
+    base = _build_base(d)
+    api = _c_api(d / "fw") if CC else (set(), set())
+    t0 = time.perf_counter()
+    manifest = []
+    for case in CASES:
+        folder = d / "cases" / re.sub(r"[^A-Za-z0-9_.-]", "_", case.id)
+        folder.mkdir(parents=True)
+        args = case.build(folder, base)
+        manifest.append({"id": case.id, "args": args, "cwd": str(folder), "watch": ["."]})
+    build_seconds = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    results = _run_workers(manifest, d)
+    if os.environ.get("HOSTILE_KEEP"):  # for debugging: keep the folders, say where and how long
+        print(
+            f"hostile: {len(manifest)} cases built in {build_seconds:.1f} s, run in "
+            f"{time.perf_counter() - t0:.1f} s; results kept in {d}"
+        )
+    yield {
+        "results": results,
+        "folders": {m["id"]: Path(m["cwd"]) for m in manifest},
+        "args": {m["id"]: m["args"] for m in manifest},
+        "base": base,
+        "api": api,
+        "build_seconds": build_seconds,
+        "run_seconds": time.perf_counter() - t0,
+    }
+    if not os.environ.get("HOSTILE_KEEP"):
+        remove(d)
+
+
+def _param(case: Case) -> Any:
+    marks = [pytest.mark.xfail(strict=True, reason=case.xfail)] if case.xfail else []
+    return pytest.param(case, id=case.id, marks=marks)
+
+
+@pytest.mark.parametrize("case", [_param(c) for c in CASES])
+def test_hostile_case(case: Case, hostile: dict[str, Any]) -> None:
+    r = hostile["results"][case.id]
+    folder = hostile["folders"][case.id]
+    assert "killed" not in r, f"{r['killed']} (over {CASE_SECONDS:.0f} s or 2 GB?): {r['stderr']}"
+    assert r["maxrss_mb"] * 2**20 <= CASE_BYTES, f"resident memory {r['maxrss_mb']:.0f} MB"
+    outcome = Outcome(r["exit_code"], r["stdout"], r["stderr"], r["exception"], r["seconds"])
+    new = {Path(p) for p in r["new_files"]}
+    problems = contract_violations(outcome, new_files=new, expected_exits=case.expect)
+    if r["seconds"] > CASE_SECONDS:
+        problems.append(f"took {r['seconds']:.1f} s, above {CASE_SECONDS:.0f} s")
+    if case.message and outcome.exit_code != 0:
+        last = outcome.stderr.strip().splitlines()[-1] if outcome.stderr.strip() else ""
+        if not re.search(case.message, last):
+            problems.append(f"the error line does not match {case.message!r}: {last!r}")
+    if case.c_dir and outcome.exit_code == 0:
+        problems += _c_problems(folder / case.c_dir, hostile["api"])
+    if case.html_dir and outcome.exit_code == 0:
+        text = (folder / case.html_dir / "report.html").read_text(encoding="utf-8")
+        for raw in ("<script>alert('hallcal')", "<img src=x"):  # the artifact's texts
+            if raw in text:
+                problems.append(f"the report contains the artifact's raw markup {raw!r}")
+    args = " ".join(map(repr, hostile["args"][case.id]))
+    assert not problems, (
+        f"hallcal {args}  (in {folder})\n  "
+        + "\n  ".join(problems)
+        + f"\n--- stderr ---\n{outcome.stderr[-2000:]}\n{outcome.exception or ''}"
+    )
+
+
+def _c_problems(folder: Path, api: tuple[set[str], set[str]]) -> list[str]:
+    if CC is None:
+        return ["no C compiler (gcc or cc) to check the generated C"]
+    symbols, macros = api
+    problems = []
+    files = sorted(p for p in folder.iterdir() if p.suffix in (".c", ".h"))
+    if not files:
+        return [f"export-c wrote no C files into {folder}"]
+    for p in files:
+        ok, err, s, m = _c_symbols(p)
+        if not ok:
+            problems.append(f"{p.name} does not compile with -std=c99: {err}")
+            continue
+        if s - symbols:
+            problems.append(f"{p.name} defines symbols beyond the API: {sorted(s - symbols)}")
+        if m - macros:
+            problems.append(f"{p.name} defines macros beyond the API: {sorted(m - macros)}")
+    return problems
+
+
+#: One hostile case per subcommand, run as a real process: the console script's own start-up,
+#: imports, output streams and exit status, under the same limits (RLIMIT_AS, 30 s).
+SUBPROCESS_SAMPLES = (
+    "data-hall-data-random-d1-h5-calibrate",
+    "setup-delay-1e6-simulate",
+    "ms-truncated-bla",
+    "artifact-projection-zero-reconstruct",
+    "artifact-deep-nesting-report",
+    "option-export-c-no-fixed-point",
+    "option-demo-seed-negative",
+    "option-no-arguments",
+)
+_BY_ID = {c.id: c for c in CASES}
+
+
+@pytest.mark.parametrize("case_id", SUBPROCESS_SAMPLES)
+def test_hostile_case_in_a_subprocess(
+    case_id: str, hostile: dict[str, Any], tmp_path: Path
+) -> None:
+    case = _BY_ID[case_id]
+    args = case.build(tmp_path, hostile["base"])
+    before = files_under([tmp_path])
+    t0 = time.perf_counter()
+    res = subprocess.run(
+        [sys.executable, "-m", "hallcal.cli", *args],
+        cwd=tmp_path,
+        env=_env(),
+        preexec_fn=_limits,
+        capture_output=True,
+        text=True,
+        timeout=CASE_SECONDS + 30,  # + interpreter start-up on a loaded machine
+    )
+    seconds = time.perf_counter() - t0
+    outcome = Outcome(res.returncode, res.stdout, res.stderr, None, seconds)
+    new = files_under([tmp_path]) - before
+    problems = contract_violations(
+        outcome, new_files=new if res.returncode else set(), expected_exits=case.expect
+    )
+    if case.message and res.returncode:
+        if not re.search(case.message, res.stderr.strip().splitlines()[-1]):
+            problems.append(f"the error line does not match {case.message!r}")
+    if case.c_dir and res.returncode == 0:
+        problems += _c_problems(tmp_path / case.c_dir, hostile["api"])
+    assert not problems, "\n".join(problems) + "\n" + res.stderr[-2000:]
+
+
+def test_the_suite_covers_every_class_and_subcommand() -> None:
+    """At least 300 cases; every reader, every subcommand and every class of the issue."""
+    assert len(CASES) >= 300
+    ids = " ".join(c.id for c in CASES)
+    for reader in ("-csv-", "-parquet-", "-h5-", "-hdf5-", "-mat-", "-npz-"):
+        assert f"data-trunchalf{reader}" in ids and f"data-scaled-tiny{reader}" in ids
+    commands = ("simulate", "calibrate", "bla", "reconstruct", "report", "export-c", "demo")
+    for command in (*commands, "inspect"):
+        assert any(c.id.endswith(f"-{command}") or f"option-{command}-" in c.id for c in CASES), (
+            command
+        )
+    for cls in (
+        "data-trunc1-mat",  # MAT truncated to 1 byte
+        "data-trunc100-mat",
+        "data-header-garbage-h5",  # HDF5 with a corrupt header
+        "data-npz-raw-member",
+        "data-npz-pickled-object",
+        "data-hall-data-random-d1-h5",  # corrupted HDF5 read as data
+        "data-hall-data-random-d1-mat",
+        "data-scaled-tiny-npz",  # 1e-300
+        "setup-delay-1e6",
+        "setup-harmonics-5000",
+        "setup-harmonics-1e9",
+        "setup-kernel-points-1e6",
+        "artifact-deep-nesting",
+        "artifact-offset-1e999",
+        "artifact-pole-pairs-10e400",
+        "artifact-pole-pairs-1e6",
+        "artifact-projection-zero",
+        "artifact-projection-rank1",
+        "option-export-c-out-non-ascii",
+        "option-export-c-no-fixed-point",
+        "option-export-c-adc-scale-1e30",
+        "option-export-c-path-splice",
+        "option-export-c-path-trigraph",
+    ):
+        assert cls in ids, cls
