@@ -3,13 +3,21 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hallcal.sim.bench import BenchConfig, noise_floor, ramp_run, simulate_run
+from hallcal.sensor.lut import build_lut
+from hallcal.sim.bench import (
+    BenchConfig,
+    noise_floor,
+    ramp_run,
+    shape_deformation,
+    simulate_run,
+)
 
 
 @pytest.fixture(scope="module")
@@ -108,3 +116,77 @@ def test_noise_floor_formula_matches_monte_carlo():
     lut = build_lut(run.truth, cfg.pole_pairs)
     e = lut.f_star(run.d) - run.y0
     assert np.std(e) == pytest.approx(noise_floor(2e-5, 11), rel=0.03)
+
+
+@settings(max_examples=12, deadline=None)
+@given(
+    n=st.integers(1, 13),
+    K=st.integers(1, 6),
+    s=st.floats(0.001, 0.2),
+    seed=st.integers(0, 1000),
+    mis=st.floats(-5, 5),
+    gain=st.floats(-0.2, 0.2),
+)
+def test_shape_variation_is_one_rotor_pattern_seen_by_each_sensor(n, K, s, seed, mis, gain):
+    """The truth equals the formula of the module docstring: ``A (1 + gain_h) (s(psi) +
+    delta(y0 - phi_h / n))`` with the deformation of :func:`shape_deformation`, exactly, on the
+    harmonics 1..K n (and the nominal ones)."""
+    cfg = BenchConfig(pole_pairs=n, magnet_variation=0.0, misalignment_deg=(0.0, mis, 0.0),
+                      gain_mismatch=(0.0, gain, 0.0), shape_variation=s, shape_harmonics=K,
+                      seed=seed)  # fmt: skip
+    m, a, b = shape_deformation(n, s, electrical_harmonics=K,
+                                rng=np.random.default_rng([seed, 2]))  # fmt: skip
+    assert tuple(m) == tuple(range(1, K * n + 1))
+    g = cfg.truth()
+    assert set(range(1, K * n + 1)) <= set(g.basis.harmonics)
+    y0 = np.linspace(0, 2 * np.pi, 613)
+    for h in range(3):
+        phi = 2 * np.pi * h / 3 + (math.radians(mis) if h == 1 else 0.0)
+        x = np.outer(m, y0 - phi / n)
+        delta = a @ np.cos(x) + b @ np.sin(x)
+        expect = (1 + (gain if h == 1 else 0.0)) * (np.cos(n * y0 - phi) + delta)
+        np.testing.assert_allclose(g(y0)[:, h], expect, atol=1e-10)
+
+
+def test_shape_variation_strength_and_default():
+    """E[delta^2] = s^2 (RMS over 40 rotors within 10 %: the mean of 40 chi-square-like draws
+    with 2 K n = 110 degrees of freedom each); s = 0 leaves the truth bit-identical; switching
+    it on does not change the other knobs' draws; f_init's error grows with s."""
+    s = 0.05
+    rms = []
+    for seed in range(40):
+        _, a, b = shape_deformation(11, s, rng=np.random.default_rng([seed, 2]))
+        rms.append(np.sum(a**2 + b**2) / 2)
+    assert math.sqrt(np.mean(rms)) == pytest.approx(s, rel=0.1)
+    base = BenchConfig(seed=4, magnet_variation=0.03)
+    off = base.truth()
+    np.testing.assert_array_equal(off.theta, replace(base, shape_variation=0.0).truth().theta)
+    on = replace(base, shape_variation=0.02).truth()
+    m, a, b = shape_deformation(11, 0.02, rng=np.random.default_rng([4, 2]))
+    y0 = np.linspace(0, 2 * np.pi, 500)
+    for h in range(3):  # the magnet_variation draws are unchanged: the difference is delta
+        x = np.outer(m, y0 - 2 * np.pi * h / 33)
+        np.testing.assert_allclose(on(y0)[:, h] - off(y0)[:, h],
+                                   a @ np.cos(x) + b @ np.sin(x), atol=1e-10)  # fmt: skip
+    errs = []
+    for strength in (0.0, 0.03, 0.1):
+        cfg = BenchConfig(magnet_variation=0.0, shape_variation=strength, seed=2)
+        lut = build_lut(cfg.truth(), 11, points=2048)
+        errs.append(float(np.std(lut.eta)))
+    assert errs[0] < 1e-9 < errs[1] < errs[2]
+    with pytest.raises(ValueError):
+        BenchConfig(shape_variation=-0.1)
+    with pytest.raises(ValueError):
+        BenchConfig(shape_harmonics=0)
+
+
+def test_simulate_setup_key_reaches_the_bench():
+    """``[bench] shape_variation`` / ``shape_harmonics`` of the setup file set the knob."""
+    from hallcal.io.setup import default_setup
+    from hallcal.pipeline.simulate import bench_config
+
+    s = default_setup()
+    s = replace(s, bench=replace(s.bench, shape_variation=0.03, shape_harmonics=2))
+    cfg = bench_config(s)
+    assert cfg.shape_variation == 0.03 and cfg.shape_harmonics == 2
+    assert set(range(1, 23)) <= set(cfg.truth().basis.harmonics)

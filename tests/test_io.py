@@ -628,6 +628,8 @@ def _kernel_setup() -> Setup:
             electrical_harmonics=[[3, 0.1], [5, -0.02]],
             cogging=0.3,
             cogging_periods=24,
+            shape_variation=0.05,
+            shape_harmonics=3,
         ),
     )
 
@@ -770,6 +772,8 @@ def _bad(update: dict[str, Any], *, drop: tuple[str, ...] = ()) -> str:
             "key 'bench.electrical_harmonics' lists a harmonic twice",
         ),
         ({"bench.cogging_periods": -1}, "key 'bench.cogging_periods' must be an integer >= 0"),
+        ({"bench.shape_variation": -0.1}, "key 'bench.shape_variation' must be a number >= 0"),
+        ({"bench.shape_harmonics": 0}, "key 'bench.shape_harmonics' must be an integer >= 1"),
     ],
 )
 def test_setup_value_errors(update: dict[str, Any], expected: str) -> None:

@@ -1,4 +1,4 @@
-"""Automatic model order, ``harmonics = "auto"`` (issue 9).
+"""Automatic model order, ``harmonics = "auto"``.
 
 Acceptance on the virtual bench, judged against the true angle on a fresh validation run
 (another noise seed, ramp 0 -> 12 rad in 24 s): on the trapezoidal flux "auto" reaches the noise
@@ -16,9 +16,10 @@ import math
 import numpy as np
 import pytest
 
-from hallcal.fit.adequacy import estimate_noise_variance, harmonic_content
-from hallcal.fit.order import fit_curve, initial_harmonics, select_harmonics
+from hallcal.fit.adequacy import estimate_noise_variance
+from hallcal.fit.order import select_harmonics
 from hallcal.fit.sem import solve_sem
+from hallcal.fit.warp import band_edge, unwarp
 from hallcal.sensor.flux import FourierBasis
 from hallcal.sensor.lut import build_lut
 from hallcal.sensor.metrics import angle_error
@@ -93,18 +94,19 @@ def test_auto_with_unmodelled_motion(name):
     assert set(sel.harmonics) == set(H11)
 
 
-def test_initial_set_and_static_curve_fit_on_the_papers_bench():
+def test_band_edge_and_unwarped_angle_on_the_papers_bench():
+    """The paper's truth has harmonics 1..11: the band stops there, and the un-warped angle is
+    the true angle within the noise floor (no loop simulation involved)."""
     cfg = BENCHES["paper"]
     run, _ = runs("paper")
     noise = estimate_noise_variance(run.d)
-    content = harmonic_content(run.y, run.d, harmonics=np.arange(1, 89))
-    # over the measured angle the content is wider than the flux (sidebands n_m +- j of the
-    # f_init error) ...
-    assert {12, 13, 20} <= set(content.significant_harmonics(0.1 * noise.std))
-    # ... the physically placed part is exactly the paper's set
-    assert initial_harmonics(content, 11, noise_std=noise.std) == H11
-    curve = fit_curve(run.y, run.d, H11, noise_variance=noise.variance, target=1.01)
-    assert curve.shape_ratio < 1.02
-    # with these harmonics the parametrization is pinned: x is the true angle within the floor
-    x = curve.x - np.mean(curve.x - run.y0)
+    edge = band_edge(run.y, run.d, pole_pairs=11, noise_variance=noise.variance)
+    assert edge.edge == 11 and edge.status.success
+    # the band at 11 leaves noise above it, one harmonic less leaves the flux's own content
+    at = unwarp(edge.view, 11, warp_harmonics=edge.view.harmonics // 2)
+    below = unwarp(edge.view, 10, warp_harmonics=edge.view.harmonics // 2)
+    assert at.residual < 1.2 * at.dof and below.residual > 1e4 * below.dof
+    x = edge.unwarp.parametrize(run.y)
+    x = x - np.mean(x - run.y0)
     assert np.std(x - run.y0) < 1.1 * cfg.noise_floor
+    assert np.std(run.y - run.y0) > 10 * cfg.noise_floor  # f_init's angle is far from it

@@ -50,12 +50,14 @@ Thresholds (measured on the virtual bench, 104 000 samples, see the tests):
 
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass, field
 
 import numba as nb
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from threadpoolctl import threadpool_limits
 
 from hallcal.fit.sem import SEMResult, predicted_angle_error
 from hallcal.sensor.flux import FluxModel
@@ -64,8 +66,12 @@ from hallcal.sensor.reconstruction import clarke_matrix
 
 __all__ = [
     "AdequacyReport",
+    "AdequacyStatus",
+    "ContentStatus",
     "HarmonicContent",
     "NoiseEstimate",
+    "NoiseStatus",
+    "Verdict",
     "assess",
     "chi2_isf_even",
     "curve_projection",
@@ -74,6 +80,57 @@ __all__ = [
     "estimate_noise_variance",
     "harmonic_content",
 ]
+
+
+class NoiseStatus(enum.StrEnum):
+    """Outcome of :func:`estimate_noise_variance`."""
+
+    OK = "ok"
+    #: the lag-2 / lag-1 variance ratio is outside its tolerance: low-pass noise
+    COLOURED = "coloured"
+    TOO_SHORT = "too_short"
+
+    @property
+    def success(self) -> bool:
+        return self is NoiseStatus.OK
+
+
+class ContentStatus(enum.StrEnum):
+    """Outcome of :func:`harmonic_content`."""
+
+    OK = "ok"
+    #: the angle covers less than one revolution: harmonics are not separable
+    TOO_SHORT = "too_short"
+
+    @property
+    def success(self) -> bool:
+        return self is ContentStatus.OK
+
+
+class Verdict(enum.StrEnum):
+    """The verdict of :func:`assess`."""
+
+    ADEQUATE = "adequate"
+    WARNING = "warning"
+    #: the table must not be used (refused unless forced)
+    INADEQUATE = "inadequate"
+
+    @property
+    def success(self) -> bool:
+        return self is not Verdict.INADEQUATE
+
+
+class AdequacyStatus(enum.StrEnum):
+    """Whether :func:`assess` could judge the fit."""
+
+    OK = "ok"
+    #: the fit itself failed (no finite cost)
+    FAILED = "failed"
+
+    @property
+    def success(self) -> bool:
+        return self is AdequacyStatus.OK
+
 
 #: Median of the chi-square distribution with one degree of freedom.
 _CHI2_1_MEDIAN = 0.45493642311957283
@@ -113,13 +170,15 @@ def chi2_isf_even(q: float, df: int) -> float:
     # log-concave): from any start where the slope is not tiny, Newton's first step lands on or
     # right of the root and the next ones approach it monotonically from the right.
     t = max(-log_q, k - 1.0)
+    i = np.arange(k, dtype=np.float64)
+    lgam = np.array([math.lgamma(v + 1.0) for v in i])
     for _ in range(100):
-        term, total = 1.0, 1.0  # t^i / i! and their sum over i < k
-        for i in range(1, k):
-            term *= t / i
-            total += term
-        f = -t + math.log(total) - log_q
-        slope = -term / total  # d/dt log Q(2 t) = -(t^(k-1) / (k-1)!) / sum_{i<k} t^i / i!
+        # the Poisson sum in logarithms: t^i / i! overflows a double beyond df ~ 1300
+        logs = i * math.log(t) - lgam  # log(t^i / i!), i < k
+        top = float(logs.max())
+        log_total = top + math.log(float(np.sum(np.exp(logs - top))))
+        f = -t + log_total - log_q
+        slope = -math.exp(float(logs[-1]) - log_total)  # d/dt log Q(2 t)
         if slope == 0.0:  # only for q within rounding of 1 and many degrees of freedom
             break
         step = f / slope
@@ -159,8 +218,8 @@ class NoiseEstimate:
         underrates.
     white_tolerance : float
         Accepted deviation of ``white_ratio`` from 1.
-    status : str
-        "ok", "coloured" (white_ratio outside the tolerance) or "too_short".
+    status : NoiseStatus
+        OK, COLOURED (white_ratio outside the tolerance) or TOO_SHORT.
     """
 
     variance: float
@@ -180,7 +239,10 @@ class NoiseEstimate:
 
     @property
     def white(self) -> bool:
-        return self.status == "ok"
+        return self.status is NoiseStatus.OK
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "status", NoiseStatus(self.status))
 
     def to_dict(self) -> dict:
         return {
@@ -192,7 +254,7 @@ class NoiseEstimate:
             "n_samples": self.n_samples,
             "white_ratio": _f(self.white_ratio),
             "white_tolerance": _f(self.white_tolerance),
-            "status": self.status,
+            "status": str(self.status),
         }
 
 
@@ -267,7 +329,9 @@ def estimate_noise_variance(
     )
     if N < 4 * k + 8:
         nan = math.nan
-        return NoiseEstimate(nan, np.full(C, nan), nan, method, k, N, nan, nan, "too_short")
+        return NoiseEstimate(
+            nan, np.full(C, nan), nan, method, k, N, nan, nan, NoiseStatus.TOO_SHORT
+        )
     gain = float(math.comb(2 * k, k))
 
     def var_of(z: NDArray) -> NDArray:
@@ -288,7 +352,7 @@ def estimate_noise_variance(
     white_ratio = float(np.mean(per_lag2) / pooled) if pooled > 0 else math.nan
     # the two estimates are partly correlated; 2 sqrt(2) standard errors of one, or 3 %
     tol = max(0.03, 8.0 * math.sqrt(rel_var_pooled))
-    status = "ok" if abs(white_ratio - 1.0) <= tol else "coloured"
+    status = NoiseStatus.OK if abs(white_ratio - 1.0) <= tol else NoiseStatus.COLOURED
     return NoiseEstimate(pooled, per, std_error, method, k, N, white_ratio, tol, status)
 
 
@@ -328,8 +392,8 @@ class HarmonicContent:
     n_samples : int
     revolutions : float
         Angle range covered by x [revolutions].
-    status : str
-        "ok", or "too_short" when x covers less than one revolution (harmonics not separable).
+    status : ContentStatus
+        OK, or TOO_SHORT when x covers less than one revolution (harmonics not separable).
     """
 
     harmonics: NDArray[np.int64] = field(repr=False)
@@ -342,7 +406,10 @@ class HarmonicContent:
     total_sum: NDArray[np.float64] = field(repr=False)
     n_samples: int
     revolutions: float
-    status: str = "ok"
+    status: ContentStatus = ContentStatus.OK
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "status", ContentStatus(self.status))
 
     @property
     def significant(self) -> NDArray[np.bool_]:
@@ -372,7 +439,7 @@ class HarmonicContent:
             "threshold": _f(self.threshold),
             "significant": [bool(s) for s in self.significant],
             "revolutions": _f(self.revolutions),
-            "status": self.status,
+            "status": str(self.status),
         }
 
 
@@ -491,7 +558,7 @@ def harmonic_content(
         wald[j] = float(np.trace(Ri @ Th.T @ Vinv @ Th))
     amp = np.sqrt(np.mean(theta[1::2] ** 2 + theta[2::2] ** 2, axis=1) / 2.0)
     thr = chi2_isf_even(significance / K.size, 2 * C)
-    status = "ok" if revs >= 1.0 else "too_short"
+    status = ContentStatus.OK if revs >= 1.0 else ContentStatus.TOO_SHORT
     return HarmonicContent(K, amp, wald, thr, theta.T.copy(), R, rss, total, N, revs, status)
 
 
@@ -539,8 +606,8 @@ class AdequacyReport:
 
     Attributes
     ----------
-    verdict : str
-        "adequate", "warning" or "inadequate" (refuse the table unless forced).
+    verdict : Verdict
+        ADEQUATE, WARNING or INADEQUATE (refuse the table unless forced).
     message : str
         One line for the user, naming the cause and what to do.
     reasons : tuple of str
@@ -591,11 +658,11 @@ class AdequacyReport:
         Shape residual (distance from the model curve) over harmonics of y0_sim + delta.
     thresholds : dict
         The values of the decision rule actually used.
-    status : str
-        "ok", or "failed" when the fit itself failed (no finite cost).
+    status : AdequacyStatus
+        OK, or FAILED when the fit itself failed (no finite cost).
     """
 
-    verdict: str
+    verdict: Verdict
     message: str
     reasons: tuple[str, ...]
     notes: tuple[str, ...]
@@ -623,12 +690,16 @@ class AdequacyReport:
     residual_spectrum: HarmonicContent | None = field(repr=False)
     shape_spectrum: HarmonicContent | None = field(repr=False)
     thresholds: dict = field(repr=False)
-    status: str = "ok"
+    status: AdequacyStatus = AdequacyStatus.OK
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "verdict", Verdict(self.verdict))
+        object.__setattr__(self, "status", AdequacyStatus(self.status))
 
     @property
     def refused(self) -> bool:
-        """True when the verdict is "inadequate"."""
-        return self.verdict == "inadequate"
+        """True when the verdict is INADEQUATE."""
+        return self.verdict is Verdict.INADEQUATE
 
     def to_dict(self) -> dict:
         """JSON-ready dictionary (plain floats, ints, strings and lists)."""
@@ -645,7 +716,7 @@ class AdequacyReport:
                     }
                 )
         return {
-            "verdict": self.verdict,
+            "verdict": str(self.verdict),
             "message": self.message,
             "reasons": list(self.reasons),
             "notes": list(self.notes),
@@ -669,13 +740,13 @@ class AdequacyReport:
             "correction_rms": _f(self.correction_rms),
             "bijective": bool(self.bijective),
             "min_slope": _f(self.min_slope),
-            "sem_status": self.sem_status,
+            "sem_status": str(self.sem_status),
             "residual_spectrum": None if spec is None else spec.to_dict(scale=sigma),
             "shape_spectrum": (
                 None if self.shape_spectrum is None else self.shape_spectrum.to_dict(scale=sigma)
             ),
             "thresholds": {k: _f(v) for k, v in self.thresholds.items()},
-            "status": self.status,
+            "status": str(self.status),
         }
 
 
@@ -835,20 +906,90 @@ def assess(
     AdequacyReport
     """
     dd = np.asarray(d, dtype=np.float64)
-    N = dd.shape[0]
     n = int(pole_pairs)
     P = clarke_matrix()[:2] if projection is None else np.asarray(projection, dtype=np.float64)
     o = np.zeros(3) if offset is None else np.asarray(offset, dtype=np.float64)
-    model_h = tuple(int(h) for h in sem.flux.basis.harmonics)
-    p = int(sem.theta.size)
+    with threadpool_limits(limits=1, user_api="blas"):
+        lv = _levels(sem, dd, noise, warn_ratio, fail_ratio)
+        lv.thresholds.update(significance=significance, min_amplitude_over_sigma=min_amplitude,
+                             dominance=dominance, warn_predicted=warn_predicted)  # fmt: skip
+        tab = _table(sem, n, P, o, lv.sigma2, lut_points)
+        if not math.isfinite(lv.cost) or sem.status == "diverged":
+            return _failed_report(sem, lv, tab)
+        sh = _shape_and_timing(sem, dd, lv)
+        hmax = int(max_harmonic) if max_harmonic else default_max_harmonic(n, lv.model_h)
+        sp = _spectra(sem, dd, lv, sh, hmax, significance, min_amplitude, dominance)
+    fails, warns, notes = _reasons(sem, lv, tab, sh, sp, warn_predicted)
+    verdict, msg = _decision(lv, tab, sh, sp, fails, warns)
+    return AdequacyReport(
+        verdict=verdict,
+        message=msg,
+        reasons=tuple(fails + warns),
+        notes=tuple(notes),
+        suggested_harmonics=sp.suggested,
+        unexplained_harmonics=sp.unexplained,
+        dynamics_harmonics=sp.dynamics,
+        model_harmonics=lv.model_h,
+        n_samples=dd.shape[0],
+        n_parameters=lv.p,
+        noise=lv.noise,
+        cost=lv.cost,
+        expected_cost=lv.expected,
+        ratio=lv.ratio,
+        ratio_std=lv.ratio_std,
+        shape_ratio=sh.shape_ratio,
+        periodic_fraction=sp.periodic_fraction,
+        position_mismatch_rms=sh.mismatch,
+        residual_angle_rms=sh.residual_angle_rms,
+        noise_floor=tab.floor,
+        predicted_error=tab.predicted,
+        correction_rms=tab.correction_rms,
+        bijective=bool(tab.lut.bijective),
+        min_slope=float(tab.lut.min_slope),
+        sem_status=str(sem.status),
+        residual_spectrum=sp.spec,
+        shape_spectrum=sp.shape_spec,
+        thresholds=lv.thresholds,
+        status=AdequacyStatus.OK,
+    )
+
+
+@dataclass
+class _Levels:
+    """Step 1 of :func:`assess`: the noise level, the cost ratio and the thresholds."""
+
+    noise: NoiseEstimate
+    sigma2: float
+    no_noise: bool
+    model_h: tuple[int, ...]
+    p: int
+    dof: int
+    cost: float
+    expected: float
+    ratio: float
+    ratio_std: float
+    warn: float
+    fail: float
+    thresholds: dict
+
+    @property
+    def sigma(self) -> float:
+        return math.sqrt(self.sigma2) if self.sigma2 > 0 else math.nan
+
+
+def _levels(
+    sem: SEMResult, dd: NDArray, noise: NoiseEstimate | None, warn_ratio: float, fail_ratio: float
+) -> _Levels:
+    """Noise level (model-free), chi-square ratio and its spread, thresholds raised for short
+    records to ``1 + 5 std`` and ``1 + 10 std``."""
     if noise is None:
         noise = estimate_noise_variance(dd)
     sigma2 = noise.variance
     no_noise = not (math.isfinite(sigma2) and sigma2 > 0)
     if no_noise:  # no model-free level (record too short or constant): the fit's own, uninformative
         sigma2 = float(sem.noise_variance)
-    sigma = math.sqrt(sigma2) if sigma2 > 0 else math.nan
-    dof = max(3 * N - p, 1)
+    p = int(sem.theta.size)
+    dof = max(3 * dd.shape[0] - p, 1)
     expected = dof * sigma2
     cost = float(sem.cost)
     ratio = cost / expected if expected > 0 else math.inf
@@ -856,22 +997,26 @@ def assess(
     ratio_std = math.sqrt(2.0 / dof + rel_noise**2)
     warn = max(warn_ratio, 1.0 + 5.0 * ratio_std)
     fail = max(fail_ratio, 1.0 + 10.0 * ratio_std)
-    thresholds = {
-        "warn_ratio": warn,
-        "fail_ratio": fail,
-        "significance": significance,
-        "min_amplitude_over_sigma": min_amplitude,
-        "dominance": dominance,
-        "warn_predicted": warn_predicted,
-    }
-    reasons_fail: list[str] = []
-    reasons_warn: list[str] = []
-    notes: list[str] = []
+    model_h = tuple(int(h) for h in sem.flux.basis.harmonics)
+    return _Levels(noise, sigma2, no_noise, model_h, p, dof, cost, expected, ratio, ratio_std,
+                   warn, fail, {"warn_ratio": warn, "fail_ratio": fail})  # fmt: skip
 
-    # the table: bijectivity, correction size, noise floor of the angle
-    lut = build_lut(sem.flux, n, points=lut_points, projection=P, offset=o)
+
+@dataclass
+class _Table:
+    """Step 2 of :func:`assess`: the table, its correction, the floor and the predicted error."""
+
+    lut: object
+    correction_rms: float
+    floor: float
+    predicted: float
+
+
+def _table(sem: SEMResult, n: int, P: NDArray, o: NDArray, sigma2: float, points: int) -> _Table:
+    """Bijectivity and correction size of the table; noise floor of the angle for this model's
+    amplitude; predicted error ``sqrt(floor^2 + mean var eta)`` from cov(theta)."""
+    lut = build_lut(sem.flux, n, points=points, projection=P, offset=o)
     eta = lut.eta - lut.eta.mean()
-    correction_rms = float(np.sqrt(np.mean(eta**2)))
     g = sem.flux(lut.y0) - o
     ab = g @ P.T
     rho2 = ab[:, 0] ** 2 + ab[:, 1] ** 2
@@ -884,99 +1029,143 @@ def assess(
     except (ValueError, np.linalg.LinAlgError):
         mean_var_eta = math.nan
     predicted = math.sqrt(floor**2 + mean_var_eta) if math.isfinite(mean_var_eta) else math.nan
+    return _Table(lut, float(np.sqrt(np.mean(eta**2))), floor, predicted)
 
-    if not math.isfinite(cost) or sem.status == "diverged":
-        msg = (
-            f"inadequate: the SEM fit failed ({sem.status}); the closed loop with this model "
-            "does not reproduce the data"
-        )
-        nan = math.nan
-        return AdequacyReport(
-            verdict="inadequate", message=msg, reasons=("fit failed",), notes=(),
-            suggested_harmonics=(), unexplained_harmonics=(), dynamics_harmonics=(),
-            model_harmonics=model_h, n_samples=N, n_parameters=p, noise=noise, cost=cost,
-            expected_cost=expected, ratio=ratio, ratio_std=ratio_std, shape_ratio=nan,
-            periodic_fraction=nan, position_mismatch_rms=nan, residual_angle_rms=nan,
-            noise_floor=floor, predicted_error=predicted, correction_rms=correction_rms,
-            bijective=bool(lut.bijective), min_slope=float(lut.min_slope),
-            sem_status=sem.status, residual_spectrum=None, shape_spectrum=None,
-            thresholds=thresholds, status="failed",
-        )  # fmt: skip
 
-    # shape (distance from the model curve) versus timing (shift along it)
+def _failed_report(sem: SEMResult, lv: _Levels, tab: _Table) -> AdequacyReport:
+    msg = (
+        f"inadequate: the SEM fit failed ({sem.status}); the closed loop with this model "
+        "does not reproduce the data"
+    )
+    nan = math.nan
+    return AdequacyReport(
+        verdict=Verdict.INADEQUATE, message=msg, reasons=("fit failed",), notes=(),
+        suggested_harmonics=(), unexplained_harmonics=(), dynamics_harmonics=(),
+        model_harmonics=lv.model_h, n_samples=sem.n_samples, n_parameters=lv.p, noise=lv.noise,
+        cost=lv.cost, expected_cost=lv.expected, ratio=lv.ratio, ratio_std=lv.ratio_std,
+        shape_ratio=nan, periodic_fraction=nan, position_mismatch_rms=nan,
+        residual_angle_rms=nan, noise_floor=tab.floor, predicted_error=tab.predicted,
+        correction_rms=tab.correction_rms, bijective=bool(tab.lut.bijective),
+        min_slope=float(tab.lut.min_slope), sem_status=str(sem.status), residual_spectrum=None,
+        shape_spectrum=None, thresholds=lv.thresholds, status=AdequacyStatus.FAILED,
+    )  # fmt: skip
+
+
+@dataclass
+class _Shape:
+    """Step 3 of :func:`assess`: distance from the model curve versus shift along it."""
+
+    shape_ratio: float
+    delta: NDArray[np.float64]
+    e_curve: NDArray[np.float64]
+    residual_angle_rms: float
+    mismatch: float
+
+
+def _shape_and_timing(sem: SEMResult, dd: NDArray, lv: _Levels) -> _Shape:
+    """Shape ratio (distance from the curve, 2 of 3 dimensions per sample, over its noise-only
+    value) and the position mismatch (RMS shift along the curve beyond its noise part)."""
     delta, e_curve, speed2 = curve_projection(sem.flux, sem.y0_sim, dd)
-    shape_expected = (2.0 / 3.0) * dof * sigma2
-    shape_ratio = float(np.vdot(e_curve, e_curve) / shape_expected) if sigma2 > 0 else math.inf
+    shape_expected = (2.0 / 3.0) * lv.dof * lv.sigma2
+    shape_ratio = float(np.vdot(e_curve, e_curve) / shape_expected) if lv.sigma2 > 0 else math.inf
     delta = delta - delta.mean()
     residual_angle_rms = float(np.sqrt(np.mean(delta**2)))
-    noise_delta2 = float(np.mean(sigma2 / np.maximum(speed2, 1e-300)))
+    noise_delta2 = float(np.mean(lv.sigma2 / np.maximum(speed2, 1e-300)))
     mismatch = math.sqrt(max(residual_angle_rms**2 - noise_delta2, 0.0))
+    return _Shape(shape_ratio, delta, e_curve, residual_angle_rms, mismatch)
 
-    # residual spectrum over spatial frequency of the simulated angle
-    hmax = int(max_harmonic) if max_harmonic else default_max_harmonic(n, model_h)
+
+@dataclass
+class _Spectra:
+    """Step 4 of :func:`assess`: residual harmonics, from the flux or from the motion."""
+
+    spec: HarmonicContent
+    shape_spec: HarmonicContent
+    periodic_fraction: float
+    unexplained: tuple[int, ...]
+    suggested: tuple[int, ...]
+    dynamics: tuple[int, ...]
+
+
+def _spectra(
+    sem: SEMResult, dd: NDArray, lv: _Levels, sh: _Shape, hmax: int, significance: float,
+    min_amplitude: float, dominance: float,
+) -> _Spectra:  # fmt: skip
+    """Residual spectrum over the simulated angle and shape-residual spectrum over the shifted
+    angle: harmonics in both are missing flux harmonics ("suggested"), harmonics only in the
+    former come from the motion ("dynamics")."""
     e = dd - sem.d_sim
-    spec = harmonic_content(sem.y0_sim, e, harmonics=np.arange(1, hmax + 1),
-                            significance=significance)  # fmt: skip
+    harm = np.arange(1, hmax + 1)
+    spec = harmonic_content(sem.y0_sim, e, harmonics=harm, significance=significance)
     explained = float(np.sum(spec.total_sum - spec.residual_sum))
-    excess = cost - expected
+    excess = lv.cost - lv.expected
     periodic_fraction = (
-        float(np.clip(explained / excess, 0.0, 1.0)) if excess > 3 * ratio_std * expected else 0.0
+        float(np.clip(explained / excess, 0.0, 1.0))
+        if excess > 3 * lv.ratio_std * lv.expected
+        else 0.0
     )
-    relevant = spec.significant & (spec.amplitude >= min_amplitude * sigma)
+    relevant = spec.significant & (spec.amplitude >= min_amplitude * lv.sigma)
     unexplained = tuple(
-        int(h) for h, r in zip(spec.harmonics, relevant, strict=True) if r and h not in model_h
+        int(h) for h, r in zip(spec.harmonics, relevant, strict=True) if r and h not in lv.model_h
     )
-    # the shape residual over the shifted angle: only the flux model can leave harmonics there
-    shape_spec = harmonic_content(sem.y0_sim + delta, e_curve, harmonics=np.arange(1, hmax + 1),
+    shape_spec = harmonic_content(sem.y0_sim + sh.delta, sh.e_curve, harmonics=harm,
                                   significance=significance)  # fmt: skip
-    suggested = dominant_harmonics(shape_spec, exclude=model_h, noise_std=sigma,
+    suggested = dominant_harmonics(shape_spec, exclude=lv.model_h, noise_std=lv.sigma,
                                    min_amplitude=min_amplitude, dominance=dominance)  # fmt: skip
-    flux_any = set(dominant_harmonics(shape_spec, exclude=model_h, noise_std=sigma,
+    flux_any = set(dominant_harmonics(shape_spec, exclude=lv.model_h, noise_std=lv.sigma,
                                       min_amplitude=min_amplitude, dominance=0.0))  # fmt: skip
     dynamics = tuple(h for h in unexplained if h not in flux_any)
+    return _Spectra(spec, shape_spec, periodic_fraction, unexplained, suggested, dynamics)
 
-    # decision rule
+
+def _reasons(
+    sem: SEMResult, lv: _Levels, tab: _Table, sh: _Shape, sp: _Spectra, warn_predicted: float
+) -> tuple[list[str], list[str], list[str]]:
+    """Step 5 of :func:`assess`: the rules that fire (refusal, warning) and the notes."""
+    fails: list[str] = []
+    warns: list[str] = []
+    notes: list[str] = []
+    lut, warn, fail = tab.lut, lv.warn, lv.fail
     if not lut.bijective:
-        reasons_fail.append(
+        fails.append(
             f"the table is not bijective (min slope {lut.min_slope:.3g}): the paper's bijectivity "
             "condition fails"
         )
-    if shape_ratio > fail:
-        reasons_fail.append(
-            f"the data lie off the model's flux curve: shape ratio {shape_ratio:.3g} > {fail:.3g}"
+    if sh.shape_ratio > fail:
+        fails.append(
+            "the data lie off the model's flux curve: shape ratio "
+            f"{sh.shape_ratio:.3g} > {fail:.3g}"
         )
-    if suggested and ratio > fail:
-        reasons_fail.append(
-            f"flux harmonics missing from the model: {_format_harmonics(suggested)}"
+    if sp.suggested and lv.ratio > fail:
+        fails.append(f"flux harmonics missing from the model: {_format_harmonics(sp.suggested)}")
+    if warn < sh.shape_ratio <= fail:
+        warns.append(f"shape ratio {sh.shape_ratio:.3g} > {warn:.3g}")
+    if lv.ratio > warn:
+        warns.append(f"cost ratio {lv.ratio:.3g} > {warn:.3g}")
+    if sp.suggested and not lv.ratio > fail:
+        warns.append(f"small flux harmonics missing: {_format_harmonics(sp.suggested)}")
+    if sp.dynamics:
+        warns.append(
+            f"residual harmonics from the motion, not the flux: {_format_harmonics(sp.dynamics)}"
         )
-    if shape_ratio > warn and not shape_ratio > fail:
-        reasons_warn.append(f"shape ratio {shape_ratio:.3g} > {warn:.3g}")
-    if ratio > warn:
-        reasons_warn.append(f"cost ratio {ratio:.3g} > {warn:.3g}")
-    if suggested and not ratio > fail:
-        reasons_warn.append(f"small flux harmonics missing: {_format_harmonics(suggested)}")
-    if dynamics:
-        reasons_warn.append(
-            f"residual harmonics from the motion, not the flux: {_format_harmonics(dynamics)}"
-        )
-    if sem.status not in ("converged",):
-        reasons_warn.append(f"SEM status {sem.status}")
-    if no_noise:
-        reasons_warn.append(
+    if sem.status != "converged":
+        warns.append(f"SEM status {sem.status}")
+    if lv.no_noise:
+        warns.append(
             "the noise level could not be estimated from the data (record too short): the cost "
             "ratio is not informative"
         )
-    if noise.status == "coloured":
-        reasons_warn.append(
-            f"the noise is not white (lag-2/lag-1 variance ratio {noise.white_ratio:.3f}): the "
+    if lv.noise.status is NoiseStatus.COLOURED:
+        warns.append(
+            f"the noise is not white (lag-2/lag-1 variance ratio {lv.noise.white_ratio:.3f}): the "
             "expected cost is uncertain"
         )
-    if spec.status != "ok":
-        reasons_warn.append("the run covers less than one revolution")
-    if math.isfinite(predicted) and predicted > warn_predicted * floor:
-        reasons_warn.append(
+    if not sp.spec.status.success:
+        warns.append("the run covers less than one revolution")
+    if math.isfinite(tab.predicted) and tab.predicted > warn_predicted * tab.floor:
+        warns.append(
             f"the data determine the table poorly (the covariance of theta predicts "
-            f"{predicted / floor:.2g}x the noise floor)"
+            f"{tab.predicted / tab.floor:.2g}x the noise floor)"
         )
         notes.append(
             "The covariance of theta gives a table error well above the noise floor: some "
@@ -984,131 +1173,112 @@ def assess(
             "n_m +- j together with n_m -+ j shift the angle at harmonic j, which the closed "
             "loop barely reveals at low spatial frequency). A longer run or fewer harmonics help."
         )
-
-    if ratio > warn and shape_ratio <= warn:
+    if lv.ratio > warn and sh.shape_ratio <= warn:
         notes.append(
-            f"The residual is {ratio:.3g} times the noise level but the data lie on the model's "
-            f"flux curve (shape ratio {shape_ratio:.3g}): the excess is a position mismatch of "
-            f"{1e3 * mismatch:.3g} mrad RMS between the simulated and the actual motion "
-            "(torque disturbance, cogging torque or plant-model error, not in the model). On the "
-            "virtual bench such mismatches up to 5 mrad left f_star within 10 % of the noise "
-            "floor."
+            f"The residual is {lv.ratio:.3g} times the noise level but the data lie on the "
+            f"model's flux curve (shape ratio {sh.shape_ratio:.3g}): the excess is a position "
+            f"mismatch of {1e3 * sh.mismatch:.3g} mrad RMS between the simulated and the actual "
+            "motion (torque disturbance, cogging torque or plant-model error, not in the model). "
+            "On the virtual bench such mismatches up to 5 mrad left f_star within 10 % of the "
+            "noise floor."
         )
-    if dynamics:
+    if sp.dynamics:
         notes.append(
-            f"Residual harmonics {_format_harmonics(dynamics)} vanish when each sample may slide "
-            "along the model's flux curve, so they come from the motion (e.g. a cogging torque at "
-            "their mean harmonic; a flux error that only shifts the angle looks the same), not "
-            "from the flux shape; adding them to the model would let it absorb the motion error."
+            f"Residual harmonics {_format_harmonics(sp.dynamics)} vanish when each sample may "
+            "slide along the model's flux curve, so they come from the motion (e.g. a cogging "
+            "torque at their mean harmonic; a flux error that only shifts the angle looks the "
+            "same), not from the flux shape; adding them to the model would let it absorb the "
+            "motion error."
         )
-    if suggested:
+    if sp.suggested:
         notes.append(
-            f"Residual harmonics {_format_harmonics(suggested)} remain at a distance from the "
+            f"Residual harmonics {_format_harmonics(sp.suggested)} remain at a distance from the "
             "model's flux curve: flux harmonics the model lacks."
         )
-    if not math.isfinite(predicted):
+    if not math.isfinite(tab.predicted):
         notes.append("The covariance of theta is not available; no predicted error.")
+    return fails, warns, notes
 
+
+def _decision(
+    lv: _Levels, tab: _Table, sh: _Shape, sp: _Spectra, fails: list[str], warns: list[str]
+) -> tuple[Verdict, str]:
+    """Step 6 of :func:`assess`: the verdict and its one-line message."""
     mrad = 1e3
-    if reasons_fail:
-        verdict = "inadequate"
-        if not lut.bijective:
-            msg = (
-                "inadequate: the identified model gives a non-bijective lookup table (min slope "
-                f"{lut.min_slope:.3g}); f_star would give wrong angles"
-                + (
-                    f"; the residual shows harmonics {_format_harmonics(suggested, 6)} missing"
-                    if suggested
-                    else ""
-                )
-            )
-        elif suggested:
-            add = sorted(set(model_h) | set(suggested))
-            msg = (
-                f"inadequate: model cost {ratio:.3g}x the noise level (shape {shape_ratio:.3g}x); "
-                f"the residual shows mechanical harmonics {_format_harmonics(suggested)} missing "
-                f"from the model: add them (harmonics = {_compact(add)}) or use harmonics = "
-                '"auto"'
-            )
-        else:
-            msg = (
-                f"inadequate: the data lie off the model's flux curve (shape {shape_ratio:.3g}x "
-                f"the noise level, cost {ratio:.3g}x) without a clear missing harmonic: use "
-                'harmonics = "auto" or a richer basis'
-            )
-    elif reasons_warn:
-        verdict = "warning"
+    if fails:
+        return Verdict.INADEQUATE, _refusal_message(lv, tab, sh, sp)
+    if warns:
         parts: list[str] = []
-        if suggested:
+        if sp.suggested:
             parts.append(
-                f"small flux harmonics {_format_harmonics(suggested)} are missing (cost "
-                f"{ratio:.3g}x the noise level, shape {shape_ratio:.3g}x)"
+                f"small flux harmonics {_format_harmonics(sp.suggested)} are missing (cost "
+                f"{lv.ratio:.3g}x the noise level, shape {sh.shape_ratio:.3g}x)"
             )
-        elif ratio > warn:
-            if dynamics and periodic_fraction > 0.5:
-                cause = f" at harmonics {_format_harmonics(dynamics, 6)} (periodic: cogging-like)"
-            elif periodic_fraction <= 0.5:
+        elif lv.ratio > lv.warn:
+            if sp.dynamics and sp.periodic_fraction > 0.5:
+                cause = (
+                    f" at harmonics {_format_harmonics(sp.dynamics, 6)} (periodic: cogging-like)"
+                )
+            elif sp.periodic_fraction <= 0.5:
                 cause = " (not periodic in the angle: e.g. a torque disturbance)"
             else:
                 cause = ""
             parts.append(
-                f"cost {ratio:.3g}x the noise level with the flux shape at {shape_ratio:.3g}x: "
-                f"unmodelled motion{cause}, a position mismatch of {mrad * mismatch:.3g} mrad "
-                "RMS (disturbance, cogging or plant model)"
+                f"cost {lv.ratio:.3g}x the noise level with the flux shape at "
+                f"{sh.shape_ratio:.3g}x: unmodelled motion{cause}, a position mismatch of "
+                f"{mrad * sh.mismatch:.3g} mrad RMS (disturbance, cogging or plant model)"
             )
-            if shape_ratio > warn:
+            if sh.shape_ratio > lv.warn:
                 parts.append(
                     "the data also lie off the model's flux curve: the table may carry part of "
                     "the motion error"
                 )
-        elif shape_ratio > warn:
-            parts.append(f"the data lie slightly off the model's flux curve ({shape_ratio:.3g}x)")
-        for reason in reasons_warn:
+        elif sh.shape_ratio > lv.warn:
+            parts.append(
+                f"the data lie slightly off the model's flux curve ({sh.shape_ratio:.3g}x)"
+            )
+        for reason in warns:
             if reason.startswith(("SEM status", "the noise", "the run", "the data determine")):
                 parts.append(reason)
         if not parts:
-            parts = reasons_warn[:2]
-        msg = (
+            parts = warns[:2]
+        return Verdict.WARNING, (
             "warning: "
             + "; ".join(parts)
-            + f"; predicted error {mrad * predicted:.3g} mrad (floor {mrad * floor:.3g} mrad)"
+            + f"; predicted error {mrad * tab.predicted:.3g} mrad (floor "
+            f"{mrad * tab.floor:.3g} mrad)"
         )
-    else:
-        verdict = "adequate"
-        msg = (
-            f"adequate: cost {ratio:.3g}x the noise level (expected 1 +- {ratio_std:.2g}), "
-            f"predicted error {mrad * predicted:.3g} mrad (noise floor {mrad * floor:.3g} mrad)"
+    return Verdict.ADEQUATE, (
+        f"adequate: cost {lv.ratio:.3g}x the noise level (expected 1 +- {lv.ratio_std:.2g}), "
+        f"predicted error {mrad * tab.predicted:.3g} mrad (noise floor {mrad * tab.floor:.3g} "
+        "mrad)"
+    )
+
+
+def _refusal_message(lv: _Levels, tab: _Table, sh: _Shape, sp: _Spectra) -> str:
+    lut = tab.lut
+    if not lut.bijective:
+        return (
+            "inadequate: the identified model gives a non-bijective lookup table (min slope "
+            f"{lut.min_slope:.3g}); f_star would give wrong angles"
+            + (
+                f"; the residual shows harmonics {_format_harmonics(sp.suggested, 6)} missing"
+                if sp.suggested
+                else ""
+            )
         )
-    return AdequacyReport(
-        verdict=verdict,
-        message=msg,
-        reasons=tuple(reasons_fail + reasons_warn),
-        notes=tuple(notes),
-        suggested_harmonics=suggested,
-        unexplained_harmonics=unexplained,
-        dynamics_harmonics=dynamics,
-        model_harmonics=model_h,
-        n_samples=N,
-        n_parameters=p,
-        noise=noise,
-        cost=cost,
-        expected_cost=expected,
-        ratio=ratio,
-        ratio_std=ratio_std,
-        shape_ratio=shape_ratio,
-        periodic_fraction=periodic_fraction,
-        position_mismatch_rms=mismatch,
-        residual_angle_rms=residual_angle_rms,
-        noise_floor=floor,
-        predicted_error=predicted,
-        correction_rms=correction_rms,
-        bijective=bool(lut.bijective),
-        min_slope=float(lut.min_slope),
-        sem_status=sem.status,
-        residual_spectrum=spec,
-        shape_spectrum=shape_spec,
-        thresholds=thresholds,
-        status="ok",
+    if sp.suggested:
+        add = sorted(set(lv.model_h) | set(sp.suggested))
+        return (
+            f"inadequate: model cost {lv.ratio:.3g}x the noise level (shape "
+            f"{sh.shape_ratio:.3g}x); the residual shows mechanical harmonics "
+            f"{_format_harmonics(sp.suggested)} missing from the model: add them (harmonics = "
+            f'{_compact(add)}) or use harmonics = "auto"'
+        )
+    return (
+        f"inadequate: the data lie off the model's flux curve (shape {sh.shape_ratio:.3g}x the "
+        f"noise level, cost {lv.ratio:.3g}x) without a clear missing harmonic: use harmonics = "
+        '"auto" or a richer basis'
     )
 
 

@@ -202,6 +202,12 @@ class BenchSpec:
     pole_modulation : float
         Relative size of per-pole amplitude differences (amplitude modulation by mechanical
         harmonics 1..3: sidebands k pole_pairs +- j).
+    shape_variation : float
+        Per-magnet shape variation s: every pole pair's flux waveform gets its own smooth random
+        deformation of RMS s times the amplitude (mechanical harmonics 1 .. shape_harmonics *
+        pole_pairs, every sideband; :func:`hallcal.sim.bench.shape_deformation`). 0 = none.
+    shape_harmonics : int
+        Electrical bandwidth of that deformation (highest electrical harmonic).
     misalignment_deg : tuple of 3 float
         Electrical degrees added to each sensor's nominal 0/120/240 degrees.
     gain_mismatch : tuple of 3 float
@@ -227,6 +233,8 @@ class BenchSpec:
     amplitude: float = 1.0
     magnet_variation: float = 0.04
     pole_modulation: float = 0.0
+    shape_variation: float = 0.0
+    shape_harmonics: int = 5
     misalignment_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
     gain_mismatch: tuple[float, float, float] = (0.0, 0.0, 0.0)
     offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -766,6 +774,8 @@ def _parse_bench(t: _Table | None, pole_pairs: int) -> BenchSpec:
         amplitude=t.number("amplitude", default=1.0, positive=True, maximum=MAX_ABS_VALUE),
         magnet_variation=t.number("magnet_variation", default=0.04, minimum=0.0),
         pole_modulation=t.number("pole_modulation", default=0.0, minimum=0.0),
+        shape_variation=t.number("shape_variation", default=0.0, minimum=0.0),
+        shape_harmonics=t.integer("shape_harmonics", default=5, minimum=1),
         misalignment_deg=t.numbers("misalignment_deg", default=(0.0, 0.0, 0.0), length=3),
         gain_mismatch=gain,
         offset=t.numbers("offset", default=(0.0, 0.0, 0.0), length=3, maximum=MAX_ABS_VALUE),

@@ -47,6 +47,8 @@ def bench_config(setup: Setup) -> BenchConfig:
         noise_variance=b.noise_variance,
         magnet_variation=b.magnet_variation,
         pole_modulation=b.pole_modulation,
+        shape_variation=b.shape_variation,
+        shape_harmonics=b.shape_harmonics,
         misalignment_deg=b.misalignment_deg,
         gain_mismatch=b.gain_mismatch,
         offset=b.offset,

@@ -17,6 +17,10 @@ in the mechanical angle), built from physical knobs:
   (each magnet slightly different; the paper's truth lies in harmonics 1..11);
 - ``a_h(y0)``: amplitude modulation by mechanical harmonics 1..3 of relative size
   ``pole_modulation`` (per-pole strength differences: sidebands k n_m +- j);
+- ``A (1 + gain_h) delta(y0 - phi_h / n_m)``: per-magnet shape variation of relative size
+  ``shape_variation`` (see :func:`shape_deformation`): a random deformation of the rotor's flux
+  pattern, different under every pole pair, seen by each sensor at its own position; energy at all
+  mechanical harmonics 1..``shape_harmonics`` n_m, every sideband k n_m +- j included;
 - Hall noise ``v_h`` with variance ``noise_variance``, a random low-frequency torque disturbance
   and a cogging torque ``cogging sin(cogging_periods y0) + sum A cos(k y0 - phase)``
   (``cogging_terms``) added to the plant input (:class:`~hallcal.sim.cogging.CoggingTorque`).
@@ -45,6 +49,7 @@ __all__ = [
     "power_up_run",
     "power_up_start",
     "ramp_run",
+    "shape_deformation",
     "simulate_run",
 ]
 
@@ -103,6 +108,12 @@ class BenchConfig:
     cogging_terms : tuple of (int, float, float)
         Further cogging terms ``(k, A, phase_deg)``, each ``A cos(k y0 - phase)`` (plant input
         units): real cogging has several orders (multiples of the slot/pole pattern) with phases.
+    shape_variation : float
+        Per-magnet shape variation s: RMS, relative to A, of the random deformation of each pole
+        pair's flux waveform (:func:`shape_deformation`; 0 = none, the default).
+    shape_harmonics : int
+        Electrical bandwidth K of that deformation: the truth gains mechanical harmonics
+        1..K n_m.
     seed : int
         Seed of the truth (magnet variations) and, unless given per run, of the noise.
     """
@@ -123,6 +134,8 @@ class BenchConfig:
     cogging: float = 0.0
     cogging_periods: int = 0
     cogging_terms: tuple[tuple[int, float, float], ...] = ()
+    shape_variation: float = 0.0
+    shape_harmonics: int = 5
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -132,6 +145,10 @@ class BenchConfig:
             raise ValueError("sample_time must be > 0")
         if self.noise_variance < 0:
             raise ValueError("noise_variance must be >= 0")
+        if not (self.shape_variation >= 0 and math.isfinite(self.shape_variation)):
+            raise ValueError("shape_variation must be a finite number >= 0")
+        if int(self.shape_harmonics) < 1:
+            raise ValueError("shape_harmonics must be >= 1")
 
     @property
     def noise_floor(self) -> float:
@@ -162,6 +179,72 @@ class BenchConfig:
         return CoggingTorque(orders, [coef[k].real for k in orders], [coef[k].imag for k in orders])
 
 
+def shape_deformation(
+    pole_pairs: int,
+    strength: float,
+    *,
+    electrical_harmonics: int = 5,
+    rng: np.random.Generator,
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+    """Random per-magnet deformation of the rotor's flux pattern, as an exact Fourier series.
+
+    ``delta(x) = sum_{m=1}^{K n_m} a_m cos(m x) + b_m sin(m x)`` in the rotor coordinate x
+    [mechanical rad], with independent ``a_m, b_m ~ N(0, S_m)`` and
+
+        S_m = s^2 w_m / sum_m w_m,   w_m = 1 / (1 + (m / n_m)^2),
+
+    so that ``E[delta^2] = s^2`` (s = ``strength``, relative to the fundamental amplitude A).
+    Over one pole pair, as a function of the electrical angle ``psi = n_m x``, this is a random
+    smooth waveform with the spectrum of an Ornstein-Uhlenbeck (Matern-1/2) process truncated at
+    the K-th electrical harmonic: correlation ``exp(-|psi - psi'|)``, i.e. about one electrical
+    radian. Two pole pairs lie 2 pi electrical rad apart (correlation e^{-2 pi} = 0.002): every
+    pole pair, every magnet, gets its own deformation, independent of its neighbours. The
+    spectrum is flat within each band around a multiple k n_m, so the truth has energy at every
+    mechanical harmonic 1..K n_m, the sidebands k n_m +- j of every order j included: the flux
+    signature of a real rotor (DESIGN.md, "Numerical facts"), unlike ``magnet_variation``
+    (harmonics 1..n_m-1) and ``pole_modulation`` (sidebands +-1..3).
+
+    Physical meaning. s is the magnet shape tolerance expressed in flux: each pole pair's
+    waveform deviates from the nominal one by s A RMS (s = 0.02: 2 % of the fundamental's
+    amplitude at the sensor) with a shape of its own (width, position, edges, strength and
+    magnetization angle all mixed). Its effect on f_init: the deformation's component along the
+    flux curve turns into an angle error of about 0.8 s / n_m rad RMS on top of the nominal
+    waveform's (the three sensors see the same pattern, so its triplen bands are nearly common
+    mode and do not count). Measured on the issue-13 bench (paper loop, 11 pole pairs,
+    trapezoidal flux with electrical harmonics 3 and 5 at 10 % and 4 %, 2 degrees misalignment,
+    seeds 1..5, ``benchmarks/bench_rich.txt``): f_init 2.6 mrad RMS without shape variation,
+    2.8-3.1 mrad at s = 0.02, 5.2-6.8 mrad at s = 0.075; the map y0 -> f_init stays monotone
+    (minimum slope 0.42-0.65 at s = 0.07, 0.27-0.59 at s = 0.1).
+
+    Parameters
+    ----------
+    pole_pairs : int
+        n_m.
+    strength : float
+        s >= 0.
+    electrical_harmonics : int, keyword-only
+        K >= 1.
+    rng : numpy.random.Generator
+        Source of the coefficients (drawn in the order of the harmonics, cos then sin).
+
+    Returns
+    -------
+    harmonics : ndarray (K n_m,) of int
+        1..K n_m.
+    a, b : ndarray (K n_m,)
+        Coefficients of cos(m x) and sin(m x), relative to A.
+    """
+    n = int(pole_pairs)
+    K = int(electrical_harmonics)
+    if n < 1 or K < 1:
+        raise ValueError("pole_pairs and electrical_harmonics must be >= 1")
+    m = np.arange(1, K * n + 1)
+    w = 1.0 / (1.0 + (m / n) ** 2)
+    std = float(strength) * np.sqrt(w / w.sum())
+    ab = rng.standard_normal((2, m.size)) * std
+    return m, ab[0], ab[1]
+
+
 def _truth(cfg: BenchConfig) -> FluxModel:
     n = cfg.pole_pairs
     rng = np.random.default_rng([cfg.seed, 0])
@@ -175,29 +258,44 @@ def _truth(cfg: BenchConfig) -> FluxModel:
     # Additive mechanical harmonics 1..n-1.
     jb = np.arange(1, n)
     bm = cfg.magnet_variation * rng.standard_normal((3, 2, jb.size)) / math.sqrt(max(jb.size, 1))
+    # Per-magnet shape variation: one rotor pattern, seen by each sensor at its position (own
+    # random stream, so the other knobs' draws do not change when it is switched on).
+    shape = None
+    if cfg.shape_variation > 0:
+        shape = shape_deformation(
+            n,
+            cfg.shape_variation,
+            electrical_harmonics=cfg.shape_harmonics,
+            rng=np.random.default_rng([cfg.seed, 2]),
+        )
 
     # Collect the series on a dense grid and project exactly: every term is a finite Fourier
     # series in y0, so sampling at more points than twice the highest harmonic is exact.
-    hmax = max(elec) * n + (3 if cfg.pole_modulation else 0) + n
     harmonics = sorted(
         {h for h in range(1, n)} | {k * n + s for k in elec for s in (-3, -2, -1, 0, 1, 2, 3)}
     )
     harmonics = [h for h in harmonics if h >= 1]
     if not cfg.pole_modulation:
         harmonics = sorted(set(range(1, n)) | {k * n for k in elec})
+    if shape is not None:
+        harmonics = sorted(set(harmonics) | {int(h) for h in shape[0]})
     basis = FourierBasis(tuple(harmonics))
-    M = 4 * hmax + 16
+    hmax = max(elec) * n + (3 if cfg.pole_modulation else 0) + n
+    M = 4 * max(hmax, max(harmonics)) + 16
     y0 = TWO_PI * np.arange(M) / M
     theta = np.zeros((3, basis.size))
     Phi = basis.evaluate(y0)
     for h in range(3):
         phi = TWO_PI * h / 3.0 + math.radians(cfg.misalignment_deg[h])
         psi = n * y0 - phi
-        shape = sum(c * np.cos(k * psi) for k, c in elec.items())
+        shape_h = sum(c * np.cos(k * psi) for k, c in elec.items())
         a = am[h, 0] @ np.cos(np.outer(jm, y0)) + am[h, 1] @ np.sin(np.outer(jm, y0))
         b = bm[h, 0] @ np.cos(np.outer(jb, y0)) + bm[h, 1] @ np.sin(np.outer(jb, y0))
+        if shape is not None:  # the rotor pattern under sensor h: x = y0 - phi / n
+            x = np.outer(shape[0], y0 - phi / n)
+            shape_h = shape_h + shape[1] @ np.cos(x) + shape[2] @ np.sin(x)
         g = cfg.offset[h] + cfg.amplitude * (
-            (1 + cfg.gain_mismatch[h]) * (1 + a) * shape + (b if jb.size else 0.0)
+            (1 + cfg.gain_mismatch[h]) * (1 + a) * shape_h + (b if jb.size else 0.0)
         )
         theta[h] = np.linalg.lstsq(Phi, g, rcond=None)[0]
     return FluxModel(basis, theta)
