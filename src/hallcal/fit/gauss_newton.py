@@ -525,7 +525,8 @@ def regression_normal_equations(
     d : array_like (N,) or (N, c)
         Regressands (e.g. the three Hall signals).
     harmonics : array_like of int
-        Mechanical harmonics of the Fourier basis beta (eq. (basis)), constant term included.
+        Mechanical harmonics of the Fourier basis beta (eq. (basis)); the constant term is
+        always included.
 
     Returns
     -------

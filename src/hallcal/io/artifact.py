@@ -627,7 +627,8 @@ def load_artifact(path: str | os.PathLike[str]) -> ArtifactData:
     Returns
     -------
     ArtifactData
-        The validated content as typed fields (arrays, enums), not the raw JSON.
+        The validated content: pole pairs, f_init's projection and offsets and the table
+        nodes as arrays, the setup as a :class:`Setup`, the rest as read-only mappings.
 
     Raises
     ------

@@ -328,7 +328,8 @@ def estimate_gain(
     y : ndarray (N,)
         Recorded f_init output [rad].
     flux : FluxModel
-        The flux used in the simulation (the paper: theta_0, pure sinusoids).
+        The flux model of the simulation: the paper uses theta_0 (pure sinusoids), the
+        pipeline the least-squares start (:func:`~hallcal.fit.sem.least_squares_start`).
     bounds : (float, float), keyword-only
         Search range of c.
 
