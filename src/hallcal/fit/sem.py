@@ -289,13 +289,27 @@ def _damped_step(problem: _Problem, A: NDArray, g: NDArray, x: NDArray, F: float
     return None, F, lam
 
 
+#: Statistical convergence: the full Gauss-Newton step would lower the cost by less than about
+#: one noise variance (decrement ``g^T A^-1 g <= 2 sigma^2``), i.e. the iterate lies within
+#: about one standard deviation of the optimum in every direction of the parameter space.
+_DECREMENT_SIGMAS = 2.0
+#: ... or two accepted steps in a row each lowered the cost by less than this many sigma^2.
+_STALL_SIGMAS = 0.1
+
+
 def _levenberg_marquardt(
     problem: _Problem, x0: NDArray, *, max_iterations: int, tol: float, damping: float
 ) -> _Iterate:
     """Levenberg-Marquardt iterations from x0 until the decrement test passes.
 
     Stops when the full Gauss-Newton step predicts a relative decrease below tol (Dennis &
-    Schnabel 1996, sec. 7.2): it needs no further simulation.
+    Schnabel 1996, sec. 7.2): it needs no further simulation. The test is also passed at the
+    statistical resolution of the problem, where further steps change the estimate by much
+    less than its own standard deviation: when the decrement is below ``2 sigma^2`` (sigma^2 =
+    F / (3 N - p)), or when two accepted steps in a row each lowered F by less than
+    ``0.1 sigma^2``. The second rule matters with the strided J^T J of large models, whose
+    decrement overstates what the exact cost can still give: measured on a 16 kHz, 200 000
+    sample run with 465 parameters, 22 of 30 iterations lowered F by 0.01-0.03 sigma^2 each.
     """
     x = np.array(x0, dtype=np.float64)
     system = problem.system(x)
@@ -305,16 +319,20 @@ def _levenberg_marquardt(
     history = [F]
     lam = damping
     iterations = 0
+    dof = max(problem.d.size - problem.layout.size, 1)
+    small_steps = 0
     with threadpool_limits(limits=1, user_api="blas"):
         while True:
             A, g = _normal_matrix(problem, system, x)
-            if _decrement(A, g) <= tol * F:
+            sigma2 = F / dof
+            if _decrement(A, g) <= max(tol * F, _DECREMENT_SIGMAS * sigma2) or small_steps >= 2:
                 return _Iterate(x, system, history, iterations, SEMStatus.CONVERGED)
             if iterations >= max_iterations:
                 return _Iterate(x, system, history, iterations, SEMStatus.MAX_ITERATIONS)
             step, F_new, lam = _damped_step(problem, A, g, x, F, lam)
             if step is None:
                 return _Iterate(x, system, history, iterations, SEMStatus.STALLED)
+            small_steps = small_steps + 1 if F - F_new < _STALL_SIGMAS * sigma2 else 0
             x = x + step
             iterations += 1
             history.append(F_new)
