@@ -1073,6 +1073,13 @@ def _table(sem: SEMResult, n: int, P: NDArray, o: NDArray, sigma2: float, points
     return _Table(lut, float(np.sqrt(np.mean(eta**2))), floor, predicted)
 
 
+def _table_sd(tab: _Table) -> float:
+    """What cov(theta) adds to the noise floor: ``sqrt(predicted^2 - floor^2)`` [rad]."""
+    if not math.isfinite(tab.predicted):
+        return math.nan
+    return math.sqrt(max(tab.predicted**2 - tab.floor**2, 0.0))
+
+
 def _failed_report(sem: SEMResult, lv: _Levels, tab: _Table) -> AdequacyReport:
     msg = (
         f"inadequate: the SEM fit failed ({sem.status}); the closed loop with this model "
@@ -1203,6 +1210,23 @@ def _reasons(
         )
     if not sp.spec.status.success:
         warns.append("the run covers less than one revolution")
+    # The table's correction eta is f_init's error as the model sees it; when the table's own
+    # predicted error is comparable, f_star is not reliably better than f_init. A warning, not a
+    # refusal: the prediction is an expectation dominated by a few weakly identified warps, and
+    # a single run's table error is often half of it or less (measured 4.6x against a predicted
+    # 9.9x the noise floor, with f_init at 9.0x, on a slow 200 000-sample ramp).
+    table_sd = _table_sd(tab)
+    if table_sd > tab.floor and table_sd >= 0.5 * tab.correction_rms:
+        worse = table_sd >= tab.correction_rms
+        warns.append(
+            ("f_star may be worse than f_init" if worse else "the improvement over f_init is "
+             "uncertain")
+            + f": the table's own predicted error {1e3 * table_sd:.3g} mrad is "
+            + ("at least" if worse else "more than half")
+            + f" the correction it applies ({1e3 * tab.correction_rms:.3g} mrad RMS); slow "
+            "warps of the angle are seen only through the loop's sensitivity at their "
+            "frequencies: a faster ramp (nearer the loop bandwidth) or more revolutions help"
+        )  # fmt: skip
     if math.isfinite(tab.predicted) and tab.predicted > warn_predicted * tab.floor:
         warns.append(
             f"the data determine the table poorly (the covariance of theta predicts "
@@ -1249,7 +1273,8 @@ def _decision(
     if fails:
         return Verdict.INADEQUATE, _refusal_message(lv, tab, sh, sp)
     if warns:
-        parts: list[str] = []
+        # first whether the table helps at all, then why the fit is not clean
+        parts: list[str] = [w for w in warns if w.startswith(("f_star may be", "the improvement"))]
         if sp.suggested:
             parts.append(
                 f"small flux harmonics {_format_harmonics(sp.suggested)} are missing (cost "

@@ -197,9 +197,12 @@ def _with_cogging(
 
     ``[model] cogging``: "none" keeps the fit; given orders are fitted jointly; "auto" looks for
     cogging in the fit's residual and keeps only orders whose coefficients are significant
-    (:func:`hallcal.fit.cogging.select_cogging`). When cogging is found and the harmonics are
-    chosen from the data, they are chosen again with the identified torque in the loop (so that
-    no flux harmonic is picked to absorb the cogging motion), and the final fit is joint.
+    (:func:`hallcal.fit.cogging.select_cogging`). When cogging is found and the harmonics
+    chosen from the data went beyond the band of the first fit (harmonics added from the residual
+    or a widened band), they are chosen again with the identified torque in the loop (so that no
+    flux harmonic is picked to absorb the cogging motion), warm from the joint fit, and the final
+    fit is joint. Otherwise the joint fit of the cogging search is the final one: the band and the
+    evidence within it come from f_init's view of the flux and do not see the motion.
     """
     orders = setup.model.cogging
     if orders == "none":
@@ -213,12 +216,16 @@ def _with_cogging(
     if sel.status is CoggingStatus.NONE:
         return dataclasses.replace(fit, cogging=sel)
     sem, selection = sel.sem, fit.selection
-    if setup.model.harmonics == "auto" and sel.cogging is not None:
+    if (
+        selection is not None
+        and sel.cogging is not None
+        and any(c.accepted and c.stage in ("extended", "widened") for c in selection.candidates)
+    ):
         say(progress, "choosing the harmonics again with the cogging torque in the loop")
         known = loop.with_plant_gain(sem.gain).with_cogging(sel.cogging)
         selection = select_harmonics(
             known, s.r, s.d, y=s.y, pole_pairs=setup.pole_pairs,
-            max_iterations=setup.model.max_iterations,
+            max_iterations=setup.model.max_iterations, start=sem.flux,
         )  # fmt: skip
         sem = solve_sem(
             loop, s.r, s.d, selection.sem.flux.basis, theta0=selection.sem.flux.theta,
