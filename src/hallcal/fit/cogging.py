@@ -18,7 +18,7 @@ Choosing the orders (``cogging = "auto"``), in two tests:
    least-squares amplitude of each order, weighted by the shift's inverse noise variance
    ``|g'|^2 / sigma^2``; an order is a candidate when its power stands out from the local level
    of the spectrum (the median of the neighbouring orders, robust to other lines) by more than
-   the chi-square(2) quantile at the family-wise false-alarm level over all orders searched
+   the chi-square(2) quantile at the family-wise false-alarm level over the plausible orders
    (Bonferroni), and is a local maximum (a strong line leaks into its neighbours on a
    non-integer number of revolutions). The local level makes the test valid for the coloured
    spectrum that a random torque disturbance leaves (its power falls with the order).
@@ -40,16 +40,13 @@ a line at its own order (the along-curve part of the missing content), and a tor
 trades off against the flux. Measured on a random motor (11 pole pairs, 25 000 samples, flux
 band 1..77 of which the model had 1..61): a line at 63 passed both tests and was fitted as a
 torque of 0.2 (50 times the true cogging, which was at 66), and the table went from 21x to 28x
-the noise floor. Well beyond 24 n_m the rotor's position response to a torque (the plant falls
-off as 1 / frequency^2 above the loop bandwidth) is far below the Hall noise at the usual
-calibration speeds. Other orders (e.g. multiples of Q from magnet-to-magnet variation) can be
-given explicitly (``cogging = [orders]``).
+the noise floor. The cost does not tell them apart: there the torque at 63 fitted the data better
+than the flux harmonic 63 added instead, by 1165 sigma^2, as it also absorbed part of the misfit
+of the other missing harmonics. Well beyond 24 n_m the rotor's position response to a torque
+(the plant falls off as 1 / frequency^2 above the loop bandwidth) is far below the Hall noise at
+the usual calibration speeds. Other orders (e.g. multiples of Q from magnet-to-magnet
+variation) can be given explicitly (``cogging = [orders]``).
 
-3. **Flux or torque** (:func:`select_cogging`). An order that lies inside the flux model's band
-   but is not one of its harmonics can be a missing flux harmonic as well as a torque: it is kept
-   only when the joint fit with the torque beats the fit with that flux harmonic added instead
-   (the flux explanation has four parameters more: the torque must win by more than the Akaike
-   penalty of the difference, ``J_flux - J_torque > 8 sigma^2``).
 """
 
 from __future__ import annotations
@@ -64,7 +61,6 @@ from numpy.typing import ArrayLike, NDArray
 from hallcal.fit.adequacy import curve_projection
 from hallcal.fit.gauss_newton import _moments
 from hallcal.fit.sem import SEMResult, solve_sem
-from hallcal.sensor.flux import FourierBasis
 from hallcal.sim.cogging import CoggingTorque
 from hallcal.sim.loop import ClosedLoop
 
@@ -449,81 +445,22 @@ def select_cogging(
     candidates = spectrum.candidates
     tests: tuple[OrderTest, ...] = ()
     joint = sem
-    flux_like: tuple[int, ...] = ()
     while candidates:
         joint = _fit(loop, rr, dd, sem, candidates, fit_gain=fit_gain,
                      max_iterations=max_iterations)  # fmt: skip
         tests = order_tests(joint, significance=significance)
         kept = tuple(t.order for t in tests if t.significant)
         if kept == candidates:
-            flux_like = _flux_like(loop, rr, dd, sem, joint, kept, fit_gain=fit_gain,
-                                   max_iterations=max_iterations)  # fmt: skip
-            kept = tuple(k for k in kept if k not in flux_like)
-            if kept == candidates:
-                break
+            break
         candidates = kept
     if not candidates:
         msg = "cogging: none found (no line in the residual's shift along the flux curve"
         msg += " passed both tests)" if spectrum.candidates else ")"
-        if flux_like:
-            msg = (
-                f"cogging: none found (the line at {_orders(flux_like)}/rev is explained as well "
-                "by a flux harmonic as by a torque)"
-            )
         return CoggingSelection(CoggingStatus.NONE, (), None, sem, spectrum, tests, msg)
     return CoggingSelection(
         CoggingStatus.FOUND, candidates, joint.cogging, joint, spectrum, tests,
         _describe(joint.cogging, "found in the data"),
     )  # fmt: skip
-
-
-def _orders(orders: tuple[int, ...]) -> str:
-    return ", ".join(str(k) for k in orders)
-
-
-def _flux_like(
-    loop: ClosedLoop,
-    r: NDArray,
-    d: NDArray,
-    start: SEMResult,
-    joint: SEMResult,
-    orders: tuple[int, ...],
-    *,
-    fit_gain: bool,
-    max_iterations: int,
-) -> tuple[int, ...]:
-    """Orders of ``joint`` that a flux harmonic explains as well as the torque does.
-
-    Only orders near the flux model's band (up to its top harmonic + n_m) and not among its
-    harmonics are tested: there a missing flux harmonic and a torque both leave a line at the
-    order. The alternative fit carries the order as a flux harmonic (the other orders stay
-    torques); the torque is kept when its cost is lower by more than the Akaike penalty of the
-    four parameters the flux explanation has more (8 sigma^2).
-    """
-    harmonics = tuple(int(h) for h in start.flux.basis.harmonics)
-    reach = (max(harmonics) if harmonics else 0) + int(loop.pole_pairs)
-    out = []
-    sigma2 = joint.noise_variance
-    for k in orders:
-        if k in harmonics or k > reach:
-            continue
-        basis = FourierBasis(tuple(sorted((*harmonics, k))))
-        theta0 = np.zeros((3, basis.size))
-        theta0[:, 0] = start.flux.theta[:, 0]
-        for h in harmonics:
-            js, jc = start.flux.basis.index(h)
-            ks, kc = basis.index(h)
-            theta0[:, [ks, kc]] = start.flux.theta[:, [js, jc]]
-        others = tuple(o for o in orders if o != k)
-        alt = solve_sem(
-            loop, r, d, basis, theta0=theta0, fit_gain=fit_gain,
-            gain0=start.gain if fit_gain else 1.0,
-            cogging=CoggingTorque(others, np.zeros(len(others)), np.zeros(len(others))),
-            max_iterations=max_iterations,
-        )  # fmt: skip
-        if not alt.cost - joint.cost > 8.0 * sigma2:
-            out.append(int(k))
-    return tuple(out)
 
 
 def _describe(cog: CoggingTorque | None, how: str) -> str:
