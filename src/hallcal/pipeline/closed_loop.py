@@ -23,8 +23,8 @@ from numpy.typing import NDArray
 from hallcal.errors import HallcalInputError
 from hallcal.fit.adequacy import AdequacyReport, assess
 from hallcal.fit.cogging import CoggingSelection, CoggingStatus, select_cogging
-from hallcal.fit.order import HarmonicSelection, select_harmonics
-from hallcal.fit.sem import SEMResult, solve_sem
+from hallcal.fit.order import HarmonicSelection, select_harmonics, shape_off
+from hallcal.fit.sem import SEMResult, SEMStatus, solve_sem
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.boundary import numeric_errors
@@ -143,6 +143,11 @@ def _fourier_info(flux: FluxModel) -> dict[str, Any]:
     }
 
 
+#: Iterations of the first flux-only fit when the cogging search follows (it starts the joint
+#: fit; the fit is finished from there when no cogging is found).
+_FIRST_ITERATIONS = 10
+
+
 def _fit_fourier(
     loop: ClosedLoop, s: _Signals, setup: Setup, *, fit_gain: bool, progress: Progress
 ) -> _ModelFit:
@@ -157,8 +162,10 @@ def _fit_fourier(
     if harmonics == "auto":
         say(progress, "choosing the harmonics from the data")
         selection = select_harmonics(
-            loop, s.r, s.d, y=s.y, pole_pairs=setup.pole_pairs, max_iterations=max_it
-        )
+            loop, s.r, s.d, y=s.y, pole_pairs=setup.pole_pairs, max_iterations=max_it,
+            first_iterations=min(max_it, _FIRST_ITERATIONS) if setup.model.cogging == "auto"
+            else None,
+        )  # fmt: skip
         sem = selection.sem
         adequacy = selection.report
         if fit_gain:
@@ -214,12 +221,33 @@ def _with_cogging(
         max_iterations=setup.model.max_iterations,
     )  # fmt: skip
     if sel.status is CoggingStatus.NONE:
-        return dataclasses.replace(fit, cogging=sel)
-    sem, selection = sel.sem, fit.selection
+        capped = (
+            fit.sem.status is SEMStatus.MAX_ITERATIONS
+            and fit.sem.iterations < setup.model.max_iterations
+        )
+        if not capped:
+            return dataclasses.replace(fit, cogging=sel)
+        say(progress, "SEM with the chosen harmonics, to convergence (no cogging found)")
+        sem = solve_sem(
+            loop, s.r, s.d, fit.sem.flux.basis, theta0=fit.sem.flux.theta, fit_gain=fit_gain,
+            gain0=fit.sem.gain, max_iterations=setup.model.max_iterations,
+        )  # fmt: skip
+        return dataclasses.replace(
+            fit, sem=sem, flux=sem.flux, model_info=_fourier_info(sem.flux), gain_factor=sem.gain,
+            gain_factor_std=sem.gain_std, adequacy=None, cogging=sel,
+        )  # fmt: skip
+    sem, selection, adequacy = sel.sem, fit.selection, None
+    if selection is not None and sel.cogging is not None:
+        adequacy = assess(sem, s.d, pole_pairs=setup.pole_pairs, projection=loop.projection,
+                          offset=loop.offset)  # fmt: skip
     if (
         selection is not None
         and sel.cogging is not None
-        and any(c.accepted and c.stage in ("extended", "widened") for c in selection.candidates)
+        and adequacy is not None
+        and (
+            any(c.accepted and c.stage in ("extended", "widened") for c in selection.candidates)
+            or shape_off(adequacy)
+        )
     ):
         say(progress, "choosing the harmonics again with the cogging torque in the loop")
         known = loop.with_plant_gain(sem.gain).with_cogging(sel.cogging)
@@ -233,9 +261,10 @@ def _with_cogging(
             max_iterations=setup.model.max_iterations,
         )  # fmt: skip
         sel = dataclasses.replace(sel, sem=sem, cogging=sem.cogging)
+        adequacy = None  # judged again on the final fit
     return dataclasses.replace(
         fit, sem=sem, flux=sem.flux, model_info=_fourier_info(sem.flux), gain_factor=sem.gain,
-        gain_factor_std=sem.gain_std, selection=selection, adequacy=None, cogging=sel,
+        gain_factor_std=sem.gain_std, selection=selection, adequacy=adequacy, cogging=sel,
     )  # fmt: skip
 
 
