@@ -673,6 +673,11 @@ class _Options:
     deadline: float
     ard_rounds: int
 
+    @property
+    def lengthscale_fixed(self) -> bool:
+        """l was given (not chosen by the criterion within a range)."""
+        return not isinstance(self.lengthscale, tuple)
+
 
 def _options(
     points, lengthscale, lengthscale_range, criterion, spectrum, max_harmonics, max_iterations,
@@ -860,14 +865,46 @@ def solve_kernel_sem(
     KernelSEMResult
     """
     t_start = time.perf_counter()
-    r = np.ascontiguousarray(r, dtype=np.float64)
-    d = np.ascontiguousarray(d, dtype=np.float64)
-    N = r.size
-    if d.shape != (N, 3):
-        raise ValueError("d must have shape (N, 3) with N = len(r)")
-    check_hall_scale(float(np.max(np.abs(d))) if d.size else 0.0)
+    r, d = _checked_record(r, d)
     o = _options(points, lengthscale, lengthscale_range, criterion, spectrum, max_harmonics,
                  max_iterations, tol, stride, time_budget, ard_rounds, t_start)  # fmt: skip
+    band = _band_and_start(loop, d, y, o)  # 1
+    best, tried = _kernel_hyperparameters(band.x, d, band.K, o)  # 2
+    fit = _spectrum_and_map_sem(loop, r, d, band, _bessel_variances(o, best, band.K), o)  # 3-4
+    return _kernel_result(best, tried, band, fit, o, time.perf_counter() - t_start)
+
+
+def _checked_record(r: ArrayLike, d: ArrayLike) -> tuple[NDArray, NDArray]:
+    """r (N,) and d (N, 3) as contiguous float64 arrays; d within the accepted Hall scale."""
+    r = np.ascontiguousarray(r, dtype=np.float64)
+    d = np.ascontiguousarray(d, dtype=np.float64)
+    if d.shape != (r.size, 3):
+        raise ValueError("d must have shape (N, 3) with N = len(r)")
+    check_hall_scale(float(np.max(np.abs(d))) if d.size else 0.0)
+    return r, d
+
+
+@dataclass(frozen=True)
+class _Band:
+    """Step 1 of :func:`solve_kernel_sem`: the band 1..K, the un-warped angle and sigma^2."""
+
+    edge: BandEdge
+    x: NDArray[np.float64]  # f_init's output un-warped onto the band's angle
+    noise_variance: float
+    pole_pairs: int
+
+    @property
+    def K(self) -> int:
+        return self.edge.edge
+
+
+def _band_and_start(loop: ClosedLoop, d: NDArray, y: ArrayLike | None, o: _Options) -> _Band:
+    """Step 1 of :func:`solve_kernel_sem`: band and start by :func:`hallcal.fit.warp.band_edge`.
+
+    The smallest band into which f_init's view of the flux un-warps (no loop simulation), capped
+    by the grid's Nyquist harmonic, ``max_harmonics`` and ``8 n_m``; sigma^2 is the model-free
+    noise level of d (:func:`hallcal.fit.adequacy.estimate_noise_variance`).
+    """
     yy = (
         f_init(d, loop.pole_pairs, projection=loop.projection, offset=loop.offset)
         if y is None
@@ -878,17 +915,40 @@ def solve_kernel_sem(
     s2 = noise.variance if math.isfinite(noise.variance) and noise.variance > 0 else 1e-12
     edge = band_edge(yy, d, pole_pairs=n_m, noise_variance=s2,
                      max_edge=min(o.cap, 8 * n_m))  # fmt: skip
-    K = edge.edge
-    x = edge.unwarp.parametrize(yy)
-    best, tried = _kernel_hyperparameters(x, d, K, o)
-    variances = _bessel_variances(o, best, K)
+    return _Band(edge, edge.unwarp.parametrize(yy), s2, n_m)
+
+
+@dataclass(frozen=True)
+class _SpectrumFit:
+    """Steps 3-4 of :func:`solve_kernel_sem`: the MAP SEM and the spectrum it was solved with."""
+
+    sem: SEMResult
+    variances: NDArray[np.float64]  # prior variance of each harmonic 0..K
+    noise_variance: float
+    relevance: HarmonicRelevance | None
+    settled: bool
+    rounds: int  # SEM solves
+
+
+def _spectrum_and_map_sem(
+    loop: ClosedLoop, r: NDArray, d: NDArray, band: _Band, variances: NDArray, o: _Options
+) -> _SpectrumFit:
+    """Steps 3-4 of :func:`solve_kernel_sem`: learn the spectrum, solve, learn it again.
+
+    With ARD (MacKay 1992, Tipping 2001; :func:`hallcal.fit.evidence.harmonic_relevance`) the
+    prior variance of every harmonic is learned from the kernel's ``variances`` at the un-warped
+    angle, the MAP SEM solved, and the spectrum learned again at the solution's simulated angle,
+    repeating while it moves (:func:`_settled`), at most ``ard_rounds`` solves, within the time
+    budget. Without ARD one MAP SEM with the kernel's own spectrum.
+    """
+    s2, K, n_m = band.noise_variance, band.K, band.pole_pairs
     relevance: HarmonicRelevance | None = None
     settled = not o.use_ard
     if o.use_ard:
-        relevance = harmonic_relevance(edge.flux, x, d, noise_variance=s2, keep=(n_m,),
+        relevance = harmonic_relevance(band.edge.flux, band.x, d, noise_variance=s2, keep=(n_m,),
                                        prior_variance=variances)  # fmt: skip
         variances, s2 = relevance.prior_variance, relevance.noise_variance
-    sem = _map_sem(loop, r, d, edge.flux, variances, s2, o)
+    sem = _map_sem(loop, r, d, band.edge.flux, variances, s2, o)
     rounds = 1
     while o.use_ard and relevance is not None and sem.status is not SEMStatus.TIME_BUDGET:
         again = harmonic_relevance(_on_band(sem.flux, K), sem.y0_sim, d, noise_variance=s2,
@@ -899,10 +959,18 @@ def solve_kernel_sem(
         relevance, variances, s2 = again, again.prior_variance, again.noise_variance
         sem = _map_sem(loop, r, d, sem.flux, variances, s2, o)
         rounds += 1
+    return _SpectrumFit(sem, variances, s2, relevance, settled, rounds)
+
+
+def _kernel_result(
+    best: CriterionPoint, tried: list[CriterionPoint], band: _Band, fit: _SpectrumFit,
+    o: _Options, solve_time: float,
+) -> KernelSEMResult:  # fmt: skip
+    """The result of :func:`solve_kernel_sem`: the flux on the band 1..K and its kernel weights."""
     kb = KernelBasis(o.points, best.lengthscale, best.sf)
-    fourier = _on_band(sem.flux, K)
+    fourier = _on_band(fit.sem.flux, band.K)
     ls_tried = [c.lengthscale for c in tried]
-    interior = lengthscale != "auto" or (min(ls_tried) < best.lengthscale < max(ls_tried))
+    interior = o.lengthscale_fixed or (min(ls_tried) < best.lengthscale < max(ls_tried))
     return KernelSEMResult(
         flux=fourier,
         basis=kb,
@@ -910,19 +978,19 @@ def solve_kernel_sem(
         lengthscale=best.lengthscale,
         sf=best.sf,
         penalty=best.penalty,
-        noise_variance=s2,
-        harmonics=K,
+        noise_variance=fit.noise_variance,
+        harmonics=band.K,
         criterion=o.criterion,
         criterion_values=tried,
         lengthscale_range=o.lengthscale_range,
         interior=bool(interior),
-        settled=bool(settled),
-        sem=sem,
-        status=sem.status,
-        solve_time=time.perf_counter() - t_start,
+        settled=bool(fit.settled),
+        sem=fit.sem,
+        status=fit.sem.status,
+        solve_time=solve_time,
         spectrum="ard" if o.use_ard else "bessel",
-        prior_variance=np.asarray(variances, dtype=np.float64),
-        edge=edge,
-        relevance=relevance,
-        ard_rounds=rounds if o.use_ard else 0,
+        prior_variance=np.asarray(fit.variances, dtype=np.float64),
+        edge=band.edge,
+        relevance=fit.relevance,
+        ard_rounds=fit.rounds if o.use_ard else 0,
     )

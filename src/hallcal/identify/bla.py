@@ -376,8 +376,8 @@ def _steady_state_spectra(lay: _PeriodLayout, *, detrend: bool) -> _PeriodSpectr
 
     The transient periods are dropped; with ``detrend`` the least-squares line through the P
     period means is removed from every signal and realization. Its offset lives at DC only, so
-    only its slope is removed, as the DFT of the ramp inside one period (Pintelon & Schoukens
-    2012, sec. 2.5: the periodic part has the same mean in every period).
+    only its slope is removed, as the DFT of the ramp inside one period (why this slope is not
+    biased by the excitation: step 2 of :func:`nonparametric_bla`).
     """
     n, p = lay.n, lay.periods
     ramp_dft = np.fft.rfft(np.arange(n, dtype=np.float64))
@@ -793,8 +793,8 @@ class _FitData:
 def _fit_data(bla: NonparametricBLA, *, weights: str, hold: str, parameters: int) -> _FitData:
     """The usable lines of ``bla`` with their weights; the hold divided out with ``"zoh"``.
 
-    Aliasing neglected, ``G_zoh(w) = G(j w) (1 - exp(-j w Ts)) / (j w Ts)`` (Pintelon & Schoukens
-    2012, sec. 9.2 on sampled data with a zero-order hold).
+    With ``hold="zoh"`` the data and their variances are divided by the zero-order-hold factor
+    ``(1 - exp(-j w Ts)) / (j w Ts)``, aliasing neglected (see :func:`fit_parametric`).
     """
     if hold not in ("zoh", "none"):
         raise HallcalInputError(f"hold must be 'zoh' or 'none', got {hold!r}")
