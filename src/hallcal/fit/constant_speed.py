@@ -306,7 +306,7 @@ def _degenerate_geometry(x: NDArray, message: str) -> SensorGeometry:
     amp = np.maximum(np.std(x, axis=0) * math.sqrt(2.0), np.finfo(float).tiny)
     return SensorGeometry(
         ph, amp, x.mean(axis=0), _projection_from(ph, amp), 0, 0.0,
-        None, float("nan"), "degenerate", message,
+        None, float("nan"), GeometryStatus.DEGENERATE, message,
     )  # fmt: skip
 
 
