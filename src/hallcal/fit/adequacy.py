@@ -921,37 +921,7 @@ def assess(
         sp = _spectra(sem, dd, lv, sh, hmax, significance, min_amplitude, dominance)
     fails, warns, notes = _reasons(sem, lv, tab, sh, sp, warn_predicted)
     verdict, msg = _decision(lv, tab, sh, sp, fails, warns)
-    return AdequacyReport(
-        verdict=verdict,
-        message=msg,
-        reasons=tuple(fails + warns),
-        notes=tuple(notes),
-        suggested_harmonics=sp.suggested,
-        unexplained_harmonics=sp.unexplained,
-        dynamics_harmonics=sp.dynamics,
-        model_harmonics=lv.model_h,
-        n_samples=dd.shape[0],
-        n_parameters=lv.p,
-        noise=lv.noise,
-        cost=lv.cost,
-        expected_cost=lv.expected,
-        ratio=lv.ratio,
-        ratio_std=lv.ratio_std,
-        shape_ratio=sh.shape_ratio,
-        periodic_fraction=sp.periodic_fraction,
-        position_mismatch_rms=sh.mismatch,
-        residual_angle_rms=sh.residual_angle_rms,
-        noise_floor=tab.floor,
-        predicted_error=tab.predicted,
-        correction_rms=tab.correction_rms,
-        bijective=bool(tab.lut.bijective),
-        min_slope=float(tab.lut.min_slope),
-        sem_status=str(sem.status),
-        residual_spectrum=sp.spec,
-        shape_spectrum=sp.shape_spec,
-        thresholds=lv.thresholds,
-        status=AdequacyStatus.OK,
-    )
+    return _report(sem, dd.shape[0], lv, tab, sh, sp, verdict, msg, fails + warns, notes)
 
 
 @dataclass
@@ -1252,6 +1222,44 @@ def _decision(
         f"adequate: cost {lv.ratio:.3g}x the noise level (expected 1 +- {lv.ratio_std:.2g}), "
         f"predicted error {mrad * tab.predicted:.3g} mrad (noise floor {mrad * tab.floor:.3g} "
         "mrad)"
+    )
+
+
+def _report(
+    sem: SEMResult, n_samples: int, lv: _Levels, tab: _Table, sh: _Shape, sp: _Spectra,
+    verdict: Verdict, msg: str, reasons: list[str], notes: list[str],
+) -> AdequacyReport:  # fmt: skip
+    """The report of :func:`assess` from its steps (levels, table, shape, spectra, decision)."""
+    return AdequacyReport(
+        verdict=verdict,
+        message=msg,
+        reasons=tuple(reasons),
+        notes=tuple(notes),
+        suggested_harmonics=sp.suggested,
+        unexplained_harmonics=sp.unexplained,
+        dynamics_harmonics=sp.dynamics,
+        model_harmonics=lv.model_h,
+        n_samples=n_samples,
+        n_parameters=lv.p,
+        noise=lv.noise,
+        cost=lv.cost,
+        expected_cost=lv.expected,
+        ratio=lv.ratio,
+        ratio_std=lv.ratio_std,
+        shape_ratio=sh.shape_ratio,
+        periodic_fraction=sp.periodic_fraction,
+        position_mismatch_rms=sh.mismatch,
+        residual_angle_rms=sh.residual_angle_rms,
+        noise_floor=tab.floor,
+        predicted_error=tab.predicted,
+        correction_rms=tab.correction_rms,
+        bijective=bool(tab.lut.bijective),
+        min_slope=float(tab.lut.min_slope),
+        sem_status=str(sem.status),
+        residual_spectrum=sp.spec,
+        shape_spectrum=sp.shape_spec,
+        thresholds=lv.thresholds,
+        status=AdequacyStatus.OK,
     )
 
 
