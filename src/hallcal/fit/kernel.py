@@ -82,6 +82,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -515,17 +516,7 @@ def select_hyperparameters(
     """
     if criterion not in ("evidence", "gcv"):
         raise ValueError('criterion must be "evidence" or "gcv"')
-    G = np.asarray(gram, dtype=np.float64)
-    b = np.asarray(gradient, dtype=np.float64)
-    th = np.asarray(theta, dtype=np.float64)
-    if b.ndim == 1:
-        b = b[:, None]
-        th = th.reshape(-1, 1)
-    q = G.shape[0]
-    reps = 3 if np.ndim(gradient) == 1 else 1
-    K = (q // reps - 1) // 2
-    if reps * (2 * K + 1) != q or th.shape != b.shape:
-        raise ValueError("gram, gradient and theta do not describe harmonics 1..K")
+    G, b, th, K = _regression_blocks(gram, gradient, theta)
     cache: dict[float, CriterionPoint] = {}
 
     def at(l: float) -> CriterionPoint:
@@ -541,20 +532,45 @@ def select_hyperparameters(
     lo, hi = (float(v) for v in lengthscale)  # type: ignore[union-attr]
     if not 0 < lo < hi:
         raise ValueError("lengthscale range must satisfy 0 < lo < hi")
-    ls = np.exp(np.linspace(math.log(lo), math.log(hi), int(grid)))
+    _search_lengthscale(at, lo, hi, grid=int(grid), refine=refine)
+    tried = sorted(cache.values(), key=lambda c: c.lengthscale)
+    best = min(tried, key=lambda c: c.value)
+    return best, tried
+
+
+def _regression_blocks(
+    gram: ArrayLike, gradient: ArrayLike, theta: ArrayLike
+) -> tuple[NDArray, NDArray, NDArray, int]:
+    """J^T J, J^T e* and theta* with one column per sensor block, and the band K they describe."""
+    G = np.asarray(gram, dtype=np.float64)
+    b = np.asarray(gradient, dtype=np.float64)
+    th = np.asarray(theta, dtype=np.float64)
+    if b.ndim == 1:
+        b = b[:, None]
+        th = th.reshape(-1, 1)
+    q = G.shape[0]
+    reps = 3 if np.ndim(gradient) == 1 else 1
+    K = (q // reps - 1) // 2
+    if reps * (2 * K + 1) != q or th.shape != b.shape:
+        raise ValueError("gram, gradient and theta do not describe harmonics 1..K")
+    return G, b, th, K
+
+
+def _search_lengthscale(
+    at: Callable[[float], CriterionPoint], lo: float, hi: float, *, grid: int, refine: int
+) -> None:
+    """Evaluate ``at`` on a log-spaced grid of l in [lo, hi], then ``refine`` bounded-Brent steps
+    on log l around the best grid value (the evaluations are what ``at`` records)."""
+    ls = np.exp(np.linspace(math.log(lo), math.log(hi), grid))
     vals = [at(float(l)).value for l in ls]
     i = int(np.argmin(vals))
     if refine > 0 and 0 < i < ls.size - 1:
-        res = scipy.optimize.minimize_scalar(
+        scipy.optimize.minimize_scalar(
             lambda x: at(float(math.exp(x))).value,
             bounds=(math.log(ls[i - 1]), math.log(ls[i + 1])),
             method="bounded",
             options={"maxiter": int(refine), "xatol": 0.01},
         )
-        del res
-    tried = sorted(cache.values(), key=lambda c: c.lengthscale)
-    best = min(tried, key=lambda c: c.value)
-    return best, tried
 
 
 # ================================================================================================
