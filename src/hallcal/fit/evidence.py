@@ -521,9 +521,7 @@ def group_evidence(
     """
     pr = _group_problem(gram, gradient, theta, groups, precision, keep)
     alpha, s2 = pr.precision, float(noise_variance)
-    status = GroupEvidenceStatus.MAX_ITERATIONS
-    gain = np.zeros(pr.ng)
-    it = 0
+    status, gain, it = GroupEvidenceStatus.MAX_ITERATIONS, np.zeros(pr.ng), 0
     with threadpool_limits(limits=1, user_api="blas"):
         while it < int(max_iterations):
             it += 1
@@ -534,8 +532,7 @@ def group_evidence(
             alpha, s2 = step.precision, step.noise_variance
             if step.change >= tol:
                 continue
-            # settled: which groups leave (or enter)?
-            moves = _group_moves(pr, alpha, s2, add=add, add_threshold=add_threshold)
+            moves = _group_moves(pr, alpha, s2, add=add, add_threshold=add_threshold)  # settled
             if moves is None:
                 status = GroupEvidenceStatus.FAILED
                 break
@@ -546,11 +543,7 @@ def group_evidence(
             alpha[moves.leave] = np.inf
             alpha[moves.enter] = moves.best[moves.enter]
         post = _posterior(pr.G, pr.b, alpha[pr.grp], s2)
-    if post is None:
-        return GroupEvidence(alpha, s2, np.zeros(pr.p), np.zeros(pr.ng), gain, math.nan, it, status)
-    mu, gam = _group_means(pr, post)
-    logev = _log_evidence(pr, post, alpha, s2, sse=sse, n=n)
-    return GroupEvidence(alpha, s2, mu, gam, gain, logev, it, status)
+    return _evidence_at(pr, post, alpha, s2, gain, it, status, sse=sse, n=n)
 
 
 @dataclass(frozen=True)
@@ -675,6 +668,21 @@ def _group_moves(
     leave = act & ~np.isfinite(best) & ~pr.keep
     enter = (~act) & np.isfinite(best) & (gain > add_threshold) & bool(add)
     return _GroupMoves(best, gain, leave, enter)
+
+
+def _evidence_at(
+    pr: _GroupProblem, post: _Posterior | None, alpha: NDArray, s2: float, gain: NDArray,
+    iterations: int, status: GroupEvidenceStatus, *, sse: float, n: int,
+) -> GroupEvidence:  # fmt: skip
+    """The result of :func:`group_evidence` at (alpha, sigma^2): posterior mean, gamma per group
+    and the log evidence (NaN and zeros when the posterior failed)."""
+    if post is None:
+        return GroupEvidence(
+            alpha, s2, np.zeros(pr.p), np.zeros(pr.ng), gain, math.nan, iterations, status
+        )
+    mu, gam = _group_means(pr, post)
+    logev = _log_evidence(pr, post, alpha, s2, sse=sse, n=n)
+    return GroupEvidence(alpha, s2, mu, gam, gain, logev, iterations, status)
 
 
 def _log_evidence(
