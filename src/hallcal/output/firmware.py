@@ -1014,6 +1014,25 @@ def design_powerup(
         report = IdentifiabilityReport.from_dict(entry)
     except ValueError as exc:
         raise HallcalInputError(f"{source}: {exc}") from None
+    no_decoder = _without_decoder(report, design)
+    if no_decoder is not None:
+        return no_decoder
+    if not (math.isfinite(report.noise_std) and report.noise_std > 0.0):
+        raise _bad(source, "identifiability.noise_std", "must be a positive number")
+    if design.flux is None:  # pragma: no cover - design_firmware always sets it
+        raise ValueError("the design has no flux model")
+    try:
+        dec = report.decoder(design.flux, design.lut)
+    except ValueError as exc:
+        raise HallcalInputError(f"{source}: identifiability: {exc}") from None
+    return _decoder_numbers(report, dec, design.plausibility, source)
+
+
+def _without_decoder(
+    report: IdentifiabilityReport, design: FirmwareDesign
+) -> PowerUpFirmware | None:
+    """Why the float variant gets no decoder (one pole pair, the verdict, a grid or tables the
+    C cannot take), or None."""
     if design.pole_pairs == 1:
         return PowerUpFirmware(
             PowerUpCode.SINGLE_POLE_PAIR,
@@ -1037,14 +1056,14 @@ def design_powerup(
             f"{MAX_POWERUP_TABLE}",
             report,
         )
-    if not (math.isfinite(report.noise_std) and report.noise_std > 0.0):
-        raise _bad(source, "identifiability.noise_std", "must be a positive number")
-    if design.flux is None:  # pragma: no cover - design_firmware always sets it
-        raise ValueError("the design has no flux model")
-    try:
-        dec = report.decoder(design.flux, design.lut)
-    except ValueError as exc:
-        raise HallcalInputError(f"{source}: identifiability: {exc}") from None
+    return None
+
+
+def _decoder_numbers(
+    report: IdentifiabilityReport, dec: PowerUpDecoder, pl: Plausibility, source: str
+) -> PowerUpFirmware:
+    """The decoder's tables and metric in noise-sigma units, and the seeds and Newton steps of
+    its reciprocals over the windows they see."""
     sigma = dec.noise_std
     s2 = sigma * sigma
     A, B, C = dec.gram_a * s2, dec.gram_b * s2, float(dec.gram_c * s2)
@@ -1056,7 +1075,6 @@ def design_powerup(
     ):
         raise _bad(source, "identifiability.noise_std", "is implausible for the signals")
     # 1/sqrt(r2) on the amplitude window the lean code admits
-    pl = design.plausibility
     w_lo, w_hi = pl.radius_lo**2, pl.radius_hi**2
     c0, c1, e0 = _rsqrt_seed(w_lo, w_hi)
     rs_steps, rs_err = _newton_steps(e0, 1.5 + e0)
@@ -1087,7 +1105,7 @@ def design_powerup(
         tangent_seed=(r0, r1),
         tangent_steps=tt_steps,
         tangent_error=tt_err,
-        slope=L / TWO_PI,
+        slope=dec.grid / TWO_PI,
         cost_cap=float(dec.cost_cap),
         threshold=float(dec.lock_threshold),
         exp2=poly,
