@@ -567,6 +567,18 @@ def default_max_harmonic(pole_pairs: int, model_harmonics: ArrayLike = ()) -> in
 
     8 n_m covers the electrical harmonics up to the 7th (mechanical 7 n_m) with the pole-to-pole
     sidebands around them.
+
+    Parameters
+    ----------
+    pole_pairs : int
+        n_m.
+    model_harmonics : array_like of int
+        Mechanical harmonics of the flux model (may be empty).
+
+    Returns
+    -------
+    int
+        The highest mechanical harmonic [cycles/rev].
     """
     h = [int(v) for v in np.atleast_1d(np.asarray(model_harmonics, dtype=np.int64))]
     return max(8 * int(pole_pairs), (max(h) if h else 0) + int(pole_pairs))
@@ -585,6 +597,24 @@ def dominant_harmonics(
     Relevant: RMS at least ``min_amplitude * noise_std``. Dominant: at least ``dominance`` times
     the largest such amplitude (a large missing harmonic also leaves small sidebands, because the
     angle it is seen against is off while it is missing; they vanish once it is modelled).
+
+    Parameters
+    ----------
+    spectrum : HarmonicContent
+        Harmonic content of the residual (amplitudes and significance per harmonic).
+    exclude : tuple of int, keyword-only
+        Harmonics never returned (e.g. the model's own).
+    noise_std : float, keyword-only
+        Hall noise sigma per channel (sensor's unit).
+    min_amplitude : float, keyword-only
+        Relevance threshold, as a fraction of ``noise_std``.
+    dominance : float, keyword-only
+        Dominance threshold, as a fraction of the largest relevant amplitude (0 disables).
+
+    Returns
+    -------
+    tuple of int
+        The selected mechanical harmonics, in the spectrum's order.
     """
     ex = {int(h) for h in exclude}
     sel = spectrum.significant & (spectrum.amplitude >= min_amplitude * noise_std)
@@ -819,6 +849,17 @@ def curve_projection(
     from delta = 0 (a local minimum, which is the one of interest when the simulation tracks the
     motion to within a fraction of an electrical period; Gauss-Newton where the Hessian is not
     safely positive).
+
+    Parameters
+    ----------
+    flux : FluxModel
+        g_theta on a Fourier basis.
+    y0 : array_like (N,)
+        Angle of every sample on the model curve, e.g. the simulated y0_sim [rad].
+    d : array_like (N, 3)
+        Hall signals.
+    iterations : int, keyword-only
+        Newton steps per sample.
 
     Returns
     -------

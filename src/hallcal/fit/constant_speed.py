@@ -160,7 +160,23 @@ class SensorGeometry:
         return np.degrees(np.diff(p))
 
     def f_init(self, d: ArrayLike, pole_pairs: int, *, y_initial: float = 0.0) -> NDArray:
-        """f_init (Clarke + atan2 + unwrap) with this geometry's projection and offsets [rad]."""
+        """f_init (Clarke + atan2 + unwrap, eq. (fimp)) with this geometry's projection and
+        offsets.
+
+        Parameters
+        ----------
+        d : array_like, shape (N, 3)
+            Hall signals.
+        pole_pairs : int
+            n_m.
+        y_initial : float, keyword-only
+            f_init's estimate before the first sample [rad].
+
+        Returns
+        -------
+        ndarray, shape (N,)
+            y [rad, mechanical].
+        """
         return f_init(
             d, pole_pairs, y_initial=y_initial, projection=self.projection, offset=self.offsets
         )
@@ -505,6 +521,11 @@ def default_harmonics(
     sidebands : int, keyword-only
         Sideband order s kept around each j n_m (also the low harmonics 1..s of j = 0); default
         all harmonics up to ``electrical * pole_pairs``.
+
+    Returns
+    -------
+    tuple of int
+        Sorted mechanical harmonics >= 1.
     """
     n = int(pole_pairs)
     if n < 1 or electrical < 1 or (sidebands is not None and sidebands < 0):
@@ -1030,7 +1051,21 @@ def _robust_weights(
 
 
 def speed_deviation(d: NDArray, pole_pairs: int) -> float:
-    """Largest relative deviation of f_init's one-electrical-cycle mean speed from its median."""
+    """Largest relative deviation of f_init's one-electrical-cycle mean speed from its median.
+
+    Parameters
+    ----------
+    d : ndarray, shape (N, 3)
+        Hall signals of the (supposedly) constant-speed segment.
+    pole_pairs : int
+        n_m.
+
+    Returns
+    -------
+    float
+        ``max |v - median v| / |median v|`` over the moving one-electrical-period means v of
+        f_init's electrical angle (0 for fewer than 8 samples or no motion); dimensionless.
+    """
     if d.shape[0] < 8:
         return 0.0
     geo = estimate_sensor_geometry(d, pole_pairs)

@@ -210,6 +210,22 @@ def shape_system(
     the harmonics ``harmonics`` (default: the flux's own; others get theta = 0), at the fixed
     angles y0 (the SEM's simulated angle). O(N max(harmonics)) by trigonometric moments; no
     loop simulation.
+
+    Parameters
+    ----------
+    flux : FluxModel
+        g_theta on a Fourier basis: the linearization point (its curve gives the normals).
+    y0 : array_like (N,)
+        Angle of every sample on the model curve [rad, mechanical].
+    d : array_like (N, 3)
+        Hall signals.
+    harmonics : array_like of int, optional
+        Harmonics of the system's unknowns; default the flux's own.
+
+    Returns
+    -------
+    ShapeSystem
+        Normal equations (gram, gradient, sse) and the observation count 2 N.
     """
     yy = np.ascontiguousarray(y0, dtype=np.float64)
     dd = np.ascontiguousarray(d, dtype=np.float64)
@@ -243,7 +259,19 @@ def shape_system(
 
 
 def harmonic_groups(K: int) -> NDArray[np.int64]:
-    """Harmonic of every coefficient of theta (3, 2K + 1) flattened sensor-major."""
+    """Harmonic of every coefficient of theta (3, 2K + 1) flattened sensor-major.
+
+    Parameters
+    ----------
+    K : int
+        Highest harmonic; the basis is ``[1, sin 1y, cos 1y, ..., cos Ky]``.
+
+    Returns
+    -------
+    ndarray of int, shape (3 (2K + 1),)
+        0 for the constant, k for the sine and cosine of harmonic k: the groups of
+        :func:`group_evidence`.
+    """
     j = np.arange(2 * int(K) + 1)
     return np.tile((j + 1) // 2, 3)
 
@@ -485,6 +513,11 @@ def group_evidence(
         A group leaves when its precision exceeds ``prune`` times its data precision
         (``mean diag(J^T J) / sigma^2`` over its coefficients): its posterior mean is then below
         1e-6 of its least-squares value.
+
+    Returns
+    -------
+    GroupEvidence
+        Precisions, noise variance, posterior mean, evidence gains and status at the optimum.
     """
     G = np.asarray(gram, dtype=np.float64)
     g0 = np.asarray(gradient, dtype=np.float64).ravel()
@@ -663,6 +696,11 @@ def harmonic_relevance(
         Harmonics that never leave (e.g. the pole-pair harmonic); the constant never leaves.
     prior_variance : array_like (1 + H,), optional
         Start per group (constant first); 0 = start outside the model.
+
+    Returns
+    -------
+    HarmonicRelevance
+        The harmonics, their prior variances (0: left the model), evidence gains and sigma^2.
     """
     H = tuple(int(h) for h in flux.basis.harmonics)
     sys_ = shape_system(flux, y0, d)

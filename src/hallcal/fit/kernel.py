@@ -189,7 +189,20 @@ class KernelBasis:
         return -a * np.sin(t) * self.sf**2 * np.exp((np.cos(t) - 1.0) * a)
 
     def kernel_flux(self, w: ArrayLike, y0: ArrayLike) -> NDArray[np.float64]:
-        """g(y0) = beta(y0) w_h^T for the three sensors, shape (N, 3); w of shape (3, m)."""
+        """g(y0) = beta(y0) w_h^T for the three sensors.
+
+        Parameters
+        ----------
+        w : array_like, shape (3, m) or (m,)
+            Kernel weights per sensor.
+        y0 : array_like (N,)
+            Mechanical angle [rad].
+
+        Returns
+        -------
+        ndarray, shape (N, 3)
+            The flux g_w(y0) (one column per row of w).
+        """
         return self.evaluate(y0) @ self._weights(w).T
 
     def gram(self) -> NDArray[np.float64]:
@@ -261,6 +274,18 @@ class KernelBasis:
         deviation changes the fitted signal by less than ``tol`` sigma, i.e. the angle by less
         than ``tol`` times the noise floor; dropping it is exact to that level. Capped at
         ``(m - 1) // 2`` (the grid's Nyquist harmonic) and at least 1.
+
+        Parameters
+        ----------
+        noise_variance : float
+            Hall noise sigma^2 per channel (> 0).
+        tol : float, keyword-only
+            Relative level below which a mode is dropped.
+
+        Returns
+        -------
+        int
+            K, the highest mechanical harmonic kept.
         """
         if not noise_variance > 0:
             raise ValueError("noise_variance must be > 0")
@@ -342,7 +367,20 @@ class KernelBasis:
 
 
 def fourier_rkhs_norm2(basis: KernelBasis, flux: FluxModel) -> NDArray[np.float64]:
-    """RKHS norm of a Fourier model with harmonics 1..K in the kernel's space, per sensor."""
+    """RKHS norm of a Fourier model with harmonics 1..K in the kernel's space, per sensor.
+
+    Parameters
+    ----------
+    basis : KernelBasis
+        The kernel (its Fourier prior variances).
+    flux : FluxModel
+        A Fourier model on harmonics exactly 1..K.
+
+    Returns
+    -------
+    ndarray, shape (3,)
+        ``sum_j theta_hj^2 / var_j`` for each sensor h (squared norm).
+    """
     K = len(flux.basis.harmonics)
     if flux.basis.harmonics != tuple(range(1, K + 1)):
         raise ValueError("needs harmonics 1..K")
@@ -506,6 +544,11 @@ def select_hyperparameters(
         A fixed l, or the search range: a log-spaced grid of ``grid`` values, then ``refine``
         bounded-Brent steps on log l around the best grid value.
     criterion : {"evidence", "gcv"}
+        Marginal likelihood or generalized cross-validation.
+    grid : int, keyword-only
+        Lengthscales on the log-spaced search grid.
+    refine : int, keyword-only
+        Bounded-Brent steps after the grid.
 
     Returns
     -------
@@ -835,6 +878,8 @@ def solve_kernel_sem(
     lengthscale : float or "auto"
         Fixed l, or chosen by the criterion within ``lengthscale_range`` (default: from the
         shortest l the m-point grid resolves, see :func:`_auto_range`, to max(1, 4 lo) rad).
+    lengthscale_range : (float, float), optional
+        Search range (lo, hi) of l [rad] with ``lengthscale="auto"``; default as above.
     criterion : {"evidence", "gcv"}
         Marginal likelihood (default) or generalized cross-validation, for l and rho.
     y : array_like (N,), optional

@@ -173,6 +173,20 @@ def least_squares_start(basis: FourierBasis, d: ArrayLike, y: ArrayLike) -> NDAr
     data, which makes the SEM start much closer than pure sinusoids when the flux is distorted.
     The normal equations come from trigonometric moments
     (:func:`hallcal.fit.gauss_newton.regression_normal_equations`: no N x m matrix).
+
+    Parameters
+    ----------
+    basis : FourierBasis
+        The model's basis beta (eq. (basis)).
+    d : array_like (N, 3)
+        Hall signals.
+    y : array_like (N,)
+        f_init output recorded in the loop [rad], used in place of y0.
+
+    Returns
+    -------
+    ndarray, shape (3, m)
+        theta_0, one row per sensor.
     """
     yy = np.asarray(y, dtype=np.float64)
     dd = np.asarray(d, dtype=np.float64)
@@ -500,6 +514,21 @@ def predicted_angle_error(
 
     First-order propagation through eq. (recon_biject): ``eta = y0 - f_init(g_theta(y0))`` so
     ``d eta / d theta = -(1/n_m) d psi/d d . (I_3 kron beta(y0))``.
+
+    Parameters
+    ----------
+    flux : FluxModel
+        The identified g_theta (Fourier basis).
+    covariance : array_like (3 m, 3 m)
+        cov(theta), theta flattened sensor-major.
+    pole_pairs : int
+        n_m.
+    projection : array_like (2, 3), keyword-only
+        f_init's projection P.
+    offset : array_like (3,), keyword-only
+        Sensor offsets f_init subtracts.
+    points : int, keyword-only
+        Grid size M over one revolution.
 
     Returns
     -------

@@ -781,7 +781,18 @@ def fit_parametric(
 
 
 def model_poles(model: ParametricBLA) -> np.ndarray:
-    """Poles [rad/s] of a fitted model other than its imposed integrators, fastest first."""
+    """Poles [rad/s] of a fitted model other than its imposed integrators, fastest first.
+
+    Parameters
+    ----------
+    model : ParametricBLA
+        The parametric fit of G(s) (section "Obtaining a Best Linear Approximation").
+
+    Returns
+    -------
+    ndarray of complex
+        Roots of the denominator in s [rad/s] without the integrators, largest magnitude first.
+    """
     den = np.asarray(model.den, dtype=np.float64)
     core = den[: den.size - int(model.integrator)] if model.integrator else den
     poles = np.roots(core) if core.size > 1 else np.array([], dtype=np.complex128)

@@ -320,6 +320,12 @@ def calibrate_closed_loop(
         An already identified BLA.
     progress : callable, optional
         Called with a short message at each step.
+
+    Returns
+    -------
+    Calibration
+        Status, refusal, flux model, table, predicted error, plant and gain correction,
+        messages and (with ``y_ref``) validation.
     """
     timings: dict[str, float] = {}
     dataset.require("r", "d1", "d2", "d3")

@@ -151,6 +151,16 @@ def null_vector(projection: ArrayLike) -> NDArray[np.float64]:
 
     ``cross(P[0], P[1])`` normalized (for the Clarke rows: ``(1, 1, 1) / sqrt(3)``, the
     zero-sequence direction); its sign is part of the decoder's table convention.
+
+    Parameters
+    ----------
+    projection : array_like, shape (2, 3)
+        f_init's projection P (rank 2).
+
+    Returns
+    -------
+    ndarray, shape (3,)
+        The unit null vector ``nv`` with ``P @ nv = 0``.
     """
     P = np.asarray(projection, dtype=np.float64).reshape(2, 3)
     nv = np.cross(P[0], P[1])
@@ -331,7 +341,22 @@ class PowerUpDecoder:
         return R0 + f * (R1 - R0), Z0 + f * (Z1 - Z0), (R1 - R0) * k, (Z1 - Z0) * k
 
     def coordinates(self, psi: NDArray, m: NDArray, offsets: ArrayLike) -> NDArray:
-        """Table coordinates x_j of step 5 for samples (psi, m) and hypotheses ``offsets``."""
+        """Table coordinates x_j of step 5 for samples (psi, m) and hypotheses ``offsets``.
+
+        Parameters
+        ----------
+        psi : ndarray, shape (K,)
+            Wrapped electrical angles atan2(beta, alpha) [rad, electrical].
+        m : ndarray of int, shape (K,)
+            f_init's turn counts (step 2).
+        offsets : array_like of int, shape (J,)
+            Hypotheses j (pole pairs between power-up frame and calibration frame).
+
+        Returns
+        -------
+        ndarray, shape (K, J)
+            x_j in [0, M) [table points].
+        """
         n, L, M = self.pole_pairs, self.grid, self.table_size
         j = np.asarray(offsets, dtype=np.int64)
         e = np.mod(np.asarray(m, dtype=np.int64)[:, None] + j[None, :], n)
@@ -462,6 +487,9 @@ def build_decoder(
         Must be bijective (eq. recon_biject).
     noise_std : float, keyword-only
         White Hall noise sigma per channel (Sigma = sigma^2 I); or give ``noise_covariance``.
+    noise_covariance : array_like, shape (3, 3), optional
+        Hall noise covariance Sigma (symmetric positive definite, sensor's unit squared);
+        takes precedence over ``noise_std``.
     grid : int, optional
         L, points per electrical period. Default: the smallest of :data:`GRID_CHOICES` whose
         largest linear-interpolation error (table midpoints against the exact model, measured
@@ -469,6 +497,8 @@ def build_decoder(
         A bias b in the true hypothesis's residual changes a separation delta (per sample, in
         sigmas) by at most b; 0.02 keeps that below 10 % at the weakest separations that still
         identify in a few thousand samples (about 0.2 sigma).
+    interpolation_tolerance : float
+        That tolerance [noise sigmas]; used only when ``grid`` is None.
     error_target : float
         alpha of the sequential test (0 < alpha < 0.5).
     cost_cap : float
@@ -691,7 +721,18 @@ class PowerUpIdentifier:
         return math.sqrt(max(min(others), 0.0)) if others else math.inf
 
     def update(self, d1: float, d2: float, d3: float) -> int:
-        """Process one sample; return the offset in force (``best``)."""
+        """Process one sample (steps 1-7 of the module docstring).
+
+        Parameters
+        ----------
+        d1, d2, d3 : float
+            The three Hall signals of the sample (sensor's unit).
+
+        Returns
+        -------
+        int
+            The offset in force, ``best`` (pole pairs; final once ``locked``).
+        """
         # 1. projection
         x0, x1, x2 = d1 - self._o[0], d2 - self._o[1], d3 - self._o[2]
         P, nv = self._P, self._nv
@@ -792,7 +833,19 @@ class AbsoluteReconstructor:
         return self.identifier.best
 
     def update(self, d1: float, d2: float, d3: float) -> float:
-        """Process one sample; return y_star in the calibration's frame [rad]."""
+        """Process one sample; return y_star in the calibration's frame [rad].
+
+        Parameters
+        ----------
+        d1, d2, d3 : float
+            The three Hall signals of the sample (sensor's unit).
+
+        Returns
+        -------
+        float
+            ``y_abs + eta(y_abs)`` (eq. (f_final)) with ``y_abs = y + 2 pi best / n_m``
+            [rad, mechanical]; ``y_init`` and ``y_star`` are updated too.
+        """
         ident = self.identifier
         j = ident.update(d1, d2, d3)
         self.y_init = ident.y + TWO_PI * j / ident._n
@@ -824,10 +877,16 @@ def absolute_reconstruction(decoder: PowerUpDecoder, lut: LUT, d: ArrayLike) -> 
     Parameters
     ----------
     decoder : PowerUpDecoder
+        The calibration's decoder (:func:`build_decoder`).
     lut : LUT
         The calibration's table.
     d : array_like, shape (K, 3)
         Hall signals from power-up.
+
+    Returns
+    -------
+    AbsoluteAngles
+        y_init and y_star in the calibration's frame [rad], and the identification.
     """
     lut._require_bijective()
     d = np.atleast_2d(np.asarray(d, dtype=np.float64))
@@ -887,11 +946,19 @@ def estimate_normal_noise(
 
     Parameters
     ----------
-    flux, lut : the calibration's model and table.
+    flux : FluxModel
+        The calibration's identified g_theta.
+    lut : LUT
+        Its table (f_init's projection and offsets, eta).
     d : array_like, shape (N, 3)
         The calibration data, f_init running from y = 0 before its first sample.
     start, stop : int, keyword-only
         The samples to use (e.g. the constant-speed part); f_init still runs from sample 0.
+
+    Returns
+    -------
+    NoiseEstimate
+        Total and white noise sigma across the curve, per channel (sensor's unit).
     """
     d = np.atleast_2d(np.asarray(d, dtype=np.float64))
     y = lut.f_init(d)[start:stop]
@@ -1098,7 +1165,21 @@ class IdentifiabilityReport:
 
     def decoder(self, flux: FluxModel, lut: LUT) -> PowerUpDecoder:
         """The decoder this analysis was made for, rebuilt from the calibration's model and
-        table (deterministic: same tables as at calibration time)."""
+        table (deterministic: same tables as at calibration time).
+
+        Parameters
+        ----------
+        flux : FluxModel
+            The calibration's identified g_theta.
+        lut : LUT
+            The calibration's table; its pole pairs must be this report's.
+
+        Returns
+        -------
+        PowerUpDecoder
+            :func:`build_decoder` with this report's noise sigma, grid L, error target and
+            cost cap.
+        """
         if lut.pole_pairs != self.pole_pairs:
             raise ValueError("identifiability: pole pairs differ from the table's")
         return build_decoder(
@@ -1266,11 +1347,18 @@ def assess_identifiability(
     Parameters
     ----------
     decoder : PowerUpDecoder
+        The decoder to analyse (its noise sigma, grid, alpha and cost cap).
     standstill_budget, motion_budget : int, keyword-only
+        Samples allowed at standstill, and per electrical revolution of uniform motion.
     calibration_samples, basis_size : int, optional
         N and m of the calibration (for ``model_floor``).
     noise : NoiseEstimate, optional
         Stored in the report.
+
+    Returns
+    -------
+    IdentifiabilityReport
+        Verdict, reason, one-line message and the separations in noise sigmas.
     """
     dec = decoder
     n, L, M = dec.pole_pairs, dec.grid, dec.table_size
@@ -1408,7 +1496,10 @@ def analyze_calibration(
 
     Parameters
     ----------
-    flux, lut : the calibration's model and (bijective) table.
+    flux : FluxModel
+        The calibration's identified g_theta.
+    lut : LUT
+        Its (bijective) table.
     d : array_like, shape (N, 3)
         The calibration recording (f_init from y = 0 before its first sample).
     start, stop : int, keyword-only
@@ -1416,7 +1507,15 @@ def analyze_calibration(
     basis_size : int, optional
         m, basis functions per channel (for the model floor).
     standstill_budget, motion_budget : int
-        See :func:`assess_identifiability`.
+        Samples allowed at standstill, and per electrical revolution of motion; see
+        :func:`assess_identifiability`.
+
+    Returns
+    -------
+    decoder : PowerUpDecoder
+        Built with sigma = the total noise across the model curve.
+    report : IdentifiabilityReport
+        The verdict and separations for that decoder.
     """
     noise = estimate_normal_noise(flux, lut, d, start=start, stop=stop)
     sigma = noise.total_std

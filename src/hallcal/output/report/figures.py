@@ -36,7 +36,19 @@ class ReportFigure:
 
 
 def make_figures(content: ReportContent) -> list[ReportFigure]:
-    """The report's figures, in order (paper figures first, then the steps' diagnostics)."""
+    """The report's figures, in order (paper figures first, then the steps' diagnostics).
+
+    Parameters
+    ----------
+    content : ReportContent
+        What the report shows (recordings, model, validation, diagnostics).
+
+    Returns
+    -------
+    list of ReportFigure
+        Key, title, caption and matplotlib figure of each; only the figures the content has
+        data for.
+    """
     figs = (build(content) for build in _FIGURES)
     return [f for f in figs if f is not None]
 

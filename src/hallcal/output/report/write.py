@@ -62,6 +62,15 @@ def write_report(
 ) -> Path:
     """Write the figures (``out_dir/figures/*.png``) and ``out_dir/report.html``, atomically.
 
+    Parameters
+    ----------
+    content : ReportContent
+        What the report shows.
+    out_dir : path-like
+        Output directory (created if needed).
+    progress : callable, keyword-only, optional
+        Called with a short message at each step.
+
     Returns
     -------
     pathlib.Path
