@@ -10,7 +10,7 @@ import os
 import tempfile
 import time
 import traceback
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -90,7 +90,9 @@ def _calibrate(data: str, setup: str, bla_data: str | None) -> Calibration:
 def _model_text(model: Mapping[str, Any]) -> str:
     basis = model.get("basis")
     if basis == "fourier":
-        return "fourier " + _ranges(model.get("harmonics", []))
+        from hallcal.output.report.page import _ranges
+
+        return "fourier " + _ranges(model.get("harmonics", []), to="-", sep=",")
     if basis == "kernel":
         text = f"kernel m={model.get('points')}"
         ls = model.get("lengthscale")
@@ -98,19 +100,6 @@ def _model_text(model: Mapping[str, Any]) -> str:
             text += f" l={ls:.3g}"
         return text
     return str(basis or "")
-
-
-def _ranges(values: Iterable[Any]) -> str:
-    """[1, 2, 3, 5, 33] -> '1-3,5,33'."""
-    v = sorted(int(x) for x in values)
-    out, i = [], 0
-    while i < len(v):
-        j = i
-        while j + 1 < len(v) and v[j + 1] == v[j] + 1:
-            j += 1
-        out.append(f"{v[i]}-{v[j]}" if j > i + 1 else ",".join(map(str, v[i : j + 1])))
-        i = j + 1
-    return ",".join(out)
 
 
 def _worker_name() -> str:

@@ -385,15 +385,14 @@ def _fixed_unwrap(q: _FixedNumbers, n: int) -> dict[str, str]:
             init_wrap="    /* one pole pair: the phase is the angle */",
             period_text="2^32",
         )
+    period = q.turns.period
     return dict(
-        unwrap=_UNWRAP_N.format(half=q.half, period=q.period, n_minus_1=n - 1)
-        .replace(f"step - {q.period};", _int_sub("step", q.period) + ";")
-        .replace(f"step + {q.period};", _int_add("step", q.period) + ";"),
-        wrap_period=f"    if (p >= {q.period}u) {{\n        p = p - {q.period}u;\n    }}",
-        init_wrap=(
-            f"    if (s->phase >= {q.period}u) {{\n        s->phase = {q.period - 1}u;\n    }}"
-        ),
-        period_text=str(q.period),
+        unwrap=_UNWRAP_N.format(half=q.turns.half, period=period, n_minus_1=n - 1)
+        .replace(f"step - {period};", _int_sub("step", period) + ";")
+        .replace(f"step + {period};", _int_add("step", period) + ";"),
+        wrap_period=f"    if (p >= {period}u) {{\n        p = p - {period}u;\n    }}",
+        init_wrap=(f"    if (s->phase >= {period}u) {{\n        s->phase = {period - 1}u;\n    }}"),
+        period_text=str(period),
     )
 
 
@@ -460,33 +459,34 @@ def _fixed_table(t: CorrectionTable, n: int) -> dict[str, str]:
 
 def _fixed_atan2_subs(q: _FixedNumbers, n: int) -> dict[str, object]:
     """The constants of ``hc_angle``: CORDIC steps, reciprocal, cube and octant assembly."""
-    steps = "\n".join(_CORDIC_STEP.format(i=i, atan=q.cordic[i]) for i in range(CORDIC_STEPS))
+    at = q.atan
+    steps = "\n".join(_CORDIC_STEP.format(i=i, atan=at.cordic[i]) for i in range(CORDIC_STEPS))
     return dict(
         steps=CORDIC_STEPS,
         last=CORDIC_STEPS - 1,
-        atan_bound=f"{q.atan_bound:.2e}",
+        atan_bound=f"{at.atan_bound:.2e}",
         cordic_steps=steps,
-        sx=q.sx,
+        sx=at.sx,
         xh_lo="computed",
         xh_hi="2^16",
-        kr=q.kr,
-        seed_a=q.seed_a,
-        seed_b=q.seed_b,
-        seed_shift=q.seed_shift,
-        two_kr1=1 << (q.kr + 1),
-        kr_15=q.kr - 15,
-        sy=q.sy,
-        e_tau=q.kr + q.sx - q.sy,
-        cube_shift=q.cube_shift,
-        cube_mul=q.cube_mul,
-        cube_post=q.cube_post,
-        d_shift=q.d_shift,
-        s_mul=q.s_mul,
-        s_post=q.s_post,
-        eighth=q.eighth,
-        quarter=q.quarter,
-        half_turn=q.half if n > 1 else 1 << 31,
-        period=q.period,
+        kr=at.kr,
+        seed_a=at.seed_a,
+        seed_b=at.seed_b,
+        seed_shift=at.seed_shift,
+        two_kr1=1 << (at.kr + 1),
+        kr_15=at.kr - 15,
+        sy=at.sy,
+        e_tau=at.kr + at.sx - at.sy,
+        cube_shift=at.cube_shift,
+        cube_mul=at.cube_mul,
+        cube_post=at.cube_post,
+        d_shift=at.d_shift,
+        s_mul=at.s_mul,
+        s_post=at.s_post,
+        eighth=q.turns.eighth,
+        quarter=q.turns.quarter,
+        half_turn=q.turns.half if n > 1 else 1 << 31,
+        period=q.turns.period,
     )
 
 
@@ -521,8 +521,8 @@ def _fixed_source(ctx: _Context, q: _FixedNumbers, banner: str, defs: str) -> st
         PFX=ctx.PFX,
         n=n,
         n_minus_1=n - 1,
-        turn_base=_c_list([_cu(v) for v in q.turn_base], 6),
-        limit_cap=(q.half if n > 1 else 1 << 31),
+        turn_base=_c_list([_cu(v) for v in q.turns.turn_base], 6),
+        limit_cap=(q.turns.half if n > 1 else 1 << 31),
         rowsum="zero" if d.rejects_common_mode else "the float rows' sums",
         step_limit=q.step_limit,
         section_defs=defs,

@@ -335,7 +335,7 @@ def _fixed_files(
             "Fixed-point variant: 32-bit integers only (no float, no 64-bit, no division).",
             f"  inputs: ADC counts, adc_scale {adc_scale:g} counts per artifact unit",
             f"  stated bound vs hallcal reconstruct on the same counts: {q.bound:.2e} rad",
-            f"  atan2: |error| <= {q.atan_bound:.2e} rad (electrical)",
+            f"  atan2: |error| <= {q.atan.atan_bound:.2e} rad (electrical)",
             f"  rounding the artifact's signals to counts adds {q.quant_rms:.2e} rad RMS "
             f"(at most {q.quant_max:.2e})",
         ]
@@ -389,7 +389,7 @@ def _result(
         float_bound=fn.bound,
         atan2_bound=fn.atan_bound,
         fixed_bound=q.bound if q is not None else None,
-        fixed_atan2_bound=q.atan_bound if q is not None else None,
+        fixed_atan2_bound=q.atan.atan_bound if q is not None else None,
         quantization_rms=q.quant_rms if q is not None else None,
         quantization_max=q.quant_max if q is not None else None,
         adc_scale=float(adc_scale),

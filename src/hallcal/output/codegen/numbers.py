@@ -183,44 +183,6 @@ def _bitlen(v: int) -> int:
 
 
 @dataclass(frozen=True)
-class _FixedNumbers:
-    lo: list[int]
-    hi: list[int]
-    centre: list[int]
-    proj_hi: list[list[int]]
-    proj_lo: list[list[int]]
-    lo_shift: int
-    bias: int
-    a0: list[int]
-    proj_shift: int
-    r2_lo: int
-    r2_hi: int
-    period: int  # electrical period in mechanical Q0.32 units (0 for n = 1: 2^32)
-    half: int
-    quarter: int
-    eighth: int
-    turn_base: list[int]
-    cordic: list[int]
-    sx: int
-    kr: int
-    seed_a: int
-    seed_b: int
-    seed_shift: int
-    sy: int
-    cube_shift: int
-    cube_mul: int
-    cube_post: int
-    d_shift: int
-    s_mul: int
-    s_post: int
-    step_limit: int
-    atan_bound: float
-    bound: float
-    quant_rms: float
-    quant_max: float
-
-
-@dataclass(frozen=True)
 class _FixedInputs:
     """The Hall signals as ADC counts: channel ranges, centres and what the rounding costs."""
 
@@ -462,6 +424,30 @@ def _fixed_cube(tau_q_max: float, e_tau: int) -> tuple[int, int, int]:
     return cube_shift, cube_mul, post
 
 
+@dataclass(frozen=True)
+class _FixedNumbers:
+    """The integer constants of the fixed-point variant (:func:`_fixed_numbers`) and its bounds
+    [rad, mechanical]."""
+
+    lo: list[int]
+    hi: list[int]
+    centre: list[int]
+    proj_hi: list[list[int]]
+    proj_lo: list[list[int]]
+    lo_shift: int
+    bias: int
+    a0: list[int]
+    proj_shift: int
+    r2_lo: int
+    r2_hi: int
+    turns: _FixedTurns
+    atan: _FixedAtan2
+    step_limit: int
+    bound: float
+    quant_rms: float
+    quant_max: float
+
+
 def _fixed_numbers(d: FirmwareDesign, adc_scale: float) -> _FixedNumbers:
     """Integer constants of the fixed-point variant and its bounds.
 
@@ -487,10 +473,6 @@ def _fixed_numbers(d: FirmwareDesign, adc_scale: float) -> _FixedNumbers:
     return _FixedNumbers(
         lo=inp.lo, hi=inp.hi, centre=inp.centre, proj_hi=pj.hi_parts, proj_lo=pj.lo_parts,
         lo_shift=pj.kl, bias=pj.xb, a0=pj.a0, proj_shift=pj.ps + pj.kl, r2_lo=r2_lo, r2_hi=r2_hi,
-        period=turns.period, half=turns.half, quarter=turns.quarter, eighth=turns.eighth,
-        turn_base=turns.turn_base, cordic=at.cordic, sx=at.sx, kr=at.kr, seed_a=at.seed_a,
-        seed_b=at.seed_b, seed_shift=at.seed_shift, sy=at.sy, cube_shift=at.cube_shift,
-        cube_mul=at.cube_mul, cube_post=at.cube_post, d_shift=at.d_shift, s_mul=at.s_mul,
-        s_post=at.s_post, step_limit=step_limit, atan_bound=at.atan_bound, bound=bound,
+        turns=turns, atan=at, step_limit=step_limit, bound=bound,
         quant_rms=inp.quant_rms, quant_max=inp.quant_max,
     )  # fmt: skip

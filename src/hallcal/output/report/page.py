@@ -89,17 +89,17 @@ def _tf_text(tf: ContinuousTF) -> str:
     return text
 
 
-def _ranges(values: Any) -> str:
-    """[1, 2, 3, 5, 33] -> '1..3, 5, 33'."""
+def _ranges(values: Any, *, to: str = "..", sep: str = ", ") -> str:
+    """[1, 2, 3, 5, 33] -> '1..3, 5, 33' (three or more consecutive integers as a range)."""
     v = sorted(int(x) for x in values)
     out, i = [], 0
     while i < len(v):
         j = i
         while j + 1 < len(v) and v[j + 1] == v[j] + 1:
             j += 1
-        out.append(f"{v[i]}..{v[j]}" if j > i + 1 else ", ".join(map(str, v[i : j + 1])))
+        out.append(f"{v[i]}{to}{v[j]}" if j > i + 1 else sep.join(map(str, v[i : j + 1])))
         i = j + 1
-    return ", ".join(out)
+    return sep.join(out)
 
 
 def _status_class(status: str) -> str:
