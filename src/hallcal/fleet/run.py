@@ -4,6 +4,7 @@ the rest on Dask (or one after the other) and writes the records, the summary an
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import math
 import os
@@ -145,15 +146,12 @@ def run_fleet(
     if not (isinstance(adc_scale, int | float) and math.isfinite(adc_scale) and adc_scale > 0):
         raise HallcalInputError(f"adc_scale must be a positive number, got {adc_scale!r}")
     options = {"export_c": bool(export_c), "adc_scale": float(adc_scale) if export_c else None}
-    version = _version()
     batch = _Batch(out_dir, [None] * len(specs), progress)
-    if progress is not None:
-        progress(None, 0, len(specs))
     pending = batch.reuse(specs, options, recompute=recompute)
 
-    def task_of(spec: MotorSpec) -> _Task:
-        return _Task.of(spec, export_c=bool(export_c), adc_scale=float(adc_scale), version=version)
-
+    task_of = functools.partial(
+        _Task.of, export_c=bool(export_c), adc_scale=float(adc_scale), version=_version()
+    )
     work = _task or _run_motor
     if pending:
         if isinstance(scheduler, str) and scheduler == "sequential":
@@ -192,6 +190,10 @@ class _Batch:
     rows: list[dict[str, Any] | None]
     progress: FleetProgress | None
     done: int = 0
+
+    def __post_init__(self) -> None:
+        if self.progress is not None:  # the batch starts
+            self.progress(None, 0, len(self.rows))
 
     def finish(self, i: int, row: dict[str, Any]) -> None:
         self.rows[i] = row

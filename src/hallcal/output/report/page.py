@@ -237,6 +237,17 @@ def _calibration_rows(c: ReportContent) -> list[tuple[str, str]]:
             f"(min slope of y0 → ŷ: {_num(lut.min_slope, '.3g')})",
         )
     )
+    rows += _model_rows(c)
+    if c.timings:
+        rows.append(
+            ("time per step", _esc(", ".join(f"{k} {v:.2f} s" for k, v in c.timings.items())))
+        )
+    return rows
+
+
+def _model_rows(c: ReportContent) -> list[tuple[str, str]]:
+    """The flux model and its adequacy (or the constant-speed check that stands in for it)."""
+    out: list[tuple[str, str]] = []
     info = c.model_info
     if info:
         basis = info.get("basis", "?")
@@ -245,13 +256,13 @@ def _calibration_rows(c: ReportContent) -> list[tuple[str, str]]:
             desc += f", mechanical harmonics {_esc(_ranges(info['harmonics']))}"
         elif "points" in info:
             desc += f", {_esc(info['points'])} points"
-        rows.append(("flux model", desc))
+        out.append(("flux model", desc))
     if c.adequacy is not None:
         verdict = c.adequacy.get("verdict", "–")
         msg = str(c.adequacy.get("message", "") or "")
         if msg.lower().startswith(str(verdict).lower()):
             msg = msg[len(str(verdict)) :].lstrip(" :,-")
-        rows.append(
+        out.append(
             ("model adequacy", f"<b>{_esc(verdict)}</b>" + (f": {_esc(msg)}" if msg else ""))
         )
     elif c.constant_speed is not None:
@@ -264,7 +275,7 @@ def _calibration_rows(c: ReportContent) -> list[tuple[str, str]]:
             else ""
         )
         warnings = [str(w) for w in cs.get("warnings", [])]
-        rows.append(
+        out.append(
             (
                 "model adequacy (constant speed)",
                 f"<b>{_esc(cs.get('status', '–'))}</b>: rotor motion off the straight line "
@@ -274,7 +285,7 @@ def _calibration_rows(c: ReportContent) -> list[tuple[str, str]]:
                 + (f"; {_esc('; '.join(warnings))}" if warnings else ""),
             )
         )
-        rows.append(
+        out.append(
             (
                 "constant-speed segment",
                 f"samples {_esc(cs.get('start'))}..{_esc(cs.get('stop'))}, "
@@ -283,12 +294,8 @@ def _calibration_rows(c: ReportContent) -> list[tuple[str, str]]:
             )
         )
     else:
-        rows.append(("model adequacy", "<span class='meta'>not assessed</span>"))
-    if c.timings:
-        rows.append(
-            ("time per step", _esc(", ".join(f"{k} {v:.2f} s" for k, v in c.timings.items())))
-        )
-    return rows
+        out.append(("model adequacy", "<span class='meta'>not assessed</span>"))
+    return out
 
 
 def render_html(content: ReportContent, images: list[tuple[ReportFigure, bytes]]) -> str:
