@@ -510,10 +510,12 @@ def predicted_angle_error(
     offset: ArrayLike,
     points: int = 512,
 ) -> NDArray[np.float64]:
-    """Standard deviation of the LUT correction eta(y0) implied by cov(theta) [rad].
+    """Standard deviation of the LUT correction eta(y0) about its mean, implied by cov(theta) [rad].
 
     First-order propagation through eq. (recon_biject): ``eta = y0 - f_init(g_theta(y0))`` so
-    ``d eta / d theta = -(1/n_m) d psi/d d . (I_3 kron beta(y0))``.
+    ``d eta / d theta = -(1/n_m) d psi/d d . (I_3 kron beta(y0))``; the mean over y0 of that
+    derivative is removed, because angle errors are measured about their mean (a constant
+    offset of the table is the frame of y0, not an error).
 
     Parameters
     ----------
@@ -543,6 +545,9 @@ def predicted_angle_error(
     rho2 = ab[:, 0] ** 2 + ab[:, 1] ** 2
     dpsi = (ab[:, [0]] * P[1] - ab[:, [1]] * P[0]) / rho2[:, None]  # (M, 3)
     G = -(dpsi[:, :, None] * B[:, None, :]).reshape(points, -1) / pole_pairs  # (M, 3m)
+    # about the mean, as the angle error is measured: a constant shift of eta (the gauge of y0,
+    # which the loop pins only weakly through y0 = 0 at the first sample) is not an error
+    G -= G.mean(axis=0)
     C = np.asarray(covariance, float)
     var = np.einsum("ij,jk,ik->i", G, C, G)
     return np.sqrt(np.maximum(var, 0.0))
