@@ -24,29 +24,14 @@ import time
 from dataclasses import replace
 
 import numpy as np
-import scipy.signal
 
 from hallcal import pipeline
 from hallcal.io import Dataset, ModelSpec, Setup
 from hallcal.sensor.metrics import angle_error
-from hallcal.sim.bench import BenchConfig, simulate_run
-from hallcal.sim.lti import ContinuousTF, DiscreteTF
+from hallcal.sim.bench import BenchConfig, position_controller, simulate_run
+from hallcal.sim.lti import ContinuousTF
 
 TWO_PI = 2.0 * math.pi
-
-
-def design_controller(plant: ContinuousTF, ts: float, fc: float) -> DiscreteTF:
-    """Lead-lag PI for a type-1 plant: integrator zero at wc/8, lead wc/3..3 wc, |L(j wc)| = 1."""
-    wc = TWO_PI * fc
-    wi, wz, wp = wc / 8.0, wc / 3.0, 3.0 * wc
-    num_s = np.polymul([1.0, wi], [1.0, wz])
-    den_s = np.polymul([1.0, 0.0], [1.0, wp])
-    c_wc = np.polyval(num_s, 1j * wc) / np.polyval(den_s, 1j * wc)
-    g_wc = plant.frequency_response(np.array([fc]))[0]
-    k = 1.0 / abs(c_wc * g_wc)
-    numd, dend, _ = scipy.signal.cont2discrete((k * num_s, den_s), ts, method="bilinear")
-    numd = np.atleast_1d(np.squeeze(numd))
-    return DiscreteTF(tuple(float(v) for v in numd), tuple(float(v) for v in dend))
 
 
 def draw_motor(seed: int) -> tuple[BenchConfig, float, float]:
@@ -61,7 +46,7 @@ def draw_motor(seed: int) -> tuple[BenchConfig, float, float]:
     K = float(np.exp(rng.uniform(np.log(1e2), np.log(1e4))))
     plant = ContinuousTF((K * p,), tuple(np.polymul([1.0, a, 0.0], [1.0, p])), delay)
     fc = fs / float(rng.uniform(150.0, 600.0))
-    controller = design_controller(plant, ts, fc)
+    controller = position_controller(plant, ts, fc)
     sigma = float(np.exp(rng.uniform(np.log(1e-3), np.log(1e-2))))
     cfg = BenchConfig(
         pole_pairs=n,

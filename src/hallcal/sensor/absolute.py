@@ -1361,73 +1361,98 @@ def assess_identifiability(
         Verdict, reason, one-line message and the separations in noise sigmas.
     """
     dec = decoder
-    n, L, M = dec.pole_pairs, dec.grid, dec.table_size
-    alpha = dec.error_target
     smap = separation_map(dec)
     sep = smap.separation
-    if n > 1:
-        r1 = _standstill_radius(smap.planar)
-        r1sq = np.square(r1)
-        K_pos = _samples_for(
-            lambda K, rows: np.mean(np.exp(-0.5 * K[:, None] * r1sq[rows]), axis=1), alpha, M
-        )
-        err_budget = float(np.mean(standstill_error(r1, standstill_budget)))
-        # one electrical revolution of uniform motion from every start q: mean (censored) cost
-        # per sample of each wrong pole pair along it
-        cost = np.clip(smap.cost, 0.0, dec.cost_cap)
-        csum = np.concatenate([np.zeros((1, n - 1)), np.cumsum(np.vstack([cost, cost]), axis=0)])
-        D = (csum[L : L + M] - csum[:M]) / L  # (M, n - 1)
-        rev_sep = float(math.sqrt(max(float(np.min(D)), 0.0)))
-
-        def union(K: NDArray, rows: NDArray) -> NDArray:
-            return np.sum(_normal_tail(0.5 * np.sqrt(K[:, None] * D[rows])), axis=1)
-
-        K_rev = float(np.max(_samples_for(union, alpha, M)))
-    else:  # one pole pair: nothing to identify
-        K_pos = np.ones(M)
-        err_budget = 0.0
-        rev_sep = math.inf
-        K_rev = 1.0
-    floor = None
-    if calibration_samples and basis_size:
-        floor = math.sqrt(4.0 * max(int(basis_size) - 1, 1) / int(calibration_samples))
-    worst_K = float(np.max(K_pos))
-    if floor is not None and rev_sep < 5.0 * floor:
-        status, reason = (
-            Identifiability.NOT_IDENTIFIABLE,
-            IdentifiabilityReason.BELOW_MODEL_UNCERTAINTY,
-        )
-    elif worst_K <= standstill_budget:
-        status, reason = Identifiability.IDENTIFIABLE, IdentifiabilityReason.STANDSTILL
-    elif K_rev <= motion_budget:
-        status, reason = Identifiability.NEEDS_MOTION, IdentifiabilityReason.WEAK_POSITIONS
-    else:
-        status, reason = Identifiability.NOT_IDENTIFIABLE, IdentifiabilityReason.TOO_UNIFORM
-    ok = float(np.mean(K_pos <= standstill_budget))
+    need = _samples_needed(dec, smap, standstill_budget)
+    floor = _model_floor(calibration_samples, basis_size)
+    worst_K = float(np.max(need.standstill))
+    status, reason = _verdict(need, floor, standstill_budget, motion_budget)
     report = dict(
         status=status,
         reason=reason,
-        pole_pairs=n,
-        grid=L,
+        pole_pairs=dec.pole_pairs,
+        grid=dec.grid,
         noise_std=dec.noise_std,
-        error_target=alpha,
+        error_target=dec.error_target,
         standstill_budget=int(standstill_budget),
         motion_budget=int(motion_budget),
         separation_worst=float(np.min(sep)),
         separation_p05=float(np.percentile(sep, 5)),
         separation_median=float(np.median(sep)),
         standstill_samples_worst=worst_K,
-        standstill_samples_median=float(np.median(K_pos)),
-        standstill_error_rate=err_budget,
-        standstill_fraction_ok=ok,
-        revolution_separation_worst=rev_sep,
-        revolution_samples_needed=K_rev,
+        standstill_samples_median=float(np.median(need.standstill)),
+        standstill_error_rate=need.standstill_error,
+        standstill_fraction_ok=float(np.mean(need.standstill <= standstill_budget)),
+        revolution_separation_worst=need.revolution_separation,
+        revolution_samples_needed=need.revolution_samples,
         model_floor=floor,
         interpolation_error=dec.interpolation_error,
         cost_cap=dec.cost_cap,
         noise=noise,
     )
     return IdentifiabilityReport(message=_message(report), **report)
+
+
+@dataclass(frozen=True)
+class _SamplesNeeded:
+    """Samples for the target error probability at standstill and with motion."""
+
+    standstill: NDArray[np.float64]  # per table position
+    standstill_error: float  # mean error probability with the standstill budget
+    revolution_separation: float  # smallest RMS separation per sample along one revolution
+    revolution_samples: float  # per electrical revolution of uniform motion, worst start
+
+
+def _samples_needed(dec: PowerUpDecoder, smap: SeparationMap, budget: int) -> _SamplesNeeded:
+    """Standstill and motion needs of :func:`assess_identifiability` (one pole pair: none).
+
+    At standstill: the exact Gaussian probability of the decision region at every position
+    (first order, :func:`standstill_error`). With motion: one electrical revolution of uniform
+    motion from every start, the mean (censored) cost per sample of each wrong pole pair along
+    it, and a union bound over the wrong pole pairs.
+    """
+    n, L, M = dec.pole_pairs, dec.grid, dec.table_size
+    alpha = dec.error_target
+    if n <= 1:  # one pole pair: nothing to identify
+        return _SamplesNeeded(np.ones(M), 0.0, math.inf, 1.0)
+    r1 = _standstill_radius(smap.planar)
+    r1sq = np.square(r1)
+    K_pos = _samples_for(
+        lambda K, rows: np.mean(np.exp(-0.5 * K[:, None] * r1sq[rows]), axis=1), alpha, M
+    )
+    err_budget = float(np.mean(standstill_error(r1, budget)))
+    # one electrical revolution of uniform motion from every start q: mean (censored) cost
+    # per sample of each wrong pole pair along it
+    cost = np.clip(smap.cost, 0.0, dec.cost_cap)
+    csum = np.concatenate([np.zeros((1, n - 1)), np.cumsum(np.vstack([cost, cost]), axis=0)])
+    D = (csum[L : L + M] - csum[:M]) / L  # (M, n - 1)
+    rev_sep = float(math.sqrt(max(float(np.min(D)), 0.0)))
+
+    def union(K: NDArray, rows: NDArray) -> NDArray:
+        return np.sum(_normal_tail(0.5 * np.sqrt(K[:, None] * D[rows])), axis=1)
+
+    K_rev = float(np.max(_samples_for(union, alpha, M)))
+    return _SamplesNeeded(K_pos, err_budget, rev_sep, K_rev)
+
+
+def _model_floor(calibration_samples: int | None, basis_size: int | None) -> float | None:
+    """``sqrt(4 (m - 1) / N)``: the separation the fit noise shows on identical magnets."""
+    if calibration_samples and basis_size:
+        return math.sqrt(4.0 * max(int(basis_size) - 1, 1) / int(calibration_samples))
+    return None
+
+
+def _verdict(
+    need: _SamplesNeeded, floor: float | None, standstill_budget: int, motion_budget: int
+) -> tuple[Identifiability, IdentifiabilityReason]:
+    """The verdict of :func:`assess_identifiability` and its reason (see its docstring)."""
+    if floor is not None and need.revolution_separation < 5.0 * floor:
+        return Identifiability.NOT_IDENTIFIABLE, IdentifiabilityReason.BELOW_MODEL_UNCERTAINTY
+    if float(np.max(need.standstill)) <= standstill_budget:
+        return Identifiability.IDENTIFIABLE, IdentifiabilityReason.STANDSTILL
+    if need.revolution_samples <= motion_budget:
+        return Identifiability.NEEDS_MOTION, IdentifiabilityReason.WEAK_POSITIONS
+    return Identifiability.NOT_IDENTIFIABLE, IdentifiabilityReason.TOO_UNIFORM
 
 
 def _fmt_k(K: float) -> str:

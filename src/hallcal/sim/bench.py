@@ -46,6 +46,7 @@ __all__ = [
     "BenchConfig",
     "BenchRun",
     "noise_floor",
+    "position_controller",
     "power_up_run",
     "power_up_start",
     "ramp_run",
@@ -58,6 +59,41 @@ TWO_PI = 2.0 * math.pi
 PAPER_PLANT = ContinuousTF((1.663e5,), (1.0, 632.6, 2702.0, 0.0), 1.2e-4)
 #: C(q) of eq. (controller).
 PAPER_CONTROLLER = DiscreteTF((2.94, -3.29, -2.10, 2.45), (1.0, -3.45, 4.52, -2.68, 0.61))
+
+
+def position_controller(plant: ContinuousTF, sample_time: float, crossover_hz: float) -> DiscreteTF:
+    """A lead-lag PI position controller for a type-1 plant, for benches unlike the paper's.
+
+    ``C(s) = k (s + w_i)(s + w_z) / (s (s + w_p))`` with the integrator zero at ``w_c / 8``,
+    the lead between ``w_c / 3`` and ``3 w_c`` (about 50 degrees of phase lead), k such that
+    ``|C(j w_c) G(j w_c)| = 1``; discretized by Tustin (bilinear) at ``sample_time``. The loop is
+    type 2: a ramp is tracked without steady error (Franklin, Powell & Emami-Naeini, "Feedback
+    Control of Dynamic Systems", sec. 6.7, lead and lag compensation).
+
+    Parameters
+    ----------
+    plant : ContinuousTF
+        G(s) from torque command to angle [rad], with one integrator.
+    sample_time : float
+        T_s [s].
+    crossover_hz : float
+        Crossover frequency f_c of the loop [Hz], well below the Nyquist frequency.
+
+    Returns
+    -------
+    DiscreteTF
+        C(q) in descending powers of q.
+    """
+    wc = TWO_PI * float(crossover_hz)
+    wi, wz, wp = wc / 8.0, wc / 3.0, 3.0 * wc
+    num_s = np.polymul([1.0, wi], [1.0, wz])
+    den_s = np.polymul([1.0, 0.0], [1.0, wp])
+    c_wc = np.polyval(num_s, 1j * wc) / np.polyval(den_s, 1j * wc)
+    g_wc = plant.frequency_response(np.array([crossover_hz]))[0]
+    k = 1.0 / abs(c_wc * g_wc)
+    numd, dend, _ = scipy.signal.cont2discrete((k * num_s, den_s), sample_time, method="bilinear")
+    numd = np.atleast_1d(np.squeeze(numd))
+    return DiscreteTF(tuple(float(v) for v in numd), tuple(float(v) for v in dend))
 
 
 def noise_floor(noise_variance: float, pole_pairs: int, amplitude: float = 1.0) -> float:
