@@ -1161,6 +1161,43 @@ def _spectra(
     return _Spectra(spec, shape_spec, periodic_fraction, unexplained, suggested, dynamics)
 
 
+def _noise_reasons(lv: _Levels) -> list[str]:
+    """Warnings on the noise level the verdict rests on."""
+    out = []
+    if lv.no_noise:
+        out.append(
+            "the noise level could not be estimated from the data (record too short): the cost "
+            "ratio is not informative"
+        )
+    if lv.noise.status is NoiseStatus.COLOURED:
+        out.append(
+            f"the noise is not white (lag-2/lag-1 variance ratio {lv.noise.white_ratio:.3f}): the "
+            "expected cost is uncertain"
+        )
+    return out
+
+
+def _gain_reason(tab: _Table) -> str | None:
+    """A warning when the table's own predicted error is comparable to its correction.
+
+    The table's correction eta is f_init's error as the model sees it; when the table's own
+    predicted error is comparable, f_star is not reliably better than f_init. A warning, not a
+    refusal: the prediction is an expectation dominated by a few weakly identified warps, and a
+    single run's table error is often half of it or less (measured 4.6x against a predicted 9.9x
+    the noise floor, with f_init at 9.0x, on a slow 200 000-sample ramp).
+    """
+    table_sd = _table_sd(tab)
+    if not (table_sd > tab.floor and table_sd >= 0.5 * tab.correction_rms):
+        return None
+    worse = table_sd >= tab.correction_rms
+    return (
+        ("f_star may be worse than f_init" if worse else "the improvement over f_init is uncertain")
+        + f": the table's own predicted error {1e3 * table_sd:.3g} mrad is "
+        + ("at least" if worse else "more than half")
+        + f" the correction it applies ({1e3 * tab.correction_rms:.3g} mrad RMS)"
+    )
+
+
 def _reasons(
     sem: SEMResult, lv: _Levels, tab: _Table, sh: _Shape, sp: _Spectra, warn_predicted: float
 ) -> tuple[list[str], list[str], list[str]]:
@@ -1193,35 +1230,12 @@ def _reasons(
         )
     if sem.status != "converged":
         warns.append(f"SEM status {sem.status}")
-    if lv.no_noise:
-        warns.append(
-            "the noise level could not be estimated from the data (record too short): the cost "
-            "ratio is not informative"
-        )
-    if lv.noise.status is NoiseStatus.COLOURED:
-        warns.append(
-            f"the noise is not white (lag-2/lag-1 variance ratio {lv.noise.white_ratio:.3f}): the "
-            "expected cost is uncertain"
-        )
+    warns += _noise_reasons(lv)
     if not sp.spec.status.success:
         warns.append("the run covers less than one revolution")
-    # The table's correction eta is f_init's error as the model sees it; when the table's own
-    # predicted error is comparable, f_star is not reliably better than f_init. A warning, not a
-    # refusal: the prediction is an expectation dominated by a few weakly identified warps, and
-    # a single run's table error is often half of it or less (measured 4.6x against a predicted
-    # 9.9x the noise floor, with f_init at 9.0x, on a slow 200 000-sample ramp).
-    table_sd = _table_sd(tab)
-    if table_sd > tab.floor and table_sd >= 0.5 * tab.correction_rms:
-        worse = table_sd >= tab.correction_rms
-        warns.append(
-            ("f_star may be worse than f_init" if worse else "the improvement over f_init is "
-             "uncertain")
-            + f": the table's own predicted error {1e3 * table_sd:.3g} mrad is "
-            + ("at least" if worse else "more than half")
-            + f" the correction it applies ({1e3 * tab.correction_rms:.3g} mrad RMS); slow "
-            "warps of the angle are seen only through the loop's sensitivity at their "
-            "frequencies: a faster ramp (nearer the loop bandwidth) or more revolutions help"
-        )  # fmt: skip
+    gain = _gain_reason(tab)
+    if gain is not None:
+        warns.append(gain)
     if math.isfinite(tab.predicted) and tab.predicted > warn_predicted * tab.floor:
         warns.append(
             f"the data determine the table poorly (the covariance of theta predicts "

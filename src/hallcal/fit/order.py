@@ -387,6 +387,17 @@ def shape_off(rep: AdequacyReport) -> bool:
     remedy is the motion model (the cogging search that follows), not a wider band (measured:
     cost 1.40x with the shape at 1.07x under cogging of 0.0034 at 90/rev, shape 1.008x once the
     torque was in the model).
+
+    Parameters
+    ----------
+    rep : AdequacyReport
+        The fit's adequacy report.
+
+    Returns
+    -------
+    bool
+        True when the shape ratio exceeds 1 by more than 3 standard deviations and by at least
+        half the excess of the cost ratio.
     """
     off = rep.shape_ratio - 1.0
     return off > 3.0 * rep.ratio_std and off >= 0.5 * (rep.ratio - 1.0)
