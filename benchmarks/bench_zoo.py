@@ -12,7 +12,10 @@ amplitude, and a ramp of 1.5-3 revolutions. Calibration uses the setup a user wo
 the true controller and plant, ``harmonics = "auto"`` (the default). Validation is a fresh run
 against the true angle.
 
-Run ``python benchmarks/bench_zoo.py [--motors 24] [--out benchmarks/bench_zoo.txt]``.
+Run ``python benchmarks/bench_zoo.py [--motors 24] [--out benchmarks/bench_zoo.txt]``;
+``--seeds 1 3 5`` picks motors, ``--speed 8`` runs the same revolutions 8 times faster (fewer
+samples; the ramp speed decides how well the loop reveals slow warps of the angle), ``-v``
+prints each calibration's messages (status, cogging found, ramp advice).
 """
 
 from __future__ import annotations
@@ -114,8 +117,9 @@ def ramp(cfg: BenchConfig, end: float, duration: float, seed: int):
     return simulate_run(cfg, end * np.arange(n) / n, seed=seed)
 
 
-def run_motor(seed: int) -> dict:
+def run_motor(seed: int, speed: float = 1.0, verbose: bool = False) -> dict:
     cfg, end, duration = draw_motor(seed)
+    duration = duration / speed
     cal_run = ramp(cfg, end, duration, seed)
     row = {
         "seed": seed,
@@ -136,6 +140,9 @@ def run_motor(seed: int) -> dict:
     cal = pipeline.calibrate(Dataset.from_columns(cal_run.columns()), setup_for(cfg))
     row["sec"] = time.perf_counter() - t0
     row["status"] = str(cal.status)
+    if verbose:
+        for m in cal.messages:
+            print(f"     {m}", flush=True)
     val = ramp(cfg, 0.8 * end, 0.8 * duration, seed + 10_000)
     floor = cfg.noise_floor
     row["init"] = angle_error(cal.lut.f_init(val.d), val.y0).rms / floor
@@ -145,27 +152,42 @@ def run_motor(seed: int) -> dict:
     h = cal.model_info.get("harmonics", [])
     row["harm"] = f"{len(h)} (max {max(h) if h else 0})"
     if cal.cogging is not None:
-        row["harm"] += " cog " + "+".join(str(int(k)) for k in cal.cogging.orders)
+        row["harm"] += " cog " + "+".join(
+            f"{int(k)}@{a / t:.2f}" if t > 0 else f"{int(k)}"
+            for k, a, t in zip(cal.cogging.orders, cal.cogging.amplitude,
+                               _true_amplitudes(cfg, cal.cogging.orders), strict=True)
+        )  # fmt: skip
     return row
+
+
+def _true_amplitudes(cfg: BenchConfig, orders) -> list[float]:
+    """The bench's cogging amplitude at each order (0 where it has none)."""
+    truth = {int(k): float(a) for k, a, _ in cfg.cogging_terms}
+    return [truth.get(int(k), 0.0) for k in orders]
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--motors", type=int, default=24)
     ap.add_argument("--first", type=int, default=1)
+    ap.add_argument("--seeds", type=int, nargs="*", default=None)
+    ap.add_argument("--speed", type=float, default=1.0)
+    ap.add_argument("-v", "--verbose", action="store_true")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
+    seeds = args.seeds or list(range(args.first, args.first + args.motors))
     lines = [
         "bench_zoo: random motors, calibrate with the defaults (harmonics = auto), fresh run",
-        f"load average {os.getloadavg()[0]:.1f} (2 cores)",
+        f"load average {os.getloadavg()[0]:.1f} (2 cores), ramp speed x{args.speed:g}; "
+        "cog k@a: order k found at a times the true amplitude",
         "",
         f"{'seed':>4} {'n_m':>3} {'fs':>6} {'N':>7} {'status':>13} {'init/fl':>8} "
         f"{'star/fl':>8} {'pred/fl':>8} {'sec':>6}  {'harmonics':<16} truth",
     ]
     print("\n".join(lines), flush=True)
     rows = []
-    for seed in range(args.first, args.first + args.motors):
-        r = run_motor(seed)
+    for seed in seeds:
+        r = run_motor(seed, args.speed, args.verbose)
         rows.append(r)
         line = (
             f"{r['seed']:4d} {r['n_m']:3d} {r['fs']:6d} {r['N']:7d} {r['status']:>13} "
