@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import subprocess
@@ -131,6 +132,19 @@ for mod, attr, label in json.loads(os.environ["BENCH_STEPS"]):
     if hasattr(owner, attr):
         setattr(owner, attr, wrap(getattr(owner, attr), label))
 
+from numba.core import dispatcher
+NUMBA = {"count": 0, "wall": 0.0, "cpu": 0.0}
+_first_call = dispatcher.Dispatcher._compile_for_args
+def _timed_first_call(self, *a, **k):  # a kernel's first call: loaded from the numba cache
+    t, c = time.perf_counter(), time.process_time()
+    try:
+        return _first_call(self, *a, **k)
+    finally:
+        NUMBA["count"] += 1
+        NUMBA["wall"] += time.perf_counter() - t
+        NUMBA["cpu"] += time.process_time() - c
+dispatcher.Dispatcher._compile_for_args = _timed_first_call
+
 case = json.loads(sys.argv[1])
 with Step("whole calibrate (after the imports)"):
     if case["kind"] == "cli":
@@ -153,6 +167,9 @@ total = {"step": "process total", "depth": 0, "wall": time.perf_counter() - T0,
 if TRACE:
     total["traced_peak"] = max(r.get("traced_peak", 0) for r in rows)
 rows.append(total)
+rows.append({"step": f"of which numba: {NUMBA['count']} kernels' first calls (cache load)",
+             "depth": 1, "wall": NUMBA["wall"], "cpu": NUMBA["cpu"], "rss1": float("nan"),
+             "peak": float("nan")})
 with open(case["result"], "w") as f:
     json.dump(rows, f)
 """
@@ -227,7 +244,11 @@ def show(rows: list[dict], trace: bool) -> None:
     for r in rows:
         name = "  " * r["depth"] + r["step"]
         line = f"    {name:<52}{r['wall']:>8.3f}{r['cpu']:>8.3f}"
-        line += f"{r.get('rss0', float('nan')):>12.0f}{r['rss1']:>8.0f}{r['peak']:>9.0f}"
+        mem = (r.get("rss0", math.nan), r["rss1"], r["peak"])
+        line += "".join(
+            f"{v:>{w}.0f}" if math.isfinite(v) else " " * w
+            for v, w in zip(mem, (12, 8, 9), strict=True)
+        )
         if trace:
             line += f"{r.get('traced_peak', float('nan')):>11.0f}"
         print(line)
