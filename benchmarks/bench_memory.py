@@ -46,7 +46,7 @@ STEPS = [
     ("hallcal.pipeline.closed_loop", "plant_model", "plant model"),
     ("hallcal.pipeline.closed_loop", "_fit_kernel", "model: kernel SEM"),
     ("hallcal.pipeline.closed_loop", "_fit_fourier", "model: Fourier SEM / harmonic choice"),
-    ("hallcal.pipeline.closed_loop", "select_harmonics", "harmonic choice"),
+    ("hallcal.fit.order", "select_harmonics", "harmonic choice"),
     ("hallcal.pipeline.closed_loop", "solve_sem", "SEM"),
     ("hallcal.pipeline.closed_loop", "_with_cogging", "cogging"),
     ("hallcal.pipeline.closed_loop", "assess", "model adequacy"),

@@ -23,7 +23,6 @@ from numpy.typing import NDArray
 from hallcal.errors import HallcalInputError
 from hallcal.fit.adequacy import AdequacyReport, assess
 from hallcal.fit.cogging import CoggingSelection, CoggingStatus, select_cogging
-from hallcal.fit.order import HarmonicSelection, select_harmonics
 from hallcal.fit.sem import SEMResult, solve_sem
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
@@ -40,6 +39,7 @@ from hallcal.sim.loop import ClosedLoop
 
 if TYPE_CHECKING:
     from hallcal.fit.kernel import KernelSEMResult
+    from hallcal.fit.order import HarmonicSelection
 
 __all__ = ["calibrate_closed_loop"]
 
@@ -155,6 +155,8 @@ def _fit_fourier(
     selection = None
     adequacy = None
     if harmonics == "auto":
+        from hallcal.fit.order import select_harmonics  # loaded only for the automatic choice
+
         say(progress, "choosing the harmonics from the data")
         selection = select_harmonics(
             loop, s.r, s.d, y=s.y, pole_pairs=setup.pole_pairs, max_iterations=max_it
@@ -214,6 +216,8 @@ def _with_cogging(
         return dataclasses.replace(fit, cogging=sel)
     sem, selection = sel.sem, fit.selection
     if setup.model.harmonics == "auto" and sel.cogging is not None:
+        from hallcal.fit.order import select_harmonics
+
         say(progress, "choosing the harmonics again with the cogging torque in the loop")
         known = loop.with_plant_gain(sem.gain).with_cogging(sel.cogging)
         selection = select_harmonics(
