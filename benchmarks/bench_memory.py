@@ -4,8 +4,10 @@ Each case runs in a fresh Python process (imports included) with the pipeline's 
 for every step the wall time, the CPU time of the process, the resident memory before and after
 it, and its own peak: the kernel's high-water mark of the process (``VmHWM``), reset at the
 start of each step (``echo 5 > /proc/self/clear_refs``), so a step's peak is the largest
-resident size reached while it ran (nested steps count in their parents). The last line of each
-case is the process's peak over the whole run.
+resident size reached while it ran (nested steps count in their parents). ``process total`` is
+the process's peak over the whole run; ``numba`` the first calls of the compiled kernels
+(loading them from numba's cache, inside the steps above); the last line the child's wall and
+CPU time as its parent sees them (``wait4``), interpreter start-up and exit included.
 
 Cases:
 
@@ -33,6 +35,7 @@ import platform
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -224,16 +227,31 @@ def run_case(case: dict, work: Path, trace: bool) -> list[dict]:
     env = {**CHILD_ENV, "BENCH_STEPS": json.dumps(STEPS)}
     if trace:
         env["BENCH_TRACEMALLOC"] = "1"
-    proc = subprocess.run(
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(
         [sys.executable, "-c", CHILD, json.dumps(case)],
         cwd=work,
         env=env,
-        capture_output=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
         text=True,
     )
-    if proc.returncode != 0:
-        raise RuntimeError(f"{case['label']} failed:\n{proc.stderr}")
-    return json.loads((work / "rows.json").read_text())
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise RuntimeError(f"{case['label']} failed:\n{proc.stderr.read()}")
+    rows = json.loads((work / "rows.json").read_text())
+    rows.append(
+        {
+            "step": "the process seen from outside (start-up to exit)",
+            "depth": 0,
+            "wall": wall,
+            "cpu": usage.ru_utime + usage.ru_stime,
+            "rss1": math.nan,
+            "peak": math.nan,
+        }
+    )
+    return rows
 
 
 def show(rows: list[dict], trace: bool) -> None:
