@@ -207,28 +207,39 @@ def test_unmodelled_motion_is_reported_as_such(name):
         assert "cogging" in rep.message
 
 
+#: (bench, harmonics, plant gain, verdict). Adequate only where the model is right; a warning
+#: where the flux fits but the motion does not (plant gain off, cogging, load torque): f_star is
+#: still at the noise floor; refused where the flux model is wrong: f_star far from the floor.
 NEVER_WORSE = [
-    ("paper", H11, 1.0),
-    ("paper", (11,), 1.0),
-    ("paper", H11, 0.7),  # plant model gain 30 % off
-    ("trapezoid", H11, 1.0),
-    ("cogging 2e-3", H11, 1.0),
-    ("cogging 2e-2", H11, 1.0),
-    ("disturbance 2e-3", H11, 1.0),
-    ("disturbance 2e-2", H11, 1.0),
-    ("pole modulation", H11, 1.0),
+    ("paper", H11, 1.0, "adequate"),
+    ("paper", (11,), 1.0, "inadequate"),  # the table barely changes f_init: here slightly worse
+    ("paper", H11, 0.7, "warning"),  # plant model gain 30 % off
+    ("trapezoid", H11, 1.0, "inadequate"),
+    ("cogging 2e-3", H11, 1.0, "warning"),
+    ("cogging 2e-2", H11, 1.0, "warning"),
+    ("disturbance 2e-3", H11, 1.0, "warning"),
+    ("disturbance 2e-2", H11, 1.0, "warning"),
+    ("pole modulation", H11, 1.0, "inadequate"),
 ]
 
 
-@pytest.mark.parametrize(("name", "harmonics", "gain"), NEVER_WORSE)
-def test_never_worse_than_f_init_without_a_warning(name, harmonics, gain):
+@pytest.mark.parametrize(("name", "harmonics", "gain", "verdict"), NEVER_WORSE)
+def test_never_worse_than_f_init_without_a_warning(name, harmonics, gain, verdict):
+    """Every case has its verdict, and f_star agrees with it (measured against the true angle):
+    at the noise floor and better than f_init unless refused, far from the floor when refused.
+
+    Measured: f_star 1.00-1.01 x the floor for the adequate and warning cases (f_init 15 x),
+    12-18 x for the refused ones (with 11 alone slightly worse than f_init).
+    """
     sem, rep, e_init, e_star = calibration(name, harmonics, gain)
-    if e_star > e_init or not rep.bijective:
-        assert rep.verdict in ("warning", "inadequate"), (name, e_init, e_star, rep.message)
-    if rep.verdict == "adequate":
+    floor = BENCHES[name].noise_floor
+    assert rep.verdict == verdict, (name, e_init, e_star, rep.message)
+    assert rep.bijective
+    if verdict == "inadequate":
+        assert e_star > 5 * floor, (e_star, floor)  # the refusal is warranted
+    else:
+        assert e_star < 1.1 * floor < e_init, (e_star, floor, e_init)
         assert e_star < 1.1 * rep.predicted_error
-    if harmonics == (11,):  # the table barely changes f_init: here it is slightly worse
-        assert rep.verdict == "inadequate"
 
 
 def test_a_non_bijective_table_is_refused():

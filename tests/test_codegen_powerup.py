@@ -220,7 +220,11 @@ def test_identification_and_angle_are_read_together(paper):
         torn = sum((int(a), int(b), int(c)) not in valid for a, b, c in got)
         result[mode] = (len(got), torn)
     print(f"(reads, torn): {result}")
-    assert result[0][0] > 1000 and result[0][1] == 0
+    # how many reads the main loop gets depends on the machine's load (103 seen on a busy
+    # 2-core machine, > 10 000 on a quiet one); 100 reads spread over 200 power-ups are enough
+    # because mode 2, run the same way, must be caught tearing: that shows the reads overlap
+    # the interrupts often enough to see a torn reading if there were one
+    assert result[0][0] > 100 and result[0][1] == 0
     assert result[1][0] > 100 and result[1][1] == 0
     assert result[2][1] > 0
 

@@ -17,6 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from hallcal.fit.constant_speed import (
+    GeometryStatus,
     calibrate_constant_speed,
     default_harmonics,
     estimate_sensor_geometry,
@@ -140,8 +141,10 @@ def test_geometry_partial_coverage_and_degenerate():
     n = 7
     d = hall(np.linspace(0.0, 0.5, 300), n, distort=False)  # 0.56 electrical cycles
     assert estimate_sensor_geometry(d, n).status == "partial-coverage"
-    still = np.tile([1.0, 2.0, 3.0], (100, 1))
-    assert estimate_sensor_geometry(still).status == "degenerate"
+    still = np.tile([1.0, 2.0, 3.0], (100, 1))  # no plane: the typed status, not a string
+    assert estimate_sensor_geometry(still).status is GeometryStatus.DEGENERATE
+    with pytest.raises(ValueError, match="cannot calibrate: sensor geometry: .* span a plane"):
+        calibrate_constant_speed(still, 1, FourierBasis((1,)), start=0, stop=100)
     with pytest.raises(ValueError):
         estimate_sensor_geometry(np.zeros((10, 2)))
 
@@ -307,7 +310,7 @@ def test_input_validation():
     with pytest.raises(ValueError, match="shape"):
         calibrate_constant_speed(d[:, :2], n, basis, start=0, stop=len(d))
     still = np.tile(d[:1], (400, 1)) + np.random.default_rng(0).standard_normal((400, 3))
-    assert estimate_sensor_geometry(still).status == "degenerate"
+    assert estimate_sensor_geometry(still).status is GeometryStatus.DEGENERATE
     with pytest.raises(ValueError, match="ellipse"):
         calibrate_constant_speed(still, n, FourierBasis((7,)), start=0, stop=400)
     crawl = hall(np.linspace(0.0, 0.5, 400) / n, n)  # half an electrical cycle

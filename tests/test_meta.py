@@ -92,3 +92,35 @@ def test_the_setup_key_check_catches_a_planted_unused_key():
     assert not _read_outside_the_parser("model", "planted_key_nobody_reads", sources)
     assert not _read_outside_the_parser("planted_table", "max_iterations", sources)
     assert _read_outside_the_parser("model", "max_iterations", sources)
+
+
+# --- no merge left half done -------------------------------------------------------------------
+
+_MARKER = re.compile(r"^(<{7} |>{7} |={7}$)", re.M)
+_TEXT_SUFFIXES = {".py", ".md", ".toml", ".txt", ".c", ".h", ".cfg", ".yml", ".yaml", ".html"}
+
+
+def conflict_markers(text: str) -> list[int]:
+    """Line numbers (1-based) of git merge-conflict markers in ``text``."""
+    return [text.count("\n", 0, m.start()) + 1 for m in _MARKER.finditer(text)]
+
+
+def test_no_merge_conflict_markers_in_the_tree():
+    """Merge-conflict lines once reached the README; none may stay in the tree."""
+    root = Path(__file__).resolve().parents[1]
+    files = [root / "README.md", *root.joinpath("docs").rglob("*")]
+    for part in ("src", "tests", "benchmarks", ".ci"):
+        files += root.joinpath(part).rglob("*")
+    found = {}
+    for path in files:
+        if path.is_file() and (path.suffix in _TEXT_SUFFIXES or path.name == "run"):
+            lines = conflict_markers(path.read_text(encoding="utf-8", errors="replace"))
+            if lines:
+                found[str(path.relative_to(root))] = lines
+    assert not found, f"merge-conflict markers left in: {found}"
+
+
+def test_the_conflict_marker_check_catches_a_planted_conflict():
+    planted = "a\n<<<<<<< HEAD\nb\n=======\nc\n>>>>>>> main\nd\n"
+    assert conflict_markers(planted) == [2, 4, 6]
+    assert conflict_markers("a\n======= not a marker\n<<<<<<<x\n") == []

@@ -64,7 +64,10 @@ def test_auto_reaches_the_noise_floor_on_the_trapezoidal_flux():
     assert sel.report.verdict == "adequate", sel.report.message
     assert e_star < 1.15 * floor, (e_star, floor)
     assert e_init > 10 * floor
-    assert sel.status == "converged" and sel.elapsed < 30.0
+    # the work is bounded: the un-warped band is the model, one SEM fit confirms it in few
+    # iterations (the wall time, against the 30 s budget, is in benchmarks/bench_order.py)
+    assert sel.status == "converged"
+    assert [c.stage for c in sel.candidates] == ["static", "sem"] and sel.sem.iterations <= 3
     assert any(c.accepted for c in sel.candidates)
     d = sel.to_dict()
     json.dumps(d)
@@ -85,10 +88,8 @@ def test_auto_does_as_well_as_the_papers_harmonics_on_the_papers_bench():
 @pytest.mark.parametrize("name", ["cogging 2e-2", "disturbance 2e-2"])
 def test_auto_with_unmodelled_motion(name):
     sel, e_init, e_star = auto(name)
-    if e_star > e_init:
-        assert sel.report.verdict in ("warning", "inadequate")
     assert sel.report.verdict == "warning"  # the motion mismatch is reported
-    assert e_star < 1.1 * BENCHES[name].noise_floor
+    assert e_star < 1.1 * BENCHES[name].noise_floor < e_init
     # the residual sidebands of cogging (55, 77) are motion, not flux: never added
     assert not {55, 77} & set(sel.harmonics)
     assert set(sel.harmonics) == set(H11)

@@ -35,7 +35,25 @@ SetupLike = str | os.PathLike[str] | Setup | Mapping[str, Any]
 
 
 def as_dataset(data: DataLike, *, required: tuple[str, ...] = ("d1", "d2", "d3")) -> Dataset:
-    """A :class:`~hallcal.io.Dataset` from a path, a dataset or a mapping of columns."""
+    """A :class:`~hallcal.io.Dataset` from a path, a dataset or a mapping of columns.
+
+    Parameters
+    ----------
+    data : path, Dataset or mapping of columns
+        A dataset file (read with :func:`~hallcal.io.read_dataset`), a dataset, or column name
+        -> array.
+    required : tuple of str, keyword-only
+        Columns that must be present.
+
+    Returns
+    -------
+    Dataset
+
+    Raises
+    ------
+    HallcalInputError
+        Unreadable data, a missing required column, or a type that is none of the above.
+    """
     if isinstance(data, Dataset):
         data.require(*required)
         return data
@@ -49,7 +67,22 @@ def as_dataset(data: DataLike, *, required: tuple[str, ...] = ("d1", "d2", "d3")
 
 
 def as_setup(setup: SetupLike) -> Setup:
-    """A :class:`~hallcal.io.Setup` from a path, a setup or a mapping (the TOML layout)."""
+    """A :class:`~hallcal.io.Setup` from a path, a setup or a mapping (the TOML layout).
+
+    Parameters
+    ----------
+    setup : path, Setup or mapping
+        A TOML setup file, a setup, or the parsed TOML as nested mappings.
+
+    Returns
+    -------
+    Setup
+
+    Raises
+    ------
+    HallcalInputError
+        An invalid setup (the message names the key), or a type that is none of the above.
+    """
     if isinstance(setup, Setup):
         return setup
     if isinstance(setup, str | os.PathLike):
@@ -125,8 +158,19 @@ class Calibration(_Result):
     def export_c(self, out_dir: str | os.PathLike[str], **options: Any) -> Any:
         """Generate the C99 sources of f_star for firmware.
 
-        ``options`` are those of :func:`hallcal.output.codegen.export_c` (``fixed_point``,
-        ``adc_scale``, ...).
+        Parameters
+        ----------
+        out_dir : path-like
+            Directory for the ``.h``/``.c`` files.
+        **options
+            Those of :func:`hallcal.output.codegen.export_c` (``prefix``, ``fixed_point``,
+            ``adc_scale``, ``table_points``, ...).
+
+        Returns
+        -------
+        ExportResult
+            The files written and the table's error figures
+            (:class:`hallcal.output.codegen.ExportResult`).
         """
         from hallcal.output.codegen import export_c
 
@@ -174,5 +218,21 @@ def calibrate(
 
 
 def load(path: str | os.PathLike[str]) -> Calibration:
-    """Read a calibration artifact (JSON) written by :meth:`Calibration.save` or the CLI."""
+    """Read a calibration artifact (JSON) written by :meth:`Calibration.save` or the CLI.
+
+    Parameters
+    ----------
+    path : path-like
+        The artifact file.
+
+    Returns
+    -------
+    Calibration
+        With its status, lookup table, flux model and messages as saved.
+
+    Raises
+    ------
+    HallcalInputError
+        Missing file or an invalid artifact (the message names the key).
+    """
     return Calibration._from_result(calibration_from_artifact(load_artifact(path)))

@@ -626,6 +626,72 @@ def reconstruct(artifact: str, data: str, out: str, absolute: bool, units: str) 
     _print_validation(rec.validation, units, cal.pole_pairs)
 
 
+@cli.command(
+    epilog=_epilog(
+        "hallcal plan cal.json --revolutions 3",
+        "hallcal plan cal.json --revolutions 2 --speeds 0.5,1,2,4,8",
+        exits=_EXITS + ", 3 no candidate speed reaches the target",
+    )
+)
+@click.argument("artifact", type=click.Path(dir_okay=False))
+@click.option(
+    "--revolutions",
+    type=float,
+    default=2.0,
+    show_default=True,
+    help="Length of the planned calibration ramp [mechanical revolutions].",
+)
+@click.option(
+    "--speeds",
+    default=None,
+    help="Comma-separated candidate ramp speeds [rad/s]; default: 13 speeds spaced by sqrt(2) "
+    "up to the fastest the flux model's band allows.",
+)
+@click.option(
+    "--target",
+    type=float,
+    default=1.1,
+    show_default=True,
+    help="Acceptable predicted f_star error relative to the noise floor.",
+)
+@_handle_errors
+def plan(artifact: str, revolutions: float, speeds: str | None, target: float) -> None:
+    """How fast to ramp the next closed-loop calibration run of this motor type.
+
+    From a calibration of the same motor type (its loop, flux map, cogging and noise), predicts
+    the RMS error of f_star that a ramp at each speed would give (Fisher information of the SEM
+    problem). A slow ramp on a fast position loop puts the sensor error where the loop's
+    integral action hides it; the same revolutions at a higher speed determine the table.
+    """
+    from hallcal.api import load
+    from hallcal.errors import CalibrationRefused, HallcalInputError
+    from hallcal.pipeline.design import plan_next_ramp
+
+    grid = None
+    if speeds is not None:
+        try:
+            grid = [float(v) for v in speeds.split(",") if v.strip()]
+        except ValueError:
+            raise HallcalInputError(
+                f"--speeds: expected comma-separated numbers [rad/s], got {speeds!r}"
+            ) from None
+    cal = load(artifact)
+    result = plan_next_ramp(cal, revolutions=revolutions, speeds=grid, target=target)
+    floor = result.predictions[0].floor if result.predictions else math.nan
+    _out.print(f"noise floor {_mrad(floor)}; ramp over {revolutions:g} revolutions")
+    _out.print(f"{'speed [rad/s]':>14} {'samples':>9} {'f_star [mrad]':>14} {'x floor':>8}")
+    for p in result.predictions:
+        mark = (
+            "  <- slowest within target"
+            if p is result.recommended and result.status.success
+            else ""
+        )
+        _out.print(f"{p.speed:14.4g} {p.samples:9d} {1e3 * p.predicted:14.4g} {p.ratio:8.3f}{mark}")
+    if not result.status.success:
+        raise CalibrationRefused(f"plan: {result.message}")
+    _out.print(result.message)
+
+
 def _print_identification(ident, pole_pairs: int) -> None:
     """One line: which pole pair the recording started in, and how certain that is."""
     where = f"pole pair offset {ident.offset} of {pole_pairs}"

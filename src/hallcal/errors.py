@@ -23,6 +23,15 @@ class HallcalError(Exception):
         The file (or ``"setup"``, ``"<dataset>"``) the error is about, when known.
     key : str or None
         The column or the dotted setup key at fault, when known.
+
+    Parameters
+    ----------
+    message : str
+        One line for the user, naming the file, column or key when known.
+    source : str, keyword-only, optional
+        Stored as ``source``.
+    key : str, keyword-only, optional
+        Stored as ``key``.
     """
 
     exit_status: int = 1

@@ -1009,7 +1009,18 @@ def _csv_cell(v: Any) -> str:
 
 
 def summary_counts(table: pa.Table) -> dict[str, int]:
-    """Number of motors per status (every status present, zeros included)."""
+    """Number of motors per status (every status present, zeros included).
+
+    Parameters
+    ----------
+    table : pyarrow.Table
+        The fleet summary (its ``status`` column).
+
+    Returns
+    -------
+    dict of str to int
+        Status value (``"ok"``, ``"warning"``, ``"refused"``, ``"failed"``) -> motors.
+    """
     counts = dict.fromkeys((s.value for s in MotorStatus), 0)
     for s in table.column("status").to_pylist():
         counts[s] = counts.get(s, 0) + 1
@@ -1017,5 +1028,15 @@ def summary_counts(table: pa.Table) -> dict[str, int]:
 
 
 def all_succeeded(table: pa.Table) -> bool:
-    """True when every motor is ok or warning (``hallcal fleet`` then exits 0)."""
+    """True when every motor is ok or warning (``hallcal fleet`` then exits 0).
+
+    Parameters
+    ----------
+    table : pyarrow.Table
+        The fleet summary (its ``status`` column).
+
+    Returns
+    -------
+    bool
+    """
     return all(MotorStatus(s).success for s in table.column("status").to_pylist())

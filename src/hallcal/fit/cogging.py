@@ -74,7 +74,18 @@ def f2_isf(alpha: float, dof: float) -> float:
 
 
 def default_max_order(pole_pairs: int) -> int:
-    """Highest cogging order searched by default: 24 n_m (see the module docstring)."""
+    """Highest cogging order searched by default: 24 n_m (see the module docstring).
+
+    Parameters
+    ----------
+    pole_pairs : int
+        n_m.
+
+    Returns
+    -------
+    int
+        24 n_m [periods per mechanical revolution].
+    """
     return 24 * int(pole_pairs)
 
 

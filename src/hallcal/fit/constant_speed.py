@@ -160,7 +160,23 @@ class SensorGeometry:
         return np.degrees(np.diff(p))
 
     def f_init(self, d: ArrayLike, pole_pairs: int, *, y_initial: float = 0.0) -> NDArray:
-        """f_init (Clarke + atan2 + unwrap) with this geometry's projection and offsets [rad]."""
+        """f_init (Clarke + atan2 + unwrap, eq. (fimp)) with this geometry's projection and
+        offsets.
+
+        Parameters
+        ----------
+        d : array_like, shape (N, 3)
+            Hall signals.
+        pole_pairs : int
+            n_m.
+        y_initial : float, keyword-only
+            f_init's estimate before the first sample [rad].
+
+        Returns
+        -------
+        ndarray, shape (N,)
+            y [rad, mechanical].
+        """
         return f_init(
             d, pole_pairs, y_initial=y_initial, projection=self.projection, offset=self.offsets
         )
@@ -280,66 +296,107 @@ def estimate_sensor_geometry(
         raise ValueError("need at least 8 samples to fit the sensor geometry")
     if not np.all(np.isfinite(x)):
         raise ValueError("d contains non-finite values")
+    try:
+        o, M = _principal_plane_ellipse(x)  # steps 1-2
+    except _NoEllipse as exc:
+        return _degenerate_geometry(x, str(exc))
+    o, M = _refine_fundamental(x, o, M, int(refine))  # step 3
+    phi, amp = _oriented_phases(M)  # step 4
+    P = _projection_from(phi, amp)
+    psi, fit_rms = _ellipse_residual(x, o, phi, amp, P)
+    un = np.unwrap(psi)
+    cycles = float((un[-1] - un[0]) / TWO_PI)
+    direction = int(np.sign(cycles)) if abs(cycles) >= 1.0 else 0
+    status, message = _geometry_status(psi, fit_rms, max_fit_rms)
+    revs = None if pole_pairs is None else cycles / int(pole_pairs)
+    return SensorGeometry(phi, amp, o, P, direction, cycles, revs, fit_rms, status, message)
 
-    def degenerate(msg: str) -> SensorGeometry:
-        ph = np.array([0.0, TWO_PI / 3.0, 2.0 * TWO_PI / 3.0])
-        amp = np.maximum(np.std(x, axis=0) * math.sqrt(2.0), np.finfo(float).tiny)
-        return SensorGeometry(
-            ph, amp, x.mean(axis=0), _projection_from(ph, amp), 0, 0.0,
-            None, float("nan"), "degenerate", msg,
-        )  # fmt: skip
 
+class _NoEllipse(Exception):
+    """The data in their principal plane trace no ellipse (the message says why)."""
+
+
+def _degenerate_geometry(x: NDArray, message: str) -> SensorGeometry:
+    """Nominal phases, amplitudes from the spread, offsets from the mean: status "degenerate"."""
+    ph = np.array([0.0, TWO_PI / 3.0, 2.0 * TWO_PI / 3.0])
+    amp = np.maximum(np.std(x, axis=0) * math.sqrt(2.0), np.finfo(float).tiny)
+    return SensorGeometry(
+        ph, amp, x.mean(axis=0), _projection_from(ph, amp), 0, 0.0,
+        None, float("nan"), GeometryStatus.DEGENERATE, message,
+    )  # fmt: skip
+
+
+def _principal_plane_ellipse(x: NDArray) -> tuple[NDArray, NDArray]:
+    """Steps 1-2 of :func:`estimate_sensor_geometry`: centre o and M with ``d - o = M [cos u,
+    sin u]``, from the principal plane (SVD of the centred data) and the direct least-squares
+    ellipse fit in it (Fitzgibbon et al. 1999). Raises :class:`_NoEllipse`."""
     mean = x.mean(axis=0)
     xc = x - mean
     _, sv, Vt = np.linalg.svd(xc, full_matrices=False)
     if sv[1] <= 1e-9 * max(sv[0], np.finfo(float).tiny):
-        return degenerate("the three signals do not span a plane (no rotation in the data?)")
+        raise _NoEllipse("the three signals do not span a plane (no rotation in the data?)")
     U2 = Vt[:2].T  # (3, 2)
     fit = _fit_ellipse(xc @ U2)
     if fit is None:
-        return degenerate("no ellipse fits the data in its principal plane")
+        raise _NoEllipse("no ellipse fits the data in its principal plane")
     c, L = fit
-    o = mean + U2 @ c
-    M = U2 @ L  # d - o = M [cos u, sin u]
-    for _ in range(int(refine)):
+    return mean + U2 @ c, U2 @ L  # d - o = M [cos u, sin u]
+
+
+def _refine_fundamental(x: NDArray, o: NDArray, M: NDArray, rounds: int) -> tuple[NDArray, NDArray]:
+    """Step 3 of :func:`estimate_sensor_geometry`: alternate psi_k = atan2 of the projected data
+    and (o, M) by linear least squares of d on [1, cos psi, sin psi] (each sensor's
+    fundamental)."""
+    for _ in range(rounds):
         psi = _psi_from(x, o, M)
         H = np.column_stack([np.ones_like(psi), np.cos(psi), np.sin(psi)])
         coef, *_ = np.linalg.lstsq(H, x, rcond=None)
         o, M = coef[0].copy(), coef[1:].T.copy()
-    # rotation so that phi_1 = 0, reflection so that the sensor order is positive
+    return o, M
+
+
+def _oriented_phases(M: NDArray) -> tuple[NDArray, NDArray]:
+    """Step 4 of :func:`estimate_sensor_geometry`: phases phi_h and amplitudes A_h of the rows of
+    M, rotated so that ``phi_1 = 0`` and reflected so that ``0 < phi_2 < phi_3 < 2 pi``."""
     phi = np.arctan2(M[:, 1], M[:, 0])
     amp = np.hypot(M[:, 0], M[:, 1])
     phi = np.mod(phi - phi[0], TWO_PI)
     if phi[1] > phi[2]:
         phi = np.mod(-phi, TWO_PI)
     phi[0] = 0.0
-    P = _projection_from(phi, amp)
+    return phi, amp
+
+
+def _ellipse_residual(
+    x: NDArray, o: NDArray, phi: NDArray, amp: NDArray, P: NDArray
+) -> tuple[NDArray, float]:
+    """The electrical angle psi of every sample through the projection P, and the RMS residual
+    of the data about the ellipse relative to the mean amplitude (``fit_rms``)."""
     ab = (x - o) @ P.T / np.mean(amp)
     psi = np.arctan2(ab[:, 1], ab[:, 0])
     Mfin = amp[:, None] * np.column_stack([np.cos(phi), np.sin(phi)])
     resid = x - o - np.column_stack([np.cos(psi), np.sin(psi)]) @ Mfin.T
-    fit_rms = float(np.sqrt(np.mean(resid**2)) / np.mean(amp))
-    un = np.unwrap(psi)
-    cycles = float((un[-1] - un[0]) / TWO_PI)
-    direction = int(np.sign(cycles)) if abs(cycles) >= 1.0 else 0
+    return psi, float(np.sqrt(np.mean(resid**2)) / np.mean(amp))
+
+
+def _geometry_status(
+    psi: NDArray, fit_rms: float, max_fit_rms: float
+) -> tuple[GeometryStatus, str]:
+    """Degenerate above ``max_fit_rms``; partial coverage when the data visit fewer than all 36
+    electrical 10-degree sectors."""
     # coverage: fraction of 36 electrical sectors visited
     sectors = np.unique(np.floor(np.mod(psi, TWO_PI) / TWO_PI * 36).astype(int))
     if not fit_rms < max_fit_rms:
-        status = GeometryStatus.DEGENERATE
-        message = (
+        return GeometryStatus.DEGENERATE, (
             f"the signals do not trace an ellipse (residual {fit_rms:.2f} of the amplitude): "
             "noise only, or no rotation?"
         )
-    elif sectors.size < 36:
-        status = GeometryStatus.PARTIAL_COVERAGE
-        message = (
+    if sectors.size < 36:
+        return GeometryStatus.PARTIAL_COVERAGE, (
             f"the data sweeps {sectors.size} of 36 electrical 10-degree sectors; the ellipse is "
             "extrapolated elsewhere"
         )
-    else:
-        status, message = GeometryStatus.OK, ""
-    revs = None if pole_pairs is None else cycles / int(pole_pairs)
-    return SensorGeometry(phi, amp, o, P, direction, cycles, revs, fit_rms, status, message)
+    return GeometryStatus.OK, ""
 
 
 def _psi_from(x: NDArray, o: NDArray, M: NDArray) -> NDArray[np.float64]:
@@ -505,6 +562,11 @@ def default_harmonics(
     sidebands : int, keyword-only
         Sideband order s kept around each j n_m (also the low harmonics 1..s of j = 0); default
         all harmonics up to ``electrical * pole_pairs``.
+
+    Returns
+    -------
+    tuple of int
+        Sorted mechanical harmonics >= 1.
     """
     n = int(pole_pairs)
     if n < 1 or electrical < 1 or (sidebands is not None and sidebands < 0):
@@ -812,50 +874,89 @@ def calibrate_constant_speed(
     """
     x = _checked_signals(d, pole_pairs, basis, start, stop)
     n = int(pole_pairs)
-    geo = estimate_sensor_geometry(x[start:stop], n) if geometry is None else geometry
+    geo, warnings = _usable_geometry(x[start:stop], n, geometry)
+    fit = _line_and_flux(x, geo, n, basis, start, stop, max_iterations=max_iterations, tol=tol,
+                         rounds=int(robust_iterations) if robust else 0,
+                         threshold=robust_threshold)  # fmt: skip
+    lut = build_lut(fit.model, n, points=lut_points, projection=geo.projection, offset=geo.offsets)
+    warnings += _segment_warnings(fit.revolutions, fit.speed.b, n, lut)
+    return _constant_speed_result(fit, geo, lut, warnings)
+
+
+def _usable_geometry(
+    segment: NDArray, n: int, geometry: SensorGeometry | None
+) -> tuple[SensorGeometry, list[str]]:
+    """f_init's geometry (given, or :func:`estimate_sensor_geometry` on the segment); a
+    degenerate one is refused, any other status short of "ok" is a warning."""
+    geo = estimate_sensor_geometry(segment, n) if geometry is None else geometry
     if geo.status is GeometryStatus.DEGENERATE:
         raise ValueError(f"cannot calibrate: sensor geometry: {geo.message}")
     warnings: list[str] = []
     if not geo.ok:
         warnings.append(f"sensor geometry: {geo.status}: {geo.message}")
+    return geo, warnings
 
+
+@dataclass(frozen=True)
+class _LineFit:
+    """The straight line ``y0_k = a + b k`` on the segment, the flux model at it, its residual."""
+
+    model: FluxModel
+    a: float
+    speed: _SpeedFit
+    residuals: _Residuals
+    start: int
+    stop: int
+    pole_pairs: int
+
+    @property
+    def revolutions(self) -> float:
+        return abs(self.speed.b) * (self.stop - self.start) / TWO_PI
+
+
+def _line_and_flux(
+    x: NDArray, geo: SensorGeometry, n: int, basis: FourierBasis, start: int, stop: int, *,
+    max_iterations: int, tol: float, rounds: int, threshold: float,
+) -> _LineFit:  # fmt: skip
+    """The SEM problem with ``y0_k = a + b k`` (see :func:`calibrate_constant_speed`).
+
+    b by variable-projection Gauss-Newton inside the robust reweighting (:func:`_fit_speed`),
+    a by the gauge ``mean(f_init - y0) = 0`` over the segment, theta by weighted linear least
+    squares at that line (Golub & Pereyra 1973).
+    """
     y = geo.f_init(x, n)
     k = np.arange(start, stop, dtype=np.float64)
     D, ys = x[start:stop], y[start:stop]
     with threadpool_limits(limits=1, user_api="blas"):
-        speed = _fit_speed(
-            D,
-            ys,
-            k,
-            n,
-            basis,
-            max_iterations=max_iterations,
-            tol=tol,
-            rounds=int(robust_iterations) if robust else 0,
-            threshold=robust_threshold,
-        )
+        speed = _fit_speed(D, ys, k, n, basis, max_iterations=max_iterations, tol=tol,
+                           rounds=rounds, threshold=threshold)  # fmt: skip
         # gauge: mean(f_init - y0) = 0 over the segment, in absolute sample index
         a = float(np.mean(ys - speed.b * k))
         B = basis.evaluate(a + speed.b * k)
         thT, _ = _WeightedLS(B, np.sqrt(speed.weights)).solve(D)
     model = FluxModel(basis, thT.T)
     res = _residual_statistics(D, B, thT, basis, geo, n)
-    revs = abs(speed.b) * (stop - start) / TWO_PI
-    lut = build_lut(model, n, points=lut_points, projection=geo.projection, offset=geo.offsets)
-    warnings += _segment_warnings(revs, speed.b, n, lut)
-    if not speed.converged:
+    return _LineFit(model, a, speed, res, int(start), int(stop), n)
+
+
+def _constant_speed_result(
+    fit: _LineFit, geo: SensorGeometry, lut: LUT, warnings: list[str]
+) -> ConstantSpeedResult:
+    """The result of :func:`calibrate_constant_speed`, with its status."""
+    if not fit.speed.converged:
         status = ConstantSpeedStatus.NOT_CONVERGED
     elif warnings:
         status = ConstantSpeedStatus.WARNING
     else:
         status = ConstantSpeedStatus.OK
+    res = fit.residuals
     return ConstantSpeedResult(
-        model=model,
-        a=a,
-        b=speed.b,
-        start=int(start),
-        stop=int(stop),
-        pole_pairs=n,
+        model=fit.model,
+        a=fit.a,
+        b=fit.speed.b,
+        start=fit.start,
+        stop=fit.stop,
+        pole_pairs=fit.pole_pairs,
         geometry=geo,
         lut=lut,
         cost=res.cost,
@@ -863,10 +964,10 @@ def calibrate_constant_speed(
         noise_std=res.noise,
         angle_noise_floor=res.angle_floor,
         motion_rms=res.motion,
-        weights=speed.weights,
-        revolutions=revs,
-        iterations=speed.iterations,
-        converged=speed.converged,
+        weights=fit.speed.weights,
+        revolutions=fit.revolutions,
+        iterations=fit.speed.iterations,
+        converged=fit.speed.converged,
         status=status,
         warnings=tuple(warnings),
     )
@@ -1030,7 +1131,21 @@ def _robust_weights(
 
 
 def speed_deviation(d: NDArray, pole_pairs: int) -> float:
-    """Largest relative deviation of f_init's one-electrical-cycle mean speed from its median."""
+    """Largest relative deviation of f_init's one-electrical-cycle mean speed from its median.
+
+    Parameters
+    ----------
+    d : ndarray, shape (N, 3)
+        Hall signals of the (supposedly) constant-speed segment.
+    pole_pairs : int
+        n_m.
+
+    Returns
+    -------
+    float
+        ``max |v - median v| / |median v|`` over the moving one-electrical-period means v of
+        f_init's electrical angle (0 for fewer than 8 samples or no motion); dimensionless.
+    """
     if d.shape[0] < 8:
         return 0.0
     geo = estimate_sensor_geometry(d, pole_pairs)

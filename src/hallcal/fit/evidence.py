@@ -210,6 +210,22 @@ def shape_system(
     the harmonics ``harmonics`` (default: the flux's own; others get theta = 0), at the fixed
     angles y0 (the SEM's simulated angle). O(N max(harmonics)) by trigonometric moments; no
     loop simulation.
+
+    Parameters
+    ----------
+    flux : FluxModel
+        g_theta on a Fourier basis: the linearization point (its curve gives the normals).
+    y0 : array_like (N,)
+        Angle of every sample on the model curve [rad, mechanical].
+    d : array_like (N, 3)
+        Hall signals.
+    harmonics : array_like of int, optional
+        Harmonics of the system's unknowns; default the flux's own.
+
+    Returns
+    -------
+    ShapeSystem
+        Normal equations (gram, gradient, sse) and the observation count 2 N.
     """
     yy = np.ascontiguousarray(y0, dtype=np.float64)
     dd = np.ascontiguousarray(d, dtype=np.float64)
@@ -243,7 +259,19 @@ def shape_system(
 
 
 def harmonic_groups(K: int) -> NDArray[np.int64]:
-    """Harmonic of every coefficient of theta (3, 2K + 1) flattened sensor-major."""
+    """Harmonic of every coefficient of theta (3, 2K + 1) flattened sensor-major.
+
+    Parameters
+    ----------
+    K : int
+        Highest harmonic; the basis is ``[1, sin 1y, cos 1y, ..., cos Ky]``.
+
+    Returns
+    -------
+    ndarray of int, shape (3 (2K + 1),)
+        0 for the constant, k for the sine and cosine of harmonic k: the groups of
+        :func:`group_evidence`.
+    """
     j = np.arange(2 * int(K) + 1)
     return np.tile((j + 1) // 2, 3)
 
@@ -485,7 +513,66 @@ def group_evidence(
         A group leaves when its precision exceeds ``prune`` times its data precision
         (``mean diag(J^T J) / sigma^2`` over its coefficients): its posterior mean is then below
         1e-6 of its least-squares value.
+
+    Returns
+    -------
+    GroupEvidence
+        Precisions, noise variance, posterior mean, evidence gains and status at the optimum.
     """
+    pr = _group_problem(gram, gradient, theta, groups, precision, keep)
+    alpha, s2 = pr.precision, float(noise_variance)
+    status, gain, it = GroupEvidenceStatus.MAX_ITERATIONS, np.zeros(pr.ng), 0
+    with threadpool_limits(limits=1, user_api="blas"):
+        while it < int(max_iterations):
+            it += 1
+            step = _mackay_step(pr, alpha, s2, sse, n=n, update_noise=update_noise, prune=prune)
+            if step is None:
+                status = GroupEvidenceStatus.FAILED
+                break
+            alpha, s2 = step.precision, step.noise_variance
+            if step.change >= tol:
+                continue
+            moves = _group_moves(pr, alpha, s2, add=add, add_threshold=add_threshold)  # settled
+            if moves is None:
+                status = GroupEvidenceStatus.FAILED
+                break
+            gain = moves.gain
+            if not moves.leave.any() and not moves.enter.any():
+                status = GroupEvidenceStatus.CONVERGED
+                break
+            alpha[moves.leave] = np.inf
+            alpha[moves.enter] = moves.best[moves.enter]
+        post = _posterior(pr.G, pr.b, alpha[pr.grp], s2)
+    return _evidence_at(pr, post, alpha, s2, gain, it, status, sse=sse, n=n)
+
+
+@dataclass(frozen=True)
+class _GroupProblem:
+    """The checked inputs of :func:`group_evidence`: ``J^T J``, ``J^T e*``, theta* and groups."""
+
+    G: NDArray[np.float64]  # J^T J (p, p)
+    g0: NDArray[np.float64]  # J^T e* (p,)
+    th: NDArray[np.float64]  # theta* (p,)
+    grp: NDArray[np.int64]  # group of every coefficient (p,)
+    precision: NDArray[np.float64]  # starting alpha per group (G,), kept groups finite
+    keep: NDArray[np.bool_]  # groups that never leave (G,)
+    b: NDArray[np.float64]  # J^T z = J^T e* + J^T J theta*
+    data_prec: NDArray[np.float64]  # mean diag(J^T J) per group
+
+    @property
+    def p(self) -> int:
+        return self.G.shape[0]
+
+    @property
+    def ng(self) -> int:
+        return self.precision.size
+
+
+def _group_problem(
+    gram: ArrayLike, gradient: ArrayLike, theta: ArrayLike, groups: ArrayLike,
+    precision: ArrayLike, keep: ArrayLike,
+) -> _GroupProblem:  # fmt: skip
+    """Check the shapes; ``z = e* + J theta*`` enters through ``b = J^T z``."""
     G = np.asarray(gram, dtype=np.float64)
     g0 = np.asarray(gradient, dtype=np.float64).ravel()
     th = np.asarray(theta, dtype=np.float64).ravel()
@@ -500,75 +587,115 @@ def group_evidence(
     keep_mask = np.zeros(ng, dtype=bool)
     keep_mask[np.asarray(keep, dtype=np.int64)] = True
     alpha[keep_mask & ~np.isfinite(alpha)] = 1e-12
-    s2 = float(noise_variance)
-    b = g0 + G @ th
     data_prec = np.bincount(grp, weights=np.diag(G), minlength=ng) / np.bincount(grp, minlength=ng)
-    status = GroupEvidenceStatus.MAX_ITERATIONS
-    gain = np.zeros(ng)
-    it = 0
-    with threadpool_limits(limits=1, user_api="blas"):
-        while it < int(max_iterations):
-            it += 1
-            post = _posterior(G, b, alpha[grp], s2)
-            if post is None:
-                status = GroupEvidenceStatus.FAILED
-                break
-            mu = np.zeros(p)
-            mu[post.ia] = post.mean
-            gj = np.zeros(p)
-            gj[post.ia] = post.gamma_j
-            gam = np.bincount(grp, weights=gj, minlength=ng)
-            m2 = np.bincount(grp, weights=mu**2, minlength=ng)
-            if update_noise:
-                R = _residual(G, g0, sse, mu - th)
-                s2 = max(R, 1e-300) / max(n - float(gam.sum()), 1.0)
-            act = np.isfinite(alpha)
-            new = alpha.copy()
-            new[act] = gam[act] / np.maximum(m2[act], 1e-300)
-            new[keep_mask] = np.minimum(new[keep_mask], 1e300)
-            # a precision above `prune` times the group's data precision holds its posterior
-            # mean below 1/prune of its least-squares value: the group is out (Tipping 2001)
-            with np.errstate(over="ignore"):
-                limit = prune * np.maximum(data_prec / s2, 1e-300)
-            pruned = act & ~keep_mask & (new > limit)
-            new[pruned] = np.inf
-            det = act & ~pruned & (gam > 1e-2) & np.isfinite(new)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                change = float(np.max(np.abs(np.log(new[det] / alpha[det])))) if det.any() else 0.0
-            alpha = new
-            if change >= tol:
-                continue
-            # settled: which groups leave (or enter)?
-            post = _posterior(G, b, alpha[grp], s2)
-            if post is None:
-                status = GroupEvidenceStatus.FAILED
-                break
-            best, gain = _group_tests(G, b, post, alpha, grp, s2)
-            act = np.isfinite(alpha)
-            leave = act & ~np.isfinite(best) & ~keep_mask
-            enter = (~act) & np.isfinite(best) & (gain > add_threshold) & bool(add)
-            if not leave.any() and not enter.any():
-                status = GroupEvidenceStatus.CONVERGED
-                break
-            alpha[leave] = np.inf
-            alpha[enter] = best[enter]
-        post = _posterior(G, b, alpha[grp], s2)
-    if post is None:
-        nan = math.nan
-        return GroupEvidence(alpha, s2, np.zeros(p), np.zeros(ng), gain, nan, it, status)
-    mu = np.zeros(p)
+    return _GroupProblem(G, g0, th, grp, alpha, keep_mask, g0 + G @ th, data_prec)
+
+
+def _group_means(pr: _GroupProblem, post: _Posterior) -> tuple[NDArray, NDArray]:
+    """The posterior mean mu (p,), zero outside the model, and gamma summed per group (G,)."""
+    mu = np.zeros(pr.p)
     mu[post.ia] = post.mean
-    gj = np.zeros(p)
+    gj = np.zeros(pr.p)
     gj[post.ia] = post.gamma_j
-    gam = np.bincount(grp, weights=gj, minlength=ng)
-    zz = sse + 2.0 * float(th @ g0) + float(th @ (G @ th))
+    return mu, np.bincount(pr.grp, weights=gj, minlength=pr.ng)
+
+
+@dataclass(frozen=True)
+class _MacKayStep:
+    """One fixed-point update of :func:`group_evidence` (step 1)."""
+
+    precision: NDArray[np.float64]
+    noise_variance: float
+    change: float  # largest change of the log-precisions of the determined groups
+
+
+def _mackay_step(
+    pr: _GroupProblem, alpha: NDArray, s2: float, sse: float, *, n: int, update_noise: bool,
+    prune: float,
+) -> _MacKayStep | None:  # fmt: skip
+    """Step 1 of :func:`group_evidence`: MacKay's fixed point, groups pruned (None: no posterior).
+
+    ``gamma_j = 1 - alpha_g Sigma_jj``, ``alpha_g <- sum_{j in g} gamma_j / sum_{j in g} mu_j^2``,
+    ``sigma^2 <- ||z - J mu||^2 / (n - sum gamma)`` (MacKay 1992; Tipping 2001, eqs. 16-18).
+    """
+    post = _posterior(pr.G, pr.b, alpha[pr.grp], s2)
+    if post is None:
+        return None
+    mu, gam = _group_means(pr, post)
+    m2 = np.bincount(pr.grp, weights=mu**2, minlength=pr.ng)
+    if update_noise:
+        R = _residual(pr.G, pr.g0, sse, mu - pr.th)
+        s2 = max(R, 1e-300) / max(n - float(gam.sum()), 1.0)
+    act = np.isfinite(alpha)
+    new = alpha.copy()
+    new[act] = gam[act] / np.maximum(m2[act], 1e-300)
+    new[pr.keep] = np.minimum(new[pr.keep], 1e300)
+    # a precision above `prune` times the group's data precision holds its posterior
+    # mean below 1/prune of its least-squares value: the group is out (Tipping 2001)
+    with np.errstate(over="ignore"):
+        limit = prune * np.maximum(pr.data_prec / s2, 1e-300)
+    pruned = act & ~pr.keep & (new > limit)
+    new[pruned] = np.inf
+    det = act & ~pruned & (gam > 1e-2) & np.isfinite(new)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        change = float(np.max(np.abs(np.log(new[det] / alpha[det])))) if det.any() else 0.0
+    return _MacKayStep(new, s2, change)
+
+
+@dataclass(frozen=True)
+class _GroupMoves:
+    """Step 2 of :func:`group_evidence`: the groups that leave and enter, with their tests."""
+
+    best: NDArray[np.float64]  # best precision of every group, the others fixed
+    gain: NDArray[np.float64]  # its evidence gain [nats]
+    leave: NDArray[np.bool_]
+    enter: NDArray[np.bool_]
+
+
+def _group_moves(
+    pr: _GroupProblem, alpha: NDArray, s2: float, *, add: bool, add_threshold: float
+) -> _GroupMoves | None:
+    """Step 2 of :func:`group_evidence`: the group test of Tipping & Faul 2003 (sec. 3, for blocks).
+
+    Groups in the model whose best precision is infinite leave; with ``add``, groups outside
+    whose best precision gains more than ``add_threshold`` nats enter. None: no posterior.
+    """
+    post = _posterior(pr.G, pr.b, alpha[pr.grp], s2)
+    if post is None:
+        return None
+    best, gain = _group_tests(pr.G, pr.b, post, alpha, pr.grp, s2)
+    act = np.isfinite(alpha)
+    leave = act & ~np.isfinite(best) & ~pr.keep
+    enter = (~act) & np.isfinite(best) & (gain > add_threshold) & bool(add)
+    return _GroupMoves(best, gain, leave, enter)
+
+
+def _evidence_at(
+    pr: _GroupProblem, post: _Posterior | None, alpha: NDArray, s2: float, gain: NDArray,
+    iterations: int, status: GroupEvidenceStatus, *, sse: float, n: int,
+) -> GroupEvidence:  # fmt: skip
+    """The result of :func:`group_evidence` at (alpha, sigma^2): posterior mean, gamma per group
+    and the log evidence (NaN and zeros when the posterior failed)."""
+    if post is None:
+        return GroupEvidence(
+            alpha, s2, np.zeros(pr.p), np.zeros(pr.ng), gain, math.nan, iterations, status
+        )
+    mu, gam = _group_means(pr, post)
+    logev = _log_evidence(pr, post, alpha, s2, sse=sse, n=n)
+    return GroupEvidence(alpha, s2, mu, gam, gain, logev, iterations, status)
+
+
+def _log_evidence(
+    pr: _GroupProblem, post: _Posterior, alpha: NDArray, s2: float, *, sse: float, n: int
+) -> float:
+    """``log p(z)`` of the linear model at (alpha, sigma^2), from the posterior's ``log|H|``."""
+    zz = sse + 2.0 * float(pr.th @ pr.g0) + float(pr.th @ (pr.G @ pr.th))
     # log p(z) = -1/2 [n log 2 pi s2 + log|H| - sum log alpha + (z^T z - b^T mu) / s2]
-    quad = (zz - float(b[post.ia] @ post.mean)) / s2
-    a_act = alpha[grp][post.ia]
-    logev = -0.5 * (
+    quad = (zz - float(pr.b[post.ia] @ post.mean)) / s2
+    a_act = alpha[pr.grp][post.ia]
+    return -0.5 * (
         n * math.log(2.0 * math.pi * s2) + post.logdet_h - float(np.sum(np.log(a_act))) + quad
     )
-    return GroupEvidence(alpha, s2, mu, gam, gain, logev, it, status)
 
 
 # ================================================================================================
@@ -663,6 +790,11 @@ def harmonic_relevance(
         Harmonics that never leave (e.g. the pole-pair harmonic); the constant never leaves.
     prior_variance : array_like (1 + H,), optional
         Start per group (constant first); 0 = start outside the model.
+
+    Returns
+    -------
+    HarmonicRelevance
+        The harmonics, their prior variances (0: left the model), evidence gains and sigma^2.
     """
     H = tuple(int(h) for h in flux.basis.harmonics)
     sys_ = shape_system(flux, y0, d)

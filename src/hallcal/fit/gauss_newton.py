@@ -155,7 +155,20 @@ class ParameterLayout:
         return float(np.asarray(x)[self.gain_index]) if self.fit_gain else 0.0
 
     def cogging(self, x: ArrayLike, covariance: ArrayLike | None = None) -> CoggingTorque:
-        """The cogging torque of x (with the covariance block of its coefficients, if given)."""
+        """The cogging torque of x (with the covariance block of its coefficients, if given).
+
+        Parameters
+        ----------
+        x : array_like, shape (p,)
+            A parameter vector of this layout.
+        covariance : array_like, shape (p, p), optional
+            Covariance of x; its cogging block is attached to the torque.
+
+        Returns
+        -------
+        CoggingTorque
+            T_c(y0) of the orders ``cogging_orders`` [plant input units].
+        """
         xx = np.asarray(x, dtype=np.float64)
         sl = slice(self.cogging_start, self.size)
         cov = None if covariance is None else np.asarray(covariance, dtype=np.float64)[sl, sl]
@@ -164,7 +177,22 @@ class ParameterLayout:
     def pack(
         self, theta: ArrayLike, log_gain: float = 0.0, cogging: CoggingTorque | None = None
     ) -> NDArray[np.float64]:
-        """x from its parts (cogging coefficients of orders not in ``cogging`` are zero)."""
+        """x from its parts (cogging coefficients of orders not in ``cogging`` are zero).
+
+        Parameters
+        ----------
+        theta : array_like, shape (3, m)
+            Flux parameters on ``basis``.
+        log_gain : float
+            log c, the plant input gain factor (ignored unless ``fit_gain``).
+        cogging : CoggingTorque, optional
+            Known cogging coefficients to place at their orders.
+
+        Returns
+        -------
+        ndarray, shape (p,)
+            ``x = [theta, log c, a_1, b_1, ...]``.
+        """
         x = np.zeros(self.size)
         x[: self.n_theta] = np.asarray(theta, dtype=np.float64).reshape(-1)
         if self.fit_gain:
@@ -489,6 +517,25 @@ def regression_normal_equations(
 
     From trigonometric moments (O(N max(harmonics)) time, no N x m matrix): the normal
     equations of the linear least-squares fit ``d ~ beta(y) theta^T``.
+
+    Parameters
+    ----------
+    y : array_like (N,)
+        Angle the basis is evaluated at [rad].
+    d : array_like (N,) or (N, c)
+        Regressands (e.g. the three Hall signals).
+    harmonics : array_like of int
+        Mechanical harmonics of the Fourier basis beta (eq. (basis)); the constant term is
+        always included.
+
+    Returns
+    -------
+    gram : ndarray (m, m)
+        ``B^T B`` with ``B = beta(y)``, m = 1 + 2 len(harmonics).
+    rhs : ndarray (m, c)
+        ``B^T d``.
+    sse : float
+        ``d^T d`` summed over the columns.
     """
     yy = _kernel_array(y)
     dd = np.asarray(d, dtype=np.float64)
@@ -552,6 +599,24 @@ def simulate_model(
 
     Same equations as :func:`hallcal.sim.loop.simulate_loop`; the basis comes from a
     trigonometric recursion (one sine and cosine per sample).
+
+    Parameters
+    ----------
+    loop : ClosedLoop
+        Plant model, controller, n_m and f_init.
+    layout : ParameterLayout
+        What x holds (flux harmonics, gain, cogging orders).
+    x : array_like (p,)
+        Parameters ``[theta, log c, a_1, b_1, ...]``.
+    r : array_like (N,)
+        Reference [rad].
+    y_initial : float, keyword-only
+        f_init's estimate before the first sample [rad].
+
+    Returns
+    -------
+    SimulatedLoop
+        y0, y, u, d and the pass status.
     """
     r = _kernel_array(r)
     y0, y, u, d, ok = _simulate_kernel(*_model_arrays(loop, layout, x), r, float(y_initial))
@@ -907,7 +972,28 @@ def _layout_of_theta(theta: ArrayLike) -> tuple[NDArray[np.float64], ParameterLa
 def simulate_fourier(
     loop: ClosedLoop, theta: ArrayLike, r: ArrayLike, *, y_initial: float = 0.0
 ) -> tuple[NDArray, NDArray, NDArray, NDArray, PassStatus]:
-    """:func:`simulate_model` for a flux on harmonics 1..K: ``(y0, y, u, d, status)``."""
+    """:func:`simulate_model` for a flux on harmonics 1..K: ``(y0, y, u, d, status)``.
+
+    Parameters
+    ----------
+    loop : ClosedLoop
+        Plant model, controller, n_m and f_init.
+    theta : array_like, shape (3, 2K + 1)
+        Flux parameters on ``[1, sin 1y, cos 1y, ..., cos Ky]``.
+    r : array_like (N,)
+        Reference [rad].
+    y_initial : float, keyword-only
+        f_init's estimate before the first sample [rad].
+
+    Returns
+    -------
+    y0, y, u : ndarray (N,)
+        Simulated true angle [rad], f_init output [rad] and torque command.
+    d : ndarray (N, 3)
+        Simulated Hall signals.
+    status : PassStatus
+        OK or DIVERGED (then NaN after the divergence).
+    """
     th, layout = _layout_of_theta(theta)
     res = simulate_model(loop, layout, th.ravel(), r, y_initial=y_initial)
     return res.y0, res.y, res.u, res.d, res.status
@@ -925,7 +1011,28 @@ def fourier_gauss_newton(
     stride: int = 1,
     threads: int | None = None,
 ) -> GaussNewtonSystem:
-    """:func:`gauss_newton_system` for a flux on harmonics 1..K, theta (3, 2K + 1)."""
+    """:func:`gauss_newton_system` for a flux on harmonics 1..K, theta (3, 2K + 1).
+
+    Parameters
+    ----------
+    loop : ClosedLoop
+        Plant model, controller, n_m and the f_init of the experiment.
+    theta : array_like, shape (3, 2K + 1)
+        Flux parameters on ``[1, sin 1y, cos 1y, ..., cos Ky]``.
+    r : array_like (N,)
+        Reference [rad].
+    d : array_like (N, 3)
+        Recorded Hall signals.
+    y_initial : float, keyword-only
+        f_init's estimate before the first sample [rad].
+    chunk, gram, stride, threads
+        As for :func:`gauss_newton_system`.
+
+    Returns
+    -------
+    GaussNewtonSystem
+        J^T J, J^T e and e^T e of problem (problem) at theta (no gain, no cogging).
+    """
     th, layout = _layout_of_theta(theta)
     return gauss_newton_system(
         loop, layout, th.ravel(), r, d, y_initial=y_initial, chunk=chunk, gram=gram,

@@ -82,6 +82,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -189,7 +190,20 @@ class KernelBasis:
         return -a * np.sin(t) * self.sf**2 * np.exp((np.cos(t) - 1.0) * a)
 
     def kernel_flux(self, w: ArrayLike, y0: ArrayLike) -> NDArray[np.float64]:
-        """g(y0) = beta(y0) w_h^T for the three sensors, shape (N, 3); w of shape (3, m)."""
+        """g(y0) = beta(y0) w_h^T for the three sensors.
+
+        Parameters
+        ----------
+        w : array_like, shape (3, m) or (m,)
+            Kernel weights per sensor.
+        y0 : array_like (N,)
+            Mechanical angle [rad].
+
+        Returns
+        -------
+        ndarray, shape (N, 3)
+            The flux g_w(y0) (one column per row of w).
+        """
         return self.evaluate(y0) @ self._weights(w).T
 
     def gram(self) -> NDArray[np.float64]:
@@ -261,6 +275,18 @@ class KernelBasis:
         deviation changes the fitted signal by less than ``tol`` sigma, i.e. the angle by less
         than ``tol`` times the noise floor; dropping it is exact to that level. Capped at
         ``(m - 1) // 2`` (the grid's Nyquist harmonic) and at least 1.
+
+        Parameters
+        ----------
+        noise_variance : float
+            Hall noise sigma^2 per channel (> 0).
+        tol : float, keyword-only
+            Relative level below which a mode is dropped.
+
+        Returns
+        -------
+        int
+            K, the highest mechanical harmonic kept.
         """
         if not noise_variance > 0:
             raise ValueError("noise_variance must be > 0")
@@ -342,7 +368,20 @@ class KernelBasis:
 
 
 def fourier_rkhs_norm2(basis: KernelBasis, flux: FluxModel) -> NDArray[np.float64]:
-    """RKHS norm of a Fourier model with harmonics 1..K in the kernel's space, per sensor."""
+    """RKHS norm of a Fourier model with harmonics 1..K in the kernel's space, per sensor.
+
+    Parameters
+    ----------
+    basis : KernelBasis
+        The kernel (its Fourier prior variances).
+    flux : FluxModel
+        A Fourier model on harmonics exactly 1..K.
+
+    Returns
+    -------
+    ndarray, shape (3,)
+        ``sum_j theta_hj^2 / var_j`` for each sensor h (squared norm).
+    """
     K = len(flux.basis.harmonics)
     if flux.basis.harmonics != tuple(range(1, K + 1)):
         raise ValueError("needs harmonics 1..K")
@@ -506,6 +545,11 @@ def select_hyperparameters(
         A fixed l, or the search range: a log-spaced grid of ``grid`` values, then ``refine``
         bounded-Brent steps on log l around the best grid value.
     criterion : {"evidence", "gcv"}
+        Marginal likelihood or generalized cross-validation.
+    grid : int, keyword-only
+        Lengthscales on the log-spaced search grid.
+    refine : int, keyword-only
+        Bounded-Brent steps after the grid.
 
     Returns
     -------
@@ -515,17 +559,7 @@ def select_hyperparameters(
     """
     if criterion not in ("evidence", "gcv"):
         raise ValueError('criterion must be "evidence" or "gcv"')
-    G = np.asarray(gram, dtype=np.float64)
-    b = np.asarray(gradient, dtype=np.float64)
-    th = np.asarray(theta, dtype=np.float64)
-    if b.ndim == 1:
-        b = b[:, None]
-        th = th.reshape(-1, 1)
-    q = G.shape[0]
-    reps = 3 if np.ndim(gradient) == 1 else 1
-    K = (q // reps - 1) // 2
-    if reps * (2 * K + 1) != q or th.shape != b.shape:
-        raise ValueError("gram, gradient and theta do not describe harmonics 1..K")
+    G, b, th, K = _regression_blocks(gram, gradient, theta)
     cache: dict[float, CriterionPoint] = {}
 
     def at(l: float) -> CriterionPoint:
@@ -541,20 +575,45 @@ def select_hyperparameters(
     lo, hi = (float(v) for v in lengthscale)  # type: ignore[union-attr]
     if not 0 < lo < hi:
         raise ValueError("lengthscale range must satisfy 0 < lo < hi")
-    ls = np.exp(np.linspace(math.log(lo), math.log(hi), int(grid)))
+    _search_lengthscale(at, lo, hi, grid=int(grid), refine=refine)
+    tried = sorted(cache.values(), key=lambda c: c.lengthscale)
+    best = min(tried, key=lambda c: c.value)
+    return best, tried
+
+
+def _regression_blocks(
+    gram: ArrayLike, gradient: ArrayLike, theta: ArrayLike
+) -> tuple[NDArray, NDArray, NDArray, int]:
+    """J^T J, J^T e* and theta* with one column per sensor block, and the band K they describe."""
+    G = np.asarray(gram, dtype=np.float64)
+    b = np.asarray(gradient, dtype=np.float64)
+    th = np.asarray(theta, dtype=np.float64)
+    if b.ndim == 1:
+        b = b[:, None]
+        th = th.reshape(-1, 1)
+    q = G.shape[0]
+    reps = 3 if np.ndim(gradient) == 1 else 1
+    K = (q // reps - 1) // 2
+    if reps * (2 * K + 1) != q or th.shape != b.shape:
+        raise ValueError("gram, gradient and theta do not describe harmonics 1..K")
+    return G, b, th, K
+
+
+def _search_lengthscale(
+    at: Callable[[float], CriterionPoint], lo: float, hi: float, *, grid: int, refine: int
+) -> None:
+    """Evaluate ``at`` on a log-spaced grid of l in [lo, hi], then ``refine`` bounded-Brent steps
+    on log l around the best grid value (the evaluations are what ``at`` records)."""
+    ls = np.exp(np.linspace(math.log(lo), math.log(hi), grid))
     vals = [at(float(l)).value for l in ls]
     i = int(np.argmin(vals))
     if refine > 0 and 0 < i < ls.size - 1:
-        res = scipy.optimize.minimize_scalar(
+        scipy.optimize.minimize_scalar(
             lambda x: at(float(math.exp(x))).value,
             bounds=(math.log(ls[i - 1]), math.log(ls[i + 1])),
             method="bounded",
             options={"maxiter": int(refine), "xatol": 0.01},
         )
-        del res
-    tried = sorted(cache.values(), key=lambda c: c.lengthscale)
-    best = min(tried, key=lambda c: c.value)
-    return best, tried
 
 
 # ================================================================================================
@@ -672,6 +731,11 @@ class _Options:
     stride: int | None
     deadline: float
     ard_rounds: int
+
+    @property
+    def lengthscale_fixed(self) -> bool:
+        """l was given (not chosen by the criterion within a range)."""
+        return not isinstance(self.lengthscale, tuple)
 
 
 def _options(
@@ -835,6 +899,8 @@ def solve_kernel_sem(
     lengthscale : float or "auto"
         Fixed l, or chosen by the criterion within ``lengthscale_range`` (default: from the
         shortest l the m-point grid resolves, see :func:`_auto_range`, to max(1, 4 lo) rad).
+    lengthscale_range : (float, float), optional
+        Search range (lo, hi) of l [rad] with ``lengthscale="auto"``; default as above.
     criterion : {"evidence", "gcv"}
         Marginal likelihood (default) or generalized cross-validation, for l and rho.
     y : array_like (N,), optional
@@ -860,14 +926,46 @@ def solve_kernel_sem(
     KernelSEMResult
     """
     t_start = time.perf_counter()
-    r = np.ascontiguousarray(r, dtype=np.float64)
-    d = np.ascontiguousarray(d, dtype=np.float64)
-    N = r.size
-    if d.shape != (N, 3):
-        raise ValueError("d must have shape (N, 3) with N = len(r)")
-    check_hall_scale(float(np.max(np.abs(d))) if d.size else 0.0)
+    r, d = _checked_record(r, d)
     o = _options(points, lengthscale, lengthscale_range, criterion, spectrum, max_harmonics,
                  max_iterations, tol, stride, time_budget, ard_rounds, t_start)  # fmt: skip
+    band = _band_and_start(loop, d, y, o)  # 1
+    best, tried = _kernel_hyperparameters(band.x, d, band.K, o)  # 2
+    fit = _spectrum_and_map_sem(loop, r, d, band, _bessel_variances(o, best, band.K), o)  # 3-4
+    return _kernel_result(best, tried, band, fit, o, time.perf_counter() - t_start)
+
+
+def _checked_record(r: ArrayLike, d: ArrayLike) -> tuple[NDArray, NDArray]:
+    """r (N,) and d (N, 3) as contiguous float64 arrays; d within the accepted Hall scale."""
+    r = np.ascontiguousarray(r, dtype=np.float64)
+    d = np.ascontiguousarray(d, dtype=np.float64)
+    if d.shape != (r.size, 3):
+        raise ValueError("d must have shape (N, 3) with N = len(r)")
+    check_hall_scale(float(np.max(np.abs(d))) if d.size else 0.0)
+    return r, d
+
+
+@dataclass(frozen=True)
+class _Band:
+    """Step 1 of :func:`solve_kernel_sem`: the band 1..K, the un-warped angle and sigma^2."""
+
+    edge: BandEdge
+    x: NDArray[np.float64]  # f_init's output un-warped onto the band's angle
+    noise_variance: float
+    pole_pairs: int
+
+    @property
+    def K(self) -> int:
+        return self.edge.edge
+
+
+def _band_and_start(loop: ClosedLoop, d: NDArray, y: ArrayLike | None, o: _Options) -> _Band:
+    """Step 1 of :func:`solve_kernel_sem`: band and start by :func:`hallcal.fit.warp.band_edge`.
+
+    The smallest band into which f_init's view of the flux un-warps (no loop simulation), capped
+    by the grid's Nyquist harmonic, ``max_harmonics`` and ``8 n_m``; sigma^2 is the model-free
+    noise level of d (:func:`hallcal.fit.adequacy.estimate_noise_variance`).
+    """
     yy = (
         f_init(d, loop.pole_pairs, projection=loop.projection, offset=loop.offset)
         if y is None
@@ -878,17 +976,40 @@ def solve_kernel_sem(
     s2 = noise.variance if math.isfinite(noise.variance) and noise.variance > 0 else 1e-12
     edge = band_edge(yy, d, pole_pairs=n_m, noise_variance=s2,
                      max_edge=min(o.cap, 8 * n_m))  # fmt: skip
-    K = edge.edge
-    x = edge.unwarp.parametrize(yy)
-    best, tried = _kernel_hyperparameters(x, d, K, o)
-    variances = _bessel_variances(o, best, K)
+    return _Band(edge, edge.unwarp.parametrize(yy), s2, n_m)
+
+
+@dataclass(frozen=True)
+class _SpectrumFit:
+    """Steps 3-4 of :func:`solve_kernel_sem`: the MAP SEM and the spectrum it was solved with."""
+
+    sem: SEMResult
+    variances: NDArray[np.float64]  # prior variance of each harmonic 0..K
+    noise_variance: float
+    relevance: HarmonicRelevance | None
+    settled: bool
+    rounds: int  # SEM solves
+
+
+def _spectrum_and_map_sem(
+    loop: ClosedLoop, r: NDArray, d: NDArray, band: _Band, variances: NDArray, o: _Options
+) -> _SpectrumFit:
+    """Steps 3-4 of :func:`solve_kernel_sem`: learn the spectrum, solve, learn it again.
+
+    With ARD (MacKay 1992, Tipping 2001; :func:`hallcal.fit.evidence.harmonic_relevance`) the
+    prior variance of every harmonic is learned from the kernel's ``variances`` at the un-warped
+    angle, the MAP SEM solved, and the spectrum learned again at the solution's simulated angle,
+    repeating while it moves (:func:`_settled`), at most ``ard_rounds`` solves, within the time
+    budget. Without ARD one MAP SEM with the kernel's own spectrum.
+    """
+    s2, K, n_m = band.noise_variance, band.K, band.pole_pairs
     relevance: HarmonicRelevance | None = None
     settled = not o.use_ard
     if o.use_ard:
-        relevance = harmonic_relevance(edge.flux, x, d, noise_variance=s2, keep=(n_m,),
+        relevance = harmonic_relevance(band.edge.flux, band.x, d, noise_variance=s2, keep=(n_m,),
                                        prior_variance=variances)  # fmt: skip
         variances, s2 = relevance.prior_variance, relevance.noise_variance
-    sem = _map_sem(loop, r, d, edge.flux, variances, s2, o)
+    sem = _map_sem(loop, r, d, band.edge.flux, variances, s2, o)
     rounds = 1
     while o.use_ard and relevance is not None and sem.status is not SEMStatus.TIME_BUDGET:
         again = harmonic_relevance(_on_band(sem.flux, K), sem.y0_sim, d, noise_variance=s2,
@@ -899,10 +1020,18 @@ def solve_kernel_sem(
         relevance, variances, s2 = again, again.prior_variance, again.noise_variance
         sem = _map_sem(loop, r, d, sem.flux, variances, s2, o)
         rounds += 1
+    return _SpectrumFit(sem, variances, s2, relevance, settled, rounds)
+
+
+def _kernel_result(
+    best: CriterionPoint, tried: list[CriterionPoint], band: _Band, fit: _SpectrumFit,
+    o: _Options, solve_time: float,
+) -> KernelSEMResult:  # fmt: skip
+    """The result of :func:`solve_kernel_sem`: the flux on the band 1..K and its kernel weights."""
     kb = KernelBasis(o.points, best.lengthscale, best.sf)
-    fourier = _on_band(sem.flux, K)
+    fourier = _on_band(fit.sem.flux, band.K)
     ls_tried = [c.lengthscale for c in tried]
-    interior = lengthscale != "auto" or (min(ls_tried) < best.lengthscale < max(ls_tried))
+    interior = o.lengthscale_fixed or (min(ls_tried) < best.lengthscale < max(ls_tried))
     return KernelSEMResult(
         flux=fourier,
         basis=kb,
@@ -910,19 +1039,19 @@ def solve_kernel_sem(
         lengthscale=best.lengthscale,
         sf=best.sf,
         penalty=best.penalty,
-        noise_variance=s2,
-        harmonics=K,
+        noise_variance=fit.noise_variance,
+        harmonics=band.K,
         criterion=o.criterion,
         criterion_values=tried,
         lengthscale_range=o.lengthscale_range,
         interior=bool(interior),
-        settled=bool(settled),
-        sem=sem,
-        status=sem.status,
-        solve_time=time.perf_counter() - t_start,
+        settled=bool(fit.settled),
+        sem=fit.sem,
+        status=fit.sem.status,
+        solve_time=solve_time,
         spectrum="ard" if o.use_ard else "bessel",
-        prior_variance=np.asarray(variances, dtype=np.float64),
-        edge=edge,
-        relevance=relevance,
-        ard_rounds=rounds if o.use_ard else 0,
+        prior_variance=np.asarray(fit.variances, dtype=np.float64),
+        edge=band.edge,
+        relevance=fit.relevance,
+        ard_rounds=fit.rounds if o.use_ard else 0,
     )

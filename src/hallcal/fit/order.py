@@ -201,7 +201,20 @@ class HarmonicSelection:
 
 
 def restrict_theta(flux: FluxModel, basis: FourierBasis) -> NDArray[np.float64]:
-    """theta on another basis: shared harmonics copied, the others zero."""
+    """theta on another basis: shared harmonics copied, the others zero.
+
+    Parameters
+    ----------
+    flux : FluxModel
+        The model whose theta is copied.
+    basis : FourierBasis
+        The target basis.
+
+    Returns
+    -------
+    ndarray, shape (3, basis.size)
+        theta on ``basis``: the constant and the harmonics both bases share, zero elsewhere.
+    """
     theta = np.zeros((3, basis.size))
     theta[:, 0] = flux.theta[:, 0]
     for h in basis.harmonics:

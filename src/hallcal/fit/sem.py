@@ -173,6 +173,20 @@ def least_squares_start(basis: FourierBasis, d: ArrayLike, y: ArrayLike) -> NDAr
     data, which makes the SEM start much closer than pure sinusoids when the flux is distorted.
     The normal equations come from trigonometric moments
     (:func:`hallcal.fit.gauss_newton.regression_normal_equations`: no N x m matrix).
+
+    Parameters
+    ----------
+    basis : FourierBasis
+        The model's basis beta (eq. (basis)).
+    d : array_like (N, 3)
+        Hall signals.
+    y : array_like (N,)
+        f_init output recorded in the loop [rad], used in place of y0.
+
+    Returns
+    -------
+    ndarray, shape (3, m)
+        theta_0, one row per sensor.
     """
     yy = np.asarray(y, dtype=np.float64)
     dd = np.asarray(d, dtype=np.float64)
@@ -414,43 +428,16 @@ def solve_sem(
     SEMResult
     """
     t_start = time.perf_counter()
-    r = np.ascontiguousarray(r, dtype=np.float64)
-    d = np.ascontiguousarray(d, dtype=np.float64)
-    N = r.size
-    if d.shape != (N, 3):
-        raise ValueError("d must have shape (N, 3) with N = len(r)")
-    check_hall_scale(float(np.max(np.abs(d))) if d.size else 0.0)
+    r, d = _checked_record(r, d)
     cog0 = cogging if isinstance(cogging, CoggingTorque) else None
     orders = cog0.orders if cog0 is not None else tuple(int(k) for k in cogging)
     layout = ParameterLayout(basis, fit_gain=fit_gain, cogging_orders=orders)
-    if theta0 is None:
-        yy = f_init(d, loop.pole_pairs, projection=loop.projection, offset=loop.offset)
-        theta0 = least_squares_start(basis, d, yy if y is None else y)
-    theta_start = np.array(theta0, dtype=np.float64).reshape(3, basis.size)
-    ridge = np.zeros(layout.size)
-    if regularization is not None:
-        ridge[: layout.n_theta] = np.asarray(regularization, dtype=np.float64)
-    p = layout.size
-    problem = _Problem(
-        loop, layout, r, d, ridge, _default_stride(p) if stride is None else max(1, int(stride)),
-        threads, int(chunk),
-    )  # fmt: skip
-    it = _levenberg_marquardt(
-        problem, layout.pack(theta_start, math.log(gain0) if fit_gain else 0.0, cog0),
-        max_iterations=max_iterations, tol=tol, damping=damping,
-    )  # fmt: skip
-    system = it.system
-    if problem.stride != 1 and system.status.success:
-        system = problem.system(it.x, exact=True)  # the exact system for the covariance
-    sigma2 = it.history[-1] / max(3 * N - p, 1)
-    cov_all = _covariance(system, ridge, sigma2)
-    batch_cov = _batch_covariance(system, cov_all, sigma2)
-    gain = math.exp(layout.log_gain(it.x))
-    gain_std = (
-        gain * math.sqrt(max(cov_all[layout.gain_index, layout.gain_index], 0.0))
-        if fit_gain
-        else 0.0
-    )
+    theta_start = _theta_start(loop, basis, d, theta0, y)
+    problem = _problem(loop, layout, r, d, regularization, stride=stride, threads=threads,
+                       chunk=chunk)  # fmt: skip
+    x0 = layout.pack(theta_start, math.log(gain0) if fit_gain else 0.0, cog0)
+    it = _levenberg_marquardt(problem, x0, max_iterations=max_iterations, tol=tol, damping=damping)
+    unc = _uncertainty(problem, it)
     return SEMResult(
         flux=FluxModel(basis, layout.theta(it.x)),
         theta0=theta_start,
@@ -458,20 +445,87 @@ def solve_sem(
         iterations=it.iterations,
         status=it.status,
         solve_time=time.perf_counter() - t_start,
-        noise_variance=sigma2,
-        covariance=cov_all[: layout.n_theta, : layout.n_theta].copy(),
-        n_samples=N,
-        d_sim=system.d,
-        y0_sim=system.y0,
-        gain=gain,
-        gain_std=gain_std,
-        cogging=layout.cogging(it.x, cov_all) if orders else None,
-        parameter_covariance=cov_all,
+        noise_variance=unc.sigma2,
+        covariance=unc.parameter[: layout.n_theta, : layout.n_theta].copy(),
+        n_samples=r.size,
+        d_sim=unc.system.d,
+        y0_sim=unc.system.y0,
+        gain=unc.gain,
+        gain_std=unc.gain_std,
+        cogging=layout.cogging(it.x, unc.parameter) if orders else None,
+        parameter_covariance=unc.parameter,
         layout=layout,
-        message=_message(it, p),
-        batch_covariance=batch_cov,
-        batches=int(system.batch_gradients.shape[0]),
+        message=_message(it, layout.size),
+        batch_covariance=unc.batch,
+        batches=int(unc.system.batch_gradients.shape[0]),
     )
+
+
+def _checked_record(r: ArrayLike, d: ArrayLike) -> tuple[NDArray, NDArray]:
+    """r (N,) and d (N, 3) as contiguous float64 arrays; d within the accepted Hall scale."""
+    r = np.ascontiguousarray(r, dtype=np.float64)
+    d = np.ascontiguousarray(d, dtype=np.float64)
+    if d.shape != (r.size, 3):
+        raise ValueError("d must have shape (N, 3) with N = len(r)")
+    check_hall_scale(float(np.max(np.abs(d))) if d.size else 0.0)
+    return r, d
+
+
+def _theta_start(
+    loop: ClosedLoop, basis: FourierBasis, d: NDArray, theta0: ArrayLike | None,
+    y: ArrayLike | None,
+) -> NDArray[np.float64]:  # fmt: skip
+    """theta0 as (3, m), by default :func:`least_squares_start` at y (or at f_init(d))."""
+    if theta0 is None:
+        yy = f_init(d, loop.pole_pairs, projection=loop.projection, offset=loop.offset)
+        theta0 = least_squares_start(basis, d, yy if y is None else y)
+    return np.array(theta0, dtype=np.float64).reshape(3, basis.size)
+
+
+def _problem(
+    loop: ClosedLoop, layout: ParameterLayout, r: NDArray, d: NDArray,
+    regularization: ArrayLike | None, *, stride: int | None, threads: int | None, chunk: int,
+) -> _Problem:  # fmt: skip
+    """Problem (problem) with the Tikhonov ridge on theta (zero on the gain and the cogging)."""
+    ridge = np.zeros(layout.size)
+    if regularization is not None:
+        ridge[: layout.n_theta] = np.asarray(regularization, dtype=np.float64)
+    p = layout.size
+    return _Problem(
+        loop, layout, r, d, ridge, _default_stride(p) if stride is None else max(1, int(stride)),
+        threads, int(chunk),
+    )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class _Uncertainty:
+    """The exact Gauss-Newton system at the solution and the covariances it gives."""
+
+    system: GaussNewtonSystem
+    sigma2: float  # J(x*) / (3 N - p)
+    parameter: NDArray[np.float64]  # sigma^2 (J^T J + R)^-1 over all parameters
+    batch: NDArray[np.float64] | None  # batch-means covariance
+    gain: float
+    gain_std: float
+
+
+def _uncertainty(problem: _Problem, it: _Iterate) -> _Uncertainty:
+    """Parameter covariance ``sigma^2 (J^T J + R)^-1`` (Ljung 1999, sec. 9.3) from the exact
+    system (every sample, whatever the iterations' stride), and the batch-means covariance."""
+    layout = problem.layout
+    system = it.system
+    if problem.stride != 1 and system.status.success:
+        system = problem.system(it.x, exact=True)  # the exact system for the covariance
+    sigma2 = it.history[-1] / max(3 * problem.r.size - layout.size, 1)
+    cov_all = _covariance(system, problem.ridge, sigma2)
+    batch_cov = _batch_covariance(system, cov_all, sigma2)
+    gain = math.exp(layout.log_gain(it.x))
+    gain_std = (
+        gain * math.sqrt(max(cov_all[layout.gain_index, layout.gain_index], 0.0))
+        if layout.fit_gain
+        else 0.0
+    )
+    return _Uncertainty(system, sigma2, cov_all, batch_cov, gain, gain_std)
 
 
 def _message(it: _Iterate, p: int) -> str:
@@ -496,10 +550,27 @@ def predicted_angle_error(
     offset: ArrayLike,
     points: int = 512,
 ) -> NDArray[np.float64]:
-    """Standard deviation of the LUT correction eta(y0) implied by cov(theta) [rad].
+    """Standard deviation of the LUT correction eta(y0) about its mean, implied by cov(theta) [rad].
 
     First-order propagation through eq. (recon_biject): ``eta = y0 - f_init(g_theta(y0))`` so
-    ``d eta / d theta = -(1/n_m) d psi/d d . (I_3 kron beta(y0))``.
+    ``d eta / d theta = -(1/n_m) d psi/d d . (I_3 kron beta(y0))``; the mean over y0 of that
+    derivative is removed, because angle errors are measured about their mean (a constant
+    offset of the table is the frame of y0, not an error).
+
+    Parameters
+    ----------
+    flux : FluxModel
+        The identified g_theta (Fourier basis).
+    covariance : array_like (3 m, 3 m)
+        cov(theta), theta flattened sensor-major.
+    pole_pairs : int
+        n_m.
+    projection : array_like (2, 3), keyword-only
+        f_init's projection P.
+    offset : array_like (3,), keyword-only
+        Sensor offsets f_init subtracts.
+    points : int, keyword-only
+        Grid size M over one revolution.
 
     Returns
     -------
@@ -514,6 +585,9 @@ def predicted_angle_error(
     rho2 = ab[:, 0] ** 2 + ab[:, 1] ** 2
     dpsi = (ab[:, [0]] * P[1] - ab[:, [1]] * P[0]) / rho2[:, None]  # (M, 3)
     G = -(dpsi[:, :, None] * B[:, None, :]).reshape(points, -1) / pole_pairs  # (M, 3m)
+    # about the mean, as the angle error is measured: a constant shift of eta (the gauge of y0,
+    # which the loop pins only weakly through y0 = 0 at the first sample) is not an error
+    G -= G.mean(axis=0)
     C = np.asarray(covariance, float)
     var = np.einsum("ij,jk,ik->i", G, C, G)
     return np.sqrt(np.maximum(var, 0.0))

@@ -99,6 +99,22 @@ def f_init_view(y: ArrayLike, d: ArrayLike, *, harmonics: int, noise_variance: f
 
     Normal equations from trigonometric moments
     (:func:`hallcal.fit.gauss_newton.regression_normal_equations`), Cholesky solve.
+
+    Parameters
+    ----------
+    y : array_like (N,)
+        f_init angle recorded in the loop [rad].
+    d : array_like (N, 3)
+        Hall signals.
+    harmonics : int, keyword-only
+        L, the view's highest harmonic (>= 1).
+    noise_variance : float, keyword-only
+        Hall noise sigma^2, for the coefficient variance.
+
+    Returns
+    -------
+    FInitView
+        theta (3, 2 L + 1) and the coefficient variance.
     """
     L = int(harmonics)
     if L < 1:
@@ -176,6 +192,18 @@ class Unwarp:
         ``|w'| < 0.03``) on w tabulated on 8 times the grid of its highest harmonic and
         interpolated linearly (error ``h^2 max|w''| / 8``, below 1e-8 rad for the warps met on
         the benches).
+
+        Parameters
+        ----------
+        y : array_like (N,)
+            f_init angles [rad].
+        iterations : int, keyword-only
+            Fixed-point steps.
+
+        Returns
+        -------
+        ndarray (N,)
+            x [rad], the flux model's angle for each sample.
         """
         yy = np.asarray(y, dtype=np.float64)
         J = self.warp.size // 2
@@ -267,6 +295,15 @@ def unwarp(
         Nyquist harmonic is below the noise on the benches).
     start : array_like (2 J,), optional
         Starting warp (default zero: f_init's parametrization).
+    max_iterations : int, keyword-only
+        Gauss-Newton steps at most.
+    tol : float, keyword-only
+        Convergence threshold on the largest warp step [rad].
+
+    Returns
+    -------
+    Unwarp
+        The warp, the un-warped flux on 1..E, the residual content above E and the status.
     """
     th = view.theta
     L = view.harmonics
@@ -419,6 +456,19 @@ def band_edge(
         n_m.
     noise_variance : float
         Hall noise variance (e.g. :func:`hallcal.fit.adequacy.estimate_noise_variance`).
+    max_edge : int, optional
+        Largest E tried; default 8 n_m.
+    view_harmonics : int, optional
+        L of the view, fixed; default chosen from the content of a 32 n_m view (step 1).
+    significance : float
+        Tail probability of the chi-square bound (step 2).
+    slack : float
+        Relative allowance on that bound (step 2).
+
+    Returns
+    -------
+    BandEdge
+        E, the un-warped flux on 1..E with its warp, the view, every trial and the status.
     """
     t0 = time.perf_counter()
     n = int(pole_pairs)

@@ -230,46 +230,75 @@ def nonparametric_bla(
         If the data do not fit the period/realization layout (the message names the column or
         option at fault).
     """
+    lay = _period_layout(
+        r, u, y, realization, period_samples, transient_periods, sample_time, detrend
+    )
+    spectra = _steady_state_spectra(lay, detrend=detrend)  # steps 1-2
+    k = _excited_lines(spectra.r, lay.n, lines)
+    at_lines = spectra.at(k)
+    frf = _indirect_frf(at_lines)  # steps 3-5
+    var = _frf_variances(at_lines, frf)
+    return NonparametricBLA(
+        freq=k / (lay.n * lay.sample_time),
+        lines=k,
+        G=frf.G,
+        var_noise=var.noise,
+        var_total=var.total,
+        var_nonlinear=var.nonlinear,
+        G_ry=frf.G_ry,
+        G_ru=frf.G_ru,
+        realizations=lay.realizations,
+        periods=lay.periods,
+        period_samples=lay.n,
+        sample_time=lay.sample_time,
+        status=_bla_status(lay.realizations, lay.periods),
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class _PeriodLayout:
+    """The checked signals of :func:`nonparametric_bla`, in realizations of whole periods."""
+
+    signals: dict[str, np.ndarray]  # "r", "u", "y"
+    blocks: list[np.ndarray]  # sample indices of every realization
+    n: int  # period N in samples
+    transient: int  # periods dropped at the start of every realization
+    periods: int  # steady-state periods P per realization
+    sample_time: float
+
+    @property
+    def realizations(self) -> int:
+        return len(self.blocks)
+
+
+def _period_layout(
+    r: np.ndarray,
+    u: np.ndarray,
+    y: np.ndarray,
+    realization: np.ndarray,
+    period_samples: int,
+    transient_periods: int,
+    sample_time: float,
+    detrend: bool,
+) -> _PeriodLayout:
+    """Check the columns and options; split the record into M realizations of P periods.
+
+    The robust method of Pintelon & Schoukens (2012), sec. 3.8, needs M contiguous realizations
+    holding the same whole number of periods; the first ``transient_periods`` of each are dropped.
+    """
     n = _int_option(period_samples, "period_samples", minimum=2)
     n_transient = _int_option(transient_periods, "transient_periods", minimum=0)
     ts = float(sample_time)
     if not (np.isfinite(ts) and ts > 0.0):
         raise HallcalInputError(f"sample_time must be positive, got {sample_time!r}")
-    signals = {}
-    for name, values in (("r", r), ("u", u), ("y", y)):
-        arr = np.asarray(values, dtype=np.float64)
-        if arr.ndim != 1:
-            raise HallcalInputError(f"column {name} must be one-dimensional")
-        if not np.all(np.isfinite(arr)):
-            raise HallcalInputError(f"column {name} holds non-finite values")
-        signals[name] = arr
-    real = np.asarray(realization)
-    if real.ndim != 1 or not np.issubdtype(real.dtype, np.integer):
-        if (
-            real.ndim == 1
-            and np.issubdtype(real.dtype, np.floating)
-            and np.all(real == np.round(real))
-        ):
-            real = real.astype(np.int64)
-        else:
-            raise HallcalInputError("column realization must hold integers")
+    signals = {
+        name: _checked_column(name, values) for name, values in (("r", r), ("u", u), ("y", y))
+    }
+    real = _checked_realization(realization)
     lengths = {name: arr.size for name, arr in signals.items()} | {"realization": real.size}
     if len(set(lengths.values())) != 1:
         raise HallcalInputError(f"columns r, u, y, realization differ in length: {lengths}")
-
-    # split into realizations: contiguous blocks of whole periods
-    ids = np.unique(real)
-    blocks = []
-    for rid in ids:
-        idx = np.flatnonzero(real == rid)
-        if np.any(np.diff(idx) != 1):
-            raise HallcalInputError(f"column realization: realization {rid} is not contiguous")
-        if idx.size % n:
-            raise HallcalInputError(
-                f"column realization: realization {rid} has {idx.size} samples, "
-                f"not a multiple of period_samples={n}"
-            )
-        blocks.append(idx)
+    blocks = _realization_blocks(real, n)
     total_periods = {idx.size // n for idx in blocks}
     if len(total_periods) != 1:
         raise HallcalInputError(
@@ -287,15 +316,76 @@ def nonparametric_bla(
             "detrending needs at least 2 steady-state periods per realization; "
             "lower transient_periods or pass detrend=False"
         )
-    m = len(blocks)
+    return _PeriodLayout(signals, blocks, n, n_transient, p, ts)
 
-    # per-period DFTs at all lines, shape (M, P, N//2+1)
+
+def _checked_column(name: str, values: np.ndarray) -> np.ndarray:
+    arr = np.asarray(values, dtype=np.float64)
+    if arr.ndim != 1:
+        raise HallcalInputError(f"column {name} must be one-dimensional")
+    if not np.all(np.isfinite(arr)):
+        raise HallcalInputError(f"column {name} holds non-finite values")
+    return arr
+
+
+def _checked_realization(realization: np.ndarray) -> np.ndarray:
+    real = np.asarray(realization)
+    if real.ndim != 1 or not np.issubdtype(real.dtype, np.integer):
+        if (
+            real.ndim == 1
+            and np.issubdtype(real.dtype, np.floating)
+            and np.all(real == np.round(real))
+        ):
+            real = real.astype(np.int64)
+        else:
+            raise HallcalInputError("column realization must hold integers")
+    return real
+
+
+def _realization_blocks(real: np.ndarray, n: int) -> list[np.ndarray]:
+    """Sample indices of every realization: contiguous blocks of whole periods."""
+    blocks = []
+    for rid in np.unique(real):
+        idx = np.flatnonzero(real == rid)
+        if np.any(np.diff(idx) != 1):
+            raise HallcalInputError(f"column realization: realization {rid} is not contiguous")
+        if idx.size % n:
+            raise HallcalInputError(
+                f"column realization: realization {rid} has {idx.size} samples, "
+                f"not a multiple of period_samples={n}"
+            )
+        blocks.append(idx)
+    return blocks
+
+
+@dataclass(frozen=True, eq=False)
+class _PeriodSpectra:
+    """DFTs of every steady-state period of r, u and y, shape (M, P, lines)."""
+
+    r: np.ndarray
+    u: np.ndarray
+    y: np.ndarray
+
+    def at(self, k: np.ndarray) -> _PeriodSpectra:
+        """The spectra at the DFT lines ``k`` only."""
+        return _PeriodSpectra(self.r[:, :, k], self.u[:, :, k], self.y[:, :, k])
+
+
+def _steady_state_spectra(lay: _PeriodLayout, *, detrend: bool) -> _PeriodSpectra:
+    """Steps 1-2 of :func:`nonparametric_bla`: steady-state periods, detrended, to the DFT.
+
+    The transient periods are dropped; with ``detrend`` the least-squares line through the P
+    period means is removed from every signal and realization. Its offset lives at DC only, so
+    only its slope is removed, as the DFT of the ramp inside one period (why this slope is not
+    biased by the excitation: step 2 of :func:`nonparametric_bla`).
+    """
+    n, p = lay.n, lay.periods
     ramp_dft = np.fft.rfft(np.arange(n, dtype=np.float64))
     spectra = {}
-    for name, arr in signals.items():
-        spec = np.empty((m, p, n // 2 + 1), dtype=np.complex128)
-        for i, idx in enumerate(blocks):
-            periods_data = arr[idx[n_transient * n :]].reshape(p, n)
+    for name, arr in lay.signals.items():
+        spec = np.empty((lay.realizations, p, n // 2 + 1), dtype=np.complex128)
+        for i, idx in enumerate(lay.blocks):
+            periods_data = arr[idx[lay.transient * n :]].reshape(p, n)
             spec[i] = np.fft.rfft(periods_data, axis=1)
             if detrend:
                 means = periods_data.mean(axis=1)
@@ -303,86 +393,118 @@ def nonparametric_bla(
                 # the per-period offset of the line lives at DC only; remove the ramp inside
                 spec[i] -= slope * ramp_dft
         spectra[name] = spec
+    return _PeriodSpectra(spectra["r"], spectra["u"], spectra["y"])
 
+
+def _excited_lines(
+    r_spectra: np.ndarray, n: int, lines: Sequence[int] | np.ndarray | None
+) -> np.ndarray:
+    """The DFT lines of the BLA: those given, or where the reference power exceeds 1e-8 of its
+    largest line (DC and Nyquist excluded)."""
     if lines is None:
-        power = np.mean(np.abs(spectra["r"]) ** 2, axis=(0, 1))
+        power = np.mean(np.abs(r_spectra) ** 2, axis=(0, 1))
         power[0] = 0.0
         if n % 2 == 0:
             power[-1] = 0.0
         if not np.any(power > 0.0):
             raise HallcalInputError("column r: the reference excites no frequency line")
-        k = np.flatnonzero(power > _POWER_THRESHOLD * power.max())
-    else:
-        k = np.unique(np.asarray(lines, dtype=np.int64))
-        if k.size == 0 or k.min() < 1 or k.max() >= (n + 1) // 2:
-            raise HallcalInputError(
-                f"lines must be DFT lines between 1 and {(n + 1) // 2 - 1} for period_samples={n}"
-            )
-    R = spectra["r"][:, :, k]
-    U = spectra["u"][:, :, k]
-    Y = spectra["y"][:, :, k]
+        return np.flatnonzero(power > _POWER_THRESHOLD * power.max())
+    k = np.unique(np.asarray(lines, dtype=np.int64))
+    if k.size == 0 or k.min() < 1 or k.max() >= (n + 1) // 2:
+        raise HallcalInputError(
+            f"lines must be DFT lines between 1 and {(n + 1) // 2 - 1} for period_samples={n}"
+        )
+    return k
 
-    R_m = R.mean(axis=1)  # (M, F); the reference is periodic: identical periods
+
+@dataclass(frozen=True, eq=False)
+class _IndirectFRF:
+    """Period means per realization and their means over realizations (indirect method)."""
+
+    R_m: np.ndarray  # (M, F) reference, identical in every period
+    Y_m: np.ndarray  # (M, F) output, mean over the periods
+    U_m: np.ndarray  # (M, F) input, mean over the periods
+    G_ry_m: np.ndarray  # (M, F) Y_m / R_m
+    G_ru_m: np.ndarray  # (M, F) U_m / R_m
+    G_ry: np.ndarray  # (F,) mean over realizations
+    G_ru: np.ndarray  # (F,)
+    G: np.ndarray  # (F,) G_ry / G_ru
+
+
+def _indirect_frf(spec: _PeriodSpectra) -> _IndirectFRF:
+    """Steps 3-5 of :func:`nonparametric_bla`: ``G = mean_m G_ry^[m] / mean_m G_ru^[m]``.
+
+    Indirect method of Pintelon & Schoukens (2012), sec. 3.8: the reference is the known
+    excitation; the ratio of the means over periods and realizations, divided once at the end.
+    """
+    R_m = spec.r.mean(axis=1)  # (M, F); the reference is periodic: identical periods
     if np.any(np.abs(R_m) == 0.0):
         raise HallcalInputError("column r: a selected line is not excited in every realization")
-    Y_m = Y.mean(axis=1)
-    U_m = U.mean(axis=1)
+    Y_m = spec.y.mean(axis=1)
+    U_m = spec.u.mean(axis=1)
     G_ry_m = Y_m / R_m
     G_ru_m = U_m / R_m
     G_ry = G_ry_m.mean(axis=0)
     G_ru = G_ru_m.mean(axis=0)
-    G = G_ry / G_ru
+    return _IndirectFRF(R_m, Y_m, U_m, G_ry_m, G_ru_m, G_ry, G_ru, G_ry / G_ru)
 
-    status = []
-    if m < 2:
-        status.append("single-realization")
-    if p < 2:
-        status.append("single-period")
 
+@dataclass(frozen=True, eq=False)
+class _FRFVariances:
+    """Variances of the BLA: noise, total and stochastic nonlinear distortion (NaN if unknown)."""
+
+    noise: np.ndarray
+    total: np.ndarray
+    nonlinear: np.ndarray
+
+
+def _frf_variances(spec: _PeriodSpectra, frf: _IndirectFRF) -> _FRFVariances:
+    """Variances of steps 3-5 of :func:`nonparametric_bla` (robust method).
+
+    Noise: from the period-to-period spread, per realization (Pintelon & Schoukens 2012,
+    sec. 2.5); total: from the realization-to-realization spread (sec. 3.8); each propagated
+    through the ratio by :func:`_ratio_variance`.
+    """
+    m, p, f = spec.r.shape
     # noise (co)variances from the period-to-period spread (sec. 2.5), per realization then mean
     if p >= 2:
-        dY = Y - Y_m[:, None, :]
-        dU = U - U_m[:, None, :]
-        scale = 1.0 / (p * (p - 1) * np.abs(R_m) ** 2)
+        dY = spec.y - frf.Y_m[:, None, :]
+        dU = spec.u - frf.U_m[:, None, :]
+        scale = 1.0 / (p * (p - 1) * np.abs(frf.R_m) ** 2)
         v_ry_n = (np.sum(np.abs(dY) ** 2, axis=1) * scale).sum(axis=0) / m**2
         v_ru_n = (np.sum(np.abs(dU) ** 2, axis=1) * scale).sum(axis=0) / m**2
         c_n = (np.sum(dY * np.conj(dU), axis=1) * scale).sum(axis=0) / m**2
-        var_noise = _ratio_variance(G, G_ru, v_ry_n, v_ru_n, c_n)
+        var_noise = _ratio_variance(frf.G, frf.G_ru, v_ry_n, v_ru_n, c_n)
     else:
-        var_noise = np.full(k.size, np.nan)
+        var_noise = np.full(f, np.nan)
 
     # total (co)variances from the realization-to-realization spread (sec. 3.8)
     if m >= 2:
-        dGy = G_ry_m - G_ry
-        dGu = G_ru_m - G_ru
+        dGy = frf.G_ry_m - frf.G_ry
+        dGu = frf.G_ru_m - frf.G_ru
         scale_m = 1.0 / (m * (m - 1))
         v_ry_t = np.sum(np.abs(dGy) ** 2, axis=0) * scale_m
         v_ru_t = np.sum(np.abs(dGu) ** 2, axis=0) * scale_m
         c_t = np.sum(dGy * np.conj(dGu), axis=0) * scale_m
-        var_total = _ratio_variance(G, G_ru, v_ry_t, v_ru_t, c_t)
+        var_total = _ratio_variance(frf.G, frf.G_ru, v_ry_t, v_ru_t, c_t)
         if p >= 2:
             var_nonlinear = np.maximum(var_total - var_noise, 0.0)
         else:
-            var_nonlinear = np.full(k.size, np.nan)
+            var_nonlinear = np.full(f, np.nan)
     else:
         var_total = var_noise.copy()
-        var_nonlinear = np.full(k.size, np.nan)
+        var_nonlinear = np.full(f, np.nan)
+    return _FRFVariances(var_noise, var_total, var_nonlinear)
 
-    return NonparametricBLA(
-        freq=k / (n * ts),
-        lines=k,
-        G=G,
-        var_noise=var_noise,
-        var_total=var_total,
-        var_nonlinear=var_nonlinear,
-        G_ry=G_ry,
-        G_ru=G_ru,
-        realizations=m,
-        periods=p,
-        period_samples=n,
-        sample_time=ts,
-        status="+".join(status) if status else "ok",
-    )
+
+def _bla_status(realizations: int, periods: int) -> str:
+    """``"ok"``, or what cannot be estimated: ``"single-realization"``, ``"single-period"``."""
+    status = []
+    if realizations < 2:
+        status.append("single-realization")
+    if periods < 2:
+        status.append("single-period")
+    return "+".join(status) if status else "ok"
 
 
 def _ratio_variance(
@@ -636,6 +758,44 @@ def fit_parametric(
     nb = _int_option(numerator_order, "numerator_order", minimum=0)
     na = _int_option(denominator_order, "denominator_order", minimum=0)
     n_int = _int_option(int(integrator), "integrator", minimum=0)
+    n_par = nb + 1 + na + (1 if fit_delay else 0)
+    data = _fit_data(bla, weights=weights, hold=hold, parameters=n_par)
+    sc = _scaled_problem(data, _OrderSpec(nb, na, n_int, fit_delay), delay=delay)  # step 1
+    start = _delay_grid_start(sc, _delay_grid(sc, data, max_delay, delay_grid), sk_iterations)
+    fit = _output_error_refinement(sc, start)  # step 3
+    num, den, stable = _unscaled_model(sc, fit)
+    return ParametricBLA(
+        num=num,
+        den=den,
+        delay=float(fit.tau / sc.w0),
+        integrator=n_int,
+        cost=fit.cost,
+        freq=data.f,
+        hold=hold,
+        sample_time=data.sample_time,
+        weights=weights,
+        stable=stable,
+        nfev=fit.nfev,
+        status="ok" if fit.converged else "not-converged",
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class _FitData:
+    """The lines :func:`fit_parametric` fits: continuous-equivalent data and their variances."""
+
+    f: np.ndarray  # frequencies [Hz]
+    g: np.ndarray  # the BLA, divided by the zero-order-hold factor with hold="zoh"
+    var: np.ndarray  # variance of g (or |G|^2 or 1, as the weights say)
+    sample_time: float | None  # of the hold, None with hold="none"
+
+
+def _fit_data(bla: NonparametricBLA, *, weights: str, hold: str, parameters: int) -> _FitData:
+    """The usable lines of ``bla`` with their weights; the hold divided out with ``"zoh"``.
+
+    With ``hold="zoh"`` the data and their variances are divided by the zero-order-hold factor
+    ``(1 - exp(-j w Ts)) / (j w Ts)``, aliasing neglected (see :func:`fit_parametric`).
+    """
     if hold not in ("zoh", "none"):
         raise HallcalInputError(f"hold must be 'zoh' or 'none', got {hold!r}")
     f = np.asarray(bla.freq, dtype=np.float64)
@@ -659,11 +819,8 @@ def fit_parametric(
             f"weights must be 'variance', 'relative' or 'uniform', got {weights!r}"
         )
     f, g_data, var = f[good], g_data[good], var[good]
-    n_par = nb + 1 + na + (1 if fit_delay else 0)
-    if 2 * f.size < n_par + 1:
-        raise HallcalInputError(f"{f.size} frequency lines are too few for {n_par} parameters")
-
-    w = 2.0 * np.pi * f
+    if 2 * f.size < parameters + 1:
+        raise HallcalInputError(f"{f.size} frequency lines are too few for {parameters} parameters")
     ts = bla.sample_time if hold == "zoh" else None
     if hold == "zoh":
         if ts is None or not (np.isfinite(ts) and ts > 0.0):
@@ -671,76 +828,163 @@ def fit_parametric(
         zf = _zoh_factor(f, ts)
         g_data = g_data / zf  # continuous-equivalent data
         var = var / np.abs(zf) ** 2
+    return _FitData(f, g_data, var, None if ts is None else float(ts))
+
+
+@dataclass(frozen=True)
+class _OrderSpec:
+    """The model structure ``exp(-s tau) B(s) / (s^I A(s))``: orders of B and A, I, delay."""
+
+    nb: int
+    na: int
+    n_int: int
+    fit_delay: bool
+
+
+@dataclass(frozen=True, eq=False)
+class _ScaledProblem:
+    """Step 1 of :func:`fit_parametric`: the data in the scaled Laplace variable ``s / w0``."""
+
+    order: _OrderSpec
+    w0: float  # frequency scale [rad/s]
+    g0: float  # magnitude scale of the data
+    s: np.ndarray  # scaled Laplace variable j w / w0
+    gd: np.ndarray  # scaled data g / g0
+    inv_sigma: np.ndarray  # 1 / standard deviation of gd
+    fixed_tau: float  # the fixed delay, scaled by w0 (used without fit_delay)
+
+
+def _scaled_problem(data: _FitData, order: _OrderSpec, *, delay: float) -> _ScaledProblem:
+    """Step 1 of :func:`fit_parametric`: ``s`` divided by ``w0 = sqrt(w_min w_max)`` and the data
+    by their median magnitude, so the regressors are of order one (Pintelon & Schoukens 2012,
+    ch. 9, numerical conditioning)."""
+    w = 2.0 * np.pi * data.f
     w0 = math.sqrt(w.min() * w.max())
-    g0 = float(np.median(np.abs(g_data)))
+    g0 = float(np.median(np.abs(data.g)))
     if g0 == 0.0:
         raise HallcalInputError("the BLA is zero")
-    s = 1j * w / w0  # scaled Laplace variable
-    gd = g_data / g0
-    sigma = np.sqrt(var) / g0  # standard deviation of the scaled data
-    inv_sigma = 1.0 / sigma
-
+    sigma = np.sqrt(data.var) / g0  # standard deviation of the scaled data
     fixed_tau = float(delay) * w0
-    if not fit_delay and not (np.isfinite(fixed_tau) and fixed_tau >= 0.0):
+    if not order.fit_delay and not (np.isfinite(fixed_tau) and fixed_tau >= 0.0):
         raise HallcalInputError(f"delay must be >= 0, got {delay!r}")
+    return _ScaledProblem(order, w0, g0, 1j * w / w0, data.g / g0, 1.0 / sigma, fixed_tau)
 
-    # 1-2: start values on a delay grid (Levy + Sanathanan-Koerner)
-    if fit_delay:
-        tau_max = (0.25 / f.max() if max_delay is None else float(max_delay)) * w0
-        taus = np.linspace(0.0, tau_max, max(int(delay_grid), 1))
-    else:
-        taus = np.array([fixed_tau])
+
+def _delay_grid(
+    sc: _ScaledProblem, data: _FitData, max_delay: float | None, points: int
+) -> np.ndarray:
+    """Scaled delays of the start grid: ``[0, max_delay]`` (default a quarter period at the
+    highest frequency), or the fixed delay alone."""
+    if not sc.order.fit_delay:
+        return np.array([sc.fixed_tau])
+    tau_max = (0.25 / data.f.max() if max_delay is None else float(max_delay)) * sc.w0
+    return np.linspace(0.0, tau_max, max(int(points), 1))
+
+
+@dataclass(frozen=True, eq=False)
+class _StartValues:
+    """Step 2 of :func:`fit_parametric`: the best grid point (scaled delay and coefficients)."""
+
+    tau: float
+    b: np.ndarray  # ascending coefficients of B
+    a: np.ndarray  # ascending coefficients of A without its leading 1
+
+
+def _delay_grid_start(sc: _ScaledProblem, taus: np.ndarray, sk_iterations: int) -> _StartValues:
+    """Step 2 of :func:`fit_parametric`: Levy and Sanathanan-Koerner on every de-rotated delay.
+
+    For every delay the data are de-rotated by ``exp(j w tau)`` and the rational part is fitted
+    by :func:`_levy_sk` (Levy 1959; Sanathanan & Koerner 1963; Pintelon & Schoukens 2012,
+    ch. 9); the delay with the smallest weighted output error is kept.
+    """
+    o = sc.order
     best: tuple[float, np.ndarray, np.ndarray, float] | None = None
     for tau in taus:
-        b, a, cost = _levy_sk(s, gd * np.exp(s * tau), inv_sigma, nb, na, n_int, sk_iterations)
+        b, a, cost = _levy_sk(
+            sc.s, sc.gd * np.exp(sc.s * tau), sc.inv_sigma, o.nb, o.na, o.n_int, sk_iterations
+        )
         if best is None or cost < best[3]:
             best = (tau, b, a, cost)
     assert best is not None
-    tau0, b0, a0, _ = best
+    return _StartValues(best[0], best[1], best[2])
 
-    # 3: weighted nonlinear least squares on the output error
-    def unpack(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        b = theta[: nb + 1]
-        a = theta[nb + 1 : nb + 1 + na]
-        tau = theta[-1] if fit_delay else fixed_tau
+
+class _OutputError:
+    """Weighted output error ``(G_model - G_data) / sigma`` and its analytic Jacobian.
+
+    Parameters theta: ascending coefficients of B, of A without its leading 1, and (with
+    ``fit_delay``) the scaled delay; real and imaginary parts stacked (Pintelon & Schoukens 2012,
+    ch. 9, the maximum-likelihood cost with known variances).
+    """
+
+    def __init__(self, sc: _ScaledProblem) -> None:
+        o = sc.order
+        self.sc, self.o = sc, o
+        self.pow_b = sc.s[:, None] ** np.arange(o.nb + 1)  # ascending powers
+        self.pow_a = sc.s[:, None] ** np.arange(o.na + 1)
+        self.s_int = sc.s**o.n_int
+
+    def unpack(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        o = self.o
+        b = theta[: o.nb + 1]
+        a = theta[o.nb + 1 : o.nb + 1 + o.na]
+        tau = theta[-1] if o.fit_delay else self.sc.fixed_tau
         return b, a, tau
 
-    pow_b = s[:, None] ** np.arange(nb + 1)  # ascending powers
-    pow_a = s[:, None] ** np.arange(na + 1)
-    s_int = s**n_int
+    def model(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        b, a, tau = self.unpack(theta)
+        bs = self.pow_b @ b
+        as_ = self.pow_a[:, : self.o.na] @ a + self.pow_a[:, self.o.na]
+        e = np.exp(-self.sc.s * tau)
+        return e * bs / (self.s_int * as_), bs, as_, e
 
-    def model(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        b, a, tau = unpack(theta)
-        bs = pow_b @ b
-        as_ = pow_a[:, :na] @ a + pow_a[:, na]
-        e = np.exp(-s * tau)
-        return e * bs / (s_int * as_), bs, as_, e
-
-    def residual(theta: np.ndarray) -> np.ndarray:
-        err = (model(theta)[0] - gd) * inv_sigma
+    def residual(self, theta: np.ndarray) -> np.ndarray:
+        err = (self.model(theta)[0] - self.sc.gd) * self.sc.inv_sigma
         return np.concatenate([err.real, err.imag])
 
-    def jacobian(theta: np.ndarray) -> np.ndarray:
-        gm, _, as_, e = model(theta)
+    def jacobian(self, theta: np.ndarray) -> np.ndarray:
+        gm, _, as_, e = self.model(theta)
         cols = [
-            e[:, None] * pow_b / (s_int * as_)[:, None],
-            -gm[:, None] * pow_a[:, :na] / as_[:, None],
+            e[:, None] * self.pow_b / (self.s_int * as_)[:, None],
+            -gm[:, None] * self.pow_a[:, : self.o.na] / as_[:, None],
         ]
-        if fit_delay:
-            cols.append((-s * gm)[:, None])
-        jac = np.concatenate(cols, axis=1) * inv_sigma[:, None]
+        if self.o.fit_delay:
+            cols.append((-self.sc.s * gm)[:, None])
+        jac = np.concatenate(cols, axis=1) * self.sc.inv_sigma[:, None]
         return np.concatenate([jac.real, jac.imag], axis=0)
 
-    theta0 = np.concatenate([b0, a0, [tau0] if fit_delay else []])
+
+@dataclass(frozen=True, eq=False)
+class _RefinedFit:
+    """Step 3 of :func:`fit_parametric`: scaled coefficients, delay, cost and solver outcome."""
+
+    b: np.ndarray
+    a: np.ndarray
+    tau: float
+    cost: float
+    nfev: int
+    converged: bool
+
+
+def _output_error_refinement(sc: _ScaledProblem, start: _StartValues) -> _RefinedFit:
+    """Step 3 of :func:`fit_parametric`: weighted nonlinear least squares on the output error.
+
+    All parameters (coefficients and ``tau >= 0``) by ``scipy.optimize.least_squares`` with the
+    analytic Jacobian of :class:`_OutputError` (Pintelon & Schoukens 2012, ch. 9); never worse
+    than the start.
+    """
+    oe = _OutputError(sc)
+    fit_delay = sc.order.fit_delay
+    theta0 = np.concatenate([start.b, start.a, [start.tau] if fit_delay else []])
     lower = np.full(theta0.size, -np.inf)
     if fit_delay:
         lower[-1] = 0.0
     from scipy.optimize import least_squares  # only when a BLA is fitted (0.15 s import)
 
     sol = least_squares(
-        residual,
+        oe.residual,
         theta0,
-        jac=jacobian,
+        jac=oe.jacobian,
         bounds=(lower, np.full(theta0.size, np.inf)),
         method="trf",
         x_scale="jac",
@@ -750,38 +994,41 @@ def fit_parametric(
         max_nfev=200 * (theta0.size + 1),
     )
     theta = sol.x
-    b, a, tau = unpack(theta)
-    cost = float(np.sum(residual(theta) ** 2))
-    start_cost = float(np.sum(residual(theta0) ** 2))
+    b, a, tau = oe.unpack(theta)
+    cost = float(np.sum(oe.residual(theta) ** 2))
+    start_cost = float(np.sum(oe.residual(theta0) ** 2))
     if start_cost < cost:  # never worse than the linear start
-        b, a, tau = unpack(theta0)
+        b, a, tau = oe.unpack(theta0)
         cost = start_cost
+    return _RefinedFit(b, a, tau, cost, int(sol.nfev), sol.status > 0)
 
-    # back to unscaled coefficients, descending powers
-    num_asc = g0 * b * w0 ** (na + n_int - np.arange(nb + 1))
-    a_full = np.concatenate([a, [1.0]])
+
+def _unscaled_model(sc: _ScaledProblem, fit: _RefinedFit) -> tuple[np.ndarray, np.ndarray, bool]:
+    """``num``, ``den`` in descending powers of the unscaled s, and whether A is stable."""
+    nb, na, n_int = sc.order.nb, sc.order.na, sc.order.n_int
+    w0 = sc.w0
+    num_asc = sc.g0 * fit.b * w0 ** (na + n_int - np.arange(nb + 1))
+    a_full = np.concatenate([fit.a, [1.0]])
     den_asc = a_full * w0 ** (na - np.arange(na + 1))
     num = num_asc[::-1].copy()
     den = np.concatenate([den_asc[::-1], np.zeros(n_int)])
     poles = np.roots(den_asc[::-1]) if na > 0 else np.array([])
-    return ParametricBLA(
-        num=num,
-        den=den,
-        delay=float(tau / w0),
-        integrator=n_int,
-        cost=cost,
-        freq=f,
-        hold=hold,
-        sample_time=None if ts is None else float(ts),
-        weights=weights,
-        stable=bool(np.all(poles.real < 0.0)),
-        nfev=int(sol.nfev),
-        status="ok" if sol.status > 0 else "not-converged",
-    )
+    return num, den, bool(np.all(poles.real < 0.0))
 
 
 def model_poles(model: ParametricBLA) -> np.ndarray:
-    """Poles [rad/s] of a fitted model other than its imposed integrators, fastest first."""
+    """Poles [rad/s] of a fitted model other than its imposed integrators, fastest first.
+
+    Parameters
+    ----------
+    model : ParametricBLA
+        The parametric fit of G(s) (section "Obtaining a Best Linear Approximation").
+
+    Returns
+    -------
+    ndarray of complex
+        Roots of the denominator in s [rad/s] without the integrators, largest magnitude first.
+    """
     den = np.asarray(model.den, dtype=np.float64)
     core = den[: den.size - int(model.integrator)] if model.integrator else den
     poles = np.roots(core) if core.size > 1 else np.array([], dtype=np.complex128)

@@ -590,6 +590,14 @@ def write_artifact(path: str | os.PathLike[str], artifact: Mapping[str, Any]) ->
     converted to lists and numbers. The result is checked by :func:`validate_artifact`, as
     :func:`read_artifact` checks it, before anything is written.
 
+    Parameters
+    ----------
+    path : path-like
+        Destination file; its directory must exist.
+    artifact : mapping
+        The artifact's keys (e.g. from
+        :func:`hallcal.pipeline.calibration.artifact_from_calibration`).
+
     Raises
     ------
     ValueError
@@ -611,6 +619,17 @@ def write_artifact(path: str | os.PathLike[str], artifact: Mapping[str, Any]) ->
 def load_artifact(path: str | os.PathLike[str]) -> ArtifactData:
     """Read a calibration artifact and return its checked, typed view.
 
+    Parameters
+    ----------
+    path : path-like
+        The artifact (JSON) written by ``hallcal calibrate`` or :func:`write_artifact`.
+
+    Returns
+    -------
+    ArtifactData
+        The validated content: pole pairs, f_init's projection and offsets and the table
+        nodes as arrays, the setup as a :class:`Setup`, the rest as read-only mappings.
+
     Raises
     ------
     HallcalInputError
@@ -624,6 +643,11 @@ def read_artifact(path: str | os.PathLike[str]) -> dict[str, Any]:
 
     The checks are those of :func:`validate_artifact` (use :func:`load_artifact` for the typed
     view).
+
+    Parameters
+    ----------
+    path : path-like
+        The artifact (JSON).
 
     Returns
     -------

@@ -191,7 +191,20 @@ class Dataset:
         return name in self.columns
 
     def get(self, name: str, default: Any = None) -> Any:
-        """Return column `name`, or `default` when the dataset has no such column."""
+        """Return column `name`, or `default` when the dataset has no such column.
+
+        Parameters
+        ----------
+        name : str
+            Column name (``"r"``, ``"y"``, ``"u"``, ``"d1"``..``"d3"``, ``"t"``, ``"y_ref"``...).
+        default : object
+            Returned when the column is absent.
+
+        Returns
+        -------
+        ndarray or object
+            The read-only float64 column, or `default`.
+        """
         return self.columns.get(name, default)
 
     def require(self, *names: str) -> None:

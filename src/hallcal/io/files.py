@@ -272,6 +272,11 @@ def to_jsonable(obj: Any, *, where: str = "") -> Any:
     where : str
         Key path of `obj` used in error messages.
 
+    Returns
+    -------
+    object
+        Nested dicts (str keys), lists, str, int, finite float, bool and None.
+
     Raises
     ------
     ValueError
@@ -335,6 +340,13 @@ def _dump_json(p: Path, obj: Any) -> str:
 def write_json(path: str | os.PathLike[str], obj: Any) -> None:
     """Write `obj` as JSON (atomically, indent 1), converting NumPy data (see :func:`to_jsonable`).
 
+    Parameters
+    ----------
+    path : path-like
+        Destination file; its directory must exist.
+    obj : object
+        Anything :func:`to_jsonable` converts.
+
     Raises
     ------
     ValueError
@@ -360,6 +372,16 @@ def read_json(path: str | os.PathLike[str]) -> Any:
     The size is checked before reading (at most :data:`~hallcal.limits.MAX_JSON_BYTES`); after
     parsing, the nesting depth (at most :data:`~hallcal.limits.MAX_JSON_DEPTH`), and that every
     number is finite (``1e999`` parses to infinity) and every integer fits in 64 bits.
+
+    Parameters
+    ----------
+    path : path-like
+        The JSON file.
+
+    Returns
+    -------
+    object
+        The parsed data (dicts, lists, str, int, float, bool, None).
 
     Raises
     ------

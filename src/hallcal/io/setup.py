@@ -339,6 +339,11 @@ def default_setup() -> Setup:
     flux model with mechanical harmonics 1..11, a BLA experiment of 4 periods of 4000 samples
     (1 transient) and the default virtual bench (ramp 0 -> 13 rad in 26 s, noise variance
     7.5e-6). Equal to parsing the example setup file of ``docs/design.md``.
+
+    Returns
+    -------
+    Setup
+        A fresh setup object (with the plant G(s), so it can drive the virtual bench).
     """
     return Setup(
         pole_pairs=11,
@@ -913,7 +918,18 @@ def _toml_value(value: Any) -> str:
 
 
 def setup_to_toml(setup: Setup) -> str:
-    """Return the text of a setup file that :func:`read_setup` reads back as `setup`."""
+    """Return the text of a setup file that :func:`read_setup` reads back as `setup`.
+
+    Parameters
+    ----------
+    setup : Setup
+        The setup to serialize.
+
+    Returns
+    -------
+    str
+        TOML text: top-level keys first, then one table per section.
+    """
     data = setup.to_dict()
     lines = [f"{k} = {_toml_value(v)}" for k, v in data.items() if not isinstance(v, dict)]
     for name, table in data.items():
@@ -925,7 +941,15 @@ def setup_to_toml(setup: Setup) -> str:
 
 
 def write_setup(path: str | os.PathLike[str], setup: Setup) -> None:
-    """Write `setup` as a TOML setup file (atomically); see :func:`setup_to_toml`."""
+    """Write `setup` as a TOML setup file (atomically); see :func:`setup_to_toml`.
+
+    Parameters
+    ----------
+    path : path-like
+        Destination file; its directory must exist.
+    setup : Setup
+        The setup to write.
+    """
     text = setup_to_toml(setup)
     with atomic_write(path, "w") as f:
         f.write(text)

@@ -227,6 +227,18 @@ def comment_text(text: str, *, limit: int = 80) -> str:
     ``?``, quotes, control characters, non-ASCII) becomes ``_``. So the result cannot end the
     comment (``*/``), splice a line (backslash-newline), form a trigraph (``??/``) or open a
     nested comment, and has no newline. Truncated to ``limit`` characters.
+
+    Parameters
+    ----------
+    text : str
+        Any text (a file name, a message).
+    limit : int, keyword-only
+        Maximum length of the result [characters], ``...`` included.
+
+    Returns
+    -------
+    str
+        The sanitized, possibly truncated text.
     """
     out = _COMMENT_SAFE.sub("_", str(text))
     return out if len(out) <= limit else out[: limit - 3] + "..."

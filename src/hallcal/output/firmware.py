@@ -459,7 +459,18 @@ def fit_table(lut: LUT, points: int, *, quadratic: bool = True) -> CorrectionTab
 
 
 def table_sizes(pole_pairs: int) -> list[int]:
-    """Candidate table sizes M = n_m 2^k (64 <= M <= :data:`MAX_TABLE_POINTS`), ascending."""
+    """Candidate table sizes M = n_m 2^k (64 <= M <= :data:`MAX_TABLE_POINTS`), ascending.
+
+    Parameters
+    ----------
+    pole_pairs : int
+        n_m.
+
+    Returns
+    -------
+    list of int
+        The sizes M [table points per revolution] (empty when n_m exceeds the maximum).
+    """
     out = []
     m = int(pole_pairs)
     while m <= MAX_TABLE_POINTS:
@@ -1054,6 +1065,21 @@ def design_powerup(
     the one ``hallcal reconstruct --absolute`` rebuilds from the same artifact
     (:meth:`IdentifiabilityReport.decoder`), so its tables are bit-identical to Python's before
     the conversion to single precision.
+
+    Parameters
+    ----------
+    artifact : mapping
+        The parsed calibration artifact.
+    design : FirmwareDesign
+        The correction table's design (pole pairs, projection, flux model).
+    source : str, keyword-only
+        Name of the artifact in error messages.
+
+    Returns
+    -------
+    PowerUpFirmware
+        The verdict (a :class:`PowerUpCode`) and, when a decoder is written, its constants and
+        tables in noise-sigma units.
 
     Raises
     ------

@@ -841,7 +841,19 @@ class ReportFigure:
 
 
 def make_figures(content: ReportContent) -> list[ReportFigure]:
-    """The report's figures, in order (paper figures first, then the steps' diagnostics)."""
+    """The report's figures, in order (paper figures first, then the steps' diagnostics).
+
+    Parameters
+    ----------
+    content : ReportContent
+        What the report shows (recordings, model, validation, diagnostics).
+
+    Returns
+    -------
+    list of ReportFigure
+        Key, title, caption and matplotlib figure of each; only the figures the content has
+        data for.
+    """
     from hallcal.output import plots
 
     c = content
@@ -1373,6 +1385,15 @@ def write_report(
     progress: Progress = None,
 ) -> Path:
     """Write the figures (``out_dir/figures/*.png``) and ``out_dir/report.html``, atomically.
+
+    Parameters
+    ----------
+    content : ReportContent
+        What the report shows.
+    out_dir : path-like
+        Output directory (created if needed).
+    progress : callable, keyword-only, optional
+        Called with a short message at each step.
 
     Returns
     -------

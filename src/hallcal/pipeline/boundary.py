@@ -31,6 +31,11 @@ def numeric_errors(source: str, key: str | None = None) -> Iterator[None]:
     key : str, optional
         The setup table or key, shown after `source` (``"setup: [plant]: ..."``).
 
+    Yields
+    ------
+    None
+        The body runs inside the conversion.
+
     Raises
     ------
     HallcalInputError

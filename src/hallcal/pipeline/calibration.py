@@ -119,7 +119,24 @@ def validate(
 ) -> Validation:
     """Errors of f_init and f_star on a dataset with ``y_ref`` (encoder or bench truth).
 
-    ``angles``, when given, are the recording's (y_init, y_star) already computed with `lut`.
+    The validation of the paper's section "Experimental results" (figures exp_eta and
+    exp_spectrum): RMS and peak error and the cumulative spatial PSD.
+
+    Parameters
+    ----------
+    lut : LUT
+        The table to validate.
+    dataset : Dataset
+        A recording with d1, d2, d3 and ``y_ref`` [rad].
+    noise_floor : float, keyword-only, optional
+        Angle noise floor [rad RMS] to compare with.
+    angles : (ndarray, ndarray), keyword-only, optional
+        The recording's (y_init, y_star) already computed with `lut` [rad].
+
+    Returns
+    -------
+    Validation
+        Errors and spatial spectra of f_init and f_star against ``y_ref``.
     """
     y_ref = dataset["y_ref"]
     if angles is None:
@@ -263,6 +280,14 @@ class Calibration:
     def save(self, path: str | os.PathLike[str], *, force: bool = False) -> None:
         """Write the JSON artifact atomically.
 
+        Parameters
+        ----------
+        path : path-like
+            Destination file; its directory must exist.
+        force : bool, keyword-only
+            Write a calibration refused as inadequate anyway (never one that is not
+            bijective).
+
         Raises
         ------
         CalibrationRefused
@@ -338,7 +363,20 @@ def _diagnostics(cal: Calibration) -> dict[str, Any]:
 
 
 def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
-    """The versioned JSON calibration artifact of docs/design.md (a plain dict)."""
+    """The versioned JSON calibration artifact of docs/design.md (a plain dict).
+
+    Parameters
+    ----------
+    cal : Calibration
+        The result of a calibration.
+
+    Returns
+    -------
+    dict
+        Format, pole pairs, f_init's projection and offsets, the model (basis, theta), the
+        table, the setup, diagnostics, and where present identifiability, plant and cogging;
+        ready for :func:`~hallcal.io.write_artifact`.
+    """
     art: dict[str, Any] = {
         "format": ARTIFACT_FORMAT,
         "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
@@ -379,6 +417,16 @@ def lut_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> LUT:
     """Rebuild the table (and its f_init) from an artifact (checked by
     :func:`~hallcal.io.validate_artifact` unless it is an :class:`~hallcal.io.ArtifactData`).
 
+    Parameters
+    ----------
+    artifact : ArtifactData or mapping
+        A loaded artifact, or its parsed JSON.
+
+    Returns
+    -------
+    LUT
+        The table of eq. (f_final) with f_init's projection and offsets.
+
     Raises
     ------
     HallcalInputError
@@ -397,6 +445,15 @@ def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Cal
 
     The flux model, table, setup, status, messages, predicted error and plant come back; the
     solver's internals (SEM iterates, BLA spectra) stay in :attr:`Calibration.artifact`.
+
+    Parameters
+    ----------
+    artifact : ArtifactData or mapping
+        A loaded artifact, or its parsed JSON.
+
+    Returns
+    -------
+    Calibration
 
     Raises
     ------
@@ -499,6 +556,23 @@ def reconstruct(
     absolute: bool = False,
 ) -> Reconstruction:
     """Apply a calibration artifact to a recording (``hallcal reconstruct [--absolute]``).
+
+    Parameters
+    ----------
+    artifact : ArtifactData or mapping
+        A loaded artifact, or its parsed JSON.
+    dataset : Dataset
+        The recording (d1, d2, d3; ``y_ref`` is used for validation when present).
+    y_initial : float, keyword-only
+        f_init's estimate before the first sample [rad] (ignored with ``absolute``).
+    absolute : bool, keyword-only
+        Identify the pole pair at power-up and give the angles in the calibration's frame.
+
+    Returns
+    -------
+    Reconstruction
+        y_init and y_star [rad] per sample, the validation against ``y_ref`` when present, and
+        the power-up identification with ``absolute``.
 
     Raises
     ------

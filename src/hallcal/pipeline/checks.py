@@ -131,7 +131,20 @@ class Check:
 
 
 def raise_if_failed(checks: Iterable[Check], source: str | None = None) -> None:
-    """Raise for the first failed check of ``checks``."""
+    """Raise for the first failed check of ``checks``.
+
+    Parameters
+    ----------
+    checks : iterable of Check
+        Checks in the order they should be reported.
+    source : str, optional
+        The file the checks are about, named in the message.
+
+    Raises
+    ------
+    HallcalInputError
+        The first check whose status is FAILED (its message and fix).
+    """
     for c in checks:
         c.raise_if_failed(source)
 
@@ -296,6 +309,17 @@ def check_direction(dataset: Dataset) -> DirectionCheck:
     The positive direction of f_init is the one in which the sensors' electrical phases follow
     the order d1, d2, d3. If the drive's firmware numbered its sensors differently, the recorded
     columns make f_init run against the reference and the loop as modelled has positive feedback.
+
+    Parameters
+    ----------
+    dataset : Dataset
+        A closed-loop recording with r and d1, d2, d3.
+
+    Returns
+    -------
+    DirectionCheck
+        OK (sign +1), FAILED (sign -1, with the fix) or SKIPPED when the reference does not
+        move.
     """
     fit = _electrical_per_mechanical(dataset)
     if fit is None or not math.isfinite(fit.slope) or fit.slope == 0.0:
@@ -479,6 +503,21 @@ def closed_loop_poles(
     The plant is the exact zero-order-hold equivalent with the input delay as extra states
     (:meth:`ContinuousTF.discretize`), so the delay's phase lag is in the poles exactly. The
     measured angle is taken as the plant output (f_init linearized: gain 1).
+
+    Parameters
+    ----------
+    controller : DiscreteTF
+        C(q), eq. (controller).
+    plant : ContinuousTF
+        G(s) with its input delay.
+    sample_time : float
+        T_s [s].
+
+    Returns
+    -------
+    ndarray of complex
+        The closed-loop poles in z, largest magnitude first (stable: all inside the unit
+        circle).
     """
     p = plant.discretize(sample_time)
     c = controller.state_space(sample_time)
@@ -618,6 +657,12 @@ def check_bla_fit(
     chosen_from_data : bool
         Whether the order was chosen from the data (``"auto"``): then an unstable model means no
         candidate was stable.
+
+    Returns
+    -------
+    BLAFitCheck
+        FAILED with unstable poles, WARNING with poles far above the data's band, else OK; the
+        poles in s [rad/s].
     """
     from hallcal.identify.bla import model_poles
 

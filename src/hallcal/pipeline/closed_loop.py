@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 from hallcal.errors import HallcalInputError
 from hallcal.fit.adequacy import AdequacyReport, assess
 from hallcal.fit.cogging import CoggingSelection, CoggingStatus, select_cogging
+from hallcal.fit.design import plan_ramp, speed_limits
 from hallcal.fit.sem import SEMResult, solve_sem
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
@@ -236,6 +237,59 @@ def _with_cogging(
     )  # fmt: skip
 
 
+#: Predicted / floor above which calibrate says how fast a ramp would have to be.
+RAMP_ADVICE = 1.5
+
+
+def _ramp_advice(
+    loop: ClosedLoop, setup: Setup, s: _Signals, fit: _ModelFit, ratio: float
+) -> str | None:
+    """One line on the ramp speed that would determine the table (:mod:`hallcal.fit.design`).
+
+    A slow ramp on a fast loop leaves angle warps at low spatial frequency to the loop's
+    sensitivity S, which is tiny there; the same revolutions at a higher speed inform them. The
+    candidates double the run's speed up to the fastest the flux band allows; the first within
+    1.1 x floor is named. None for the kernel basis (no layout) or a run that is not a ramp.
+    """
+    sem = fit.sem
+    if sem is None or sem.layout is None or setup.model.basis != "fourier":
+        return None
+    r = np.asarray(s.r, dtype=np.float64)
+    span = abs(float(r[-1] - r[0]))
+    if r.size < 2 or span <= 0:
+        return None
+    v0 = span / ((r.size - 1) * setup.sample_time)
+    revs = span / (2.0 * math.pi)
+    x = sem.layout.pack(sem.flux.theta, 0.0, sem.cogging)  # the loop's plant holds the gain c
+    _, v_max = speed_limits(loop, sem.layout, revs)
+    speeds = v0 * 2.0 ** np.arange(1, 40)
+    speeds = speeds[speeds <= v_max]
+    head = (
+        f"ramp speed: at {v0:.3g} rad/s the loop hides part of the sensor error (the covariance "
+        f"predicts {ratio:.2g}x the noise floor)"
+    )
+    if speeds.size == 0:
+        return (
+            f"{head}; a faster ramp would leave too few samples per flux period or per "
+            "parameter: record more revolutions"
+        )
+    plan = plan_ramp(loop, sem.layout, x, noise_variance=sem.noise_variance, revolutions=revs,
+                     speeds=speeds, stop_at_target=True)  # fmt: skip
+    best = plan.recommended
+    if best is None:
+        return None
+    if plan.status.success:
+        return (
+            f"{head}; the same {revs:.3g} revolutions at >= {best.speed:.3g} rad/s "
+            f"({best.samples} samples) are predicted at {best.ratio:.2f}x: record the next "
+            "run faster (hallcal plan shows the curve)"
+        )
+    return (
+        f"{head}; at {best.speed:.3g} rad/s it would be {best.ratio:.2f}x: record more "
+        "revolutions, faster (hallcal plan shows the curve)"
+    )
+
+
 def _motion_bias(
     loop: ClosedLoop, s: _Signals, setup: Setup, fit: _ModelFit, lut: LUT
 ) -> tuple[float, str | None]:
@@ -324,6 +378,12 @@ def calibrate_closed_loop(
         An already identified BLA.
     progress : callable, optional
         Called with a short message at each step.
+
+    Returns
+    -------
+    Calibration
+        Status, refusal, flux model, table, predicted error, plant and gain correction,
+        messages and (with ``y_ref``) validation.
     """
     timings: dict[str, float] = {}
     dataset.require("r", "d1", "d2", "d3")
@@ -394,6 +454,15 @@ def calibrate_closed_loop(
         predicted = math.hypot(predicted, bias)
         if note is not None:
             messages.append(note)
+    if math.isfinite(predicted) and predicted > RAMP_ADVICE * adequacy.noise_floor:
+        say(progress, "how fast a ramp would determine the table (experiment design)")
+        t0 = time.perf_counter()
+        # the plant with the refined gain, without the cogging (the plan's layout holds it)
+        plan_loop = closed_loop(setup, pm.plant)
+        advice = _ramp_advice(plan_loop, setup, s, fit, predicted / adequacy.noise_floor)
+        timings["ramp_plan"] = time.perf_counter() - t0
+        if advice is not None:
+            messages.append(advice)
     say(progress, "power-up identifiability of the pole pair")
     t0 = time.perf_counter()
     identifiability = power_up_analysis(fit.flux, lut, s.d)

@@ -87,6 +87,20 @@ def calibrate_open_loop(
     ``max_iterations``; ``sample_time`` is not needed (time in samples). Only the columns d1,
     d2, d3 are required; ``y_ref``, when present, is used for validation only.
 
+    Parameters
+    ----------
+    dataset : Dataset
+        The constant-speed run (d1, d2, d3; optional ``y_ref``).
+    setup : Setup
+        With ``[trajectory] kind = "constant-speed"``.
+    progress : callable, keyword-only, optional
+        Called with a short message at each step.
+
+    Returns
+    -------
+    Calibration
+        Status, refusal, flux model, table, messages and (with ``y_ref``) validation.
+
     Raises
     ------
     HallcalInputError

@@ -163,6 +163,15 @@ def identify_bla(dataset: Dataset, setup: Setup, *, progress: Progress = None) -
     (:func:`~hallcal.pipeline.checks.check_bla_fit`): an unstable one is refused with the order
     to use named, poles the data cannot determine give a warning.
 
+    Parameters
+    ----------
+    dataset : Dataset
+        The multisine experiment (r, u, y, realization).
+    setup : Setup
+        With a ``[bla]`` table and the sample time.
+    progress : callable, keyword-only, optional
+        Called with a short message at each step.
+
     Returns
     -------
     BLAIdentification
@@ -309,6 +318,25 @@ def estimate_gain(
     y)^2`` (a bounded scalar search on log c), which uses the same information with all samples
     and is insensitive to where the last rotation falls; the number of full rotations of both is
     reported as the paper's check.
+
+    Parameters
+    ----------
+    loop : ClosedLoop
+        The loop with the BLA plant (c = 1).
+    r : ndarray (N,)
+        Recorded reference [rad].
+    y : ndarray (N,)
+        Recorded f_init output [rad].
+    flux : FluxModel
+        The flux model of the simulation: the paper uses theta_0 (pure sinusoids), the
+        pipeline the least-squares start (:func:`~hallcal.fit.sem.least_squares_start`).
+    bounds : (float, float), keyword-only
+        Search range of c.
+
+    Returns
+    -------
+    GainCorrection
+        c, the costs at c and at 1, both rotation counts and whether c hit a bound.
     """
 
     def cost(logc: float) -> float:
@@ -346,6 +374,18 @@ def _full_rotations(y: NDArray[np.float64]) -> int:
 
 def closed_loop(setup: Setup, plant: ContinuousTF) -> ClosedLoop:
     """The loop of the setup's controller around ``plant`` (exact ZOH with delay).
+
+    Parameters
+    ----------
+    setup : Setup
+        Gives C(q), T_s and n_m.
+    plant : ContinuousTF
+        G(s) (known, or the BLA's parametric model).
+
+    Returns
+    -------
+    ClosedLoop
+        The loop of eq. (state_eq) with f_init on the Clarke rows.
 
     Raises
     ------

@@ -43,8 +43,21 @@ def power_up_analysis(
 ) -> IdentifiabilityReport | None:
     """How well the pole pair can be identified at power-up with this calibration.
 
-    None when the table is not bijective (no table, nothing to place). ``d`` is the
-    calibration recording; ``start``/``stop`` the samples the model was fitted on.
+    Parameters
+    ----------
+    flux : FluxModel
+        The calibration's g_theta.
+    lut : LUT
+        The calibration's table.
+    d : array_like (N, 3)
+        The calibration recording.
+    start, stop : int, keyword-only
+        The samples the model was fitted on.
+
+    Returns
+    -------
+    IdentifiabilityReport or None
+        None when the table is not bijective (no table, nothing to place).
     """
     if not lut.bijective:
         return None
@@ -56,6 +69,15 @@ def power_up_analysis(
 
 def identifiability_from_artifact(artifact: Mapping[str, Any]) -> IdentifiabilityReport | None:
     """The artifact's ``"identifiability"`` entry, or None for an artifact made without it.
+
+    Parameters
+    ----------
+    artifact : mapping
+        The parsed artifact.
+
+    Returns
+    -------
+    IdentifiabilityReport or None
 
     Raises
     ------
@@ -75,6 +97,19 @@ def identifiability_from_artifact(artifact: Mapping[str, Any]) -> Identifiabilit
 
 def decoder_for(flux: FluxModel, lut: LUT, report: IdentifiabilityReport | None) -> PowerUpDecoder:
     """The power-up decoder of a calibration, refusing when identification cannot work.
+
+    Parameters
+    ----------
+    flux : FluxModel
+        The calibration's g_theta.
+    lut : LUT
+        The calibration's table.
+    report : IdentifiabilityReport or None
+        The calibration's identifiability analysis (None: made by an older version).
+
+    Returns
+    -------
+    PowerUpDecoder
 
     Raises
     ------
@@ -104,6 +139,22 @@ def reconstruct_absolute(
     The recording starts at power-up; every sample is decoded as firmware would (the offset in
     force is the current maximum-likelihood one until the sequential test locks).
 
+    Parameters
+    ----------
+    flux : FluxModel
+        The calibration's g_theta.
+    lut : LUT
+        The calibration's table.
+    report : IdentifiabilityReport or None
+        The calibration's identifiability analysis.
+    d : array_like (K, 3)
+        Hall signals from power-up.
+
+    Returns
+    -------
+    AbsoluteAngles
+        y_init and y_star [rad] in the calibration's frame, and the identification.
+
     Raises
     ------
     HallcalInputError, CalibrationRefused
@@ -114,7 +165,20 @@ def reconstruct_absolute(
 
 def same_revolution(y: ArrayLike, y_ref: ArrayLike) -> np.ndarray:
     """``y_ref`` shifted by the whole revolutions that bring it nearest to ``y`` (median): the
-    turn count at power-up is arbitrary, so absolute angles are compared modulo revolutions."""
+    turn count at power-up is arbitrary, so absolute angles are compared modulo revolutions.
+
+    Parameters
+    ----------
+    y : array_like (N,)
+        Reconstructed angle [rad].
+    y_ref : array_like (N,)
+        Encoder (or true) angle [rad].
+
+    Returns
+    -------
+    ndarray (N,)
+        ``y_ref + 2 pi k`` with the integer k nearest to median(y - y_ref) / (2 pi).
+    """
     y = np.asarray(y, dtype=np.float64)
     ref = np.asarray(y_ref, dtype=np.float64)
     return ref + TWO_PI * float(np.round(np.median(y - ref) / TWO_PI))

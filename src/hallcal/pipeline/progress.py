@@ -11,6 +11,14 @@ Progress = Callable[[str], None] | None
 
 
 def say(progress: Progress, message: str) -> None:
-    """Report one step to a progress callback, if there is one."""
+    """Report one step to a progress callback, if there is one.
+
+    Parameters
+    ----------
+    progress : callable or None
+        The callback.
+    message : str
+        One short line.
+    """
     if progress is not None:
         progress(message)

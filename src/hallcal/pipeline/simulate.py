@@ -24,6 +24,15 @@ __all__ = ["bench_config", "simulate"]
 def bench_config(setup: Setup) -> BenchConfig:
     """The virtual bench described by a setup (``[bench]`` knobs, plant and controller).
 
+    Parameters
+    ----------
+    setup : Setup
+        With a ``[plant]`` table (the true G(s)); without ``[controller]`` the paper's C(q).
+
+    Returns
+    -------
+    BenchConfig
+
     Raises
     ------
     HallcalInputError

@@ -151,6 +151,16 @@ def null_vector(projection: ArrayLike) -> NDArray[np.float64]:
 
     ``cross(P[0], P[1])`` normalized (for the Clarke rows: ``(1, 1, 1) / sqrt(3)``, the
     zero-sequence direction); its sign is part of the decoder's table convention.
+
+    Parameters
+    ----------
+    projection : array_like, shape (2, 3)
+        f_init's projection P (rank 2).
+
+    Returns
+    -------
+    ndarray, shape (3,)
+        The unit null vector ``nv`` with ``P @ nv = 0``.
     """
     P = np.asarray(projection, dtype=np.float64).reshape(2, 3)
     nv = np.cross(P[0], P[1])
@@ -331,7 +341,22 @@ class PowerUpDecoder:
         return R0 + f * (R1 - R0), Z0 + f * (Z1 - Z0), (R1 - R0) * k, (Z1 - Z0) * k
 
     def coordinates(self, psi: NDArray, m: NDArray, offsets: ArrayLike) -> NDArray:
-        """Table coordinates x_j of step 5 for samples (psi, m) and hypotheses ``offsets``."""
+        """Table coordinates x_j of step 5 for samples (psi, m) and hypotheses ``offsets``.
+
+        Parameters
+        ----------
+        psi : ndarray, shape (K,)
+            Wrapped electrical angles atan2(beta, alpha) [rad, electrical].
+        m : ndarray of int, shape (K,)
+            f_init's turn counts (step 2).
+        offsets : array_like of int, shape (J,)
+            Hypotheses j (pole pairs between power-up frame and calibration frame).
+
+        Returns
+        -------
+        ndarray, shape (K, J)
+            x_j in [0, M) [table points].
+        """
         n, L, M = self.pole_pairs, self.grid, self.table_size
         j = np.asarray(offsets, dtype=np.int64)
         e = np.mod(np.asarray(m, dtype=np.int64)[:, None] + j[None, :], n)
@@ -462,6 +487,9 @@ def build_decoder(
         Must be bijective (eq. recon_biject).
     noise_std : float, keyword-only
         White Hall noise sigma per channel (Sigma = sigma^2 I); or give ``noise_covariance``.
+    noise_covariance : array_like, shape (3, 3), optional
+        Hall noise covariance Sigma (symmetric positive definite, sensor's unit squared);
+        takes precedence over ``noise_std``.
     grid : int, optional
         L, points per electrical period. Default: the smallest of :data:`GRID_CHOICES` whose
         largest linear-interpolation error (table midpoints against the exact model, measured
@@ -469,6 +497,8 @@ def build_decoder(
         A bias b in the true hypothesis's residual changes a separation delta (per sample, in
         sigmas) by at most b; 0.02 keeps that below 10 % at the weakest separations that still
         identify in a few thousand samples (about 0.2 sigma).
+    interpolation_tolerance : float
+        That tolerance [noise sigmas]; used only when ``grid`` is None.
     error_target : float
         alpha of the sequential test (0 < alpha < 0.5).
     cost_cap : float
@@ -691,7 +721,18 @@ class PowerUpIdentifier:
         return math.sqrt(max(min(others), 0.0)) if others else math.inf
 
     def update(self, d1: float, d2: float, d3: float) -> int:
-        """Process one sample; return the offset in force (``best``)."""
+        """Process one sample (steps 1-7 of the module docstring).
+
+        Parameters
+        ----------
+        d1, d2, d3 : float
+            The three Hall signals of the sample (sensor's unit).
+
+        Returns
+        -------
+        int
+            The offset in force, ``best`` (pole pairs; final once ``locked``).
+        """
         # 1. projection
         x0, x1, x2 = d1 - self._o[0], d2 - self._o[1], d3 - self._o[2]
         P, nv = self._P, self._nv
@@ -792,7 +833,19 @@ class AbsoluteReconstructor:
         return self.identifier.best
 
     def update(self, d1: float, d2: float, d3: float) -> float:
-        """Process one sample; return y_star in the calibration's frame [rad]."""
+        """Process one sample; return y_star in the calibration's frame [rad].
+
+        Parameters
+        ----------
+        d1, d2, d3 : float
+            The three Hall signals of the sample (sensor's unit).
+
+        Returns
+        -------
+        float
+            ``y_abs + eta(y_abs)`` (eq. (f_final)) with ``y_abs = y + 2 pi best / n_m``
+            [rad, mechanical]; ``y_init`` and ``y_star`` are updated too.
+        """
         ident = self.identifier
         j = ident.update(d1, d2, d3)
         self.y_init = ident.y + TWO_PI * j / ident._n
@@ -824,10 +877,16 @@ def absolute_reconstruction(decoder: PowerUpDecoder, lut: LUT, d: ArrayLike) -> 
     Parameters
     ----------
     decoder : PowerUpDecoder
+        The calibration's decoder (:func:`build_decoder`).
     lut : LUT
         The calibration's table.
     d : array_like, shape (K, 3)
         Hall signals from power-up.
+
+    Returns
+    -------
+    AbsoluteAngles
+        y_init and y_star in the calibration's frame [rad], and the identification.
     """
     lut._require_bijective()
     d = np.atleast_2d(np.asarray(d, dtype=np.float64))
@@ -887,11 +946,19 @@ def estimate_normal_noise(
 
     Parameters
     ----------
-    flux, lut : the calibration's model and table.
+    flux : FluxModel
+        The calibration's identified g_theta.
+    lut : LUT
+        Its table (f_init's projection and offsets, eta).
     d : array_like, shape (N, 3)
         The calibration data, f_init running from y = 0 before its first sample.
     start, stop : int, keyword-only
         The samples to use (e.g. the constant-speed part); f_init still runs from sample 0.
+
+    Returns
+    -------
+    NoiseEstimate
+        Total and white noise sigma across the curve, per channel (sensor's unit).
     """
     d = np.atleast_2d(np.asarray(d, dtype=np.float64))
     y = lut.f_init(d)[start:stop]
@@ -1099,7 +1166,21 @@ class IdentifiabilityReport:
 
     def decoder(self, flux: FluxModel, lut: LUT) -> PowerUpDecoder:
         """The decoder this analysis was made for, rebuilt from the calibration's model and
-        table (deterministic: same tables as at calibration time)."""
+        table (deterministic: same tables as at calibration time).
+
+        Parameters
+        ----------
+        flux : FluxModel
+            The calibration's identified g_theta.
+        lut : LUT
+            The calibration's table; its pole pairs must be this report's.
+
+        Returns
+        -------
+        PowerUpDecoder
+            :func:`build_decoder` with this report's noise sigma, grid L, error target and
+            cost cap.
+        """
         if lut.pole_pairs != self.pole_pairs:
             raise ValueError("identifiability: pole pairs differ from the table's")
         return build_decoder(
@@ -1282,80 +1363,112 @@ def assess_identifiability(
     Parameters
     ----------
     decoder : PowerUpDecoder
+        The decoder to analyse (its noise sigma, grid, alpha and cost cap).
     standstill_budget, motion_budget : int, keyword-only
+        Samples allowed at standstill, and per electrical revolution of uniform motion.
     calibration_samples, basis_size : int, optional
         N and m of the calibration (for ``model_floor``).
     noise : NoiseEstimate, optional
         Stored in the report.
+
+    Returns
+    -------
+    IdentifiabilityReport
+        Verdict, reason, one-line message and the separations in noise sigmas.
     """
     dec = decoder
-    n, L, M = dec.pole_pairs, dec.grid, dec.table_size
-    alpha = dec.error_target
     smap = separation_map(dec)
     sep = smap.separation
-    if n > 1:
-        r1 = _standstill_radius(smap.planar)
-        r1sq = np.square(r1)
-        K_pos = _samples_for(
-            lambda K, rows: np.mean(np.exp(-0.5 * K[:, None] * r1sq[rows]), axis=1), alpha, M
-        )
-        err_budget = float(np.mean(standstill_error(r1, standstill_budget)))
-        # one electrical revolution of uniform motion from every start q: mean (censored) cost
-        # per sample of each wrong pole pair along it
-        cost = np.clip(smap.cost, 0.0, dec.cost_cap)
-        csum = np.concatenate([np.zeros((1, n - 1)), np.cumsum(np.vstack([cost, cost]), axis=0)])
-        D = (csum[L : L + M] - csum[:M]) / L  # (M, n - 1)
-        rev_sep = float(math.sqrt(max(float(np.min(D)), 0.0)))
-
-        def union(K: NDArray, rows: NDArray) -> NDArray:
-            return np.sum(_normal_tail(0.5 * np.sqrt(K[:, None] * D[rows])), axis=1)
-
-        K_rev = float(np.max(_samples_for(union, alpha, M)))
-    else:  # one pole pair: nothing to identify
-        K_pos = np.ones(M)
-        err_budget = 0.0
-        rev_sep = math.inf
-        K_rev = 1.0
-    floor = None
-    if calibration_samples and basis_size:
-        floor = math.sqrt(4.0 * max(int(basis_size) - 1, 1) / int(calibration_samples))
-    worst_K = float(np.max(K_pos))
-    if floor is not None and rev_sep < 5.0 * floor:
-        status, reason = (
-            Identifiability.NOT_IDENTIFIABLE,
-            IdentifiabilityReason.BELOW_MODEL_UNCERTAINTY,
-        )
-    elif worst_K <= standstill_budget:
-        status, reason = Identifiability.IDENTIFIABLE, IdentifiabilityReason.STANDSTILL
-    elif K_rev <= motion_budget:
-        status, reason = Identifiability.NEEDS_MOTION, IdentifiabilityReason.WEAK_POSITIONS
-    else:
-        status, reason = Identifiability.NOT_IDENTIFIABLE, IdentifiabilityReason.TOO_UNIFORM
-    ok = float(np.mean(K_pos <= standstill_budget))
+    need = _samples_needed(dec, smap, standstill_budget)
+    floor = _model_floor(calibration_samples, basis_size)
+    worst_K = float(np.max(need.standstill))
+    status, reason = _verdict(need, floor, standstill_budget, motion_budget)
     report = dict(
         status=status,
         reason=reason,
-        pole_pairs=n,
-        grid=L,
+        pole_pairs=dec.pole_pairs,
+        grid=dec.grid,
         noise_std=dec.noise_std,
-        error_target=alpha,
+        error_target=dec.error_target,
         standstill_budget=int(standstill_budget),
         motion_budget=int(motion_budget),
         separation_worst=float(np.min(sep)),
         separation_p05=float(np.percentile(sep, 5)),
         separation_median=float(np.median(sep)),
         standstill_samples_worst=worst_K,
-        standstill_samples_median=float(np.median(K_pos)),
-        standstill_error_rate=err_budget,
-        standstill_fraction_ok=ok,
-        revolution_separation_worst=rev_sep,
-        revolution_samples_needed=K_rev,
+        standstill_samples_median=float(np.median(need.standstill)),
+        standstill_error_rate=need.standstill_error,
+        standstill_fraction_ok=float(np.mean(need.standstill <= standstill_budget)),
+        revolution_separation_worst=need.revolution_separation,
+        revolution_samples_needed=need.revolution_samples,
         model_floor=floor,
         interpolation_error=dec.interpolation_error,
         cost_cap=dec.cost_cap,
         noise=noise,
     )
     return IdentifiabilityReport(message=_message(report), **report)
+
+
+@dataclass(frozen=True)
+class _SamplesNeeded:
+    """Samples for the target error probability at standstill and with motion."""
+
+    standstill: NDArray[np.float64]  # per table position
+    standstill_error: float  # mean error probability with the standstill budget
+    revolution_separation: float  # smallest RMS separation per sample along one revolution
+    revolution_samples: float  # per electrical revolution of uniform motion, worst start
+
+
+def _samples_needed(dec: PowerUpDecoder, smap: SeparationMap, budget: int) -> _SamplesNeeded:
+    """Standstill and motion needs of :func:`assess_identifiability` (one pole pair: none).
+
+    At standstill: the exact Gaussian probability of the decision region at every position
+    (first order, :func:`standstill_error`). With motion: one electrical revolution of uniform
+    motion from every start, the mean (censored) cost per sample of each wrong pole pair along
+    it, and a union bound over the wrong pole pairs.
+    """
+    n, L, M = dec.pole_pairs, dec.grid, dec.table_size
+    alpha = dec.error_target
+    if n <= 1:  # one pole pair: nothing to identify
+        return _SamplesNeeded(np.ones(M), 0.0, math.inf, 1.0)
+    r1 = _standstill_radius(smap.planar)
+    r1sq = np.square(r1)
+    K_pos = _samples_for(
+        lambda K, rows: np.mean(np.exp(-0.5 * K[:, None] * r1sq[rows]), axis=1), alpha, M
+    )
+    err_budget = float(np.mean(standstill_error(r1, budget)))
+    # one electrical revolution of uniform motion from every start q: mean (censored) cost
+    # per sample of each wrong pole pair along it
+    cost = np.clip(smap.cost, 0.0, dec.cost_cap)
+    csum = np.concatenate([np.zeros((1, n - 1)), np.cumsum(np.vstack([cost, cost]), axis=0)])
+    D = (csum[L : L + M] - csum[:M]) / L  # (M, n - 1)
+    rev_sep = float(math.sqrt(max(float(np.min(D)), 0.0)))
+
+    def union(K: NDArray, rows: NDArray) -> NDArray:
+        return np.sum(_normal_tail(0.5 * np.sqrt(K[:, None] * D[rows])), axis=1)
+
+    K_rev = float(np.max(_samples_for(union, alpha, M)))
+    return _SamplesNeeded(K_pos, err_budget, rev_sep, K_rev)
+
+
+def _model_floor(calibration_samples: int | None, basis_size: int | None) -> float | None:
+    """``sqrt(4 (m - 1) / N)``: the separation the fit noise shows on identical magnets."""
+    if calibration_samples and basis_size:
+        return math.sqrt(4.0 * max(int(basis_size) - 1, 1) / int(calibration_samples))
+    return None
+
+
+def _verdict(
+    need: _SamplesNeeded, floor: float | None, standstill_budget: int, motion_budget: int
+) -> tuple[Identifiability, IdentifiabilityReason]:
+    """The verdict of :func:`assess_identifiability` and its reason (see its docstring)."""
+    if floor is not None and need.revolution_separation < 5.0 * floor:
+        return Identifiability.NOT_IDENTIFIABLE, IdentifiabilityReason.BELOW_MODEL_UNCERTAINTY
+    if float(np.max(need.standstill)) <= standstill_budget:
+        return Identifiability.IDENTIFIABLE, IdentifiabilityReason.STANDSTILL
+    if need.revolution_samples <= motion_budget:
+        return Identifiability.NEEDS_MOTION, IdentifiabilityReason.WEAK_POSITIONS
+    return Identifiability.NOT_IDENTIFIABLE, IdentifiabilityReason.TOO_UNIFORM
 
 
 def _fmt_k(K: float) -> str:
@@ -1424,7 +1537,10 @@ def analyze_calibration(
 
     Parameters
     ----------
-    flux, lut : the calibration's model and (bijective) table.
+    flux : FluxModel
+        The calibration's identified g_theta.
+    lut : LUT
+        Its (bijective) table.
     d : array_like, shape (N, 3)
         The calibration recording (f_init from y = 0 before its first sample).
     start, stop : int, keyword-only
@@ -1432,7 +1548,15 @@ def analyze_calibration(
     basis_size : int, optional
         m, basis functions per channel (for the model floor).
     standstill_budget, motion_budget : int
-        See :func:`assess_identifiability`.
+        Samples allowed at standstill, and per electrical revolution of motion; see
+        :func:`assess_identifiability`.
+
+    Returns
+    -------
+    decoder : PowerUpDecoder
+        Built with sigma = the total noise across the model curve.
+    report : IdentifiabilityReport
+        The verdict and separations for that decoder.
     """
     noise = estimate_normal_noise(flux, lut, d, start=start, stop=stop)
     sigma = noise.total_std

@@ -27,7 +27,7 @@ __all__ = ["FluxModel", "FourierBasis", "sinusoidal_theta"]
 
 @dataclass(frozen=True)
 class FourierBasis:
-    """Fourier basis of the Fourier basis with a constant term and chosen mechanical harmonics.
+    """Fourier basis beta(y0) (eq. (basis)) with a constant term and chosen mechanical harmonics.
 
     Parameters
     ----------
@@ -184,12 +184,26 @@ def sinusoidal_theta(
 ) -> NDArray[np.float64]:
     """theta for pure sinusoids ``d_h = o_h + A_h cos(n_m y0 - phi_h)``: the inverse of f_init.
 
-    This is the paper's starting point theta_0 of the SEM problem. Requires n_m in the
-    harmonics of the basis.
+    This is the paper's starting point theta_0 of the SEM problem (section "Identification").
+    Requires n_m in the harmonics of the basis.
+
+    Parameters
+    ----------
+    basis : FourierBasis
+        The basis theta is expressed in; must contain the harmonic n_m.
+    pole_pairs : int
+        n_m: the electrical angle is n_m y0.
+    amplitude : array_like, scalar or shape (3,), keyword-only
+        A_h per sensor (sensor's unit).
+    offset : array_like, scalar or shape (3,), keyword-only
+        o_h per sensor (sensor's unit).
+    phases : array_like, shape (3,), keyword-only
+        Electrical phases phi_h [rad, electrical]; default 0, 120 and 240 degrees.
 
     Returns
     -------
     ndarray, shape (3, m)
+        theta_0, one row per sensor: constant o_h and the sin/cos pair of harmonic n_m.
     """
     if pole_pairs not in basis.harmonics:
         raise ValueError(f"the basis must contain the pole-pair harmonic {pole_pairs}")

@@ -95,7 +95,20 @@ class LUT:
         return np.interp(np.mod(y, TWO_PI), xp, fp)
 
     def f_star(self, d: ArrayLike, *, y_initial: float = 0.0) -> NDArray[np.float64]:
-        """f_star over a recording: f_init(d) + eta(f_init(d)), shape (N,) [rad]."""
+        """f_star over a recording: f_init(d) + eta(f_init(d)) (eq. (f_final)).
+
+        Parameters
+        ----------
+        d : array_like, shape (N, 3)
+            Hall signals, one row per sample.
+        y_initial : float, keyword-only
+            f_init's estimate before the first sample [rad, mechanical].
+
+        Returns
+        -------
+        ndarray, shape (N,)
+            y_star [rad, mechanical].
+        """
         y = self.f_init(d, y_initial=y_initial)
         return y + self.correction(y)
 
@@ -152,7 +165,20 @@ class LUT:
         return y_init, y_star
 
     def f_init(self, d: ArrayLike, *, y_initial: float = 0.0) -> NDArray[np.float64]:
-        """The f_init (Clarke + atan2 + unwrap) this table corrects [rad]."""
+        """The f_init (Clarke + atan2 + unwrap, eq. (fimp)) this table corrects.
+
+        Parameters
+        ----------
+        d : array_like, shape (N, 3)
+            Hall signals, one row per sample.
+        y_initial : float, keyword-only
+            f_init's estimate before the first sample [rad, mechanical].
+
+        Returns
+        -------
+        ndarray, shape (N,)
+            y [rad, mechanical], with this table's projection and offsets.
+        """
         return f_init(
             d, self.pole_pairs, y_initial=y_initial, projection=self.projection, offset=self.offset
         )
@@ -183,7 +209,26 @@ class LUT:
         y_hat: ArrayLike,
         eta: ArrayLike,
     ) -> LUT:
-        """Rebuild a table from stored nodes (e.g. an artifact), re-checking bijectivity."""
+        """Rebuild a table from stored nodes (e.g. an artifact), re-checking bijectivity.
+
+        Parameters
+        ----------
+        pole_pairs : int
+            n_m.
+        projection : array_like, shape (2, 3)
+            f_init's projection on the alpha/beta plane.
+        offset : array_like, shape (3,)
+            Sensor offsets subtracted before projecting (sensor's unit).
+        y_hat : array_like, shape (M,)
+            Table nodes y_hat_i = f_init(g_theta(y0_i)) (eq. (recon_biject)) [rad].
+        eta : array_like, shape (M,)
+            Corrections eta_i = y0_i - y_hat_i [rad]; the grid is recovered as y_hat + eta.
+
+        Returns
+        -------
+        LUT
+            With ``bijective`` and ``min_slope`` recomputed from the nodes.
+        """
         y_hat = np.asarray(y_hat, dtype=np.float64)
         eta = np.asarray(eta, dtype=np.float64)
         y0 = y_hat + eta
@@ -264,6 +309,13 @@ class StarReconstructor:
 
     Note that the f_init inside runs on its own (uncorrected) previous estimate, as in the paper:
     the table corrects the output, not the unwrapping state.
+
+    Parameters
+    ----------
+    lut : LUT
+        A bijective table (eq. (recon_biject)); its projection and offsets configure f_init.
+    y_initial : float, keyword-only
+        f_init's estimate before the first sample [rad, mechanical].
     """
 
     def __init__(self, lut: LUT, *, y_initial: float = 0.0) -> None:
@@ -274,6 +326,17 @@ class StarReconstructor:
         )
 
     def update(self, d1: float, d2: float, d3: float) -> float:
-        """Process one sample; return y_star [rad]."""
+        """Process one sample: y_star = y + eta(y), eq. (f_final).
+
+        Parameters
+        ----------
+        d1, d2, d3 : float
+            The three Hall signals of the sample (sensor's unit).
+
+        Returns
+        -------
+        float
+            y_star [rad, mechanical].
+        """
         y = self._init.update(d1, d2, d3)
         return y + float(self.lut.correction(y))

@@ -48,6 +48,11 @@ def angle_error(y_est: ArrayLike, y_ref: ArrayLike, *, remove_mean: bool = True)
         Reference angle (encoder or the bench's truth) [rad].
     remove_mean : bool, keyword-only
         Whether ``rms`` and ``peak`` are taken about the mean error (default) or about zero.
+
+    Returns
+    -------
+    AngleError
+        RMS, peak and mean of the error [rad], the RMS about zero, and the sample count.
     """
     e = np.asarray(y_est, dtype=np.float64) - np.asarray(y_ref, dtype=np.float64)
     mean = float(np.mean(e))
@@ -83,7 +88,20 @@ class SpatialSpectrum:
     revolutions: float
 
     def power_at(self, cycles: float, *, width: float = 0.5) -> float:
-        """Power within +-width cycles/rev of a spatial frequency [rad^2]."""
+        """Power within +-width cycles/rev of a spatial frequency.
+
+        Parameters
+        ----------
+        cycles : float
+            Spatial frequency [cycles/rev], e.g. n_m for the pole-pair harmonic.
+        width : float, keyword-only
+            Half-width of the band summed [cycles/rev].
+
+        Returns
+        -------
+        float
+            Sum of ``power`` over the lines in the band [rad^2].
+        """
         sel = np.abs(self.frequency - cycles) <= width
         return float(self.power[sel].sum())
 
@@ -106,6 +124,11 @@ def spatial_spectrum(
         Angle used as the spatial axis [rad] (encoder, true angle or y_star).
     points_per_rev : int, optional
         Grid density; default: as many grid points as samples in the segment.
+
+    Returns
+    -------
+    SpatialSpectrum
+        Power and cumulative power [rad^2] per spatial frequency [cycles/rev].
     """
     e = np.asarray(error, dtype=np.float64)
     x = np.asarray(position, dtype=np.float64)

@@ -47,6 +47,11 @@ def clarke_matrix() -> NDArray[np.float64]:
     """The amplitude-invariant Clarke matrix C of f_init (3 x 3).
 
     Rows give alpha, beta and the zero-sequence component of ``C @ d``.
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+        C = 2/3 [[1, -1/2, -1/2], [0, sqrt(3)/2, -sqrt(3)/2], [1/2, 1/2, 1/2]] (eq. (fimp)).
     """
     s = math.sqrt(3.0) / 2.0
     return (2.0 / 3.0) * np.array([[1.0, -0.5, -0.5], [0.0, s, -s], [0.5, 0.5, 0.5]])
@@ -64,6 +69,11 @@ def projection_matrix(phases: ArrayLike = NOMINAL_PHASES) -> NDArray[np.float64]
     ----------
     phases : array_like, shape (3,)
         Electrical phase of each sensor [rad].
+
+    Returns
+    -------
+    ndarray, shape (2, 3)
+        P with ``[A cos psi, A sin psi] = P @ d`` for offset-free ideal sensors.
     """
     phi = np.asarray(phases, dtype=np.float64)
     if phi.shape != (3,):
@@ -104,7 +114,17 @@ def alpha_beta(
 def electrical_angle(d: ArrayLike, **kwargs) -> NDArray[np.float64]:
     """Wrapped electrical angle ``atan2(beta, alpha)`` in [-pi, pi].
 
-    Keywords as :func:`alpha_beta`.
+    Parameters
+    ----------
+    d : array_like, shape (N, 3) or (3,)
+        Hall signals.
+    **kwargs
+        ``projection`` and ``offset``, as for :func:`alpha_beta`.
+
+    Returns
+    -------
+    ndarray, shape (N,) or ()
+        Electrical angle n_m y modulo 2 pi [rad, electrical], in [-pi, pi].
     """
     ab = alpha_beta(d, **kwargs)
     return np.arctan2(ab[..., 1], ab[..., 0])
@@ -115,6 +135,18 @@ def unwrap_to(angle: float, reference: float) -> float:
 
     ``Gamma(angle, reference) = reference + mod(angle - reference + pi, 2 pi) - pi``: the value
     congruent to ``angle`` modulo 2 pi nearest to ``reference`` (ties go to ``reference - pi``).
+
+    Parameters
+    ----------
+    angle : float
+        Wrapped angle [rad] (f_init passes the electrical angle atan2(beta, alpha)).
+    reference : float
+        The previous unwrapped angle in the same unit (f_init: n_m y(t_k-1)) [rad].
+
+    Returns
+    -------
+    float
+        The unwrapped angle, within pi of ``reference`` [rad].
     """
     return (
         reference
@@ -181,7 +213,18 @@ class InitReconstructor:
         self._o = [0.0, 0.0, 0.0] if offset is None else [float(v) for v in offset]
 
     def update(self, d1: float, d2: float, d3: float) -> float:
-        """Process one sample and return y(t_k) [rad]."""
+        """Process one sample: y(t_k) = f_init(d(t_k)) relative to y(t_k-1) (eq. (fimp)).
+
+        Parameters
+        ----------
+        d1, d2, d3 : float
+            The three Hall signals of sample k (sensor's unit, e.g. V).
+
+        Returns
+        -------
+        float
+            The new mechanical angle estimate y(t_k) [rad], also stored in ``self.y``.
+        """
         x = (d1 - self._o[0], d2 - self._o[1], d3 - self._o[2])
         (p0, p1) = self._P
         a = p0[0] * x[0] + p0[1] * x[1] + p0[2] * x[2]

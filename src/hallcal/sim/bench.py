@@ -46,6 +46,7 @@ __all__ = [
     "BenchConfig",
     "BenchRun",
     "noise_floor",
+    "position_controller",
     "power_up_run",
     "power_up_start",
     "ramp_run",
@@ -60,12 +61,61 @@ PAPER_PLANT = ContinuousTF((1.663e5,), (1.0, 632.6, 2702.0, 0.0), 1.2e-4)
 PAPER_CONTROLLER = DiscreteTF((2.94, -3.29, -2.10, 2.45), (1.0, -3.45, 4.52, -2.68, 0.61))
 
 
+def position_controller(plant: ContinuousTF, sample_time: float, crossover_hz: float) -> DiscreteTF:
+    """A lead-lag PI position controller for a type-1 plant, for benches unlike the paper's.
+
+    ``C(s) = k (s + w_i)(s + w_z) / (s (s + w_p))`` with the integrator zero at ``w_c / 8``,
+    the lead between ``w_c / 3`` and ``3 w_c`` (about 50 degrees of phase lead), k such that
+    ``|C(j w_c) G(j w_c)| = 1``; discretized by Tustin (bilinear) at ``sample_time``. The loop is
+    type 2: a ramp is tracked without steady error (Franklin, Powell & Emami-Naeini, "Feedback
+    Control of Dynamic Systems", sec. 6.7, lead and lag compensation).
+
+    Parameters
+    ----------
+    plant : ContinuousTF
+        G(s) from torque command to angle [rad], with one integrator.
+    sample_time : float
+        T_s [s].
+    crossover_hz : float
+        Crossover frequency f_c of the loop [Hz], well below the Nyquist frequency.
+
+    Returns
+    -------
+    DiscreteTF
+        C(q) in descending powers of q.
+    """
+    wc = TWO_PI * float(crossover_hz)
+    wi, wz, wp = wc / 8.0, wc / 3.0, 3.0 * wc
+    num_s = np.polymul([1.0, wi], [1.0, wz])
+    den_s = np.polymul([1.0, 0.0], [1.0, wp])
+    c_wc = np.polyval(num_s, 1j * wc) / np.polyval(den_s, 1j * wc)
+    g_wc = plant.frequency_response(np.array([crossover_hz]))[0]
+    k = 1.0 / abs(c_wc * g_wc)
+    numd, dend, _ = scipy.signal.cont2discrete((k * num_s, den_s), sample_time, method="bilinear")
+    numd = np.atleast_1d(np.squeeze(numd))
+    return DiscreteTF(tuple(float(v) for v in numd), tuple(float(v) for v in dend))
+
+
 def noise_floor(noise_variance: float, pole_pairs: int, amplitude: float = 1.0) -> float:
     """RMS angle error [rad] that white Hall noise alone causes in any reconstruction.
 
     The alpha/beta projection of three channels with variance sigma^2 has variance
     (2/3) sigma^2 per component; the tangential part gives an electrical angle error of
     sigma sqrt(2/3) / A, i.e. sigma sqrt(2/3) / (A n_m) mechanical (docs/design.md).
+
+    Parameters
+    ----------
+    noise_variance : float
+        sigma^2 per Hall channel (sensor's unit squared, V^2 on the paper's bench).
+    pole_pairs : int
+        n_m.
+    amplitude : float
+        A, amplitude of the Hall signals' fundamental (sensor's unit).
+
+    Returns
+    -------
+    float
+        sigma sqrt(2/3) / (A n_m) [rad, mechanical, RMS].
     """
     return math.sqrt(noise_variance) * math.sqrt(2.0 / 3.0) / (amplitude * pole_pairs)
 
@@ -318,8 +368,8 @@ class BenchRun:
     config : BenchConfig
     realization : ndarray (N,) of int or None
         Multisine realization index (BLA experiments).
-    status : str
-        "ok" or "diverged".
+    status : LoopStatus
+        OK or DIVERGED (a str enum: "ok", "diverged").
     """
 
     t: NDArray[np.float64] = field(repr=False)
@@ -399,6 +449,8 @@ def simulate_run(
     seed : int, keyword-only
         Seed of this run's noise and disturbance (default: ``config.seed``); the truth depends on
         ``config.seed`` only, so runs with other seeds are fresh realizations on the same motor.
+    realization : array_like (N,) of int, keyword-only, optional
+        Multisine realization index per sample, stored in the run (BLA experiments).
     initial_angle : float, keyword-only
         True rotor angle at the first sample [rad, in the truth's frame]: a power-up wherever
         the rotor stopped. f_init (and so the loop) still starts from y = 0 before the first
@@ -406,6 +458,11 @@ def simulate_run(
         by about a whole number of pole pairs ``2 pi j / n_m``. The reference should start
         near f_init's first value (:func:`power_up_start`) to avoid a step. Default 0: the
         calibration convention (y0 = 0 at the first sample).
+
+    Returns
+    -------
+    BenchRun
+        r, y, u, the noisy Hall signals d and the true angle y0 of the run.
     """
     r = np.asarray(r, dtype=np.float64)
     N = r.size
@@ -444,7 +501,27 @@ def ramp_run(
     duration: float = 26.0,
     seed: int | None = None,
 ) -> BenchRun:
-    """The calibration experiment: a ramp reference 0 -> ``ramp_end`` [rad] in ``duration`` [s]."""
+    """The calibration experiment: a ramp reference 0 -> ``ramp_end`` [rad] in ``duration`` [s].
+
+    Step 1 of Algorithm 1 on the virtual bench; the defaults are the paper's simulation
+    (section "Simulation results": 0 -> 13 rad in 26 s).
+
+    Parameters
+    ----------
+    config : BenchConfig
+        The bench.
+    ramp_end : float, keyword-only
+        Final reference [rad, mechanical].
+    duration : float, keyword-only
+        Length of the run [s]; ``round(duration / T_s)`` samples.
+    seed : int, keyword-only, optional
+        Seed of the noise and disturbance; default ``config.seed``.
+
+    Returns
+    -------
+    BenchRun
+        The calibration recording with its true angle y0.
+    """
     N = int(round(duration / config.sample_time))
     r = np.linspace(0.0, ramp_end, N, endpoint=False)
     return simulate_run(config, r, seed=seed)
@@ -455,6 +532,18 @@ def power_up_start(config: BenchConfig, initial_angle: float) -> float:
 
     f_init starts from y = 0, so this is the true flux's electrical angle at ``initial_angle``
     unwrapped into [-pi/n_m, pi/n_m): the value a power-up reference should start from.
+
+    Parameters
+    ----------
+    config : BenchConfig
+        The bench (truth flux, f_init's projection and offsets, n_m).
+    initial_angle : float
+        True rotor angle at power-up [rad, mechanical, truth's frame].
+
+    Returns
+    -------
+    float
+        f_init's first output [rad, mechanical], in [-pi/n_m, pi/n_m).
     """
     g = config.truth()(np.array([float(initial_angle)]))[0]
     P = config.loop().projection
@@ -477,6 +566,24 @@ def power_up_run(
     ``speed`` [rad/s] relative to f_init's frame, so the loop starts without a step. The true
     angle ``y0`` is in the truth's frame (the calibration's frame when the calibration run
     started at y0 = 0), while f_init starts within one electrical period of zero.
+
+    Parameters
+    ----------
+    config : BenchConfig
+        The bench (truth, loop, noise).
+    initial_angle : float
+        True rotor angle at power-up [rad, mechanical, truth's frame].
+    samples : int, keyword-only
+        Length of the run [samples].
+    speed : float, keyword-only
+        Reference speed [rad/s, mechanical]; 0 holds still.
+    seed : int, keyword-only, optional
+        Seed of the noise and disturbance; default ``config.seed``.
+
+    Returns
+    -------
+    BenchRun
+        The run; ``y`` is f_init's output from y = 0, ``y0`` the true angle.
     """
     y_start = power_up_start(config, initial_angle)
     r = y_start + speed * config.sample_time * np.arange(int(samples))

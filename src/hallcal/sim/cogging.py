@@ -69,7 +69,21 @@ class CoggingTorque:
     def from_coefficients(
         cls, orders: ArrayLike, x: ArrayLike, covariance: ArrayLike | None = None
     ) -> CoggingTorque:
-        """From interleaved coefficients ``x = [a_1, b_1, a_2, b_2, ...]``."""
+        """From interleaved coefficients ``x = [a_1, b_1, a_2, b_2, ...]``.
+
+        Parameters
+        ----------
+        orders : array_like of int, shape (n,)
+            Orders k (periods per mechanical revolution).
+        x : array_like, shape (2n,)
+            Interleaved cosine/sine coefficients [plant input units].
+        covariance : array_like, shape (2n, 2n), optional
+            Their covariance (an estimate's uncertainty).
+
+        Returns
+        -------
+        CoggingTorque
+        """
         xx = np.asarray(x, dtype=np.float64).reshape(-1)
         return cls(tuple(np.atleast_1d(orders).tolist()), xx[0::2], xx[1::2], covariance)
 
@@ -77,7 +91,22 @@ class CoggingTorque:
     def from_amplitudes(
         cls, orders: ArrayLike, amplitude: ArrayLike, phase_deg: ArrayLike = 0.0
     ) -> CoggingTorque:
-        """``T_c = sum_k A_k cos(k y0 - phi_k)`` with phases in degrees."""
+        """``T_c = sum_k A_k cos(k y0 - phi_k)`` with phases in degrees.
+
+        Parameters
+        ----------
+        orders : array_like of int, shape (n,)
+            Orders k (periods per mechanical revolution).
+        amplitude : array_like, scalar or shape (n,)
+            A_k [plant input units].
+        phase_deg : array_like, scalar or shape (n,)
+            phi_k [degrees].
+
+        Returns
+        -------
+        CoggingTorque
+            With a_k = A_k cos(phi_k), b_k = A_k sin(phi_k).
+        """
         k = tuple(int(v) for v in np.atleast_1d(orders))
         A = np.broadcast_to(np.asarray(amplitude, dtype=np.float64), (len(k),))
         phi = np.radians(np.broadcast_to(np.asarray(phase_deg, dtype=np.float64), (len(k),)))

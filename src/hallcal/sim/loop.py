@@ -127,7 +127,28 @@ class ClosedLoop:
         projection: ArrayLike | None = None,
         offset: ArrayLike | None = None,
     ) -> ClosedLoop:
-        """Discretize G(s) exactly (ZOH with delay) and realize C(q) in state space."""
+        """Discretize G(s) exactly (ZOH with delay) and realize C(q) in state space.
+
+        Parameters
+        ----------
+        plant : ContinuousTF
+            G(s) with its input delay (or the BLA's parametric model).
+        controller : DiscreteTF
+            C(q), eq. (controller).
+        sample_time : float
+            T_s [s].
+        pole_pairs : int
+            n_m of f_init in the loop.
+        projection : array_like, shape (2, 3), keyword-only, optional
+            f_init's projection; default the Clarke rows.
+        offset : array_like, shape (3,), keyword-only, optional
+            Sensor offsets f_init subtracts; default zero.
+
+        Returns
+        -------
+        ClosedLoop
+            The loop of eq. (state_eq), without cogging torque.
+        """
         return cls(
             plant.discretize(sample_time),
             controller.state_space(sample_time),
@@ -606,7 +627,15 @@ def loop_jacobian(
 
     Parameters
     ----------
-    out : ndarray (N, 3, p), optional
+    loop : ClosedLoop
+        Plant, controller and f_init of the loop (eq. (state_eq)).
+    flux : FluxModel
+        g_theta with a Fourier basis; the derivatives are taken with respect to its theta.
+    r : array_like (N,)
+        Reference [rad].
+    y_initial : float, keyword-only
+        f_init's estimate before the first sample [rad].
+    out : ndarray (N, 3, p), keyword-only, optional
         Preallocated Jacobian storage.
     fit_gain : bool, keyword-only
         Append the column d d_sim / d log(c) for a factor c on the plant input matrix
@@ -617,12 +646,12 @@ def loop_jacobian(
         Append the columns d d_sim / d (a_1, b_1, a_2, b_2, ...) of the cogging coefficients,
         including the feedback term ``dT_c/dy0 dy0`` in every column.
 
-    Columns: theta (3 m, sensor-major), then log c (fit_gain), then the cogging coefficients.
-    After a divergence the remaining samples and Jacobian rows are NaN.
-
     Returns
     -------
     LoopJacobian
+        Simulated d, y0, y, u and the Jacobian; its columns are theta (3 m, sensor-major),
+        then log c (``fit_gain``), then the cogging coefficients. After a divergence the
+        remaining samples and Jacobian rows are NaN and the status is DIVERGED.
     """
     r = _kernel_array(r)
     N = r.size

@@ -64,7 +64,20 @@ class StateSpace:
         return out
 
     def simulate(self, u: ArrayLike, *, x0: ArrayLike | None = None) -> NDArray[np.float64]:
-        """Discrete response y[k] to the input sequence u[k] from state x0 (default zero)."""
+        """Discrete response y[k] to the input sequence u[k] from state x0 (default zero).
+
+        Parameters
+        ----------
+        u : array_like, shape (N,)
+            Input sequence.
+        x0 : array_like, shape (n,), keyword-only, optional
+            Initial state; default zero.
+
+        Returns
+        -------
+        ndarray, shape (N,)
+            y[k] = C x[k] + D u[k].
+        """
         if self.dt is None:
             raise ValueError("simulate() is for discrete systems")
         u = np.asarray(u, dtype=np.float64)
@@ -77,7 +90,21 @@ class StateSpace:
 
 
 def tf2ss(num: ArrayLike, den: ArrayLike, *, dt: float | None = None) -> StateSpace:
-    """Controllable-canonical state space of num/den (descending powers), proper only."""
+    """Controllable-canonical state space of num/den (descending powers), proper only.
+
+    Parameters
+    ----------
+    num, den : array_like
+        Polynomial coefficients in descending powers of s (or of q); leading zeros ignored.
+    dt : float, keyword-only, optional
+        Sample time [s] of a discrete system; None for a continuous one.
+
+    Returns
+    -------
+    StateSpace
+        A = [-den[1:]; I 0], B = e_1, C = num[1:] - num[0] den[1:], D = num[0] (den made
+        monic), the form of ``scipy.signal.tf2ss``.
+    """
     num, den = _trim(num), _trim(den)
     if num.size > den.size:
         raise ValueError("transfer function must be proper (deg num <= deg den)")
@@ -154,6 +181,20 @@ class DiscreteTF:
         return tf2ss(self.num, self.den, dt=sample_time)
 
     def frequency_response(self, freq_hz: ArrayLike, sample_time: float) -> NDArray[np.complex128]:
+        """C(z) at z = exp(j 2 pi f T_s).
+
+        Parameters
+        ----------
+        freq_hz : array_like
+            Frequencies f [Hz].
+        sample_time : float
+            T_s [s].
+
+        Returns
+        -------
+        ndarray of complex, shape (F,)
+            num(z) / den(z), one value per frequency.
+        """
         z = np.exp(2j * np.pi * np.atleast_1d(np.asarray(freq_hz, float)) * sample_time)
         return np.polyval(self.num, z) / np.polyval(self.den, z)
 
