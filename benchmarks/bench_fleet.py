@@ -92,7 +92,7 @@ def main() -> None:
     import numba
     from distributed import Client
 
-    from hallcal.fleet import _local_cluster
+    from hallcal.fleet.run import _local_cluster
 
     print(
         f"machine: {platform.machine()}, {os.cpu_count()} cores, python "

@@ -464,13 +464,16 @@ class Calibration:
         self.lut = LUT.from_arrays(n, P, o_est, lut.y_hat, lut.eta)
         floor = noise * math.sqrt(2.0 / 3.0) / amplitude / n
         self.noise_floor = floor
+        from hallcal import __version__
+
         self.artifact = {
             "format": "hallcal-calibration/1",
+            "hallcal_version": __version__,
             "pole_pairs": n,
             "reconstruction": {"projection": P.tolist(), "offset": o_est.tolist()},
             "lut": {"y_hat": lut.y_hat.tolist(), "eta": lut.eta.tolist(), "points": points},
             "model": {"basis": "fourier", "harmonics": harmonics, "theta": theta.tolist()},
-            "setup": {"pole_pairs": n, "sample_time": sample_time},
+            "setup": _bench_setup(n, sample_time),
             "diagnostics": {"bijective": True, "noise_floor": floor},
         }
 

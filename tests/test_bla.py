@@ -17,8 +17,9 @@ import scipy.signal as sig
 from scipy import stats
 
 from hallcal.errors import HallcalInputError
-from hallcal.identify.bla import NonparametricBLA, ParametricBLA, fit_parametric, nonparametric_bla
+from hallcal.identify.bla import NonparametricBLA, nonparametric_bla
 from hallcal.identify.excitation import multisine_experiment
+from hallcal.identify.parametric import ParametricBLA, fit_parametric
 
 TS = 2.5e-4
 TAU = 1.2e-4
@@ -366,7 +367,7 @@ def test_bad_layouts_are_input_errors() -> None:
 
 
 def test_order_selection_finds_the_papers_plant(loop_bla) -> None:
-    from hallcal.identify.bla import select_order
+    from hallcal.identify.parametric import select_order
 
     sel = select_order(loop_bla)
     assert sel.chosen is not None and sel.chosen.denominator_order == 2
@@ -381,7 +382,7 @@ def test_order_selection_finds_the_papers_plant(loop_bla) -> None:
 
 def test_order_selection_on_a_motor_with_one_mechanical_pole() -> None:
     """K / (s (s + a)) with a delay, noise free: order 1 explains it; more poles are not chosen."""
-    from hallcal.identify.bla import select_order
+    from hallcal.identify.parametric import select_order
 
     freq = np.geomspace(2.0, 400.0, 60)
     s = 2j * np.pi * freq

@@ -356,16 +356,16 @@ def test_cli_errors(tmp_path):
 
 
 def test_unreachable_scheduler(fleet_dir, tmp_path, monkeypatch):
-    import hallcal.fleet as fleet
+    import hallcal.fleet.run as fleet_run
 
-    monkeypatch.setattr(fleet, "_CONNECT_TIMEOUT", "1s")
+    monkeypatch.setattr(fleet_run, "_CONNECT_TIMEOUT", "1s")
     with pytest.raises(HallcalInputError, match="scheduler tcp://127.0.0.1:9: cannot connect"):
         run_fleet(fleet_dir / "manifest.csv", tmp_path / "o", scheduler="tcp://127.0.0.1:9")
 
 
 def crash_on_m02(task):
     """Stands in for a worker that dies (a segfault in a reader, the kernel's OOM killer)."""
-    from hallcal.fleet import _run_motor
+    from hallcal.fleet.worker import _run_motor
 
     if task.motor_id == "m02":
         os._exit(13)

@@ -44,6 +44,7 @@ from hallcal.limits import (
     MAX_TF_ORDER,
     MIN_LUT_POINTS,
 )
+from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT
 
 __all__ = [
@@ -148,6 +149,13 @@ class ArtifactData:
     def lut(self) -> LUT:
         """The lookup table and the f_init it corrects (:class:`hallcal.sensor.lut.LUT`)."""
         return LUT.from_arrays(self.pole_pairs, self.projection, self.offset, self.y_hat, self.eta)
+
+    def flux(self) -> FluxModel:
+        """The flux model as a Fourier series (a kernel model stores its harmonics and
+        coefficients too): :class:`hallcal.sensor.flux.FluxModel`."""
+        harmonics = tuple(int(h) for h in self.model["harmonics"])
+        theta = np.array(self.model["theta"], dtype=np.float64)
+        return FluxModel(FourierBasis(harmonics), theta)
 
 
 class _Checker:
@@ -565,6 +573,8 @@ def _check_cogging(c: _Checker, cog: Any) -> None:
             f"key 'cogging.orders' must hold at most {MAX_HARMONICS} orders up to "
             f"{MAX_HARMONIC} (the limits of the flux model's harmonics)"
         )
+    if len(set(orders)) != len(orders):
+        c.bad("key 'cogging.orders' lists an order twice")
     m = len(orders)
     for key in ("a", "b"):
         what = f"a list of {m} numbers (one per order)"

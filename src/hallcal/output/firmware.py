@@ -3,7 +3,8 @@
 :mod:`hallcal.output.codegen` writes C; this module decides the numbers it writes, so that they
 can be checked here without a C compiler:
 
-* :func:`design_firmware` reads a calibration artifact and returns a :class:`FirmwareDesign`:
+* :func:`design_firmware` reads a calibration artifact (checked by the one validator,
+  :func:`hallcal.io.validate_artifact`) and returns a :class:`FirmwareDesign`:
   the correction table resampled to a uniform grid over one mechanical revolution, the
   plausibility windows of the samples, the step limit and the error budget.
 * The correction table (:class:`CorrectionTable`) replaces the artifact's M nodes
@@ -45,21 +46,20 @@ import scipy.sparse.linalg as sparse_linalg
 from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
+from hallcal.io.artifact import ArtifactData, validate_artifact
 from hallcal.sensor.absolute import (
     GRID_CHOICES,
     IdentifiabilityReport,
     PowerUpDecoder,
 )
-from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT
 
 __all__ = [
-    "ARTIFACT_FORMAT",
     "DEFAULT_BUDGET",
     "DEFAULT_FAULT_AFTER",
     "DEFAULT_STEP_LIMIT",
     "DEFAULT_TOLERANCE",
-    "MAX_POLE_PAIRS",
     "table_sizes",
     "MAX_TABLE_POINTS",
     "CorrectionTable",
@@ -73,8 +73,6 @@ __all__ = [
 ]
 
 TWO_PI = 2.0 * math.pi
-#: The artifact format this exporter reads.
-ARTIFACT_FORMAT = "hallcal-calibration/1"
 #: Largest table: M = n_m 2^k <= this many intervals.
 MAX_TABLE_POINTS = 16384
 #: Largest linear table the exporter chooses by itself (int16: 4 kB).
@@ -92,8 +90,6 @@ DEFAULT_TOLERANCE = 0.25
 DEFAULT_STEP_LIMIT = 0.125
 #: Consecutive rejected samples after which the state flags a fault.
 DEFAULT_FAULT_AFTER = 8
-#: Largest number of pole pairs (the fixed-point variant keeps a table of n_m turn starts).
-MAX_POLE_PAIRS = 1024
 #: Noise sigmas added to every window.
 NOISE_SIGMAS = 6.0
 _MODEL_GRID = 4096  # points per revolution to evaluate the flux model for the windows
@@ -223,7 +219,7 @@ class FirmwareDesign:
         RMS angle error the Hall noise causes [rad], from the artifact.
     budget : float
         What the table may differ from the artifact's interpolant [rad].
-    sample_time : float or None
+    sample_time : float
         From the artifact's setup [s] (1.0: time in samples).
     sha256 : str
         Of the artifact's canonical JSON.
@@ -241,7 +237,7 @@ class FirmwareDesign:
     plausibility: Plausibility
     noise_floor: float | None
     budget: float
-    sample_time: float | None
+    sample_time: float
     sha256: str
     messages: tuple[str, ...] = ()
     flux: FluxModel | None = None
@@ -261,73 +257,25 @@ def _bad(source: str, key: str, why: str) -> HallcalInputError:
     return HallcalInputError(f"{source}: key '{key}' {why}")
 
 
-def _need(obj: Any, key: str, path: str, source: str) -> Any:
-    if not isinstance(obj, Mapping) or key not in obj:
-        raise _bad(source, path, "is missing")
-    return obj[key]
+def _checked(artifact: Mapping | ArtifactData, source: str) -> ArtifactData:
+    """The artifact as the one validator (:func:`hallcal.io.validate_artifact`) passed it."""
+    if isinstance(artifact, ArtifactData):
+        return artifact
+    return validate_artifact(artifact, source)
 
 
-def _array(value: Any, shape: tuple[int, ...] | None, key: str, source: str) -> NDArray:
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError, OverflowError):
-        raise _bad(source, key, "must be numbers") from None
-    if shape is not None and arr.shape != shape:
-        raise _bad(source, key, f"must have shape {shape}, got {arr.shape}")
-    if arr.ndim > 2 or not np.all(np.isfinite(arr)):
-        raise _bad(source, key, "must be finite numbers")
-    return arr
+def _lut(art: ArtifactData, source: str) -> LUT:
+    """The artifact's table; the firmware keeps y_star within half a turn of f_init's
+    revolution, so it takes corrections below pi/2 only (the validator allows up to pi)."""
+    if np.max(np.abs(art.eta)) >= math.pi / 2:
+        raise _bad(
+            source, "lut.eta", "has corrections of pi/2 rad or more (the firmware takes less)"
+        )
+    return art.lut()
 
 
-def _integer(value: Any, key: str, lo: int, hi: int, source: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or not lo <= value <= hi:
-        raise _bad(source, key, f"must be an integer in {lo}..{hi}")
-    return int(value)
-
-
-def _lut(artifact: Mapping, n: int, P: NDArray, o: NDArray, source: str) -> LUT:
-    lut_d = _need(artifact, "lut", "lut", source)
-    y_hat = _array(_need(lut_d, "y_hat", "lut.y_hat", source), None, "lut.y_hat", source)
-    eta = _array(_need(lut_d, "eta", "lut.eta", source), None, "lut.eta", source)
-    if y_hat.ndim != 1 or y_hat.shape != eta.shape:
-        raise _bad(source, "lut.eta", "must be a list as long as lut.y_hat")
-    if not 16 <= y_hat.size <= 65536:
-        raise _bad(source, "lut.y_hat", f"must have 16..65536 nodes, got {y_hat.size}")
-    if "points" in lut_d:
-        points = lut_d["points"]
-        if isinstance(points, bool) or not isinstance(points, int) or points != y_hat.size:
-            raise _bad(source, "lut.points", f"is {points!r} but lut.y_hat has {y_hat.size} nodes")
-    if np.max(np.abs(eta)) >= math.pi / 2:
-        raise _bad(source, "lut.eta", "has corrections of pi/2 rad or more")
-    if np.max(np.abs(y_hat)) > 4 * TWO_PI:
-        raise _bad(source, "lut.y_hat", "has angles beyond one revolution")
-    lut = LUT.from_arrays(n, P, o, y_hat, eta)
-    # eq. (recon_biject): y_hat strictly increasing over one revolution, on the nodes as stored
-    monotone = bool(np.all(np.diff(y_hat) > 0) and y_hat[-1] < y_hat[0] + TWO_PI)
-    if not (lut.bijective and monotone):
-        raise _bad(source, "lut", "is not bijective: the table would give wrong angles")
-    return lut
-
-
-def _flux(artifact: Mapping, source: str) -> FluxModel:
-    model = _need(artifact, "model", "model", source)
-    harmonics = _need(model, "harmonics", "model.harmonics", source)
-    theta = _need(model, "theta", "model.theta", source)
-    if not isinstance(harmonics, list) or not 1 <= len(harmonics) <= 4096:
-        raise _bad(source, "model.harmonics", "must be a list of 1..4096 harmonics")
-    h = [_integer(v, "model.harmonics", 1, 100_000, source) for v in harmonics]
-    try:
-        basis = FourierBasis(tuple(h))
-    except ValueError as exc:
-        raise _bad(source, "model.harmonics", str(exc)) from None
-    th = _array(theta, (3, basis.size), "model.theta", source)
-    return FluxModel(basis, th)
-
-
-def _noise_floor(artifact: Mapping) -> float | None:
-    diag = artifact.get("diagnostics")
-    if not isinstance(diag, Mapping):
-        return None
+def _noise_floor(diag: Mapping[str, Any]) -> float | None:
+    """The calibration's noise floor [rad] (closed loop, or the constant-speed estimate)."""
     value = diag.get("noise_floor")
     if value is None and isinstance(diag.get("constant_speed"), Mapping):
         value = diag["constant_speed"].get("angle_noise_floor")
@@ -335,15 +283,6 @@ def _noise_floor(artifact: Mapping) -> float | None:
         return None
     value = float(value)
     return value if math.isfinite(value) and 0.0 < value < 1.0 else None
-
-
-def _sample_time(artifact: Mapping) -> float | None:
-    setup = artifact.get("setup")
-    value = setup.get("sample_time") if isinstance(setup, Mapping) else None
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return None
-    value = float(value)
-    return value if math.isfinite(value) and value > 0.0 else None
 
 
 # --------------------------------------------------------------------------------------------
@@ -515,7 +454,7 @@ def _plausibility(
     noise_floor: float | None,
     tolerance: float,
     max_speed: float | None,
-    sample_time: float | None,
+    sample_time: float,
     fault_after: int,
     source: str,
 ) -> Plausibility:
@@ -548,8 +487,6 @@ def _plausibility(
         limit = DEFAULT_STEP_LIMIT
         w = max(0.0, 0.5 * (limit - step_noise))
     else:
-        if sample_time is None:
-            raise _bad(source, "setup.sample_time", "is needed to turn max_speed into a step")
         w = max_speed * sample_time * n / TWO_PI  # electrical turns per sample
         limit = 2.0 * w + step_noise
         if limit >= 0.5:
@@ -579,8 +516,55 @@ def _plausibility(
 # --------------------------------------------------------------------------------------------
 
 
+def _check_options(tolerance: float, fault_after: int, max_speed: float | None) -> None:
+    if isinstance(tolerance, bool) or not (0.0 <= float(tolerance) <= 0.9):
+        raise HallcalInputError(f"tolerance must be in [0, 0.9], got {tolerance!r}")
+    if (
+        isinstance(fault_after, bool)
+        or not isinstance(fault_after, int)
+        or not (4 <= fault_after <= 1000)
+    ):
+        raise HallcalInputError(f"fault_after must be an integer in 4..1000, got {fault_after!r}")
+    if max_speed is not None and not (math.isfinite(max_speed) and max_speed > 0.0):
+        raise HallcalInputError(f"max_speed must be a positive number, got {max_speed!r}")
+
+
+def _table(lut: LUT, table_points: int | None, budget: float) -> tuple[CorrectionTable, list[str]]:
+    """The table of ``table_points`` intervals, or the cheapest within the budget; and what to
+    say about its size or its error."""
+    n = lut.pole_pairs
+    if table_points is not None:
+        if (
+            isinstance(table_points, bool)
+            or not isinstance(table_points, int)
+            or table_points not in table_sizes(n)
+        ):
+            raise HallcalInputError(
+                f"table_points must be n_m 2^k in 64..{MAX_TABLE_POINTS} ({n} 2^k here), "
+                f"got {table_points!r}"
+            )
+        table = fit_table(lut, table_points, quadratic=True)
+        if table.error > budget:
+            return table, [
+                f"table of {table_points} points differs by {table.error:.2g} rad from the "
+                f"calibration, more than the budget {budget:.2g} rad"
+            ]
+        return table, []
+    table = _choose_table(lut, budget)
+    if table.error > budget:
+        return table, [
+            f"even {table.points} points differ by {table.error:.2g} rad from the "
+            f"calibration, more than the budget {budget:.2g} rad"
+        ]
+    if table.nbytes > 4096:
+        return table, [
+            f"the budget {budget:.2g} rad needs {table.points} points ({table.nbytes} bytes)"
+        ]
+    return table, []
+
+
 def design_firmware(
-    artifact: Mapping,
+    artifact: Mapping | ArtifactData,
     *,
     source: str = "<calibration artifact>",
     table_points: int | None = None,
@@ -593,8 +577,9 @@ def design_firmware(
 
     Parameters
     ----------
-    artifact : mapping
-        The artifact as read from JSON (``"format": "hallcal-calibration/1"``).
+    artifact : mapping or ArtifactData
+        The artifact as read from JSON (``"format": "hallcal-calibration/1"``), checked here by
+        :func:`hallcal.io.validate_artifact`, or its checked view.
     source : str, keyword-only
         Name of the artifact for error messages.
     table_points : int, keyword-only
@@ -618,43 +603,16 @@ def design_firmware(
     Raises
     ------
     HallcalInputError
-        A missing, malformed or implausible key (named), a table that is not bijective, or an
-        option out of range.
+        An artifact the validator refuses (the key named), corrections the firmware cannot
+        take, a sensor map without a usable amplitude window, or an option out of range.
     """
-    if not isinstance(artifact, Mapping):
-        raise HallcalInputError(f"{source}: the calibration artifact must be a JSON object")
-    fmt = _need(artifact, "format", "format", source)
-    if fmt != ARTIFACT_FORMAT:
-        raise _bad(source, "format", f"is {str(fmt)[:40]!r}, expected {ARTIFACT_FORMAT!r}")
-    n = _integer(_need(artifact, "pole_pairs", "pole_pairs", source), "pole_pairs", 1,
-                 MAX_POLE_PAIRS, source)  # fmt: skip
-    rec = _need(artifact, "reconstruction", "reconstruction", source)
-    P = _array(_need(rec, "projection", "reconstruction.projection", source), (2, 3),
-               "reconstruction.projection", source)  # fmt: skip
-    o = _array(_need(rec, "offset", "reconstruction.offset", source), (3,),
-               "reconstruction.offset", source)  # fmt: skip
-    pn = float(np.max(np.abs(P)))
-    if not 1e-12 <= pn <= 1e12:
-        raise _bad(source, "reconstruction.projection", "has an implausible scale")
-    s = np.linalg.svd(P, compute_uv=False)
-    if s[1] < 1e-6 * s[0]:
-        raise _bad(source, "reconstruction.projection", "must have rank 2")
-    if float(np.max(np.abs(o))) > 1e12:
-        raise _bad(source, "reconstruction.offset", "has an implausible scale")
-    if isinstance(tolerance, bool) or not (0.0 <= float(tolerance) <= 0.9):
-        raise HallcalInputError(f"tolerance must be in [0, 0.9], got {tolerance!r}")
-    if (
-        isinstance(fault_after, bool)
-        or not isinstance(fault_after, int)
-        or not (4 <= fault_after <= 1000)
-    ):
-        raise HallcalInputError(f"fault_after must be an integer in 4..1000, got {fault_after!r}")
-    if max_speed is not None and not (math.isfinite(max_speed) and max_speed > 0.0):
-        raise HallcalInputError(f"max_speed must be a positive number, got {max_speed!r}")
-    lut = _lut(artifact, n, P, o, source)
-    flux = _flux(artifact, source)
-    floor = _noise_floor(artifact)
-    ts = _sample_time(artifact)
+    art = _checked(artifact, source)
+    _check_options(tolerance, fault_after, max_speed)
+    n, P, o = art.pole_pairs, art.projection, art.offset
+    lut = _lut(art, source)
+    flux = art.flux()
+    floor = _noise_floor(art.diagnostics)
+    ts = art.setup.sample_time
     rows = np.abs(P.sum(axis=1))
     rejects = bool(np.all(rows <= 1e-9 * np.abs(P).sum(axis=1)))
 
@@ -662,39 +620,14 @@ def design_firmware(
     budget = DEFAULT_BUDGET if floor is None else min(BUDGET_FRACTION * floor, MAX_BUDGET)
     if floor is None:
         messages.append(f"the artifact states no noise floor: table budget {DEFAULT_BUDGET:g} rad")
-    if table_points is not None:
-        if (
-            isinstance(table_points, bool)
-            or not isinstance(table_points, int)
-            or table_points not in table_sizes(n)
-        ):
-            raise HallcalInputError(
-                f"table_points must be n_m 2^k in 64..{MAX_TABLE_POINTS} ({n} 2^k here), "
-                f"got {table_points!r}"
-            )
-        table = fit_table(lut, table_points, quadratic=True)
-        if table.error > budget:
-            messages.append(
-                f"table of {table_points} points differs by {table.error:.2g} rad from the "
-                f"calibration, more than the budget {budget:.2g} rad"
-            )
-    else:
-        table = _choose_table(lut, budget)
-        if table.error > budget:
-            messages.append(
-                f"even {table.points} points differ by {table.error:.2g} rad from the "
-                f"calibration, more than the budget {budget:.2g} rad"
-            )
-        elif table.nbytes > 4096:
-            messages.append(
-                f"the budget {budget:.2g} rad needs {table.points} points ({table.nbytes} bytes)"
-            )
+    table, table_messages = _table(lut, table_points, budget)
+    messages += table_messages
     plaus = _plausibility(flux, n, P, o, floor, float(tolerance), max_speed, ts, fault_after,
                           source)  # fmt: skip
-    if max_speed is not None and plaus.glitch_safe_step * TWO_PI / n < max_speed * (ts or 1.0):
+    if max_speed is not None and plaus.glitch_safe_step * TWO_PI / n < max_speed * ts:
         messages.append(
             "at this max_speed a single glitch sample may make the angle slip by a pole pitch "
-            f"(safe up to {plaus.glitch_safe_step * TWO_PI / n / (ts or 1.0):.4g} rad/s)"
+            f"(safe up to {plaus.glitch_safe_step * TWO_PI / n / ts:.4g} rad/s)"
         )
     return FirmwareDesign(
         pole_pairs=n,
@@ -805,8 +738,10 @@ def _cubic_at(values: NDArray[np.float64], pos: NDArray[np.float64]) -> NDArray[
     )
 
 
-def cogging_table(cogging: Any, *, source: str = "<calibration artifact>") -> CoggingTable:
-    """Check the artifact's ``"cogging"`` key and tabulate the map within 1e-6 relative.
+def cogging_table(
+    cogging: Mapping[str, Any], *, source: str = "<calibration artifact>"
+) -> CoggingTable:
+    """Tabulate the artifact's cogging map (key ``"cogging"``) within 1e-6 relative.
 
     The table has the fewest points (a power of two, 64..65536, more than twice the largest
     order) whose cubic interpolation of the float32 values stays within half of
@@ -814,21 +749,25 @@ def cogging_table(cogging: Any, *, source: str = "<calibration artifact>") -> Co
     single-precision arithmetic) at 16 points per interval (dense enough
     for a cubic's error curve); the map on uniform grids comes from an inverse FFT.
 
+    Parameters
+    ----------
+    cogging : mapping
+        The artifact's ``"cogging"`` entry as :func:`hallcal.io.validate_artifact` checks it
+        (distinct orders >= 1, one ``a`` and ``b`` per order).
+    source : str, keyword-only
+        Name of the artifact for error messages.
+
     Raises
     ------
     HallcalInputError
-        The key is malformed (named), or no table up to 65536 points reaches the accuracy.
+        No orders, coefficients single precision cannot hold, or no table up to 65536 points
+        reaches the accuracy.
     """
-    if not isinstance(cogging, Mapping):
-        raise _bad(source, "cogging", "must be an object")
-    orders = _need(cogging, "orders", "cogging.orders", source)
-    if not isinstance(orders, list) or not 1 <= len(orders) <= 4096:
-        raise _bad(source, "cogging.orders", "must be a list of 1..4096 harmonics")
-    k = np.array([_integer(v, "cogging.orders", 1, 4096, source) for v in orders])
-    if len(set(k.tolist())) != k.size:
-        raise _bad(source, "cogging.orders", "has repeated harmonics")
-    a = _array(_need(cogging, "a", "cogging.a", source), (k.size,), "cogging.a", source)
-    b = _array(_need(cogging, "b", "cogging.b", source), (k.size,), "cogging.b", source)
+    k = np.array([int(v) for v in cogging["orders"]], dtype=np.int64)
+    if k.size == 0:
+        raise _bad(source, "cogging.orders", "is empty: no map to tabulate")
+    a = np.array(cogging["a"], dtype=np.float64)
+    b = np.array(cogging["b"], dtype=np.float64)
     if float(np.max(np.abs(np.concatenate([a, b])))) > 1e30:
         raise _bad(source, "cogging.a", "has an implausible scale")
     unit = cogging.get("unit", "")
@@ -1054,7 +993,10 @@ def _tangent_range(dec: PowerUpDecoder, sigma: float, A, B, C) -> tuple[float, f
 
 
 def design_powerup(
-    artifact: Mapping, design: FirmwareDesign, *, source: str = "<calibration artifact>"
+    artifact: Mapping | ArtifactData,
+    design: FirmwareDesign,
+    *,
+    source: str = "<calibration artifact>",
 ) -> PowerUpFirmware:
     """Decide whether the float variant identifies the pole pair at power-up, and its numbers.
 
@@ -1068,8 +1010,9 @@ def design_powerup(
 
     Parameters
     ----------
-    artifact : mapping
-        The parsed calibration artifact.
+    artifact : mapping or ArtifactData
+        The parsed calibration artifact (checked by :func:`hallcal.io.validate_artifact`), or
+        its checked view.
     design : FirmwareDesign
         The correction table's design (pole pairs, projection, flux model).
     source : str, keyword-only
@@ -1084,23 +1027,39 @@ def design_powerup(
     Raises
     ------
     HallcalInputError
-        The ``"identifiability"`` entry is malformed (named).
+        The artifact is refused by :func:`hallcal.io.validate_artifact`, or its
+        ``"identifiability"`` entry is malformed (named).
     """
-    entry = artifact.get("identifiability")
+    entry = _checked(artifact, source).data.get("identifiability")
     if entry is None:
         return PowerUpFirmware(
             PowerUpCode.NO_ANALYSIS,
             "the artifact has no identifiability analysis (made before power-up identification "
             "existed; calibrate again)",
         )
-    if not isinstance(entry, Mapping):
-        raise _bad(source, "identifiability", "must be an object")
     try:
         report = IdentifiabilityReport.from_dict(entry)
     except ValueError as exc:
         raise HallcalInputError(f"{source}: {exc}") from None
-    if report.pole_pairs != design.pole_pairs:
-        raise _bad(source, "identifiability.pole_pairs", "differs from pole_pairs")
+    no_decoder = _without_decoder(report, design)
+    if no_decoder is not None:
+        return no_decoder
+    if not (math.isfinite(report.noise_std) and report.noise_std > 0.0):
+        raise _bad(source, "identifiability.noise_std", "must be a positive number")
+    if design.flux is None:  # pragma: no cover - design_firmware always sets it
+        raise ValueError("the design has no flux model")
+    try:
+        dec = report.decoder(design.flux, design.lut)
+    except ValueError as exc:
+        raise HallcalInputError(f"{source}: identifiability: {exc}") from None
+    return _decoder_numbers(report, dec, design.plausibility, source)
+
+
+def _without_decoder(
+    report: IdentifiabilityReport, design: FirmwareDesign
+) -> PowerUpFirmware | None:
+    """Why the float variant gets no decoder (one pole pair, the verdict, a grid or tables the
+    C cannot take), or None."""
     if design.pole_pairs == 1:
         return PowerUpFirmware(
             PowerUpCode.SINGLE_POLE_PAIR,
@@ -1124,14 +1083,14 @@ def design_powerup(
             f"{MAX_POWERUP_TABLE}",
             report,
         )
-    if not (math.isfinite(report.noise_std) and report.noise_std > 0.0):
-        raise _bad(source, "identifiability.noise_std", "must be a positive number")
-    if design.flux is None:  # pragma: no cover - design_firmware always sets it
-        raise ValueError("the design has no flux model")
-    try:
-        dec = report.decoder(design.flux, design.lut)
-    except ValueError as exc:
-        raise HallcalInputError(f"{source}: identifiability: {exc}") from None
+    return None
+
+
+def _decoder_numbers(
+    report: IdentifiabilityReport, dec: PowerUpDecoder, pl: Plausibility, source: str
+) -> PowerUpFirmware:
+    """The decoder's tables and metric in noise-sigma units, and the seeds and Newton steps of
+    its reciprocals over the windows they see."""
     sigma = dec.noise_std
     s2 = sigma * sigma
     A, B, C = dec.gram_a * s2, dec.gram_b * s2, float(dec.gram_c * s2)
@@ -1143,7 +1102,6 @@ def design_powerup(
     ):
         raise _bad(source, "identifiability.noise_std", "is implausible for the signals")
     # 1/sqrt(r2) on the amplitude window the lean code admits
-    pl = design.plausibility
     w_lo, w_hi = pl.radius_lo**2, pl.radius_hi**2
     c0, c1, e0 = _rsqrt_seed(w_lo, w_hi)
     rs_steps, rs_err = _newton_steps(e0, 1.5 + e0)
@@ -1174,7 +1132,7 @@ def design_powerup(
         tangent_seed=(r0, r1),
         tangent_steps=tt_steps,
         tangent_error=tt_err,
-        slope=L / TWO_PI,
+        slope=dec.grid / TWO_PI,
         cost_cap=float(dec.cost_cap),
         threshold=float(dec.lock_threshold),
         exp2=poly,

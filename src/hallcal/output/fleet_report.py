@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from hallcal._version import __version__
 from hallcal.io import atomic_write
-from hallcal.output.report import _CSS as _REPORT_CSS
+from hallcal.output.report.page import _CSS as _REPORT_CSS
 
 __all__ = ["Outlier", "find_outliers", "render_fleet_html", "robust_outliers", "write_fleet_report"]
 
@@ -271,12 +271,43 @@ def render_fleet_html(rows: Sequence[Mapping[str, Any]], *, source: str = "") ->
     -------
     str
     """
+    out = _head(rows, source)
+    out += _without_artifact(rows)
+    out += _outlier_section(rows)
+    out += _distributions(rows)
+    out.append("<h2>All motors</h2>")
+    out.append(
+        _motor_table(
+            rows,
+            (
+                "motor_id",
+                "status",
+                "predicted_error",
+                "f_init_rms",
+                "f_star_rms",
+                "model",
+                "seconds",
+                "message",
+            ),
+        )
+    )
+    out.append(
+        "<footer>hallcal implements van Meer et al., “Self-Calibrating Position Measurements: "
+        "Applied to Imperfect Hall Sensors”. The same figures are in summary.parquet and "
+        "summary.csv next to this page (angles in rad there).</footer>"
+    )
+    out.append("</main></body></html>")
+    return "\n".join(out) + "\n"
+
+
+def _head(rows: Sequence[Mapping[str, Any]], source: str) -> list[str]:
+    """The page's head, title, origin and the number of motors per status."""
     counts = {s: 0 for s in _COLORS}
     for r in rows:
         counts[str(r["status"])] = counts.get(str(r["status"]), 0) + 1
     reused = sum(1 for r in rows if r.get("reused"))
     created = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
-    out = [
+    return [
         "<!DOCTYPE html>",
         '<html lang="en"><head><meta charset="utf-8">',
         '<meta name="viewport" content="width=device-width, initial-scale=1">',
@@ -295,19 +326,26 @@ def render_fleet_html(rows: Sequence[Mapping[str, Any]], *, source: str = "") ->
         )
         + "</p>",
     ]
+
+
+def _without_artifact(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     bad = [r for r in rows if r.get("status") in ("refused", "failed")]
-    out.append("<h2>Motors without a usable calibration</h2>")
+    out = ["<h2>Motors without a usable calibration</h2>"]
     if bad:
         out.append(_motor_table(bad, ("motor_id", "status", "message")))
     else:
         out.append("<p>None: every motor has an artifact.</p>")
+    return out
+
+
+def _outlier_section(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     outliers = find_outliers(rows)
-    out.append("<h2>Outliers</h2>")
-    out.append(
+    out = [
+        "<h2>Outliers</h2>",
         f"<p>Motors with an artifact whose predicted error or f_star RMS is far above the "
         f"batch's (modified z-score of the logarithm above {Z_OUTLIER}), or whose f_star is no "
-        "better than f_init on the validation run.</p>"
-    )
+        "better than f_init on the validation run.</p>",
+    ]
     if outliers:
         body = "".join(
             f"<tr><td>{_esc(o.motor_id)}</td><td class=msg>{'<br>'.join(map(_esc, o.reasons))}"
@@ -317,7 +355,12 @@ def render_fleet_html(rows: Sequence[Mapping[str, Any]], *, source: str = "") ->
         out.append(f'<table class="motors"><tr><th>motor</th><th>why</th></tr>{body}</table>')
     else:
         out.append("<p>None.</p>")
-    out.append("<h2>Distributions</h2>")
+    return out
+
+
+def _distributions(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """The figures: predicted errors, and f_init against f_star on the validation runs."""
+    out = ["<h2>Distributions</h2>"]
     fig = _figure_predicted(rows)
     if fig is not None:
         out.append(
@@ -344,29 +387,7 @@ def render_fleet_html(rows: Sequence[Mapping[str, Any]], *, source: str = "") ->
         )
     else:
         out.append("<p>No validation runs in the manifest: f_init and f_star not measured.</p>")
-    out.append("<h2>All motors</h2>")
-    out.append(
-        _motor_table(
-            rows,
-            (
-                "motor_id",
-                "status",
-                "predicted_error",
-                "f_init_rms",
-                "f_star_rms",
-                "model",
-                "seconds",
-                "message",
-            ),
-        )
-    )
-    out.append(
-        "<footer>hallcal implements van Meer et al., “Self-Calibrating Position Measurements: "
-        "Applied to Imperfect Hall Sensors”. The same figures are in summary.parquet and "
-        "summary.csv next to this page (angles in rad there).</footer>"
-    )
-    out.append("</main></body></html>")
-    return "\n".join(out) + "\n"
+    return out
 
 
 _HEADINGS = {

@@ -33,7 +33,10 @@ from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormat
 from numpy.typing import ArrayLike, NDArray
 
 if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+
     from hallcal.fit.sem import SEMResult
+    from hallcal.identify.bla import NonparametricBLA
     from hallcal.pipeline import BLAIdentification, Validation
     from hallcal.sensor.lut import LUT
     from hallcal.sim.cogging import CoggingTorque
@@ -578,12 +581,37 @@ def plot_bla(
     -------
     matplotlib.figure.Figure
     """
-    npb, par = bla.nonparametric, bla.parametric
+    npb = bla.nonparametric
     f = np.asarray(npb.freq, dtype=np.float64)
     G = np.asarray(npb.G, dtype=np.complex128)
-    ts = float(npb.sample_time)
     fd = np.geomspace(max(float(f.min()), 1e-3), float(f.max()), 400)
     fig, (axm, axp) = _figure(2, 6.0, ratios=(1.4, 1))
+    vt = _bla_magnitude_points(axm, npb, f, G)
+    ref = _bla_phase_points(axp, f, G, vt)
+    if corrected_plant is None and gain_correction is not None:
+        corrected_plant = bla.plant.scaled(float(gain_correction))
+    _bla_models(axm, axp, bla, fd, ref, corrected_plant, gain_correction, true_plant)
+    axm.set_ylabel("magnitude [dB]")
+    _title(
+        fig,
+        f"Closed-loop BLA of the plant: {npb.realizations} realizations × {npb.periods} "
+        "steady-state periods (the paper's BLA section)",
+    )
+    _legend(axm, loc="upper right")
+    axp.set_ylabel("phase [deg]")
+    axp.set_xlabel("frequency [Hz]")
+    axp.yaxis.set_major_locator(MaxNLocator(nbins=6, steps=[1, 2, 4.5, 9, 10]))
+    for a in (axm, axp):
+        _log_axis(a.xaxis, float(fd[0]), float(fd[-1]))
+    _legend(axp, loc="lower left")
+    return fig
+
+
+def _bla_magnitude_points(
+    axm: Axes, npb: NonparametricBLA, f: NDArray[np.float64], G: NDArray[np.complex128]
+) -> NDArray[np.float64]:
+    """|Ĝ| at the excited lines and its two standard deviations (each with its running
+    median); returns the total variance (realization to realization)."""
     axm.semilogx(f, _db(G), "o", ms=3.5, color=INIT_COLOR, label="nonparametric BLA Ĝ")
     vt = np.asarray(npb.var_total, dtype=np.float64)
     vn = np.asarray(npb.var_noise, dtype=np.float64)
@@ -609,6 +637,13 @@ def plot_bla(
                 label="std of Ĝ from period to period (noise)",
             )
             axm.semilogx(f, 10 * np.log10(_running_median(f, vn)), color=NOISE_COLOR, lw=1.0)
+    return vt
+
+
+def _bla_phase_points(
+    axp: Axes, f: NDArray[np.float64], G: NDArray[np.complex128], vt: NDArray[np.float64]
+) -> float:
+    """The phase of Ĝ with a band of two standard deviations; returns its first value [deg]."""
     ph = np.degrees(np.unwrap(np.angle(G)))
     axp.semilogx(f, ph, "o", ms=3.5, color=INIT_COLOR)
     # shade +-2 std of the phase from the total variance: std(angle) ~ std(G) / |G|
@@ -625,7 +660,22 @@ def plot_bla(
             lw=0,
             label="±2 std (realization to realization)",
         )
-    ref = float(ph[0])
+    return float(ph[0])
+
+
+def _bla_models(
+    axm: Axes,
+    axp: Axes,
+    bla: BLAIdentification,
+    fd: NDArray[np.float64],
+    ref: float,
+    corrected_plant: ContinuousTF | None,
+    gain_correction: float | None,
+    true_plant: ContinuousTF | None,
+) -> None:
+    """The parametric fit, the plant after the gain correction and the true plant on the
+    dense grid ``fd``, phases shifted by whole turns to start near ``ref``."""
+    par = bla.parametric
     hold = getattr(par, "hold", "none") == "zoh" and getattr(par, "sample_time", None)
     g_fit = par.frequency_response(fd, zoh=bool(hold))
     axm.semilogx(fd, _db(g_fit), color=STAR_COLOR, lw=1.6, label="parametric fit")
@@ -637,8 +687,6 @@ def plot_bla(
         label="parametric fit",
     )
     curves = []
-    if corrected_plant is None and gain_correction is not None:
-        corrected_plant = bla.plant.scaled(float(gain_correction))
     if corrected_plant is not None:
         label = "after gain correction" + (
             "" if gain_correction is None else f" (ĉ = {float(gain_correction):.4g})"
@@ -646,6 +694,7 @@ def plot_bla(
         curves.append((corrected_plant, _ACCENT, "-.", label))
     if true_plant is not None:
         curves.append((true_plant, TRUTH_COLOR, "--", "true plant G"))
+    ts = float(bla.nonparametric.sample_time)
     for tf, color, ls, label in curves:
         g = tf.frequency_response(fd) * _zoh(fd, ts)
         axm.semilogx(fd, _db(g), color=color, lw=1.2, ls=ls, label=label)
@@ -657,20 +706,6 @@ def plot_bla(
             ls=ls,
             label=label,
         )
-    axm.set_ylabel("magnitude [dB]")
-    _title(
-        fig,
-        f"Closed-loop BLA of the plant: {npb.realizations} realizations × {npb.periods} "
-        "steady-state periods (the paper's BLA section)",
-    )
-    _legend(axm, loc="upper right")
-    axp.set_ylabel("phase [deg]")
-    axp.set_xlabel("frequency [Hz]")
-    axp.yaxis.set_major_locator(MaxNLocator(nbins=6, steps=[1, 2, 4.5, 9, 10]))
-    for a in (axm, axp):
-        _log_axis(a.xaxis, float(fd[0]), float(fd[-1]))
-    _legend(axp, loc="lower left")
-    return fig
 
 
 def plot_sem_cost(sem: SEMResult, *, noise_variance: float | None = None) -> Figure:

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from hallcal._version import __version__
 from hallcal.errors import CalibrationRefused, HallcalInputError
 from hallcal.io.artifact import ARTIFACT_FORMAT, ArtifactData, validate_artifact, write_artifact
 from hallcal.io.dataset import Dataset
@@ -379,6 +380,7 @@ def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
     """
     art: dict[str, Any] = {
         "format": ARTIFACT_FORMAT,
+        "hallcal_version": __version__,
         "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "pole_pairs": cal.setup.pole_pairs,
         "reconstruction": {

@@ -38,7 +38,7 @@ from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.lti import ContinuousTF, DiscreteTF
 
 if TYPE_CHECKING:  # the BLA module (scipy.optimize) is loaded only when a BLA is checked
-    from hallcal.identify.bla import ParametricBLA
+    from hallcal.identify.parametric import ParametricBLA
 
 __all__ = [
     "BLAFitCheck",
@@ -653,7 +653,8 @@ def check_bla_fit(
     max_frequency : float
         Highest frequency of the BLA data [Hz].
     suggestion : int, optional
-        A denominator order the data support (from :func:`~hallcal.identify.bla.select_order`).
+        A denominator order the data support
+        (from :func:`~hallcal.identify.parametric.select_order`).
     chosen_from_data : bool
         Whether the order was chosen from the data (``"auto"``): then an unstable model means no
         candidate was stable.
@@ -664,7 +665,7 @@ def check_bla_fit(
         FAILED with unstable poles, WARNING with poles far above the data's band, else OK; the
         poles in s [rad/s].
     """
-    from hallcal.identify.bla import model_poles
+    from hallcal.identify.parametric import model_poles
 
     poles = tuple(complex(p) for p in model_poles(fit))
     unstable = tuple(p for p in poles if p.real >= 0.0)

@@ -29,6 +29,7 @@ from hallcal.sim.lti import ContinuousTF
 
 if TYPE_CHECKING:
     from hallcal.identify import bla as _bla
+    from hallcal.identify import parametric as _par
 
 __all__ = [
     "BLAIdentification",
@@ -88,12 +89,12 @@ class BLAIdentification:
     """
 
     nonparametric: _bla.NonparametricBLA = field(repr=False)
-    parametric: _bla.ParametricBLA = field(repr=False)
+    parametric: _par.ParametricBLA = field(repr=False)
     plant: ContinuousTF
     status: BLAStatus = BLAStatus.OK
     messages: tuple[str, ...] = ()
     refusal: str | None = None
-    selection: _bla.OrderSelection | None = field(default=None, repr=False)
+    selection: _par.OrderSelection | None = field(default=None, repr=False)
     check: BLAFitCheck | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
@@ -126,16 +127,16 @@ class BLAIdentification:
 
 def _fit_with_order(
     npb: _bla.NonparametricBLA, setup: Setup
-) -> tuple[_bla.ParametricBLA, int, _bla.OrderSelection | None, list[str]]:
+) -> tuple[_par.ParametricBLA, int, _par.OrderSelection | None, list[str]]:
     """The parametric fit with the setup's order, or with the order chosen from the data."""
-    from hallcal.identify import bla as _bla  # loaded only when a BLA is identified
+    from hallcal.identify import parametric as _par
 
     spec = setup.bla
     assert spec is not None
     options = dict(integrator=spec.integrator, fit_delay=spec.fit_delay)
     messages: list[str] = []
     if spec.denominator_order == "auto":
-        selection = _bla.select_order(npb, numerator_order=spec.numerator_order, **options)
+        selection = _par.select_order(npb, numerator_order=spec.numerator_order, **options)
         chosen = selection.chosen or min(selection.candidates, key=lambda c: c.criterion)
         messages.append(
             f"plant model: denominator order {chosen.denominator_order} chosen from the data "
@@ -145,12 +146,12 @@ def _fit_with_order(
         )
         return chosen.fit, chosen.denominator_order, selection, messages
     order = int(spec.denominator_order)
-    fit = _bla.fit_parametric(
+    fit = _par.fit_parametric(
         npb, numerator_order=spec.numerator_order, denominator_order=order, **options
     )
     selection = None
     if not fit.stable:  # find an order the data support, for the message
-        selection = _bla.select_order(npb, numerator_order=spec.numerator_order, **options)
+        selection = _par.select_order(npb, numerator_order=spec.numerator_order, **options)
     return fit, order, selection, messages
 
 
@@ -159,7 +160,7 @@ def identify_bla(dataset: Dataset, setup: Setup, *, progress: Progress = None) -
 
     The dataset needs columns r, u, y and realization; ``[bla]`` gives the period, the number of
     transient periods and the parametric model orders (``denominator_order = "auto"``: chosen
-    from the data, :func:`hallcal.identify.bla.select_order`). The fitted model is checked
+    from the data, :func:`hallcal.identify.parametric.select_order`). The fitted model is checked
     (:func:`~hallcal.pipeline.checks.check_bla_fit`): an unstable one is refused with the order
     to use named, poles the data cannot determine give a warning.
 

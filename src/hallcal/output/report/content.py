@@ -1,0 +1,526 @@
+"""What a report shows (:class:`ReportContent`) and how it is gathered from an in-memory
+calibration (:func:`content_from_calibration`); the steps both sources share."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hallcal.io import (
+    Dataset,
+    Setup,
+)
+from hallcal.sensor.flux import FluxModel
+from hallcal.sensor.lut import LUT, build_lut
+from hallcal.sim.lti import ContinuousTF
+
+Progress = Callable[[str], None] | None
+TWO_PI = 2.0 * math.pi
+
+
+def _say(progress: Progress, message: str) -> None:
+    if progress is not None:
+        progress(message)
+
+
+# ------------------------------------------------------------------------------------------------
+# What a report shows
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Traces:
+    """Per-sample angles of one recording [rad]: f_init, f_star and (when logged) the reference.
+
+    Attributes
+    ----------
+    y_init : ndarray (N,)
+    y_star : ndarray (N,) or None
+        None when the table is not bijective.
+    y_ref : ndarray (N,) or None
+        Encoder or true angle.
+    """
+
+    y_init: NDArray[np.float64] = field(repr=False)
+    y_star: NDArray[np.float64] | None = field(repr=False)
+    y_ref: NDArray[np.float64] | None = field(repr=False, default=None)
+
+
+@dataclass(frozen=True)
+class ReportContent:
+    """Everything a report shows, already computed.
+
+    Attributes
+    ----------
+    title : str
+    setup : Setup
+    lut : LUT
+    flux : FluxModel
+        Identified g_theta*.
+    sem : SEMResult or None
+        The SEM solve (in memory) or its reconstruction from an artifact (cost history from the
+        artifact, d_sim and y0_sim re-simulated, covariance recomputed).
+    bla : BLAIdentification or None
+    plant : ContinuousTF or None
+        Plant used in SEM (after the gain correction).
+    gain_correction : float or None
+        The gain correction c-hat as applied to the BLA (refined jointly with theta when it was).
+    gain_details : dict or None
+        ``c`` (the gain correction c-hat), ``c_refined``, ``c_refined_std`` and the rest of the gain
+        report.
+    predicted_error : float or None
+        Predicted RMS error of f_star [rad].
+    noise_floor : float or None
+        RMS angle error of Hall noise alone [rad].
+    noise_floor_source : str
+    status : str
+    messages : list of str
+    adequacy : dict or None
+        ``verdict``, ``message`` and anything else the adequacy report gives.
+    t : ndarray (N,) or None
+        Time of the calibration recording [s].
+    d : ndarray (N, 3)
+        Hall signals of the calibration recording.
+    d_model : ndarray (N, 3) or None
+        The model's signals on the same samples.
+    d_model_label : str
+    calibration : Traces
+        f_init / f_star on the calibration recording.
+    validation : Validation or None
+        Errors against the reference (see ``validation_source``).
+    validation_traces : Traces or None
+    validation_source : str or None
+    eta_std : ndarray or None
+        std of eta on a uniform grid over one revolution [rad].
+    true_lut : LUT or None
+        The table of the true flux (virtual bench only).
+    true_plant : ContinuousTF or None
+    true_noise_variance : float or None
+    sources : dict of str to str
+        Input files (or "in memory") by role.
+    notes : list of str
+        What could not be shown, and why.
+    timings : dict of str to float
+    model_info : dict
+    hall_noise_variance : float or None
+        Hall noise variance per channel from the calibration (constant speed: from the residual),
+        for the ±2σ lines when there is no SEM.
+    constant_speed : dict or None
+        The constant-speed fit's summary (``diagnostics.constant_speed`` of the artifact).
+    straight_line : StraightLineCheck or None
+        f_init and f_star against a straight line on held-out constant-speed samples.
+    angle_units : {"mrad", "electrical-deg"}
+        Units of the angle errors in the text.
+    cogging : CoggingTorque or None
+        The cogging torque identified with the flux (with the covariance of its coefficients).
+    true_cogging : CoggingTorque or None
+        The virtual bench's cogging torque.
+    """
+
+    title: str
+    setup: Setup
+    lut: LUT
+    flux: FluxModel
+    sem: Any
+    bla: Any
+    plant: ContinuousTF | None
+    gain_correction: float | None
+    gain_details: dict[str, Any] | None
+    predicted_error: float | None
+    noise_floor: float | None
+    noise_floor_source: str
+    status: str
+    messages: list[str]
+    adequacy: dict[str, Any] | None
+    t: NDArray[np.float64] | None = field(repr=False)
+    d: NDArray[np.float64] = field(repr=False)
+    d_model: NDArray[np.float64] | None = field(repr=False)
+    d_model_label: str
+    calibration: Traces = field(repr=False)
+    validation: Any = None
+    validation_traces: Traces | None = field(repr=False, default=None)
+    validation_source: str | None = None
+    eta_std: NDArray[np.float64] | None = field(repr=False, default=None)
+    true_lut: LUT | None = field(repr=False, default=None)
+    true_plant: ContinuousTF | None = None
+    true_noise_variance: float | None = None
+    sources: dict[str, str] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+    model_info: dict[str, Any] = field(default_factory=dict)
+    hall_noise_variance: float | None = None
+    constant_speed: dict[str, Any] | None = None
+    straight_line: StraightLineCheck | None = None
+    angle_units: str = "mrad"
+    cogging: Any = None
+    true_cogging: Any = None
+
+    @property
+    def pole_pairs(self) -> int:
+        return int(self.setup.pole_pairs)
+
+    def angle(self, x: float | None) -> str:
+        """An angle error [rad, mechanical] in this report's units."""
+        if x is None or not math.isfinite(x):
+            return "–"
+        if self.angle_units == "electrical-deg":
+            return f"{math.degrees(x) * self.pole_pairs:.3f} electrical deg"
+        return f"{1e3 * x:.3f} mrad"
+
+
+@dataclass(frozen=True)
+class StraightLineCheck:
+    """f_init and f_star against their best straight line on constant-speed samples.
+
+    Without an encoder this is the check of an open-loop calibration (as in
+    ``tests/test_real_ringjig.py``): on samples of the constant-speed window that the
+    calibration did not use, the true angle is a straight line in the sample index, so the
+    residual of the best line through f_star is an upper bound of its error (rig motion included).
+
+    Attributes
+    ----------
+    start, stop : int
+        The held-out samples ``start <= k < stop``.
+    revolutions : float
+        Revolutions in them.
+    init_rms, star_rms : float
+        RMS residual of the best straight line through f_init and through f_star [rad].
+    held_out : bool
+        False when no samples were left over and the calibration samples themselves are used.
+    """
+
+    start: int
+    stop: int
+    revolutions: float
+    init_rms: float
+    star_rms: float
+    held_out: bool
+
+
+def _line_rms(y: NDArray[np.float64]) -> float:
+    k = np.arange(y.size, dtype=np.float64)
+    coef = np.polyfit(k, y, 1)
+    return float(np.sqrt(np.mean((y - np.polyval(coef, k)) ** 2)))
+
+
+#: Shortest held-out stretch for the straight-line check [revolutions].
+_MIN_HELD_OUT_REVOLUTIONS = 0.5
+
+
+def _straight_line(
+    cs: Mapping[str, Any], lut: LUT, data: Dataset, traces: Traces
+) -> StraightLineCheck | None:
+    """The straight-line check on the constant-speed samples after the calibration segment."""
+    from hallcal.fit.constant_speed import find_constant_speed
+
+    if traces.y_star is None:
+        return None
+    try:
+        start, stop = int(cs["start"]), int(cs["stop"])
+        speed = abs(float(cs["b"]))
+    except (KeyError, TypeError, ValueError):
+        return None
+    window = find_constant_speed(np.asarray(data.d), lut.pole_pairs)
+    end = min(window.stop, data.n_samples) if window.ok else stop
+    held = end > stop and speed * (end - stop) / TWO_PI >= _MIN_HELD_OUT_REVOLUTIONS
+    a, b = (stop, end) if held else (start, stop)
+    if b - a < 8:
+        return None
+    return StraightLineCheck(
+        start=a,
+        stop=b,
+        revolutions=speed * (b - a) / TWO_PI,
+        init_rms=_line_rms(traces.y_init[a:b]),
+        star_rms=_line_rms(traces.y_star[a:b]),
+        held_out=held,
+    )
+
+
+def _constant_speed_parts(
+    cs: Any, lut: LUT, data: Dataset, traces: Traces
+) -> tuple[dict[str, Any] | None, float | None, StraightLineCheck | None]:
+    """Summary, Hall noise variance and straight-line check of a constant-speed calibration."""
+    if cs is None:
+        return None, None, None
+    summary = dict(cs.to_dict()) if hasattr(cs, "to_dict") else dict(cs)
+    noise = summary.get("noise_std")
+    variance = float(noise) ** 2 if isinstance(noise, int | float) and noise > 0 else None
+    return summary, variance, _straight_line(summary, lut, data, traces)
+
+
+def _amplitude(flux: FluxModel, n_m: int) -> float:
+    """Fundamental amplitude of the model (electrical harmonic n_m), mean over the sensors."""
+    if n_m in flux.basis.harmonics:
+        js, jc = flux.basis.index(n_m)
+        return float(np.mean(np.hypot(flux.theta[:, js], flux.theta[:, jc])))
+    y0 = TWO_PI * np.arange(1024) / 1024
+    return float(np.mean(np.std(flux(y0), axis=0)) * math.sqrt(2.0))
+
+
+def _estimated_floor(noise_variance: float | None, flux: FluxModel, n_m: int) -> float | None:
+    """sigma sqrt(2/3) / (A n_m): the RMS angle error of white Hall noise alone (docs/design.md)."""
+    if noise_variance is None or not math.isfinite(noise_variance) or noise_variance < 0:
+        return None
+    a = _amplitude(flux, n_m)
+    if not a > 0:
+        return None
+    return math.sqrt(noise_variance) * math.sqrt(2.0 / 3.0) / (a * n_m)
+
+
+_ESTIMATED_FLOOR = "estimated from the calibration data (model-free Hall noise level)"
+
+
+def _traces(lut: LUT, dataset: Dataset) -> Traces:
+    yi = lut.f_init(dataset.d)
+    ys = yi + lut.correction(yi) if lut.bijective else None
+    y_ref = np.asarray(dataset["y_ref"], dtype=np.float64) if "y_ref" in dataset else None
+    return Traces(yi, ys, y_ref)
+
+
+def _eta_std(flux: FluxModel, covariance: Any, lut: LUT) -> NDArray[np.float64] | None:
+    from hallcal.fit.sem import predicted_angle_error
+
+    if covariance is None:
+        return None
+    cov = np.asarray(covariance, dtype=np.float64)
+    p = flux.theta.size
+    if cov.shape != (p, p) or not np.all(np.isfinite(cov)):
+        return None
+    return predicted_angle_error(
+        flux, cov, lut.pole_pairs, projection=lut.projection, offset=lut.offset, points=1024
+    )
+
+
+def _model_signals(sem: Any, flux: FluxModel, d: NDArray, traces: Traces) -> tuple[Any, str]:
+    d_sim = getattr(sem, "d_sim", None)
+    if d_sim is not None and np.shape(d_sim) == d.shape and np.all(np.isfinite(d_sim)):
+        return np.asarray(d_sim, dtype=np.float64), "model ĝ(y₀_sim)"
+    if traces.y_star is not None:
+        return flux(traces.y_star), "model ĝ(f_star)"
+    return flux(traces.y_init), "model ĝ(f_init)"
+
+
+def _no_encoder_note(constant_speed: bool = False) -> str:
+    shown = (
+        "the straight-line check on held-out constant-speed samples, the model fit, the lookup "
+        "table and the correction f_star - f_init"
+        if constant_speed
+        else "the model fit, the lookup table, the SEM cost and the correction f_star - f_init"
+    )
+    return (
+        "No recording with an encoder column 'y_ref' was given: errors against an encoder are "
+        f"unavailable. Shown instead: {shown}. Pass a recording with y_ref (hallcal report ... "
+        "--validation RUN) to see the angle errors."
+    )
+
+
+def _gain_value(gain: Any) -> float | None:
+    if gain is None:
+        return None
+    return float(getattr(gain, "value", gain.c))
+
+
+def _gain_details(gain: Any) -> dict[str, Any] | None:
+    if gain is None:
+        return None
+    if hasattr(gain, "to_dict"):
+        return dict(gain.to_dict())
+    return {"c": float(gain.c)}
+
+
+def _adequacy_dict(adequacy: Any) -> dict[str, Any] | None:
+    if adequacy is None:
+        return None
+    if isinstance(adequacy, Mapping):
+        return dict(adequacy)
+    out: dict[str, Any] = {}
+    if hasattr(adequacy, "to_dict"):
+        try:
+            out.update(adequacy.to_dict())
+        except Exception:  # noqa: BLE001 - a report must not fail on a diagnostic's serializer
+            pass
+    for key in ("verdict", "message"):
+        if hasattr(adequacy, key):
+            out[key] = getattr(adequacy, key)
+    return out or None
+
+
+_NOT_BIJECTIVE_NOTE = (
+    "The lookup table is not bijective (the paper's bijectivity condition fails): "
+    "f_star is undefined, so only f_init is shown."
+)
+
+
+def _validation_parts(
+    lut: LUT,
+    data: Dataset,
+    cal_traces: Traces,
+    *,
+    validation_data: Dataset | None,
+    validation: Any,
+    sources: Mapping[str, str] | None,
+    noise_floor: float | None,
+    constant_speed: bool,
+    notes: list[str],
+) -> tuple[Any, Traces | None, str | None]:
+    """Errors against an encoder: on ``validation_data``, else on the calibration recording when
+    it has ``y_ref`` (a given ``validation`` is kept); else a first note on what is shown instead.
+
+    Returns ``(validation, validation_traces, validation_source)``.
+    """
+    from hallcal.pipeline import validate
+
+    val_traces: Traces | None = None
+    val_source: str | None = None
+    if validation_data is not None:
+        validation_data.require("y_ref")
+        val_traces = _traces(lut, validation_data)
+        val_source = (sources or {}).get("validation", validation_data.source)
+        if validation is None and lut.bijective:
+            validation = validate(lut, validation_data, noise_floor=noise_floor)
+    elif cal_traces.y_ref is not None:
+        val_traces = cal_traces
+        val_source = (sources or {}).get("data", data.source) + " (the calibration recording)"
+        if validation is None and lut.bijective:
+            validation = validate(lut, data, noise_floor=noise_floor)
+    else:
+        notes.insert(0, _no_encoder_note(constant_speed))
+    if not lut.bijective:
+        notes.append(_NOT_BIJECTIVE_NOTE)
+    return validation, val_traces, val_source
+
+
+def _recording_parts(
+    data: Dataset,
+    setup: Setup,
+    lut: LUT,
+    flux: FluxModel,
+    sem: Any,
+    cal_traces: Traces,
+    constant_speed: Any,
+) -> dict[str, Any]:
+    """What the report shows of the calibration recording: the signals and the model's, the
+    time axis, the table's uncertainty and the constant-speed check (:class:`ReportContent`
+    fields)."""
+    d = np.asarray(data.d, dtype=np.float64)
+    d_model, label = _model_signals(sem, flux, d, cal_traces)
+    t = np.asarray(data["t"], dtype=np.float64) if "t" in data else None
+    if t is None:
+        # sample_time = 1.0 means time in samples (docs/design.md): plot over the sample index
+        t = None if setup.sample_time == 1.0 else setup.sample_time * np.arange(d.shape[0])
+    cs_summary, cs_noise, straight = _constant_speed_parts(constant_speed, lut, data, cal_traces)
+    return dict(
+        t=t,
+        d=d,
+        d_model=d_model,
+        d_model_label=label,
+        calibration=cal_traces,
+        eta_std=None if sem is None else _eta_std(flux, sem.covariance, lut),
+        hall_noise_variance=cs_noise,
+        constant_speed=cs_summary,
+        straight_line=straight,
+    )
+
+
+def content_from_calibration(
+    cal: Any,
+    data: Dataset,
+    *,
+    validation_data: Dataset | None = None,
+    validation: Any = None,
+    noise_floor: float | None = None,
+    true_flux: FluxModel | None = None,
+    true_plant: ContinuousTF | None = None,
+    true_noise_variance: float | None = None,
+    sources: Mapping[str, str] | None = None,
+    title: str = "hallcal calibration report",
+    noise_floor_source: str = "given",
+    true_cogging: Any = None,
+) -> ReportContent:
+    """Gather a report's content from an in-memory :class:`~hallcal.pipeline.Calibration`.
+
+    Parameters
+    ----------
+    cal : Calibration
+        Result of :func:`hallcal.pipeline.calibrate`.
+    data : Dataset
+        The calibration recording (for the model fit; its ``y_ref``, if any, validates when no
+        ``validation_data`` is given).
+    validation_data : Dataset, optional
+        A fresh recording with ``y_ref`` to validate on.
+    validation : Validation, optional
+        Already computed errors on ``validation_data`` (recomputed when None).
+    noise_floor : float, optional
+        RMS angle error of Hall noise alone [rad]; default: estimated from the SEM residual.
+    true_flux, true_plant, true_noise_variance, true_cogging : optional
+        The virtual bench's truth, drawn for comparison.
+    sources : mapping, optional
+        Input names by role, listed in the report.
+    title : str
+    noise_floor_source : str
+        Where a given ``noise_floor`` comes from, for the summary table.
+
+    Returns
+    -------
+    ReportContent
+    """
+    lut: LUT = cal.lut
+    cal_traces = _traces(lut, data)
+    notes: list[str] = []
+    validation, val_traces, val_source = _validation_parts(
+        lut, data, cal_traces, validation_data=validation_data, validation=validation,
+        sources=sources, noise_floor=noise_floor, constant_speed=cal.constant_speed is not None,
+        notes=notes,
+    )  # fmt: skip
+    floor_source = noise_floor_source
+    if noise_floor is None and math.isfinite(cal.noise_floor):
+        noise_floor = cal.noise_floor
+        floor_source = _ESTIMATED_FLOOR
+    true_lut = None
+    if true_flux is not None:
+        true_lut = build_lut(
+            true_flux, cal.setup.pole_pairs, points=lut.points, projection=lut.projection,
+            offset=lut.offset,
+        )  # fmt: skip
+    return ReportContent(
+        title=title,
+        noise_floor=noise_floor,
+        noise_floor_source=floor_source,
+        validation=validation,
+        validation_traces=val_traces,
+        validation_source=val_source,
+        true_lut=true_lut,
+        true_plant=true_plant,
+        true_noise_variance=true_noise_variance,
+        sources=dict(sources or {}),
+        notes=notes,
+        true_cogging=true_cogging,
+        **_calibration_fields(cal),
+        **_recording_parts(data, cal.setup, lut, cal.flux, cal.sem, cal_traces, cal.constant_speed),
+    )
+
+
+def _calibration_fields(cal: Any) -> dict[str, Any]:
+    """What an in-memory calibration says of itself (:class:`ReportContent` fields)."""
+    return dict(
+        setup=cal.setup,
+        lut=cal.lut,
+        flux=cal.flux,
+        sem=cal.sem,
+        bla=cal.bla,
+        plant=cal.plant,
+        gain_correction=_gain_value(cal.gain),
+        gain_details=_gain_details(cal.gain),
+        predicted_error=float(cal.predicted_error),
+        status=str(cal.status),
+        messages=list(cal.messages),
+        adequacy=_adequacy_dict(cal.adequacy),
+        timings=dict(cal.timings),
+        model_info={k: v for k, v in cal.model_info.items() if k not in ("theta", "weights")},
+        cogging=cal.cogging,
+    )

@@ -1,0 +1,258 @@
+"""Writing a report (:func:`write_report`) and the entry points of the CLI, the demo and
+:meth:`hallcal.Calibration.report`."""
+
+from __future__ import annotations
+
+import dataclasses
+import io as _io
+import os
+import warnings
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from hallcal.errors import HallcalInputError
+from hallcal.io import (
+    Dataset,
+    atomic_write,
+    read_artifact,
+    read_dataset,
+)
+from hallcal.output.report.content import (
+    Progress,
+    ReportContent,
+    _say,
+    content_from_calibration,
+)
+from hallcal.output.report.figures import make_figures
+from hallcal.output.report.from_artifact import _read_bla, content_from_artifact
+from hallcal.output.report.page import _DPI, render_html
+from hallcal.pipeline.calibration import Calibration
+
+REPORT_NAME = "report.html"
+FIGURE_DIR = "figures"
+
+
+def _png(fig: Any) -> bytes:
+    buf = _io.BytesIO()
+    with warnings.catch_warnings():
+        # a figure of degenerate data (a flat trace, a tiny run) may not fit constrained layout;
+        # matplotlib then draws it without and says so on stderr, which is no news to the user
+        warnings.filterwarnings("ignore", message="constrained_layout not applied")
+        fig.savefig(buf, format="png", dpi=_DPI, metadata={"Software": None})
+    return buf.getvalue()
+
+
+def _out_dir(out_dir: str | os.PathLike[str]) -> Path:
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise HallcalInputError(f"{out}: exists and is not a directory")
+    try:
+        (out / FIGURE_DIR).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise HallcalInputError(f"{out}: cannot create the directory ({exc.strerror})") from None
+    return out
+
+
+def write_report(
+    content: ReportContent,
+    out_dir: str | os.PathLike[str],
+    *,
+    progress: Progress = None,
+) -> Path:
+    """Write the figures (``out_dir/figures/*.png``) and ``out_dir/report.html``, atomically.
+
+    Parameters
+    ----------
+    content : ReportContent
+        What the report shows.
+    out_dir : path-like
+        Output directory (created if needed).
+    progress : callable, keyword-only, optional
+        Called with a short message at each step.
+
+    Returns
+    -------
+    pathlib.Path
+        The HTML file.
+    """
+    out = _out_dir(out_dir)
+    _say(progress, "figures")
+    figs = make_figures(content)
+    images = []
+    for f in figs:
+        png = _png(f.figure)
+        with atomic_write(out / FIGURE_DIR / f"{f.key}.png", "wb") as fh:
+            fh.write(png)
+        images.append((f, png))
+    _say(progress, "HTML report")
+    text = render_html(content, images)
+    path = out / REPORT_NAME
+    with atomic_write(path, "w") as fh:
+        fh.write(text)
+    return path
+
+
+# ------------------------------------------------------------------------------------------------
+# Entry points of the CLI and the demo
+# ------------------------------------------------------------------------------------------------
+
+
+def write_report_from_files(
+    artifact_path: str | os.PathLike[str],
+    data_path: str | os.PathLike[str],
+    *,
+    validation: str | os.PathLike[str] | None = None,
+    bla: str | os.PathLike[str] | None = "auto",
+    out_dir: str | os.PathLike[str],
+    progress: Progress = None,
+    units: str = "mrad",
+) -> Path:
+    """``hallcal report ARTIFACT DATA [--validation VAL] --out DIR [--units U]``.
+
+    Parameters
+    ----------
+    artifact_path : path-like
+        Calibration artifact (JSON).
+    data_path : path-like
+        The calibration recording.
+    validation : path-like, optional
+        A fresh recording with ``y_ref`` (encoder) to validate on.
+    bla : path-like, "auto" or None
+        BLA file (``hallcal bla`` output) to plot; ``"auto"``: ``bla.json`` next to the artifact
+        when the artifact's plant came from a BLA (as ``hallcal demo`` writes it); None: none.
+    out_dir : path-like
+        Folder for ``report.html`` and ``figures/``.
+    progress : callable, optional
+    units : {"mrad", "electrical-deg"}
+        Units of the angle errors in the text (the figures stay in mrad).
+
+    Returns
+    -------
+    pathlib.Path
+        The HTML file.
+
+    Raises
+    ------
+    HallcalInputError
+        Missing or malformed artifact or data (the message names the file and key or column).
+    """
+    # read and check every input before saying anything: a bad input is one line on stderr
+    art = read_artifact(artifact_path)
+    data = read_dataset(data_path, required=("d1", "d2", "d3"))
+    val = None
+    sources = {"artifact": str(artifact_path), "data": str(data_path)}
+    if validation is not None:
+        val = read_dataset(validation, required=("d1", "d2", "d3", "y_ref"))
+        sources["validation"] = str(validation)
+    bla_obj = None
+    plant = art.get("plant")
+    if bla == "auto":
+        candidate = Path(artifact_path).parent / "bla.json"
+        from_bla = isinstance(plant, Mapping) and plant.get("source") == "bla"
+        if from_bla and candidate.is_file():
+            try:
+                bla_obj = _read_bla(candidate)
+                sources["bla"] = str(candidate)
+            except HallcalInputError:
+                bla_obj = None
+    elif bla is not None:
+        bla_obj = _read_bla(Path(bla))
+        sources["bla"] = str(bla)
+    content = content_from_artifact(
+        art, data, validation_data=val, bla=bla_obj, sources=sources, progress=progress
+    )
+    content = dataclasses.replace(content, angle_units=units)
+    return write_report(content, out_dir, progress=progress)
+
+
+def write_demo_report(
+    cal: Any,
+    val: Any,
+    *,
+    runs: Mapping[str, Any],
+    out_dir: str | os.PathLike[str],
+    noise_floor: float | None,
+    progress: Progress = None,
+) -> Path:
+    """The report of ``hallcal demo``: everything in memory, with the virtual bench's truth.
+
+    Parameters
+    ----------
+    cal : Calibration
+    val : Validation
+        Errors on the fresh validation run.
+    runs : mapping of str to BenchRun
+        ``"calibration"`` and ``"validation"`` (``"bla"`` is not needed: ``cal.bla`` has it).
+    out_dir : path-like
+    noise_floor : float
+        RMS angle error of the bench's Hall noise alone [rad].
+    progress : callable, optional
+        Called with a short message per step.
+
+    Returns
+    -------
+    pathlib.Path
+        The HTML file.
+    """
+    cal_run, val_run = runs["calibration"], runs["validation"]
+    content = content_from_calibration(
+        cal,
+        Dataset.from_columns(cal_run.columns(), path="calibration.npz"),
+        validation_data=Dataset.from_columns(val_run.columns(), path="validation.npz"),
+        validation=val,
+        noise_floor=noise_floor,
+        true_flux=cal_run.truth,
+        true_plant=cal_run.config.plant,
+        true_noise_variance=cal_run.config.noise_variance,
+        sources={
+            "calibration": "calibration.npz",
+            "validation": "validation.npz (fresh run, true angle)",
+            "BLA experiment": "bla.npz",
+        },
+        title="hallcal demo: the paper's simulation study",
+        noise_floor_source="virtual bench: σ·√(2/3)/(A·n_m) with the true σ and A",
+    )
+    return write_report(content, out_dir, progress=progress)
+
+
+def write_calibration_report(
+    cal: Calibration,
+    data: Dataset,
+    out_dir: str | os.PathLike[str],
+    *,
+    validation: Dataset | None = None,
+    progress: Progress = None,
+    units: str = "mrad",
+) -> Path:
+    """The report of a calibration object (``Calibration.report``), computed or loaded.
+
+    A calibration computed in this process reports its in-memory results; one loaded from an
+    artifact (:attr:`Calibration.artifact`) is reported as ``hallcal report`` does it.
+
+    Parameters
+    ----------
+    cal : Calibration
+    data : Dataset
+        The calibration recording.
+    out_dir : path-like
+    validation : Dataset, optional
+        A fresh recording with ``y_ref``.
+    progress : callable, optional
+        Called with a short message per step.
+    units : {"mrad", "electrical-deg"}
+        Units of the angle errors in the text.
+
+    Returns
+    -------
+    pathlib.Path
+        The HTML file.
+    """
+    if cal.artifact is not None:
+        content = content_from_artifact(
+            cal.artifact, data, validation_data=validation, progress=progress
+        )
+    else:
+        content = content_from_calibration(cal, data, validation_data=validation)
+    content = dataclasses.replace(content, angle_units=units)
+    return write_report(content, out_dir, progress=progress)
