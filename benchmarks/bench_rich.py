@@ -10,10 +10,11 @@ pair's waveform deformed on its own, truth on mechanical harmonics 1..55) at two
 
 Each calibration is :func:`hallcal.calibrate` (the whole pipeline: model, adequacy, table) in a
 fresh Python process, so that the wall time, the CPU time (both cores: up to twice the wall
-time when the machine is free for it) and the peak resident memory (``ru_maxrss`` of the child,
-imports included) belong to that calibration alone; the model step (choosing the harmonics, or
+time when the machine is free for it) and the peak resident memory (the child's own high-water
+mark ``VmHWM``, imports included; not ``ru_maxrss``, which on Linux also counts the parent's
+memory at the fork) belong to that calibration alone; the model step (choosing the harmonics, or
 the kernel SEM) is timed on its own from the pipeline's progress messages, with the peak memory
-at its end (the later power-up identifiability step raises the peak to about 610 MB).
+at its end (``benchmarks/bench_memory.py`` shows the peak of every step).
 Models: ``harmonics = "auto"``, ``basis = "kernel"`` (m = 400, the defaults), and, as a
 reference, the Fourier model with the truth's harmonics 1..55 given by hand.
 
@@ -73,6 +74,15 @@ def setup(cfg: BenchConfig, model: dict) -> dict:
     }
 
 
+def peak_rss_mb() -> float:
+    """The process's peak resident memory so far [MB] (``VmHWM``)."""
+    with open("/proc/self/status") as status:
+        for line in status:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # not Linux
+
+
 def one(data: str, model: str) -> None:
     """Child process: calibrate, validate, print one JSON line."""
     import hallcal
@@ -83,7 +93,7 @@ def one(data: str, model: str) -> None:
     steps: list[tuple[float, float, str]] = []
 
     def progress(message: str) -> None:  # wall time and peak RSS at the start of every step
-        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        rss = peak_rss_mb()
         steps.append((time.perf_counter(), rss, message))
 
     t, c = time.perf_counter(), time.process_time()
@@ -103,7 +113,7 @@ def one(data: str, model: str) -> None:
         "cpu": cpu,
         "model_wall": model_wall,
         "model_rss_mb": model_rss,
-        "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "rss_mb": peak_rss_mb(),
         "f_star": e_star,
         "f_init": float(np.std(e0 - np.mean(e0))),
         "floor": cfg.noise_floor,

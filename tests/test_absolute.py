@@ -429,3 +429,25 @@ def test_normal_tail_matches_scipy():
 
     x = np.linspace(-8.0, 12.0, 4001)
     np.testing.assert_allclose(ab._normal_tail(x), ndtr(-x), rtol=1.2e-7, atol=0.0)
+
+
+def test_standstill_computations_in_blocks_match_whole_arrays():
+    """The standstill error and the sample search run over blocks of positions (bounded
+    memory): the same values as on the whole array at once."""
+    rng = np.random.default_rng(0)
+    r1 = rng.uniform(0.1, 6.0, (2 * ab._ROW_BLOCK + 37, 360))
+    whole = np.mean(np.exp(-0.5 * 50.0 * np.square(r1)), axis=1)
+    assert np.array_equal(ab.standstill_error(r1, 50), whole)
+    K = rng.uniform(1.0, 300.0, r1.shape[0])
+    whole = np.mean(np.exp(-0.5 * K[:, None] * np.square(r1)), axis=1)
+    assert np.array_equal(ab.standstill_error(r1, K), whole)
+    r1sq = np.square(r1)
+
+    def err(K, rows):
+        return np.mean(np.exp(-0.5 * K[:, None] * r1sq[rows]), axis=1)
+
+    need = ab._samples_for(err, 1e-3, r1.shape[0])
+    assert np.all(need >= 1.0)
+    searched = need > 1.0
+    assert np.all(err(need[searched], np.flatnonzero(searched)) <= 1e-3 * (1 + 1e-9))
+    assert np.all(err(need[searched] * (1 - 1e-6), np.flatnonzero(searched)) > 1e-3)

@@ -81,3 +81,23 @@ def test_a_folded_map_is_not_bijective_and_f_star_refuses():
     assert not lut.bijective and lut.min_slope < 0
     with pytest.raises(NotBijectiveError):
         lut.f_star(FluxModel(basis, theta)(np.linspace(0, 1, 50)))
+
+
+def test_flux_evaluated_in_blocks_equals_one_product():
+    """Long evaluations run in blocks (bounded memory); the values are those of one product,
+    and the fused value-and-derivative equals the two separate evaluations."""
+    from hallcal.sensor import flux as fx
+
+    rng = np.random.default_rng(3)
+    basis = FourierBasis(tuple(range(1, 56)))
+    model = FluxModel(basis, rng.standard_normal((3, basis.size)))
+    for n in (1, 2, fx.EVALUATION_BLOCK, fx.EVALUATION_BLOCK + 1, 3 * fx.EVALUATION_BLOCK - 7):
+        y = rng.uniform(-3.0, 25.0, n)
+        g, dg = model.value_and_derivative(y)
+        assert np.array_equal(g, model(y))
+        assert np.array_equal(dg, model.derivative(y))
+        np.testing.assert_allclose(g, basis.evaluate(y) @ model.theta.T, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(dg, basis.derivative(y) @ model.theta.T, rtol=0, atol=1e-11)
+    assert model(0.5).shape == (1, 3)
+    sizes = [b - a for a, b in fx._blocks(5 * fx.EVALUATION_BLOCK + 1)]
+    assert sum(sizes) == 5 * fx.EVALUATION_BLOCK + 1 and min(sizes) > fx.EVALUATION_BLOCK // 2

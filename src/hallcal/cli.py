@@ -10,6 +10,7 @@ why). Progress and notes go to stderr, results to stdout.
 from __future__ import annotations
 
 import functools
+import gc
 import math
 import os
 import sys
@@ -1003,7 +1004,14 @@ def fleet(
 
 def main() -> None:
     """Console entry point."""
-    cli(prog_name="hallcal")
+    try:
+        cli(prog_name="hallcal")
+    finally:
+        # The process ends with the command: move every object left to the cycle collector's
+        # permanent generation, so that the interpreter's final collections skip them (the
+        # import-time objects of numba, NumPy and SciPy, most of the heap). That pass cost
+        # 0.35 s of CPU per `hallcal calibrate` on the 2-core machine; all is freed at exit.
+        gc.freeze()
 
 
 if __name__ == "__main__":  # pragma: no cover

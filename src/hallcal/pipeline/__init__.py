@@ -123,13 +123,20 @@ def calibrate(
     """
     from threadpoolctl import threadpool_limits
 
+    # The route's modules are imported before the limit: it applies to the BLAS libraries loaded
+    # at that moment, and SciPy brings its own OpenBLAS (loaded with scipy.linalg), which would
+    # otherwise keep two threads (a 5 x 5 matrix exponential then took 25 ms instead of 0.2 ms
+    # on the busy 2-core machine).
+    if setup.trajectory.kind == "constant-speed":
+        from hallcal.pipeline.open_loop import calibrate_open_loop
+    else:
+        from hallcal.pipeline.closed_loop import calibrate_closed_loop
+
     # One BLAS thread throughout: the products here are small or tall-and-thin, and with two
     # BLAS threads on a busy 2-core machine an eigendecomposition of 177 x 177 took 0.1-0.3 s
     # instead of 3 ms. Where two cores pay, the numeric code runs blocks in threads itself.
     with threadpool_limits(limits=1, user_api="blas"):
         if setup.trajectory.kind == "constant-speed":
-            from hallcal.pipeline.open_loop import calibrate_open_loop
-
             cal = calibrate_open_loop(dataset, setup, progress=progress)
             if bla_dataset is not None or bla is not None:
                 note = (
@@ -141,8 +148,6 @@ def calibrate(
                     status = CalibrationStatus.WARNING
                 cal = dataclasses.replace(cal, status=status, messages=(note, *cal.messages))
             return cal
-        from hallcal.pipeline.closed_loop import calibrate_closed_loop
-
         return calibrate_closed_loop(
             dataset, setup, bla_dataset=bla_dataset, bla=bla, progress=progress
         )

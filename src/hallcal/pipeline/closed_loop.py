@@ -24,7 +24,6 @@ from hallcal.errors import HallcalInputError
 from hallcal.fit.adequacy import AdequacyReport, assess
 from hallcal.fit.cogging import CoggingSelection, CoggingStatus, select_cogging
 from hallcal.fit.design import plan_ramp, speed_limits
-from hallcal.fit.order import HarmonicSelection, select_harmonics, shape_off
 from hallcal.fit.sem import SEMResult, SEMStatus, solve_sem
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
@@ -41,6 +40,7 @@ from hallcal.sim.loop import ClosedLoop
 
 if TYPE_CHECKING:
     from hallcal.fit.kernel import KernelSEMResult
+    from hallcal.fit.order import HarmonicSelection
 
 __all__ = ["calibrate_closed_loop"]
 
@@ -161,6 +161,8 @@ def _fit_fourier(
     selection = None
     adequacy = None
     if harmonics == "auto":
+        from hallcal.fit.order import select_harmonics  # loaded only for the automatic choice
+
         say(progress, "choosing the harmonics from the data")
         selection = select_harmonics(
             loop, s.r, s.d, y=s.y, pole_pairs=setup.pole_pairs, max_iterations=max_it,
@@ -239,6 +241,8 @@ def _with_cogging(
         )  # fmt: skip
     sem, selection, adequacy = sel.sem, fit.selection, None
     if selection is not None and sel.cogging is not None:
+        from hallcal.fit.order import select_harmonics, shape_off  # loaded with the selection
+
         adequacy = assess(sem, s.d, pole_pairs=setup.pole_pairs, projection=loop.projection,
                           offset=loop.offset)  # fmt: skip
     if (

@@ -204,8 +204,8 @@ def _invert_model(
     n = int(pole_pairs)
     y0 = np.array(y0_start, dtype=np.float64)
     for _ in range(8):
-        g = flux(y0) - offset
-        gp = flux.derivative(y0)
+        g, gp = flux.value_and_derivative(y0)
+        g -= offset
         ab = g @ projection.T
         dab = gp @ projection.T
         rho2 = np.maximum(np.sum(ab * ab, axis=1), np.finfo(float).tiny)
@@ -964,8 +964,9 @@ def estimate_normal_noise(
     y = lut.f_init(d)[start:stop]
     d = d[start:stop]
     y0 = _invert_model(flux, lut.pole_pairs, lut.projection, lut.offset, y, y + lut.correction(y))
-    r = d - flux(y0)
-    t = flux.derivative(y0)
+    g, t = flux.value_and_derivative(y0)
+    r = d - g
+    del g
     t2 = np.maximum(np.sum(t * t, axis=1), np.finfo(float).tiny)
     normal = r - (np.sum(r * t, axis=1) / t2)[:, None] * t
     N = d.shape[0]
@@ -1291,31 +1292,46 @@ def standstill_error(planar_radius: NDArray, samples: float | NDArray) -> NDArra
 
     ``P = mean_phi exp(-K r1(phi)^2 / 2)``: the 2-D standard normal's mass outside the polygon
     of :func:`_standstill_radius` (its radial tail is ``exp(-r^2 / 2)``), by the midpoint rule
-    over the directions.
+    over the directions. ``samples`` is one K, or one per position.
     """
     K = np.asarray(samples, dtype=np.float64)
-    r2 = np.square(planar_radius)
-    if K.ndim == 0:
-        return np.mean(np.exp(-0.5 * float(K) * r2), axis=1)
-    return np.mean(np.exp(-0.5 * K[:, None] * r2), axis=1)
+    radius = np.asarray(planar_radius)
+    out = np.empty(radius.shape[0])
+    for s0 in range(0, radius.shape[0], _ROW_BLOCK):  # bounded temporaries, same values
+        r2 = np.square(radius[s0 : s0 + _ROW_BLOCK])
+        if K.ndim == 0:
+            k: float | NDArray = float(K)
+        elif K.shape[0] == radius.shape[0]:
+            k = K[s0 : s0 + _ROW_BLOCK, None]
+        else:  # broadcast as given (one K for every position)
+            k = K[:, None]
+        out[s0 : s0 + _ROW_BLOCK] = np.mean(np.exp(-0.5 * k * r2), axis=1)
+    return out
+
+
+#: Positions per block in the standstill computations (1024 x 360 directions: 3 MB per array).
+_ROW_BLOCK = 1024
 
 
 def _samples_for(err_fn, target: float, count: int, k_max: float = 1e9) -> NDArray:
     """Smallest K >= 1 (per row, continuous) with ``err_fn(K, rows) <= target``; inf beyond
-    k_max. ``err_fn`` is decreasing in K; rows already right with one sample are not searched."""
+    k_max. ``err_fn`` is decreasing in K and row-wise; rows already right with one sample are
+    not searched. Rows are searched in blocks (bounded temporaries; the same values)."""
     out = np.ones(count)
-    rows = np.flatnonzero(err_fn(np.ones(count), np.arange(count)) > target)
-    if rows.size == 0:
-        return out
-    lo = np.zeros(rows.size)
-    hi = np.full(rows.size, math.log(k_max))
-    ok_max = err_fn(np.full(rows.size, k_max), rows) <= target
-    for _ in range(40):  # log K to 2e-11 of its range: far below any meaning
-        mid = 0.5 * (lo + hi)
-        good = err_fn(np.exp(mid), rows) <= target
-        hi = np.where(good, mid, hi)
-        lo = np.where(good, lo, mid)
-    out[rows] = np.where(ok_max, np.exp(hi), np.inf)
+    for s0 in range(0, count, _ROW_BLOCK):
+        block = np.arange(s0, min(s0 + _ROW_BLOCK, count))
+        rows = block[err_fn(np.ones(block.size), block) > target]
+        if rows.size == 0:
+            continue
+        lo = np.zeros(rows.size)
+        hi = np.full(rows.size, math.log(k_max))
+        ok_max = err_fn(np.full(rows.size, k_max), rows) <= target
+        for _ in range(40):  # log K to 2e-11 of its range: far below any meaning
+            mid = 0.5 * (lo + hi)
+            good = err_fn(np.exp(mid), rows) <= target
+            hi = np.where(good, mid, hi)
+            lo = np.where(good, lo, mid)
+        out[rows] = np.where(ok_max, np.exp(hi), np.inf)
     return out
 
 

@@ -14,6 +14,7 @@ Units: y0 in rad (mechanical), g in the Hall sensor's unit (V or ADC counts).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -71,6 +72,24 @@ class FourierBasis:
         out[:, 2::2] = -h * np.sin(arg)
         return out
 
+    def evaluate_with_derivative(
+        self, y0: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``(evaluate(y0), derivative(y0))`` from one evaluation of the sines and cosines
+        (the same values, bit for bit, at half the cost)."""
+        y = np.atleast_1d(np.asarray(y0, dtype=np.float64))
+        h = self.harmonic_array
+        arg = np.multiply.outer(y, h)
+        sin, cos = np.sin(arg), np.cos(arg)
+        value = np.empty((y.size, self.size))
+        value[:, 0] = 1.0
+        value[:, 1::2] = sin
+        value[:, 2::2] = cos
+        slope = np.zeros((y.size, self.size))
+        slope[:, 1::2] = h * cos
+        slope[:, 2::2] = -h * sin
+        return value, slope
+
     def index(self, harmonic: int) -> tuple[int, int]:
         """Columns (sin, cos) of a harmonic in beta."""
         j = self.harmonics.index(int(harmonic))
@@ -101,14 +120,58 @@ class FluxModel:
 
     def __call__(self, y0: ArrayLike) -> NDArray[np.float64]:
         """g(y0), shape (N, 3)."""
-        return self.basis.evaluate(y0) @ self.theta.T
+        return self._evaluate(y0, self.basis.evaluate)
 
     def derivative(self, y0: ArrayLike) -> NDArray[np.float64]:
         """dg/dy0, shape (N, 3)."""
-        return self.basis.derivative(y0) @ self.theta.T
+        return self._evaluate(y0, self.basis.derivative)
+
+    def value_and_derivative(
+        self, y0: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``(g(y0), dg/dy0)``, each of shape (N, 3): the same values as ``self(y0)`` and
+        ``self.derivative(y0)``, with the sines and cosines of a Fourier basis evaluated once."""
+        fused = getattr(self.basis, "evaluate_with_derivative", None)
+        y = np.atleast_1d(np.asarray(y0, dtype=np.float64))
+        if fused is None or y.ndim != 1:
+            return self(y), self.derivative(y)
+        value, slope = np.empty((y.size, 3)), np.empty((y.size, 3))
+        for a, b in _blocks(y.size):
+            B, dB = fused(y[a:b])
+            value[a:b] = B @ self.theta.T
+            slope[a:b] = dB @ self.theta.T
+        return value, slope
+
+    def _evaluate(
+        self, y0: ArrayLike, basis: Callable[[NDArray[np.float64]], NDArray[np.float64]]
+    ) -> NDArray[np.float64]:
+        """``basis(y) @ theta.T`` on blocks of samples (see :func:`_blocks`)."""
+        y = np.atleast_1d(np.asarray(y0, dtype=np.float64))
+        if y.ndim != 1 or y.size <= EVALUATION_BLOCK:
+            return basis(y) @ self.theta.T
+        out = np.empty((y.size, 3))
+        for a, b in _blocks(y.size):
+            out[a:b] = basis(y[a:b]) @ self.theta.T
+        return out
 
     def with_theta(self, theta: ArrayLike) -> FluxModel:
         return FluxModel(self.basis, np.asarray(theta, dtype=np.float64).reshape(3, -1))
+
+
+#: Samples per block when a flux model is evaluated on many angles: bounds the (rows, m) basis
+#: matrices (8192 x 111 float64, 7 MB, for 55 harmonics) instead of building them for all N.
+EVALUATION_BLOCK = 8192
+
+
+def _blocks(n: int) -> list[tuple[int, int]]:
+    """Row ranges of nearly equal sizes, about :data:`EVALUATION_BLOCK` each, covering n rows.
+
+    Never a single row (unless n = 1), which BLAS would multiply through another kernel: the
+    blocks' products are the same, bit for bit, as the product on all rows at once.
+    """
+    count = max(-(-n // EVALUATION_BLOCK), 1)
+    edges = [(k * n) // count for k in range(count + 1)]
+    return list(zip(edges[:-1], edges[1:], strict=True))
 
 
 def sinusoidal_theta(
