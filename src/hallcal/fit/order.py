@@ -453,6 +453,23 @@ def _widen(
     return harmonics, sem, rep, status
 
 
+def _group_centre(active: tuple[int, ...] | list[int], n: int) -> set[int]:
+    """The electrical harmonic k n_m of the band's top group, when the band stops below it.
+
+    The flux of a rotor is a sum of electrical harmonics k n_m, each with sidebands k n_m +- j
+    from the magnets' differences; the centre of a group is its strongest member. A band edge
+    that takes sidebands of group k (above k n_m - n_m / 2) but stops just below k n_m leaves
+    the strongest line of that group out, and the SEM then bends the angle to make up for it
+    (a zoo motor with 10 pole pairs: 1..59 chosen, f_star 72x the noise floor; with 60 added,
+    3.9x, as predicted).
+    """
+    if not len(active):
+        return set()
+    top = int(max(active))
+    centre = n * max(1, round(top / n))
+    return {centre} if centre > top else set()
+
+
 def select_harmonics(
     loop: ClosedLoop,
     r: ArrayLike,
@@ -535,7 +552,7 @@ def select_harmonics(
         deadline=t0 + float(time_budget), max_fits=max(int(max_fits), 1),
     )  # fmt: skip
     edge, rel = _band_step(s, np.ascontiguousarray(y, dtype=np.float64))
-    harmonics = tuple(sorted(set(rel.active) | {n}))
+    harmonics = tuple(sorted(set(rel.active) | {n} | _group_centre(rel.active, n)))
     basis = FourierBasis(harmonics)
     theta0 = restrict_theta(edge.flux, basis)
     if start is not None:
