@@ -276,7 +276,8 @@ _FLOAT_UPDATE = string.Template(
     /* f_init: alpha, beta = P (d - o) */
 ${projection}
     const float r2 = (a * a) + (b * b);
-    /* plausibility: each channel in its calibrated range (NaN is not), then the radius */
+    /* plausibility: each channel in its calibrated range (NaN is not; the three tests without
+     * short-circuit, one branch), then the radius */
     if (${range_check}) {
         flags = ${PFX}_REJ_RANGE;
     } else if ((hc_bits(r2) - ${r2_lo_bits}u) <= ${r2_span_bits}u) {
@@ -376,7 +377,7 @@ def _range_check(lo: NDArray, hi: NDArray) -> str:
             parts.append(f"((hc_bits({d}) & 0x7FFFFFFFu) > {_bits(m)}u)")
         else:
             parts.append(f"(!(({d} >= {_cf(float(lo_f))}) && ({d} <= {_cf(float(hi_f))})))")
-    return "\n        || ".join(parts)
+    return "(" + "\n        | ".join(f"(uint32_t){p}" for p in parts) + ") != 0u"
 
 
 def _atan2_c(
@@ -388,7 +389,7 @@ def _atan2_c(
     if magic:
         seed_text = f"the bit pattern (any normal x; [{x_lo:.6g}, {x_hi:.6g}] here)"
         seed_line = (
-            f"    rc = hc_float(0x{RECIPROCAL_MAGIC:08X}u - hc_bits(x)); /* 1/x within 5.1 % */"
+            f"    rc = hc_float(0x{RECIPROCAL_MAGIC:08X}u - hc_bits(x)); /* 1/x within 5.08 % */"
         )
         steps = "\n".join(["    rc = rc * (2.0f - (x * rc));"] * newton)
     else:

@@ -28,8 +28,9 @@ MAX_TOTAL_ERROR = 1e-5
 CORDIC_STEPS = 5
 _TAN_PI_8 = math.tan(math.pi / 8.0)
 #: The lean atan2's reciprocal seed from the bit pattern: 1/x ~ float(K - bits(x)) for normal
-#: positive floats x (the exponent is negated, the mantissa approximated linearly).
-RECIPROCAL_MAGIC = 0x7EF311C2
+#: positive floats x (the exponent is negated, the mantissa approximated linearly); two 8-bit
+#: chunks, so that ARM builds it in two instructions (0x7EF311C2 is 0.6 % better, four).
+RECIPROCAL_MAGIC = 0x7EF30000
 
 
 @functools.lru_cache(maxsize=1)
