@@ -15,7 +15,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from hallcal.output.codegen.numbers import _TAN_PI_8, _FloatNumbers
+from hallcal.output.codegen.numbers import (
+    _TAN_PI_8,
+    RECIPROCAL_MAGIC,
+    _FloatNumbers,
+    _table_fraction_bits,
+)
 from hallcal.output.codegen.sections import Section, _Context
 from hallcal.output.codegen.text import _bits, _c_list, _cf, _f32, _f32_down, _f32_up
 from hallcal.output.firmware import FirmwareDesign
@@ -195,7 +200,7 @@ $section_defs"""
 #: one for its table positions).
 _FLOAT_ATAN2 = string.Template(
     r"""/* Electrical angle atan2(b, a) in Q0.32 turns${purpose}. Octant reduction, a rotation by
- * -45 degrees above 22.5 degrees, 1/x from a linear seed valid for x in [${x_lo}, ${x_hi}]
+ * -45 degrees above 22.5 degrees, 1/x from ${seed_text}
  * and ${newton} Newton step(s), an odd minimax polynomial of atan on [-tan(pi/8), tan(pi/8)]. For
  * vectors in the radius window: |error| <= ${atan_bound} rad (electrical). */
 static uint32_t ${name}(float a, float b)
@@ -220,7 +225,7 @@ static uint32_t ${name}(float a, float b)
         x = xr;
         k = k | 1u;
     }
-    rc = ${c0} - (${c1} * x);
+${seed_line}
 ${newton_steps}
     t = y * rc;
     t2 = t * t;
@@ -271,7 +276,8 @@ _FLOAT_UPDATE = string.Template(
     /* f_init: alpha, beta = P (d - o) */
 ${projection}
     const float r2 = (a * a) + (b * b);
-    /* plausibility: each channel in its calibrated range (NaN is not), then the radius */
+    /* plausibility: each channel in its calibrated range (NaN is not; the three tests without
+     * short-circuit, one branch), then the radius */
     if (${range_check}) {
         flags = ${PFX}_REJ_RANGE;
     } else if ((hc_bits(r2) - ${r2_lo_bits}u) <= ${r2_span_bits}u) {
@@ -304,12 +310,14 @@ ${projection}
             /* eta from the table at f_init's angle within the revolution: interval i of
              * ${per_turn} per electrical turn, position i + f in Q16.16 */
 ${index}
-            const float f = (float)(uint16_t)x * 1.52587891e-5f; /* 2^-16 */
+            const uint32_t fx = ${fraction}; /* f 2^${fb}, 0 <= f < 1 */
             const int32_t t0 = (int32_t)hc_t[i];
-            const int32_t dt = (int32_t)hc_t[i + 1u] - t0;
+            /* eta 2^${fb} = T[i] 2^${fb} + dT fx${curv_word} in integers: modular (unsigned)
+             * arithmetic, exact since the true value fits in int32 */
+            const uint32_t e = ((uint32_t)t0 << ${fb})
+                               + ((uint32_t)((int32_t)hc_t[i + 1u] - t0) * fx)${curv};
             /* y_star within the revolution [turns], in (-1/2, 3/2): _read brings it to [0, 1) */
-            const float y = ((float)x * ${inv_m16})
-                            + ((((float)t0 + (f * (float)dt))${curv}) * ${lsb});
+            const float y = ((float)x * ${inv_m16}) + ((float)hc_s32(e) * ${lsb});
             s->phase = p;
             s->turn = turn;
             s->rev = rev;
@@ -369,20 +377,31 @@ def _range_check(lo: NDArray, hi: NDArray) -> str:
             parts.append(f"((hc_bits({d}) & 0x7FFFFFFFu) > {_bits(m)}u)")
         else:
             parts.append(f"(!(({d} >= {_cf(float(lo_f))}) && ({d} <= {_cf(float(hi_f))})))")
-    return "\n        || ".join(parts)
+    return "(" + "\n        | ".join(f"(uint32_t){p}" for p in parts) + ") != 0u"
 
 
 def _atan2_c(
     name: str, purpose: str, x_lo: float, x_hi: float, seed: tuple[float, float], newton: int,
-    poly_turns: NDArray[np.float64], atan_bound: float,
+    poly_turns: NDArray[np.float64], atan_bound: float, magic: bool = False,
 ) -> str:  # fmt: skip
     """A float atan2 (Q0.32 turns out) with its own reciprocal seed, Newton steps and polynomial
     (coefficients of atan in turns, odd powers ascending)."""
-    steps = "\n".join(
-        ["    {", "        float u;"]
-        + ["        u = 1.0f - (x * rc);\n        rc = rc + (rc * u);"] * newton
-        + ["    }"]
-    )
+    if magic:
+        seed_text = f"the bit pattern (any normal x; [{x_lo:.6g}, {x_hi:.6g}] here)"
+        seed_line = (
+            f"    rc = hc_float(0x{RECIPROCAL_MAGIC:08X}u - hc_bits(x)); /* 1/x within 5.08 % */"
+        )
+        steps = "\n".join(["    rc = rc * (2.0f - (x * rc));"] * newton)
+    else:
+        seed_text = f"a linear seed valid for x in [{x_lo:.6g}, {x_hi:.6g}]"
+        seed_line = (
+            f"    rc = {_cf(seed[0], 'reciprocal seed')} - ({_cf(seed[1], 'reciprocal seed')} * x);"
+        )
+        steps = "\n".join(
+            ["    {", "        float u;"]
+            + ["        u = 1.0f - (x * rc);\n        rc = rc + (rc * u);"] * newton
+            + ["    }"]
+        )
     scaled = poly_turns * 2.0**32
     poly = _cf(scaled[-1])
     for c in scaled[-2::-1]:
@@ -390,14 +409,12 @@ def _atan2_c(
     return _FLOAT_ATAN2.substitute(
         name=name,
         purpose=purpose,
-        x_lo=f"{x_lo:.6g}",
-        x_hi=f"{x_hi:.6g}",
+        seed_text=seed_text,
+        seed_line=seed_line,
         newton=newton,
         atan_bound=f"{atan_bound:.2e}",
         tan8=_cf(_TAN_PI_8),
         rsqrt2=_cf(math.sqrt(0.5)),
-        c0=_cf(seed[0], "reciprocal seed"),
-        c1=_cf(seed[1], "reciprocal seed"),
         newton_steps=steps,
         poly=poly,
     )
@@ -440,8 +457,9 @@ def _float_projection(d: FirmwareDesign) -> str:
     )
 
 
-def _float_table(d: FirmwareDesign) -> tuple[str, str]:
-    """The table's declaration and the curvature term of eta (empty for a linear table)."""
+def _float_table(d: FirmwareDesign, fb: int) -> tuple[str, str, str]:
+    """The table's declaration, the curvature term of eta 2^fb (empty for a linear table) and
+    its description."""
     t = d.table
     m = t.points
     values = list(t.values) + [t.values[0]]  # T[M] = T[0]: the wrap-around without a branch
@@ -457,10 +475,12 @@ def _float_table(d: FirmwareDesign) -> tuple[str, str]:
             + _c_list([str(int(v)) for v in t.curvature], 16)
             + "\n};"
         )
+        shift = f" << {t.curvature_shift}" if t.curvature_shift else ""
         curv = (
-            "\n                             + ((f - (f * f)) * "
-            f"((float)hc_c[i] * {_cf(2.0**t.curvature_shift, 'table unit')}))"
+            "\n                               + (((uint32_t)(int32_t)hc_c[i] * "
+            f"((fx * ({2**fb}u - fx)) >> {fb})){shift})"
         )
+        word = f" + 2^{t.curvature_shift} C[i] (fx (2^{fb} - fx) >> {fb})"
     else:
         table_decl = (
             f"/* eta table of f_star: value T[i] (int16) at mechanical angle i / {m} turn, "
@@ -470,8 +490,8 @@ def _float_table(d: FirmwareDesign) -> tuple[str, str]:
             + _c_list([str(int(v)) for v in values], 12)
             + "\n};"
         )
-        curv = ""
-    return table_decl, curv
+        curv = word = ""
+    return table_decl, curv, word
 
 
 def _float_subs(ctx: _Context, fn: _FloatNumbers) -> dict[str, Any]:
@@ -480,7 +500,8 @@ def _float_subs(ctx: _Context, fn: _FloatNumbers) -> dict[str, Any]:
     n, m = d.pole_pairs, d.table.points
     pl = d.plausibility
     kbits = (m // n).bit_length() - 1  # M = n 2^k
-    table_decl, curv = _float_table(d)
+    fb = _table_fraction_bits(d)
+    table_decl, curv, curv_word = _float_table(d, fb)
     index = (
         f"            const uint32_t x = ((uint32_t)turn << {kbits + 16}) + (p >> {16 - kbits});\n"
         "            const uint32_t i = x >> 16;"
@@ -492,7 +513,15 @@ def _float_subs(ctx: _Context, fn: _FloatNumbers) -> dict[str, Any]:
         PFX=ctx.PFX,
         table_decl=table_decl,
         atan2_fn=_atan2_c(
-            "hc_angle", "", x_lo, pl.radius_hi, fn.seed, fn.newton, fn.poly, fn.atan_bound
+            "hc_angle",
+            "",
+            x_lo,
+            pl.radius_hi,
+            fn.seed,
+            fn.newton,
+            fn.poly,
+            fn.atan_bound,
+            fn.magic,
         ),  # fmt: skip
         n=n,
         n_minus_1=n - 1,
@@ -506,7 +535,10 @@ def _float_subs(ctx: _Context, fn: _FloatNumbers) -> dict[str, Any]:
         per_turn=m // n,
         index=index,
         curv=curv,
-        lsb=_cf(2.0**-d.table.shift, "table unit"),
+        curv_word=curv_word,
+        fb=fb,
+        fraction="x & 0xFFFFu" if fb == 16 else f"(x & 0xFFFFu) >> {16 - fb}",
+        lsb=_cf(2.0 ** -(d.table.shift + fb), "table unit"),
         inv_m16=_cf(1.0 / m / 65536.0),
     )
 
