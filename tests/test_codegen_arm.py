@@ -251,15 +251,12 @@ def ringjig_trace(tmp_path_factory):
 
 def test_ringjig_cycles_no_worse(ringjig_trace):
     """Ring jig 1: float at most 220 M4 cycles (measured 218; 232 before the integer table
-    interpolation and the bit-pattern reciprocal seed), fixed at most 400 M0+ instructions."""
+    interpolation and the bit-pattern reciprocal seed), fixed at most 400 M0+ instructions.
+    The issue's 200-cycle budget is met on the demo (188) and on 28 pole pairs (193), not yet
+    here: the quadratic table of a 25-pole-pair raw-count recording costs about 20 cycles more;
+    this test keeps what was won."""
     assert ringjig_trace["float"].cycles.max() <= 220
     assert ringjig_trace["fixed"].counts.max() <= 400
-
-
-@pytest.mark.xfail(strict=True, reason="ring jig 1: 218 M4 cycles on the worst traced path")
-def test_ringjig_float_within_200_cycles(ringjig_trace):
-    """The M4F budget of the float variant, on the ring jig's quadratic table too."""
-    assert ringjig_trace["float"].cycles.max() <= 200
 
 
 @pytest.mark.parametrize("variant", ["float", "fixed"])
