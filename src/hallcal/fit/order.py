@@ -454,7 +454,7 @@ def _widen(
 
 
 def _group_centre(active: tuple[int, ...] | list[int], n: int) -> set[int]:
-    """The electrical harmonic k n_m of the band's top group, when the band stops below it.
+    """The harmonics up to k n_m of the band's top group, when the band stops below its centre.
 
     The flux of a rotor is a sum of electrical harmonics k n_m, each with sidebands k n_m +- j
     from the magnets' differences; the centre of a group is its strongest member. A band edge
@@ -467,7 +467,7 @@ def _group_centre(active: tuple[int, ...] | list[int], n: int) -> set[int]:
         return set()
     top = int(max(active))
     centre = n * max(1, round(top / n))
-    return {centre} if centre > top else set()
+    return set(range(top + 1, centre + 1))  # the band reaches the centre: its sidebands too
 
 
 def select_harmonics(
