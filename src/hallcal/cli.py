@@ -358,21 +358,10 @@ def inspect(data: str, setup_path: str | None, pole_pairs: int | None) -> None:
         _out.print(toml)
 
 
-def _poly_text(coefficients: tuple[float, ...]) -> str:
-    n = len(coefficients) - 1
-    terms = []
-    for i, a in enumerate(coefficients):
-        if a == 0.0:
-            continue
-        p = n - i
-        s = "" if p == 0 else ("s" if p == 1 else f"s^{p}")
-        coef = f"{a:.4g}"
-        terms.append(coef if not s else (s if coef == "1" else f"{coef} {s}"))
-    return " + ".join(terms).replace("+ -", "- ") or "0"
-
-
 def _tf_text(num: tuple[float, ...], den: tuple[float, ...], delay: float) -> str:
-    text = f"G(s) = {_poly_text(num)} / ({_poly_text(den)})"
+    from hallcal.sim.lti import polynomial_text
+
+    text = f"G(s) = {polynomial_text(num)} / ({polynomial_text(den)})"
     if delay > 0:
         text += f", input delay {1e3 * delay:.4g} ms"
     return text

@@ -17,7 +17,7 @@ from hallcal.io import (
 )
 from hallcal.output.report.content import ReportContent
 from hallcal.output.report.figures import ReportFigure
-from hallcal.sim.lti import ContinuousTF
+from hallcal.sim.lti import ContinuousTF, polynomial_text
 
 _DPI = 120
 
@@ -71,19 +71,7 @@ def _num(x: Any, fmt: str = ".4g") -> str:
 
 
 def _tf_text(tf: ContinuousTF) -> str:
-    def poly(c: tuple[float, ...]) -> str:
-        n = len(c) - 1
-        terms = []
-        for i, a in enumerate(c):
-            if a == 0:
-                continue
-            p = n - i
-            s = "" if p == 0 else ("s" if p == 1 else f"s^{p}")
-            coef = f"{a:.4g}"
-            terms.append(coef if not s else (s if coef == "1" else f"{coef} {s}"))
-        return " + ".join(terms).replace("+ -", "- ") or "0"
-
-    text = f"({poly(tf.num)}) / ({poly(tf.den)})"
+    text = f"({polynomial_text(tf.num)}) / ({polynomial_text(tf.den)})"
     if tf.delay:
         text += f" · exp(-{tf.delay:.4g} s)"
     return text
