@@ -22,9 +22,9 @@ from hypothesis import strategies as st
 
 from hallcal.fit.gauss_newton import (
     ParameterLayout,
-    _gram_from_moments,
     _moments,
     gauss_newton_system,
+    gram_from_moments,
     regression_normal_equations,
     simulate_model,
 )
@@ -188,14 +188,14 @@ def test_diverged_pass_is_all_nan(short_run):
 
 @settings(max_examples=30)
 @given(harmonics=st.sets(st.integers(1, 30), min_size=1, max_size=10), seed=st.integers(0, 99))
-def test_gram_from_moments_matches_dense_products(harmonics, seed):
+def testgram_from_moments_matches_dense_products(harmonics, seed):
     """sum_k w_k beta_k beta_k^T from moments equals the dense sum (rounding only: 1e-12)."""
     rng = np.random.default_rng(seed)
     y = np.sort(rng.uniform(-3.0, 15.0, 500))
     w = rng.standard_normal(500)
     basis = FourierBasis(tuple(sorted(harmonics)))
     C, S = _moments(y, np.ascontiguousarray(w[:, None]), 2 * max(harmonics))
-    M = _gram_from_moments(C[0], S[0], basis.harmonics)
+    M = gram_from_moments(C[0], S[0], basis.harmonics)
     B = basis.evaluate(y)
     dense = (B * w[:, None]).T @ B
     np.testing.assert_allclose(M, dense, rtol=0, atol=1e-12 * np.abs(dense).max())

@@ -47,6 +47,7 @@ import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
+from hallcal.fit.gauss_newton import gram_from_moments
 from hallcal.sensor.flux import FluxModel, FourierBasis
 
 __all__ = [
@@ -150,29 +151,6 @@ def _shape_moments(y0, d, theta, harm, hmax):  # pragma: no cover - numba
     return C, S, sse
 
 
-def _trig_gram(C: NDArray, S: NDArray, harmonics: NDArray) -> NDArray[np.float64]:
-    """``sum_k w_k beta_k beta_k^T``, ``beta = [1, sin h_1 y, cos h_1 y, ...]``, from moments.
-
-    Product formulas: sin a sin b = (cos(a-b) - cos(a+b)) / 2, cos a cos b = (cos(a-b) +
-    cos(a+b)) / 2, sin a cos b = (sin(a+b) + sin(a-b)) / 2.
-    """
-    a = np.asarray(harmonics, dtype=np.int64)
-    mb = 1 + 2 * a.size
-    M = np.empty((mb, mb))
-    dif = np.abs(np.subtract.outer(a, a))
-    sgn = np.sign(np.subtract.outer(a, a))
-    sm = np.add.outer(a, a)
-    M[0, 0] = C[0]
-    M[0, 1::2] = M[1::2, 0] = S[a]
-    M[0, 2::2] = M[2::2, 0] = C[a]
-    M[1::2, 1::2] = 0.5 * (C[dif] - C[sm])
-    M[2::2, 2::2] = 0.5 * (C[dif] + C[sm])
-    sc = 0.5 * (S[sm] + sgn * S[dif])
-    M[1::2, 2::2] = sc
-    M[2::2, 1::2] = sc.T
-    return M
-
-
 @dataclass(frozen=True)
 class ShapeSystem:
     """Normal equations of the flux model's distance from the data, along the curve's normals.
@@ -246,7 +224,7 @@ def shape_system(
     G = np.zeros((3 * mb, 3 * mb))
     pairs = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]
     for w, (h1, h2) in enumerate(pairs):
-        M = _trig_gram(C[w], S[w], harm)
+        M = gram_from_moments(C[w], S[w], harm)
         G[h1 * mb : (h1 + 1) * mb, h2 * mb : (h2 + 1) * mb] = M
         if h1 != h2:
             G[h2 * mb : (h2 + 1) * mb, h1 * mb : (h1 + 1) * mb] = M.T
