@@ -653,7 +653,6 @@ def plan(artifact: str, revolutions: float, speeds: str | None, target: float) -
     integral action hides it; the same revolutions at a higher speed determine the table.
     """
     from hallcal.api import load
-    from hallcal.errors import CalibrationRefused, HallcalInputError
     from hallcal.pipeline.design import plan_next_ramp
 
     grid = None

@@ -494,7 +494,7 @@ def calibrate_closed_loop(
         say(progress, "how fast a ramp would determine the table (experiment design)")
         t0 = time.perf_counter()
         # the plant with the refined gain, without the cogging (the plan's layout holds it)
-        plan_loop = closed_loop(setup, pm.plant)
+        plan_loop = loop.with_cogging(None)
         advice = _ramp_advice(plan_loop, setup, s, fit, predicted / adequacy.noise_floor)
         timings["ramp_plan"] = time.perf_counter() - t0
         if advice is not None:
