@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 
+import pytest
 from hypothesis import HealthCheck, settings
 
 settings.register_profile(
@@ -14,3 +15,46 @@ settings.register_profile(
     suppress_health_check=[HealthCheck.too_slow],
 )
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "hallcal"))
+
+
+# ------------------------------------------------------------------------------------------------
+# tiers: `pytest -m "not slow"` for a quick local run; the README's command runs everything
+
+#: Marker by test file: ``hostile`` (the hostile-input contract), ``arm`` (firmware under QEMU),
+#: ``slow`` (whole-pipeline runs of more than a few seconds each).
+_MARKERS = {
+    "test_hostile.py": ("hostile", "slow"),
+    "test_fuzz_setups.py": ("hostile", "slow"),
+    "test_codegen_arm.py": ("arm", "slow"),
+    "test_fleet.py": ("slow",),
+    "test_readme.py": ("slow",),
+    "test_real_ringjig.py": ("slow",),
+    "test_whole_recordings.py": ("slow",),
+}
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        for name in _MARKERS.get(item.path.name, ()):
+            item.add_marker(getattr(pytest.mark, name))
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]):  # type: ignore[no-untyped-def]
+    """On CI (``HALLCAL_REQUIRE_TOOLS=1``, set by .ci/run) a skip is a failure.
+
+    The ARM toolchain, QEMU and chromium are installed by .ci/run; a test that skips there
+    because one is missing would be a check that cannot fail.
+    """
+    outcome = yield
+    report = outcome.get_result()
+    if (
+        os.environ.get("HALLCAL_REQUIRE_TOOLS")
+        and report.skipped
+        and not hasattr(report, "wasxfail")
+    ):
+        reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
+        report.outcome = "failed"
+        report.longrepr = (
+            f"skipped where every tool must be present (HALLCAL_REQUIRE_TOOLS): {reason}"
+        )
