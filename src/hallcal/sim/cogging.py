@@ -85,7 +85,8 @@ class CoggingTorque:
         CoggingTorque
         """
         xx = np.asarray(x, dtype=np.float64).reshape(-1)
-        return cls(tuple(np.atleast_1d(orders).tolist()), xx[0::2], xx[1::2], covariance)
+        cov = None if covariance is None else np.asarray(covariance, dtype=np.float64)
+        return cls(tuple(np.atleast_1d(orders).tolist()), xx[0::2], xx[1::2], cov)
 
     @classmethod
     def from_amplitudes(

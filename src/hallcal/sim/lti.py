@@ -133,24 +133,24 @@ def tf2ss(num: ArrayLike, den: ArrayLike, *, dt: float | None = None) -> StateSp
         A = [-den[1:]; I 0], B = e_1, C = num[1:] - num[0] den[1:], D = num[0] (den made
         monic), the form of ``scipy.signal.tf2ss``.
     """
-    num, den = _trim(num), _trim(den)
-    if num.size > den.size:
+    b, a = _trim(num), _trim(den)
+    if b.size > a.size:
         raise ValueError("transfer function must be proper (deg num <= deg den)")
-    if den.size == 1:
-        return StateSpace(np.zeros((0, 0)), np.zeros(0), np.zeros(0), float(num[-1] / den[0]), dt)
+    if a.size == 1:
+        return StateSpace(np.zeros((0, 0)), np.zeros(0), np.zeros(0), float(b[-1] / a[0]), dt)
     # Controllable canonical form (the one of scipy.signal.tf2ss, which the tests use as the
     # oracle): with den monic of degree n and num padded to n + 1 coefficients,
     # A = [-den[1:]; I 0], B = e_1, D = num[0], C = num[1:] - num[0] den[1:].
-    n = den.size - 1
-    num = np.concatenate([np.zeros(den.size - num.size), num]) / den[0]
-    den = den / den[0]
+    n = a.size - 1
+    b = np.concatenate([np.zeros(a.size - b.size), b]) / a[0]
+    a = a / a[0]
     A = np.zeros((n, n))
-    A[0] = -den[1:]
+    A[0] = -a[1:]
     A[1:, :-1] = np.eye(n - 1)
     B = np.zeros(n)
     B[0] = 1.0
-    C = num[1:] - num[0] * den[1:]
-    return StateSpace(A, B, C, float(num[0]), dt)
+    C = b[1:] - b[0] * a[1:]
+    return StateSpace(A, B, C, float(b[0]), dt)
 
 
 @dataclass(frozen=True)
