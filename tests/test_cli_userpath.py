@@ -207,8 +207,12 @@ def test_inspect_finds_the_window_and_the_pole_pairs(ring):
     assert 'kind = "constant-speed"' in toml
     (ring / "ring.toml").write_text("pole_pairs = 25\nsample_time = 1.0\n\n" + toml)
     wrong = run("inspect", "ring.txt", "--pole-pairs", "24", cwd=ring)
-    assert wrong.returncode == 0
+    # a wrong count exits 2 with one line, and the report counts with the data's 25
+    assert wrong.returncode == 2
     assert "pole pairs: 24 (given, WRONG)" in wrong.stdout and "set pole_pairs = 25" in wrong.stdout
+    last = wrong.stderr.strip().splitlines()[-1]
+    assert last.startswith("hallcal: error: ring.txt: pole_pairs = 24 does not match the data")
+    assert "the lines below count with the data's 25" in wrong.stdout
 
 
 def test_open_loop_report_is_complete_in_electrical_degrees(ring):

@@ -122,7 +122,15 @@ class Calibration(_Result):
             was certain). Raises :class:`~hallcal.errors.CalibrationRefused` when
             ``cal.identifiability`` says the pole pair is not identifiable.
         """
-        return super().reconstruct(as_dataset(data), y_initial=y_initial, absolute=absolute)
+        from hallcal.pipeline.checks import check_recording, raise_if_failed
+
+        ds = as_dataset(data)
+        # the encoder column validates the result: in degrees its numbers would be nonsense
+        checks = check_recording(
+            ds, pole_pairs=self.pole_pairs, sample_time=None, angles=("y_ref",)
+        )
+        raise_if_failed(checks, ds.source)
+        return super().reconstruct(ds, y_initial=y_initial, absolute=absolute)
 
     def report(
         self,

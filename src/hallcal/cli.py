@@ -356,6 +356,8 @@ def inspect(data: str, setup_path: str | None, pole_pairs: int | None) -> None:
     if toml is not None and "r" not in ds:
         _out.print("setup lines for a constant-speed calibration:")
         _out.print(toml)
+    if found.pole_pairs_given:  # a wrong count: the report above used the data's; exit 2
+        found.pole_pair_check.raise_if_failed(ds.source)
 
 
 def _tf_text(num: tuple[float, ...], den: tuple[float, ...], delay: float) -> str:

@@ -29,7 +29,13 @@ from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.boundary import numeric_errors
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
-from hallcal.pipeline.checks import CheckStatus, check_direction, check_loop, check_pole_pairs
+from hallcal.pipeline.checks import (
+    CheckStatus,
+    check_direction,
+    check_loop,
+    check_pole_pairs,
+    check_recording,
+)
 from hallcal.pipeline.plant import BLAIdentification, PlantModel, closed_loop, plant_model
 from hallcal.pipeline.powerup import power_up_analysis
 from hallcal.pipeline.progress import Progress, say
@@ -424,7 +430,9 @@ def calibrate_closed_loop(
     timings: dict[str, float] = {}
     dataset.require("r", "d1", "d2", "d3")
     say(progress, "checking pole pairs and direction against the reference")
-    preflight = [check_pole_pairs(dataset, setup.pole_pairs), check_direction(dataset)]
+    preflight = check_recording(
+        dataset, pole_pairs=setup.pole_pairs, sample_time=setup.sample_time, motion=True
+    ) + [check_pole_pairs(dataset, setup.pole_pairs), check_direction(dataset)]
     for check in preflight:
         check.raise_if_failed(dataset.source)
     s = _signals(dataset, setup.pole_pairs)
