@@ -713,9 +713,10 @@ def _print_identification(ident, pole_pairs: int) -> None:
 @click.option(
     "--adc-scale",
     type=float,
-    default=1.0,
-    show_default=True,
-    help="ADC counts per unit of the calibration's Hall signals (fixed point input).",
+    default=None,
+    help="ADC counts per unit of the calibration's Hall signals (the fixed-point variant's "
+    "input). Default: the fixed-point pair only when the artifact is in counts; the float pair "
+    "needs no scale.",
 )
 @click.option(
     "--max-speed",
@@ -756,7 +757,7 @@ def export_c(
     artifact: str,
     out: str,
     no_fixed_point: bool,
-    adc_scale: float,
+    adc_scale: float | None,
     max_speed: float | None,
     table_points: int | None,
     tolerance: float,
@@ -768,15 +769,15 @@ def export_c(
 
     The API, the plausibility checks and the error bounds: docs/firmware.md.
     """
+    from hallcal.api import export_c as _export
     from hallcal.io import read_artifact
-    from hallcal.output.codegen import export_c as _export
 
     art = read_artifact(artifact)
     out_dir = _output_dir(out)
     res = _export(
         art,
         out_dir,
-        fixed_point=not no_fixed_point,
+        fixed_point=False if no_fixed_point else None,
         source=artifact,
         adc_scale=adc_scale,
         max_speed=max_speed,
@@ -899,9 +900,9 @@ def demo(out: str, seed: int, no_report: bool) -> None:
 @click.option(
     "--adc-scale",
     type=float,
-    default=1.0,
-    show_default=True,
-    help="ADC counts per Hall signal unit, for the fixed-point C export.",
+    default=None,
+    help="ADC counts per Hall signal unit, for the fixed-point C export (default: the "
+    "fixed-point pair only for artifacts in counts; the float pair always).",
 )
 @click.option("--recompute", is_flag=True, help="Recalibrate motors whose results are up to date.")
 @click.option("--no-report", is_flag=True, help="Skip fleet.html.")
@@ -913,7 +914,7 @@ def fleet(
     scheduler: str | None,
     workers: int | None,
     export_c: bool,
-    adc_scale: float,
+    adc_scale: float | None,
     recompute: bool,
     no_report: bool,
     quiet: bool,
