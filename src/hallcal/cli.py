@@ -544,7 +544,7 @@ def _print_calibration(cal, units: str = "mrad") -> None:
         _out.print(
             f"SEM cost {sem.initial_cost:.6g} -> {sem.cost:.6g} in "
             f"{_plural(int(sem.iterations), 'iteration')} ({sem.status}), {sem.solve_time:.2f} s; "
-            f"noise variance {sem.noise_variance:.3g}"
+            f"noise variance {sem.noise_variance:.3g} (Hall signal unit)²"
         )
     cs = cal.constant_speed
     if cs is not None:

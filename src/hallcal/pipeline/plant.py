@@ -515,7 +515,8 @@ def plant_model(
     with numeric_errors(dataset.source, "plant"):
         flux0 = FluxModel(basis, least_squares_start(basis, d, y))
         gain = estimate_gain(loop, dataset["r"], y, flux0)
-    note = f"plant: the BLA identified from {where}, gain-corrected with the calibration run"
+    named = where if where != "<dataset>" else "the multisine experiment"  # in-memory data
+    note = f"plant: the BLA identified from {named}, gain-corrected with the calibration run"
     if setup.plant is not None:
         note += (
             " (it wins over the setup's [plant], which is not used for calibration and serves "
