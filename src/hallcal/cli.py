@@ -869,7 +869,7 @@ def demo(out: str, seed: int, no_report: bool) -> None:
 @cli.command(
     epilog=_epilog(
         "hallcal fleet manifest.csv --out batch/",
-        "hallcal fleet manifest.csv --out batch/ --scheduler tcp://10.0.0.5:8786 --export-c",
+        "hallcal fleet manifest.csv --out batch/ --export-c --scheduler sequential",
         exits=_EXITS + " (the manifest or an option), 4 at least one motor refused or failed "
         "(see summary.csv); success is every motor ok or warning",
     )

@@ -473,6 +473,9 @@ def calibrate_closed_loop(
     for check in preflight:
         check.raise_if_failed(dataset.source)
     s = _signals(dataset, setup.pole_pairs)
+    cold = setup.model.basis != "kernel" and not _kernels_cached()
+    if cold:  # the first run on this machine: numba compiles before the plant's gain or SEM
+        say(progress, "compiling the loop kernels once (about 15-60 s; later runs load them)")
 
     t0 = time.perf_counter()
     harmonics = setup.model.harmonics
@@ -496,8 +499,7 @@ def calibrate_closed_loop(
     if pm.gain is not None and pm.gain.status != "ok":
         messages.append(f"warning: gain correction c = {pm.gain.c:.3g} hit its search bound")
 
-    if setup.model.basis != "kernel" and not _kernels_cached():
-        say(progress, "compiling the loop kernels once (about 15-60 s; later runs load them)")
+    if cold:  # compile the fit's kernels on a small copy, out of the SEM's solve time
         t0 = time.perf_counter()
         _warm_kernels(loop, s, setup, fit_gain=pm.gain is not None)
         timings["compile"] = time.perf_counter() - t0
