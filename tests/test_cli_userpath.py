@@ -464,3 +464,10 @@ def test_plan_says_when_the_slowest_speed_meets_the_target(motor):
     last = res.stdout.strip().splitlines()[-1]
     # the default grid went on down until the run would exceed the stated limit
     assert "slower runs would exceed 1000000 samples" in last, last
+
+
+def test_an_encoder_in_revolutions_is_named(motor):
+    f = _variant(motor, "cal.csv", "revs.csv", lambda c: c.update(y_ref=c["y_ref"] / (2 * np.pi)))
+    res = run("calibrate", f, "--setup", "setup.toml", "--out", "x.json", cwd=motor)
+    assert res.returncode == 2
+    assert _last(res).startswith("hallcal: error: revs.csv: y_ref looks like revolutions")

@@ -97,6 +97,11 @@ SAMPLE_TIME_TOLERANCE = 0.02
 #: apart, and a wrong pole-pair count gives a ratio n/n_true that is named by the pole-pair check.
 UNIT_FACTOR_TOLERANCE = 1.3
 
+#: The encoder y_ref and f_init's y measure the same rotor angle, so y_ref moves 1 (or -1) times
+#: y; outside this factor it is in another unit (revolutions: 0.16, counts: hundreds and more).
+#: A looser bound than for r, whose multisine part the loop does not track.
+ENCODER_RATIO = 2.0
+
 #: Least electrical travel of the Hall angle [rad] for the unit check: the Hall noise moves it by
 #: a few mrad, so one radian determines a column's ratio to it within about 1 %.
 MIN_HALL_TRAVEL = 1.0
@@ -663,6 +668,19 @@ def check_angle_units(
                 ratio = _slope(np.asarray(dataset[c], dtype=np.float64), y)
                 if _unit_name(ratio, 1) == "degrees":
                     found[c] = ratio
+    if not found and "y_ref" in present and "y" in dataset and float(np.ptp(dataset["y"])) > 0.0:
+        # the encoder and f_init measure the same rotor angle: slope 1 (+-1 mounted reversed)
+        ratio = _slope(np.asarray(dataset["y_ref"], dtype=np.float64), dataset["y"])
+        if math.isfinite(ratio) and not 1.0 / ENCODER_RATIO <= abs(ratio) <= ENCODER_RATIO:
+            revs = abs(math.log(abs(ratio) * TWO_PI)) < math.log(UNIT_FACTOR_TOLERANCE)
+            unit = "revolutions" if revs else "another unit (encoder counts?)"
+            return Check(
+                CheckStatus.FAILED,
+                f"y_ref looks like {unit}: it moves {abs(ratio):.4g} times y (1 for mechanical "
+                "rad)",
+                "log the encoder angle y_ref in mechanical rad, like y",
+                key="y_ref",
+            )
     if not found:
         return Check(CheckStatus.OK, f"angle units: {', '.join(present)} in mechanical rad")
     first = next(iter(found))
