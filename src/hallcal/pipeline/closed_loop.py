@@ -33,6 +33,7 @@ from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validat
 from hallcal.pipeline.checks import (
     CheckStatus,
     check_direction,
+    check_hall_motion,
     check_loop,
     check_pole_pairs,
     check_recording,
@@ -468,11 +469,14 @@ def calibrate_closed_loop(
     dataset.require("r", "d1", "d2", "d3")
     say(progress, "checking pole pairs and direction against the reference")
     preflight = check_recording(
-        dataset, pole_pairs=setup.pole_pairs, sample_time=setup.sample_time, motion=True
+        dataset, pole_pairs=setup.pole_pairs, sample_time=setup.sample_time
     ) + [check_pole_pairs(dataset, setup.pole_pairs), check_direction(dataset)]
     for check in preflight:
         check.raise_if_failed(dataset.source)
     s = _signals(dataset, setup.pole_pairs)
+    # after the span check of _signals (a short run is named as such): Hall signals that are
+    # noise around the origin make f_init turn at random, which no span check sees
+    check_hall_motion(dataset).raise_if_failed(dataset.source)
     cold = setup.model.basis != "kernel" and not _kernels_cached()
     if cold:  # the first run on this machine: numba compiles before the plant's gain or SEM
         say(progress, "compiling the loop kernels once (about 15-60 s; later runs load them)")

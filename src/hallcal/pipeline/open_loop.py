@@ -112,7 +112,7 @@ def calibrate_open_loop(
     start, stop = _segment(dataset, setup)
     harmonics = _harmonics(setup)
     raise_if_failed(
-        check_recording(dataset, pole_pairs=n, sample_time=setup.sample_time, motion=True),
+        check_recording(dataset, pole_pairs=n, sample_time=setup.sample_time),
         dataset.source,
     )
     pole_pairs = check_pole_pairs(dataset, n)
