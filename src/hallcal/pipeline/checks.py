@@ -581,6 +581,16 @@ def hall_lag_correlation(dataset: Dataset) -> float:
 
     About 0 when they are white noise around a fixed point (the rotor at rest), near 1 when the
     rotor turns (a sinusoid of m samples per cycle gives cos(2 pi / m)).
+
+    Parameters
+    ----------
+    dataset : Dataset
+        A recording with d1, d2, d3.
+
+    Returns
+    -------
+    float
+        The correlation, in [-1, 1] (0 for constant signals).
     """
     x = _hall_matrix(dataset)
     den = float(np.sum(x * x))
@@ -589,6 +599,11 @@ def hall_lag_correlation(dataset: Dataset) -> float:
 
 def check_hall_motion(dataset: Dataset) -> Check:
     """Whether the Hall signals move, or are noise around a fixed point (a standstill).
+
+    Parameters
+    ----------
+    dataset : Dataset
+        A recording with d1, d2, d3.
 
     Returns
     -------
