@@ -217,3 +217,73 @@ def test_checks_are_typed():
     assert isinstance(check.status, CheckStatus) and check.status.success
     assert dataclasses.is_dataclass(check)
     assert not CheckStatus.FAILED.success
+
+
+# ------------------------------------------------------------------------------------------------
+# the recording's own checks: t against sample_time, angle units, standstill
+
+
+def _synthetic(n_m: int, *, n: int = 4000, revolutions: float = 1.5, still: bool = False):
+    """Ideal Hall signals of a rotor turning ``revolutions`` (or standing), sigma 2.7e-3."""
+    rng = np.random.default_rng(n_m)
+    y0 = np.zeros(n) if still else np.linspace(0.0, 2 * np.pi * revolutions, n)
+    d = {
+        f"d{h}": np.cos(n_m * y0 - 2 * np.pi * (h - 1) / 3) + rng.normal(0, 2.7e-3, n)
+        for h in (1, 2, 3)
+    }
+    return {"t": 1e-4 * np.arange(n), "r": y0.copy(), "y": y0.copy(), "y_ref": y0.copy(), **d}
+
+
+@pytest.mark.parametrize("n_m", [1, 2, 4, 11, 25])
+def test_degrees_are_told_from_rad_at_every_pole_pair_count(n_m):
+    from hallcal.pipeline.checks import CheckStatus, check_angle_units
+
+    cols = _synthetic(n_m)
+    assert check_angle_units(Dataset.from_columns(cols), n_m).status is CheckStatus.OK
+    for which in (("r",), ("y_ref",), ("r", "y", "y_ref")):
+        bad = dict(cols, **{k: np.degrees(cols[k]) for k in which})
+        c = check_angle_units(Dataset.from_columns(bad), n_m)
+        assert c.status is CheckStatus.FAILED and c.key == which[0]
+        assert c.message.startswith(f"{which[0]} looks like degrees"), c.message
+    # electrical degrees (x n_m) are named as such
+    if n_m >= 2:
+        bad = dict(cols, r=np.degrees(cols["r"]) * n_m)
+        c = check_angle_units(Dataset.from_columns(bad), n_m)
+        assert c.message.startswith("r looks like electrical degrees"), c.message
+
+
+def test_a_wrong_pole_pair_count_is_not_taken_for_a_unit():
+    """Setup 5 on a 4-pole-pair rotor: ratio 1.25, the pole-pair check's business."""
+    from hallcal.pipeline.checks import CheckStatus, check_angle_units
+
+    assert check_angle_units(Dataset.from_columns(_synthetic(4)), 5).status is CheckStatus.OK
+
+
+def test_standstill_is_not_motion():
+    from hallcal.pipeline.checks import CheckStatus, check_angle_units, check_hall_motion
+
+    ds = Dataset.from_columns(_synthetic(4, still=True))
+    assert check_hall_motion(ds).status is CheckStatus.FAILED
+    assert check_angle_units(ds, 4).status is CheckStatus.SKIPPED
+    assert check_hall_motion(Dataset.from_columns(_synthetic(4))).status is CheckStatus.OK
+
+
+@pytest.mark.parametrize(
+    ("t", "sample_time", "key", "text"),
+    [
+        (2e-4 * np.arange(100), 1e-4, "sample_time", "the t column steps 0.0002 s"),
+        (1e-1 * np.arange(100), 1e-4, "sample_time", "(or t is in ms: log it in s)"),
+        (np.zeros(100), 1e-4, "t", "the t column is constant"),
+        (1e-4 * np.arange(100)[::-1], 1e-4, "t", "decreases at every row"),
+        (1e-4 * np.r_[0:50, 49, 51:100], 1e-4, "t", "steps back or stands still at 1 of 99"),
+    ],
+)
+def test_sample_time_against_t(t, sample_time, key, text):
+    from hallcal.pipeline.checks import CheckStatus, check_sample_time
+
+    c = check_sample_time(Dataset.from_columns({"t": t}), sample_time)
+    assert c.status is CheckStatus.FAILED and c.key == key and text in c.text, c.text
+    ok = check_sample_time(Dataset.from_columns({"t": 1e-4 * np.arange(100)}), 1e-4)
+    assert ok.status is CheckStatus.OK
+    # 1.0 is the setup's "rate unknown": only the order is checked
+    assert check_sample_time(Dataset.from_columns({"t": 0.37 * np.arange(9)}), 1.0).status.success

@@ -9,6 +9,7 @@ an example and the exit statuses.
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import shutil
@@ -17,6 +18,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from hallcal.io import read_artifact, setup_from_dict, setup_to_toml
@@ -207,8 +209,12 @@ def test_inspect_finds_the_window_and_the_pole_pairs(ring):
     assert 'kind = "constant-speed"' in toml
     (ring / "ring.toml").write_text("pole_pairs = 25\nsample_time = 1.0\n\n" + toml)
     wrong = run("inspect", "ring.txt", "--pole-pairs", "24", cwd=ring)
-    assert wrong.returncode == 0
+    # a wrong count exits 2 with one line, and the report counts with the data's 25
+    assert wrong.returncode == 2
     assert "pole pairs: 24 (given, WRONG)" in wrong.stdout and "set pole_pairs = 25" in wrong.stdout
+    last = wrong.stderr.strip().splitlines()[-1]
+    assert last.startswith("hallcal: error: ring.txt: pole_pairs = 24 does not match the data")
+    assert "the lines below count with the data's 25" in wrong.stdout
 
 
 def test_open_loop_report_is_complete_in_electrical_degrees(ring):
@@ -266,3 +272,207 @@ def test_generated_c_files_are_world_readable_and_worded(motor, tmp_path):
     for p in (tmp_path / "fw").iterdir():
         assert stat.S_IMODE(p.stat().st_mode) == 0o644, p
         assert not LEAKS.search(p.read_text(encoding="ascii")), p  # the C comments are read too
+
+
+# ------------------------------------------------------------------------------------------------
+# issue 30: each mistake as a user makes it -> exit status and the one line, before the work
+
+
+def _variant(motor: Path, source: str, name: str, change) -> str:
+    """A copy of ``source`` with its columns changed by ``change(columns)`` (a user's mistake)."""
+    from hallcal.io import read_dataset, write_dataset
+
+    ds = read_dataset(motor / source, required=())
+    cols = {k: np.array(v) for k, v in ds.columns.items()}
+    change(cols)
+    write_dataset(motor / name, cols)
+    return name
+
+
+def _last(res: subprocess.CompletedProcess) -> str:
+    assert "Traceback" not in res.stderr, res.stderr
+    return res.stderr.strip().splitlines()[-1]
+
+
+def test_angles_in_degrees_are_named_before_anything_expensive(motor):
+    def degrees(c):
+        for k in ("r", "y", "y_ref"):
+            c[k] = np.degrees(c[k])
+
+    deg = _variant(motor, "cal.csv", "deg.csv", degrees)
+    res = run("calibrate", deg, "--setup", "setup.toml", "--out", "x.json", cwd=motor)
+    assert res.returncode == 2
+    assert _last(res).startswith("hallcal: error: deg.csv: r looks like degrees (so do y, y_ref)")
+    assert "multiply by pi/180" in _last(res)
+    assert "SEM" not in res.stderr and "harmonics" not in res.stderr  # before the work
+    res = run("inspect", deg, "--setup", "setup.toml", cwd=motor)
+    assert res.returncode == 2 and "r looks like degrees" in _last(res)
+    bla_deg = _variant(motor, "bla.csv", "bla_deg.csv", degrees)
+    res = run("bla", bla_deg, "--setup", "setup.toml", "--out", "b.json", cwd=motor)
+    assert res.returncode == 2 and "bla_deg.csv: r looks like degrees" in _last(res)
+    if not (motor / "plant.json").exists():
+        test_calibrate_says_which_plant_once_and_records_it(motor)
+    res = run("reconstruct", "plant.json", deg, "--out", "a.csv", cwd=motor)
+    assert res.returncode == 2 and "deg.csv: y_ref looks like degrees" in _last(res)
+
+
+@pytest.mark.parametrize(
+    ("name", "change", "line"),
+    [
+        ("t_twice", lambda c: c.update(t=2 * c["t"]), "sample_time = 0.0001 s in the setup, but "
+         "the t column steps 0.0002 s"),
+        ("t_const", lambda c: c.update(t=0 * c["t"]), "the t column is constant"),
+        ("t_reversed", lambda c: c.update(t=c["t"][::-1].copy()), "the t column is not "
+         "increasing: it decreases at every row"),
+        ("t_shuffled", lambda c: c.update(t=np.random.default_rng(1).permutation(c["t"])),
+         "the t column is not increasing: it steps back"),
+    ],
+)  # fmt: skip
+def test_sample_time_is_checked_against_the_t_column(motor, name, change, line):
+    f = _variant(motor, "cal.csv", f"{name}.csv", change)
+    for cmd in (("calibrate", f, "--out", "x.json"), ("inspect", f)):
+        res = run(*cmd, "--setup", "setup.toml", cwd=motor)
+        assert res.returncode == 2, res.stderr
+        assert _last(res).startswith(f"hallcal: error: {f}: {line}"), _last(res)
+
+
+def test_a_wrong_sample_time_names_both_values(motor):
+    write_setup(motor / "slow.toml", {**MOTOR, "sample_time": 1e-3})
+    for cmd in (("calibrate", "cal.csv", "--out", "x.json"), ("bla", "bla.csv", "--out", "b.json")):
+        res = run(*cmd, "--setup", "slow.toml", cwd=motor)
+        assert res.returncode == 2
+        assert "sample_time = 0.001 s in the setup, but the t column steps 0.0001 s" in _last(res)
+        assert "set sample_time = 0.0001" in _last(res)
+
+
+@pytest.mark.parametrize("typo", ["yref", "y_enc", "Y_REF"])
+def test_a_typod_encoder_column_is_named_with_the_right_one(motor, typo):
+    f = _variant(motor, "cal.csv", f"typo_{typo}.csv", lambda c: c.update({typo: c.pop("y_ref")}))
+    res = run("calibrate", f, "--setup", "setup.toml", "--out", "x.json", cwd=motor)
+    assert res.returncode == 2
+    assert _last(res).startswith(
+        f"hallcal: error: {f}: column '{typo}' is not a column hallcal reads: did you mean 'y_ref'?"
+    )
+
+
+def test_inspect_does_not_invent_motion_at_standstill(motor):
+    rng = np.random.default_rng(4)
+
+    def still(c):
+        n = c["t"].size
+        for h in ("d1", "d2", "d3"):  # the Hall values of the first sample, plus the noise
+            c[h] = c[h][0] + rng.normal(0.0, math.sqrt(7.5e-6), n)
+        for k in ("r", "y", "y_ref", "u"):
+            c[k] = np.zeros(n)
+
+    f = _variant(motor, "cal.csv", "still.csv", still)
+    res = run("inspect", f, "--setup", "setup.toml", cwd=motor)
+    assert res.returncode == 0, res.stderr
+    assert "rotation: none: the Hall signals do not move" in res.stdout
+    assert "revolutions" not in res.stdout and "spacing" not in res.stdout
+    assert "calibrate it" not in res.stdout
+    res = run("calibrate", f, "--setup", "setup.toml", "--out", "x.json", cwd=motor)
+    assert res.returncode == 2 and "less than one electrical period (0.00)" in _last(res)
+    # Hall signals that are noise around the origin (sensors unpowered): f_init turns at random
+    f = _variant(motor, f, "unpowered.csv", lambda c: [c.update({h: c[h] - c[h][0]}) for h in
+                                                        ("d1", "d2", "d3")])  # fmt: skip
+    res = run("calibrate", f, "--setup", "setup.toml", "--out", "x.json", cwd=motor)
+    assert res.returncode == 2 and "the Hall signals do not move" in _last(res), _last(res)
+
+
+def test_inspect_exits_2_on_a_wrong_count_and_counts_with_the_datas(motor):
+    write_setup(motor / "pp10.toml", {**MOTOR, "pole_pairs": 10})
+    res = run("inspect", "cal.csv", "--setup", "pp10.toml", cwd=motor)
+    assert res.returncode == 2
+    assert _last(res).startswith("hallcal: error: cal.csv: pole_pairs = 10 does not match")
+    assert "set pole_pairs = 4" in _last(res)
+    rotation = next(ln for ln in res.stdout.splitlines() if ln.startswith("rotation:"))
+    assert "(at the data's 4 pole pairs)" in rotation  # 4.5 cycles = 1.12 revolutions, not 0.45
+    assert re.search(r"= 1\.1\d revolutions", rotation), rotation
+
+
+def test_inspect_says_a_multisine_run_is_a_bla_experiment(motor):
+    res = run("inspect", "bla.csv", "--setup", "setup.toml", cwd=motor)
+    assert res.returncode == 0, res.stderr
+    assert "multisine BLA experiment (column realization: 4 realizations)" in res.stdout
+    assert "calibrate it" not in res.stdout
+
+
+def test_export_defaults_work_on_a_normalized_artifact(motor, tmp_path):
+    """The float pair always; the fixed-point pair needs a scale here, and a note says so."""
+    if not (motor / "plant.json").exists():
+        test_calibrate_says_which_plant_once_and_records_it(motor)
+    res = run("export-c", str(motor / "plant.json"), "--out", "fw", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert sorted(p.name for p in (tmp_path / "fw").iterdir()) == ["hallcal.c", "hallcal.h"]
+    assert "note: fixed-point variant (hallcal_q.c) not written" in res.stderr
+    assert "--adc-scale" in res.stderr
+    code = (
+        "import hallcal; cal = hallcal.load('plant.json'); r = cal.export_c('fw_api/'); "
+        "print(sorted(p.name for p in r.paths))"
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", code], cwd=motor, capture_output=True, text=True, timeout=600
+    )
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "['hallcal.c', 'hallcal.h']"
+
+
+def test_fleet_export_c_writes_the_float_pair_of_every_good_motor(motor, tmp_path):
+    (tmp_path / "m.csv").write_text(
+        f"motor_id,data,setup\nm1,{motor / 'cal.csv'},{motor / 'setup.toml'}\n", encoding="utf-8"
+    )
+    res = run(
+        "fleet", "m.csv", "--out", "batch", "--export-c", "--scheduler", "sequential", "--quiet",
+        "--no-report", cwd=tmp_path,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert (tmp_path / "batch" / "m1" / "c" / "hallcal.c").is_file()
+    summary = (tmp_path / "batch" / "summary.csv").read_text(encoding="utf-8")
+    assert "no C export" not in summary and ",ok," in summary, summary
+
+
+def test_report_wording(motor, tmp_path):
+    """No raw backticks, no doubled c-hat, sigma^2 with its unit, ±, no '<dataset>'."""
+    res = run(
+        "calibrate", "cal.csv", "--setup", "setup.toml", "--bla-data", "bla.csv",
+        "--out", "withbla.json", cwd=motor,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert "noise variance 7.5" in res.stdout and "(Hall signal unit)²" in res.stdout
+    res = run("report", "withbla.json", "cal.csv", "--out", str(tmp_path / "rep"), cwd=motor)
+    assert res.returncode == 0, res.stderr
+    html = (tmp_path / "rep" / "report.html").read_text(encoding="utf-8")
+    text = re.sub(r"<[^>]+>", " ", re.sub(r"<img[^>]*>", "", html))
+    assert "`" not in text and "<code>hallcal simulate</code>" in html
+    assert "c-hat (the gain correction c-hat)" not in text and "gain correction ĉ" in text
+    assert "+-" not in text and "(expected 1 ±" in text
+    assert "(Hall signal unit)² per channel" in text
+    from hallcal import calibrate
+    from hallcal.io import read_dataset
+
+    bla = dict(read_dataset(motor / "bla.csv", required=()).columns)  # in memory, as the demo
+    cal = calibrate(motor / "cal.csv", motor / "setup.toml", bla_data=bla)
+    assert not any("<dataset>" in m for m in cal.messages)
+    assert any("the BLA identified from the multisine experiment" in m for m in cal.messages)
+
+
+def test_plan_says_when_the_slowest_speed_meets_the_target(motor):
+    if not (motor / "plant.json").exists():
+        test_calibrate_says_which_plant_once_and_records_it(motor)
+    res = run("plan", "plant.json", "--revolutions", "2", "--speeds", "0.25,0.5,1,2", cwd=motor)
+    assert res.returncode == 0, res.stderr
+    last = res.stdout.strip().splitlines()[-1]
+    assert last.startswith("ramp at >= 0.25 rad/s") and "the slowest speed tried already" in last
+    res = run("plan", "plant.json", "--revolutions", "2", cwd=motor)
+    assert res.returncode == 0, res.stderr
+    last = res.stdout.strip().splitlines()[-1]
+    # the default grid went on down until the run would exceed the stated limit
+    assert "slower runs would exceed 1000000 samples" in last, last
+
+
+def test_an_encoder_in_revolutions_is_named(motor):
+    f = _variant(motor, "cal.csv", "revs.csv", lambda c: c.update(y_ref=c["y_ref"] / (2 * np.pi)))
+    res = run("calibrate", f, "--setup", "setup.toml", "--out", "x.json", cwd=motor)
+    assert res.returncode == 2
+    assert _last(res).startswith("hallcal: error: revs.csv: y_ref looks like revolutions")

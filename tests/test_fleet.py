@@ -261,9 +261,14 @@ def test_changed_inputs_and_options_are_recomputed(fleet_dir, tmp_path):
     assert not (out / "m06" / "c").exists()
     t5 = run_fleet(rows, out, scheduler="sequential", report=False, recompute=True)
     assert not any(t5.column("reused").to_pylist())
-    # a C export the generator refuses (1 count per unit: coarser than the noise) is a warning
+    # without a scale the float pair is written, the fixed-point pair left out with a note
     t6 = run_fleet(rows[:1], out, scheduler="sequential", report=False, export_c=True)
     row = t6.to_pylist()[0]
+    assert row["status"] == "ok", row
+    assert sorted(p.name for p in (out / "m00" / "c").iterdir()) == ["hallcal.c", "hallcal.h"]
+    # a C export the generator refuses (1 count per unit given: coarser than the noise) is a warning
+    t7 = run_fleet(rows[:1], out, scheduler="sequential", report=False, export_c=True, adc_scale=1)
+    row = t7.to_pylist()[0]
     assert row["status"] == "warning" and "no C export" in row["message"], row
     assert (out / "m00" / ARTIFACT_NAME).is_file() and not (out / "m00" / "c").exists()
 

@@ -112,3 +112,144 @@ def test_readme_steps_run_as_written(tmp_path):
     line = next(ln for ln in results["reconstruct"][0].stdout.splitlines() if "y_ref" in ln)
     init, star = (float(x) for x in re.findall(r"RMS ([0-9.]+) mrad", line))
     assert star < 0.3 * init, line  # measured 0.56 vs 5.85 mrad with the README's full sizes
+
+
+# ------------------------------------------------------------------------------------------------
+# every other example of the README, and every example of `--help`, as written
+
+#: The README's commands that are not hallcal's: installing and testing (CI runs those itself).
+SETUP_LINES = (
+    "git clone <the repository's URL> hallcal",
+    "cd hallcal",
+    "python -m venv .venv && . .venv/bin/activate",
+    'pip install -e ".[test]"',
+    "python -m pytest -q",
+)
+
+
+def readme_blocks(lang: str) -> list[str]:
+    return re.findall(rf"```{lang}\n(.*?)```", README.read_text(encoding="utf-8"), re.S)
+
+
+def _lines(block: str) -> list[str]:
+    return [ln.split("  #", 1)[0].strip() for ln in block.splitlines() if ln.strip()]
+
+
+def other_readme_commands() -> list[list[str]]:
+    """The README's bash lines outside "Your own motor", setup lines excepted (asserted)."""
+    own = re.search(r"```bash\n(.*?)```", _section(), re.S).group(1)
+    out = []
+    for block in readme_blocks("bash"):
+        if block == own:
+            continue
+        for line in _lines(block):
+            if line in SETUP_LINES:
+                continue
+            assert line.startswith("hallcal "), line  # nothing else may hide here
+            out.append(shlex.split(line))
+    return out
+
+
+def help_examples() -> list[list[str]]:
+    """Every example line of every command's ``--help`` (the epilogs), without duplicates."""
+    from hallcal.cli import cli
+
+    seen: list[list[str]] = []
+    for command in [cli, *cli.commands.values()]:
+        text = command.epilog or ""
+        block = text.split("Examples:", 1)[1].split("\n\n", 1)[0]
+        for line in block.splitlines():
+            line = line.split("  #", 1)[0].strip()
+            if line and shlex.split(line) not in seen:
+                seen.append(shlex.split(line))
+    return seen
+
+
+def _run(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    assert args[0] == "hallcal", args
+    res = subprocess.run(
+        [sys.executable, "-m", "hallcal.cli", *args[1:]],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert res.returncode == 0, (args, res.stdout, res.stderr)
+    assert "Traceback" not in res.stderr
+    return res
+
+
+@pytest.fixture(scope="module")
+def motor_dir(tmp_path_factory) -> Path:
+    """The README's motor (small sizes), after the README's own steps up to calibrate."""
+    d = tmp_path_factory.mktemp("readme-motor")
+    (d / "setup.toml").write_text(small_setup(readme_setup()), encoding="utf-8")
+    for args in readme_commands():
+        if args[1] in ("simulate", "calibrate"):
+            _run(args, d)
+    (d / "manifest.csv").write_text("motor_id,data,setup\nm1,cal.csv,setup.toml\n")
+    return d
+
+
+def test_the_other_readme_examples_run_as_written(motor_dir):
+    """Quick start aside (the demo: run by the --help test), every bash line of the README."""
+    cmds = other_readme_commands()
+    assert [c[1] for c in cmds] == ["demo", "plan", "fleet", "fleet", "reconstruct"]
+    for args in cmds:
+        if args[1] == "demo":
+            continue  # the same command is a --help example, run in test_every_help_example...
+        res = _run(args, motor_dir)
+        if args[1] == "fleet":
+            assert "1 ok" in res.stdout or "1 motors: 1 ok" in res.stdout, res.stdout
+    assert (motor_dir / "batch" / "m1" / "c" / "hallcal.c").is_file()  # fleet --export-c
+    # the prose's inline examples
+    _run(["hallcal", "export-c", "cal.json", "--out", "fw/"], motor_dir)
+    assert (motor_dir / "fw" / "hallcal.c").is_file()
+
+
+def test_the_readme_python_runs_as_written(motor_dir):
+    """The notebook block, then the prose's report and export_c calls; status prints as shown."""
+    (block,) = readme_blocks("python")
+    code = block + '\ncal.report("report/", data="cal.csv")\ncal.export_c("fw_py/")\n'
+    res = subprocess.run(
+        [sys.executable, "-c", code], cwd=motor_dir, capture_output=True, text=True, timeout=900
+    )
+    assert res.returncode == 0, res.stderr
+    shown = re.search(r"print\(cal\.status, cal\.predicted_error\)\s+# (\S+) ", block).group(1)
+    assert res.stdout.splitlines()[0].split()[0] == shown  # what the README says is printed
+    assert (motor_dir / "fw_py" / "hallcal.c").is_file()
+
+
+#: Order in which the --help examples run (inputs before the commands that read them).
+ORDER = ("simulate", "inspect", "bla", "calibrate", "reconstruct", "plan", "export-c", "report",
+         "fleet", "demo")  # fmt: skip
+
+
+def test_every_help_example_runs_as_written(motor_dir, tmp_path):
+    """Each example of each ``--help``, in the README motor's folder, or, when it names a
+    ring-jig file, in a folder holding the ring jig's capture (ring.txt, its CSV ring.csv and
+    the setup inspect suggests, ring.toml)."""
+    from hallcal.io import read_dataset, write_dataset
+
+    examples = help_examples()
+    assert {e[1] for e in examples} == set(ORDER)
+    ring = tmp_path / "ring"
+    ring.mkdir()
+    src = (
+        Path(__file__).resolve().parent
+        / "data"
+        / "ring-jig"
+        / "hall_calibration_one_rotation_1.txt"
+    )
+    (ring / "ring.txt").write_bytes(src.read_bytes())
+    write_dataset(ring / "ring.csv", read_dataset(ring / "ring.txt").columns)
+    out = _run(["hallcal", "inspect", "ring.txt"], ring).stdout
+    (ring / "ring.toml").write_text(
+        "pole_pairs = 25\nsample_time = 1.0\n\n" + out[out.index("[trajectory]") :]
+    )
+    (motor_dir / "powerup.csv").write_bytes((motor_dir / "run.csv").read_bytes())
+    for args in sorted(examples, key=lambda a: ORDER.index(a[1])):
+        where = ring if any(a.startswith("ring.") for a in args) else motor_dir
+        _run(args, where)
+    assert (ring / "report" / "report.html").is_file()
+    assert (motor_dir / "hallcal-demo").is_dir()

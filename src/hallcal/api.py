@@ -28,7 +28,16 @@ from hallcal.pipeline import calibrate as _calibrate
 from hallcal.pipeline.calibration import Calibration as _Result
 from hallcal.pipeline.calibration import Reconstruction, calibration_from_artifact
 
-__all__ = ["Calibration", "DataLike", "SetupLike", "as_dataset", "as_setup", "calibrate", "load"]
+__all__ = [
+    "Calibration",
+    "DataLike",
+    "SetupLike",
+    "as_dataset",
+    "as_setup",
+    "calibrate",
+    "export_c",
+    "load",
+]
 
 DataLike = str | os.PathLike[str] | Dataset | Mapping[str, Any]
 SetupLike = str | os.PathLike[str] | Setup | Mapping[str, Any]
@@ -122,7 +131,15 @@ class Calibration(_Result):
             was certain). Raises :class:`~hallcal.errors.CalibrationRefused` when
             ``cal.identifiability`` says the pole pair is not identifiable.
         """
-        return super().reconstruct(as_dataset(data), y_initial=y_initial, absolute=absolute)
+        from hallcal.pipeline.checks import check_recording, raise_if_failed
+
+        ds = as_dataset(data)
+        # the encoder column validates the result: in degrees its numbers would be nonsense
+        checks = check_recording(
+            ds, pole_pairs=self.pole_pairs, sample_time=None, angles=("y_ref",)
+        )
+        raise_if_failed(checks, ds.source)
+        return super().reconstruct(ds, y_initial=y_initial, absolute=absolute)
 
     def report(
         self,
@@ -155,16 +172,28 @@ class Calibration(_Result):
             units=units,
         )
 
-    def export_c(self, out_dir: str | os.PathLike[str], **options: Any) -> Any:
-        """Generate the C99 sources of f_star for firmware.
+    def export_c(
+        self,
+        out_dir: str | os.PathLike[str],
+        *,
+        adc_scale: float | None = None,
+        fixed_point: bool | None = None,
+        **options: Any,
+    ) -> Any:
+        """Generate the C99 sources of f_star for firmware (:func:`export_c`).
 
         Parameters
         ----------
         out_dir : path-like
             Directory for the ``.h``/``.c`` files.
+        adc_scale : float, keyword-only, optional
+            ADC counts per unit of the calibration's Hall signals (the fixed-point variant's
+            inputs); default: the artifact is in counts when its noise says so.
+        fixed_point : bool, keyword-only, optional
+            Default: the fixed-point pair whenever it can be made (see :func:`export_c`).
         **options
-            Those of :func:`hallcal.output.codegen.export_c` (``prefix``, ``fixed_point``,
-            ``adc_scale``, ``table_points``, ...).
+            The other options of :func:`hallcal.output.codegen.export_c` (``prefix``,
+            ``table_points``, ``max_speed``, ...).
 
         Returns
         -------
@@ -172,9 +201,73 @@ class Calibration(_Result):
             The files written and the table's error figures
             (:class:`hallcal.output.codegen.ExportResult`).
         """
-        from hallcal.output.codegen import export_c
+        return export_c(
+            self.to_artifact(), out_dir, adc_scale=adc_scale, fixed_point=fixed_point, **options
+        )
 
-        return export_c(self.to_artifact(), out_dir, **options)
+
+#: Hall noise variance [signal unit^2] below which an artifact's signals are not ADC counts:
+#: rounding to whole counts adds 1/12 count^2 per channel, more than such signals' own noise
+#: (the bench's amplitude-1 signals have 7.5e-6).
+COUNTS_NOISE_VARIANCE = 1.0 / 12.0
+
+
+def export_c(
+    artifact: Any,
+    out_dir: str | os.PathLike[str],
+    *,
+    adc_scale: float | None = None,
+    fixed_point: bool | None = None,
+    **options: Any,
+) -> Any:
+    """The C export with the defaults every entry point shares (CLI, API, fleet).
+
+    The float pair (``hallcal.h``/``.c``) needs no ADC scale and is always written. The
+    fixed-point pair takes integer counts: it is written when ``adc_scale`` is given, or when
+    the artifact's Hall signals are already counts (their noise variance is at least
+    :data:`COUNTS_NOISE_VARIANCE` and the fixed-point design accepts scale 1); otherwise it is
+    left out with a note naming the option that writes it.
+
+    Parameters
+    ----------
+    artifact : mapping or ArtifactData
+        The calibration artifact.
+    out_dir : path-like
+    adc_scale : float, keyword-only, optional
+        ADC counts per unit of the artifact's Hall signals.
+    fixed_point : bool, keyword-only, optional
+        True: the fixed-point pair is required (an unfit scale is an error); False: float only;
+        None (default): as above.
+    **options
+        Passed to :func:`hallcal.output.codegen.export_c`.
+
+    Returns
+    -------
+    ExportResult
+    """
+    from hallcal.output.codegen import export_c as _export
+
+    if fixed_point is not None or adc_scale is not None:
+        want = True if fixed_point is None else bool(fixed_point)
+        scale = 1.0 if adc_scale is None else adc_scale
+        return _export(artifact, out_dir, fixed_point=want, adc_scale=scale, **options)
+    data = getattr(artifact, "data", artifact)
+    variance = (data.get("diagnostics") or {}).get("noise_variance")
+    if isinstance(variance, int | float) and variance < COUNTS_NOISE_VARIANCE:
+        why = (
+            f"the Hall signals are not ADC counts (noise {variance**0.5:.2g} RMS, under one count)"
+        )
+    else:
+        try:
+            return _export(artifact, out_dir, fixed_point=True, adc_scale=1.0, **options)
+        except HallcalInputError as exc:
+            why = str(exc)
+    res = _export(artifact, out_dir, fixed_point=False, **options)
+    note = (
+        f"fixed-point variant (hallcal_q.c) not written: {why}; give the ADC counts per unit "
+        "of the Hall signals (--adc-scale, adc_scale=) to write it"
+    )
+    return dataclasses.replace(res, messages=(*res.messages, note))
 
 
 def calibrate(

@@ -356,6 +356,8 @@ def inspect(data: str, setup_path: str | None, pole_pairs: int | None) -> None:
     if toml is not None and "r" not in ds:
         _out.print("setup lines for a constant-speed calibration:")
         _out.print(toml)
+    if found.pole_pairs_given:  # a wrong count: the report above used the data's; exit 2
+        found.pole_pair_check.raise_if_failed(ds.source)
 
 
 def _tf_text(num: tuple[float, ...], den: tuple[float, ...], delay: float) -> str:
@@ -542,7 +544,7 @@ def _print_calibration(cal, units: str = "mrad") -> None:
         _out.print(
             f"SEM cost {sem.initial_cost:.6g} -> {sem.cost:.6g} in "
             f"{_plural(int(sem.iterations), 'iteration')} ({sem.status}), {sem.solve_time:.2f} s; "
-            f"noise variance {sem.noise_variance:.3g}"
+            f"noise variance {sem.noise_variance:.3g} (Hall signal unit)²"
         )
     cs = cal.constant_speed
     if cs is not None:
@@ -711,9 +713,10 @@ def _print_identification(ident, pole_pairs: int) -> None:
 @click.option(
     "--adc-scale",
     type=float,
-    default=1.0,
-    show_default=True,
-    help="ADC counts per unit of the calibration's Hall signals (fixed point input).",
+    default=None,
+    help="ADC counts per unit of the calibration's Hall signals (the fixed-point variant's "
+    "input). Default: the fixed-point pair only when the artifact is in counts; the float pair "
+    "needs no scale.",
 )
 @click.option(
     "--max-speed",
@@ -754,7 +757,7 @@ def export_c(
     artifact: str,
     out: str,
     no_fixed_point: bool,
-    adc_scale: float,
+    adc_scale: float | None,
     max_speed: float | None,
     table_points: int | None,
     tolerance: float,
@@ -766,15 +769,15 @@ def export_c(
 
     The API, the plausibility checks and the error bounds: docs/firmware.md.
     """
+    from hallcal.api import export_c as _export
     from hallcal.io import read_artifact
-    from hallcal.output.codegen import export_c as _export
 
     art = read_artifact(artifact)
     out_dir = _output_dir(out)
     res = _export(
         art,
         out_dir,
-        fixed_point=not no_fixed_point,
+        fixed_point=False if no_fixed_point else None,
         source=artifact,
         adc_scale=adc_scale,
         max_speed=max_speed,
@@ -866,7 +869,7 @@ def demo(out: str, seed: int, no_report: bool) -> None:
 @cli.command(
     epilog=_epilog(
         "hallcal fleet manifest.csv --out batch/",
-        "hallcal fleet manifest.csv --out batch/ --scheduler tcp://10.0.0.5:8786 --export-c",
+        "hallcal fleet manifest.csv --out batch/ --export-c --scheduler sequential",
         exits=_EXITS + " (the manifest or an option), 4 at least one motor refused or failed "
         "(see summary.csv); success is every motor ok or warning",
     )
@@ -897,9 +900,9 @@ def demo(out: str, seed: int, no_report: bool) -> None:
 @click.option(
     "--adc-scale",
     type=float,
-    default=1.0,
-    show_default=True,
-    help="ADC counts per Hall signal unit, for the fixed-point C export.",
+    default=None,
+    help="ADC counts per Hall signal unit, for the fixed-point C export (default: the "
+    "fixed-point pair only for artifacts in counts; the float pair always).",
 )
 @click.option("--recompute", is_flag=True, help="Recalibrate motors whose results are up to date.")
 @click.option("--no-report", is_flag=True, help="Skip fleet.html.")
@@ -911,7 +914,7 @@ def fleet(
     scheduler: str | None,
     workers: int | None,
     export_c: bool,
-    adc_scale: float,
+    adc_scale: float | None,
     recompute: bool,
     no_report: bool,
     quiet: bool,

@@ -1247,7 +1247,7 @@ def _reasons(
         notes.append(
             "The covariance of theta gives a table error well above the noise floor: some "
             "combinations of harmonics are weakly identified by this run (e.g. sidebands "
-            "n_m +- j together with n_m -+ j shift the angle at harmonic j, which the closed "
+            "n_m ± j together with n_m ∓ j shift the angle at harmonic j, which the closed "
             "loop barely reveals at low spatial frequency). A longer run or fewer harmonics help."
         )
     if lv.ratio > warn and sh.shape_ratio <= warn:
@@ -1327,7 +1327,7 @@ def _decision(
             f"{mrad * tab.floor:.3g} mrad)"
         )
     return Verdict.ADEQUATE, (
-        f"adequate: cost {lv.ratio:.3g}x the noise level (expected 1 +- {lv.ratio_std:.2g}), "
+        f"adequate: cost {lv.ratio:.3g}x the noise level (expected 1 ± {lv.ratio_std:.2g}), "
         f"predicted error {mrad * tab.predicted:.3g} mrad (noise floor {mrad * tab.floor:.3g} "
         "mrad)"
     )

@@ -244,6 +244,11 @@ def predict_ramp_error(
     return RampPrediction(speed, revolutions, r.size, math.sqrt(floor**2 + mean_var), floor)
 
 
+#: The longest planned calibration run [samples]: 100 s at 10 kHz, 250 s at 4 kHz, several times
+#: the runs of the paper (26-40 s). The plan's grid goes no slower than this.
+PLAN_MAX_SAMPLES = 1_000_000
+
+
 def speed_limits(
     loop: ClosedLoop, layout: ParameterLayout, revolutions: float
 ) -> tuple[float, float]:
@@ -315,18 +320,32 @@ def plan_ramp(
     -------
     RampPlan
     """
-    if speeds is None:
+    default = speeds is None
+    if default:
         _, v_max = speed_limits(loop, layout, revolutions)
         v = v_max * np.sqrt(0.5) ** np.arange(12, -1, -1)
     else:
         v = np.sort(np.asarray(speeds, dtype=np.float64).reshape(-1))
+
+    def predict(speed: float) -> RampPrediction:
+        return predict_ramp_error(loop, layout, x, speed=speed, revolutions=revolutions,
+                                  noise_variance=noise_variance)  # fmt: skip
+
     preds: list[RampPrediction] = []
     for s in v:
-        p = predict_ramp_error(loop, layout, x, speed=float(s), revolutions=revolutions,
-                               noise_variance=noise_variance)  # fmt: skip
+        p = predict(float(s))
         preds.append(p)
         if stop_at_target and p.ratio <= target:
             break
+    # the default grid's slowest speed within target: slower ones may be too, so the grid goes
+    # on down (by sqrt 2) until one is not, or the run would exceed PLAN_MAX_SAMPLES
+    capped = False
+    while default and not stop_at_target and preds and preds[0].ratio <= target:
+        slower = preds[0].speed * math.sqrt(0.5)
+        if preds[0].samples * math.sqrt(2.0) > PLAN_MAX_SAMPLES:
+            capped = True
+            break
+        preds.insert(0, predict(slower))
     preds = tuple(preds)
     finite = [p for p in preds if math.isfinite(p.predicted)]
     if not finite:
@@ -339,6 +358,13 @@ def plan_ramp(
             f"ramp at >= {best.speed:.3g} rad/s over {revolutions:g} revolutions "
             f"({best.samples} samples): predicted {best.ratio:.2f}x the noise floor"
         )
+        if best is preds[0]:
+            msg += f"; the slowest speed tried already meets {target:g}x" + (
+                f" (slower runs would exceed {PLAN_MAX_SAMPLES} samples): the ramp speed "
+                "does not limit this motor's table"
+                if capped
+                else ": slower speeds may too (give lower --speeds)"
+            )
     else:
         best, status = min(finite, key=lambda p: p.ratio), PlanStatus.TARGET_NOT_REACHED
         msg = (
@@ -346,4 +372,9 @@ def plan_ramp(
             f"the best is {best.speed:.3g} rad/s ({best.ratio:.2f}x): record more revolutions "
             "or use fewer harmonics"
         )
+        if default:
+            msg += (
+                f" (the fastest speed tried, {v[-1]:.3g} rad/s, is the limit of "
+                f"{SAMPLES_PER_PERIOD} samples per period of the highest flux harmonic)"
+            )
     return RampPlan(status, preds, best, target, msg)

@@ -77,7 +77,7 @@ def run_fleet(
     scheduler: Any = None,
     workers: int | None = None,
     export_c: bool = False,
-    adc_scale: float = 1.0,
+    adc_scale: float | None = None,
     recompute: bool = False,
     report: bool = True,
     base: str | os.PathLike[str] | None = None,
@@ -102,10 +102,11 @@ def run_fleet(
     workers : int, optional
         Number of workers of the local cluster (default: ``os.cpu_count()``).
     export_c : bool
-        Also write each artifact's C99 sources (:func:`hallcal.output.codegen.export_c`) to
-        ``OUT/<motor_id>/c/``.
-    adc_scale : float
-        ADC counts per Hall signal unit for the fixed-point C export.
+        Also write each artifact's C99 sources (:func:`hallcal.api.export_c`: the float pair
+        always) to ``OUT/<motor_id>/c/``.
+    adc_scale : float, optional
+        ADC counts per Hall signal unit for the fixed-point C export (default: the fixed-point
+        pair only for artifacts in counts).
     recompute : bool
         Ignore the records of earlier runs and calibrate every motor again.
     report : bool
@@ -143,14 +144,17 @@ def run_fleet(
     """
     specs, source = _specs(manifest_or_rows, base)
     out_dir = _out_folder(out)
-    if not (isinstance(adc_scale, int | float) and math.isfinite(adc_scale) and adc_scale > 0):
+    if adc_scale is not None and not (
+        isinstance(adc_scale, int | float) and math.isfinite(adc_scale) and adc_scale > 0
+    ):
         raise HallcalInputError(f"adc_scale must be a positive number, got {adc_scale!r}")
-    options = {"export_c": bool(export_c), "adc_scale": float(adc_scale) if export_c else None}
+    scale = None if adc_scale is None else float(adc_scale)
+    options = {"export_c": bool(export_c), "adc_scale": scale if export_c else None}
     batch = _Batch(out_dir, [None] * len(specs), progress)
     pending = batch.reuse(specs, options, recompute=recompute)
 
     task_of = functools.partial(
-        _Task.of, export_c=bool(export_c), adc_scale=float(adc_scale), version=_version()
+        _Task.of, export_c=bool(export_c), adc_scale=scale, version=_version()
     )
     work = _task or _run_motor
     if pending:

@@ -39,11 +39,11 @@ class _Task:
     bla_data: str | None
     validation: str | None
     export_c: bool
-    adc_scale: float
+    adc_scale: float | None
     version: str
 
     @classmethod
-    def of(cls, spec: MotorSpec, *, export_c: bool, adc_scale: float, version: str) -> _Task:
+    def of(cls, spec: MotorSpec, *, export_c: bool, adc_scale: float | None, version: str) -> _Task:
         return cls(
             motor_id=spec.motor_id,
             data=str(spec.data),

@@ -40,6 +40,7 @@ length. The known columns are ``r``, ``y``, ``u``, ``d1``, ``d2``, ``d3``, ``t``
 from __future__ import annotations
 
 import contextlib
+import difflib
 import io
 import math
 import mmap
@@ -250,6 +251,7 @@ def _finish_columns(
             raise MissingColumnError(
                 f"{source}: column '{name}' is missing{_suggest(name, cols)} (found: {found})"
             )
+    _check_unknown_names(cols, source)
     lengths = {name: arr.shape[0] for name, arr in cols.items()}
     if len(set(lengths.values())) > 1:
         first = next(iter(lengths))
@@ -286,6 +288,44 @@ def _finish_columns(
         out[name] = values
     _check_plausible(out, source, where)
     return out
+
+
+#: Names that mean the encoder column but are not its name (misspellings of ``y_ref`` itself are
+#: found by similarity).
+_ENCODER_NAMES = frozenset({"enc", "encoder", "y_enc", "yenc", "y_encoder", "theta_enc"})
+
+
+def _check_unknown_names(cols: Mapping[str, np.ndarray], source: str) -> None:
+    """Refuse a column that is a misspelling of a known column the file lacks.
+
+    Columns hallcal does not read are ignored, but one named like a missing known column
+    (``yref``, ``y_enc``, ``Realization``) is a typo: ignoring it would make the validation
+    against the encoder (or the BLA's realizations) vanish without a word, so it is an error
+    naming the column and the name it was meant to have, like a misspelled setup key. Single
+    letters (r, y, u, t) are not guessed at: too many names are near them, and a near name must
+    be close (``i_ref``, a current reference, is not taken for ``y_ref``).
+    """
+    missing = [k for k in KNOWN_COLUMNS if k not in cols and len(k) > 1]
+    if not missing:
+        return
+
+    def norm(text: str) -> str:
+        return re.sub(r"[\s_\-]", "", text.lower())
+
+    for name in cols:
+        if name in KNOWN_COLUMNS:
+            continue
+        guess = "y_ref" if "y_ref" in missing and name.lower() in _ENCODER_NAMES else None
+        for known in missing:
+            ratio = difflib.SequenceMatcher(None, name.lower(), known).ratio()
+            if guess is None and (norm(name) == norm(known) or ratio >= 0.85):
+                guess = known
+        if guess is not None:
+            raise HallcalInputError(
+                f"{source}: column '{name}' is not a column hallcal reads: did you mean "
+                f"'{guess}'? (rename it; the known columns are {', '.join(KNOWN_COLUMNS)})",
+                key=name,
+            )
 
 
 #: The Hall signal columns: their values have a physical scale.

@@ -742,7 +742,7 @@ def plot_sem_cost(sem: SEMResult, *, noise_variance: float | None = None) -> Fig
             color=NOISE_COLOR,
             ls="--",
             lw=1.2,
-            label=f"noise level 3Nσ² = {level:.4g} ({which} σ² = {s2:.3g})",
+            label=f"noise level 3Nσ² = {level:.4g} ({which} σ² = {s2:.3g} (Hall signal unit)²)",
         )
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     finite = cost[np.isfinite(cost) & (cost > 0)]
@@ -752,10 +752,11 @@ def plot_sem_cost(sem: SEMResult, *, noise_variance: float | None = None) -> Fig
             lo, hi = min(lo, 3 * sem.n_samples * s2), max(hi, 3 * sem.n_samples * s2)
         _log_axis(ax.yaxis, lo, hi)
     ax.set_xlabel("iteration")
-    ax.set_ylabel("cost J(θ) = Σ ‖d − d_sim‖²")
+    ax.set_ylabel("cost J(θ) = Σ ‖d − d_sim‖² [(Hall signal unit)²]")
     _title(
         fig,
-        f"SEM cost: {sem.iterations} iterations, '{sem.status}', {sem.solve_time:.2f} s "
+        f"SEM cost: {sem.iterations} iteration{'' if sem.iterations == 1 else 's'}, "
+        f"'{sem.status}', {sem.solve_time:.2f} s "
         "(the paper's SEM problem)",
     )
     ax.margins(x=0.08, y=0.25)

@@ -15,6 +15,10 @@ setup first, in well under a second, and say what is wrong and what to change:
   the input delay, :mod:`hallcal.sim.lti`) of ``[controller]`` and the plant.
 - :func:`check_bla_fit`: the fitted plant model has no unstable poles and no poles the measured
   band cannot determine.
+- :func:`check_recording`: the recording's own plausibility, before any of the above: the ``t``
+  column against ``sample_time`` (:func:`check_sample_time`), the angle columns' unit against
+  the Hall signals' electrical angle / n_m (:func:`check_angle_units`: degrees logged as rad),
+  and whether the Hall signals move at all (:func:`check_hall_motion`).
 
 Every check returns a typed result (:class:`CheckStatus`, a one-line message, the fix and the
 setup key at fault); :meth:`Check.raise_if_failed` turns a failure into
@@ -47,8 +51,12 @@ __all__ = [
     "DirectionCheck",
     "LoopCheck",
     "PolePairCheck",
+    "check_angle_units",
     "check_bla_fit",
     "check_direction",
+    "check_hall_motion",
+    "check_recording",
+    "check_sample_time",
     "check_loop",
     "check_pole_pairs",
     "closed_loop_poles",
@@ -77,6 +85,31 @@ MIN_REVOLUTIONS = 0.5
 #: statistic is about the true one divided by the multiple (0.43 at 50 for 25 on the ring jig).
 SIGNATURE_P_VALUE = 1e-6
 SIGNATURE_RATIO = 2.0
+
+#: Relative difference of the ``t`` column's median step from ``sample_time`` above which the
+#: two disagree: a drive's logged time stamps jitter by far less than 2 % in the median, and a
+#: wrong rate is off by a factor (2x, 10x, 1000x for ms).
+SAMPLE_TIME_TOLERANCE = 0.02
+
+#: Factor within which a column's travel, divided by the Hall angle / n_m, counts as one unit
+#: factor (180/pi: degrees). The loop's tracking lag and a multisine's untracked part move the
+#: ratio of r by tens of percent at most; the factors told apart (1, 57.3, 57.3 n_m) are 57x
+#: apart, and a wrong pole-pair count gives a ratio n/n_true that is named by the pole-pair check.
+UNIT_FACTOR_TOLERANCE = 1.3
+
+#: The encoder y_ref and f_init's y measure the same rotor angle, so y_ref moves 1 (or -1) times
+#: y; outside this factor it is in another unit (revolutions: 0.16, counts: hundreds and more).
+#: A looser bound than for r, whose multisine part the loop does not track.
+ENCODER_RATIO = 2.0
+
+#: Least electrical travel of the Hall angle [rad] for the unit check: the Hall noise moves it by
+#: a few mrad, so one radian determines a column's ratio to it within about 1 %.
+MIN_HALL_TRAVEL = 1.0
+
+#: Lag-1 autocorrelation of the Hall signals (offsets removed) below which they are noise around
+#: a fixed point, i.e. the rotor stood still: white noise gives 0, a sinusoid sampled at 8 or more
+#: samples per cycle cos(2 pi / 8) = 0.71 and more.
+STANDSTILL_CORRELATION = 0.5
 
 #: A fitted pole faster than this multiple of the highest measured frequency is not determined by
 #: the data (its effect in the band is a small phase lag, which the delay can take as well).
@@ -473,6 +506,258 @@ def _signature_check(dataset: Dataset, n: int) -> PolePairCheck:
         suggested=best,
         **common,
     )
+
+
+# ------------------------------------------------------------------------------------------------
+# the recording itself: time stamps, angle units, motion
+
+
+def check_sample_time(dataset: Dataset, sample_time: float | None) -> Check:
+    """The ``t`` column against ``sample_time``: increasing, and stepping by it.
+
+    Parameters
+    ----------
+    dataset : Dataset
+        A recording; without a ``t`` column nothing is checked.
+    sample_time : float or None
+        The setup's T_s [s]; None or 1.0 (the setup's "rate unknown, times in samples") checks
+        only that ``t`` increases.
+
+    Returns
+    -------
+    Check
+        FAILED (key ``t``) when ``t`` is constant or steps back anywhere (shuffled or reversed
+        rows), FAILED (key ``sample_time``) when its median step differs from ``sample_time`` by
+        more than :data:`SAMPLE_TIME_TOLERANCE`, naming both values; else OK or SKIPPED.
+    """
+    if "t" not in dataset or dataset.n_samples < 2:
+        return Check(CheckStatus.SKIPPED, "sample time not checked: no t column")
+    t = np.asarray(dataset["t"], dtype=np.float64)
+    dt = np.diff(t)
+    bad = dt <= 0.0
+    if not np.any(dt != 0.0):
+        return Check(
+            CheckStatus.FAILED,
+            f"the t column is constant (t = {t[0]:.6g} s in every row)",
+            "log the time of each sample in t [s], or drop the column",
+            key="t",
+        )
+    if np.any(bad):
+        i = int(np.argmax(bad))
+        how = (
+            "decreases at every row (reversed?)"
+            if np.all(dt < 0.0)
+            else (f"steps back or stands still at {int(bad.sum())} of {dt.size} rows")
+        )
+        return Check(
+            CheckStatus.FAILED,
+            f"the t column is not increasing: it {how}, first at row {i + 2} "
+            f"(t = {t[i]:.6g} -> {t[i + 1]:.6g} s)",
+            "keep the rows in the order they were sampled (sort by t), or drop the column",
+            key="t",
+        )
+    step = float(np.median(dt))
+    if sample_time is None or sample_time == 1.0:
+        return Check(CheckStatus.OK, f"sample time: the t column steps {step:.6g} s")
+    ts = float(sample_time)
+    if abs(step - ts) <= SAMPLE_TIME_TOLERANCE * ts:
+        return Check(CheckStatus.OK, f"sample time: the t column steps {step:.6g} s = sample_time")
+    ratio = step / ts
+    hint = ""
+    for factor, unit in ((1e3, "ms"), (1e6, "us")):
+        if abs(ratio / factor - 1.0) <= SAMPLE_TIME_TOLERANCE:
+            hint = f" (or t is in {unit}: log it in s)"
+    return Check(
+        CheckStatus.FAILED,
+        f"sample_time = {ts:.6g} s in the setup, but the t column steps {step:.6g} s (median; "
+        f"{ratio:.4g}x)",
+        f"set sample_time = {step:.6g}{hint}",
+        key="sample_time",
+    )
+
+
+def hall_lag_correlation(dataset: Dataset) -> float:
+    """Lag-1 autocorrelation of the Hall signals with their means removed (channels pooled).
+
+    About 0 when they are white noise around a fixed point (the rotor at rest), near 1 when the
+    rotor turns (a sinusoid of m samples per cycle gives cos(2 pi / m)).
+
+    Parameters
+    ----------
+    dataset : Dataset
+        A recording with d1, d2, d3.
+
+    Returns
+    -------
+    float
+        The correlation, in [-1, 1] (0 for constant signals).
+    """
+    x = _hall_matrix(dataset)
+    den = float(np.sum(x * x))
+    return float(np.sum(x[1:] * x[:-1]) / den) if den > 0.0 else 0.0
+
+
+def check_hall_motion(dataset: Dataset) -> Check:
+    """Whether the Hall signals move, or are noise around a fixed point (a standstill).
+
+    Parameters
+    ----------
+    dataset : Dataset
+        A recording with d1, d2, d3.
+
+    Returns
+    -------
+    Check
+        FAILED (key ``d1``) when the lag-1 autocorrelation of the signals is below
+        :data:`STANDSTILL_CORRELATION`: f_init of noise turns at random, so neither a rotation
+        nor a calibration can be read from such a recording.
+    """
+    rho = hall_lag_correlation(dataset)
+    if rho >= STANDSTILL_CORRELATION:
+        return Check(CheckStatus.OK, f"the Hall signals move (lag-1 correlation {rho:.3f})")
+    d = np.asarray(dataset.d, dtype=np.float64)
+    level = ", ".join(f"{v:.4g}" for v in d.mean(axis=0))
+    spread = ", ".join(f"{v:.2g}" for v in d.std(axis=0))
+    return Check(
+        CheckStatus.FAILED,
+        f"the Hall signals do not move: they hold d = ({level}) with sample-to-sample noise "
+        f"({spread} RMS; lag-1 correlation {rho:.2f}): the rotor stood still",
+        "a calibration needs a run in which the rotor turns (docs/recording-guide.md)",
+        key="d1",
+    )
+
+
+def _unit_name(ratio: float, pole_pairs: int) -> str | None:
+    """The unit that a column moving ``ratio`` times the mechanical rad looks like, if any."""
+    deg = 180.0 / math.pi
+    for factor, name in ((deg, "degrees"), (deg * pole_pairs, "electrical degrees")):
+        if pole_pairs >= 1 and abs(math.log(abs(ratio) / factor)) < math.log(UNIT_FACTOR_TOLERANCE):
+            return name
+    return None
+
+
+def check_angle_units(
+    dataset: Dataset, pole_pairs: int, *, columns: tuple[str, ...] = ("r", "y", "y_ref")
+) -> Check:
+    """The angle columns must be in mechanical rad: their travel against the Hall angle / n_m.
+
+    f_init of the Hall signals (:func:`electrical_angle`) divided by n_m is a mechanical angle
+    in rad whatever the drive logged; each of ``columns`` present is regressed on it, and a
+    slope near 180/pi (or 180 n_m / pi) is a column logged in degrees (electrical degrees). The
+    columns are also compared with ``y`` directly (no n_m involved), so a column in another unit
+    than ``y`` is found with a wrong ``pole_pairs`` too.
+
+    Parameters
+    ----------
+    dataset : Dataset
+    pole_pairs : int
+        The setup's n_m.
+    columns : tuple of str, keyword-only
+        The angle columns to check (those absent are skipped).
+
+    Returns
+    -------
+    Check
+        FAILED (key: the first column at fault) naming the column, the ratio and the fix;
+        SKIPPED when the Hall signals do not move by :data:`MIN_HALL_TRAVEL` or stand still.
+    """
+    present = [c for c in columns if c in dataset]
+    if not present or dataset.n_samples < 8:
+        return Check(CheckStatus.SKIPPED, "angle units not checked: no angle column")
+    if hall_lag_correlation(dataset) < STANDSTILL_CORRELATION:
+        return Check(CheckStatus.SKIPPED, "angle units not checked: the Hall signals stand still")
+    psi = electrical_angle(dataset)
+    if float(np.ptp(psi)) < MIN_HALL_TRAVEL:
+        return Check(CheckStatus.SKIPPED, "angle units not checked: the rotor hardly moved")
+    n = max(int(pole_pairs), 1)
+    base = psi / n
+    found: dict[str, float] = {}
+    for c in present:
+        ratio = _slope(np.asarray(dataset[c], dtype=np.float64), base)
+        if _unit_name(ratio, n) is not None:
+            found[c] = ratio
+    if "y" in dataset and "y" not in found:
+        y = np.asarray(dataset["y"], dtype=np.float64)
+        for c in present:
+            if c != "y" and c not in found and float(np.ptp(y)) > 0.0:
+                ratio = _slope(np.asarray(dataset[c], dtype=np.float64), y)
+                if _unit_name(ratio, 1) == "degrees":
+                    found[c] = ratio
+    if not found and "y_ref" in present and "y" in dataset and float(np.ptp(dataset["y"])) > 0.0:
+        # the encoder and f_init measure the same rotor angle: slope 1 (+-1 mounted reversed)
+        ratio = _slope(np.asarray(dataset["y_ref"], dtype=np.float64), dataset["y"])
+        if math.isfinite(ratio) and not 1.0 / ENCODER_RATIO <= abs(ratio) <= ENCODER_RATIO:
+            revs = abs(math.log(abs(ratio) * TWO_PI)) < math.log(UNIT_FACTOR_TOLERANCE)
+            unit = "revolutions" if revs else "another unit (encoder counts?)"
+            return Check(
+                CheckStatus.FAILED,
+                f"y_ref looks like {unit}: it moves {abs(ratio):.4g} times y (1 for mechanical "
+                "rad)",
+                "log the encoder angle y_ref in mechanical rad, like y",
+                key="y_ref",
+            )
+    if not found:
+        return Check(CheckStatus.OK, f"angle units: {', '.join(present)} in mechanical rad")
+    first = next(iter(found))
+    ratio = found[first]
+    unit = _unit_name(ratio, n) or "degrees"
+    others = [c for c in found if c != first]
+    also = f" (so do {', '.join(others)})" if others else ""
+    return Check(
+        CheckStatus.FAILED,
+        f"{first} looks like {unit}{also}: it moves {abs(ratio):.4g} times the Hall signals' "
+        f"angle / pole_pairs ({n}), which is 1 for mechanical rad",
+        f"log {', '.join(found)} in mechanical rad (multiply by pi/180"
+        + (f" and divide by {n}" if unit == "electrical degrees" else "")
+        + ")",
+        key=first,
+    )
+
+
+def _slope(x: NDArray[np.float64], base: NDArray[np.float64]) -> float:
+    """Least-squares slope of x on base (NaN when base does not vary)."""
+    b = base - base.mean()
+    den = float(np.dot(b, b))
+    return float(np.dot(b, x - x.mean()) / den) if den > 0.0 else math.nan
+
+
+def check_recording(
+    dataset: Dataset,
+    *,
+    pole_pairs: int,
+    sample_time: float | None,
+    angles: tuple[str, ...] = ("r", "y", "y_ref"),
+    motion: bool = False,
+) -> list[Check]:
+    """The recording's plausibility checks, in the order a failure is reported.
+
+    One entry point for ``calibrate``, ``bla``, ``inspect`` and ``reconstruct``: the ``t``
+    column against ``sample_time`` (:func:`check_sample_time`), the Hall signals' motion when
+    ``motion`` is asked for (:func:`check_hall_motion`) and the angle columns' unit
+    (:func:`check_angle_units`). All take well under a second on a calibration run.
+
+    Parameters
+    ----------
+    dataset : Dataset
+    pole_pairs : int
+        n_m of the setup or the artifact.
+    sample_time : float or None
+        T_s [s]; None skips the comparison with ``t`` (its order is still checked).
+    angles : tuple of str, keyword-only
+        The angle columns whose unit is checked.
+    motion : bool, keyword-only
+        Require the Hall signals to move (a calibration run).
+
+    Returns
+    -------
+    list of Check
+    """
+    out = [check_sample_time(dataset, sample_time)]
+    if motion and {"d1", "d2", "d3"} <= set(dataset.names):
+        out.append(check_hall_motion(dataset))
+    if {"d1", "d2", "d3"} <= set(dataset.names):
+        out.append(check_angle_units(dataset, pole_pairs, columns=angles))
+    return out
 
 
 # ------------------------------------------------------------------------------------------------

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -20,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from hallcal.errors import HallcalInputError
+from hallcal.errors import HallcalError, HallcalInputError
 from hallcal.fit.adequacy import AdequacyReport, assess
 from hallcal.fit.cogging import CoggingSelection, CoggingStatus, select_cogging
 from hallcal.fit.design import plan_ramp, speed_limits
@@ -29,7 +30,14 @@ from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.boundary import numeric_errors
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
-from hallcal.pipeline.checks import CheckStatus, check_direction, check_loop, check_pole_pairs
+from hallcal.pipeline.checks import (
+    CheckStatus,
+    check_direction,
+    check_hall_motion,
+    check_loop,
+    check_pole_pairs,
+    check_recording,
+)
 from hallcal.pipeline.plant import BLAIdentification, PlantModel, closed_loop, plant_model
 from hallcal.pipeline.powerup import power_up_analysis
 from hallcal.pipeline.progress import Progress, say
@@ -92,6 +100,42 @@ def _signals(dataset: Dataset, pole_pairs: int) -> _Signals:
     else:
         y = y_clarke
     return _Signals(np.ascontiguousarray(dataset["r"]), d, y, messages)
+
+
+#: Samples of the warm-up fit that compiles the kernels on a cold cache: enough for every code
+#: path of the fit, small enough to cost a fraction of a second once compiled.
+WARM_SAMPLES = 4000
+
+
+def _kernels_cached() -> bool:
+    """Whether numba's on-disk cache holds the loop kernels (else this run compiles them)."""
+    from hallcal.sim import loop as loop_module
+
+    kernel = loop_module._simulate_kernel
+    try:
+        index = kernel._cache._cache_file._index_path
+    except AttributeError:  # another numba: cannot tell, so say nothing
+        return True
+    return bool(kernel.signatures) or os.path.exists(index)
+
+
+def _warm_kernels(loop: ClosedLoop, s: _Signals, setup: Setup, *, fit_gain: bool) -> None:
+    """Compile the fit's kernels on a strided copy of the run (a cold numba cache only), so
+    that the SEM's solve time is the solve's and not numba's compilation."""
+    step = max(1, s.r.size // WARM_SAMPLES)
+    small = _Signals(
+        np.ascontiguousarray(s.r[::step]),
+        np.ascontiguousarray(s.d[::step]),
+        np.ascontiguousarray(s.y[::step]),
+        (),
+    )
+    quick = dataclasses.replace(setup, model=dataclasses.replace(setup.model, max_iterations=2))
+    try:
+        with np.errstate(all="ignore"):
+            fit = _fit_fourier(loop, small, quick, fit_gain=fit_gain, progress=None)
+            _with_cogging(loop, small, quick, fit, fit_gain=fit_gain, progress=None)
+    except (HallcalError, ArithmeticError, ValueError, np.linalg.LinAlgError):
+        pass  # a warm-up only: the fit on the whole run says what is wrong, if anything
 
 
 @dataclass(frozen=True)
@@ -424,10 +468,18 @@ def calibrate_closed_loop(
     timings: dict[str, float] = {}
     dataset.require("r", "d1", "d2", "d3")
     say(progress, "checking pole pairs and direction against the reference")
-    preflight = [check_pole_pairs(dataset, setup.pole_pairs), check_direction(dataset)]
+    preflight = check_recording(
+        dataset, pole_pairs=setup.pole_pairs, sample_time=setup.sample_time
+    ) + [check_pole_pairs(dataset, setup.pole_pairs), check_direction(dataset)]
     for check in preflight:
         check.raise_if_failed(dataset.source)
     s = _signals(dataset, setup.pole_pairs)
+    # after the span check of _signals (a short run is named as such): Hall signals that are
+    # noise around the origin make f_init turn at random, which no span check sees
+    check_hall_motion(dataset).raise_if_failed(dataset.source)
+    cold = setup.model.basis != "kernel" and not _kernels_cached()
+    if cold:  # the first run on this machine: numba compiles before the plant's gain or SEM
+        say(progress, "compiling the loop kernels once (about 15-60 s; later runs load them)")
 
     t0 = time.perf_counter()
     harmonics = setup.model.harmonics
@@ -451,6 +503,10 @@ def calibrate_closed_loop(
     if pm.gain is not None and pm.gain.status != "ok":
         messages.append(f"warning: gain correction c = {pm.gain.c:.3g} hit its search bound")
 
+    if cold:  # compile the fit's kernels on a small copy, out of the SEM's solve time
+        t0 = time.perf_counter()
+        _warm_kernels(loop, s, setup, fit_gain=pm.gain is not None)
+        timings["compile"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     with numeric_errors("setup", "model"):
         if setup.model.basis == "kernel":

@@ -26,13 +26,17 @@ from hallcal.fit.constant_speed import (
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.checks import (
+    Check,
     CheckStatus,
     DirectionCheck,
     PolePairCheck,
     check_direction,
+    check_hall_motion,
     check_pole_pairs,
+    check_recording,
     electrical_angle,
     pole_pairs_from_signature,
+    raise_if_failed,
 )
 
 __all__ = ["Inspection", "inspect_recording"]
@@ -83,6 +87,14 @@ class Inspection:
         Warnings (``warning: ...``) and notes.
     reference : tuple of float or None
         First and last value of the reference ``r`` [rad] (closed-loop recordings).
+    motion : Check or None
+        Whether the Hall signals move (:func:`~hallcal.pipeline.checks.check_hall_motion`);
+        FAILED for a standstill recording, whose rotation, spacing and window are not read.
+    counted_with : int or None
+        The pole-pair count used for revolutions and the window: the given one, or the data's
+        when the given one is wrong.
+    realizations : int
+        Realizations of a multisine BLA experiment (column ``realization``), else 0.
     """
 
     source: str
@@ -100,11 +112,20 @@ class Inspection:
     held_out: tuple[int, int] | None
     messages: tuple[str, ...] = ()
     reference: tuple[float, float] | None = None
+    motion: Check | None = None
+    counted_with: int | None = None
+    realizations: int = 0
+
+    @property
+    def standstill(self) -> bool:
+        """The Hall signals are noise around a fixed point: the rotor did not turn."""
+        return self.motion is not None and self.motion.status is CheckStatus.FAILED
 
     @property
     def revolutions(self) -> float | None:
         """Net mechanical revolutions (signed), when the pole pairs are known."""
-        return None if not self.pole_pairs else self.electrical_cycles / self.pole_pairs
+        n = self.counted_with if self.counted_with is not None else self.pole_pairs
+        return None if not n or self.standstill else self.electrical_cycles / n
 
     def trajectory_toml(self) -> str | None:
         """The ``[trajectory]`` table to paste into the setup for a constant-speed calibration."""
@@ -127,7 +148,10 @@ class Inspection:
             text = self.pole_pair_check.text.removeprefix("pole pairs: ")
             status = self.pole_pair_check.status
             head = "WRONG" if status is CheckStatus.FAILED else status.value
-            out.append(f"pole pairs: {self.pole_pairs} (given, {head}): {text}")
+            line = f"pole pairs: {self.pole_pairs} (given, {head}): {text}"
+            if self.counted_with is not None and self.counted_with != self.pole_pairs:
+                line += f"; the lines below count with the data's {self.counted_with}"
+            out.append(line)
         elif self.pole_pairs is not None:
             out.append(
                 f"pole pairs: the data suggest {self.pole_pairs} ({self.pole_pair_check.method}); "
@@ -135,11 +159,22 @@ class Inspection:
             )
         else:
             out.append(f"pole pairs: unknown ({self.pole_pair_check.message})")
+        if self.standstill:
+            assert self.motion is not None
+            out.append(f"rotation: none: {self.motion.message}")
+            out.append(
+                "a standstill recording: nothing to calibrate (at power-up it serves "
+                "`hallcal reconstruct --absolute`)"
+            )
+            out.extend(self.messages)
+            return out
         cyc = self.electrical_cycles
         revs = self.revolutions
         turn = f"{abs(cyc):.1f} electrical cycles"
         if revs is not None:
             turn += f" = {abs(revs):.2f} revolutions"
+            if self.counted_with is not None and self.counted_with != self.pole_pairs:
+                turn += f" (at the data's {self.counted_with} pole pairs)"
         sense = (
             "in the sensor order d1 -> d2 -> d3"
             if cyc > 0
@@ -181,7 +216,13 @@ class Inspection:
                 f"constant-speed window: samples {seg.start}..{seg.stop} ({seg.revolutions:.2f} "
                 f"revolutions at {rate}, {seg.samples_per_cycle} samples per electrical cycle)"
             )
-        if "r" in self.columns:
+        if self.realizations:
+            out.append(
+                f"multisine BLA experiment (column realization: {self.realizations} "
+                "realizations): identify the plant from it with `hallcal bla`, and give it to "
+                "`hallcal calibrate --bla-data`; it is not a calibration run"
+            )
+        elif "r" in self.columns:
             out.append(
                 "closed-loop recording (column r): calibrate it with the default "
                 '[trajectory] kind = "closed-loop"'
@@ -256,15 +297,53 @@ def inspect_recording(
     Raises
     ------
     HallcalInputError
-        Missing Hall columns, or signals that do not rotate.
+        Missing Hall columns, too few samples, a ``t`` column that disagrees with the setup's
+        ``sample_time`` or angle columns in degrees
+        (:func:`~hallcal.pipeline.checks.check_recording`). A wrong given pole-pair count is
+        not raised here: the report uses the data's count and says so, and
+        :attr:`Inspection.pole_pair_check` fails (``hallcal inspect`` then exits 2).
     """
     dataset.require("d1", "d2", "d3")
     d = np.asarray(dataset.d, dtype=np.float64)
     if d.shape[0] < 16:
         raise HallcalInputError(f"{dataset.source}: {d.shape[0]} samples are too few to inspect")
     given = pole_pairs if pole_pairs is not None else (None if setup is None else setup.pole_pairs)
+    sample_time = None if setup is None else setup.sample_time
+    raise_if_failed(
+        check_recording(dataset, pole_pairs=given or 1, sample_time=sample_time), dataset.source
+    )
+    realizations = int(np.unique(dataset["realization"]).size) if "realization" in dataset else 0
+    reference = None if "r" not in dataset else (float(dataset["r"][0]), float(dataset["r"][-1]))
+    motion = check_hall_motion(dataset)
+    if motion.status is CheckStatus.FAILED:  # noise around a fixed point: nothing turned
+        skipped = PolePairCheck(
+            CheckStatus.SKIPPED,
+            "pole pairs not checked: the rotor stood still",
+            pole_pairs=given or 0,
+        )
+        return Inspection(
+            source=dataset.source,
+            samples=dataset.n_samples,
+            columns=tuple(dataset.names),
+            sample_time=_sample_time(dataset, setup),
+            pole_pairs=given,
+            pole_pairs_given=given is not None,
+            pole_pair_check=skipped,
+            direction=DirectionCheck(CheckStatus.SKIPPED, "direction not checked (standstill)"),
+            geometry=estimate_sensor_geometry(d, given),
+            electrical_cycles=0.0,
+            segment=None,
+            trajectory=None,
+            held_out=None,
+            messages=tuple(_clipping(dataset)),
+            reference=reference,
+            motion=motion,
+            realizations=realizations,
+        )
     n = given if given is not None else _suggest_pole_pairs(dataset)
     check = check_pole_pairs(dataset, n if n is not None else 1)
+    if given is not None and check.status is CheckStatus.FAILED and check.suggested:
+        n = check.suggested  # the lines below count with the data's pole pairs, not the wrong one
     messages = _clipping(dataset)
     geometry = estimate_sensor_geometry(d, n)
     if geometry.message:
@@ -303,7 +382,7 @@ def inspect_recording(
         samples=dataset.n_samples,
         columns=tuple(dataset.names),
         sample_time=_sample_time(dataset, setup),
-        pole_pairs=n,
+        pole_pairs=given if given is not None else n,
         pole_pairs_given=given is not None,
         pole_pair_check=check,
         direction=check_direction(dataset),
@@ -313,5 +392,8 @@ def inspect_recording(
         trajectory=trajectory,
         held_out=held_out,
         messages=tuple(messages),
-        reference=None if "r" not in dataset else (float(dataset["r"][0]), float(dataset["r"][-1])),
+        reference=reference,
+        motion=motion,
+        counted_with=n,
+        realizations=realizations,
     )

@@ -23,7 +23,7 @@ from hallcal.fit.constant_speed import (
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
-from hallcal.pipeline.checks import CheckStatus, check_pole_pairs
+from hallcal.pipeline.checks import CheckStatus, check_pole_pairs, check_recording, raise_if_failed
 from hallcal.pipeline.powerup import power_up_analysis
 from hallcal.pipeline.progress import Progress
 from hallcal.sensor.flux import FourierBasis
@@ -111,6 +111,10 @@ def calibrate_open_loop(
     n = int(setup.pole_pairs)
     start, stop = _segment(dataset, setup)
     harmonics = _harmonics(setup)
+    raise_if_failed(
+        check_recording(dataset, pole_pairs=n, sample_time=setup.sample_time),
+        dataset.source,
+    )
     pole_pairs = check_pole_pairs(dataset, n)
     pole_pairs.raise_if_failed(dataset.source)
     warning = _speed_warning(d, start, stop, n)

@@ -21,7 +21,13 @@ from hallcal.fit.sem import least_squares_start
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.boundary import numeric_errors
-from hallcal.pipeline.checks import BLAFitCheck, CheckStatus, check_bla_fit
+from hallcal.pipeline.checks import (
+    BLAFitCheck,
+    CheckStatus,
+    check_bla_fit,
+    check_recording,
+    raise_if_failed,
+)
 from hallcal.pipeline.progress import Progress, say
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sim.loop import ClosedLoop, simulate_loop
@@ -185,6 +191,10 @@ def identify_bla(dataset: Dataset, setup: Setup, *, progress: Progress = None) -
             f"{dataset.source}: a BLA experiment needs a [bla] table in the setup", key="bla"
         )
     dataset.require("r", "u", "y", "realization")
+    raise_if_failed(
+        check_recording(dataset, pole_pairs=setup.pole_pairs, sample_time=setup.sample_time),
+        dataset.source,
+    )
     from hallcal.identify import bla as _bla  # loaded only when a BLA is identified
 
     say(progress, "nonparametric BLA (indirect closed-loop method)")
@@ -505,7 +515,8 @@ def plant_model(
     with numeric_errors(dataset.source, "plant"):
         flux0 = FluxModel(basis, least_squares_start(basis, d, y))
         gain = estimate_gain(loop, dataset["r"], y, flux0)
-    note = f"plant: the BLA identified from {where}, gain-corrected with the calibration run"
+    named = where if where != "<dataset>" else "the multisine experiment"  # in-memory data
+    note = f"plant: the BLA identified from {named}, gain-corrected with the calibration run"
     if setup.plant is not None:
         note += (
             " (it wins over the setup's [plant], which is not used for calibration and serves "

@@ -137,8 +137,9 @@ def spatial_spectrum(
     order = np.argsort(x, kind="stable")
     xs, es = x[order], e[order]
     span = xs[-1] - xs[0]
-    if not span > 0:
-        raise ValueError("position does not move")
+    if not span > 0:  # a standstill: no spatial axis, hence no lines (the RMS still holds)
+        empty = np.zeros(0)
+        return SpatialSpectrum(empty, empty, empty, 0.0)
     revs = span / TWO_PI
     whole = math.floor(revs)
     length = whole * TWO_PI if whole >= 1 else span

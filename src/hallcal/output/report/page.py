@@ -7,6 +7,7 @@ import base64
 import datetime as _dt
 import html
 import math
+import re
 from typing import Any
 
 import numpy as np
@@ -60,6 +61,11 @@ footer { color: var(--grey); font-size: 12px; margin-top: 36px; }
 
 def _esc(x: Any) -> str:
     return html.escape(str(x), quote=True)
+
+
+def _prose(x: object) -> str:
+    """A message as HTML: escaped, with its `command` spans set as code (not raw backticks)."""
+    return re.sub(r"`([^`]+)`", r"<code>\1</code>", _esc(x))
 
 
 def _num(x: Any, fmt: str = ".4g") -> str:
@@ -201,7 +207,10 @@ def _calibration_rows(c: ReportContent) -> list[tuple[str, str]]:
             ),
             ("SEM iterations", f"{int(sem.iterations)} ({_esc(sem.status)})"),
             ("SEM solve time", f"{_num(sem.solve_time, '.2f')} s"),
-            ("noise variance σ² (from residual)", _num(sem.noise_variance, ".4g")),
+            (
+                "noise variance σ² (from residual)",
+                f"{_num(sem.noise_variance, '.4g')} (Hall signal unit)² per channel",
+            ),
         ]
     if c.gain_correction is not None:
         text = _num(c.gain_correction, ".5g")
@@ -214,7 +223,7 @@ def _calibration_rows(c: ReportContent) -> list[tuple[str, str]]:
                 " <span class='meta'>(refined jointly with θ in SEM; the gain-correction estimate "
                 f"was {_num(g.get('c'), '.5g')})</span>"
             )
-        rows.append(("gain correction ĉ (the gain correction c-hat)", text))
+        rows.append(("gain correction ĉ", text))
     if c.plant is not None:
         rows.append(("plant model used in SEM", f"<code>{_esc(_tf_text(c.plant))}</code>"))
     lut = c.lut
@@ -321,8 +330,7 @@ def render_html(content: ReportContent, images: list[tuple[ReportFigure, bytes]]
     ]
     if c.messages or c.notes:
         out.append('<div class="notes">')
-        out += [f"<p>{_esc(m)}</p>" for m in c.messages]
-        out += [f"<p>{_esc(n)}</p>" for n in c.notes]
+        out += [f"<p>{_prose(m)}</p>" for m in (*c.messages, *c.notes)]
         out.append("</div>")
     out.append("<h2>Accuracy</h2>")
     out.append(_accuracy_table(c))
