@@ -122,7 +122,7 @@ SETUP_LINES = (
     "git clone <the repository's URL> hallcal",
     "cd hallcal",
     "python -m venv .venv && . .venv/bin/activate",
-    'pip install -e ".[test]"',
+    'pip install -c constraints.txt -e ".[test]"',
     "python -m pytest -q",
 )
 
