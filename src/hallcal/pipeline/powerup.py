@@ -349,6 +349,20 @@ def identification_check(
 
     A power-up whose misfit test said "mismatch" is checked further (:func:`check_signals`:
     another order of d1..d3, or the direction against a reference, names the wiring).
+
+    Parameters
+    ----------
+    decoder : PowerUpDecoder
+        The decoder the power-up ran with.
+    dataset : Dataset
+        The recording from power-up.
+    angles : AbsoluteAngles
+        Its absolute reconstruction (with the identification).
+
+    Returns
+    -------
+    SignalCheck
+        FITS unless the power-up test said "mismatch"; then MISMATCH or WIRING.
     """
     ident = angles.identification
     if ident.status is not PowerUpStatus.MISMATCH:

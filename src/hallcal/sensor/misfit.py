@@ -50,18 +50,16 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-
-if TYPE_CHECKING:  # the decoder imports this module
-    from hallcal.sensor.absolute import PowerUpDecoder
 
 __all__ = [
     "DEFAULT_FIT_RATE",
     "DEFAULT_MISFIT_RATIO",
     "DEFAULT_MISMATCH_RATE",
+    "CostModel",
     "MisfitResult",
     "MisfitStatus",
     "MisfitTest",
@@ -142,7 +140,20 @@ class MisfitTest:
         return math.log(1.0 / self.fit_rate)
 
     def statistic(self, best_cost: ArrayLike, samples: ArrayLike) -> NDArray[np.float64]:
-        """D = lam T - k ln kappa for cumulative best costs T and sample counts k."""
+        """D = lam T - k ln kappa (the log-likelihood ratio of a misfit kappa against a fit).
+
+        Parameters
+        ----------
+        best_cost : array_like
+            T: the best hypothesis's cumulative cost [noise sigma^2].
+        samples : array_like
+            k: samples of evidence behind it.
+
+        Returns
+        -------
+        ndarray
+            D, broadcast over the arguments.
+        """
         return self.weight * np.asarray(best_cost, dtype=np.float64) - self.drift * np.asarray(
             samples, dtype=np.float64
         )
@@ -196,7 +207,18 @@ class MisfitResult:
         }
 
 
-def model_misfit(decoder: PowerUpDecoder, d: ArrayLike) -> MisfitResult:
+class CostModel(Protocol):
+    """What :func:`model_misfit` needs of a decoder
+    (:class:`hallcal.sensor.absolute.PowerUpDecoder`, which imports this module)."""
+
+    misfit: MisfitTest
+
+    def sample_costs(self, d: ArrayLike) -> NDArray[np.float64]: ...
+
+    def features(self, d: ArrayLike) -> dict[str, NDArray]: ...
+
+
+def model_misfit(decoder: CostModel, d: ArrayLike) -> MisfitResult:
     """The sequential misfit test over a whole recording (no lock: every sample is evidence).
 
     Parameters
