@@ -276,3 +276,32 @@ def test_c_flags_the_mismatch_like_python(tmp_path):
         else:
             assert not identified.any() and not mismatch.any(), i
     assert flagged >= 20 and locked == 30  # the flag is exercised; healthy ones all lock
+
+
+def test_a_common_gain_is_harmless_to_reconstruct_but_not_to_the_power_up(paper):
+    """All three signals 1 % weaker (about 8 K of NdFeB remanence) or in another unit (2000
+    counts per unit): f_init and f_star do not change, so the check of plain ``reconstruct``
+    divides the gain out over a recording of more than one electrical turn and accepts it,
+    naming the gain; the power-up decoder's costs depend on the amplitude, so there the
+    mismatch stands, with the amplitude named. At standstill one sensor's gain and a common
+    gain under another pole pair look alike: a changed sensor is still refused."""
+    cfg, _, dec = paper
+    run = power_up_run(cfg, 1.0, samples=3000, speed=2.0, seed=7)  # 1.4 electrical turns
+    for gain, named in ((0.99, "0.99"), (2000.0, "2000")):
+        check = check_signals(dec, _dataset(gain * run.d))
+        assert check.status is SignalStatus.FITS, check.message
+        assert check.scale == pytest.approx(gain, rel=1e-3)  # LS over 3000 samples
+        assert f"amplitude {named} times" in check.message
+        assert (check.warning is not None) == (gain > 1.5)
+    res = dec.identify(0.99 * run.d)
+    assert res.status is ab.PowerUpStatus.MISMATCH
+    from hallcal.sensor.misfit import MisfitResult
+
+    first = MisfitResult(MisfitStatus.MISMATCH, res.mismatch_sample, res.misfit,
+                         res.cost_per_dof, res.samples, res.offset)  # fmt: skip
+    check = check_signals(dec, _dataset(0.99 * run.d), misfit=first)
+    assert check.status is SignalStatus.MISMATCH
+    assert check.message.startswith(MISMATCH_TEXT) and "amplitude is 0.99" in check.message
+    still = power_up_run(cfg, 1.0, samples=3000, speed=0.0, seed=7)
+    check = check_signals(dec, _dataset(gain_changed(still.d, 1.08)))
+    assert check.status is SignalStatus.MISMATCH

@@ -613,6 +613,8 @@ def reconstruct(artifact: str, data: str, out: str, absolute: bool, units: str) 
     rec = cal.reconstruct(data, absolute=absolute)
     if rec.signals is not None:
         rec.signals.raise_if_failed()  # exit 3: the signals do not fit this calibration
+        if rec.signals.warning:
+            _err.print(rec.signals.warning)
     write_dataset(out, rec.columns)
     _out.print(f"wrote {out} ({len(rec)} samples)")
     if rec.identification is not None:

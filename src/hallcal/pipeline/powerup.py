@@ -34,7 +34,7 @@ from hallcal.sensor.absolute import (
 )
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT
-from hallcal.sensor.misfit import MisfitResult, MisfitStatus, model_misfit
+from hallcal.sensor.misfit import MisfitResult, MisfitStatus, common_scale, model_misfit
 
 __all__ = [
     "MISMATCH_TEXT",
@@ -236,12 +236,17 @@ class SignalCheck:
         recording as given (None when unchecked).
     order : tuple of int or None
         With WIRING: the order of the columns (0-based indices of d1..d3) that fits.
+    scale : float
+        The signals' common amplitude relative to the calibration's when it had to be divided
+        out for them to fit (:func:`hallcal.sensor.misfit.common_scale`), else 1: harmless to
+        f_init and f_star, but the power-up decoder needs it to be 1.
     """
 
     status: SignalStatus
     message: str
     misfit: MisfitResult | None = None
     order: tuple[int, int, int] | None = None
+    scale: float = 1.0
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -249,7 +254,16 @@ class SignalCheck:
             "message": self.message,
             "misfit": None if self.misfit is None else self.misfit.to_dict(),
             "order": None if self.order is None else [f"d{i + 1}" for i in self.order],
+            "scale": float(self.scale),
         }
+
+    @property
+    def warning(self) -> str | None:
+        """A line worth printing although the signals fit: their amplitude far from the
+        calibration's (another unit or ADC scale?), else None."""
+        if self.status.success and _far(self.scale):
+            return f"warning: {self.message}"
+        return None
 
     def raise_if_failed(self) -> None:
         """Raise :class:`CalibrationRefused` (exit status 3) with the message on a failure."""
@@ -283,7 +297,12 @@ def check_signals(
 
     The sequential misfit test of :mod:`hallcal.sensor.misfit` (the one the power-up lock
     uses: the best pole-pair hypothesis's distance to the model, against the calibrated
-    noise) on the first ``samples`` samples. On a mismatch the other five orders of d1..d3 are
+    noise) on the first ``samples`` samples. On a mismatch, their common gain about f_init's
+    offsets is divided out (:func:`hallcal.sensor.misfit.common_scale`; harmless to f_init and
+    f_star, temperature moves it): if they fit then over at least one electrical turn, plain
+    ``reconstruct`` goes on (the gain named), the power-up refuses (its decoder needs the
+    calibrated amplitude). Else the other
+    five orders of d1..d3 are
     tried: one that fits names the wiring ("d1 and d2 swapped"); else, with a reference (``r``
     or ``y_ref``), the calibration's direction check
     (:func:`hallcal.pipeline.checks.check_direction`) names a reversed order; else the
@@ -296,7 +315,8 @@ def check_signals(
     dataset : Dataset
         The recording (d1, d2, d3; r or y_ref optional).
     misfit : MisfitResult, keyword-only, optional
-        The test on the recording as given, when already run (``reconstruct --absolute``).
+        The power-up test's verdict (``reconstruct --absolute``, which needs the calibrated
+        amplitude): a mismatch stays one, with the reason named.
     samples : int, keyword-only
         How many samples from the first to test.
 
@@ -319,6 +339,29 @@ def check_signals(
             f"calibrated noise variance over {result.samples} samples)",
             result,
         )
+    # a common gain (temperature, supply, another unit) is harmless to f_init and f_star; it
+    # can be told from one sensor's gain only over a whole electrical turn (at one position a
+    # gain and another pole pair's magnet look alike)
+    scale = common_scale(decoder, d)
+    scaled = model_misfit(decoder, decoder.offset + (d - decoder.offset) / scale)
+    if scaled.status.success and _electrical_turns(decoder, d) >= 1.0:
+        if misfit is not None:  # the power-up decoder needs the calibrated amplitude
+            return SignalCheck(
+                SignalStatus.MISMATCH,
+                f"{MISMATCH_TEXT} (the signals' amplitude is {scale:.4g} times the "
+                "calibration's: the power-up identification needs the calibrated amplitude; "
+                "temperature, supply or ADC reference changed?)",
+                misfit,
+                scale=scale,
+            )
+        return SignalCheck(
+            SignalStatus.FITS,
+            f"signals fit the calibration's model with their amplitude {scale:.4g} times the "
+            f"calibration's (misfit {scaled.cost_per_dof:.2f} times the calibrated noise "
+            f"variance over {scaled.samples} samples)",
+            scaled,
+            scale=scale,
+        )
     fits = []
     for order in itertools.permutations(range(3)):
         if order == (0, 1, 2):
@@ -335,11 +378,28 @@ def check_signals(
             "wiring or the column order",
             result,
             order,
+            scale,
         )
     direction = check_direction(dataset)
     if direction.status is CheckStatus.FAILED:
-        return SignalCheck(SignalStatus.WIRING, f"{direction.text}", result)
-    return SignalCheck(SignalStatus.MISMATCH, _mismatch_text(result), result)
+        return SignalCheck(SignalStatus.WIRING, f"{direction.text}", result, scale=scale)
+    return SignalCheck(SignalStatus.MISMATCH, _mismatch_text(result), result, scale=scale)
+
+
+#: A common amplitude outside [1 / FAR_SCALE, FAR_SCALE] times the calibration's is worth a
+#: warning (another unit or ADC scale?); within it, it is temperature or supply.
+FAR_SCALE = 1.5
+
+
+def _far(scale: float) -> bool:
+    return not (1.0 / FAR_SCALE <= scale <= FAR_SCALE)
+
+
+def _electrical_turns(decoder: PowerUpDecoder, d: np.ndarray) -> float:
+    """Electrical turns f_init's angle spans over the samples (max - min)."""
+    F = decoder.features(d)
+    y = (F["psi"] + 2.0 * math.pi * F["m"])[F["valid"]]
+    return float(np.ptp(y)) / (2.0 * math.pi) if y.size else 0.0
 
 
 def identification_check(

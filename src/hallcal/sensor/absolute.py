@@ -357,6 +357,11 @@ class PowerUpDecoder:
         k = self.grid / TWO_PI
         return R0 + f * (R1 - R0), Z0 + f * (Z1 - Z0), (R1 - R0) * k, (Z1 - Z0) * k
 
+    def tables_at(self, pos: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        """R, Z and their slopes per electrical rad at table coordinates ``pos`` in [0, M)
+        (linear interpolation, step 5; :meth:`coordinates` gives ``pos``)."""
+        return self._interp(pos)
+
     def coordinates(self, psi: NDArray, m: NDArray, offsets: ArrayLike) -> NDArray:
         """Table coordinates x_j of step 5 for samples (psi, m) and hypotheses ``offsets``.
 

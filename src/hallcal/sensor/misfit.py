@@ -63,6 +63,7 @@ __all__ = [
     "MisfitResult",
     "MisfitStatus",
     "MisfitTest",
+    "common_scale",
     "model_misfit",
 ]
 
@@ -217,6 +218,13 @@ class CostModel(Protocol):
 
     def features(self, d: ArrayLike) -> dict[str, NDArray]: ...
 
+    def coordinates(self, psi: NDArray, m: NDArray, offsets: ArrayLike) -> NDArray: ...
+
+    def tables_at(self, pos: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]: ...
+
+    @property
+    def pole_pairs(self) -> int: ...
+
 
 def model_misfit(decoder: CostModel, d: ArrayLike) -> MisfitResult:
     """The sequential misfit test over a whole recording (no lock: every sample is evidence).
@@ -257,3 +265,36 @@ def model_misfit(decoder: CostModel, d: ArrayLike) -> MisfitResult:
         samples=used,
         offset=int(np.argmin(lam[stop])),
     )
+
+
+def common_scale(decoder: CostModel, d: ArrayLike) -> float:
+    """The signals' common gain about f_init's offsets, relative to the model's.
+
+    For every pole-pair hypothesis j the least-squares factor ``s_j`` of the measured radius
+    and zero-sequence component (rho, zeta) against the model's (R_j, Z_j) at each sample's
+    table position; the hypothesis with the smallest residual after scaling gives the gain. A
+    common gain leaves f_init and f_star unchanged (atan2), but not the decoder's costs.
+
+    Parameters
+    ----------
+    decoder : CostModel
+        The calibration's decoder.
+    d : array_like, shape (K, 3)
+        Hall signals, f_init from y = 0 before the first sample.
+
+    Returns
+    -------
+    float
+        s > 0 (1 when no sample carries an angle).
+    """
+    F = decoder.features(np.atleast_2d(np.asarray(d, dtype=np.float64)))
+    v = F["valid"] & np.isfinite(F["rho"]) & np.isfinite(F["zeta"])
+    if not np.any(v):
+        return 1.0
+    pos = decoder.coordinates(F["psi"][v], F["m"][v], np.arange(decoder.pole_pairs))
+    R, Z, _, _ = decoder.tables_at(pos)
+    rho, zeta = F["rho"][v][:, None], F["zeta"][v][:, None]
+    s = np.sum(rho * R + zeta * Z, axis=0) / np.sum(R * R + Z * Z, axis=0)
+    resid = np.sum(np.square(rho - s * R) + np.square(zeta - s * Z), axis=0)
+    best = float(s[int(np.argmin(resid))])
+    return best if math.isfinite(best) and best > 0.0 else 1.0
