@@ -339,9 +339,12 @@ class Calibration:
             revolution; ``y_initial`` is not used). Raises :class:`CalibrationRefused` when
             the calibration says the pole pair is not identifiable.
 
-        The result's ``status`` says whether the signals fit the calibration's model at all
-        (:func:`hallcal.pipeline.powerup.check_signals`; ``hallcal reconstruct`` exits 3 when
-        they do not).
+        Returns
+        -------
+        Reconstruction
+            y_init, y_star; its ``status`` says whether the signals fit the calibration's
+            model at all (:func:`hallcal.pipeline.powerup.check_signals`; ``hallcal
+            reconstruct`` exits 3 when they do not).
         """
         if absolute:
             return _reconstruct_absolute(self, data)

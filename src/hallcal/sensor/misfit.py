@@ -68,7 +68,6 @@ __all__ = [
     "DEFAULT_FIT_RATE",
     "DEFAULT_MISFIT_RATIO",
     "DEFAULT_MISMATCH_RATE",
-    "CostModel",
     "MisfitResult",
     "MisfitStatus",
     "MisfitTest",
@@ -217,7 +216,7 @@ class MisfitResult:
         }
 
 
-class CostModel(Protocol):
+class _CostModel(Protocol):
     """What :func:`model_misfit` needs of a decoder
     (:class:`hallcal.sensor.absolute.PowerUpDecoder`, which imports this module)."""
 
@@ -235,7 +234,7 @@ class CostModel(Protocol):
     def pole_pairs(self) -> int: ...
 
 
-def model_misfit(decoder: CostModel, d: ArrayLike) -> MisfitResult:
+def model_misfit(decoder: _CostModel, d: ArrayLike) -> MisfitResult:
     """The sequential misfit test over a whole recording (no lock: every sample is evidence).
 
     Parameters
@@ -276,7 +275,7 @@ def model_misfit(decoder: CostModel, d: ArrayLike) -> MisfitResult:
     )
 
 
-def common_scale(decoder: CostModel, d: ArrayLike) -> float:
+def common_scale(decoder: _CostModel, d: ArrayLike) -> float:
     """The signals' common gain about f_init's offsets, relative to the model's.
 
     For every pole-pair hypothesis j the least-squares factor ``s_j`` of the measured radius
@@ -286,7 +285,7 @@ def common_scale(decoder: CostModel, d: ArrayLike) -> float:
 
     Parameters
     ----------
-    decoder : CostModel
+    decoder : PowerUpDecoder
         The calibration's decoder.
     d : array_like, shape (K, 3)
         Hall signals, f_init from y = 0 before the first sample.
