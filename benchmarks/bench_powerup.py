@@ -13,8 +13,17 @@
    standstill error rate against the observed one (2000 power-ups), the stated posterior
    against the observed error frequency (binned), and the sequential test's wrong locks.
 3. Ring-jig recordings (25 pole pairs, open loop): 50 random starts in the held-out
-   revolutions per file, and every start.
-4. Ideal sensors (no magnet variation): the verdict and the refusal.
+   revolutions per file, and every start (wrong locks, false "mismatch").
+4. The ring remounted: the calibration of one capture, 60 random power-ups of 1000 samples on
+   each other capture (every ordered pair): locked (confidently wrong) by the lock rule alone,
+   and now (identified / refused as "mismatch").
+5. Changed sensors on the paper bench (its true flux as the model): one sensor's gain or all
+   three off by a little (temperature, a replaced sensor), 100 power-ups each: the lock rule
+   alone against the lock with the misfit test (refused, locked right, locked wrong).
+6. Ideal sensors (no magnet variation): the verdict and the refusal.
+
+Every healthy power-up is also counted for a false "mismatch" (the misfit test,
+hallcal.sensor.misfit: no pole pair fits).
 
 Run: ``python benchmarks/bench_powerup.py``; output committed beside it (bench_powerup.txt).
 """
@@ -35,6 +44,7 @@ from hallcal.errors import CalibrationRefused
 from hallcal.io import Dataset, default_setup
 from hallcal.pipeline import simulate
 from hallcal.sensor import absolute as ab
+from hallcal.sensor.misfit import model_misfit
 from hallcal.sim.bench import BenchConfig
 from hallcal.sim.loop import simulate_loop
 
@@ -94,26 +104,27 @@ def paper_bench(seed: int) -> None:
     rng = np.random.default_rng(100 + seed)
     angles = rng.uniform(0.0, TWO_PI, 500)
     # at rest, 200 samples
-    right = locked = wrong_lock = 0
+    right = locked = wrong_lock = mismatch = 0
     lock_at = []
     for i, a in enumerate(angles):
         res, j = pu.run(a, 200, 0.0, seed=10_000 * seed + i)
         ident = dec.identify(res.d)
         right += ident.offset == j
+        mismatch += ident.status is ab.PowerUpStatus.MISMATCH
         if ident.status is ab.PowerUpStatus.IDENTIFIED:
             locked += 1
             wrong_lock += ident.offset != j
             lock_at.append(ident.lock_sample + 1)
     print(
         f"   standstill, 200 samples: right {right}/500 ({100 * right / 500:.1f}%), locked "
-        f"{locked}/500 (wrong locks {wrong_lock}), samples to lock median "
-        f"{np.median(lock_at):.0f}, 99th percentile {np.percentile(lock_at, 99):.0f}, "
+        f"{locked}/500 (wrong locks {wrong_lock}, false mismatch {mismatch}), samples to lock "
+        f"median {np.median(lock_at):.0f}, 99th percentile {np.percentile(lock_at, 99):.0f}, "
         f"max {max(lock_at)}"
     )
     # moving, one electrical revolution
     for speed in (0.5, 5.0):
         rev = int(round(TWO_PI / cfg.pole_pairs / (speed * cfg.sample_time)))
-        ok = ml_ok = 0
+        ok = ml_ok = mismatch = 0
         lock_at = []
         err2, count, per_run = 0.0, 0, []
         for i, a in enumerate(angles):
@@ -121,6 +132,7 @@ def paper_bench(seed: int) -> None:
             out = ab.absolute_reconstruction(dec, cal.lut, res.d)
             ident = out.identification
             ok += ident.status is ab.PowerUpStatus.IDENTIFIED and ident.offset == j
+            mismatch += ident.status is ab.PowerUpStatus.MISMATCH
             ml_ok += int(dec.identify(res.d, lock=False).offset == j)
             if ident.lock_sample is not None:
                 lock_at.append(ident.lock_sample + 1)
@@ -132,8 +144,8 @@ def paper_bench(seed: int) -> None:
         print(
             f"   moving {speed:3.1f} rad/s ({rev} samples per electrical revolution): locked on "
             f"the right pole pair within one electrical revolution {ok}/500 "
-            f"({100 * ok / 500:.1f}%), ML at its end right {ml_ok}/500; samples to lock median "
-            f"{np.median(lock_at):.0f}, max {max(lock_at)}"
+            f"({100 * ok / 500:.1f}%), ML at its end right {ml_ok}/500, false mismatch "
+            f"{mismatch}; samples to lock median {np.median(lock_at):.0f}, max {max(lock_at)}"
         )
         if speed == 0.5:
             rms = math.sqrt(err2 / count)
@@ -190,7 +202,7 @@ def weak_bench() -> None:
                 f"observed {miss[m].mean():.4f}"
             )
     # sequential test at rest, long budget
-    wrong_lock = undecided = 0
+    wrong_lock = undecided = mismatch = 0
     lock_at = []
     for i in range(1000):
         res, j = pu.run(rng.uniform(0.0, TWO_PI), 4000, 0.0, seed=90_000 + i)
@@ -198,11 +210,14 @@ def weak_bench() -> None:
         if ident.status is ab.PowerUpStatus.IDENTIFIED:
             wrong_lock += ident.offset != j
             lock_at.append(ident.lock_sample + 1)
+        elif ident.status is ab.PowerUpStatus.MISMATCH:
+            mismatch += 1
         else:
             undecided += 1
     print(
         f"   sequential test at rest (alpha = {dec.error_target:g}), 1000 power-ups, up to 4000 "
-        f"samples: wrong locks {wrong_lock}, undecided {undecided}, samples to lock median "
+        f"samples: wrong locks {wrong_lock}, undecided {undecided}, false mismatch {mismatch}, "
+        f"samples to lock median "
         f"{np.median(lock_at):.0f}, 99th percentile {np.percentile(lock_at, 99):.0f}; analysis:"
         f" {100 * rep.standstill_fraction_ok:.1f}% of positions within 200, worst "
         f"{rep.standstill_samples_worst:.0f}"
@@ -227,8 +242,9 @@ def ring_jig() -> None:
     print("\n-- ring-jig recordings (25 pole pairs; calibration on 2 revolutions) --")
     print(
         "   file  verdict       sigma(total/white)  grid  50 starts: agree  locked  lock median/max"
-        "  every start: wrong locks"
+        "  every start: wrong locks  false mismatch"
     )
+    captures = {}
     for i, path in enumerate(FILES, start=1):
         d = load_dataset(path).d
         seg = find_constant_speed(d, n)
@@ -250,20 +266,104 @@ def ring_jig() -> None:
             if ident.lock_sample is not None:
                 locked += 1
                 lock_at.append(ident.lock_sample + 1)
-        costs = dec.sample_costs(d)
-        wrong = total = 0
-        for s in range(mid, stop - W):
-            lam = np.cumsum(costs[s : s + W], axis=0)
-            lam -= lam.min(axis=1, keepdims=True)
-            hit = np.flatnonzero(np.sum(np.exp(-0.5 * lam), axis=1) - 1.0 <= dec.lock_threshold)
+        wrong = mismatch = total = 0
+        for s in range(mid, stop - W):  # every start, a fresh power-up each
+            ident = dec.identify(d[s : s + W])
+            expected = int(np.round((y_cont[s] - res.lut.f_init(d[s : s + 1])[0]) * n / TWO_PI))
             total += 1
-            wrong += bool(hit.size) and int(np.argmin(lam[hit[0]])) != 0
+            wrong += ident.status is ab.PowerUpStatus.IDENTIFIED and ident.offset != expected % n
+            mismatch += ident.status is ab.PowerUpStatus.MISMATCH
         print(
             f"   {i:4d}  {rep.status.value:12s} {rep.noise.total_std:7.1f} / "
             f"{rep.noise.white_std:4.1f}      {dec.grid:4d}  {agree:9d}/50 {locked:5d}/50"
             f"  {np.median(lock_at):6.0f}/{max(lock_at):<4d}  {wrong:10d}/{total}"
+            f"  {mismatch:8d}/{total} ({100 * mismatch / total:.2f}%)"
         )
         print(f"         {rep.message}")
+        captures[i] = (d, seg, dec)
+    remounted(captures)
+
+
+def remounted(captures) -> None:
+    """Item 4 of the module doc: the calibration of one capture, power-ups on another."""
+    W = 1000
+    print(
+        "\n-- ring-jig remounted: calibration of capture c, 60 power-ups of 1000 samples at "
+        "random starts in capture d's constant-speed part --"
+    )
+    print(
+        "   c  d   lock rule alone: locked (posterior >= 0.999)   now: identified  mismatch"
+        "  samples to refuse median/max  whole recording"
+    )
+    total_old = total_locked = 0
+    for ci, (_, _, dec) in captures.items():
+        for di, (d, seg, _) in captures.items():
+            if ci == di:
+                continue
+            rng = np.random.default_rng(100 * ci + di)
+            old = locked = refused = 0
+            at = []
+            for s in rng.integers(seg.start, seg.stop - W, 60):
+                window = d[s : s + W]
+                ident = dec.identify(window)
+                locked += ident.status is ab.PowerUpStatus.IDENTIFIED
+                if ident.status is ab.PowerUpStatus.MISMATCH:
+                    refused += 1
+                    at.append(ident.mismatch_sample + 1)
+                lam = np.cumsum(dec.sample_costs(window), axis=0)
+                lam -= lam.min(axis=1, keepdims=True)
+                old += bool(np.any(np.sum(np.exp(-0.5 * lam), axis=1) - 1.0 <= dec.lock_threshold))
+            whole = model_misfit(dec, d[seg.start : seg.stop])
+            total_old += old
+            total_locked += locked
+            print(
+                f"   {ci}  {di}  {old:27d}/60  {locked:20d}/60 {refused:6d}/60"
+                f"  {np.median(at):17.0f}/{max(at):<4d}       {whole.status.value} after "
+                f"{whole.samples} (cost {whole.cost_per_dof:.2f} x noise)"
+            )
+    print(
+        f"   all pairs: the lock rule alone locked {total_old}/360 (posterior >= 0.999 on signals "
+        f"that do not match the calibration); now {total_locked}/360"
+    )
+
+
+def changed_sensors() -> None:
+    """Item 5 of the module doc."""
+    from hallcal.sensor.lut import build_lut
+
+    cfg = BenchConfig()
+    truth, loop = cfg.truth(), cfg.loop()
+    lut = build_lut(truth, 11, projection=loop.projection, offset=loop.offset)
+    dec = ab.build_decoder(truth, lut, noise_std=math.sqrt(cfg.noise_variance))
+    pu = PowerUps(cfg)
+    print(
+        "\n-- changed sensors, paper bench (exact model; 100 power-ups of 1000 samples, half at "
+        "rest, half at 2 rad/s) --"
+    )
+    print("   change          lock rule alone: locked  wrong    now: refused  locked right  wrong")
+    cases = [("d3 gain x 1.05", [1, 1, 1.05]), ("d3 gain x 1.02", [1, 1, 1.02]),
+             ("all x 0.998", [0.998] * 3), ("all x 0.995", [0.995] * 3),
+             ("all x 0.98", [0.98] * 3)]  # fmt: skip
+    for name, gains in cases:
+        rng = np.random.default_rng(31)
+        old = old_wrong = refused = right = wrong = 0
+        for i in range(100):
+            res, j = pu.run(rng.uniform(0.0, TWO_PI), 1000, 0.0 if i % 2 else 2.0, seed=700 + i)
+            d = res.d * np.asarray(gains)
+            lam = np.cumsum(dec.sample_costs(d), axis=0)
+            lam -= lam.min(axis=1, keepdims=True)
+            hit = np.flatnonzero(np.sum(np.exp(-0.5 * lam), axis=1) - 1.0 <= dec.lock_threshold)
+            if hit.size:
+                old += 1
+                old_wrong += int(np.argmin(lam[hit[0]])) != j
+            ident = dec.identify(d)
+            refused += ident.status is ab.PowerUpStatus.MISMATCH
+            if ident.status is ab.PowerUpStatus.IDENTIFIED:
+                right += ident.offset == j
+                wrong += ident.offset != j
+        print(
+            f"   {name:16s} {old:20d}/100 {old_wrong:6d}   {refused:12d}/100 {right:13d} {wrong:6d}"
+        )
 
 
 def ideal_sensors() -> None:
@@ -292,6 +392,7 @@ def main() -> None:
         paper_bench(seed)
     weak_bench()
     ring_jig()
+    changed_sensors()
     ideal_sensors()
     print(f"\ntotal {time.perf_counter() - t0:.0f} s")
 

@@ -174,3 +174,103 @@ def test_front_door_absolute(paper):
     assert res.returncode == 0, res.stderr
     out = read_dataset(d / "fd.csv", required=("y_star",))
     np.testing.assert_allclose(out["y_star"], rec.y_star, atol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------------
+# Signals that do not fit the calibration: swapped or rewired sensors, a remounted ring
+# ------------------------------------------------------------------------------------------------
+
+MISMATCH_LINE = (
+    "hallcal: refused: these signals do not match this calibration (ring remounted, wiring "
+    "changed or sensors drifted): recalibrate"
+)
+
+
+def _one_refusal(res: subprocess.CompletedProcess) -> str:
+    assert res.returncode == 3, (res.returncode, res.stdout, res.stderr)
+    assert "Traceback" not in res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1, res.stderr
+    return lines[0]
+
+
+@pytest.mark.parametrize("encoder", [True, False], ids=["with-y_ref", "without-y_ref"])
+def test_reconstruct_names_swapped_sensors(paper, encoder):
+    """d1 and d2 recorded the other way round: plain ``reconstruct`` used to exit 0 ("f_init
+    RMS 7505 mrad" against y_ref, silent without it); now exit 3 with one line naming the
+    swap and the order that fits, and no output file."""
+    d, _ = paper
+    power_up_csv(d / "ok.csv", d / "s.toml", 2.0, speed=1.0, seed=8)
+    ds = read_dataset(d / "ok.csv")
+    cols = {"d1": ds["d2"], "d2": ds["d1"], "d3": ds["d3"]}
+    if encoder:
+        cols["y_ref"] = ds["y_ref"]
+    write_dataset(d / "swapped.csv", cols)
+    for extra in ((), ("--absolute",)):
+        res = run("reconstruct", "cal.json", "swapped.csv", *extra, "--out", "sw.csv", cwd=d)
+        line = _one_refusal(res)
+        assert line.startswith("hallcal: refused: sensors swapped or wiring changed"), line
+        assert "d2, d1, d3 (d1 and d2 swapped)" in line, line
+        assert not (d / "sw.csv").exists()
+    res = run("reconstruct", "cal.json", "ok.csv", "--out", "ok_out.csv", cwd=d)
+    assert res.returncode == 0, res.stderr
+    assert res.stderr == ""
+
+
+def test_reconstruct_refuses_a_changed_sensor(paper):
+    """One sensor's gain 5 % off (drifted or replaced): no order of d1..d3 fits, so the
+    one line says to recalibrate, plain and --absolute alike."""
+    d, _ = paper
+    power_up_csv(d / "base.csv", d / "s.toml", 0.3, speed=2.0, seed=12)
+    ds = read_dataset(d / "base.csv")
+    write_dataset(d / "gain.csv", {"d1": ds["d1"], "d2": ds["d2"], "d3": 1.05 * ds["d3"]})
+    for extra in ((), ("--absolute",)):
+        res = run("reconstruct", "cal.json", "gain.csv", *extra, "--out", "g.csv", cwd=d)
+        assert _one_refusal(res).startswith(MISMATCH_LINE), res.stderr
+        assert not (d / "g.csv").exists()
+
+
+@pytest.fixture(scope="module")
+def ringjig(tmp_path_factory):
+    """The real ring jig: capture 2 calibrated through the command line (constant-speed run,
+    first two revolutions), the three captures as CSV files."""
+    from test_real_ringjig import CAL_REVOLUTIONS, FILES, POLE_PAIRS
+
+    from hallcal.fit.constant_speed import find_constant_speed
+
+    d = tmp_path_factory.mktemp("ringjig")
+    splits = {}
+    for i, path in enumerate(FILES, start=1):
+        raw = np.loadtxt(path, dtype=np.int64).astype(np.float64)
+        write_dataset(d / f"ring{i}.csv", {"d1": raw[:, 0], "d2": raw[:, 1], "d3": raw[:, 2]})
+        splits[i] = find_constant_speed(raw, POLE_PAIRS).split(CAL_REVOLUTIONS)
+    start, mid, _ = splits[2]
+    (d / "ring.toml").write_text(
+        f"pole_pairs = {POLE_PAIRS}\nsample_time = 1.0\n[trajectory]\n"
+        f'kind = "constant-speed"\nstart = {start}\nstop = {mid}\n'
+    )
+    res = run("calibrate", "ring2.csv", "--setup", "ring.toml", "--out", "ring.json", cwd=d)
+    assert res.returncode == 0, res.stderr
+    return d, splits
+
+
+def test_remounted_ring_is_refused_at_power_up(ringjig):
+    """A power-up on the same ring after a remount (capture 1 or 3 with capture 2's
+    calibration): exit 3 with the one line, where the lock rule alone locked confidently on a
+    wrong pole pair; a power-up on the calibration's own capture still locks (exit 0)."""
+    d, splits = ringjig
+    for i in (1, 3):
+        start, _, stop = splits[i]
+        raw = read_dataset(d / f"ring{i}.csv")
+        s = (start + stop) // 2
+        write_dataset(d / f"pu{i}.csv", {k: raw[k][s : s + 1000] for k in ("d1", "d2", "d3")})
+        for extra in (("--absolute",), ()):
+            res = run("reconstruct", "ring.json", f"pu{i}.csv", *extra, "--out", "o.csv", cwd=d)
+            assert _one_refusal(res).startswith(MISMATCH_LINE), res.stderr
+    _, mid, stop = splits[2]
+    raw = read_dataset(d / "ring2.csv")
+    s = (mid + stop) // 2
+    write_dataset(d / "pu2.csv", {k: raw[k][s : s + 1000] for k in ("d1", "d2", "d3")})
+    res = run("reconstruct", "ring.json", "pu2.csv", "--absolute", "--out", "o.csv", cwd=d)
+    assert res.returncode == 0, res.stderr
+    assert "identified after" in res.stdout

@@ -578,7 +578,8 @@ def _print_validation(v, units: str, n_m: int) -> None:
     epilog=_epilog(
         "hallcal reconstruct cal.json run.csv --out angles.csv",
         "hallcal reconstruct cal.json powerup.csv --absolute --out angles.csv",
-        exits=_EXITS + ", 3 the artifact's table is not bijective",
+        exits=_EXITS + ", 3 the artifact's table is not bijective, or the signals do not fit "
+        "the calibration's model (ring remounted, sensors swapped or rewired, sensors drifted)",
     )
 )
 @click.argument("artifact", type=click.Path(dir_okay=False))
@@ -602,7 +603,9 @@ def reconstruct(artifact: str, data: str, out: str, absolute: bool, units: str) 
 
     f_init and f_star run over the recording from y = 0 before the first sample (the frame of
     the calibration run), or, with --absolute, from the pole pair identified at power-up. With
-    an encoder column y_ref both are compared with it.
+    an encoder column y_ref both are compared with it. The signals are first tested against
+    the calibration's flux model (its calibrated noise): when no pole pair fits, it refuses
+    (exit 3) and names swapped or rewired sensors when another order of d1..d3 fits.
     """
     from hallcal.api import load
     from hallcal.io import write_dataset
@@ -610,6 +613,10 @@ def reconstruct(artifact: str, data: str, out: str, absolute: bool, units: str) 
     cal = load(artifact)
     _output_file(out, dataset=True)
     rec = cal.reconstruct(data, absolute=absolute)
+    if rec.signals is not None:
+        rec.signals.raise_if_failed()  # exit 3: the signals do not fit this calibration
+        if rec.signals.warning:
+            _err.print(rec.signals.warning)
     write_dataset(out, rec.columns)
     _out.print(f"wrote {out} ({len(rec)} samples)")
     if rec.identification is not None:

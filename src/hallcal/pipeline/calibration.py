@@ -8,6 +8,7 @@ encoder or the bench's truth (step 5 of Algorithm 1).
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import enum
 import math
@@ -25,11 +26,19 @@ from hallcal.io.artifact import ARTIFACT_FORMAT, ArtifactData, validate_artifact
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.powerup import (
+    SignalCheck,
+    SignalStatus,
+    check_signals,
+    decoder_for,
     identifiability_from_artifact,
-    reconstruct_absolute,
+    identification_check,
     same_revolution,
 )
-from hallcal.sensor.absolute import IdentifiabilityReport, PowerUpIdentification
+from hallcal.sensor.absolute import (
+    IdentifiabilityReport,
+    PowerUpIdentification,
+    absolute_reconstruction,
+)
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT
 from hallcal.sensor.metrics import AngleError, SpatialSpectrum, angle_error, spatial_spectrum
@@ -168,12 +177,22 @@ class Reconstruction:
     identification : PowerUpIdentification or None
         With ``absolute=True``: which pole pair the recording started in, when the sequential
         test was certain, with what posterior probability.
+    signals : SignalCheck or None
+        Whether the signals fit the calibration's model at all (a remounted ring, swapped or
+        rewired sensors do not): :func:`hallcal.pipeline.powerup.check_signals`.
     """
 
     y_init: NDArray[np.float64] = field(repr=False)
     y_star: NDArray[np.float64] = field(repr=False)
     validation: Validation | None = None
     identification: PowerUpIdentification | None = None
+    signals: SignalCheck | None = None
+
+    @property
+    def status(self) -> SignalStatus:
+        """``fits``, ``mismatch`` (recalibrate), ``wiring`` (another order of d1..d3 fits) or
+        ``unchecked``; :attr:`signals` has the one-line message."""
+        return SignalStatus.UNCHECKED if self.signals is None else self.signals.status
 
     @property
     def columns(self) -> dict[str, NDArray[np.float64]]:
@@ -319,10 +338,21 @@ class Calibration:
             magnets' signatures and give the angles in the calibration's frame (modulo one
             revolution; ``y_initial`` is not used). Raises :class:`CalibrationRefused` when
             the calibration says the pole pair is not identifiable.
+
+        Returns
+        -------
+        Reconstruction
+            y_init, y_star; its ``status`` says whether the signals fit the calibration's
+            model at all (:func:`hallcal.pipeline.powerup.check_signals`; ``hallcal
+            reconstruct`` exits 3 when they do not).
         """
         if absolute:
             return _reconstruct_absolute(self, data)
-        return reconstruct_with(self.lut, data, y_initial=y_initial)
+        rec = reconstruct_with(self.lut, data, y_initial=y_initial)
+        decoder = None
+        if self.identifiability is not None:
+            decoder = self.identifiability.decoder(self.flux, self.lut)
+        return dataclasses.replace(rec, signals=check_signals(decoder, data))
 
 
 def _diagnostics(cal: Calibration) -> dict[str, Any]:
@@ -537,7 +567,8 @@ def reconstruct_with(lut: LUT, dataset: Dataset, *, y_initial: float = 0.0) -> R
 
 def _reconstruct_absolute(cal: Calibration, dataset: Dataset) -> Reconstruction:
     """``Calibration.reconstruct(absolute=True)``: see :mod:`hallcal.pipeline.powerup`."""
-    out = reconstruct_absolute(cal.flux, cal.lut, cal.identifiability, dataset.d)
+    decoder = decoder_for(cal.flux, cal.lut, cal.identifiability)
+    out = absolute_reconstruction(decoder, cal.lut, dataset.d)
     validation = None
     if "y_ref" in dataset:
         ref = same_revolution(out.y_star, dataset["y_ref"])
@@ -547,7 +578,8 @@ def _reconstruct_absolute(cal: Calibration, dataset: Dataset) -> Reconstruction:
             spatial_spectrum(out.y_init - ref, ref),
             spatial_spectrum(out.y_star - ref, ref),
         )
-    return Reconstruction(out.y_init, out.y_star, validation, out.identification)
+    signals = identification_check(decoder, dataset, out)
+    return Reconstruction(out.y_init, out.y_star, validation, out.identification, signals)
 
 
 def reconstruct(
@@ -584,6 +616,6 @@ def reconstruct(
     CalibrationRefused
         (``absolute``) When the pole pair is not identifiable with this motor's sensors.
     """
-    if absolute:
-        return calibration_from_artifact(artifact).reconstruct(dataset, absolute=True)
-    return reconstruct_with(lut_from_artifact(artifact), dataset, y_initial=y_initial)
+    return calibration_from_artifact(artifact).reconstruct(
+        dataset, y_initial=y_initial, absolute=absolute
+    )

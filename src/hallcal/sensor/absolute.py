@@ -51,9 +51,12 @@ Constants (:class:`PowerUpDecoder`, all float64 in the reference):
   36(6)), the likelihood of Gaussian noise contaminated by rare outliers; one sample then weighs
   at most a likelihood ratio of 100 against any hypothesis, so with alpha < 1 % no single sample
   (a glitch) can lock.
+- ``wt``, ``kd``, ``bd``, ``bf``: the misfit test's weight ``(1 - 1 / kappa) / 2``, drift
+  ``ln kappa`` and bounds ``ln(1 / beta)``, ``ln(1 / gamma)`` (:mod:`hallcal.sensor.misfit`:
+  does any pole pair fit at all?).
 
 State: ``m`` (integer turn count, 0), ``psi_prev`` (none yet), ``Lam[j] = 0`` for j = 0..n-1,
-``locked = false``, ``best = 0``.
+``locked = false``, ``mismatch = false``, ``best = 0``, ``D = 0`` (misfit statistic).
 
 Per sample ``d = (d1, d2, d3)``:
 
@@ -62,7 +65,8 @@ Per sample ``d = (d1, d2, d3)``:
 2. Turn count (f_init's unwrap from y = 0 before the first sample, eq. fimp):
    first sample ``m = -floor((psi + pi) / (2 pi))``, later ``m -= floor((psi - psi_prev + pi) /
    (2 pi))``; ``psi_prev = psi``. f_init's output is ``y = (psi + 2 pi m) / n``.
-3. If locked, or ``rho <= 1e-12 * (1 + |R[0]|)`` (no angle information), stop here.
+3. If locked, or mismatch, or ``rho <= 1e-12 * (1 + |R[0]|)`` (no angle information), stop
+   here.
 4. ``c = al / rho``, ``s = be / rho``;
    ``Guu = A00 c^2 + 2 A01 c s + A11 s^2``, ``Gvv = A00 s^2 - 2 A01 c s + A11 c^2``,
    ``Guv = (A11 - A00) c s + A01 (c^2 - s^2)``, ``Gun = B0 c + B1 s``, ``Gvn = B1 c - B0 s``,
@@ -80,10 +84,14 @@ Per sample ``d = (d1, d2, d3)``:
      ``tt = dR^2 Guu + Rj^2 Gvv + dZ^2 Gnn + 2 dR Rj Guv + 2 dR dZ Gun + 2 Rj dZ Gvn``;
    - ``Lam[j] += min(rr - tr^2 / tt, cap)``.
 6. ``Lmin = min_j Lam[j]``, ``best`` = the smallest j attaining it; ``Lam[j] -= Lmin`` for all j
-   (keeps the numbers bounded; the posterior only depends on differences).
+   (keeps the numbers bounded; the posterior only depends on differences). The sum of the Lmin
+   so far is the best hypothesis's whole cost: ``D += wt Lmin - kd`` (the misfit statistic);
+   if ``D >= bd``: ``mismatch = true`` (no pole pair fits: the signals do not match this
+   calibration), stop here for good.
 7. ``W = sum_{j != best} exp(-Lam[j] / 2)``; posterior of best ``p = 1 / (1 + W)``; lock when
-   ``W <= alpha / (1 - alpha)`` (i.e. p >= 1 - alpha). Margin ``sqrt(min_{j != best} Lam[j])``
-   in noise sigmas (the log-likelihood-ratio margin is half its square).
+   ``W <= alpha / (1 - alpha)`` (i.e. p >= 1 - alpha) and ``D <= -bf`` (the best fits). Margin
+   ``sqrt(min_{j != best} Lam[j])`` in noise sigmas (the log-likelihood-ratio margin is half its
+   square).
 
 Output: the calibration frame's f_init value ``y_abs = y + 2 pi best / n``, and the corrected
 angle ``y_star = y_abs + eta(y_abs)`` with the lookup table of eq. (f_final). Before the lock
@@ -109,6 +117,12 @@ from numpy.typing import ArrayLike, NDArray
 
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT
+from hallcal.sensor.misfit import (
+    DEFAULT_FIT_RATE,
+    DEFAULT_MISFIT_RATIO,
+    DEFAULT_MISMATCH_RATE,
+    MisfitTest,
+)
 
 __all__ = [
     "AbsoluteAngles",
@@ -269,6 +283,8 @@ class PowerUpDecoder:
     cost_cap : float
         c: each sample's cost is censored at c (step 5), so that no single sample (an ADC
         glitch, a burst of rig vibration) brings more than c of evidence.
+    misfit : MisfitTest
+        kappa and beta of the misfit test (steps 6 and 7; :mod:`hallcal.sensor.misfit`).
     """
 
     pole_pairs: int
@@ -285,6 +301,7 @@ class PowerUpDecoder:
     error_target: float = DEFAULT_ERROR_TARGET
     interpolation_error: float = 0.0
     cost_cap: float = DEFAULT_COST_CAP
+    misfit: MisfitTest = field(default_factory=MisfitTest)
 
     @property
     def table_size(self) -> int:
@@ -339,6 +356,11 @@ class PowerUpDecoder:
         Z0, Z1 = self.zero[i], self.zero[i1]
         k = self.grid / TWO_PI
         return R0 + f * (R1 - R0), Z0 + f * (Z1 - Z0), (R1 - R0) * k, (Z1 - Z0) * k
+
+    def tables_at(self, pos: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        """R, Z and their slopes per electrical rad at table coordinates ``pos`` in [0, M)
+        (linear interpolation, step 5; :meth:`coordinates` gives ``pos``)."""
+        return self._interp(pos)
 
     def coordinates(self, psi: NDArray, m: NDArray, offsets: ArrayLike) -> NDArray:
         """Table coordinates x_j of step 5 for samples (psi, m) and hypotheses ``offsets``.
@@ -415,6 +437,7 @@ class PowerUpDecoder:
             "error_target": float(self.error_target),
             "interpolation_error": float(self.interpolation_error),
             "cost_cap": float(self.cost_cap),
+            **self.misfit.to_dict(),
         }
 
     def tables(self) -> dict[str, Any]:
@@ -433,6 +456,10 @@ class PowerUpDecoder:
             "error_target": float(self.error_target),
             "lock_threshold": self.lock_threshold,
             "cost_cap": float(self.cost_cap),
+            "misfit_weight": self.misfit.weight,
+            "misfit_drift": self.misfit.drift,
+            "misfit_bound": self.misfit.bound,
+            "fit_bound": self.misfit.fit_bound,
         }
 
 
@@ -475,6 +502,9 @@ def build_decoder(
     interpolation_tolerance: float = DEFAULT_INTERPOLATION_TOLERANCE,
     error_target: float = DEFAULT_ERROR_TARGET,
     cost_cap: float = DEFAULT_COST_CAP,
+    misfit_ratio: float = DEFAULT_MISFIT_RATIO,
+    mismatch_rate: float = DEFAULT_MISMATCH_RATE,
+    fit_rate: float = DEFAULT_FIT_RATE,
 ) -> PowerUpDecoder:
     """Tables and constants of the power-up decoder for an identified flux model.
 
@@ -503,6 +533,8 @@ def build_decoder(
         alpha of the sequential test (0 < alpha < 0.5).
     cost_cap : float
         Censoring level c of one sample's cost (> 0), see :data:`DEFAULT_COST_CAP`.
+    misfit_ratio, mismatch_rate, fit_rate : float
+        kappa, beta and gamma of the misfit test (:class:`~hallcal.sensor.misfit.MisfitTest`).
 
     Returns
     -------
@@ -513,6 +545,7 @@ def build_decoder(
         raise ValueError("error_target must be in (0, 0.5)")
     if not cost_cap > 0.0:
         raise ValueError("cost_cap must be > 0")
+    misfit = MisfitTest(float(misfit_ratio), float(mismatch_rate), float(fit_rate))
     n = lut.pole_pairs
     cov = _noise_covariance(noise_std, noise_covariance)
     nv = null_vector(lut.projection)
@@ -557,6 +590,7 @@ def build_decoder(
         error_target=float(error_target),
         interpolation_error=err,
         cost_cap=float(cost_cap),
+        misfit=misfit,
     )
 
 
@@ -568,8 +602,9 @@ def build_decoder(
 class PowerUpStatus(enum.StrEnum):
     """Outcome of a power-up identification."""
 
-    IDENTIFIED = "identified"  # the sequential test locked: posterior >= 1 - alpha
+    IDENTIFIED = "identified"  # the sequential test locked: posterior >= 1 - alpha, and it fits
     UNDECIDED = "undecided"  # not certain yet; the offset is the current maximum-likelihood one
+    MISMATCH = "mismatch"  # no pole pair fits: the signals do not match this calibration
 
     @property
     def success(self) -> bool:
@@ -597,7 +632,15 @@ class PowerUpIdentification:
     log_likelihood : ndarray, shape (n,)
         -Lambda_j / 2 relative to the best, at the lock (or after the last sample).
     samples : int
-        Samples used (up to and including the lock).
+        Samples used (up to and including the lock, or the mismatch).
+    misfit : float
+        The misfit statistic D (:mod:`hallcal.sensor.misfit`) at the same time: a log-likelihood
+        ratio, ``<= -ln(1 / gamma)`` when the best fits, ``>= ln(1 / beta)`` for a mismatch.
+    cost_per_dof : float
+        The best hypothesis's mean cost per degree of freedom at the same time (about 1 when
+        the model fits; the misfit's variance in noise variances, plus 1).
+    mismatch_sample : int or None
+        Index of the sample after which the misfit test said "mismatch" (status MISMATCH).
     """
 
     status: PowerUpStatus
@@ -608,6 +651,9 @@ class PowerUpIdentification:
     best: NDArray[np.int64] = field(repr=False)
     log_likelihood: NDArray[np.float64] = field(repr=False)
     samples: int
+    misfit: float = math.nan
+    cost_per_dof: float = math.nan
+    mismatch_sample: int | None = None
 
     @property
     def error_probability(self) -> float:
@@ -622,6 +668,9 @@ class PowerUpIdentification:
             "posterior": float(self.posterior),
             "margin": float(self.margin),
             "samples": int(self.samples),
+            "misfit": float(self.misfit),
+            "cost_per_dof": float(self.cost_per_dof),
+            "mismatch_sample": self.mismatch_sample,
         }
 
 
@@ -641,22 +690,36 @@ def _identify(dec: PowerUpDecoder, d: NDArray, *, lock: bool) -> PowerUpIdentifi
     if K == 0:
         raise ValueError("no samples")
     lam = np.cumsum(dec.sample_costs(d), axis=0)
-    lam -= np.min(lam, axis=1, keepdims=True)
+    total = np.min(lam, axis=1)  # the best hypothesis's whole cost (sum of the Lmin, step 6)
+    used = np.cumsum(dec.features(d)["valid"])
+    D = dec.misfit.statistic(total, used)
+    lam -= total[:, None]
     best = np.argmin(lam, axis=1)
     W = np.sum(np.exp(-0.5 * lam), axis=1) - 1.0  # the best contributes exp(0) = 1
-    lock_at = None
+    lock_at = mismatch_at = None
     if lock:
-        hit = np.flatnonzero(W <= dec.lock_threshold)
+        bad = np.flatnonzero(D >= dec.misfit.bound)
+        if bad.size:
+            mismatch_at = int(bad[0])
+        limit = K if mismatch_at is None else mismatch_at
+        fits = D[:limit] <= -dec.misfit.fit_bound
+        hit = np.flatnonzero((W[:limit] <= dec.lock_threshold) & fits)
         if hit.size:
             lock_at = int(hit[0])
-    stop = K - 1 if lock_at is None else lock_at
+            mismatch_at = None
+    stop = K - 1
+    status = PowerUpStatus.UNDECIDED
+    if lock_at is not None:
+        stop, status = lock_at, PowerUpStatus.IDENTIFIED
+    elif mismatch_at is not None:
+        stop, status = mismatch_at, PowerUpStatus.MISMATCH
     final = lam[stop]
     j, _, post, margin = _posterior(final)
     b = best.astype(np.int64)
-    if lock_at is not None:
-        b[lock_at:] = j
+    if lock_at is not None or mismatch_at is not None:
+        b[stop:] = j
     return PowerUpIdentification(
-        status=PowerUpStatus.IDENTIFIED if lock_at is not None else PowerUpStatus.UNDECIDED,
+        status=status,
         offset=j,
         lock_sample=lock_at,
         posterior=post,
@@ -664,6 +727,9 @@ def _identify(dec: PowerUpDecoder, d: NDArray, *, lock: bool) -> PowerUpIdentifi
         best=b,
         log_likelihood=-0.5 * (final - final[j]),
         samples=stop + 1,
+        misfit=float(D[stop]),
+        cost_per_dof=float(total[stop]) / (2.0 * used[stop]) if used[stop] else math.nan,
+        mismatch_sample=mismatch_at,
     )
 
 
@@ -694,13 +760,20 @@ class PowerUpIdentifier:
         self._rho_min = 1e-12 * (1.0 + abs(self._R[0]))
         self._threshold = dec.lock_threshold
         self._cap = float(dec.cost_cap)
+        self._wt = dec.misfit.weight
+        self._kd = dec.misfit.drift
+        self._bd = dec.misfit.bound
+        self._bf = dec.misfit.fit_bound
         self.m = 0
         self.psi = math.nan
         self.lam = [0.0] * self._n
         self.best = 0
         self.locked = False
+        self.mismatch = False
+        self.fit = 0.0  # D, the misfit statistic
         self.samples = 0
         self.lock_sample: int | None = None
+        self.mismatch_sample: int | None = None
         self._started = False
 
     @property
@@ -749,7 +822,7 @@ class PowerUpIdentifier:
             self.m -= math.floor((psi - self.psi + math.pi) / TWO_PI)
         self.psi = psi
         # 3.
-        if self.locked or rho <= self._rho_min:
+        if self.locked or self.mismatch or rho <= self._rho_min:
             return self.best
         self.samples += 1
         # 4. Gram terms at this angle
@@ -789,13 +862,18 @@ class PowerUpIdentifier:
                 + 2.0 * Rj * dZ * Gvn
             )
             self.lam[j] += min(rr - tr * tr / tt, self._cap)
-        # 6. best, renormalize
+        # 6. best, renormalize; the misfit statistic
         lmin = min(self.lam)
         self.best = self.lam.index(lmin)
         self.lam = [v - lmin for v in self.lam]
+        self.fit += self._wt * lmin - self._kd
+        if self.fit >= self._bd:
+            self.mismatch = True
+            self.mismatch_sample = self.samples - 1
+            return self.best
         # 7. sequential test
         W = sum(math.exp(-0.5 * v) for j, v in enumerate(self.lam) if j != self.best)
-        if W <= self._threshold:
+        if W <= self._threshold and self.fit <= -self._bf:
             self.locked = True
             self.lock_sample = self.samples - 1
         return self.best
@@ -1057,6 +1135,8 @@ class IdentifiabilityReport:
         The decoder's censoring level c.
     noise : NoiseEstimate or None
         The noise estimate sigma came from.
+    misfit_ratio, mismatch_rate, fit_rate : float
+        kappa, beta and gamma of the decoder's misfit test (:mod:`hallcal.sensor.misfit`).
     """
 
     status: Identifiability
@@ -1081,6 +1161,9 @@ class IdentifiabilityReport:
     interpolation_error: float
     cost_cap: float = DEFAULT_COST_CAP
     noise: NoiseEstimate | None = None
+    misfit_ratio: float = DEFAULT_MISFIT_RATIO
+    mismatch_rate: float = DEFAULT_MISMATCH_RATE
+    fit_rate: float = DEFAULT_FIT_RATE
 
     def to_dict(self) -> dict[str, Any]:
         """The artifact's ``"identifiability"`` entry (JSON-ready; infinities as None)."""
@@ -1110,6 +1193,9 @@ class IdentifiabilityReport:
             "model_floor": num(self.model_floor),
             "interpolation_error": float(self.interpolation_error),
             "cost_cap": float(self.cost_cap),
+            "misfit_ratio": float(self.misfit_ratio),
+            "mismatch_rate": float(self.mismatch_rate),
+            "fit_rate": float(self.fit_rate),
         }
         if self.noise is not None:
             out["noise"] = self.noise.to_dict()
@@ -1131,6 +1217,11 @@ class IdentifiabilityReport:
 
         try:
             noise = d.get("noise")
+            MisfitTest(  # validates them (a ratio <= 1 or a rate outside (0, 0.5) is refused)
+                float(d.get("misfit_ratio", DEFAULT_MISFIT_RATIO)),
+                float(d.get("mismatch_rate", DEFAULT_MISMATCH_RATE)),
+                float(d.get("fit_rate", DEFAULT_FIT_RATE)),
+            )
             return cls(
                 status=Identifiability(d["status"]),
                 reason=IdentifiabilityReason(d["reason"]),
@@ -1153,6 +1244,9 @@ class IdentifiabilityReport:
                 model_floor=None if d.get("model_floor") is None else float(d["model_floor"]),
                 interpolation_error=float(d.get("interpolation_error", 0.0)),
                 cost_cap=float(d.get("cost_cap", DEFAULT_COST_CAP)),
+                misfit_ratio=float(d.get("misfit_ratio", DEFAULT_MISFIT_RATIO)),
+                mismatch_rate=float(d.get("mismatch_rate", DEFAULT_MISMATCH_RATE)),
+                fit_rate=float(d.get("fit_rate", DEFAULT_FIT_RATE)),
                 noise=None
                 if noise is None
                 else NoiseEstimate(
@@ -1178,8 +1272,8 @@ class IdentifiabilityReport:
         Returns
         -------
         PowerUpDecoder
-            :func:`build_decoder` with this report's noise sigma, grid L, error target and
-            cost cap.
+            :func:`build_decoder` with this report's noise sigma, grid L, error target, cost
+            cap and misfit test.
         """
         if lut.pole_pairs != self.pole_pairs:
             raise ValueError("identifiability: pole pairs differ from the table's")
@@ -1190,6 +1284,9 @@ class IdentifiabilityReport:
             grid=self.grid,
             error_target=self.error_target,
             cost_cap=self.cost_cap,
+            misfit_ratio=self.misfit_ratio,
+            mismatch_rate=self.mismatch_rate,
+            fit_rate=self.fit_rate,
         )
 
 
@@ -1405,6 +1502,9 @@ def assess_identifiability(
         interpolation_error=dec.interpolation_error,
         cost_cap=dec.cost_cap,
         noise=noise,
+        misfit_ratio=dec.misfit.ratio,
+        mismatch_rate=dec.misfit.rate,
+        fit_rate=dec.misfit.fit_rate,
     )
     return IdentifiabilityReport(message=_message(report), **report)
 

@@ -53,6 +53,8 @@ void ${pfx}_init(${pfx}_state *s)
     s->rejected = 0u;
     s->fault = 0u;
     s->locked = 0u;
+    s->mismatch = 0u;
+    s->fit = 0.0f;
     s->best = 0u;
     s->samples = 0u; /* lam is set by the first sample of evidence (no loop: no memset) */
     s->seq = 0u;
@@ -174,7 +176,18 @@ ${tt_steps}
         s->lam[j] = s->lam[j] - lmin;
     }
     s->best = best;
-    s->locked = hc_lock_rule(s->lam, best);
+    /* misfit test (hallcal.sensor.misfit): lmin is what the best hypothesis's whole cost grew
+     * by; D >= ln(1 / beta) = ${fit_hi_text}: no pole pair fits (mismatch, for good); the lock
+     * needs D <= -ln(1 / gamma) = -${fit_lo_text} (the best fits) besides the posterior */
+    s->fit = s->fit + ((lmin * ${fit_weight}) - ${fit_drift});
+    if (s->fit >= ${fit_hi}) {
+        s->mismatch = 1u;
+        s->locked = 0u;
+    } else if (s->fit <= ${fit_lo}) {
+        s->locked = hc_lock_rule(s->lam, best);
+    } else {
+        s->locked = 0u;
+    }
 }
 
 """
@@ -204,7 +217,9 @@ _IDENTIFY_EDITS: tuple[tuple[str, str], ...] = (
         "            int32_t oturn;\n"
         "            int32_t orev = rev;\n"
         "            uint32_t ident;\n"
-        "            hc_evidence(s, a, b, r2, zeta, (uint32_t)turn, p);\n"
+        "            if (s->mismatch == 0u) { /* no evidence once no pole pair fits */\n"
+        "                hc_evidence(s, a, b, r2, zeta, (uint32_t)turn, p);\n"
+        "            }\n"
         "            ident = s->best;\n"
         "            oturn = turn + (int32_t)ident; /* the output in the frame of the best */\n"
         "            if (oturn > ${n_minus_1}) {\n"
@@ -241,6 +256,7 @@ _IDENTIFY_EDITS: tuple[tuple[str, str], ...] = (
         "            } else {\n"
         "                s->turn = turn;\n"
         "                s->rev = rev;\n"
+        "                ident = ident | (s->mismatch << 17);\n"
         "            }\n"
         "            hc_publish_id(s, orev, y, flags, ident);\n",
     ),
@@ -392,6 +408,7 @@ def _powerup_source(ctx: _Context, pu: PowerUpFirmware) -> str:
     for cf in exp2[-2::-1]:
         poly = f"({_cf(cf, 'exp2')} + (f * {poly}))"
     gram_decls, gram_calc, tangent_calc, gram_note = _powerup_metric(pu)
+    mis = pu.decoder.misfit
     source = _PU_C.substitute(
         pfx=ctx.pfx,
         PFX=ctx.PFX,
@@ -433,6 +450,12 @@ def _powerup_source(ctx: _Context, pu: PowerUpFirmware) -> str:
         theta=_cf(pu.threshold, "lock threshold"),
         confidence=f"{1.0 - pu.report.error_target:g}",
         term_error=f"{POWERUP_TERM_ERROR:.0e}",
+        fit_weight=_cf(mis.weight, "misfit weight"),
+        fit_drift=_cf(mis.drift, "misfit drift"),
+        fit_hi=_cf(mis.bound, "misfit bound"),
+        fit_lo=_cf(-mis.fit_bound, "fit bound"),
+        fit_hi_text=f"{mis.bound:.4g}",
+        fit_lo_text=f"{mis.fit_bound:.4g}",
     )
     return source + _powerup_identify(ctx) + "\n"
 
@@ -449,6 +472,9 @@ def _powerup_hooks(ctx: _Context, pu: PowerUpFirmware) -> dict[str, str]:
         ),
         "reading_members": (
             "    uint32_t identified; /* 1 once the pole pair is identified (the test locked) */\n"
+            "    uint32_t mismatch;   /* 1: no pole pair fits, the signals do not match this\n"
+            "                          * calibration (ring remounted, wiring changed or sensors\n"
+            "                          * drifted): recalibrate; never identified then */\n"
             "    uint32_t pole_pair;  /* j: the calibration frame is f_init's + j pole pitches;\n"
             "                          * the current maximum-likelihood j until identified */\n"
         ),
@@ -456,8 +482,10 @@ def _powerup_hooks(ctx: _Context, pu: PowerUpFirmware) -> dict[str, str]:
             "    /* power-up identification (after the lean path's members: their offsets, and so\n"
             "     * the lean path's code, are those of the build without it) */\n"
             "    volatile uint32_t pub_ident[2]; /* of pub[i]: pole pair j, + 0x10000 once\n"
-            "                                     * identified */\n"
+            "                                     * identified, + 0x20000 on a mismatch */\n"
             "    uint32_t locked;   /* pole pair identified: the lean path runs */\n"
+            "    uint32_t mismatch; /* no pole pair fits (misfit test): no more evidence */\n"
+            "    float fit;         /* misfit statistic D (log-likelihood ratio) */\n"
             "    uint32_t best;     /* maximum-likelihood pole-pair offset j */\n"
             "    uint32_t samples;  /* samples of evidence so far (until identified) */\n"
             f"    float lam[{n}];    /* Lambda_j - min Lambda [noise sigma^2] */\n"
@@ -471,13 +499,18 @@ def _powerup_hooks(ctx: _Context, pu: PowerUpFirmware) -> dict[str, str]:
             " * readings are in the frame of the current maximum-likelihood pole pair (angle\n"
             " * right within the electrical period from the first sample); reading.identified\n"
             " * becomes 1 when the probability of a wrong pole pair is below "
-            f"{pu.report.error_target:g}. */\n"
+            f"{pu.report.error_target:g}\n"
+            " * and the signals fit the model; reading.mismatch becomes 1 instead when no pole\n"
+            " * pair fits (recalibrate). */\n"
             f"void {pfx}_init({pfx}_state *s);\n"
         ),
         "init_def": _PU_INIT.substitute(pfx=pfx, n=n),
         "read_locals": "    uint32_t ident;\n",
         "read_copy": "        ident = s->pub_ident[before & 1u];\n",
-        "read_after": "\n    r->pole_pair = ident & 0xFFFFu;\n    r->identified = ident >> 16;",
+        "read_after": (
+            "\n    r->pole_pair = ident & 0xFFFFu;\n    r->identified = (ident >> 16) & 1u;"
+            "\n    r->mismatch = ident >> 17;"
+        ),
         "before_update": _powerup_source(ctx, pu),
         "update_dispatch": f"s->locked == 0u|{pfx}_identify_sample",
     }
@@ -496,8 +529,9 @@ def _powerup_section(ctx: _Context) -> Section | None:
         f"Power-up: the pole pair is identified after {pfx}_init (no angle, no homing): maximum",
         f"  likelihood over the {n} pole pairs from the magnets' signatures, sequential test to a",
         f"  wrong-pole-pair probability below {rep.error_target:g} (hallcal.sensor.absolute,",
-        f"  PowerUpIdentifier). Until identified each sample evaluates all {n} hypotheses (bounded",
-        "  loop), then the lean path runs alone. Verdict: "
+        "  PowerUpIdentifier), and a misfit test that refuses when no pole pair fits",
+        f"  (reading.mismatch). Until identified each sample evaluates all {n} hypotheses",
+        "  (bounded loop), then the lean path runs alone. Verdict: "
         + comment_text(rep.status.value, limit=30)
         + f"; tables {pu.table_bytes} bytes.",
     )
