@@ -105,7 +105,12 @@ class Calibration(_Result):
         return cls(**{f.name: getattr(result, f.name) for f in dataclasses.fields(_Result)})
 
     def reconstruct(  # type: ignore[override]
-        self, data: DataLike, *, y_initial: float = 0.0, absolute: bool = False
+        self,
+        data: DataLike,
+        *,
+        y_initial: float = 0.0,
+        absolute: bool = False,
+        observer: bool = False,
     ) -> Reconstruction:
         """f_init and f_star over a recording: ``rec["y_init"]``, ``rec["y_star"]`` [rad].
 
@@ -121,8 +126,17 @@ class Calibration(_Result):
             calibration's frame, modulo one revolution (``rec.identification`` says when it
             was certain). Raises :class:`~hallcal.errors.CalibrationRefused` when
             ``cal.identifiability`` says the pole pair is not identifiable.
+        observer : bool, keyword-only
+            Also run the model-based observer: ``rec["y_obs"]`` (tracking maximum-likelihood
+            angle [rad] with online gain/offset adaptation), ``rec["misfit"]`` (windowed
+            chi-square per degree of freedom, about 1 when the model fits) and
+            ``rec["state"]`` (ok | adapting | stale | degraded | fault); see
+            :mod:`hallcal.sensor.observer`. A calibration without a table (folding map,
+            ``cal.observer_only``) can only be used this way.
         """
-        return super().reconstruct(as_dataset(data), y_initial=y_initial, absolute=absolute)
+        return super().reconstruct(
+            as_dataset(data), y_initial=y_initial, absolute=absolute, observer=observer
+        )
 
     def report(
         self,
@@ -173,8 +187,11 @@ class Calibration(_Result):
             (:class:`hallcal.output.codegen.ExportResult`).
         """
         from hallcal.output.codegen import export_c
+        from hallcal.pipeline.calibration import require_table
 
-        return export_c(self.to_artifact(), out_dir, **options)
+        artifact = self.to_artifact()
+        require_table(artifact)
+        return export_c(artifact, out_dir, **options)
 
 
 def calibrate(

@@ -15,6 +15,7 @@ import math
 import os
 import sys
 import time
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -576,7 +577,9 @@ def _print_validation(v, units: str, n_m: int) -> None:
     epilog=_epilog(
         "hallcal reconstruct cal.json run.csv --out angles.csv",
         "hallcal reconstruct cal.json powerup.csv --absolute --out angles.csv",
-        exits=_EXITS + ", 3 the artifact's table is not bijective",
+        "hallcal reconstruct cal.json run.csv --observer --out angles.csv",
+        exits=_EXITS + ", 3 the artifact's table is not bijective (an artifact kept for the "
+        "observer only: use --observer)",
     )
 )
 @click.argument("artifact", type=click.Path(dir_okay=False))
@@ -593,26 +596,59 @@ def _print_validation(v, units: str, n_m: int) -> None:
     help="The recording starts at power-up anywhere (no homing): identify the pole pair from "
     "the magnets' signatures; angles in the calibration's frame.",
 )
+@click.option(
+    "--observer",
+    is_flag=True,
+    help="Also run the model-based observer: columns y_obs [rad] (tracking maximum-likelihood "
+    "angle with gain/offset adaptation), misfit (about 1 when the model fits) and state (ok, "
+    "adapting, stale, degraded, fault).",
+)
 @_units_option
 @_handle_errors
-def reconstruct(artifact: str, data: str, out: str, absolute: bool, units: str) -> None:
+def reconstruct(
+    artifact: str, data: str, out: str, absolute: bool, observer: bool, units: str
+) -> None:
     """Apply a calibration to a recording: columns y_init and y_star.
 
     f_init and f_star run over the recording from y = 0 before the first sample (the frame of
     the calibration run), or, with --absolute, from the pole pair identified at power-up. With
-    an encoder column y_ref both are compared with it.
+    an encoder column y_ref both are compared with it. --observer adds the model-based
+    observer's y_obs, misfit and state (docs/firmware.md says when to use which).
     """
     from hallcal.api import load
     from hallcal.io import write_dataset
 
+    if absolute and observer:
+        raise HallcalInputError("--absolute and --observer cannot be combined")
     cal = load(artifact)
     _output_file(out, dataset=True)
-    rec = cal.reconstruct(data, absolute=absolute)
+    rec = cal.reconstruct(data, absolute=absolute, observer=observer)
     write_dataset(out, rec.columns)
     _out.print(f"wrote {out} ({len(rec)} samples)")
     if rec.identification is not None:
         _print_identification(rec.identification, cal.pole_pairs)
     _print_validation(rec.validation, units, cal.pole_pairs)
+    if rec.observer is not None:
+        _print_observer(rec, units, cal.pole_pairs)
+
+
+def _print_observer(rec, units: str, n_m: int) -> None:
+    """Two lines: the observer's states and first exclusion; y_obs against y_ref."""
+    obs = rec.observer
+    counts = Counter(obs.state.tolist())
+    shares = ", ".join(f"{name} {c / len(obs):.1%}" for name, c in sorted(counts.items()))
+    excl = (
+        f"; channel d{obs.excluded + 1} excluded from sample {obs.first_exclusion}"
+        if obs.excluded >= 0
+        else ""
+    )
+    _out.print(f"observer: {shares}; final misfit {obs.misfit[-1]:.2f}{excl}")
+    if rec.observer_error is not None:
+        e = rec.observer_error
+        _out.print(
+            f"against y_ref: y_obs RMS {_angle(e.rms, units, n_m)} "
+            f"peak {_angle(e.peak, units, n_m)}"
+        )
 
 
 @cli.command(
@@ -768,8 +804,10 @@ def export_c(
     """
     from hallcal.io import read_artifact
     from hallcal.output.codegen import export_c as _export
+    from hallcal.pipeline.calibration import require_table
 
     art = read_artifact(artifact)
+    require_table(art, artifact)
     out_dir = _output_dir(out)
     res = _export(
         art,
