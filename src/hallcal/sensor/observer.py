@@ -666,7 +666,7 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, a, b, y_out, misfit, code,
     sum_dof = 0.0
     # fault isolation: ring buffer of blamed channels (-1 none) and counts
     ring_blame = -np.ones(FW, dtype=np.int64)
-    blame = np.zeros(3, dtype=np.int64)
+    blame = np.zeros(4, dtype=np.int64)
     # adaptation: information matrix of (a_0, b_0, a_1, b_1, a_2, b_2), starting at the prior
     p0 = np.empty((3, 2))
     H = np.zeros((6, 6))
@@ -678,6 +678,8 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, a, b, y_out, misfit, code,
         H[2 * i + 1, 2 * i + 1] = prior * w0[i]
     excluded = -1
     first_excl = -1
+    blamed_out = False  # the excluded channel was blamed from the residual (not non-finite)
+    suppress = False  # exclusions undone: no new one until the misfit is back under threshold
     clean = 0.0
     bad_travel = 0.0
     stale = False
@@ -691,6 +693,7 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, a, b, y_out, misfit, code,
                 dk[i] = 0.0
                 if excluded < 0:  # a disconnected channel: excluded at once
                     excluded = i
+                    blamed_out = False
                     if first_excl < 0:
                         first_excl = k
                     clean = 0.0
@@ -703,6 +706,7 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, a, b, y_out, misfit, code,
                 active += 1
         yp = y + v
         blamed = -1
+        mark = -1
         if active < 2:
             y_new = yp
             chi = 0.0
@@ -739,14 +743,28 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, a, b, y_out, misfit, code,
                         y_new = best_y
                 else:
                     blamed = -1
-        # fault isolation
+                    mark = 3  # an outlier that no single channel explains
+        # fault isolation: one channel blamed repeatedly, and (nearly) alone: a model that no
+        # longer fits (remount) puts outliers on every channel and many no channel explains
+        if blamed >= 0:
+            mark = blamed
         old = ring_blame[k % FW]
         if old >= 0:
             blame[old] -= 1
-        ring_blame[k % FW] = blamed
+        ring_blame[k % FW] = mark
+        if mark >= 0:
+            blame[mark] += 1
         if blamed >= 0:
-            blame[blamed] += 1
-            if blame[blamed] >= FC and excluded < 0:
+            others = 0
+            for q in range(4):
+                if q != blamed:
+                    others += blame[q]
+            if (
+                blame[blamed] >= FC
+                and 4 * others <= blame[blamed]
+                and excluded < 0
+                and not suppress
+            ):
                 excluded = blamed
                 if first_excl < 0:
                     first_excl = k
@@ -759,7 +777,12 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, a, b, y_out, misfit, code,
                 blame[:] = 0
                 blamed = -1
                 active = 2
-        # speed (held on samples explained without a channel)
+                blamed_out = True
+                ring_chi[:] = 0.0  # the misfit window starts again on the two channels
+                ring_dof[:] = 0.0
+                sum_chi = 0.0
+                sum_dof = 0.0
+
         if blamed < 0 and active >= 2:
             v += kv * (y_new - yp)
         y = y_new
@@ -781,6 +804,13 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, a, b, y_out, misfit, code,
         else:
             bad_travel = 0.0
         stale = above and bad_travel >= stale_travel
+        if not above:
+            suppress = False
+        elif excluded >= 0 and blamed_out and math.isfinite(d[k, excluded]):
+            # the two channels left do not fit either: not a channel fault but a model that no
+            # longer fits (remount): readmit the channel and let the misfit monitor speak
+            excluded = -1
+            suppress = True
         # adaptation of gain and level: recursive least squares on the residual with the
         # regressors projected off the angle's direction (the angle is fitted per sample)
         if not stale and blamed < 0 and active >= 2:
