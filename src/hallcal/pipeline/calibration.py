@@ -579,6 +579,13 @@ def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Cal
 def require_table(artifact: ArtifactData | Mapping[str, Any], source: str = "artifact") -> None:
     """Refuse (exit 3) a calibration kept for the observer only (no table can exist).
 
+    Parameters
+    ----------
+    artifact : ArtifactData or mapping
+        A loaded artifact, or its parsed JSON.
+    source : str
+        Its name in the message (the file).
+
     Raises
     ------
     CalibrationRefused

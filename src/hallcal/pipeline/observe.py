@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,8 +28,9 @@ from hallcal.sensor.observer import (
     run_observer,
 )
 
-if TYPE_CHECKING:
-    from hallcal.pipeline.calibration import Calibration
+#: A :class:`~hallcal.pipeline.calibration.Calibration` (which imports this module lazily; named
+#: here without importing it, to keep the import graph one-way).
+Calibration = Any
 
 __all__ = ["FOLDING_NOTE", "observer_check", "observer_for", "observer_section", "run_on"]
 
@@ -62,7 +63,20 @@ def observer_check(flux: FluxModel, pole_pairs: int, noise_variance: float) -> I
 
 def observer_section(injectivity: Injectivity, noise_variance: float) -> dict[str, Any]:
     """The artifact's ``observer`` entry: the noise the misfit is measured against and the
-    injectivity check."""
+    injectivity check.
+
+    Parameters
+    ----------
+    injectivity : Injectivity
+        From :func:`observer_check`.
+    noise_variance : float
+        sigma^2 per channel [sensor unit^2].
+
+    Returns
+    -------
+    dict
+        ``noise_variance`` (3 numbers) and the fields of :class:`Injectivity`.
+    """
     return {"noise_variance": [float(noise_variance)] * 3, **injectivity.to_dict()}
 
 
@@ -90,7 +104,18 @@ def _noise_variance(cal: Calibration) -> NDArray[np.float64]:
 
 
 def observer_for(cal: Calibration) -> ObserverModel:
-    """The tabulated model of a calibration (computed or loaded)."""
+    """The tabulated model of a calibration (computed or loaded).
+
+    Parameters
+    ----------
+    cal : Calibration
+        Its flux model, pole pairs and noise level (the artifact's ``observer`` entry, the
+        SEM's noise variance, or the noise floor).
+
+    Returns
+    -------
+    ObserverModel
+    """
     return observer_model(cal.flux, cal.pole_pairs, _noise_variance(cal))
 
 
@@ -101,5 +126,19 @@ def run_on(
     y_initial: float = 0.0,
     settings: ObserverSettings | None = None,
 ) -> ObserverRun:
-    """The observer over a recording's Hall signals (N, 3), from ``y_initial``."""
+    """The observer over a recording's Hall signals, from ``y_initial``.
+
+    Parameters
+    ----------
+    cal : Calibration
+    d : ndarray, shape (N, 3)
+        Hall signals.
+    y_initial : float, keyword-only
+        Angle before the first sample [rad].
+    settings : ObserverSettings, keyword-only, optional
+
+    Returns
+    -------
+    ObserverRun
+    """
     return run_observer(observer_for(cal), d, y_initial=y_initial, settings=settings)

@@ -42,11 +42,11 @@ from __future__ import annotations
 
 import enum
 import math
+import statistics
 from dataclasses import dataclass, field
 
 import numba as nb
 import numpy as np
-import scipy.stats
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal.sensor.flux import FluxModel
@@ -380,12 +380,13 @@ def run_observer(
     gain = np.ones(3)
     level = model.center.copy()
     info = np.zeros(5)  # excluded, first exclusion
-    z = float(scipy.stats.norm.isf(s.false_alarm))
+    z = -statistics.NormalDist().inv_cdf(s.false_alarm)
     cfg = np.array(
         [
             s.iterations, s.speed_gain, s.window, z, s.sample_cap, s.outlier, s.explained,
             s.fault_window, s.fault_count, s.adapt_memory, s.prior_samples, s.gain_bounds[0],
             s.gain_bounds[1], s.offset_bound, s.stale_travel, s.readmit_travel, s.gross,
+            model.pole_pairs,
         ],
         dtype=np.float64,
     )  # fmt: skip
@@ -627,221 +628,188 @@ def _adapt(G, dG, h, dk, c, amp, w, w0, y, a, b, p0, H, Hs, forget, prior, a_lo,
             b[i] = min(max(b[i] + x[2 * i + 1], p0[i, 1] - lim), p0[i, 1] + lim)
 
 
+#: Indices of the tracker's float state: angle, speed [rad/sample], the misfit window's sums,
+#: the consistent travel of an excluded channel and the travel with the misfit above threshold.
+_Y, _V, _SUM_CHI, _SUM_DOF, _CLEAN, _BAD = 0, 1, 2, 3, 4, 5
+#: Indices of its integer state: excluded channel (-1 none), first exclusion (sample, -1),
+#: exclusion from the residual (not a non-finite reading), exclusions suppressed, acquire.
+_EXCL, _FIRST, _BLAMED_OUT, _SUPPRESS, _ACQUIRE = 0, 1, 2, 3, 4
+
+
 @nb.njit(cache=True)
-def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, a, b, y_out, misfit, code, info):
-    N = d.shape[0]
-    M = G.shape[0]
-    h = 2.0 * math.pi / M
-    pitch = 2.0 * math.pi / n_m
+def _read(d, k, dk, w, w0, S, I):
+    """The sample's readings and weights; a non-finite channel is excluded at once."""
+    for i in range(3):
+        dk[i] = d[k, i]
+        if not math.isfinite(dk[i]):
+            dk[i] = 0.0
+            if I[_EXCL] < 0:  # a disconnected channel
+                I[_EXCL] = i
+                I[_BLAMED_OUT] = 0
+                if I[_FIRST] < 0:
+                    I[_FIRST] = k
+                S[_CLEAN] = 0.0
+                I[_ACQUIRE] = 1
+    active = 0
+    for i in range(3):
+        w[i] = 0.0 if (i == I[_EXCL] or not math.isfinite(d[k, i])) else w0[i]
+        if w[i] > 0.0:
+            active += 1
+    return active
+
+
+@nb.njit(cache=True)
+def _robust(G, dG, h, dk, c, a, b, w, wk, yp, cfg, gross, g, dg):
+    """The three-channel fit; for an outlier that no common scaling explains, the fits without
+    each channel: (y, chi2, blamed channel or -1, mark: blamed, 3 unexplained outlier, -1)."""
     iterations = int(cfg[0])
-    kv = cfg[1]
-    W = int(cfg[2])
-    z = cfg[3]
-    cap = cfg[4]
     outlier = cfg[5]
     explained = cfg[6]
-    FW = int(cfg[7])
-    FC = int(cfg[8])
-    memory = cfg[9]
-    prior = cfg[10]
-    a_lo = cfg[11]
-    a_hi = cfg[12]
-    b_bound = cfg[13]
-    stale_travel = cfg[14]
-    readmit_travel = cfg[15]
-    max_step = pitch / 8.0
+    max_step = h * G.shape[0] / (8.0 * cfg[17])
+    y_new, chi = _fit(G, dG, h, dk, c, a, b, w, yp, iterations, max_step, g, dg)
+    if chi <= outlier or _fit_scaled(G, dG, h, dk, c, a, b, w, y_new, iterations, max_step, g,
+                                     dg) <= explained:  # fmt: skip
+        return y_new, chi, -1, -1
+    best = math.inf
+    best_y = y_new
+    blamed = -1
+    for q in range(3):
+        for i in range(3):
+            wk[i] = w[i]
+        wk[q] = 0.0
+        yq, cq = _fit(G, dG, h, dk, c, a, b, wk, yp, iterations, max_step, g, dg)
+        if cq < best:
+            best = cq
+            best_y = yq
+            blamed = q
+    if not (best < explained and best < 0.1 * chi):
+        return y_new, chi, -1, 3
+    _table(G, dG, h, best_y, g, dg)
+    e = dk[blamed] - a[blamed] * (g[blamed] - c[blamed]) - b[blamed]
+    if abs(e) < gross[blamed]:
+        return y_new, chi, -1, -1  # small enough to be drift: adaptation material
+    return best_y, chi, blamed, blamed
+
+
+@nb.njit(cache=True)
+def _isolate(k, blamed, mark, ring, blame, FC, I):
+    """Fault isolation: True when channel ``blamed`` has been blamed ``FC`` times within the
+    ring's window and (nearly) alone (a model that no longer fits, e.g. a remount, puts
+    outliers on every channel and many that no channel explains)."""
+    FW = ring.size
+    old = ring[k % FW]
+    if old >= 0:
+        blame[old] -= 1
+    ring[k % FW] = mark
+    if mark >= 0:
+        blame[mark] += 1
+    if blamed < 0 or I[_EXCL] >= 0 or I[_SUPPRESS] != 0:
+        return False
+    others = 0
+    for q in range(4):
+        if q != blamed:
+            others += blame[q]
+    return blame[blamed] >= FC and 4 * others <= blame[blamed]
+
+
+@nb.njit(cache=True)
+def _window(k, chi, dof, blamed, ring_chi, ring_dof, cap, z, S):
+    """The misfit window: (chi-square per degree of freedom, above the alarm threshold)."""
+    c_max = cap * max(dof, 1.0)
+    cc = chi if chi < c_max else c_max
+    if blamed >= 0 and cc > cap:
+        cc = cap
+    j = k % ring_chi.size
+    S[_SUM_CHI] += cc - ring_chi[j]
+    S[_SUM_DOF] += dof - ring_dof[j]
+    ring_chi[j] = cc
+    ring_dof[j] = dof
+    if S[_SUM_DOF] <= 0.5:
+        return 0.0, False
+    return S[_SUM_CHI] / S[_SUM_DOF], S[_SUM_CHI] > _quantile(S[_SUM_DOF], z)
+
+
+@nb.njit(cache=True)
+def _readmit(G, dG, h, d, k, c, a, b, w0, travel, readmit_travel, g, dg, S, I):
+    """Readmit an excluded channel after ``readmit_travel`` of readings within 4 sigma."""
+    x = I[_EXCL]
+    if x < 0:
+        return
+    if not math.isfinite(d[k, x]):
+        S[_CLEAN] = 0.0
+        return
+    _table(G, dG, h, S[_Y], g, dg)
+    e = d[k, x] - a[x] * (g[x] - c[x]) - b[x]
+    S[_CLEAN] = S[_CLEAN] + travel if w0[x] * e * e < 16.0 else 0.0
+    if S[_CLEAN] >= readmit_travel:
+        I[_EXCL] = -1
+        S[_CLEAN] = 0.0
+
+
+@nb.njit(cache=True)
+def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, a, b, y_out, misfit, code, info):
+    """The observer over a recording: per sample read, fit (robustly), isolate faults, update
+    the misfit window, adapt gain and level, readmit, and write y_obs, misfit and state."""
+    h = 2.0 * math.pi / G.shape[0]
+    pitch = 2.0 * math.pi / n_m
+    iterations = int(cfg[0])
     gross = np.empty(3)
     for i in range(3):
         gross[i] = max(cfg[16] * math.sqrt(2.0) * amp[i], 8.0 / math.sqrt(w0[i]))
-
-    g = np.empty(3)
-    dg = np.empty(3)
-    dk = np.empty(3)
-    w = w0.copy()
-    wk = np.empty(3)
-    # misfit window (ring buffers of capped chi-square and degrees of freedom)
-    ring_chi = np.zeros(W)
-    ring_dof = np.zeros(W)
-    sum_chi = 0.0
-    sum_dof = 0.0
-    # fault isolation: ring buffer of blamed channels (-1 none) and counts
-    ring_blame = -np.ones(FW, dtype=np.int64)
+    g, dg, dk, w, wk = np.empty(3), np.empty(3), np.empty(3), w0.copy(), np.empty(3)
+    ring_chi, ring_dof = np.zeros(int(cfg[2])), np.zeros(int(cfg[2]))
+    ring_blame = -np.ones(int(cfg[7]), dtype=np.int64)
     blame = np.zeros(4, dtype=np.int64)
     # adaptation: information matrix of (a_0, b_0, a_1, b_1, a_2, b_2), starting at the prior
-    p0 = np.empty((3, 2))
-    H = np.zeros((6, 6))
-    Hs = np.empty((6, 7))
+    p0, H, Hs = np.empty((3, 2)), np.zeros((6, 6)), np.empty((6, 7))
     for i in range(3):
         p0[i, 0] = a[i]
         p0[i, 1] = b[i]
-        H[2 * i, 2 * i] = prior * w0[i] * amp[i] * amp[i]
-        H[2 * i + 1, 2 * i + 1] = prior * w0[i]
-    excluded = -1
-    first_excl = -1
-    blamed_out = False  # the excluded channel was blamed from the residual (not non-finite)
-    suppress = False  # exclusions undone: no new one until the misfit is back under threshold
-    clean = 0.0
-    bad_travel = 0.0
-    stale = False
-    y = y_initial
-    v = 0.0
-    acquire = True
-    for k in range(N):
-        for i in range(3):
-            dk[i] = d[k, i]
-            if not math.isfinite(dk[i]):
-                dk[i] = 0.0
-                if excluded < 0:  # a disconnected channel: excluded at once
-                    excluded = i
-                    blamed_out = False
-                    if first_excl < 0:
-                        first_excl = k
-                    clean = 0.0
-                    acquire = True
-        for i in range(3):
-            w[i] = 0.0 if (i == excluded or not math.isfinite(d[k, i])) else w0[i]
-        active = 0
-        for i in range(3):
-            if w[i] > 0.0:
-                active += 1
-        yp = y + v
-        blamed = -1
-        mark = -1
-        if active < 2:
-            y_new = yp
-            chi = 0.0
-        elif acquire:
+        H[2 * i, 2 * i] = cfg[10] * w0[i] * amp[i] * amp[i]
+        H[2 * i + 1, 2 * i + 1] = cfg[10] * w0[i]
+    S = np.zeros(6)
+    S[_Y] = y_initial
+    I = np.array([-1, -1, 0, 0, 1], dtype=np.int64)
+    for k in range(d.shape[0]):
+        active = _read(d, k, dk, w, w0, S, I)
+        yp = S[_Y] + S[_V]
+        blamed, mark, chi, y_new = -1, -1, 0.0, yp
+        if active >= 2 and I[_ACQUIRE] != 0:
             y_new, chi = _acquire(G, dG, h, dk, c, a, b, w, yp, pitch, iterations, g, dg)
-            acquire = False
-        else:
-            y_new, chi = _fit(G, dG, h, dk, c, a, b, w, yp, iterations, max_step, g, dg)
-            if (
-                active == 3
-                and chi > outlier
-                and (
-                    _fit_scaled(G, dG, h, dk, c, a, b, w, y_new, iterations, max_step, g, dg)
-                    > explained
-                )
-            ):
-                best = math.inf
-                best_y = y_new
-                for q in range(3):
-                    for i in range(3):
-                        wk[i] = w[i]
-                    wk[q] = 0.0
-                    yq, cq = _fit(G, dG, h, dk, c, a, b, wk, yp, iterations, max_step, g, dg)
-                    if cq < best:
-                        best = cq
-                        best_y = yq
-                        blamed = q
-                if best < explained and best < 0.1 * chi:
-                    _table(G, dG, h, best_y, g, dg)
-                    e = dk[blamed] - a[blamed] * (g[blamed] - c[blamed]) - b[blamed]
-                    if abs(e) < gross[blamed]:
-                        blamed = -1  # small enough to be drift: adaptation material
-                    else:
-                        y_new = best_y
-                else:
-                    blamed = -1
-                    mark = 3  # an outlier that no single channel explains
-        # fault isolation: one channel blamed repeatedly, and (nearly) alone: a model that no
-        # longer fits (remount) puts outliers on every channel and many no channel explains
-        if blamed >= 0:
-            mark = blamed
-        old = ring_blame[k % FW]
-        if old >= 0:
-            blame[old] -= 1
-        ring_blame[k % FW] = mark
-        if mark >= 0:
-            blame[mark] += 1
-        if blamed >= 0:
-            others = 0
-            for q in range(4):
-                if q != blamed:
-                    others += blame[q]
-            if (
-                blame[blamed] >= FC
-                and 4 * others <= blame[blamed]
-                and excluded < 0
-                and not suppress
-            ):
-                excluded = blamed
-                if first_excl < 0:
-                    first_excl = k
-                clean = 0.0
-                for i in range(3):
-                    w[i] = 0.0 if i == excluded else w0[i]
-                y_new, chi = _acquire(G, dG, h, dk, c, a, b, w, yp, pitch, iterations, g, dg)
-                for q in range(FW):
-                    ring_blame[q] = -1
-                blame[:] = 0
-                blamed = -1
-                active = 2
-                blamed_out = True
-                ring_chi[:] = 0.0  # the misfit window starts again on the two channels
-                ring_dof[:] = 0.0
-                sum_chi = 0.0
-                sum_dof = 0.0
-
-        if blamed < 0 and active >= 2:
-            v += kv * (y_new - yp)
-        y = y_new
-        travel = n_m * abs(v)
-        # misfit window
+            I[_ACQUIRE] = 0
+        elif active == 3:
+            y_new, chi, blamed, mark = _robust(G, dG, h, dk, c, a, b, w, wk, yp, cfg, gross, g,
+                                               dg)  # fmt: skip
+        elif active == 2:
+            y_new, chi = _fit(G, dG, h, dk, c, a, b, w, yp, iterations, pitch / 8.0, g, dg)
+        if _isolate(k, blamed, mark, ring_blame, blame, int(cfg[8]), I):
+            I[_EXCL], I[_BLAMED_OUT] = blamed, 1
+            I[_FIRST] = k if I[_FIRST] < 0 else I[_FIRST]
+            S[_CLEAN] = 0.0
+            w[blamed] = 0.0
+            y_new, chi = _acquire(G, dG, h, dk, c, a, b, w, yp, pitch, iterations, g, dg)
+            ring_blame[:], blame[:] = -1, 0
+            ring_chi[:], ring_dof[:] = 0.0, 0.0  # the window starts again on two channels
+            S[_SUM_CHI], S[_SUM_DOF] = 0.0, 0.0
+            blamed, active = -1, 2
+        if blamed < 0 and active >= 2:  # speed held on samples explained without a channel
+            S[_V] += cfg[1] * (y_new - yp)
+        S[_Y] = y_new
+        travel = n_m * abs(S[_V])
         dof = float(active - 1) if active >= 2 else 0.0
-        cc = chi if chi < cap * max(dof, 1.0) else cap * max(dof, 1.0)
-        if blamed >= 0:
-            cc = cap if cc > cap else cc
-        j = k % W
-        sum_chi += cc - ring_chi[j]
-        sum_dof += dof - ring_dof[j]
-        ring_chi[j] = cc
-        ring_dof[j] = dof
-        mf = sum_chi / sum_dof if sum_dof > 0.5 else 0.0
-        above = sum_dof > 0.5 and sum_chi > _quantile(sum_dof, z)
-        if above:
-            bad_travel += travel
-        else:
-            bad_travel = 0.0
-        stale = above and bad_travel >= stale_travel
+        mf, above = _window(k, chi, dof, blamed, ring_chi, ring_dof, cfg[4], cfg[3], S)
+        S[_BAD] = S[_BAD] + travel if above else 0.0
+        stale = above and S[_BAD] >= cfg[14]
         if not above:
-            suppress = False
-        elif excluded >= 0 and blamed_out and math.isfinite(d[k, excluded]):
+            I[_SUPPRESS] = 0
+        elif I[_EXCL] >= 0 and I[_BLAMED_OUT] != 0 and math.isfinite(d[k, I[_EXCL]]):
             # the two channels left do not fit either: not a channel fault but a model that no
             # longer fits (remount): readmit the channel and let the misfit monitor speak
-            excluded = -1
-            suppress = True
-        # adaptation of gain and level: recursive least squares on the residual with the
-        # regressors projected off the angle's direction (the angle is fitted per sample)
+            I[_EXCL], I[_SUPPRESS] = -1, 1
         if not stale and blamed < 0 and active >= 2:
-            _adapt(G, dG, h, dk, c, amp, w, w0, y, a, b, p0, H, Hs, travel / memory, prior,
-                   a_lo, a_hi, b_bound, g, dg)  # fmt: skip
-        # readmission of an excluded channel
-        if excluded >= 0 and math.isfinite(d[k, excluded]):
-            _table(G, dG, h, y, g, dg)
-            e = d[k, excluded] - a[excluded] * (g[excluded] - c[excluded]) - b[excluded]
-            if w0[excluded] * e * e < 16.0:
-                clean += travel
-            else:
-                clean = 0.0
-            if clean >= readmit_travel:
-                excluded = -1
-                clean = 0.0
-        elif excluded >= 0:
-            clean = 0.0
-        # state
-        if active < 2 or (excluded >= 0 and stale):
-            st = 4
-        elif excluded >= 0:
-            st = 3
-        elif stale:
-            st = 2
-        elif above:
-            st = 1
-        else:
-            st = 0
-        y_out[k] = y
-        misfit[k] = mf
-        code[k] = st
-    info[0] = excluded
-    info[1] = first_excl
+            _adapt(G, dG, h, dk, c, amp, w, w0, S[_Y], a, b, p0, H, Hs, travel / cfg[9], cfg[10],
+                   cfg[11], cfg[12], cfg[13], g, dg)  # fmt: skip
+        _readmit(G, dG, h, d, k, c, a, b, w0, travel, cfg[15], g, dg, S, I)
+        y_out[k], misfit[k] = S[_Y], mf
+        code[k] = 4 if active < 2 else 3 if I[_EXCL] >= 0 else 2 if stale else 1 if above else 0
+    info[0], info[1] = I[_EXCL], I[_FIRST]
