@@ -135,10 +135,10 @@ def calibrated_noise(
 
 
 def _noise_variance(cal: Calibration) -> NDArray[np.float64]:
-    """sigma_i^2: the artifact's observer entry, else the SEM's, else from the noise floor
+    """sigma_i^2: the calibration's observer entry, else the SEM's, else from the noise floor
     (sigma sqrt(2/3) / (A n_m) with A the fundamental's amplitude, docs/design.md)."""
     art = cal.artifact or {}
-    entry = art.get("observer") if isinstance(art, Mapping) else None
+    entry = cal.observer
     if isinstance(entry, Mapping) and "noise_variance" in entry:
         return np.asarray(entry["noise_variance"], dtype=np.float64)
     if cal.sem is not None:
