@@ -178,7 +178,9 @@ class Calibration(_Result):
             Directory for the ``.h``/``.c`` files.
         **options
             Those of :func:`hallcal.output.codegen.export_c` (``prefix``, ``fixed_point``,
-            ``adc_scale``, ``table_points``, ...).
+            ``adc_scale``, ``table_points``, ...); ``observer=True`` writes the model-based
+            observer instead (:func:`hallcal.output.codegen.observer.export_observer_c`,
+            option ``prefix``).
 
         Returns
         -------
@@ -190,6 +192,10 @@ class Calibration(_Result):
         from hallcal.pipeline.calibration import require_table
 
         artifact = self.to_artifact()
+        if options.pop("observer", False):
+            from hallcal.output.codegen.observer import export_observer_c
+
+            return export_observer_c(artifact, out_dir, **options)
         require_table(artifact)
         return export_c(artifact, out_dir, **options)
 

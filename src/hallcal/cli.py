@@ -780,6 +780,12 @@ def _print_identification(ident, pole_pairs: int) -> None:
 )
 @click.option("--prefix", default="hallcal", show_default=True, help="C name prefix.")
 @click.option(
+    "--observer",
+    is_flag=True,
+    help="Write the model-based observer instead (<prefix>_obs.h/.c, float; "
+    "docs/firmware.md): also for a calibration kept for the observer only.",
+)
+@click.option(
     "--no-powerup",
     is_flag=True,
     help="No pole-pair identification at power-up in the float variant (saves its tables; "
@@ -797,6 +803,7 @@ def export_c(
     fault_after: int,
     prefix: str,
     no_powerup: bool,
+    observer: bool,
 ) -> None:
     """Generate lean C99 sources of f_star (float and fixed point) for firmware.
 
@@ -807,6 +814,15 @@ def export_c(
     from hallcal.pipeline.calibration import require_table
 
     art = read_artifact(artifact)
+    if observer:
+        from hallcal.output.codegen.observer import export_observer_c
+
+        res_obs = export_observer_c(art, _output_dir(out), prefix=f"{prefix}_obs", source=artifact)
+        for p in res_obs.paths:
+            _echo(f"wrote {p}")
+        _echo(f"observer tables: {res_obs.table_points} points per revolution, "
+              f"{res_obs.table_bytes} bytes")  # fmt: skip
+        return
     require_table(art, artifact)
     out_dir = _output_dir(out)
     res = _export(
