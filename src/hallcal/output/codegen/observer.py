@@ -215,6 +215,7 @@ typedef struct {
     float misfit;        /* windowed chi-square per degree of freedom, about 1 when it fits */
     uint8_t state;       /* @P@_OK .. @P@_FAULT */
     int8_t excluded;     /* channel 0..2 excluded, -1 none */
+    uint32_t flags;      /* state | (excluded + 1) << 8, in one word */
     uint32_t sample;     /* samples processed */
 } @p@_reading;
 
@@ -228,6 +229,7 @@ typedef struct {
     int8_t ring_blame[@P@_FAULT_WINDOW];
     int16_t blame[4];
     int32_t sum_dof;
+    uint32_t window_from, blame_from; /* ring entries written before these samples count as empty */
     int8_t excluded;
     uint8_t blamed_out, suppress, acquire;
     uint32_t k;
@@ -420,7 +422,7 @@ static float acquire(const @p@_state *s, const float d[3], const float w[3], flo
 /* recursive least squares of the gains and levels, regressors projected off the angle */
 static void adapt(@p@_state *s, const float d[3], const float w[3], float y, float x)
 {
-    float g[3], dg[3], q[6], gr[6], L[6][6], D[6], z[6], lam, sJ = 0.0f, f, Jy, r, t, lim;
+    float g[3], dg[3], q[6], gr[6], L[6][6], P[6], R[6], z[6], lam, sJ = 0.0f, f, Jy, r, t, lim;
     int i, j, k;
     table(y, g, dg);
     lam = 1.0f - x + 0.5f * x * x - x * x * x * (1.0f / 6.0f);
@@ -456,27 +458,30 @@ static void adapt(@p@_state *s, const float d[3], const float w[3], float y, flo
             gr[2 * i + 1] = w[i] * r;
         }
     }
+    sJ = 1.0f / sJ;
     for (i = 0; i < 6; i++) {
+        t = q[i] * sJ;
         for (j = 0; j < 6; j++) {
-            s->H[i][j] -= q[i] * q[j] / sJ;
+            s->H[i][j] -= t * q[j];
         }
     }
-    /* L D L^T of H, then H z = gr */
+    /* L D L^T of H (pivots P, their reciprocals R), then H z = gr */
     for (j = 0; j < 6; j++) {
         t = s->H[j][j];
         for (k = 0; k < j; k++) {
-            t -= L[j][k] * L[j][k] * D[k];
+            t -= L[j][k] * L[j][k] * P[k];
         }
         if (!(t > 0.0f)) {
             return;
         }
-        D[j] = t;
+        P[j] = t;
+        R[j] = 1.0f / t;
         for (i = j + 1; i < 6; i++) {
             t = s->H[i][j];
             for (k = 0; k < j; k++) {
-                t -= L[i][k] * L[j][k] * D[k];
+                t -= L[i][k] * L[j][k] * P[k];
             }
-            L[i][j] = t / D[j];
+            L[i][j] = t * R[j];
         }
     }
     for (i = 0; i < 6; i++) {
@@ -487,7 +492,7 @@ static void adapt(@p@_state *s, const float d[3], const float w[3], float y, flo
         z[i] = t;
     }
     for (i = 5; i >= 0; i--) {
-        t = z[i] / D[i];
+        t = z[i] * R[i];
         for (k = i + 1; k < 6; k++) {
             t -= L[k][i] * z[k];
         }
@@ -508,6 +513,7 @@ static void adapt(@p@_state *s, const float d[3], const float w[3], float y, flo
 void @p@_init(@p@_state *s, int32_t revolutions, float angle)
 {
     int i, j;
+    float t;
     s->rev = revolutions;
     s->ang = angle;
     s->v = s->clean = s->bad = s->sum_chi = 0.0f;
@@ -519,23 +525,13 @@ void @p@_init(@p@_state *s, int32_t revolutions, float angle)
     }
     for (i = 0; i < 6; i++) {
         for (j = 0; j < 6; j++) {
-            s->H[i][j] = 0.0f;
+            t = PRIOR * W0[i >> 1] * ((i & 1) ? 1.0f : AMP[i >> 1] * AMP[i >> 1]);
+            s->H[i][j] = (i != j) ? 0.0f : t;
         }
     }
-    for (i = 0; i < 3; i++) {
-        s->H[2 * i][2 * i] = PRIOR * W0[i] * AMP[i] * AMP[i];
-        s->H[2 * i + 1][2 * i + 1] = PRIOR * W0[i];
-    }
-    for (i = 0; i < W; i++) {
-        s->ring_chi[i] = 0.0f;
-        s->ring_dof[i] = 0u;
-    }
-    for (i = 0; i < FW; i++) {
-        s->ring_blame[i] = -1;
-    }
-    for (i = 0; i < 4; i++) {
-        s->blame[i] = 0;
-    }
+    s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0;
+    s->window_from = 0u;
+    s->blame_from = 0u;
     s->excluded = -1;
     s->blamed_out = 0u;
     s->suppress = 0u;
@@ -547,6 +543,7 @@ void @p@_init(@p@_state *s, int32_t revolutions, float angle)
     s->buf[0].misfit = 0.0f;
     s->buf[0].state = @P@_OK;
     s->buf[0].excluded = -1;
+    s->buf[0].flags = 0u;
     s->buf[0].sample = 0u;
     s->buf[1] = s->buf[0];
 }
@@ -620,7 +617,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     }
     /* fault isolation */
     slot = s->k % (uint32_t)FW;
-    old = s->ring_blame[slot];
+    old = (s->k >= s->blame_from + (uint32_t)FW) ? s->ring_blame[slot] : (int8_t)-1;
     if (old >= 0) {
         s->blame[old]--;
     }
@@ -641,16 +638,9 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
             s->clean = 0.0f;
             w[blamed] = 0.0f;
             y = acquire(s, d, w, yp, &chi);
-            for (q = 0; q < FW; q++) {
-                s->ring_blame[q] = -1;
-            }
-            for (q = 0; q < 4; q++) {
-                s->blame[q] = 0;
-            }
-            for (q = 0; q < W; q++) {
-                s->ring_chi[q] = 0.0f;
-                s->ring_dof[q] = 0u;
-            }
+            s->blame_from = s->k + 1u; /* the blame ring and the window start again */
+            s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0;
+            s->window_from = s->k;
             s->sum_chi = 0.0f;
             s->sum_dof = 0;
             blamed = -1;
@@ -678,8 +668,12 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         cc = CAP;
     }
     jw = s->k % (uint32_t)W;
-    s->sum_chi += cc - s->ring_chi[jw];
-    s->sum_dof += (active >= 2 ? active - 1 : 0) - (int32_t)s->ring_dof[jw];
+    if (s->k >= s->window_from + (uint32_t)W) {
+        s->sum_chi -= s->ring_chi[jw];
+        s->sum_dof -= (int32_t)s->ring_dof[jw];
+    }
+    s->sum_chi += cc;
+    s->sum_dof += active >= 2 ? active - 1 : 0;
     s->ring_chi[jw] = cc;
     s->ring_dof[jw] = (uint8_t)(active >= 2 ? active - 1 : 0);
     if (s->sum_dof > 0) {
@@ -723,6 +717,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                    : (s->excluded >= 0 ? @P@_DEGRADED
                    : (stale ? @P@_STALE : (above ? @P@_ADAPTING : @P@_OK)));
         r->excluded = s->excluded;
+        r->flags = (uint32_t)r->state | ((uint32_t)(s->excluded + 1) << 8);
         r->sample = s->k + 1u;
         s->seq = next;
         s->k++;
