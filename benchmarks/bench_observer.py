@@ -88,7 +88,7 @@ def paper_bench():
           f"(margin {inj.margin:.0f}); ML per-sample bound {inj.rms_std / cfg.noise_floor:.3f}"
           "x the floor")  # fmt: skip
     floor = cfg.noise_floor
-    print("   healthy validation runs (10 -> 0 rad ramp... 0 -> 10 rad in 20 s):")
+    print("   healthy validation runs (0 -> 10 rad in 20 s):")
     for seed in (21, 22, 23):
         val = ramp(cfg, 10.0, 20.0, seed)
         t0 = time.perf_counter()
