@@ -24,7 +24,7 @@ from hallcal.sensor.lut import build_lut
 from hallcal.sensor.metrics import angle_error
 from hallcal.sensor.observer import (
     ObserverState,
-    _quantile,
+    chi_square_quantile,
     observer_model,
     run_observer,
 )
@@ -163,7 +163,7 @@ def test_a_ring_remounted_one_pole_pitch_off_goes_stale_within_one_revolution(he
 def test_wilson_hilferty_threshold_is_never_below_the_chi_square_quantile(k, p):
     z = float(scipy.stats.norm.isf(p))
     exact = float(scipy.stats.chi2.isf(p, k))
-    ratio = _quantile(k, z) / exact
+    ratio = chi_square_quantile(k, z) / exact
     # conservative (the stated false-alarm rate is an upper bound) down to k = 1, p = 1e-12
     # (ratio 1.35 there), and within 1 % from k = 64 (a quarter of the window) on
     assert ratio >= 1.0 - 1e-9

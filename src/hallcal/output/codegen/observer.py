@@ -8,9 +8,9 @@ of the lean export: ``_init`` (revolutions and angle before the first sample), `
 sample), ``_read`` (one consistent snapshot: revolutions, angle, misfit, state, excluded
 channel). It includes only ``<stdint.h>``, uses no library function (the square roots and the
 chi-square thresholds are tabulated here; the adaptation's 6x6 system is solved by an LDL^T
-factorization, which needs no square root; exp(-x) of the forgetting is 1 - x + x^2/2 - x^3/6
-for the x below 1e-2 it takes), no dynamic memory and no division by a variable except in the
-Gauss-Newton steps and the 6x6 solve.
+factorization, which needs no square root; exp(-x) of the forgetting is 1 - x + x^2/2 - x^3/6,
+within 5e-6 for the x below 0.06 it takes up to a quarter electrical turn per sample), no
+dynamic memory, and divisions only in the Gauss-Newton steps and the 6x6 solve.
 
 The angle is kept as a revolution count and a float angle within the revolution, so that its
 resolution does not degrade over a long run. Worst-case work per sample is bounded (no loop
@@ -33,7 +33,12 @@ from hallcal.errors import HallcalInputError
 from hallcal.io import validate_artifact
 from hallcal.output.codegen.text import comment_text
 from hallcal.sensor.flux import FluxModel
-from hallcal.sensor.observer import ObserverModel, ObserverSettings, _quantile, observer_model
+from hallcal.sensor.observer import (
+    ObserverModel,
+    ObserverSettings,
+    chi_square_quantile,
+    observer_model,
+)
 
 __all__ = ["ObserverExport", "export_observer_c"]
 
@@ -136,7 +141,7 @@ def _texts(
     P = prefix.upper()
     W = s.window
     z = -_normal_quantile(s.false_alarm)
-    thr = [0.0] + [_quantile(float(k), z) for k in range(1, 2 * W + 1)]
+    thr = [0.0] + [chi_square_quantile(float(k), z) for k in range(1, 2 * W + 1)]
     w0 = 1.0 / model.sigma**2
     gross = [max(s.gross * math.sqrt(2.0) * model.amplitude[i], 8.0 * model.sigma[i])
              for i in range(3)]  # fmt: skip
