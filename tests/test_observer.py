@@ -11,6 +11,7 @@ import json
 import math
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -368,3 +369,21 @@ def test_export_c_observer_agrees_with_python_within_1e_5_rad(folding_dir):
         # the misfit in float: a relative 1e-4 of a sum over 256 samples
         assert np.max(np.abs(m - py.misfit) / np.maximum(py.misfit, 1.0)) < 1e-3
     assert set(py.state[20100:]) == {"degraded"}
+
+
+def test_api_observer_columns_beside_the_table_on_a_bijective_calibration():
+    import hallcal
+
+    n = 24000
+    cal_run = simulate_run(BENCH, 8.0 * np.arange(n) / n, seed=21)
+    setup = tomllib.loads(SETUP)
+    setup["model"]["harmonics"] = [1, 2, 3, 4]  # the bench's truth: magnets 1..3, n_m = 4
+    cal = hallcal.calibrate(cal_run.columns(), setup)
+    assert cal.status.success and not cal.observer_only
+    val = simulate_run(BENCH, 5.0 * np.arange(n) / n, seed=22)
+    rec = cal.reconstruct(val.columns(), observer=True)
+    assert list(rec.columns) == ["y_init", "y_star", "y_obs", "misfit", "state"]
+    star = angle_error(rec["y_star"], val.y0).rms
+    # the ML angle is at or below the table's (2 % for the sampling spread of 24 000 samples)
+    assert rec.observer_error.rms <= 1.02 * star
+    assert rec.validation is not None and set(rec["state"]) == {"ok"}
