@@ -535,7 +535,7 @@ def test_write_dataset_refuses_bad_columns(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="different lengths"):
         write_dataset(tmp_path / "a.csv", {**cols, "d1": np.zeros(5)})
     with pytest.raises(ValueError, match="numeric 1-D"):
-        write_dataset(tmp_path / "a.csv", {**cols, "d1": np.array(["a"] * 6)})
+        write_dataset(tmp_path / "a.csv", {**cols, "d1": np.array(["a,b"] * 6)})  # not a word
     with pytest.raises(HallcalInputError, match="'2nd' is not a valid MATLAB variable name"):
         write_dataset(tmp_path / "a.mat", {**cols, "2nd": np.zeros(6)})
     with pytest.raises(HallcalInputError, match="does not exist"):

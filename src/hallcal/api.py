@@ -114,7 +114,12 @@ class Calibration(_Result):
         return cls(**{f.name: getattr(result, f.name) for f in dataclasses.fields(_Result)})
 
     def reconstruct(  # type: ignore[override]
-        self, data: DataLike, *, y_initial: float = 0.0, absolute: bool = False
+        self,
+        data: DataLike,
+        *,
+        y_initial: float = 0.0,
+        absolute: bool = False,
+        observer: bool = False,
     ) -> Reconstruction:
         """f_init and f_star over a recording: ``rec["y_init"]``, ``rec["y_star"]`` [rad].
 
@@ -130,6 +135,13 @@ class Calibration(_Result):
             calibration's frame, modulo one revolution (``rec.identification`` says when it
             was certain). Raises :class:`~hallcal.errors.CalibrationRefused` when
             ``cal.identifiability`` says the pole pair is not identifiable.
+        observer : bool, keyword-only
+            Also run the model-based observer: ``rec["y_obs"]`` (tracking maximum-likelihood
+            angle [rad] with online gain/offset adaptation), ``rec["misfit"]`` (windowed
+            chi-square per degree of freedom, about 1 when the model fits) and
+            ``rec["state"]`` (ok | adapting | stale | degraded | fault); see
+            :mod:`hallcal.sensor.observer`. A calibration without a table (folding map,
+            ``cal.observer_only``) can only be used this way.
         """
         from hallcal.pipeline.checks import check_recording, raise_if_failed
 
@@ -139,7 +151,9 @@ class Calibration(_Result):
             ds, pole_pairs=self.pole_pairs, sample_time=None, angles=("y_ref",)
         )
         raise_if_failed(checks, ds.source)
-        return super().reconstruct(ds, y_initial=y_initial, absolute=absolute)
+        return super().reconstruct(
+            ds, y_initial=y_initial, absolute=absolute, observer=observer
+        )
 
     def report(
         self,
@@ -193,7 +207,9 @@ class Calibration(_Result):
             Default: the fixed-point pair whenever it can be made (see :func:`export_c`).
         **options
             The other options of :func:`hallcal.output.codegen.export_c` (``prefix``,
-            ``table_points``, ``max_speed``, ...).
+            ``table_points``, ``max_speed``, ...); ``observer=True`` writes the model-based
+            observer instead (:func:`hallcal.output.codegen.observer.export_observer_c`,
+            option ``prefix``).
 
         Returns
         -------
@@ -201,9 +217,12 @@ class Calibration(_Result):
             The files written and the table's error figures
             (:class:`hallcal.output.codegen.ExportResult`).
         """
-        return export_c(
-            self.to_artifact(), out_dir, adc_scale=adc_scale, fixed_point=fixed_point, **options
-        )
+        artifact = self.to_artifact()
+        if options.pop("observer", False):
+            from hallcal.output.codegen.observer import export_observer_c
+
+            return export_observer_c(artifact, out_dir, **options)
+        return export_c(artifact, out_dir, adc_scale=adc_scale, fixed_point=fixed_point, **options)
 
 
 #: Hall noise variance [signal unit^2] below which an artifact's signals are not ADC counts:
@@ -246,7 +265,9 @@ def export_c(
     ExportResult
     """
     from hallcal.output.codegen import export_c as _export
+    from hallcal.pipeline.calibration import require_table
 
+    require_table(artifact)
     if fixed_point is not None or adc_scale is not None:
         want = True if fixed_point is None else bool(fixed_point)
         scale = 1.0 if adc_scale is None else adc_scale

@@ -15,6 +15,7 @@ import math
 import os
 import sys
 import time
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -578,8 +579,10 @@ def _print_validation(v, units: str, n_m: int) -> None:
     epilog=_epilog(
         "hallcal reconstruct cal.json run.csv --out angles.csv",
         "hallcal reconstruct cal.json powerup.csv --absolute --out angles.csv",
-        exits=_EXITS + ", 3 the artifact's table is not bijective, or the signals do not fit "
-        "the calibration's model (ring remounted, sensors swapped or rewired, sensors drifted)",
+        "hallcal reconstruct cal.json run.csv --observer --out angles.csv",
+        exits=_EXITS + ", 3 the signals do not fit the calibration's model (ring remounted, "
+        "sensors swapped or rewired, sensors drifted), or the artifact has no table (kept for "
+        "the observer only: use --observer)",
     )
 )
 @click.argument("artifact", type=click.Path(dir_okay=False))
@@ -596,9 +599,18 @@ def _print_validation(v, units: str, n_m: int) -> None:
     help="The recording starts at power-up anywhere (no homing): identify the pole pair from "
     "the magnets' signatures; angles in the calibration's frame.",
 )
+@click.option(
+    "--observer",
+    is_flag=True,
+    help="Also run the model-based observer: columns y_obs [rad] (tracking maximum-likelihood "
+    "angle with gain/offset adaptation), misfit (about 1 when the model fits) and state (ok, "
+    "adapting, stale, degraded, fault).",
+)
 @_units_option
 @_handle_errors
-def reconstruct(artifact: str, data: str, out: str, absolute: bool, units: str) -> None:
+def reconstruct(
+    artifact: str, data: str, out: str, absolute: bool, observer: bool, units: str
+) -> None:
     """Apply a calibration to a recording: columns y_init and y_star.
 
     f_init and f_star run over the recording from y = 0 before the first sample (the frame of
@@ -606,13 +618,17 @@ def reconstruct(artifact: str, data: str, out: str, absolute: bool, units: str) 
     an encoder column y_ref both are compared with it. The signals are first tested against
     the calibration's flux model (its calibrated noise): when no pole pair fits, it refuses
     (exit 3) and names swapped or rewired sensors when another order of d1..d3 fits.
+    --observer adds the model-based observer's y_obs, misfit and state (docs/firmware.md says
+    when to use which).
     """
     from hallcal.api import load
     from hallcal.io import write_dataset
 
+    if absolute and observer:
+        raise HallcalInputError("--absolute and --observer cannot be combined")
     cal = load(artifact)
     _output_file(out, dataset=True)
-    rec = cal.reconstruct(data, absolute=absolute)
+    rec = cal.reconstruct(data, absolute=absolute, observer=observer)
     if rec.signals is not None:
         rec.signals.raise_if_failed()  # exit 3: the signals do not fit this calibration
         if rec.signals.warning:
@@ -622,6 +638,27 @@ def reconstruct(artifact: str, data: str, out: str, absolute: bool, units: str) 
     if rec.identification is not None:
         _print_identification(rec.identification, cal.pole_pairs)
     _print_validation(rec.validation, units, cal.pole_pairs)
+    if rec.observer is not None:
+        _print_observer(rec, units, cal.pole_pairs)
+
+
+def _print_observer(rec, units: str, n_m: int) -> None:
+    """Two lines: the observer's states and first exclusion; y_obs against y_ref."""
+    obs = rec.observer
+    counts = Counter(obs.state.tolist())
+    shares = ", ".join(f"{name} {c / len(obs):.1%}" for name, c in sorted(counts.items()))
+    excl = (
+        f"; channel d{obs.excluded + 1} excluded from sample {obs.first_exclusion}"
+        if obs.excluded >= 0
+        else ""
+    )
+    _out.print(f"observer: {shares}; final misfit {obs.misfit[-1]:.2f}{excl}")
+    if rec.observer_error is not None:
+        e = rec.observer_error
+        _out.print(
+            f"against y_ref: y_obs RMS {_angle(e.rms, units, n_m)} "
+            f"peak {_angle(e.peak, units, n_m)}"
+        )
 
 
 @cli.command(
@@ -754,6 +791,12 @@ def _print_identification(ident, pole_pairs: int) -> None:
 )
 @click.option("--prefix", default="hallcal", show_default=True, help="C name prefix.")
 @click.option(
+    "--observer",
+    is_flag=True,
+    help="Write the model-based observer instead (<prefix>_obs.h/.c, float; "
+    "docs/firmware.md): also for a calibration kept for the observer only.",
+)
+@click.option(
     "--no-powerup",
     is_flag=True,
     help="No pole-pair identification at power-up in the float variant (saves its tables; "
@@ -771,6 +814,7 @@ def export_c(
     fault_after: int,
     prefix: str,
     no_powerup: bool,
+    observer: bool,
 ) -> None:
     """Generate lean C99 sources of f_star (float and fixed point) for firmware.
 
@@ -778,8 +822,19 @@ def export_c(
     """
     from hallcal.api import export_c as _export
     from hallcal.io import read_artifact
+    from hallcal.pipeline.calibration import require_table
 
     art = read_artifact(artifact)
+    if observer:
+        from hallcal.output.codegen.observer import export_observer_c
+
+        res_obs = export_observer_c(art, _output_dir(out), prefix=f"{prefix}_obs", source=artifact)
+        for p in res_obs.paths:
+            _echo(f"wrote {p}")
+        _echo(f"observer tables: {res_obs.table_points} points per revolution, "
+              f"{res_obs.table_bytes} bytes")  # fmt: skip
+        return
+    require_table(art, artifact)
     out_dir = _output_dir(out)
     res = _export(
         art,

@@ -260,7 +260,9 @@ def _check_projection(c: _Checker, rec: Mapping[str, Any]) -> tuple[NDArray, NDA
     return P, o
 
 
-def _check_lut(c: _Checker, lut: Mapping[str, Any], pole_pairs: int) -> tuple[NDArray, NDArray]:
+def _check_lut(
+    c: _Checker, lut: Mapping[str, Any], pole_pairs: int, *, folding: bool = False
+) -> tuple[NDArray, NDArray]:
     what = f"a list of at least {MIN_LUT_POINTS} numbers"
     y_hat = c.need(lut, "y_hat", "lut.y_hat")
     eta = c.need(lut, "eta", "lut.eta")
@@ -293,7 +295,7 @@ def _check_lut(c: _Checker, lut: Mapping[str, Any], pole_pairs: int) -> tuple[ND
     # y0 -> y_hat monotone (checked on the nodes themselves, so reordered nodes are refused)
     monotone = bool(np.all(np.diff(y_hat) > 0) and y_hat[-1] < y_hat[0] + TWO_PI)
     table = LUT.from_arrays(pole_pairs, np.eye(2, 3), np.zeros(3), y_hat, eta)
-    if not (monotone and table.bijective):
+    if not (monotone and table.bijective) and not folding:
         c.bad(
             f"key 'lut' is not bijective (min slope {table.min_slope:.3g}): the table would give "
             "wrong angles"
@@ -526,7 +528,12 @@ def validate_artifact(artifact: Mapping[str, Any], source: str = "<artifact>") -
     for key in ("reconstruction", "lut", "model", "diagnostics"):
         c.mapping(data[key], key)
     projection, offset = _check_projection(c, data["reconstruction"])
-    y_hat, eta = _check_lut(c, data["lut"], int(n))
+    folding = False
+    if data.get("observer") is not None:
+        folding = _check_observer(c, data["observer"]) and (
+            data["diagnostics"].get("status") == "not-bijective"
+        )
+    y_hat, eta = _check_lut(c, data["lut"], int(n), folding=folding)
     _check_model(c, data["model"])
     if data.get("cogging") is not None:
         _check_cogging(c, data["cogging"])
@@ -560,6 +567,24 @@ def validate_artifact(artifact: Mapping[str, Any], source: str = "<artifact>") -
         data=data,
         source=source,
     )
+
+
+def _check_observer(c: _Checker, entry: Any) -> bool:
+    """The ``observer`` entry (:mod:`hallcal.pipeline.observe`); True when it says the
+    three-signal curve is injective, which lets a folding map's table (status "not-bijective")
+    be stored for the observer."""
+    entry = c.mapping(entry, "observer")
+    nv = c.array(c.need(entry, "noise_variance", "observer.noise_variance"),
+                 "observer.noise_variance", "a list of 3 numbers > 0", shape=(3,))  # fmt: skip
+    if not np.all(nv > 0):
+        c.bad("key 'observer.noise_variance' must be a list of 3 numbers > 0")
+    injective = c.need(entry, "injective", "observer.injective")
+    if not isinstance(injective, bool):
+        c.bad("key 'observer.injective' must be true or false")
+    for key in ("separation", "margin", "worst_std", "rms_std"):
+        if key in entry and not _is_number(entry[key]):
+            c.bad(f"key 'observer.{key}' must be a number")
+    return injective
 
 
 def _check_cogging(c: _Checker, cog: Any) -> None:

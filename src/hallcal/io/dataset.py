@@ -906,6 +906,10 @@ def _mapped_npy(mm: mmap.mmap, info: zipfile.ZipInfo) -> np.ndarray | None:
 _MATLAB_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,62}")
 
 
+#: Values of a text column that :func:`write_dataset` accepts: a lowercase word.
+_WORD = re.compile(r"[a-z]+")
+
+
 def _columns_for_writing(p: Path, columns: Mapping[str, Any]) -> dict[str, np.ndarray]:
     if not columns:
         raise ValueError(f"{p}: no columns to write")
@@ -915,6 +919,13 @@ def _columns_for_writing(p: Path, columns: Mapping[str, Any]) -> dict[str, np.nd
         if not isinstance(name, str) or not name or any(c in name for c in "\r\n"):
             raise ValueError(f"{p}: invalid column name {name!r}")
         arr = np.asarray(values)
+        if arr.ndim == 1 and arr.dtype.kind == "U" and all(map(_WORD.fullmatch, set(arr))):
+            # a column of lowercase words (the observer's state): text as it is, HDF5 as bytes
+            out[name] = arr.astype("S") if p.suffix.lower() in (".h5", ".hdf5") else arr
+            n = arr.shape[0] if n is None else n
+            if arr.shape[0] != n:
+                raise ValueError(f"{p}: columns have different lengths ('{name}': {arr.shape[0]})")
+            continue
         if arr.ndim != 1 or arr.dtype.kind not in "biuf":
             raise ValueError(f"{p}: column '{name}' must be a numeric 1-D array")
         if arr.dtype.kind == "f":
@@ -946,7 +957,8 @@ def write_dataset(path: str | os.PathLike[str], columns: Mapping[str, Any]) -> N
     path : path-like
         Destination with one of the :data:`DATASET_EXTENSIONS`.
     columns : mapping of str to array_like
-        Numeric 1-D arrays of equal length, finite.
+        Numeric 1-D arrays of equal length, finite, or text arrays of lowercase words (the
+        observer's ``state``; bytes in HDF5).
 
     Raises
     ------

@@ -53,6 +53,7 @@ if TYPE_CHECKING:  # result types of the steps, for annotations only (keeps the 
     from hallcal.fit.order import HarmonicSelection
     from hallcal.fit.sem import SEMResult
     from hallcal.pipeline.plant import BLAIdentification, GainCorrection
+    from hallcal.sensor.observer import ObserverRun
 
 __all__ = [
     "Calibration",
@@ -63,6 +64,7 @@ __all__ = [
     "calibration_from_artifact",
     "lut_from_artifact",
     "reconstruct",
+    "require_table",
     "validate",
 ]
 
@@ -180,12 +182,21 @@ class Reconstruction:
     signals : SignalCheck or None
         Whether the signals fit the calibration's model at all (a remounted ring, swapped or
         rewired sensors do not): :func:`hallcal.pipeline.powerup.check_signals`.
+    observer : ObserverRun or None
+        With ``observer=True``: the model-based observer's y_obs [rad], misfit and state per
+        sample (:mod:`hallcal.sensor.observer`).
+    observer_error : AngleError or None
+        y_obs against the recording's ``y_ref``, when it has one.
+
+    ``y_star`` is None when the calibration has no table (a folding map, observer only).
     """
 
     y_init: NDArray[np.float64] = field(repr=False)
-    y_star: NDArray[np.float64] = field(repr=False)
+    y_star: NDArray[np.float64] | None = field(repr=False)
     validation: Validation | None = None
     identification: PowerUpIdentification | None = None
+    observer: ObserverRun | None = field(default=None, repr=False)
+    observer_error: AngleError | None = None
     signals: SignalCheck | None = None
 
     @property
@@ -195,15 +206,23 @@ class Reconstruction:
         return SignalStatus.UNCHECKED if self.signals is None else self.signals.status
 
     @property
-    def columns(self) -> dict[str, NDArray[np.float64]]:
-        """``{"y_init": ..., "y_star": ...}`` (the columns ``hallcal reconstruct`` writes)."""
-        return {"y_init": self.y_init, "y_star": self.y_star}
+    def columns(self) -> dict[str, NDArray[Any]]:
+        """``{"y_init": ..., "y_star": ...}`` (the columns ``hallcal reconstruct`` writes), with
+        ``y_obs``, ``misfit`` and ``state`` from the observer (``reconstruct --observer``)."""
+        cols: dict[str, NDArray[Any]] = {"y_init": self.y_init}
+        if self.y_star is not None:
+            cols["y_star"] = self.y_star
+        if self.observer is not None:
+            cols["y_obs"] = self.observer.y_obs
+            cols["misfit"] = self.observer.misfit
+            cols["state"] = self.observer.state
+        return cols
 
-    def __getitem__(self, name: str) -> NDArray[np.float64]:
+    def __getitem__(self, name: str) -> NDArray[Any]:
         return self.columns[name]
 
     def __len__(self) -> int:
-        return int(self.y_star.size)
+        return int(self.y_init.size)
 
 
 @dataclass(frozen=True)
@@ -256,6 +275,10 @@ class Calibration:
         How well the pole pair can be identified at power-up from the magnets' signatures
         (:mod:`hallcal.sensor.absolute`); None without a bijective table or for artifacts
         made before it existed.
+    observer : mapping or None
+        The model-based observer's check at calibration time (the artifact's ``observer``
+        entry: noise variance per channel, whether the three-signal curve is injective with
+        its margin; :func:`hallcal.pipeline.observe.observer_check`); None when not checked.
     artifact : dict or None
         The artifact this calibration was loaded from (None when computed here).
     """
@@ -283,12 +306,23 @@ class Calibration:
     cogging: CoggingTorque | None = field(default=None, repr=False)
     cogging_selection: CoggingSelection | None = field(default=None, repr=False)
     identifiability: IdentifiabilityReport | None = field(default=None, repr=False)
+    observer: Mapping[str, Any] | None = field(default=None, repr=False)
     artifact: Mapping[str, Any] | None = field(default=None, repr=False)
 
     @property
     def pole_pairs(self) -> int:
         """n_m."""
         return self.setup.pole_pairs
+
+    @property
+    def observer_only(self) -> bool:
+        """No table can exist (folding map), but the model fits and the observer can track the
+        angle (the artifact's ``observer.injective``, set only then for a folding map)."""
+        return (
+            self.status is CalibrationStatus.NOT_BIJECTIVE
+            and self.observer is not None
+            and self.observer.get("injective") is True
+        )
 
     def to_artifact(self) -> dict[str, Any]:
         """The JSON artifact (a plain dict; see :func:`artifact_from_calibration`); for a
@@ -311,9 +345,13 @@ class Calibration:
         Raises
         ------
         CalibrationRefused
-            When the table is not bijective, or the model was judged inadequate and ``force``
-            is False; nothing is written.
+            When the table is not bijective (unless the observer can use the model:
+            :attr:`observer_only`), or the model was judged inadequate and ``force`` is False;
+            nothing is written.
         """
+        if self.observer_only:
+            write_artifact(path, self.to_artifact())
+            return
         if self.status is CalibrationStatus.NOT_BIJECTIVE or (self.status.refused and not force):
             hint = (
                 ""
@@ -324,9 +362,14 @@ class Calibration:
         write_artifact(path, self.to_artifact())
 
     def reconstruct(
-        self, data: Dataset, *, y_initial: float = 0.0, absolute: bool = False
+        self,
+        data: Dataset,
+        *,
+        y_initial: float = 0.0,
+        absolute: bool = False,
+        observer: bool = False,
     ) -> Reconstruction:
-        """Apply the calibration to a recording (``hallcal reconstruct [--absolute]``).
+        """Apply the calibration to a recording (``hallcal reconstruct [--absolute|--observer]``).
 
         Parameters
         ----------
@@ -338,6 +381,10 @@ class Calibration:
             magnets' signatures and give the angles in the calibration's frame (modulo one
             revolution; ``y_initial`` is not used). Raises :class:`CalibrationRefused` when
             the calibration says the pole pair is not identifiable.
+        observer : bool, keyword-only
+            Also run the model-based observer (:mod:`hallcal.sensor.observer`): columns
+            y_obs, misfit and state. The only way to use a calibration without a table
+            (:attr:`observer_only`).
 
         Returns
         -------
@@ -346,8 +393,15 @@ class Calibration:
             model at all (:func:`hallcal.pipeline.powerup.check_signals`; ``hallcal
             reconstruct`` exits 3 when they do not).
         """
+        if observer:
+            return _reconstruct_observer(self, data, y_initial=y_initial)
         if absolute:
             return _reconstruct_absolute(self, data)
+        if self.observer_only:
+            raise CalibrationRefused(
+                "no lookup table can exist for this motor (the sensor map folds); the "
+                "calibration is for the model-based observer: use 'reconstruct --observer'"
+            )
         rec = reconstruct_with(self.lut, data, y_initial=y_initial)
         decoder = None
         if self.identifiability is not None:
@@ -435,6 +489,8 @@ def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
         }
     if cal.cogging is not None:
         art["cogging"] = cal.cogging.to_dict()
+    if cal.observer is not None:
+        art["observer"] = dict(cal.observer)
     return art
 
 
@@ -544,9 +600,32 @@ def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Cal
         timings=dict(diag.get("timings", {})),
         model_info=dict(model),
         identifiability=identifiability,
+        observer=art.data.get("observer"),
         artifact=art.data,
         cogging=cogging,
     )
+
+
+def require_table(artifact: ArtifactData | Mapping[str, Any], source: str = "artifact") -> None:
+    """Refuse (exit 3) a calibration kept for the observer only (no table can exist).
+
+    Parameters
+    ----------
+    artifact : ArtifactData or mapping
+        A loaded artifact, or its parsed JSON.
+    source : str
+        Its name in the message (the file).
+
+    Raises
+    ------
+    CalibrationRefused
+        When the artifact's table is not bijective (a folding map written for the observer).
+    """
+    if not _checked(artifact).lut().bijective:
+        raise CalibrationRefused(
+            f"{source}: no lookup table can exist for this motor (the sensor map folds); the "
+            "calibration is for the model-based observer ('reconstruct --observer')"
+        )
 
 
 def reconstruct_with(lut: LUT, dataset: Dataset, *, y_initial: float = 0.0) -> Reconstruction:
@@ -563,6 +642,24 @@ def reconstruct_with(lut: LUT, dataset: Dataset, *, y_initial: float = 0.0) -> R
     yi, ys = lut.reconstruct(dataset["d1"], dataset["d2"], dataset["d3"], y_initial=y_initial)
     val = validate(lut, dataset, angles=(yi, ys)) if "y_ref" in dataset else None
     return Reconstruction(yi, ys, val)
+
+
+def _reconstruct_observer(
+    cal: Calibration, dataset: Dataset, *, y_initial: float = 0.0
+) -> Reconstruction:
+    """``Calibration.reconstruct(observer=True)``: the table's angles when it exists, and the
+    observer's (see :mod:`hallcal.pipeline.observe`)."""
+    from hallcal.pipeline.observe import run_on  # numba kernels: loaded for the observer only
+
+    dataset.require("d1", "d2", "d3")
+    if cal.lut.bijective:
+        rec = reconstruct_with(cal.lut, dataset, y_initial=y_initial)
+    else:
+        y_init = cal.lut.f_init(dataset.d, y_initial=y_initial)
+        rec = Reconstruction(y_init, None)
+    obs = run_on(cal, np.ascontiguousarray(dataset.d), y_initial=y_initial)
+    err = angle_error(obs.y_obs, dataset["y_ref"]) if "y_ref" in dataset else None
+    return Reconstruction(rec.y_init, rec.y_star, rec.validation, observer=obs, observer_error=err)
 
 
 def _reconstruct_absolute(cal: Calibration, dataset: Dataset) -> Reconstruction:

@@ -38,6 +38,7 @@ from hallcal.pipeline.checks import (
     check_pole_pairs,
     check_recording,
 )
+from hallcal.pipeline.observe import FOLDING_NOTE, observer_check, observer_section
 from hallcal.pipeline.plant import BLAIdentification, PlantModel, closed_loop, plant_model
 from hallcal.pipeline.powerup import power_up_analysis
 from hallcal.pipeline.progress import Progress, say
@@ -49,6 +50,7 @@ from hallcal.sim.loop import ClosedLoop
 if TYPE_CHECKING:
     from hallcal.fit.kernel import KernelSEMResult
     from hallcal.fit.order import HarmonicSelection
+    from hallcal.sensor.observer import Injectivity
 
 __all__ = ["calibrate_closed_loop"]
 
@@ -414,15 +416,26 @@ def _refined_plant(pm: PlantModel, fit: _ModelFit) -> PlantModel:
 
 
 def _verdict(
-    lut: LUT, adequacy: AdequacyReport
+    lut: LUT, adequacy: AdequacyReport, observer: Injectivity | None = None
 ) -> tuple[CalibrationStatus, str | None, tuple[str, ...]]:
-    """Status, refusal reason and leading warning from the table and the adequacy report."""
+    """Status, refusal reason and leading warning from the table and the adequacy report.
+
+    A table that cannot exist (folding map) with a model the observer can invert (``observer``
+    injective) and that is not inadequate keeps the model: one line says so.
+    """
     if not lut.bijective:
+        fail = adequacy.thresholds.get("fail_ratio", math.inf)
+        folding_ok = (  # only the table fails: the model fits the data (adequacy's other rules)
+            observer is not None
+            and observer.injective
+            and adequacy.shape_ratio <= fail
+            and not (adequacy.suggested_harmonics and adequacy.ratio > fail)
+        )
         return (
             CalibrationStatus.NOT_BIJECTIVE,
             "the identified model's map y0 -> f_init(g(y0)) is not bijective (the paper's "
             "bijectivity condition): a lookup table would give wrong angles",
-            (),
+            (FOLDING_NOTE.format(sep=observer.separation),) if folding_ok else (),
         )
     if adequacy.verdict == "inadequate":
         return CalibrationStatus.INADEQUATE, adequacy.message, ()
@@ -539,7 +552,15 @@ def calibrate_closed_loop(
             projection=loop.projection,
             offset=loop.offset,
         )
-    status, refusal, leading = _verdict(lut, adequacy)
+    with numeric_errors("setup", "model"):
+        observer = observer_check(fit.flux, setup.pole_pairs, fit.sem.noise_variance)
+    status, refusal, leading = _verdict(lut, adequacy, observer)
+    # a refused table keeps the model for the observer only when the verdict said so
+    observer_entry = (
+        observer_section(observer, fit.sem.noise_variance)
+        if status is not CalibrationStatus.NOT_BIJECTIVE or leading
+        else None
+    )
     predicted = adequacy.predicted_error
     if status is CalibrationStatus.WARNING:
         bias, note = _motion_bias(loop, s, setup, fit, lut)
@@ -585,4 +606,5 @@ def calibrate_closed_loop(
         cogging=cogging,
         cogging_selection=fit.cogging,
         identifiability=identifiability,
+        observer=observer_entry,
     )

@@ -24,9 +24,11 @@ from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
 from hallcal.pipeline.checks import CheckStatus, check_pole_pairs, check_recording, raise_if_failed
+from hallcal.pipeline.observe import FOLDING_NOTE, calibrated_noise, observer_section
 from hallcal.pipeline.powerup import power_up_analysis
 from hallcal.pipeline.progress import Progress
 from hallcal.sensor.flux import FourierBasis
+from hallcal.sensor.observer import observer_model
 
 __all__ = ["calibrate_open_loop"]
 
@@ -151,6 +153,10 @@ def calibrate_open_loop(
     if res.status is ConstantSpeedStatus.NOT_CONVERGED:
         messages.append("warning: the speed estimate did not converge")
     refusal = None
+    var = calibrated_noise(res.model, n, d, max(res.noise_std, 1e-300) ** 2, start=start, stop=stop)
+    injectivity = observer_model(res.model, n, var).injectivity
+    if not res.lut.bijective and injectivity.injective:
+        messages.insert(0, FOLDING_NOTE.format(sep=injectivity.separation))
     if not res.lut.bijective:
         status = CalibrationStatus.NOT_BIJECTIVE
         refusal = (
@@ -187,4 +193,5 @@ def calibrate_open_loop(
         },
         constant_speed=res,
         identifiability=identifiability,
+        observer=observer_section(injectivity, var),
     )
