@@ -151,9 +151,7 @@ class Calibration(_Result):
             ds, pole_pairs=self.pole_pairs, sample_time=None, angles=("y_ref",)
         )
         raise_if_failed(checks, ds.source)
-        return super().reconstruct(
-            ds, y_initial=y_initial, absolute=absolute, observer=observer
-        )
+        return super().reconstruct(ds, y_initial=y_initial, absolute=absolute, observer=observer)
 
     def report(
         self,
