@@ -674,6 +674,7 @@ def reconstruct(artifact: str, data: str, out: str, absolute: bool, units: str) 
     rec = cal.reconstruct(data, absolute=absolute)
     write_dataset(out, rec.columns)
     _out.print(f"wrote {out} ({len(rec)} samples)")
+    _notes(rec.messages)
     if rec.identification is not None:
         _print_identification(rec.identification, cal.pole_pairs)
     _print_validation(rec.validation, units, cal.pole_pairs)
@@ -1027,7 +1028,8 @@ def fleet(
 
     def progress(row, done: int, total: int) -> None:
         nonlocal task_id
-        if task_id is None:
+        if task_id is None:  # the batch starts: its checks passed, its folder is locked
+            bar.start()
             task_id = bar.add_task("fleet", total=total, counts="")
         if row is None:
             return
@@ -1038,7 +1040,7 @@ def fleet(
         text = " ".join(f"{k} {v}" for k, v in counts.items() if v)
         bar.update(task_id, completed=done, counts=text)
 
-    with bar:
+    try:
         table = run_fleet(
             manifest,
             out,
@@ -1050,6 +1052,9 @@ def fleet(
             report=not no_report,
             progress=progress,
         )
+    finally:
+        if task_id is not None:
+            bar.stop()
     c = summary_counts(table)
     reused = sum(table.column("reused").to_pylist())
     _out.print(

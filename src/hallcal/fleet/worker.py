@@ -205,7 +205,12 @@ def _calibrate_into(task: _Task, result: _Result) -> None:
     if task.validation is not None:
         try:
             ds = read_dataset(task.validation, required=("d1", "d2", "d3", "y_ref"))
-            v = cal.reconstruct(ds).validation
+            rec = cal.reconstruct(ds)
+            v = rec.validation
+            if v is None:  # y_ref cannot be scored (a standstill run): the calibration stands
+                raise HallcalInputError(
+                    rec.messages[0].removeprefix("warning: validation skipped: ")
+                )
             row["f_init_rms"] = _finite(v.init.rms)
             row["f_star_rms"] = _finite(v.star.rms)
             if v.star.rms > v.init.rms:

@@ -8,6 +8,7 @@ encoder or the bench's truth (step 5 of Algorithm 1).
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import enum
 import math
@@ -138,8 +139,21 @@ def validate(
     -------
     Validation
         Errors and spatial spectra of f_init and f_star against ``y_ref``.
+
+    Raises
+    ------
+    HallcalInputError
+        When ``y_ref`` does not move (a recording at standstill cannot be scored).
     """
     y_ref = dataset["y_ref"]
+    if not np.ptp(y_ref) > 0:  # no spatial spectrum and no error over position to score
+        where = dataset.source
+        raise HallcalInputError(
+            f"{where}: y_ref does not move (a recording at standstill): nothing to validate "
+            "against; record the validation run while the rotor turns",
+            source=str(where),
+            key="y_ref",
+        )
     if angles is None:
         angles = lut.reconstruct(dataset["d1"], dataset["d2"], dataset["d3"])
     yi, ys = angles
@@ -168,12 +182,16 @@ class Reconstruction:
     identification : PowerUpIdentification or None
         With ``absolute=True``: which pole pair the recording started in, when the sequential
         test was certain, with what posterior probability.
+    messages : tuple of str
+        Warnings: a ``y_ref`` that cannot be scored (a recording at standstill) leaves
+        ``validation`` None and says so here; the angles stand.
     """
 
     y_init: NDArray[np.float64] = field(repr=False)
     y_star: NDArray[np.float64] = field(repr=False)
     validation: Validation | None = None
     identification: PowerUpIdentification | None = None
+    messages: tuple[str, ...] = ()
 
     @property
     def columns(self) -> dict[str, NDArray[np.float64]]:
@@ -531,23 +549,31 @@ def reconstruct_with(lut: LUT, dataset: Dataset, *, y_initial: float = 0.0) -> R
         raise CalibrationRefused("the lookup table is not bijective; refusing to use it")
     dataset.require("d1", "d2", "d3")
     yi, ys = lut.reconstruct(dataset["d1"], dataset["d2"], dataset["d3"], y_initial=y_initial)
-    val = validate(lut, dataset, angles=(yi, ys)) if "y_ref" in dataset else None
-    return Reconstruction(yi, ys, val)
+    val, notes = None, ()
+    if "y_ref" in dataset:
+        val, notes = _scored(lambda: validate(lut, dataset, angles=(yi, ys)))
+    return Reconstruction(yi, ys, val, messages=notes)
+
+
+def _scored(score: Any) -> tuple[Validation | None, tuple[str, ...]]:
+    """The validation, or None and a warning when ``y_ref`` cannot be scored."""
+    try:
+        return score(), ()
+    except HallcalInputError as exc:
+        return None, (f"warning: validation skipped: {exc}",)
 
 
 def _reconstruct_absolute(cal: Calibration, dataset: Dataset) -> Reconstruction:
     """``Calibration.reconstruct(absolute=True)``: see :mod:`hallcal.pipeline.powerup`."""
     out = reconstruct_absolute(cal.flux, cal.lut, cal.identifiability, dataset.d)
-    validation = None
+    validation, notes = None, ()
     if "y_ref" in dataset:
         ref = same_revolution(out.y_star, dataset["y_ref"])
-        validation = Validation(
-            angle_error(out.y_init, ref),
-            angle_error(out.y_star, ref),
-            spatial_spectrum(out.y_init - ref, ref),
-            spatial_spectrum(out.y_star - ref, ref),
+        moved = dataclasses.replace(dataset, columns={**dataset.columns, "y_ref": ref})
+        validation, notes = _scored(
+            lambda: validate(cal.lut, moved, angles=(out.y_init, out.y_star))
         )
-    return Reconstruction(out.y_init, out.y_star, validation, out.identification)
+    return Reconstruction(out.y_init, out.y_star, validation, out.identification, notes)
 
 
 def reconstruct(
