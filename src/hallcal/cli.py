@@ -831,13 +831,13 @@ def export_c(
 
     The API, the plausibility checks and the error bounds: docs/firmware.md.
     """
-    from hallcal.io import read_artifact
+    from hallcal.io import load_artifact
     from hallcal.output.codegen import export_c as _export
 
     names = [f"{prefix}.h", f"{prefix}.c"]
     names += [] if no_fixed_point else [f"{prefix}_q.h", f"{prefix}_q.c"]
     _guard([Path(out) / n for n in names], [artifact])
-    art = read_artifact(artifact)
+    art = load_artifact(artifact)  # its sha256 is the file's, as sha256sum prints it
     out_dir = _output_dir(out)
     res = _export(
         art,

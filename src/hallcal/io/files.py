@@ -523,7 +523,10 @@ def _check_parsed(p: str | os.PathLike[str], data: Any) -> None:
     stack: list[tuple[Any, str, int]] = [(data, "", 0)]
     while stack:
         value, where, depth = stack.pop()
-        if isinstance(value, bool) or value is None or isinstance(value, str):
+        if isinstance(value, str):
+            _check_text(p, value, where)
+            continue
+        if isinstance(value, bool) or value is None:
             continue
         if isinstance(value, float):
             if not math.isfinite(value):
@@ -547,10 +550,25 @@ def _check_parsed(p: str | os.PathLike[str], data: Any) -> None:
             items = value.items() if isinstance(value, dict) else enumerate(value)
             for key, item in items:
                 if isinstance(value, dict):
+                    _check_text(p, key, where)
                     path = f"{where}.{key}" if where else str(key)
                 else:
                     path = f"{where}[{key}]"
                 stack.append((item, path, depth + 1))
+
+
+def _check_text(p: str | os.PathLike[str], text: str, where: str) -> None:
+    """Refuse a string UTF-8 cannot hold: JSON's ``"\\ud800"`` parses to a lone surrogate,
+    which no output (HTML, C comments, the terminal) can write."""
+    if text.isascii():
+        return
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise HallcalInputError(
+            f"{p}: key '{where or '(top level)'}' holds a lone UTF-16 surrogate (\\ud800 to "
+            "\\udfff without its pair), not a character"
+        ) from None
 
 
 def _nested_too_deeply(p: str | os.PathLike[str]) -> HallcalInputError:
@@ -693,8 +711,14 @@ def read_json(path: str | os.PathLike[str]) -> Any:
         Missing file, invalid UTF-8, invalid JSON (with its line and column), a file above the
         size or depth limit, or a number out of range (with its key path).
     """
+    return _read_json_raw(path)[0]
+
+
+def _read_json_raw(path: str | os.PathLike[str]) -> tuple[Any, bytes]:
+    """:func:`read_json`, also returning the bytes it parsed (for their SHA-256)."""
     p = _existing_file(path)
-    text = _decode_text(p, _read_bytes(p, limit=MAX_JSON_BYTES, what="a JSON file"))
+    raw = _read_bytes(p, limit=MAX_JSON_BYTES, what="a JSON file")
+    text = _decode_text(p, raw)
     try:
         data = json.loads(text, parse_constant=_reject_constant)
     except json.JSONDecodeError as exc:
@@ -706,4 +730,4 @@ def read_json(path: str | os.PathLike[str]) -> Any:
     except RecursionError:
         raise _nested_too_deeply(p) from None
     _check_parsed(p, data)
-    return data
+    return data, raw
