@@ -18,6 +18,7 @@ import os
 __all__ = [
     "MAX_ABS_VALUE",
     "MAX_BENCH_ELECTRICAL_HARMONICS",
+    "MAX_COGGING_ORDERS",
     "MAX_COLUMNS",
     "MAX_DATASET_VALUES",
     "MAX_DELAY_SAMPLES",
@@ -27,7 +28,10 @@ __all__ = [
     "MAX_JSON_BYTES",
     "MAX_JSON_DEPTH",
     "MAX_KERNEL_POINTS",
+    "MAX_LENGTHSCALE",
     "MAX_LUT_POINTS",
+    "MAX_PLAN_SAMPLES",
+    "MAX_PLAN_SPEEDS",
     "MAX_POLE_PAIRS",
     "MAX_POWERUP_GRID",
     "MAX_PROJECTION_CONDITION",
@@ -38,6 +42,7 @@ __all__ = [
     "MAX_TEXT_FIELD",
     "MAX_WORK_BYTES",
     "MIN_HALL_MAGNITUDE",
+    "MIN_LENGTHSCALE",
     "MIN_LUT_POINTS",
     "SPIKE_RATIO",
     "check_hall_scale",
@@ -65,6 +70,24 @@ MAX_HARMONIC = 8 * MAX_POLE_PAIRS
 #: 3e10 flops per iteration, and the sensitivity pass over the paper's 104 000 samples carries
 #: 3075 sensitivities per state and sample: minutes per iteration, the most that is useful.
 MAX_HARMONICS = 512
+
+#: Orders of ``[model] cogging = [...]`` (periods per revolution, each at most MAX_HARMONIC).
+#: A motor's cogging sits at the least common multiple of slots and poles and a few of its
+#: multiples: a handful of orders; 64 keeps every message that lists them (and the artifact's
+#: texts, at most MAX_TEXT_FIELD characters) short, and the joint fit's 2 per order small.
+MAX_COGGING_ORDERS = 64
+
+#: ``hallcal plan``: candidate speeds, and samples simulated over all of them (each candidate
+#: simulates its whole ramp: about a million samples a second, 100 bytes a sample at peak).
+MAX_PLAN_SPEEDS = 100
+MAX_PLAN_SAMPLES = 20_000_000
+
+#: Range of a fixed kernel lengthscale l [rad] (``[model] lengthscale``). The kernel's distances
+#: |x - x'| of x = [sin y, cos y] are at most 2: l = 1e3 is a constant kernel to 1e-6 and
+#: l = 1e-3 is below the spacing 2 pi / m of the largest m; beyond, 1 / l^2 under- or
+#: overflows (l = 1e-300 divided by zero, 1e300 overflowed).
+MIN_LENGTHSCALE = 1e-3
+MAX_LENGTHSCALE = 1e3
 
 #: Kernel centres m (``[model] points``). The kernel model is a Fourier model with harmonics up to
 #: m / 2, so m = 2 x MAX_HARMONIC reaches the same highest harmonic; the paper used 400.
