@@ -208,19 +208,38 @@ def _c_api(folder: Path) -> tuple[set[str], set[str]]:
     return symbols, macros
 
 
+def _selected(request: pytest.FixtureRequest) -> list[Case]:
+    """The cases this session runs (``-k`` selects some: only those are built and run)."""
+    chosen = {
+        item.callspec.params.get("case").id
+        for item in request.session.items
+        if hasattr(item, "callspec") and isinstance(item.callspec.params.get("case"), Case)
+    }
+    chosen |= {
+        item.callspec.params["case_id"]
+        for item in request.session.items
+        if hasattr(item, "callspec") and "case_id" in item.callspec.params
+    }
+    return [c for c in CASES if c.id in chosen]
+
+
 @pytest.fixture(scope="module")
-def hostile(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
+def hostile(
+    tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest
+) -> Iterator[dict[str, Any]]:
     """Build every case's inputs, run them all, and keep the results by case id."""
     d = tmp_path_factory.mktemp("hostile")
     base = _build_base(d)
     api = _c_api(d / "fw") if CC else (set(), set())
     t0 = time.perf_counter()
     manifest = []
-    for case in CASES:
+    for case in _selected(request):
         folder = d / "cases" / re.sub(r"[^A-Za-z0-9_.-]", "_", case.id)
         folder.mkdir(parents=True)
         args = case.build(folder, base)
-        manifest.append({"id": case.id, "args": args, "cwd": str(folder), "watch": ["."]})
+        manifest.append(
+            {"id": case.id, "args": args, "cwd": str(folder), "watch": ["."], "fault": case.fault}
+        )
     build_seconds = time.perf_counter() - t0
     t0 = time.perf_counter()
     results = _run_workers(manifest, d)
@@ -255,7 +274,9 @@ def test_hostile_case(case: Case, hostile: dict[str, Any]) -> None:
     assert r["maxrss_mb"] * 2**20 <= CASE_BYTES, f"resident memory {r['maxrss_mb']:.0f} MB"
     outcome = Outcome(r["exit_code"], r["stdout"], r["stderr"], r["exception"], r["seconds"])
     new = {Path(p) for p in r["new_files"]}
-    problems = contract_violations(outcome, new_files=new, expected_exits=case.expect)
+    problems = contract_violations(
+        outcome, new_files=new, expected_exits=case.expect, changed_files=r["changed_files"]
+    )
     if r["seconds"] > CASE_SECONDS:
         problems.append(f"took {r['seconds']:.1f} s, above {CASE_SECONDS:.0f} s")
     if case.message and outcome.exit_code != 0:
