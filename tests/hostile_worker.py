@@ -46,26 +46,30 @@ def _fault(fault: dict | None) -> Iterator[None]:
     from hallcal.io import files
 
     saved_limit = resource.getrlimit(resource.RLIMIT_FSIZE)
-    original = files._create_temporary
+    # where hallcal's writers create their temporary files (before issue 29: tempfile.mkstemp)
+    owner, name = (files, "_create_temporary")
+    if not hasattr(files, name):
+        owner, name = (files.tempfile, "mkstemp")
+    original = getattr(owner, name)
     count = [0]
 
-    def create(target):  # noqa: ANN001, ANN202
+    def create(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
         count[0] += 1
         if count[0] == fault.get("at_write"):
             if fault.get("interrupt"):
                 raise KeyboardInterrupt
             code = int(fault["errno"])
-            raise files.write_error(target, OSError(code, os.strerror(code)))
-        return original(target)
+            raise OSError(code, os.strerror(code))
+        return original(*args, **kwargs)
 
     if "fsize" in fault:
         resource.setrlimit(resource.RLIMIT_FSIZE, (int(fault["fsize"]), saved_limit[1]))
     if "at_write" in fault:
-        files._create_temporary = create
+        setattr(owner, name, create)
     try:
         yield
     finally:
-        files._create_temporary = original
+        setattr(owner, name, original)
         resource.setrlimit(resource.RLIMIT_FSIZE, saved_limit)
 
 

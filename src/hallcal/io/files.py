@@ -117,11 +117,9 @@ def _create_temporary(target: Path) -> Path:
             fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o600)
         except FileExistsError:
             continue
-        except OSError as exc:
-            raise write_error(target, exc) from None
         os.close(fd)
         return tmp
-    raise HallcalInputError(f"{target}: cannot write (no free temporary name)")
+    raise FileExistsError(errno.EEXIST, "no free temporary name")
 
 
 @dataclasses.dataclass
@@ -276,7 +274,10 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     directory = target.parent
     if not directory.is_dir():
         raise HallcalInputError(f"{target}: directory '{directory}' does not exist")
-    tmp = _create_temporary(target)
+    try:
+        tmp = _create_temporary(target)
+    except OSError as exc:
+        raise write_error(target, exc) from None
     try:
         try:
             yield tmp
