@@ -78,6 +78,13 @@ def _handle_errors(func: Callable[..., Any]) -> Callable[..., Any]:
         except HallcalError as exc:
             click.echo(f"hallcal: error: {_one_line(exc)}", err=True)
             sys.exit(exc.exit_status)
+        except MemoryError:  # a step the budgets do not cover: one line, not a traceback
+            click.echo(
+                "hallcal: error: out of memory: the input is too large for the memory this "
+                "process may use (a shorter recording, or a smaller model)",
+                err=True,
+            )
+            sys.exit(EXIT_INPUT)
         except OSError as exc:  # a write the writers did not see fail (no space for a folder)
             from hallcal.io.files import WRITE_ERRNOS, write_error
 
@@ -405,10 +412,15 @@ def inspect(data: str, setup_path: str | None, pole_pairs: int | None) -> None:
     start/stop to use for an open-loop calibration.
     """
     from hallcal.io import read_dataset
+    from hallcal.limits import check_command_samples
     from hallcal.pipeline.inspect import inspect_recording
 
     setup = None if setup_path is None else _setup(setup_path)
     ds = read_dataset(data, required=("d1", "d2", "d3"))
+    try:
+        check_command_samples(ds.n_samples, "inspect")
+    except ValueError as exc:
+        raise HallcalInputError(f"{data}: {exc}") from None
     found = inspect_recording(ds, setup=setup, pole_pairs=pole_pairs)
     for line in found.lines():
         (_err if line.startswith(("warning", "note")) else _out).print(line)

@@ -16,6 +16,8 @@ import math
 import os
 
 __all__ = [
+    "BYTES_PER_SAMPLE",
+    "COMMAND_MEMORY_BYTES",
     "MAX_ABS_VALUE",
     "MAX_BENCH_ELECTRICAL_HARMONICS",
     "MAX_COGGING_ORDERS",
@@ -45,6 +47,7 @@ __all__ = [
     "MIN_LENGTHSCALE",
     "MIN_LUT_POINTS",
     "SPIKE_RATIO",
+    "check_command_samples",
     "check_hall_scale",
     "check_work_memory",
     "work_memory_budget",
@@ -76,6 +79,52 @@ MAX_HARMONICS = 512
 #: multiples: a handful of orders; 64 keeps every message that lists them (and the artifact's
 #: texts, at most MAX_TEXT_FIELD characters) short, and the joint fit's 2 per order small.
 MAX_COGGING_ORDERS = 64
+
+#: Memory budget of one command that runs over a recording sample by sample [bytes]: the
+#: recording and the step's work arrays, beyond the interpreter and its libraries.
+COMMAND_MEMORY_BYTES = 1_500_000_000
+
+#: Peak resident bytes per sample of those commands, measured on this machine (peak RSS at 1e6
+#: and 4e6 samples, the slope, rounded up; benchmarks/bench_memory.txt): the recording's eight
+#: columns, the angles, the validation's sort and spectrum. ``--absolute`` evaluates the
+#: power-up likelihood of every pole pair at every sample.
+BYTES_PER_SAMPLE: dict[str, int] = {
+    "reconstruct": 200,
+    "reconstruct --absolute": 1300,
+    "inspect": 240,
+    "simulate": 110,
+}
+
+
+def check_command_samples(
+    samples: float, command: str, *, hint: str = "split the recording"
+) -> None:
+    """Raise :class:`ValueError` when `samples` would take `command` over its memory budget.
+
+    Parameters
+    ----------
+    samples : float
+        Samples of the recording (or of the run to simulate).
+    command : str
+        A key of :data:`BYTES_PER_SAMPLE`.
+    hint : str, keyword-only
+        What the user can change.
+
+    Raises
+    ------
+    ValueError
+        ``"N samples: COMMAND needs about X GB for them, above its budget of 1.5 GB (at most M
+        samples)"``.
+    """
+    per = BYTES_PER_SAMPLE[command]
+    if not samples * per <= COMMAND_MEMORY_BYTES:
+        most = COMMAND_MEMORY_BYTES // per
+        raise ValueError(
+            f"{samples:.4g} samples: {command} needs about {samples * per / 1e9:.2g} GB for "
+            f"them, above its memory budget of {COMMAND_MEMORY_BYTES / 1e9:g} GB (at most "
+            f"{most} samples: {hint})"
+        )
+
 
 #: ``hallcal plan``: candidate speeds, and samples simulated over all of them (each candidate
 #: simulates its whole ramp: about a million samples a second, 100 bytes a sample at peak).

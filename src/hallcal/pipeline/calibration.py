@@ -25,6 +25,7 @@ from hallcal.errors import CalibrationRefused, HallcalInputError
 from hallcal.io.artifact import ARTIFACT_FORMAT, ArtifactData, validate_artifact, write_artifact
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
+from hallcal.limits import check_command_samples
 from hallcal.pipeline.powerup import (
     identifiability_from_artifact,
     reconstruct_absolute,
@@ -548,6 +549,7 @@ def reconstruct_with(lut: LUT, dataset: Dataset, *, y_initial: float = 0.0) -> R
     if not lut.bijective:
         raise CalibrationRefused("the lookup table is not bijective; refusing to use it")
     dataset.require("d1", "d2", "d3")
+    _within_budget(dataset, "reconstruct")
     yi, ys = lut.reconstruct(dataset["d1"], dataset["d2"], dataset["d3"], y_initial=y_initial)
     val, notes = None, ()
     if "y_ref" in dataset:
@@ -563,8 +565,17 @@ def _scored(score: Any) -> tuple[Validation | None, tuple[str, ...]]:
         return None, (f"warning: validation skipped: {exc}",)
 
 
+def _within_budget(dataset: Dataset, command: str) -> None:
+    """The recording fits the command's memory budget (:data:`~hallcal.limits.BYTES_PER_SAMPLE`)."""
+    try:
+        check_command_samples(dataset.n_samples, command)
+    except ValueError as exc:
+        raise HallcalInputError(f"{dataset.source}: {exc}", source=dataset.source) from None
+
+
 def _reconstruct_absolute(cal: Calibration, dataset: Dataset) -> Reconstruction:
     """``Calibration.reconstruct(absolute=True)``: see :mod:`hallcal.pipeline.powerup`."""
+    _within_budget(dataset, "reconstruct --absolute")
     out = reconstruct_absolute(cal.flux, cal.lut, cal.identifiability, dataset.d)
     validation, notes = None, ()
     if "y_ref" in dataset:
