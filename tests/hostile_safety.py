@@ -157,7 +157,6 @@ def safety_cases() -> list[Case]:
     c("ctrl-c-export-c", _old_export, export, (ABORTED,),
       fault={"at_write": 2, "interrupt": True})  # fmt: skip
     c("efbig-report", None, report, msg="File too large", fault={"fsize": 150000})
-    c("enospc-report", None, report, msg="No space left", fault={"at_write": 7, "errno": enospc})
     c("ctrl-c-report", None, report, (ABORTED,), fault={"at_write": 3, "interrupt": True})
     c("enospc-bla", None, [*bla, "--out", "o.json"], msg="No space left",
       fault={"at_write": 2, "errno": enospc})  # fmt: skip

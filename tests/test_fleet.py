@@ -388,7 +388,7 @@ def test_a_crashed_worker_fails_its_motor_only(fleet_dir, tmp_path):
         cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
     rows = {r["motor_id"]: r for r in table.to_pylist()}
     assert rows["m02"]["status"] == "failed" and "worker crashed" in rows["m02"]["message"]
-    assert all(rows[m]["status"] == "ok" for m in ("m00", "m01", "m04"))
+    assert all(rows[m]["status"] == "ok" for m in ("m00", "m01", "m04")), rows
     record = json.loads((tmp_path / "out" / "m02" / RECORD_NAME).read_text())
     assert record["retry"] is True  # a crash is retried by the next run, not reused
     again = run_fleet(

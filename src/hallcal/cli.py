@@ -145,7 +145,7 @@ def _output_dir(path: str) -> Path:
     from hallcal.io import check_outputs
 
     out = Path(path)
-    check_outputs([out])  # a name longer than the file system allows
+    check_outputs([], folders=[out])  # a name longer than the file system allows
     if out.exists():
         if not out.is_dir():
             raise HallcalInputError(f"{out}: exists and is not a directory")
@@ -172,9 +172,7 @@ def _output_file(path: str, *, dataset: bool = False) -> Path:
     from hallcal.io import check_outputs
 
     out = Path(path)
-    check_outputs([out])  # a name longer than the file system allows
-    if out.is_dir():
-        raise HallcalInputError(f"{out}: is a directory")
+    check_outputs([out])  # a folder in the way, a name longer than the file system allows
     if dataset:
         from hallcal.io import DATASET_EXTENSIONS
 

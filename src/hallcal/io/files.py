@@ -326,9 +326,9 @@ def check_outputs(
 
     An output is refused when it is an input (the same file: the same inode, also through a
     symbolic or hard link, ``..`` or another spelling of the path), when two outputs are the
-    same file (``bla --out b.png`` would write its Bode plot over its JSON), when one of its
-    names is longer than the file system allows, or when an input lies inside an output
-    `folder` that the command fills.
+    same file (``bla --out b.png`` would write its Bode plot over its JSON), when a folder is
+    where it goes, when one of its names is longer than the file system allows, or when an
+    input lies inside an output `folder` that the command fills.
 
     Parameters
     ----------
@@ -347,8 +347,8 @@ def check_outputs(
     ins = [Path(p) for p in inputs if p is not None]
     in_ids = {i: _identity(i) for i in ins}
     in_real = {i: _real(i) for i in ins}
-    seen: dict[Path, Path] = {}
-    for out in map(Path, outputs):
+    outs, dirs = [Path(p) for p in outputs], [Path(p) for p in folders]
+    for out in outs + dirs:
         for part in out.parts:
             limit = _name_max(_nearest_folder(out))
             if len(os.fsencode(part)) > limit:
@@ -356,6 +356,10 @@ def check_outputs(
                     f"{out}: cannot write (the name '{part[:40]}...' has "
                     f"{len(os.fsencode(part))} bytes, above the limit of {limit})"
                 )
+    seen: dict[Path, Path] = {}
+    for out in outs:
+        if out.is_dir() and not out.is_symlink():
+            raise HallcalInputError(f"{out}: cannot write (Is a directory)")
         ident, real = _identity(out), _real(out)
         for i in ins:
             if (ident is not None and ident == in_ids[i]) or real == in_real[i]:
@@ -369,7 +373,7 @@ def check_outputs(
                 f"{out}): choose another output name"
             )
         seen[real] = out
-    for folder in map(Path, folders):
+    for folder in dirs:
         root = _real(folder)
         for i in ins:
             if in_real[i] == root or root in in_real[i].parents:
