@@ -85,13 +85,13 @@ def _handle_errors(func: Callable[..., Any]) -> Callable[..., Any]:
                 err=True,
             )
             sys.exit(EXIT_INPUT)
-        except OSError as exc:  # a write the writers did not see fail (no space for a folder)
-            from hallcal.io.files import WRITE_ERRNOS, write_error
+        except OSError as exc:  # one the writers did not see (no space for a folder)
+            from hallcal.io.files import WRITE_ERRNOS
 
             if exc.errno not in WRITE_ERRNOS:
                 raise
             where = exc.filename if exc.filename is not None else "output"
-            click.echo(f"hallcal: error: {_one_line(write_error(where, exc))}", err=True)
+            click.echo(f"hallcal: error: {where}: {_one_line(exc.strerror or exc)}", err=True)
             sys.exit(EXIT_INPUT)
 
     return wrapper
