@@ -4,8 +4,9 @@ Everything hallcal writes goes through :func:`atomic_write` (a temporary file in
 directory, then :func:`os.replace`), so an interrupted or failed write never leaves a half-written
 output behind; inside :func:`output_set` the files of one command appear together or not at all,
 and a write error is one line naming the file and the cause (:func:`write_error`).
-:func:`check_outputs` refuses, before any work, an output that is an input or another output. Every mistake in an input raises :class:`hallcal.errors.HallcalInputError` with a
-one-line message that names the file. Nothing here unpickles anything.
+:func:`check_outputs` refuses, before any work, an output that is an input or another output.
+Every mistake in an input raises :class:`hallcal.errors.HallcalInputError` with a one-line
+message that names the file. Nothing here unpickles anything.
 """
 
 from __future__ import annotations
