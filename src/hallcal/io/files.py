@@ -195,6 +195,11 @@ def output_set() -> Iterator[None]:
     the block are removed again when empty, and the previous outputs stay as they were,
     complete. A nested block joins the outer set.
 
+    Yields
+    ------
+    None
+        The block runs with the set collecting its writes.
+
     Examples
     --------
     >>> with output_set():  # doctest: +SKIP
@@ -224,6 +229,16 @@ def output_set() -> Iterator[None]:
 def make_folder(path: str | os.PathLike[str]) -> Path:
     """Create a folder (and its parents) for outputs; inside :func:`output_set`, a failed set
     removes the folders it created.
+
+    Parameters
+    ----------
+    path : path-like
+        The folder.
+
+    Returns
+    -------
+    pathlib.Path
+        The folder.
 
     Raises
     ------
