@@ -209,6 +209,9 @@ def safety_cases() -> list[Case]:
       msg="surrogate")  # fmt: skip
     c("sem-status-report", sem_status, ["report", "u.json", "cal.npz", "--out", "rep"],
       msg="sem_status")  # fmt: skip
+    c("empty-objects-report",  # 2 GB of Python objects parsed from a 3 MB file
+      lambda f, b: (f / "u.json").write_text("[" + "{}," * 1_000_001 + "{}]"),
+      ["report", "u.json", "cal.npz", "--out", "rep"], msg="above the limit")  # fmt: skip
 
     # -- limits before work ---------------------------------------------------------------------
     for name, model in {

@@ -28,6 +28,7 @@ __all__ = [
     "MAX_HARMONICS",
     "MAX_ITERATIONS",
     "MAX_JSON_BYTES",
+    "MAX_JSON_CONTAINERS",
     "MAX_JSON_DEPTH",
     "MAX_KERNEL_POINTS",
     "MAX_LENGTHSCALE",
@@ -218,6 +219,11 @@ MAX_JSON_BYTES = 64 * 2**20
 #: Nesting depth of JSON and TOML files. The artifact nests 5 levels (diagnostics.adequacy...);
 #: the parsers recurse per level, so a deeply nested file would exhaust the stack.
 MAX_JSON_DEPTH = 32
+
+#: JSON objects and arrays of one file (counted as ``{`` and ``[`` before parsing): Python
+#: takes about 100 bytes for each, so 64 MiB of ``{},`` would parse to 2 GB; an artifact holds
+#: a few hundred.
+MAX_JSON_CONTAINERS = 1_000_000
 
 #: Size of a setup file (TOML): a setup is a few dozen lines.
 MAX_SETUP_BYTES = 2**20

@@ -29,7 +29,7 @@ from typing import IO, Any, Literal, NoReturn
 import numpy as np
 
 from hallcal.errors import HallcalInputError
-from hallcal.limits import MAX_JSON_BYTES, MAX_JSON_DEPTH
+from hallcal.limits import MAX_JSON_BYTES, MAX_JSON_CONTAINERS, MAX_JSON_DEPTH
 
 __all__ = [
     "atomic_path",
@@ -741,6 +741,12 @@ def _read_json_raw(path: str | os.PathLike[str]) -> tuple[Any, bytes]:
     """:func:`read_json`, also returning the bytes it parsed (for their SHA-256)."""
     p = _existing_file(path)
     raw = _read_bytes(p, limit=MAX_JSON_BYTES, what="a JSON file")
+    containers = raw.count(b"{") + raw.count(b"[")  # at least as many as the parser would make
+    if containers > MAX_JSON_CONTAINERS:
+        raise HallcalInputError(
+            f"{p}: {containers} JSON objects and arrays, above the limit of "
+            f"{MAX_JSON_CONTAINERS} (parsing them would take about {containers * 1e-7:.2g} GB)"
+        )
     text = _decode_text(p, raw)
     try:
         data = json.loads(text, parse_constant=_reject_constant)
