@@ -1,9 +1,11 @@
 """The standing adversarial suite: hostile files, setups, artifacts, paths and options.
 
-Every case of :mod:`hostile_cases` (800 of them, each class the issue "Hostile input" lists) runs
-through the command line and must keep the contract of :mod:`hostile_support`: exit status 0, 2
-or 3 as the case expects (2 for a bad input, and a corrupt or truncated file said to be one),
-exactly one error line, never a traceback or a warning, never output left behind by a failure;
+Every case of :mod:`hostile_cases` (about 960, each class the issues "Hostile input" and 29 list;
+:mod:`hostile_safety` for output safety) runs through the command line and must keep the contract
+of :mod:`hostile_support`: exit status 0, 2 or 3 as the case expects (2 for a bad input, and a
+corrupt or truncated file said to be one; 4 for a fleet with a failed motor, 130 after Ctrl-C),
+exactly one error line, never a traceback or a warning, never output left behind by a failure
+and no existing file changed by it (an input, the previous outputs);
 export-c's C must compile with no symbol or macro beyond those of a valid export; a report must
 escape the artifact's texts. Each case must finish within 30 s and 2 GB.
 
@@ -12,7 +14,8 @@ worker processes (:mod:`hostile_worker`) that call the command line in-process, 
 the other. The workers run under an address-space limit (``RLIMIT_AS`` = 2 GiB: a case that
 allocates more fails with MemoryError) and a watchdog ends a worker whose case runs over 30 s
 (the case fails as a timeout; the worker restarts with the next one). A sample of cases per
-subcommand also runs as a real ``python -m hallcal.cli`` subprocess under the same limits.
+subcommand also runs as a real ``python -m hallcal.cli`` subprocess under the same limits. With
+``-k``, only the selected cases are built and run.
 """
 
 from __future__ import annotations
@@ -399,5 +402,18 @@ def test_the_suite_covers_every_class_and_subcommand() -> None:
         "option-export-c-adc-scale-1e30",
         "option-export-c-path-splice",
         "option-export-c-path-trigraph",
+        # issue 29: outputs that are inputs, output sets under faults, the fleet's edges
+        "safety-out-symlink-calibrate",
+        "safety-out-png-collides-bla",
+        "safety-efbig-export-c",
+        "safety-enospc-export-c",
+        "safety-ctrl-c-report",
+        "safety-name-255-reconstruct",
+        "safety-standstill-reconstruct",
+        "safety-surrogate-report",
+        "safety-empty-objects-report",
+        "safety-revolutions-1e6-plan",
+        "safety-dev-zero-fleet",
+        "safety-locked-fleet",
     ):
         assert cls in ids, cls
