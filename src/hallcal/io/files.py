@@ -391,14 +391,17 @@ def check_outputs(
                 f"{out}): choose another output name"
             )
         seen[real] = out
+    inside: dict[Path, Path] = {}  # every folder that holds an input (or is one) -> the input
+    for i in ins:
+        for q in (in_real[i], *in_real[i].parents):
+            inside.setdefault(q, i)
     for folder in dirs:
-        root = _real(folder)
-        for i in ins:
-            if in_real[i] == root or root in in_real[i].parents:
-                raise HallcalInputError(
-                    f"{folder}: holds the input {i}, which the output could overwrite: choose "
-                    "another output folder"
-                )
+        held = inside.get(_real(folder))
+        if held is not None:
+            raise HallcalInputError(
+                f"{folder}: holds the input {held}, which the output could overwrite: choose "
+                "another output folder"
+            )
 
 
 def _nearest_folder(p: Path) -> Path:
