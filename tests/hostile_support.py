@@ -24,18 +24,23 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-#: The one line a failure ends with.
-ERROR_LINE = re.compile(r"^hallcal: (error|refused): \S")
+#: The one line a failure ends with (``hallcal: aborted`` after Ctrl-C, exit status 130).
+ERROR_LINE = re.compile(r"^hallcal: ((error|refused): \S|aborted$)")
 #: Lines a command may print on stderr before it fails: progress (elapsed seconds and a step),
-#: and the calibration's messages (plant note, warnings) and export notes.
-ALLOWED_BEFORE_ERROR = re.compile(r"^(\s*\d+\.\d s  \S|plant: |warning: |note: )")
+#: and the calibration's messages (plant note, warnings) and export notes; a fleet's motor lines.
+ALLOWED_BEFORE_ERROR = re.compile(
+    r"^(\s*\d+\.\d s  \S|plant: |warning: |note: |\S+: (failed|refused): )"
+)
 #: A Python warning printed by the warnings module ("file.py:12: RuntimeWarning: ...").
 PYTHON_WARNING = re.compile(r"\b[A-Z]\w*Warning: ")
 #: Temporary files of hallcal's atomic writes (hallcal.io.files.atomic_path) and codegen's.
 TEMPORARY = re.compile(r"^\..*\.tmp$|\.tmp[^/]*$")
 
-#: Exit statuses the contract allows: success, bad input, refused.
+#: Exit statuses the contract allows: success, bad input, refused (4: a fleet with a motor
+#: refused or failed, 130: interrupted, for the cases that expect them).
 ALLOWED_EXITS = (0, 2, 3)
+#: Exit statuses after which the command's outputs stand (a fleet's summary lists its failures).
+SUCCESS_EXITS = (0, 4)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,11 +102,24 @@ def files_under(paths: Sequence[Path]) -> set[Path]:
     return out
 
 
+def file_states(paths: Sequence[Path]) -> dict[str, tuple[int, int, int]]:
+    """(inode, size, mtime in ns) of every file at or below `paths`: what a command changed."""
+    out: dict[str, tuple[int, int, int]] = {}
+    for f in files_under(paths):
+        try:
+            st = f.lstat()
+        except OSError:
+            continue
+        out[str(f)] = (st.st_ino, st.st_size, st.st_mtime_ns)
+    return out
+
+
 def contract_violations(
     outcome: Outcome,
     *,
     new_files: set[Path],
     expected_exits: Sequence[int] = ALLOWED_EXITS,
+    changed_files: Sequence[str] = (),
 ) -> list[str]:
     """What `outcome` breaks of the contract (module docstring); empty when it keeps it.
 
@@ -110,6 +128,9 @@ def contract_violations(
     outcome : Outcome
     new_files : set of Path
         Files that did not exist before the command, under its outputs and its folder.
+    changed_files : sequence of str
+        Files that existed before and were replaced, changed or removed by the command (a
+        failed command must leave them as they were: an input, a previous complete output).
     expected_exits : sequence of int
         The exit statuses this case may end with (a subset of 0, 2, 3).
 
@@ -134,10 +155,12 @@ def contract_violations(
     temporary = sorted(str(f) for f in new_files if TEMPORARY.search(f.name))
     if temporary:
         problems.append(f"temporary files left behind: {temporary}")
-    if outcome.exit_code == 0:
+    if outcome.exit_code in SUCCESS_EXITS:
         if errors:
-            problems.append(f"exit 0 with an error line: {errors[0]}")
+            problems.append(f"exit {outcome.exit_code} with an error line: {errors[0]}")
         return problems
+    if changed_files:
+        problems.append(f"a failed command changed existing files: {sorted(changed_files)[:5]}")
     if len(errors) != 1:
         problems.append(f"{len(errors)} error lines on stderr, expected 1: {lines[-3:]}")
     elif lines[-1] != errors[0]:

@@ -16,17 +16,62 @@ then reports that case as a timeout and restarts the worker with the remaining c
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import resource
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from hostile_support import files_under, run_in_process  # noqa: E402
+from hostile_support import file_states, files_under, run_in_process  # noqa: E402
+
+
+@contextlib.contextmanager
+def _fault(fault: dict | None) -> Iterator[None]:
+    """A case's injected fault, in this process, for the duration of the case.
+
+    ``{"fsize": n}``: a file-size limit of n bytes (RLIMIT_FSIZE: writes past it fail with
+    EFBIG; Python ignores SIGXFSZ); ``{"at_write": k, "errno": e}``: the k-th temporary file of
+    hallcal's writers fails to open with errno e (ENOSPC, EACCES, EROFS...);
+    ``{"at_write": k, "interrupt": true}``: Ctrl-C (KeyboardInterrupt) there instead.
+    """
+    if not fault:
+        yield
+        return
+    from hallcal.io import files
+
+    saved_limit = resource.getrlimit(resource.RLIMIT_FSIZE)
+    # where hallcal's writers create their temporary files (before issue 29: tempfile.mkstemp)
+    owner, name = (files, "_create_temporary")
+    if not hasattr(files, name):
+        owner, name = (files.tempfile, "mkstemp")
+    original = getattr(owner, name)
+    count = [0]
+
+    def create(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        count[0] += 1
+        if count[0] == fault.get("at_write"):
+            if fault.get("interrupt"):
+                raise KeyboardInterrupt
+            code = int(fault["errno"])
+            raise OSError(code, os.strerror(code))
+        return original(*args, **kwargs)
+
+    if "fsize" in fault:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (int(fault["fsize"]), saved_limit[1]))
+    if "at_write" in fault:
+        setattr(owner, name, create)
+    try:
+        yield
+    finally:
+        setattr(owner, name, original)
+        resource.setrlimit(resource.RLIMIT_FSIZE, saved_limit)
+
 
 #: Exit status of the worker when the watchdog ends it (the parent looks for it).
 WATCHDOG_EXIT = 86
@@ -76,11 +121,15 @@ def main() -> None:
             os.chdir(case["cwd"])
             watch = [Path(case["cwd"]) / w for w in case["watch"]]
             before = files_under(watch)
+            states = file_states(watch)
             state["id"] = case["id"]
             state["started"] = time.monotonic()
-            outcome = run_in_process(case["args"])
+            with _fault(case.get("fault")):
+                outcome = run_in_process(case["args"])
             state["started"] = None
             new = sorted(str(p) for p in files_under(watch) - before)
+            after = file_states(watch)
+            changed = sorted(f for f, st in states.items() if after.get(f) != st)
             result = {
                 "id": case["id"],
                 "exit_code": outcome.exit_code,
@@ -89,6 +138,7 @@ def main() -> None:
                 "exception": outcome.exception,
                 "seconds": outcome.seconds,
                 "new_files": new,
+                "changed_files": changed,
                 "maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
                 "vm_mb": _vm_mb(),
             }

@@ -1,9 +1,11 @@
 """The standing adversarial suite: hostile files, setups, artifacts, paths and options.
 
-Every case of :mod:`hostile_cases` (800 of them, each class the issue "Hostile input" lists) runs
-through the command line and must keep the contract of :mod:`hostile_support`: exit status 0, 2
-or 3 as the case expects (2 for a bad input, and a corrupt or truncated file said to be one),
-exactly one error line, never a traceback or a warning, never output left behind by a failure;
+Every case of :mod:`hostile_cases` (about 960, each class the issues "Hostile input" and 29 list;
+:mod:`hostile_safety` for output safety) runs through the command line and must keep the contract
+of :mod:`hostile_support`: exit status 0, 2 or 3 as the case expects (2 for a bad input, and a
+corrupt or truncated file said to be one; 4 for a fleet with a failed motor, 130 after Ctrl-C),
+exactly one error line, never a traceback or a warning, never output left behind by a failure
+and no existing file changed by it (an input, the previous outputs);
 export-c's C must compile with no symbol or macro beyond those of a valid export; a report must
 escape the artifact's texts. Each case must finish within 30 s and 2 GB.
 
@@ -12,7 +14,8 @@ worker processes (:mod:`hostile_worker`) that call the command line in-process, 
 the other. The workers run under an address-space limit (``RLIMIT_AS`` = 2 GiB: a case that
 allocates more fails with MemoryError) and a watchdog ends a worker whose case runs over 30 s
 (the case fails as a timeout; the worker restarts with the next one). A sample of cases per
-subcommand also runs as a real ``python -m hallcal.cli`` subprocess under the same limits.
+subcommand also runs as a real ``python -m hallcal.cli`` subprocess under the same limits. With
+``-k``, only the selected cases are built and run.
 """
 
 from __future__ import annotations
@@ -208,19 +211,38 @@ def _c_api(folder: Path) -> tuple[set[str], set[str]]:
     return symbols, macros
 
 
+def _selected(request: pytest.FixtureRequest) -> list[Case]:
+    """The cases this session runs (``-k`` selects some: only those are built and run)."""
+    chosen = {
+        item.callspec.params.get("case").id
+        for item in request.session.items
+        if hasattr(item, "callspec") and isinstance(item.callspec.params.get("case"), Case)
+    }
+    chosen |= {
+        item.callspec.params["case_id"]
+        for item in request.session.items
+        if hasattr(item, "callspec") and "case_id" in item.callspec.params
+    }
+    return [c for c in CASES if c.id in chosen]
+
+
 @pytest.fixture(scope="module")
-def hostile(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
+def hostile(
+    tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest
+) -> Iterator[dict[str, Any]]:
     """Build every case's inputs, run them all, and keep the results by case id."""
     d = tmp_path_factory.mktemp("hostile")
     base = _build_base(d)
     api = _c_api(d / "fw") if CC else (set(), set())
     t0 = time.perf_counter()
     manifest = []
-    for case in CASES:
+    for case in _selected(request):
         folder = d / "cases" / re.sub(r"[^A-Za-z0-9_.-]", "_", case.id)
         folder.mkdir(parents=True)
         args = case.build(folder, base)
-        manifest.append({"id": case.id, "args": args, "cwd": str(folder), "watch": ["."]})
+        manifest.append(
+            {"id": case.id, "args": args, "cwd": str(folder), "watch": ["."], "fault": case.fault}
+        )
     build_seconds = time.perf_counter() - t0
     t0 = time.perf_counter()
     results = _run_workers(manifest, d)
@@ -255,7 +277,9 @@ def test_hostile_case(case: Case, hostile: dict[str, Any]) -> None:
     assert r["maxrss_mb"] * 2**20 <= CASE_BYTES, f"resident memory {r['maxrss_mb']:.0f} MB"
     outcome = Outcome(r["exit_code"], r["stdout"], r["stderr"], r["exception"], r["seconds"])
     new = {Path(p) for p in r["new_files"]}
-    problems = contract_violations(outcome, new_files=new, expected_exits=case.expect)
+    problems = contract_violations(
+        outcome, new_files=new, expected_exits=case.expect, changed_files=r["changed_files"]
+    )
     if r["seconds"] > CASE_SECONDS:
         problems.append(f"took {r['seconds']:.1f} s, above {CASE_SECONDS:.0f} s")
     if case.message and outcome.exit_code != 0:
@@ -378,5 +402,18 @@ def test_the_suite_covers_every_class_and_subcommand() -> None:
         "option-export-c-adc-scale-1e30",
         "option-export-c-path-splice",
         "option-export-c-path-trigraph",
+        # issue 29: outputs that are inputs, output sets under faults, the fleet's edges
+        "safety-out-symlink-calibrate",
+        "safety-out-png-collides-bla",
+        "safety-efbig-export-c",
+        "safety-enospc-export-c",
+        "safety-ctrl-c-report",
+        "safety-name-255-reconstruct",
+        "safety-standstill-reconstruct",
+        "safety-surrogate-report",
+        "safety-empty-objects-report",
+        "safety-revolutions-1e6-plan",
+        "safety-dev-zero-fleet",
+        "safety-locked-fleet",
     ):
         assert cls in ids, cls

@@ -1,10 +1,12 @@
 """The ``hallcal`` command line (contract in docs/design.md, "Command line").
 
-Exit status: 0 success; 2 bad input (one line naming the file, column or key; no traceback);
-3 refused (calibration: model inadequate or table not bijective, use ``--force`` to write an
-inadequate model anyway; BLA: the fitted plant model is unstable); 4 (``hallcal fleet`` only)
-at least one motor refused or failed, the others calibrated (their rows in ``summary.csv`` say
-why). Progress and notes go to stderr, results to stdout.
+Exit status: 0 success; 2 bad input (one line naming the file, column or key; no traceback),
+also an output that would overwrite an input and a failed write (a full disk, a file-size limit:
+nothing partial is left); 3 refused (calibration: model inadequate or table not bijective, use
+``--force`` to write an inadequate model anyway; BLA: the fitted plant model is unstable); 4
+(``hallcal fleet`` only) at least one motor refused or failed, the others calibrated (their rows
+in ``summary.csv`` say why); 130 interrupted (Ctrl-C: one line ``hallcal: aborted``, the outputs
+as they were before). Progress and notes go to stderr, results to stdout.
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ from hallcal.limits import MAX_POLE_PAIRS
 EXIT_INPUT = HallcalInputError.exit_status
 EXIT_REFUSED = CalibrationRefused.exit_status
 EXIT_FLEET_INCOMPLETE = 4  # hallcal.fleet.EXIT_INCOMPLETE
+#: Exit status after Ctrl-C (SIGINT): 128 + 2, the shells' convention.
+EXIT_ABORTED = 130
 
 
 class _Stream:
@@ -75,8 +79,35 @@ def _handle_errors(func: Callable[..., Any]) -> Callable[..., Any]:
         except HallcalError as exc:
             click.echo(f"hallcal: error: {_one_line(exc)}", err=True)
             sys.exit(exc.exit_status)
+        except MemoryError:  # a step the budgets do not cover: one line, not a traceback
+            click.echo(
+                "hallcal: error: out of memory: the input is too large for the memory this "
+                "process may use (a shorter recording, or a smaller model)",
+                err=True,
+            )
+            sys.exit(EXIT_INPUT)
+        except OSError as exc:  # one the writers did not see (no space for a folder)
+            from hallcal.io.files import WRITE_ERRNOS
+
+            if exc.errno not in WRITE_ERRNOS:
+                raise
+            where = exc.filename if exc.filename is not None else "output"
+            click.echo(f"hallcal: error: {where}: {_one_line(exc.strerror or exc)}", err=True)
+            sys.exit(EXIT_INPUT)
 
     return wrapper
+
+
+def _guard(
+    outputs: list[str | Path],
+    inputs: list[str | None],
+    *,
+    folders: tuple[str | Path, ...] = (),
+) -> None:
+    """Refuse, before any work, an output that is an input or another output (exit 2)."""
+    from hallcal.io import check_outputs
+
+    check_outputs(outputs, inputs, folders=folders)
 
 
 class _Progress:
@@ -112,7 +143,10 @@ def _output_dir(path: str) -> Path:
     A missing folder is created and removed again (with any missing parents): the command
     creates it only when it has something to write, so a failure leaves nothing behind.
     """
+    from hallcal.io import check_outputs
+
     out = Path(path)
+    check_outputs([], folders=[out])  # a name longer than the file system allows
     if out.exists():
         if not out.is_dir():
             raise HallcalInputError(f"{out}: exists and is not a directory")
@@ -136,9 +170,10 @@ def _output_dir(path: str) -> Path:
 
 def _output_file(path: str, *, dataset: bool = False) -> Path:
     """Check an output file's folder (and a dataset's extension) before any work is done."""
+    from hallcal.io import check_outputs
+
     out = Path(path)
-    if out.is_dir():
-        raise HallcalInputError(f"{out}: is a directory")
+    check_outputs([out])  # a folder in the way, a name longer than the file system allows
     if dataset:
         from hallcal.io import DATASET_EXTENSIONS
 
@@ -155,12 +190,22 @@ def _output_file(path: str, *, dataset: bool = False) -> Path:
     return out
 
 
+class _Aborted(Exception):
+    """Ctrl-C during a command (exit status 130)."""
+
+
 class _Group(click.Group):
     """The command group, with click's own usage errors in hallcal's one-line form.
 
     ``hallcal calibrate`` without ``--out`` prints ``hallcal: error: Missing option '--out'
     (see 'hallcal calibrate --help')`` and exits with status 2, like every other input error.
     """
+
+    def invoke(self, ctx: click.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt:  # before click turns it into Abort with a blank line
+            raise _Aborted from None
 
     def main(self, *args: Any, standalone_mode: bool = True, **kwargs: Any) -> Any:
         if not standalone_mode:
@@ -175,10 +220,28 @@ class _Group(click.Group):
                 message = "no command given"
             click.echo(f"hallcal: error: {message}{hint}", err=True)
             sys.exit(exc.exit_code)
-        except click.exceptions.Abort:
+        except (click.exceptions.Abort, KeyboardInterrupt):
             click.echo("hallcal: aborted", err=True)
-            sys.exit(1)
+            sys.exit(EXIT_ABORTED)
+        except Exception as exc:
+            if not _interrupted(exc):
+                raise
+            click.echo("hallcal: aborted", err=True)
+            sys.exit(EXIT_ABORTED)
         sys.exit(rv if isinstance(rv, int) else 0)
+
+
+def _interrupted(exc: BaseException) -> bool:
+    """Whether `exc` came from Ctrl-C: numba's compiled loops hand a KeyboardInterrupt back as
+    the cause of a SystemError ("returned a result with an exception set")."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt | _Aborted):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
 
 
 def _angle(x: float | None, units: str, pole_pairs: int) -> str:
@@ -238,7 +301,7 @@ def cli() -> None:
     docs/setup-reference.md.
 
     Exit status: 0 success; 2 bad input (one line naming the file, column or key); 3 refused;
-    4 (fleet) at least one motor refused or failed.
+    4 (fleet) at least one motor refused or failed; 130 interrupted (Ctrl-C).
     """
 
 
@@ -286,11 +349,12 @@ def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int
     recording has the encoder column y_ref (the true angle), so it can serve as a validation run.
     """
     from hallcal import pipeline
-    from hallcal.io import write_dataset, write_json
+    from hallcal.io import output_set, write_dataset, write_json
 
     setup = _setup(setup_path)
     _output_file(out, dataset=True)
     _output_file(str(Path(out).with_suffix(".truth.json")))  # the sidecar: both or neither
+    _guard([out, Path(out).with_suffix(".truth.json")], [setup_path])
     prog = _Progress()
     kind = experiment or setup.bench.experiment
     if setup.controller is None:
@@ -303,9 +367,10 @@ def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int
             "and [plant])"
         )
     out_path = Path(out)
-    write_dataset(out_path, run.columns())
     sidecar = out_path.with_suffix(".truth.json")
-    write_json(sidecar, run.truth_dict())
+    with output_set():
+        write_dataset(out_path, run.columns())
+        write_json(sidecar, run.truth_dict())
     e = run.y - run.y0
     _out.print(f"wrote {out_path} ({run.n_samples} samples) and {sidecar}")
     _out.print(
@@ -346,10 +411,15 @@ def inspect(data: str, setup_path: str | None, pole_pairs: int | None) -> None:
     start/stop to use for an open-loop calibration.
     """
     from hallcal.io import read_dataset
+    from hallcal.limits import check_command_samples
     from hallcal.pipeline.inspect import inspect_recording
 
     setup = None if setup_path is None else _setup(setup_path)
     ds = read_dataset(data, required=("d1", "d2", "d3"))
+    try:
+        check_command_samples(ds.n_samples, "inspect")
+    except ValueError as exc:
+        raise HallcalInputError(f"{data}: {exc}") from None
     found = inspect_recording(ds, setup=setup, pole_pairs=pole_pairs)
     for line in found.lines():
         (_err if line.startswith(("warning", "note")) else _out).print(line)
@@ -412,16 +482,18 @@ def bla(data: str, setup_path: str, out: str) -> None:
     the fit). An unstable fit is refused with the [bla] setting to change.
     """
     from hallcal import pipeline
-    from hallcal.io import read_dataset, write_json
+    from hallcal.io import output_set, read_dataset, write_json
 
     setup = _setup(setup_path)
     _output_file(out)
+    _guard([out, Path(out).with_suffix(".png")], [data, setup_path])
     ds = read_dataset(data, required=("r", "u", "y", "realization"))
     res = pipeline.identify_bla(ds, setup, progress=_Progress())
     out_path = Path(out)
-    write_json(out_path, res.to_dict())
     png = out_path.with_suffix(".png")
-    _write_bla_plot(res, png)
+    with output_set():  # the JSON and its Bode plot: both or neither
+        write_json(out_path, res.to_dict())
+        _write_bla_plot(res, png)
     npb, par = res.nonparametric, res.parametric
     _out.print(
         f"BLA of {data}: {_plural(npb.realizations, 'realization')} x "
@@ -502,6 +574,7 @@ def calibrate(
 
     setup = _setup(setup_path)
     _output_file(out)
+    _guard([out], [data, setup_path, bla_data])
     cal = _calibrate(data, setup, bla_data=bla_data, progress=_Progress())
     _print_calibration(cal, units)
     cal.save(out, force=force or setup.model.force)
@@ -626,8 +699,9 @@ def reconstruct(
 
     if absolute and observer:
         raise HallcalInputError("--absolute and --observer cannot be combined")
-    cal = load(artifact)
     _output_file(out, dataset=True)
+    _guard([out], [artifact, data])
+    cal = load(artifact)
     rec = cal.reconstruct(data, absolute=absolute, observer=observer)
     if rec.signals is not None:
         rec.signals.raise_if_failed()  # exit 3: the signals do not fit this calibration
@@ -635,6 +709,7 @@ def reconstruct(
             _err.print(rec.signals.warning)
     write_dataset(out, rec.columns)
     _out.print(f"wrote {out} ({len(rec)} samples)")
+    _notes(rec.messages)
     if rec.identification is not None:
         _print_identification(rec.identification, cal.pole_pairs)
     _print_validation(rec.validation, units, cal.pole_pairs)
@@ -821,19 +896,24 @@ def export_c(
     The API, the plausibility checks and the error bounds: docs/firmware.md.
     """
     from hallcal.api import export_c as _export
-    from hallcal.io import read_artifact
+    from hallcal.io import load_artifact
     from hallcal.pipeline.calibration import require_table
 
-    art = read_artifact(artifact)
     if observer:
         from hallcal.output.codegen.observer import export_observer_c
 
+        _guard([Path(out) / f"{prefix}_obs.{x}" for x in ("h", "c")], [artifact])
+        art = load_artifact(artifact)
         res_obs = export_observer_c(art, _output_dir(out), prefix=f"{prefix}_obs", source=artifact)
         for p in res_obs.paths:
             _echo(f"wrote {p}")
         _echo(f"observer tables: {res_obs.table_points} points per revolution, "
               f"{res_obs.table_bytes} bytes")  # fmt: skip
         return
+    names = [f"{prefix}.h", f"{prefix}.c"]
+    names += [] if no_fixed_point else [f"{prefix}_q.h", f"{prefix}_q.c"]
+    _guard([Path(out) / n for n in names], [artifact])
+    art = load_artifact(artifact)  # its sha256 is the file's, as sha256sum prints it
     require_table(art, artifact)
     out_dir = _output_dir(out)
     res = _export(
@@ -899,6 +979,11 @@ def report(artifact: str, data: str, validation: str | None, out: str, units: st
     from hallcal.output.report import write_report_from_files
 
     _output_dir(out)
+    _guard(
+        [Path(out) / "report.html"],
+        [artifact, data, validation],
+        folders=(Path(out) / "figures",),
+    )
     path = write_report_from_files(
         artifact, data, validation=validation, out_dir=out, progress=_Progress(), units=units
     )
@@ -921,9 +1006,11 @@ def report(artifact: str, data: str, validation: str | None, out: str, units: st
 def demo(out: str, seed: int, no_report: bool) -> None:
     """The paper's simulation study end to end on the built-in defaults."""
     from hallcal.demo import run_demo
+    from hallcal.io import output_set
 
     _output_dir(out)
-    res = run_demo(out, seed=seed, report=not no_report, progress=_Progress())
+    with output_set():  # every file of the demo, or none (Ctrl-C, a full disk)
+        res = run_demo(out, seed=seed, report=not no_report, progress=_Progress())
     for line in res.summary_lines():
         _out.print(line)
 
@@ -1018,7 +1105,8 @@ def fleet(
 
     def progress(row, done: int, total: int) -> None:
         nonlocal task_id
-        if task_id is None:
+        if task_id is None:  # the batch starts: its checks passed, its folder is locked
+            bar.start()
             task_id = bar.add_task("fleet", total=total, counts="")
         if row is None:
             return
@@ -1029,7 +1117,7 @@ def fleet(
         text = " ".join(f"{k} {v}" for k, v in counts.items() if v)
         bar.update(task_id, completed=done, counts=text)
 
-    with bar:
+    try:
         table = run_fleet(
             manifest,
             out,
@@ -1041,6 +1129,9 @@ def fleet(
             report=not no_report,
             progress=progress,
         )
+    finally:
+        if task_id is not None:
+            bar.stop()
     c = summary_counts(table)
     reused = sum(table.column("reused").to_pylist())
     _out.print(
@@ -1059,6 +1150,9 @@ def main() -> None:
     """Console entry point."""
     try:
         cli(prog_name="hallcal")
+    except KeyboardInterrupt:  # between click's handlers (start-up, the last lines)
+        sys.stderr.write("hallcal: aborted\n")
+        sys.exit(EXIT_ABORTED)
     finally:
         # The process ends with the command: move every object left to the cycle collector's
         # permanent generation, so that the interpreter's final collections skip them (the

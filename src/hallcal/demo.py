@@ -19,7 +19,14 @@ from pathlib import Path
 from typing import Any
 
 from hallcal import pipeline
-from hallcal.io import Dataset, default_setup, write_artifact, write_dataset, write_json
+from hallcal.io import (
+    Dataset,
+    default_setup,
+    make_folder,
+    write_artifact,
+    write_dataset,
+    write_json,
+)
 from hallcal.sim.bench import BenchRun
 
 __all__ = ["DemoResult", "run_demo"]
@@ -103,7 +110,7 @@ def run_demo(
     t0 = time.perf_counter()
     say = progress or (lambda m: None)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    make_folder(out)
     truth_setup = default_setup()
     truth_setup = dataclasses.replace(
         truth_setup, bench=dataclasses.replace(truth_setup.bench, seed=seed)
@@ -129,9 +136,9 @@ def run_demo(
     # The user's view: the plant is unknown, only the controller and the data are.
     user_setup = dataclasses.replace(truth_setup, plant=None)
     setup_path = out / "setup.toml"
-    from hallcal.io import setup_to_toml
+    from hallcal.io import write_setup
 
-    setup_path.write_text(setup_to_toml(user_setup))
+    write_setup(setup_path, user_setup)
     files.append(setup_path)
     cal = pipeline.calibrate(
         _dataset(cal_run, "calibration"),

@@ -16,8 +16,11 @@ import math
 import os
 
 __all__ = [
+    "BYTES_PER_SAMPLE",
+    "COMMAND_MEMORY_BYTES",
     "MAX_ABS_VALUE",
     "MAX_BENCH_ELECTRICAL_HARMONICS",
+    "MAX_COGGING_ORDERS",
     "MAX_COLUMNS",
     "MAX_DATASET_VALUES",
     "MAX_DELAY_SAMPLES",
@@ -25,9 +28,13 @@ __all__ = [
     "MAX_HARMONICS",
     "MAX_ITERATIONS",
     "MAX_JSON_BYTES",
+    "MAX_JSON_CONTAINERS",
     "MAX_JSON_DEPTH",
     "MAX_KERNEL_POINTS",
+    "MAX_LENGTHSCALE",
     "MAX_LUT_POINTS",
+    "MAX_PLAN_SAMPLES",
+    "MAX_PLAN_SPEEDS",
     "MAX_POLE_PAIRS",
     "MAX_POWERUP_GRID",
     "MAX_PROJECTION_CONDITION",
@@ -38,8 +45,10 @@ __all__ = [
     "MAX_TEXT_FIELD",
     "MAX_WORK_BYTES",
     "MIN_HALL_MAGNITUDE",
+    "MIN_LENGTHSCALE",
     "MIN_LUT_POINTS",
     "SPIKE_RATIO",
+    "check_command_samples",
     "check_hall_scale",
     "check_work_memory",
     "work_memory_budget",
@@ -65,6 +74,70 @@ MAX_HARMONIC = 8 * MAX_POLE_PAIRS
 #: 3e10 flops per iteration, and the sensitivity pass over the paper's 104 000 samples carries
 #: 3075 sensitivities per state and sample: minutes per iteration, the most that is useful.
 MAX_HARMONICS = 512
+
+#: Orders of ``[model] cogging = [...]`` (periods per revolution, each at most MAX_HARMONIC).
+#: A motor's cogging sits at the least common multiple of slots and poles and a few of its
+#: multiples: a handful of orders; 64 keeps every message that lists them (and the artifact's
+#: texts, at most MAX_TEXT_FIELD characters) short, and the joint fit's 2 per order small.
+MAX_COGGING_ORDERS = 64
+
+#: Memory budget of one command that runs over a recording sample by sample [bytes]: the
+#: recording and the step's work arrays, beyond the interpreter and its libraries.
+COMMAND_MEMORY_BYTES = 1_500_000_000
+
+#: Peak resident bytes per sample of those commands, measured on this machine (peak RSS at 1e6
+#: and 4e6 samples, the slope, rounded up; benchmarks/bench_memory.txt): the recording's eight
+#: columns, the angles, the validation's sort and spectrum. ``--absolute`` evaluates the
+#: power-up likelihood of every pole pair at every sample.
+BYTES_PER_SAMPLE: dict[str, int] = {
+    "reconstruct": 200,
+    "reconstruct --absolute": 1300,
+    "inspect": 240,
+    "simulate": 110,
+}
+
+
+def check_command_samples(
+    samples: float, command: str, *, hint: str = "split the recording"
+) -> None:
+    """Raise :class:`ValueError` when `samples` would take `command` over its memory budget.
+
+    Parameters
+    ----------
+    samples : float
+        Samples of the recording (or of the run to simulate).
+    command : str
+        A key of :data:`BYTES_PER_SAMPLE`.
+    hint : str, keyword-only
+        What the user can change.
+
+    Raises
+    ------
+    ValueError
+        ``"N samples: COMMAND needs about X GB for them, above its budget of 1.5 GB (at most M
+        samples)"``.
+    """
+    per = BYTES_PER_SAMPLE[command]
+    if not samples * per <= COMMAND_MEMORY_BYTES:
+        most = COMMAND_MEMORY_BYTES // per
+        raise ValueError(
+            f"{samples:.4g} samples: {command} needs about {samples * per / 1e9:.2g} GB for "
+            f"them, above its memory budget of {COMMAND_MEMORY_BYTES / 1e9:g} GB (at most "
+            f"{most} samples: {hint})"
+        )
+
+
+#: ``hallcal plan``: candidate speeds, and samples simulated over all of them (each candidate
+#: simulates its whole ramp: about a million samples a second, 100 bytes a sample at peak).
+MAX_PLAN_SPEEDS = 100
+MAX_PLAN_SAMPLES = 20_000_000
+
+#: Range of a fixed kernel lengthscale l [rad] (``[model] lengthscale``). The kernel's distances
+#: |x - x'| of x = [sin y, cos y] are at most 2: l = 1e3 is a constant kernel to 1e-6 and
+#: l = 1e-3 is below the spacing 2 pi / m of the largest m; beyond, 1 / l^2 under- or
+#: overflows (l = 1e-300 divided by zero, 1e300 overflowed).
+MIN_LENGTHSCALE = 1e-3
+MAX_LENGTHSCALE = 1e3
 
 #: Kernel centres m (``[model] points``). The kernel model is a Fourier model with harmonics up to
 #: m / 2, so m = 2 x MAX_HARMONIC reaches the same highest harmonic; the paper used 400.
@@ -146,6 +219,11 @@ MAX_JSON_BYTES = 64 * 2**20
 #: Nesting depth of JSON and TOML files. The artifact nests 5 levels (diagnostics.adequacy...);
 #: the parsers recurse per level, so a deeply nested file would exhaust the stack.
 MAX_JSON_DEPTH = 32
+
+#: JSON objects and arrays of one file (counted as ``{`` and ``[`` before parsing): Python
+#: takes about 100 bytes for each, so 64 MiB of ``{},`` would parse to 2 GB; an artifact holds
+#: a few hundred.
+MAX_JSON_CONTAINERS = 1_000_000
 
 #: Size of a setup file (TOML): a setup is a few dozen lines.
 MAX_SETUP_BYTES = 2**20

@@ -176,7 +176,7 @@ def angle_noise_floor(
 
 def _ramp(speed: float, revolutions: float, sample_time: float) -> NDArray[np.float64]:
     """r_k = v Ts k over R revolutions (the paper's calibration ramp from standstill)."""
-    n = int(math.ceil(TWO_PI * revolutions / (speed * sample_time)))
+    n = int(math.ceil(ramp_samples(speed, revolutions, sample_time)))
     return speed * sample_time * np.arange(n, dtype=np.float64)
 
 
@@ -282,6 +282,22 @@ def speed_limits(
     return v_max / 100.0, v_max
 
 
+def candidate_speeds(
+    loop: ClosedLoop, layout: ParameterLayout, revolutions: float, speeds: ArrayLike | None
+) -> NDArray[np.float64]:
+    """The speeds :func:`plan_ramp` predicts [rad/s], sorted: `speeds`, or by default 13 spaced
+    by sqrt(2) up to the upper limit of :func:`speed_limits`."""
+    if speeds is None:
+        _, v_max = speed_limits(loop, layout, revolutions)
+        return v_max * np.sqrt(0.5) ** np.arange(12, -1, -1)
+    return np.sort(np.asarray(speeds, dtype=np.float64).reshape(-1))
+
+
+def ramp_samples(speed: float, revolutions: float, ts: float) -> float:
+    """Samples of a ramp over `revolutions` at `speed` [rad/s] with sample time `ts` [s]."""
+    return TWO_PI * revolutions / (speed * ts)
+
+
 def plan_ramp(
     loop: ClosedLoop,
     layout: ParameterLayout,
@@ -321,11 +337,7 @@ def plan_ramp(
     RampPlan
     """
     default = speeds is None
-    if default:
-        _, v_max = speed_limits(loop, layout, revolutions)
-        v = v_max * np.sqrt(0.5) ** np.arange(12, -1, -1)
-    else:
-        v = np.sort(np.asarray(speeds, dtype=np.float64).reshape(-1))
+    v = candidate_speeds(loop, layout, revolutions, speeds)
 
     def predict(speed: float) -> RampPrediction:
         return predict_ramp_error(loop, layout, x, speed=speed, revolutions=revolutions,

@@ -5,8 +5,11 @@ SHA-256 of its outputs, so that a rerun reuses what is up to date (module doc of
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
+import os
+import stat
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -15,16 +18,32 @@ from hallcal.errors import HallcalInputError
 from hallcal.fleet.manifest import _INPUT_ROLES, MotorSpec
 from hallcal.fleet.summary import ARTIFACT_NAME, C_DIR, RECORD_NAME, SUMMARY_COLUMNS
 from hallcal.fleet.worker import _Result, _version
-from hallcal.io import atomic_write, read_json, write_json
+from hallcal.io import atomic_write, make_folder, output_set, read_json, write_json
 
 RECORD_FORMAT = "hallcal-fleet-record/1"
 
 
 def _sha256_file(path: Path) -> str:
+    """SHA-256 of a regular file's content, at most the size it had when looked at.
+
+    Raises
+    ------
+    OSError
+        ``EINVAL`` for anything but a regular file (a device such as /dev/zero, a FIFO, a
+        folder: hashing one would never end or block), and the errors of opening it.
+    """
+    st = os.stat(path)
+    if not stat.S_ISREG(st.st_mode):
+        raise OSError(errno.EINVAL, "not a regular file", str(path))
     h = hashlib.sha256()
+    left = st.st_size  # a file that grows while it is hashed is hashed as it was
     with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
+        while left > 0:
+            block = f.read(min(left, 1 << 20))
+            if not block:
+                break
             h.update(block)
+            left -= len(block)
     return h.hexdigest()
 
 
@@ -93,26 +112,13 @@ def _record_is_current(folder: Path, record: Mapping[str, Any] | None, fp: str) 
 
 
 def _store(out: Path, spec: MotorSpec, fp: str, result: _Result) -> None:
-    """Write one motor's outputs then its record (the record last, so it vouches for them)."""
+    """Write one motor's outputs as one set (:func:`hallcal.io.output_set`), then its record.
+
+    The folder holds the previous complete set until the new one is complete; the record,
+    written last, vouches for the outputs by their SHA-256, so a batch stopped in between
+    (SIGKILL) recomputes this motor."""
     folder = out / spec.motor_id
-    folder.mkdir(parents=True, exist_ok=True)
-    with contextlib.suppress(FileNotFoundError):
-        (folder / RECORD_NAME).unlink()
-    # outputs of an earlier run that this one does not produce (a motor now refused) must go
-    stale = [folder / ARTIFACT_NAME] + sorted((folder / C_DIR).glob("*"))
-    wanted = {folder / rel for rel in result.files}
-    for p in stale:
-        if p not in wanted and p.is_file():
-            p.unlink()
-    if (folder / C_DIR).is_dir() and not any((folder / C_DIR).iterdir()):
-        (folder / C_DIR).rmdir()
     outputs: dict[str, str] = {}
-    for rel, content in result.files.items():
-        target = folder / rel
-        target.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_write(target, "wb") as f:
-            f.write(content)
-        outputs[rel] = hashlib.sha256(content).hexdigest()
     record = {
         "format": RECORD_FORMAT,
         "fingerprint": fp,
@@ -126,4 +132,21 @@ def _store(out: Path, spec: MotorSpec, fp: str, result: _Result) -> None:
     }
     if result.detail:
         record["traceback"] = result.detail
-    write_json(folder / RECORD_NAME, record)
+    with output_set():
+        make_folder(folder)
+        for rel, content in result.files.items():
+            target = folder / rel
+            make_folder(target.parent)
+            with atomic_write(target, "wb") as f:
+                f.write(content)
+            outputs[rel] = hashlib.sha256(content).hexdigest()
+    # outputs of an earlier run that this one does not produce (a motor now refused) must go
+    stale = [folder / ARTIFACT_NAME] + sorted((folder / C_DIR).glob("*"))
+    wanted = {folder / rel for rel in result.files}
+    for p in stale:
+        if p not in wanted and p.is_file():
+            with contextlib.suppress(FileNotFoundError):
+                p.unlink()
+    if (folder / C_DIR).is_dir() and not any((folder / C_DIR).iterdir()):
+        (folder / C_DIR).rmdir()
+    write_json(folder / RECORD_NAME, record)  # last: it vouches for what is there

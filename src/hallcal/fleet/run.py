@@ -18,7 +18,14 @@ import pyarrow as pa
 from hallcal.errors import HallcalInputError
 from hallcal.fleet.manifest import MotorSpec, _specs
 from hallcal.fleet.records import _load_record, _record_is_current, _store, fingerprint
-from hallcal.fleet.summary import REPORT_NAME, SUMMARY_SCHEMA, _write_summary
+from hallcal.fleet.summary import (
+    LOCK_NAME,
+    REPORT_NAME,
+    SUMMARY_CSV,
+    SUMMARY_PARQUET,
+    SUMMARY_SCHEMA,
+    _write_summary,
+)
 from hallcal.fleet.worker import _failed_result, _one_line, _Result, _run_motor, _Task, _version
 
 #: How long to wait for an existing scheduler (``scheduler="tcp://..."``) to answer.
@@ -43,7 +50,9 @@ def _local_cluster(workers: int | None) -> Any:
         # a calibration is mapped and faulted in anew (twice the system time, measured)
         "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
     }
-    with dask.config.set(settings):
+    with dask.config.set(settings), _interrupts_ignored():
+        # the worker processes inherit SIGINT ignored: Ctrl-C in a terminal reaches the whole
+        # process group, and only this process should answer it (one line, no worker traces)
         return LocalCluster(
             n_workers=n,
             threads_per_worker=1,
@@ -57,6 +66,22 @@ def _local_cluster(workers: int | None) -> Any:
                 "NUMBA_NUM_THREADS": "1",
             },
         )
+
+
+@contextlib.contextmanager
+def _interrupts_ignored() -> Iterator[None]:
+    """SIGINT ignored while child processes are started (main thread only)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _crash_message(exc: BaseException) -> tuple[str, bool]:
@@ -143,11 +168,89 @@ def run_fleet(
     >>> [r["motor_id"] for r in table.to_pylist() if r["status"] == "failed"]  # doctest: +SKIP
     """
     specs, source = _specs(manifest_or_rows, base)
-    out_dir = _out_folder(out)
     if adc_scale is not None and not (
         isinstance(adc_scale, int | float) and math.isfinite(adc_scale) and adc_scale > 0
     ):
         raise HallcalInputError(f"adc_scale must be a positive number, got {adc_scale!r}")
+    _check_names(specs, Path(out), source)
+    out_dir = _out_folder(out)
+    with _locked(out_dir):
+        return _run_locked(
+            specs, source, out_dir, scheduler=scheduler, workers=workers, export_c=export_c,
+            adc_scale=adc_scale, recompute=recompute, report=report, progress=progress,
+            task=_task,
+        )  # fmt: skip
+
+
+#: The names of a batch's own files in its output folder: no motor_id may take one.
+RESERVED_NAMES = frozenset({SUMMARY_CSV, SUMMARY_PARQUET, REPORT_NAME, LOCK_NAME})
+
+
+def _check_names(specs: Sequence[MotorSpec], out: Path, source: str) -> None:
+    """Before any work: no motor_id is one of the batch's own file names or a file already in
+    the output folder, and no output is an input (the manifest, a motor's files)."""
+    from hallcal.io import check_outputs
+
+    for spec in specs:
+        if spec.motor_id.lower() in RESERVED_NAMES:
+            raise HallcalInputError(
+                f"{source}: row {spec.row}: motor_id '{spec.motor_id}' is the name of a file the "
+                f"batch writes ({', '.join(sorted(RESERVED_NAMES))}): rename the motor"
+            )
+        folder = out / spec.motor_id
+        if spec.problem is None and (folder.exists() or folder.is_symlink()):
+            if not folder.is_dir() or folder.is_symlink():
+                raise HallcalInputError(
+                    f"{source}: row {spec.row}: motor_id '{spec.motor_id}': {folder} exists and "
+                    "is not a folder of this batch: rename the motor or move the file"
+                )
+    inputs: list[Path | str] = [] if source == "<rows>" else [source]
+    inputs += [p for s in specs for p in (s.data, s.setup, s.bla_data, s.validation) if p]
+    check_outputs(
+        [out / SUMMARY_CSV, out / SUMMARY_PARQUET, out / REPORT_NAME],
+        inputs,
+        folders=[out / s.motor_id for s in specs if s.problem is None],
+    )
+
+
+@contextlib.contextmanager
+def _locked(out_dir: Path) -> Iterator[None]:
+    """Hold the output folder's lock (``OUT/.fleet.lock``, released when this process ends
+    however it ends): a second fleet on the same folder is refused with one line."""
+    import fcntl
+
+    path = out_dir / LOCK_NAME
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+    except OSError as exc:
+        raise HallcalInputError(f"{path}: cannot create the lock ({exc.strerror})") from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise HallcalInputError(
+                f"{out_dir}: another hallcal fleet is writing to this folder (it holds "
+                f"{path}): wait for it to finish or choose another --out"
+            ) from None
+        yield
+    finally:
+        os.close(fd)
+
+
+def _run_locked(
+    specs: list[MotorSpec],
+    source: str,
+    out_dir: Path,
+    *,
+    scheduler: Any,
+    workers: int | None,
+    export_c: bool,
+    adc_scale: float | None,
+    recompute: bool,
+    report: bool,
+    progress: FleetProgress | None,
+    task: Callable[[_Task], _Result] | None,
+) -> pa.Table:
     scale = None if adc_scale is None else float(adc_scale)
     options = {"export_c": bool(export_c), "adc_scale": scale if export_c else None}
     batch = _Batch(out_dir, [None] * len(specs), progress)
@@ -156,7 +259,7 @@ def run_fleet(
     task_of = functools.partial(
         _Task.of, export_c=bool(export_c), adc_scale=scale, version=_version()
     )
-    work = _task or _run_motor
+    work = task or _run_motor
     if pending:
         if isinstance(scheduler, str) and scheduler == "sequential":
             for i, spec, fp in pending:
@@ -166,11 +269,14 @@ def run_fleet(
                 _run_on_dask(client, pending, task_of, batch.accept, work)
 
     table = pa.Table.from_pylist([r for r in batch.rows if r is not None], schema=SUMMARY_SCHEMA)
-    _write_summary(out_dir, table)
-    if report:
-        from hallcal.output.fleet_report import write_fleet_report
+    from hallcal.io import output_set
 
-        write_fleet_report(table, out_dir / REPORT_NAME, source=source)
+    with output_set():  # summary.csv, summary.parquet and fleet.html of the same batch
+        _write_summary(out_dir, table)
+        if report:
+            from hallcal.output.fleet_report import write_fleet_report
+
+            write_fleet_report(table, out_dir / REPORT_NAME, source=source)
     return table
 
 

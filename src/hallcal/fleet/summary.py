@@ -20,6 +20,8 @@ C_DIR = "c"
 REPORT_NAME = "fleet.html"
 SUMMARY_CSV = "summary.csv"
 SUMMARY_PARQUET = "summary.parquet"
+#: The output folder's lock (motor ids cannot start with a dot, so none can take it).
+LOCK_NAME = ".fleet.lock"
 
 
 #: Summary columns with their Arrow types. Angles in rad, durations in s.

@@ -170,7 +170,8 @@ def _run_motor(task: _Task) -> _Result:
 
 
 def _calibrate_into(task: _Task, result: _Result) -> None:
-    from hallcal.io import read_dataset
+    from hallcal.io import load_artifact, read_dataset
+    from hallcal.output.codegen import export_c
     from hallcal.pipeline.calibration import CalibrationStatus
 
     row = result.row
@@ -194,7 +195,9 @@ def _calibrate_into(task: _Task, result: _Result) -> None:
         if task.export_c:
             cdir = Path(tmp) / C_DIR
             try:
-                res = cal.export_c(cdir, adc_scale=task.adc_scale)
+                # from the saved file: the banner's sha256 is the artifact file's
+                art = load_artifact(Path(tmp) / ARTIFACT_NAME)
+                res = export_c(art, cdir, adc_scale=task.adc_scale)
             except HallcalInputError as exc:  # the artifact stands; its C sources do not
                 status = MotorStatus.WARNING
                 notes.insert(0, f"warning: no C export: {exc}")
@@ -205,7 +208,12 @@ def _calibrate_into(task: _Task, result: _Result) -> None:
     if task.validation is not None:
         try:
             ds = read_dataset(task.validation, required=("d1", "d2", "d3", "y_ref"))
-            v = cal.reconstruct(ds).validation
+            rec = cal.reconstruct(ds)
+            v = rec.validation
+            if v is None:  # y_ref cannot be scored (a standstill run): the calibration stands
+                raise HallcalInputError(
+                    rec.messages[0].removeprefix("warning: validation skipped: ")
+                )
             row["f_init_rms"] = _finite(v.init.rms)
             row["f_star_rms"] = _finite(v.star.rms)
             if v.star.rms > v.init.rms:

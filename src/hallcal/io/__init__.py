@@ -23,7 +23,17 @@ from hallcal.io.dataset import (
     read_dataset,
     write_dataset,
 )
-from hallcal.io.files import atomic_path, atomic_write, read_json, to_jsonable, write_json
+from hallcal.io.files import (
+    atomic_path,
+    atomic_write,
+    check_outputs,
+    make_folder,
+    output_set,
+    read_json,
+    to_jsonable,
+    write_error,
+    write_json,
+)
 from hallcal.io.setup import (
     BenchSpec,
     BLASpec,
@@ -51,8 +61,11 @@ __all__ = [
     "TrajectorySpec",
     "atomic_path",
     "atomic_write",
+    "check_outputs",
     "default_setup",
     "load_artifact",
+    "make_folder",
+    "output_set",
     "read_artifact",
     "read_dataset",
     "read_json",
@@ -63,6 +76,7 @@ __all__ = [
     "validate_artifact",
     "write_artifact",
     "write_dataset",
+    "write_error",
     "write_json",
     "write_setup",
 ]

@@ -16,7 +16,7 @@ import json
 import math
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 from typing import Any, NoReturn
@@ -26,7 +26,14 @@ from numpy.typing import NDArray
 
 from hallcal import _version
 from hallcal.errors import HallcalInputError
-from hallcal.io.files import _check_parsed, _dump_json, atomic_write, read_json, to_jsonable
+from hallcal.io.files import (
+    _check_parsed,
+    _dump_json,
+    _read_json_raw,
+    atomic_write,
+    read_json,
+    to_jsonable,
+)
 from hallcal.io.setup import Setup, _is_int, _is_number, _parse_setup, _show
 from hallcal.limits import (
     MAX_ABS_VALUE,
@@ -108,6 +115,8 @@ class ArtifactData:
         The whole artifact as plain JSON data (what was checked).
     source : str
         Where it came from (the file), for messages.
+    file_sha256 : str or None
+        SHA-256 of the file's bytes when read from a file (:func:`load_artifact`).
     """
 
     format: str
@@ -123,6 +132,7 @@ class ArtifactData:
     plant: Mapping[str, Any] | None = field(repr=False)
     data: Mapping[str, Any] = field(repr=False)
     source: str = "<artifact>"
+    file_sha256: str | None = None
 
     @property
     def points(self) -> int:
@@ -142,7 +152,10 @@ class ArtifactData:
 
     @cached_property
     def sha256(self) -> str:
-        """SHA-256 of the artifact's canonical JSON (sorted keys, no spaces)."""
+        """SHA-256 of the artifact file as read (:func:`load_artifact`: what ``sha256sum``
+        prints for it), else of the artifact's canonical JSON (sorted keys, no spaces)."""
+        if self.file_sha256 is not None:
+            return self.file_sha256
         canon = json.dumps(self.data, sort_keys=True, separators=(",", ":"), allow_nan=False)
         return hashlib.sha256(canon.encode()).hexdigest()
 
@@ -670,7 +683,9 @@ def load_artifact(path: str | os.PathLike[str]) -> ArtifactData:
     HallcalInputError
         Missing file, invalid JSON or anything :func:`validate_artifact` refuses.
     """
-    return validate_artifact(read_json(path), str(Path(path)))
+    data, raw = _read_json_raw(path)
+    art = validate_artifact(data, str(Path(path)))
+    return replace(art, file_sha256=hashlib.sha256(raw).hexdigest())
 
 
 def read_artifact(path: str | os.PathLike[str]) -> dict[str, Any]:

@@ -2,19 +2,26 @@
 
 Everything hallcal writes goes through :func:`atomic_write` (a temporary file in the target
 directory, then :func:`os.replace`), so an interrupted or failed write never leaves a half-written
-output behind. Every mistake in an input raises :class:`hallcal.errors.HallcalInputError` with a
-one-line message that names the file. Nothing here unpickles anything.
+output behind; inside :func:`output_set` the files of one command appear together or not at all,
+and a write error is one line naming the file and the cause (:func:`write_error`).
+:func:`check_outputs` refuses, before any work, an output that is an input or another output.
+Every mistake in an input raises :class:`hallcal.errors.HallcalInputError` with a one-line
+message that names the file. Nothing here unpickles anything.
 """
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import dataclasses
 import difflib
+import errno
 import json
 import math
 import os
-import tempfile
+import secrets
+import signal
+import threading
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import IO, Any, Literal, NoReturn
@@ -22,9 +29,19 @@ from typing import IO, Any, Literal, NoReturn
 import numpy as np
 
 from hallcal.errors import HallcalInputError
-from hallcal.limits import MAX_JSON_BYTES, MAX_JSON_DEPTH
+from hallcal.limits import MAX_JSON_BYTES, MAX_JSON_CONTAINERS, MAX_JSON_DEPTH
 
-__all__ = ["atomic_path", "atomic_write", "read_json", "to_jsonable", "write_json"]
+__all__ = [
+    "atomic_path",
+    "atomic_write",
+    "check_outputs",
+    "make_folder",
+    "output_set",
+    "read_json",
+    "to_jsonable",
+    "write_error",
+    "write_json",
+]
 
 
 def _umask() -> int:
@@ -41,13 +58,219 @@ def _umask() -> int:
     return mask
 
 
+#: Errors of a write that name a cause the user can act on (a full disk, a file-size limit, a
+#: name too long, no permission, a read-only file system, a folder where a file should go).
+WRITE_ERRNOS = frozenset(
+    {
+        errno.ENOSPC,
+        errno.EFBIG,
+        errno.ENAMETOOLONG,
+        errno.EACCES,
+        errno.EPERM,
+        errno.EROFS,
+        errno.EISDIR,
+        errno.ENOTDIR,
+        errno.EDQUOT,
+        errno.EEXIST,
+        errno.ENOENT,
+        errno.EIO,
+        errno.EMLINK,
+        errno.EXDEV,
+    }
+)
+
+
+def write_error(path: str | os.PathLike[str], exc: OSError) -> HallcalInputError:
+    """The one-line error of a failed write: ``PATH: cannot write (CAUSE)``.
+
+    Parameters
+    ----------
+    path : path-like
+        The file the user asked for (not the temporary name).
+    exc : OSError
+        What the system said (ENOSPC "No space left on device", EFBIG "File too large", ...).
+
+    Returns
+    -------
+    HallcalInputError
+        Exit status 2.
+    """
+    why = exc.strerror or " ".join(str(exc).split()) or type(exc).__name__
+    return HallcalInputError(f"{os.fspath(path)}: cannot write ({why})")
+
+
+def _name_max(directory: Path) -> int:
+    try:
+        return int(os.pathconf(directory, "PC_NAME_MAX"))
+    except (OSError, ValueError):
+        return 255
+
+
+def _temporary_name(target: Path) -> str:
+    """A fresh hidden name beside `target`: ``.NAME.XXXXXX.tmp``, NAME cut so that the whole is
+    no longer than the file system's limit (a legal 255-character target works)."""
+    room = _name_max(target.parent) - 12  # "." + "." + 6 random + ".tmp"
+    return f".{target.name[: max(room, 1)]}.{secrets.token_hex(3)}.tmp"
+
+
+def _create_temporary(target: Path) -> Path:
+    for _ in range(100):
+        tmp = target.parent / _temporary_name(target)
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o600)
+        except FileExistsError:
+            continue
+        os.close(fd)
+        return tmp
+    raise FileExistsError(errno.EEXIST, "no free temporary name")
+
+
+@dataclasses.dataclass
+class _Staged:
+    """The files of one output set, written to temporary names, moved in place together."""
+
+    files: dict[Path, Path] = dataclasses.field(default_factory=dict)  # target -> temporary
+    folders: list[Path] = dataclasses.field(default_factory=list)  # created for this set
+
+    def add(self, target: Path, tmp: Path) -> None:
+        old = self.files.pop(target, None)
+        if old is not None:
+            with contextlib.suppress(OSError):
+                old.unlink()
+        self.files[target] = tmp
+
+    def discard(self) -> None:
+        for tmp in self.files.values():
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+        self.files.clear()
+        for folder in reversed(self.folders):  # innermost last created
+            with contextlib.suppress(OSError):
+                folder.rmdir()  # only if empty: a folder that holds anything else stays
+
+    def commit(self) -> None:
+        for target in self.files:  # what would make a rename fail, before the first rename
+            if target.is_dir() and not target.is_symlink():
+                raise write_error(target, IsADirectoryError(errno.EISDIR, "Is a directory"))
+        mask = _block_interrupts()
+        try:
+            for target, tmp in self.files.items():
+                try:
+                    os.replace(tmp, target)
+                except OSError as exc:
+                    raise write_error(target, exc) from None
+        finally:
+            _restore_interrupts(mask)
+        self.files.clear()
+
+
+_STAGING: contextvars.ContextVar[_Staged | None] = contextvars.ContextVar(
+    "hallcal_output_set", default=None
+)
+
+
+def _block_interrupts() -> Any:
+    """Block SIGINT/SIGTERM during the renames of a set (main thread only; a no-op elsewhere)."""
+    if threading.current_thread() is not threading.main_thread() or not hasattr(
+        signal, "pthread_sigmask"
+    ):
+        return None
+    return signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+
+
+def _restore_interrupts(mask: Any) -> None:
+    if mask is not None:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+
+
+@contextlib.contextmanager
+def output_set() -> Iterator[None]:
+    """Make every write in the block part of one set: all files appear together, or none.
+
+    Inside the block, :func:`atomic_write` and :func:`atomic_path` (and so every writer of
+    hallcal) write to temporary names beside their targets; when the block ends normally the
+    temporary files are renamed onto their targets one after the other, with interrupts held
+    back, after checking that nothing is in the way. On any exception (a full disk, a file-size
+    limit, Ctrl-C) every temporary file is removed, the folders made by :func:`make_folder` in
+    the block are removed again when empty, and the previous outputs stay as they were,
+    complete. A nested block joins the outer set.
+
+    Yields
+    ------
+    None
+        The block runs with the set collecting its writes.
+
+    Examples
+    --------
+    >>> with output_set():  # doctest: +SKIP
+    ...     write_json("b.json", bla)
+    ...     with atomic_write("b.png", "wb") as f:
+    ...         fig.savefig(f)
+    """
+    if _STAGING.get() is not None:
+        yield
+        return
+    staged = _Staged()
+    token = _STAGING.set(staged)
+    try:
+        yield
+    except BaseException:
+        staged.discard()
+        raise
+    finally:
+        _STAGING.reset(token)
+    try:
+        staged.commit()
+    except BaseException:
+        staged.discard()
+        raise
+
+
+def make_folder(path: str | os.PathLike[str]) -> Path:
+    """Create a folder (and its parents) for outputs; inside :func:`output_set`, a failed set
+    removes the folders it created.
+
+    Parameters
+    ----------
+    path : path-like
+        The folder.
+
+    Returns
+    -------
+    pathlib.Path
+        The folder.
+
+    Raises
+    ------
+    HallcalInputError
+        A file is in the way, or the folder cannot be created.
+    """
+    p = Path(path)
+    missing: list[Path] = []
+    q = p
+    while not q.exists() and q != q.parent:
+        missing.append(q)
+        q = q.parent
+    if p.exists() and not p.is_dir():
+        raise HallcalInputError(f"{p}: exists and is not a folder")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise HallcalInputError(f"{p}: cannot create the folder ({exc.strerror or exc})") from None
+    staged = _STAGING.get()
+    if staged is not None:
+        staged.folders.extend(reversed(missing))  # outermost first
+    return p
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path next to `path`; on success move it onto `path` atomically.
 
     For libraries that insist on a file name (h5py). The temporary file exists (empty) when the
-    block starts. On any exception in the block the temporary file is removed and `path` is left
-    untouched.
+    block starts; its name is no longer than the file system allows (``NAME_MAX``). On any
+    exception in the block the temporary file is removed and `path` is left untouched. Inside
+    :func:`output_set` the move waits for the end of the set.
 
     Parameters
     ----------
@@ -62,29 +285,136 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     Raises
     ------
     HallcalInputError
-        If the directory does not exist or the file cannot be created or replaced.
+        If the directory does not exist or the file cannot be created, written or replaced
+        (a full disk, a file-size limit, no permission: :func:`write_error`).
     """
     target = Path(path)
     directory = target.parent
     if not directory.is_dir():
         raise HallcalInputError(f"{target}: directory '{directory}' does not exist")
     try:
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=directory)
+        tmp = _create_temporary(target)
     except OSError as exc:
-        raise HallcalInputError(f"{target}: cannot write ({exc.strerror or exc})") from None
-    os.close(fd)
-    tmp = Path(tmp_name)
+        raise write_error(target, exc) from None
     try:
-        yield tmp
-        os.chmod(tmp, 0o666 & ~_umask())
+        try:
+            yield tmp
+            os.chmod(tmp, 0o666 & ~_umask())
+        except OSError as exc:
+            if exc.errno not in WRITE_ERRNOS:
+                raise
+            raise write_error(target, exc) from None
+        staged = _STAGING.get()
+        if staged is not None:
+            staged.add(target, tmp)
+            return
         try:
             os.replace(tmp, target)
         except OSError as exc:
-            raise HallcalInputError(f"{target}: cannot write ({exc.strerror or exc})") from None
+            raise write_error(target, exc) from None
     except BaseException:
         with contextlib.suppress(OSError):
             tmp.unlink()
         raise
+
+
+def _identity(p: Path) -> tuple[int, int] | None:
+    try:
+        st = os.stat(p)
+    except (OSError, ValueError):
+        return None
+    return (st.st_dev, st.st_ino)
+
+
+def _real(p: Path) -> Path:
+    """The path with symlinks and ``..`` resolved (a missing tail kept as written)."""
+    try:
+        return Path(os.path.realpath(p))
+    except (OSError, ValueError):
+        return Path(os.path.abspath(p))
+
+
+def check_outputs(
+    outputs: Iterable[str | os.PathLike[str]],
+    inputs: Iterable[str | os.PathLike[str] | None] = (),
+    *,
+    folders: Iterable[str | os.PathLike[str]] = (),
+) -> None:
+    """Refuse, before any work, outputs that would destroy an input or each other.
+
+    An output is refused when it is an input (the same file: the same inode, also through a
+    symbolic or hard link, ``..`` or another spelling of the path), when two outputs are the
+    same file (``bla --out b.png`` would write its Bode plot over its JSON), when a folder is
+    where it goes, when one of its names is longer than the file system allows, or when an
+    input lies inside an output `folder` that the command fills.
+
+    Parameters
+    ----------
+    outputs : iterable of path-like
+        The files the command will write.
+    inputs : iterable of path-like or None
+        The files it reads (None entries are skipped).
+    folders : iterable of path-like
+        Folders the command writes into (an input inside one is refused).
+
+    Raises
+    ------
+    HallcalInputError
+        One line naming the output and the input (or other output) it would overwrite.
+    """
+    ins = [Path(p) for p in inputs if p is not None]
+    in_ids = {i: _identity(i) for i in ins}
+    in_real = {i: _real(i) for i in ins}
+    outs, dirs = [Path(p) for p in outputs], [Path(p) for p in folders]
+    for out in outs + dirs:
+        for part in out.parts:
+            limit = _name_max(_nearest_folder(out))
+            if len(os.fsencode(part)) > limit:
+                raise HallcalInputError(
+                    f"{out}: cannot write (the name '{part[:40]}...' has "
+                    f"{len(os.fsencode(part))} bytes, above the limit of {limit})"
+                )
+    seen: dict[Path, Path] = {}
+    for out in outs:
+        if out.is_dir() and not out.is_symlink():
+            raise HallcalInputError(f"{out}: cannot write (Is a directory)")
+        ident, real = _identity(out), _real(out)
+        for i in ins:
+            if (ident is not None and ident == in_ids[i]) or real == in_real[i]:
+                raise HallcalInputError(
+                    f"{out}: is the input {i}: choose another output name (the input would "
+                    "be overwritten)"
+                )
+        if real in seen:
+            raise HallcalInputError(
+                f"{out}: two outputs of this command would be this same file ({seen[real]} and "
+                f"{out}): choose another output name"
+            )
+        seen[real] = out
+    inside: dict[Path, Path] = {}  # every folder that holds an input (or is one) -> the input
+    for i in ins:
+        for q in (in_real[i], *in_real[i].parents):
+            inside.setdefault(q, i)
+    for folder in dirs:
+        held = inside.get(_real(folder))
+        if held is not None:
+            raise HallcalInputError(
+                f"{folder}: holds the input {held}, which the output could overwrite: choose "
+                "another output folder"
+            )
+
+
+def _nearest_folder(p: Path) -> Path:
+    q = p.parent
+    while True:
+        try:
+            if q.is_dir():
+                return q
+        except OSError:
+            pass
+        if q == q.parent:
+            return q
+        q = q.parent
 
 
 @contextlib.contextmanager
@@ -219,7 +549,10 @@ def _check_parsed(p: str | os.PathLike[str], data: Any) -> None:
     stack: list[tuple[Any, str, int]] = [(data, "", 0)]
     while stack:
         value, where, depth = stack.pop()
-        if isinstance(value, bool) or value is None or isinstance(value, str):
+        if isinstance(value, str):
+            _check_text(p, value, where)
+            continue
+        if isinstance(value, bool) or value is None:
             continue
         if isinstance(value, float):
             if not math.isfinite(value):
@@ -243,10 +576,25 @@ def _check_parsed(p: str | os.PathLike[str], data: Any) -> None:
             items = value.items() if isinstance(value, dict) else enumerate(value)
             for key, item in items:
                 if isinstance(value, dict):
+                    _check_text(p, key, where)
                     path = f"{where}.{key}" if where else str(key)
                 else:
                     path = f"{where}[{key}]"
                 stack.append((item, path, depth + 1))
+
+
+def _check_text(p: str | os.PathLike[str], text: str, where: str) -> None:
+    """Refuse a string UTF-8 cannot hold: JSON's ``"\\ud800"`` parses to a lone surrogate,
+    which no output (HTML, C comments, the terminal) can write."""
+    if text.isascii():
+        return
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise HallcalInputError(
+            f"{p}: key '{where or '(top level)'}' holds a lone UTF-16 surrogate (\\ud800 to "
+            "\\udfff without its pair), not a character"
+        ) from None
 
 
 def _nested_too_deeply(p: str | os.PathLike[str]) -> HallcalInputError:
@@ -389,8 +737,20 @@ def read_json(path: str | os.PathLike[str]) -> Any:
         Missing file, invalid UTF-8, invalid JSON (with its line and column), a file above the
         size or depth limit, or a number out of range (with its key path).
     """
+    return _read_json_raw(path)[0]
+
+
+def _read_json_raw(path: str | os.PathLike[str]) -> tuple[Any, bytes]:
+    """:func:`read_json`, also returning the bytes it parsed (for their SHA-256)."""
     p = _existing_file(path)
-    text = _decode_text(p, _read_bytes(p, limit=MAX_JSON_BYTES, what="a JSON file"))
+    raw = _read_bytes(p, limit=MAX_JSON_BYTES, what="a JSON file")
+    containers = raw.count(b"{") + raw.count(b"[")  # at least as many as the parser would make
+    if containers > MAX_JSON_CONTAINERS:
+        raise HallcalInputError(
+            f"{p}: {containers} JSON objects and arrays, above the limit of "
+            f"{MAX_JSON_CONTAINERS} (parsing them would take about {containers * 1e-7:.2g} GB)"
+        )
+    text = _decode_text(p, raw)
     try:
         data = json.loads(text, parse_constant=_reject_constant)
     except json.JSONDecodeError as exc:
@@ -402,4 +762,4 @@ def read_json(path: str | os.PathLike[str]) -> Any:
     except RecursionError:
         raise _nested_too_deeply(p) from None
     _check_parsed(p, data)
-    return data
+    return data, raw

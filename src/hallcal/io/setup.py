@@ -32,17 +32,20 @@ from hallcal.io.files import (
 from hallcal.limits import (
     MAX_ABS_VALUE,
     MAX_BENCH_ELECTRICAL_HARMONICS,
+    MAX_COGGING_ORDERS,
     MAX_DELAY_SAMPLES,
     MAX_HARMONIC,
     MAX_HARMONICS,
     MAX_ITERATIONS,
     MAX_KERNEL_POINTS,
+    MAX_LENGTHSCALE,
     MAX_LUT_POINTS,
     MAX_POLE_PAIRS,
     MAX_REALIZATIONS,
     MAX_SAMPLES,
     MAX_SETUP_BYTES,
     MAX_TF_ORDER,
+    MIN_LENGTHSCALE,
     MIN_LUT_POINTS,
 )
 from hallcal.sim.lti import ContinuousTF, DiscreteTF
@@ -620,6 +623,11 @@ def _parse_model(t: _Table | None) -> ModelSpec:
         if not (isinstance(value, str) and value == "auto"):
             if not _is_number(value) or not math.isfinite(value) or value <= 0:
                 t.fail("lengthscale", 'a number > 0 or "auto"')
+            if not MIN_LENGTHSCALE <= value <= MAX_LENGTHSCALE:
+                t.error(
+                    f"key '{t.key('lengthscale')}' is {value:g}, outside {MIN_LENGTHSCALE:g} .. "
+                    f"{MAX_LENGTHSCALE:g} rad (the kernel's distances are at most 2)"
+                )
             lengthscale = float(value)
     return ModelSpec(
         basis=basis,
@@ -651,6 +659,10 @@ def _parse_cogging(t: _Table, basis: str) -> tuple[int, ...] | str:
                'or "none"')  # fmt: skip
     if len(set(value)) != len(value):
         t.error(f"key '{t.key('cogging')}' lists an order twice: {_show(value)}")
+    if len(value) > MAX_COGGING_ORDERS:
+        t.above("cogging", MAX_COGGING_ORDERS, f"a list of {len(value)} orders")
+    if max(value) > MAX_HARMONIC:
+        t.above("cogging", MAX_HARMONIC, f"a list with the order {max(value)}")
     return tuple(int(k) for k in value)
 
 

@@ -25,6 +25,7 @@ from hallcal.errors import CalibrationRefused, HallcalInputError
 from hallcal.io.artifact import ARTIFACT_FORMAT, ArtifactData, validate_artifact, write_artifact
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
+from hallcal.limits import check_command_samples
 from hallcal.pipeline.powerup import (
     SignalCheck,
     SignalStatus,
@@ -149,8 +150,21 @@ def validate(
     -------
     Validation
         Errors and spatial spectra of f_init and f_star against ``y_ref``.
+
+    Raises
+    ------
+    HallcalInputError
+        When ``y_ref`` does not move (a recording at standstill cannot be scored).
     """
     y_ref = dataset["y_ref"]
+    if not np.ptp(y_ref) > 0:  # no spatial spectrum and no error over position to score
+        where = dataset.source
+        raise HallcalInputError(
+            f"{where}: y_ref does not move (a recording at standstill): nothing to validate "
+            "against; record the validation run while the rotor turns",
+            source=str(where),
+            key="y_ref",
+        )
     if angles is None:
         angles = lut.reconstruct(dataset["d1"], dataset["d2"], dataset["d3"])
     yi, ys = angles
@@ -189,6 +203,9 @@ class Reconstruction:
         y_obs against the recording's ``y_ref``, when it has one.
 
     ``y_star`` is None when the calibration has no table (a folding map, observer only).
+    messages : tuple of str
+        Warnings: a ``y_ref`` that cannot be scored (a recording at standstill) leaves
+        ``validation`` None and says so here; the angles stand.
     """
 
     y_init: NDArray[np.float64] = field(repr=False)
@@ -198,6 +215,7 @@ class Reconstruction:
     observer: ObserverRun | None = field(default=None, repr=False)
     observer_error: AngleError | None = None
     signals: SignalCheck | None = None
+    messages: tuple[str, ...] = ()
 
     @property
     def status(self) -> SignalStatus:
@@ -639,9 +657,28 @@ def reconstruct_with(lut: LUT, dataset: Dataset, *, y_initial: float = 0.0) -> R
     if not lut.bijective:
         raise CalibrationRefused("the lookup table is not bijective; refusing to use it")
     dataset.require("d1", "d2", "d3")
+    _within_budget(dataset, "reconstruct")
     yi, ys = lut.reconstruct(dataset["d1"], dataset["d2"], dataset["d3"], y_initial=y_initial)
-    val = validate(lut, dataset, angles=(yi, ys)) if "y_ref" in dataset else None
-    return Reconstruction(yi, ys, val)
+    val, notes = None, ()
+    if "y_ref" in dataset:
+        val, notes = _scored(lambda: validate(lut, dataset, angles=(yi, ys)))
+    return Reconstruction(yi, ys, val, messages=notes)
+
+
+def _scored(score: Any) -> tuple[Validation | None, tuple[str, ...]]:
+    """The validation, or None and a warning when ``y_ref`` cannot be scored."""
+    try:
+        return score(), ()
+    except HallcalInputError as exc:
+        return None, (f"warning: validation skipped: {exc}",)
+
+
+def _within_budget(dataset: Dataset, command: str) -> None:
+    """The recording fits the command's memory budget (:data:`~hallcal.limits.BYTES_PER_SAMPLE`)."""
+    try:
+        check_command_samples(dataset.n_samples, command)
+    except ValueError as exc:
+        raise HallcalInputError(f"{dataset.source}: {exc}", source=dataset.source) from None
 
 
 def _reconstruct_observer(
@@ -659,24 +696,37 @@ def _reconstruct_observer(
         rec = Reconstruction(y_init, None)
     obs = run_on(cal, np.ascontiguousarray(dataset.d), y_initial=y_initial)
     err = angle_error(obs.y_obs, dataset["y_ref"]) if "y_ref" in dataset else None
-    return Reconstruction(rec.y_init, rec.y_star, rec.validation, observer=obs, observer_error=err)
+    return Reconstruction(
+        rec.y_init,
+        rec.y_star,
+        rec.validation,
+        observer=obs,
+        observer_error=err,
+        messages=rec.messages,
+    )
 
 
 def _reconstruct_absolute(cal: Calibration, dataset: Dataset) -> Reconstruction:
     """``Calibration.reconstruct(absolute=True)``: see :mod:`hallcal.pipeline.powerup`."""
+    _within_budget(dataset, "reconstruct --absolute")
     decoder = decoder_for(cal.flux, cal.lut, cal.identifiability)
     out = absolute_reconstruction(decoder, cal.lut, dataset.d)
-    validation = None
+    validation, notes = None, ()
     if "y_ref" in dataset:
         ref = same_revolution(out.y_star, dataset["y_ref"])
-        validation = Validation(
-            angle_error(out.y_init, ref),
-            angle_error(out.y_star, ref),
-            spatial_spectrum(out.y_init - ref, ref),
-            spatial_spectrum(out.y_star - ref, ref),
+        moved = dataclasses.replace(dataset, columns={**dataset.columns, "y_ref": ref})
+        validation, notes = _scored(
+            lambda: validate(cal.lut, moved, angles=(out.y_init, out.y_star))
         )
     signals = identification_check(decoder, dataset, out)
-    return Reconstruction(out.y_init, out.y_star, validation, out.identification, signals)
+    return Reconstruction(
+        out.y_init,
+        out.y_star,
+        validation,
+        out.identification,
+        signals=signals,
+        messages=notes,
+    )
 
 
 def reconstruct(

@@ -14,8 +14,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from hallcal.errors import HallcalInputError
-from hallcal.fit.design import RampPlan, plan_ramp
+from hallcal.fit.design import RampPlan, candidate_speeds, plan_ramp, ramp_samples
 from hallcal.fit.gauss_newton import ParameterLayout
+from hallcal.limits import MAX_PLAN_SAMPLES, MAX_PLAN_SPEEDS
 from hallcal.pipeline.calibration import Calibration
 from hallcal.pipeline.plant import closed_loop
 
@@ -81,8 +82,21 @@ def plan_next_ramp(
         speeds = np.asarray(speeds, dtype=np.float64).reshape(-1)
         if speeds.size == 0 or not np.all(np.isfinite(speeds) & (speeds > 0)):
             raise HallcalInputError("plan: speeds must be numbers > 0 [rad/s]")
+        if speeds.size > MAX_PLAN_SPEEDS:
+            raise HallcalInputError(
+                f"plan: {speeds.size} speeds, above the limit of {MAX_PLAN_SPEEDS}"
+            )
+    grid = candidate_speeds(loop, layout, revolutions, speeds)
+    ts = float(loop.plant.dt)
+    total = sum(ramp_samples(float(v), revolutions, ts) for v in grid)
+    if not total <= MAX_PLAN_SAMPLES:
+        raise HallcalInputError(
+            f"plan: {revolutions:g} revolutions at {grid.size} speeds from {grid[0]:.3g} rad/s "
+            f"would simulate {total:.3g} samples, above the limit of {MAX_PLAN_SAMPLES:.3g}: "
+            "fewer revolutions, fewer or faster speeds"
+        )
     return plan_ramp(loop, layout, x, noise_variance=sigma2, revolutions=revolutions,
-                     speeds=speeds, target=target)  # fmt: skip
+                     speeds=grid, target=target)  # fmt: skip
 
 
 def _noise_variance(cal: Calibration) -> float:

@@ -8,7 +8,7 @@ import numpy as np
 
 from hallcal.errors import HallcalInputError
 from hallcal.io.setup import Setup
-from hallcal.limits import MAX_SAMPLES
+from hallcal.limits import MAX_SAMPLES, check_command_samples
 from hallcal.pipeline.boundary import numeric_errors
 from hallcal.pipeline.checks import check_loop
 
@@ -119,6 +119,12 @@ def simulate(
                 source="setup",
                 key="bench.duration",
             )
+        try:
+            check_command_samples(samples, "simulate", hint="a shorter duration")
+        except ValueError as exc:
+            raise HallcalInputError(
+                f"setup: key 'bench.duration': {exc}", source="setup", key="bench.duration"
+            ) from None
         n = int(round(samples))
         r = end * np.arange(n) / n
         with numeric_errors("setup", "plant"):

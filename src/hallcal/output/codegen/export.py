@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from hallcal.errors import HallcalInputError
-from hallcal.io import ArtifactData, atomic_write, validate_artifact
+from hallcal.io import ArtifactData, atomic_write, make_folder, output_set, validate_artifact
 from hallcal.output.codegen.anticogging import _anticogging_section
 from hallcal.output.codegen.c_fixed import _fixed_header, _fixed_source
 from hallcal.output.codegen.c_float import _float_header, _float_source, _float_subs
@@ -360,15 +360,13 @@ def _write(path: Path, text: str) -> None:
 
 
 def _write_files(out_dir: str | os.PathLike[str], texts: list[tuple[str, str]]) -> tuple[Path, ...]:
+    """Write the files as one set (:func:`hallcal.io.output_set`): a failure part-way leaves
+    the previous export complete, never a header of one calibration beside another's source."""
     out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise HallcalInputError(
-            f"cannot create the output folder ({exc.strerror or type(exc).__name__})"
-        ) from None
-    for name, text in texts:
-        _write(out / name, text)
+    with output_set():
+        make_folder(out)
+        for name, text in texts:
+            _write(out / name, text)
     return tuple(out / name for name, _ in texts)
 
 

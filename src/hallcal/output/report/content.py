@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from hallcal.errors import HallcalInputError
 from hallcal.io import (
     Dataset,
     Setup,
@@ -379,10 +380,14 @@ def _validation_parts(
     val_source: str | None = None
     if validation_data is not None:
         validation_data.require("y_ref")
-        val_traces = _traces(lut, validation_data)
         val_source = (sources or {}).get("validation", validation_data.source)
-        if validation is None and lut.bijective:
-            validation = validate(lut, validation_data, noise_floor=noise_floor)
+        try:
+            if validation is None and lut.bijective:
+                validation = validate(lut, validation_data, noise_floor=noise_floor)
+        except HallcalInputError as exc:  # a standstill run: the calibration's report stands
+            notes.insert(0, f"warning: validation skipped: {exc}")
+            return None, None, None
+        val_traces = _traces(lut, validation_data)
     elif cal_traces.y_ref is not None:
         val_traces = cal_traces
         val_source = (sources or {}).get("data", data.source) + " (the calibration recording)"

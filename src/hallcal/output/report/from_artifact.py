@@ -96,10 +96,19 @@ def _resimulate(
     Gauss-Newton pass (:mod:`hallcal.fit.gauss_newton`, with the cogging coefficients as
     parameters, as in the calibration) gives cov(theta) for the table's band.
     """
-    from hallcal.fit.sem import SEMResult
+    from hallcal.fit.sem import SEMResult, SEMStatus
     from hallcal.sim.cogging import CoggingTorque
 
     diag = art.diagnostics
+    status = diag.get("sem_status", "unknown")
+    if status not in SEMStatus._value2member_map_:
+        known = ", ".join(f'"{v.value}"' for v in SEMStatus)
+        raise HallcalInputError(
+            f"{art.source}: key 'diagnostics.sem_status' must be one of {known}, got "
+            f"{str(status)[:40]!r}",
+            source=art.source,
+            key="diagnostics.sem_status",
+        )
     history = np.asarray(diag.get("cost_history", []), dtype=np.float64)
     if history.size == 0:
         return None
@@ -125,7 +134,7 @@ def _resimulate(
         theta0=np.full_like(flux.theta, np.nan),
         cost_history=history,
         iterations=int(diag.get("iterations", history.size - 1)),
-        status=str(diag.get("sem_status", "unknown")),
+        status=str(status),
         solve_time=float(diag.get("solve_time", math.nan)),
         noise_variance=s2,
         covariance=np.full((flux.theta.size,) * 2, np.nan) if cov is None else cov,

@@ -15,6 +15,8 @@ from hallcal.errors import HallcalInputError
 from hallcal.io import (
     Dataset,
     atomic_write,
+    make_folder,
+    output_set,
     read_artifact,
     read_dataset,
 )
@@ -43,24 +45,13 @@ def _png(fig: Any) -> bytes:
     return buf.getvalue()
 
 
-def _out_dir(out_dir: str | os.PathLike[str]) -> Path:
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise HallcalInputError(f"{out}: exists and is not a directory")
-    try:
-        (out / FIGURE_DIR).mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise HallcalInputError(f"{out}: cannot create the directory ({exc.strerror})") from None
-    return out
-
-
 def write_report(
     content: ReportContent,
     out_dir: str | os.PathLike[str],
     *,
     progress: Progress = None,
 ) -> Path:
-    """Write the figures (``out_dir/figures/*.png``) and ``out_dir/report.html``, atomically.
+    """Write the figures (``out_dir/figures/*.png``) and ``out_dir/report.html`` as one set.
 
     Parameters
     ----------
@@ -76,20 +67,22 @@ def write_report(
     pathlib.Path
         The HTML file.
     """
-    out = _out_dir(out_dir)
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise HallcalInputError(f"{out}: exists and is not a directory")
     _say(progress, "figures")
     figs = make_figures(content)
-    images = []
-    for f in figs:
-        png = _png(f.figure)
-        with atomic_write(out / FIGURE_DIR / f"{f.key}.png", "wb") as fh:
-            fh.write(png)
-        images.append((f, png))
+    images = [(f, _png(f.figure)) for f in figs]
     _say(progress, "HTML report")
     text = render_html(content, images)
     path = out / REPORT_NAME
-    with atomic_write(path, "w") as fh:
-        fh.write(text)
+    with output_set():  # the figures and the page appear together, or nothing changes
+        make_folder(out / FIGURE_DIR)
+        for f, png in images:
+            with atomic_write(out / FIGURE_DIR / f"{f.key}.png", "wb") as fh:
+                fh.write(png)
+        with atomic_write(path, "w") as fh:
+            fh.write(text)
     return path
 
 
