@@ -170,8 +170,8 @@ def _run_motor(task: _Task) -> _Result:
 
 
 def _calibrate_into(task: _Task, result: _Result) -> None:
+    from hallcal.api import export_c  # the export defaults every entry point shares
     from hallcal.io import load_artifact, read_dataset
-    from hallcal.output.codegen import export_c
     from hallcal.pipeline.calibration import CalibrationStatus
 
     row = result.row

@@ -95,8 +95,10 @@ def plan_next_ramp(
             f"would simulate {total:.3g} samples, above the limit of {MAX_PLAN_SAMPLES:.3g}: "
             "fewer revolutions, fewer or faster speeds"
         )
+    # the default grid is passed as None: plan_ramp extends it downwards (within its own
+    # sample cap, PLAN_MAX_SAMPLES) while its slowest speed meets the target
     return plan_ramp(loop, layout, x, noise_variance=sigma2, revolutions=revolutions,
-                     speeds=grid, target=target)  # fmt: skip
+                     speeds=speeds, target=target)  # fmt: skip
 
 
 def _noise_variance(cal: Calibration) -> float:

@@ -30,7 +30,8 @@ from typing import Any
 import numpy as np
 
 from hallcal.errors import HallcalInputError
-from hallcal.io import validate_artifact
+from hallcal.io import ArtifactData, validate_artifact
+from hallcal.output.codegen.export import _write_files
 from hallcal.output.codegen.text import comment_text
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.observer import (
@@ -117,21 +118,15 @@ def export_observer_c(
     """
     if not prefix.isidentifier() or not prefix.isascii():
         raise HallcalInputError(f"--prefix '{prefix}' is not a C identifier")
-    art = validate_artifact(artifact, source)
+    art = artifact if isinstance(artifact, ArtifactData) else validate_artifact(artifact, source)
     flux = art.flux()
     n = art.pole_pairs
     model = observer_model(flux, n, _noise(art.data, flux, n))
     texts = _texts(model, ObserverSettings(), prefix, comment_text(Path(source).name))
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        for name, text in texts:
-            (out / name).write_text(text, encoding="ascii")
-    except OSError as exc:
-        raise HallcalInputError(f"{out}: cannot write ({exc.strerror or exc})") from None
+    paths = _write_files(out_dir, texts)  # one set, write errors as one line (hallcal.io)
     W = ObserverSettings().window
     nbytes = model.points * 3 * 2 * 4 + (2 * W + 1) * 4
-    return ObserverExport(tuple(out / name for name, _ in texts), model.points, nbytes)
+    return ObserverExport(paths, model.points, nbytes)
 
 
 def _texts(
