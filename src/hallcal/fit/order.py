@@ -37,9 +37,11 @@ the Fourier model with the truth's harmonics 1..55 reaches 1.04-1.07x the noise 
    next electrical harmonic with its sidebands) and the wider fit kept when it is clearly better
    (:func:`_better`).
 
-Every step is bounded: at most ``max_fits`` SEM solves and ``time_budget`` seconds after the
-first fit, each solve from a warm start (the current fit, or the un-warped view when that
-simulates closer to the data).
+Every step is bounded in work, never in wall time (the same input gives the same model at any
+load): at most ``max_fits`` SEM solves of at most ``max_iterations`` Gauss-Newton iterations
+each, each solve from a warm start (the current fit, or the un-warped view when that simulates
+closer to the data). A search stopped by this budget says so in its status (FIT_BUDGET or
+MAX_ROUNDS, :attr:`HarmonicSelection.budget_hit`).
 """
 
 from __future__ import annotations
@@ -84,8 +86,6 @@ class SelectionStatus(enum.StrEnum):
 
     #: the adequacy test asks for no further flux harmonics
     CONVERGED = "converged"
-    #: stopped with harmonics still suggested: the budget ran out
-    TIME_BUDGET = "time_budget"
     #: stopped with harmonics still suggested: the extension rounds ran out
     MAX_ROUNDS = "max_rounds"
     #: adding the suggested harmonics did not improve the fit
@@ -98,6 +98,11 @@ class SelectionStatus(enum.StrEnum):
     @property
     def success(self) -> bool:
         return self is SelectionStatus.CONVERGED
+
+    @property
+    def budget_hit(self) -> bool:
+        """The search stopped because its work budget (SEM solves, rounds) ran out."""
+        return self in (SelectionStatus.FIT_BUDGET, SelectionStatus.MAX_ROUNDS)
 
 
 @dataclass(frozen=True)
@@ -121,7 +126,7 @@ class Candidate:
     iterations : int
         SEM iterations (band trials for the static stage).
     solve_time : float
-        Wall time of the step [s].
+        Wall time of the step [s] (a diagnostic only: nothing is decided on it).
     accepted : bool
         Whether the candidate became the current model.
     """
@@ -137,8 +142,9 @@ class Candidate:
     solve_time: float
     accepted: bool
 
-    def to_dict(self) -> dict:
-        return {
+    def to_dict(self, *, timings: bool = True) -> dict:
+        """The candidate as a plain dict; ``timings=False`` leaves out the wall time."""
+        out = {
             "harmonics": list(self.harmonics),
             "stage": self.stage,
             "cost": _f(self.cost),
@@ -150,6 +156,9 @@ class Candidate:
             "solve_time": _f(self.solve_time),
             "accepted": self.accepted,
         }
+        if not timings:
+            del out["solve_time"]
+        return out
 
 
 @dataclass(frozen=True)
@@ -173,7 +182,9 @@ class HarmonicSelection:
         Every model fitted, in order.
     status : SelectionStatus
     elapsed : float
-        Wall time [s].
+        Wall time [s] (a diagnostic only: nothing is decided on it).
+    max_fits : int
+        The work budget: SEM solves allowed.
     """
 
     harmonics: tuple[int, ...]
@@ -185,6 +196,27 @@ class HarmonicSelection:
     candidates: tuple[Candidate, ...] = field(repr=False)
     status: SelectionStatus
     elapsed: float
+    max_fits: int = 0
+
+    @property
+    def fits(self) -> int:
+        """SEM solves done."""
+        return sum(1 for c in self.candidates if c.stage != "static")
+
+    @property
+    def budget_message(self) -> str | None:
+        """One line when the work budget stopped the search, else None."""
+        if not self.status.budget_hit:
+            return None
+        what = (
+            f"its budget of {self.max_fits} SEM fits"
+            if self.status is SelectionStatus.FIT_BUDGET
+            else "its extension rounds"
+        )
+        return (
+            f"warning: the harmonic search used up {what} with the fit still off the data "
+            f"(status {self.status}); harmonics 1..{max(self.harmonics)} kept"
+        )
 
     @property
     def verdict(self) -> str:
@@ -195,8 +227,10 @@ class HarmonicSelection:
         """Alias of ``report``."""
         return self.report
 
-    def to_dict(self) -> dict:
-        return {
+    def to_dict(self, *, timings: bool = True) -> dict:
+        """The selection as a plain dict; ``timings=False`` leaves out every wall time (the
+        rest depends only on the input: the artifact's ``diagnostics.model_selection``)."""
+        out = {
             "harmonics": list(self.harmonics),
             "band_edge": self.edge.edge,
             "band_status": str(self.edge.status),
@@ -213,10 +247,16 @@ class HarmonicSelection:
                 h for h in self.relevance.harmonics if h not in self.relevance.active
             ],
             "status": str(self.status),
+            "budget_hit": self.status.budget_hit,
+            "fits": self.fits,
+            "max_fits": self.max_fits,
             "elapsed": _f(self.elapsed),
-            "candidates": [c.to_dict() for c in self.candidates],
+            "candidates": [c.to_dict(timings=timings) for c in self.candidates],
             "report": self.report.to_dict(),
         }
+        if not timings:
+            del out["elapsed"]
+        return out
 
 
 def restrict_theta(flux: FluxModel, basis: FourierBasis) -> NDArray[np.float64]:
@@ -272,12 +312,8 @@ class _Search:
     max_iterations: int
     tol: float
     assess_options: dict
-    deadline: float
     max_fits: int = 6
     candidates: list[Candidate] = field(default_factory=list)
-
-    def time_left(self) -> float:
-        return self.deadline - time.perf_counter()
 
     def fits_left(self) -> int:
         return self.max_fits - sum(1 for c in self.candidates if c.stage != "static")
@@ -365,8 +401,6 @@ def _extend(
         if s.fits_left() <= 0:
             return harmonics, sem, rep, SelectionStatus.FIT_BUDGET
         new = tuple(sorted(set(harmonics) | set(rep.suggested_harmonics)))
-        if (sem.solve_time + 1.0) * (len(new) / max(len(harmonics), 1)) > s.time_left():
-            return harmonics, sem, rep, SelectionStatus.TIME_BUDGET
         basis = FourierBasis(new)
         theta0 = _expand_theta(sem.flux, basis, s.d - sem.d_sim, sem.y0_sim)
         sem2, rep2 = s.fit(new, theta0, "extended")
@@ -436,8 +470,6 @@ def _widen(
             return harmonics, sem, rep, status
         if s.fits_left() <= 0:
             return harmonics, sem, rep, SelectionStatus.FIT_BUDGET
-        if sem.solve_time * (wider / top) > s.time_left():
-            return harmonics, sem, rep, SelectionStatus.TIME_BUDGET
         new = tuple(sorted(set(harmonics) | set(range(top + 1, wider + 1))))
         basis = FourierBasis(new)
         if wider < edge.view.harmonics and edge.unwarp.warp.size:
@@ -478,7 +510,6 @@ def select_harmonics(
     y: ArrayLike,
     pole_pairs: int | None = None,
     max_harmonic: int | None = None,
-    time_budget: float = 30.0,
     max_rounds: int = 2,
     significance: float = 1e-3,
     min_amplitude: float = 0.1,
@@ -512,8 +543,6 @@ def select_harmonics(
     max_harmonic : int, optional
         Widest band considered (default :func:`hallcal.fit.adequacy.default_max_harmonic`,
         8 n_m).
-    time_budget : float
-        Wall-time budget [s] for the extension rounds (the first fit always runs).
     max_rounds : int
         Maximum number of extension rounds after the first fit.
     significance, min_amplitude, warn_ratio, fail_ratio, dominance : float
@@ -523,7 +552,9 @@ def select_harmonics(
     noise : NoiseEstimate, optional
         Default :func:`hallcal.fit.adequacy.estimate_noise_variance` of d.
     max_fits : int
-        SEM solves at most (the first fit, extension rounds and widening together).
+        The work budget: SEM solves at most (the first fit, extension rounds and widening
+        together), each of at most ``max_iterations`` iterations; no wall-clock budget, so that
+        the choice is the same at any machine load.
     start : FluxModel, optional
         A fit to start the first SEM from (its coefficients on the harmonics it shares with
         the chosen ones; the un-warped view elsewhere), e.g. the fit before a cogging torque
@@ -549,7 +580,7 @@ def select_harmonics(
         assess_options={"significance": significance, "min_amplitude": min_amplitude,
                         "warn_ratio": warn_ratio, "fail_ratio": fail_ratio,
                         "dominance": dominance},
-        deadline=t0 + float(time_budget), max_fits=max(int(max_fits), 1),
+        max_fits=max(int(max_fits), 1),
     )  # fmt: skip
     edge, rel = _band_step(s, np.ascontiguousarray(y, dtype=np.float64))
     harmonics = tuple(sorted(set(rel.active) | {n} | _group_centre(rel.active, n)))
@@ -577,4 +608,5 @@ def select_harmonics(
         candidates=tuple(s.candidates),
         status=status,
         elapsed=time.perf_counter() - t0,
+        max_fits=s.max_fits,
     )
