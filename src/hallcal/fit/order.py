@@ -45,9 +45,9 @@ the Fourier model with the truth's harmonics 1..55 reaches 1.04-1.07x the noise 
    are within their covariance of zero, and the Wald test of the dropped block says so without
    any simulation. The narrowest nested band 1..E (E a multiple of n_m, or the static edge)
    that passes it is fitted from its linearized coefficients and kept unless its cost is
-   clearly worse. Measured (``benchmarks/bench_choice.txt``): 8.1x -> 1.6x and 5.7x -> 1.05x
-   the noise floor on two such drives; the paper's bench and the rich-shape benches keep their
-   model.
+   clearly worse. Measured (``benchmarks/bench_choice.txt``): 8.1x -> 1.7x (the truth's own
+   harmonics: 1.6x) and 3.1x -> 1.05x the noise floor on two such drives; the paper's bench
+   and the rich-shape benches keep their model.
 
 Every step is bounded in work, never in wall time (the same input gives the same model at any
 load and thread count): at most ``max_fits`` SEM solves of at most ``max_iterations``
@@ -130,7 +130,7 @@ class SelectionStatus(enum.StrEnum):
 
     @property
     def budget_hit(self) -> bool:
-        """The search stopped because its work budget (SEM solves, rounds) ran out."""
+        """The search stopped on a budget (SEM solves, Gauss-Newton work or rounds)."""
         return self in (
             SelectionStatus.FIT_BUDGET,
             SelectionStatus.MAX_ROUNDS,
