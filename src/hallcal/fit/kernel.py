@@ -100,6 +100,7 @@ from hallcal.fit.gauss_newton import (
     regression_normal_equations,
     simulate_fourier,
 )
+from hallcal.fit.order import WORK_BUDGET
 from hallcal.fit.sem import SEMResult, SEMStatus, solve_sem
 from hallcal.fit.warp import BandEdge, band_edge
 from hallcal.limits import check_hall_scale
@@ -729,6 +730,7 @@ class _Options:
     tol: float
     stride: int | None
     ard_rounds: int
+    work_budget: float
 
     @property
     def lengthscale_fixed(self) -> bool:
@@ -738,7 +740,7 @@ class _Options:
 
 def _options(
     points, lengthscale, lengthscale_range, criterion, spectrum, max_harmonics, max_iterations,
-    tol, stride, ard_rounds,
+    tol, stride, ard_rounds, work_budget,
 ) -> _Options:  # fmt: skip
     if criterion not in ("evidence", "gcv"):
         raise ValueError('criterion must be "evidence" or "gcv"')
@@ -759,7 +761,7 @@ def _options(
     use_ard = spectrum == "ard" or (spectrum == "auto" and lengthscale == "auto")
     return _Options(
         m, cap, lsel, (float(rng[0]), float(rng[1])), criterion, use_ard, int(max_iterations),
-        float(tol), stride, max(1, int(ard_rounds)),
+        float(tol), stride, max(1, int(ard_rounds)), float(work_budget),
     )  # fmt: skip
 
 
@@ -787,9 +789,11 @@ def _bessel_variances(o: _Options, best: CriterionPoint, K: int) -> NDArray[np.f
 
 def _map_sem(
     loop: ClosedLoop, r: NDArray, d: NDArray, start: FluxModel, variances: NDArray,
-    noise_variance: float, o: _Options,
+    noise_variance: float, o: _Options, work_left: float = math.inf,
 ) -> SEMResult:  # fmt: skip
-    """``min J(theta) + sigma^2 sum_k |theta_k|^2 / v_k`` on the harmonics with v_k > 0."""
+    """``min J(theta) + sigma^2 sum_k |theta_k|^2 / v_k`` on the harmonics with v_k > 0, in at
+    most the iterations that ``work_left`` (iterations x N p^2, :func:`_iteration_work`) pays
+    for (at least one)."""
     K = variances.size - 1
     kept = tuple(k for k in range(1, K + 1) if variances[k] > 0)
     basis = FourierBasis(kept)
@@ -800,8 +804,19 @@ def _map_sem(
     for i, h in enumerate(kept):
         js, jc = start.basis.index(h)
         theta0[:, [1 + 2 * i, 2 + 2 * i]] = start.theta[:, [js, jc]]
+    its = min(o.max_iterations, max(1, int(work_left // _iteration_work(r.size, kept)) - 1))
     return solve_sem(loop, r, d, basis, theta0=theta0, regularization=ridge,
-                     max_iterations=o.max_iterations, tol=o.tol, stride=o.stride)  # fmt: skip
+                     max_iterations=its, tol=o.tol, stride=o.stride)  # fmt: skip
+
+
+def _iteration_work(n_samples: int, harmonics: tuple[int, ...]) -> float:
+    """Work of one Gauss-Newton iteration, N p^2 (as :data:`hallcal.fit.order.WORK_BUDGET`)."""
+    return float(n_samples) * float(3 * (2 * len(harmonics) + 1)) ** 2
+
+
+def _sem_work(sem: SEMResult, n_samples: int) -> float:
+    """Work a solve used: its iterations plus the exact system for the covariance."""
+    return (sem.iterations + 1) * _iteration_work(n_samples, sem.flux.basis.harmonics)
 
 
 def _on_band(flux: FluxModel, K: int) -> FluxModel:
@@ -849,6 +864,7 @@ def solve_kernel_sem(
     stride: int | None = None,
     spectrum: Literal["auto", "ard", "bessel"] = "auto",
     ard_rounds: int = 2,
+    work_budget: float = WORK_BUDGET,
 ) -> KernelSEMResult:
     """SEM (problem) with the periodic-kernel flux model of the experiment section, fast.
 
@@ -909,10 +925,12 @@ def solve_kernel_sem(
         Prior spectrum: learned per harmonic ("ard") or the squared-exponential kernel's own
         ("bessel"). "auto": "ard" when ``lengthscale="auto"``, else "bessel".
     ard_rounds : int
-        Maximum SEM solves with a learned spectrum. With ``max_iterations`` this is the work
-        budget (at most ``ard_rounds * max_iterations`` Gauss-Newton iterations); there is no
-        wall-clock budget, so that the result is the same at any machine load. A search stopped
-        by it has ``settled`` False.
+        Maximum SEM solves with a learned spectrum. With ``max_iterations`` and
+        ``work_budget`` this bounds the work; there is no wall-clock budget, so that the result
+        is the same at any machine load. A search stopped by it has ``settled`` False.
+    work_budget : float
+        Gauss-Newton work at most over the MAP SEM solves, in iterations times N p^2
+        (:data:`hallcal.fit.order.WORK_BUDGET`; the first solve always makes one iteration).
 
     Returns
     -------
@@ -921,7 +939,7 @@ def solve_kernel_sem(
     t_start = time.perf_counter()
     r, d = _checked_record(r, d)
     o = _options(points, lengthscale, lengthscale_range, criterion, spectrum, max_harmonics,
-                 max_iterations, tol, stride, ard_rounds)  # fmt: skip
+                 max_iterations, tol, stride, ard_rounds, work_budget)  # fmt: skip
     band = _band_and_start(loop, d, y, o)  # 1
     best, tried = _kernel_hyperparameters(band.x, d, band.K, o)  # 2
     fit = _spectrum_and_map_sem(loop, r, d, band, _bessel_variances(o, best, band.K), o)  # 3-4
@@ -1002,16 +1020,19 @@ def _spectrum_and_map_sem(
         relevance = harmonic_relevance(band.edge.flux, band.x, d, noise_variance=s2, keep=(n_m,),
                                        prior_variance=variances)  # fmt: skip
         variances, s2 = relevance.prior_variance, relevance.noise_variance
-    sem = _map_sem(loop, r, d, band.edge.flux, variances, s2, o)
+    sem = _map_sem(loop, r, d, band.edge.flux, variances, s2, o, o.work_budget)
+    work = _sem_work(sem, r.size)
     rounds = 1
     while o.use_ard and relevance is not None:
         again = harmonic_relevance(_on_band(sem.flux, K), sem.y0_sim, d, noise_variance=s2,
                                    keep=(n_m,), prior_variance=variances)  # fmt: skip
         settled = _settled(again, relevance)
-        if settled or rounds >= o.ard_rounds:
+        unit = _iteration_work(r.size, sem.flux.basis.harmonics)
+        if settled or rounds >= o.ard_rounds or work + 2.0 * unit > o.work_budget:
             break
         relevance, variances, s2 = again, again.prior_variance, again.noise_variance
-        sem = _map_sem(loop, r, d, sem.flux, variances, s2, o)
+        sem = _map_sem(loop, r, d, sem.flux, variances, s2, o, o.work_budget - work)
+        work += _sem_work(sem, r.size)
         rounds += 1
     return _SpectrumFit(sem, variances, s2, relevance, settled, rounds)
 
