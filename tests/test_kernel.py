@@ -372,6 +372,9 @@ def test_solve_kernel_sem_work_budget_and_harmonic_cap():
     # the budget is work, not wall time: no iteration allowed, none done, and said so
     res = solve_kernel_sem(cfg.loop(), run.r, run.d, points=64, max_iterations=0, ard_rounds=1)
     assert res.status == "max_iterations" and res.sem.iterations == 0 and res.ard_rounds == 1
+    # a work budget (iterations x N p^2) that pays for nothing: one iteration, one solve
+    tight = solve_kernel_sem(cfg.loop(), run.r, run.d, points=64, work_budget=1.0)
+    assert tight.sem.iterations == 1 and tight.ard_rounds == 1
     assert np.all(np.isfinite(res.flux.theta))
     capped = solve_kernel_sem(cfg.loop(), run.r, run.d, points=64, max_harmonics=12)
     assert capped.harmonics <= 12 and capped.flux.theta.shape == (3, 2 * capped.harmonics + 1)
