@@ -2,9 +2,10 @@
 
 Motors of several kinds (the paper's bench, rich per-magnet shapes at 7 and 11 pole pairs with a
 slow 0.5 rad/s ramp, a trapezoidal flux, two 10-pole-pair drives with loops of their own, with
-and without shape variation, a 4-pole-pair fast drive with cogging), each calibrated by :func:`hallcal.pipeline.calibrate` with the defaults a
-user gets (``harmonics = "auto"``), with the kernel basis (``basis = "kernel"``, m = 400) and,
-as a reference, with the truth's own harmonics given by hand. f_star is measured against
+and without shape variation, a 4-pole-pair fast drive with cogging), each calibrated by
+:func:`hallcal.pipeline.calibrate` with the defaults a user gets (``harmonics = "auto"``), with
+the kernel basis (``basis = "kernel"``, m = 400) and, as a reference, with the truth's own
+harmonics given by hand. f_star is measured against
 the true angle on a fresh validation run (another noise seed, 80 % of the calibration ramp) and
 divided by the bench's noise floor sigma sqrt(2/3) / n_m. Times are the wall-clock and the CPU
 seconds (both cores: up to twice the wall time on a free machine) of one calibrate on a shared
