@@ -362,6 +362,7 @@ def _diagnostics(cal: Calibration) -> dict[str, Any]:
         diag["cogging"] = cal.cogging_selection.to_dict()
     if cal.selection is not None:  # without wall times: they live in "timings" only
         diag["model_selection"] = cal.selection.to_dict(timings=False)
+        del diag["model_selection"]["report"]  # the final fit's is "adequacy"
     if cal.kernel is not None:
         diag["model_selection"] = {
             "basis": "kernel",
