@@ -32,7 +32,7 @@ BENCHES = {
     "disturbance 2e-2": BenchConfig(torque_disturbance=2e-2),
 }
 REPEATS = 3
-BUDGET = 30.0  # the default time_budget of select_harmonics [s]
+BUDGET = 30.0  # the target for a whole calibrate [s] (the search has a work budget only)
 
 
 def _load() -> str:

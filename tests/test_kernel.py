@@ -366,11 +366,15 @@ def test_solve_kernel_sem_fixed_lengthscale_and_validation():
     np.testing.assert_allclose(res.prior_variance, v[np.r_[0, 2 : v.size : 2]], rtol=1e-12)
 
 
-def test_solve_kernel_sem_time_budget_and_harmonic_cap():
+def test_solve_kernel_sem_work_budget_and_harmonic_cap():
     cfg = BenchConfig(seed=5)
     run = ramp_run(cfg, ramp_end=2.0, duration=2.0, seed=5)
-    res = solve_kernel_sem(cfg.loop(), run.r, run.d, points=64, time_budget=0.0)
-    assert res.status == "time_budget" and res.sem.iterations == 0
+    # the budget is work, not wall time: no iteration allowed, none done, and said so
+    res = solve_kernel_sem(cfg.loop(), run.r, run.d, points=64, max_iterations=0, ard_rounds=1)
+    assert res.status == "max_iterations" and res.sem.iterations == 0 and res.ard_rounds == 1
+    # a work budget (iterations x N p^2) that pays for nothing: one iteration, one solve
+    tight = solve_kernel_sem(cfg.loop(), run.r, run.d, points=64, work_budget=1.0)
+    assert tight.sem.iterations == 1 and tight.ard_rounds == 1
     assert np.all(np.isfinite(res.flux.theta))
     capped = solve_kernel_sem(cfg.loop(), run.r, run.d, points=64, max_harmonics=12)
     assert capped.harmonics <= 12 and capped.flux.theta.shape == (3, 2 * capped.harmonics + 1)

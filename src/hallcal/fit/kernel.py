@@ -79,7 +79,6 @@ experiment-shaped bench (tests/test_kernel.py), 1.03-1.07x on the issue-13 bench
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -101,6 +100,7 @@ from hallcal.fit.gauss_newton import (
     regression_normal_equations,
     simulate_fourier,
 )
+from hallcal.fit.order import WORK_BUDGET
 from hallcal.fit.sem import SEMResult, SEMStatus, solve_sem
 from hallcal.fit.warp import BandEdge, band_edge
 from hallcal.limits import check_hall_scale
@@ -659,9 +659,9 @@ class KernelSEMResult:
         The final regularized SEM (theta on the kept harmonics, costs, covariance
         sigma^2 (J^T J + R)^-1, d_sim, y0_sim).
     status : SEMStatus
-        The SEM status (TIME_BUDGET when the budget ran out before it).
+        The final SEM's status (MAX_ITERATIONS when its iteration budget ran out).
     solve_time : float
-        Wall time [s] of the whole procedure.
+        Wall time [s] of the whole procedure (a diagnostic only: nothing is decided on it).
     spectrum : str
         "bessel" (the squared-exponential kernel's spectrum) or "ard" (learned per harmonic).
     prior_variance : ndarray (K + 1,)
@@ -729,8 +729,8 @@ class _Options:
     max_iterations: int
     tol: float
     stride: int | None
-    deadline: float
     ard_rounds: int
+    work_budget: float
 
     @property
     def lengthscale_fixed(self) -> bool:
@@ -740,7 +740,7 @@ class _Options:
 
 def _options(
     points, lengthscale, lengthscale_range, criterion, spectrum, max_harmonics, max_iterations,
-    tol, stride, time_budget, ard_rounds, t_start,
+    tol, stride, ard_rounds, work_budget,
 ) -> _Options:  # fmt: skip
     if criterion not in ("evidence", "gcv"):
         raise ValueError('criterion must be "evidence" or "gcv"')
@@ -761,7 +761,7 @@ def _options(
     use_ard = spectrum == "ard" or (spectrum == "auto" and lengthscale == "auto")
     return _Options(
         m, cap, lsel, (float(rng[0]), float(rng[1])), criterion, use_ard, int(max_iterations),
-        float(tol), stride, t_start + float(time_budget), max(1, int(ard_rounds)),
+        float(tol), stride, max(1, int(ard_rounds)), float(work_budget),
     )  # fmt: skip
 
 
@@ -789,9 +789,11 @@ def _bessel_variances(o: _Options, best: CriterionPoint, K: int) -> NDArray[np.f
 
 def _map_sem(
     loop: ClosedLoop, r: NDArray, d: NDArray, start: FluxModel, variances: NDArray,
-    noise_variance: float, o: _Options,
+    noise_variance: float, o: _Options, work_left: float = math.inf,
 ) -> SEMResult:  # fmt: skip
-    """``min J(theta) + sigma^2 sum_k |theta_k|^2 / v_k`` on the harmonics with v_k > 0."""
+    """``min J(theta) + sigma^2 sum_k |theta_k|^2 / v_k`` on the harmonics with v_k > 0, in at
+    most the iterations that ``work_left`` (iterations x N p^2, :func:`_iteration_work`) pays
+    for (at least one)."""
     K = variances.size - 1
     kept = tuple(k for k in range(1, K + 1) if variances[k] > 0)
     basis = FourierBasis(kept)
@@ -802,13 +804,19 @@ def _map_sem(
     for i, h in enumerate(kept):
         js, jc = start.basis.index(h)
         theta0[:, [1 + 2 * i, 2 + 2 * i]] = start.theta[:, [js, jc]]
-    late = time.perf_counter() > o.deadline
-    sem = solve_sem(loop, r, d, basis, theta0=theta0, regularization=ridge,
-                    max_iterations=0 if late else o.max_iterations, tol=o.tol,
-                    stride=o.stride)  # fmt: skip
-    if late:
-        sem = dataclasses.replace(sem, status=SEMStatus.TIME_BUDGET)
-    return sem
+    its = min(o.max_iterations, max(1, int(work_left // _iteration_work(r.size, kept)) - 1))
+    return solve_sem(loop, r, d, basis, theta0=theta0, regularization=ridge,
+                     max_iterations=its, tol=o.tol, stride=o.stride)  # fmt: skip
+
+
+def _iteration_work(n_samples: int, harmonics: tuple[int, ...]) -> float:
+    """Work of one Gauss-Newton iteration, N p^2 (as :data:`hallcal.fit.order.WORK_BUDGET`)."""
+    return float(n_samples) * float(3 * (2 * len(harmonics) + 1)) ** 2
+
+
+def _sem_work(sem: SEMResult, n_samples: int) -> float:
+    """Work a solve used: its iterations plus the exact system for the covariance."""
+    return (sem.iterations + 1) * _iteration_work(n_samples, sem.flux.basis.harmonics)
 
 
 def _on_band(flux: FluxModel, K: int) -> FluxModel:
@@ -853,10 +861,10 @@ def solve_kernel_sem(
     max_iterations: int = 30,
     tol: float = 1e-6,
     max_harmonics: int | None = None,
-    time_budget: float = 300.0,
     stride: int | None = None,
     spectrum: Literal["auto", "ard", "bessel"] = "auto",
     ard_rounds: int = 2,
+    work_budget: float = WORK_BUDGET,
 ) -> KernelSEMResult:
     """SEM (problem) with the periodic-kernel flux model of the experiment section, fast.
 
@@ -911,15 +919,18 @@ def solve_kernel_sem(
         SEM convergence (:func:`hallcal.fit.sem.solve_sem`).
     max_harmonics : int, optional
         Upper bound on K (speed); default ``(m - 1) // 2``.
-    time_budget : float
-        Wall-time budget [s]: no SEM iteration starts after it (status TIME_BUDGET).
     stride : int, optional
         Passed to :func:`hallcal.fit.sem.solve_sem`.
     spectrum : {"auto", "ard", "bessel"}
         Prior spectrum: learned per harmonic ("ard") or the squared-exponential kernel's own
         ("bessel"). "auto": "ard" when ``lengthscale="auto"``, else "bessel".
     ard_rounds : int
-        Maximum SEM solves with a learned spectrum.
+        Maximum SEM solves with a learned spectrum. With ``max_iterations`` and
+        ``work_budget`` this bounds the work; there is no wall-clock budget, so that the result
+        is the same at any machine load. A search stopped by it has ``settled`` False.
+    work_budget : float
+        Gauss-Newton work at most over the MAP SEM solves, in iterations times N p^2
+        (:data:`hallcal.fit.order.WORK_BUDGET`; the first solve always makes one iteration).
 
     Returns
     -------
@@ -928,7 +939,7 @@ def solve_kernel_sem(
     t_start = time.perf_counter()
     r, d = _checked_record(r, d)
     o = _options(points, lengthscale, lengthscale_range, criterion, spectrum, max_harmonics,
-                 max_iterations, tol, stride, time_budget, ard_rounds, t_start)  # fmt: skip
+                 max_iterations, tol, stride, ard_rounds, work_budget)  # fmt: skip
     band = _band_and_start(loop, d, y, o)  # 1
     best, tried = _kernel_hyperparameters(band.x, d, band.K, o)  # 2
     fit = _spectrum_and_map_sem(loop, r, d, band, _bessel_variances(o, best, band.K), o)  # 3-4
@@ -999,8 +1010,8 @@ def _spectrum_and_map_sem(
     With ARD (MacKay 1992, Tipping 2001; :func:`hallcal.fit.evidence.harmonic_relevance`) the
     prior variance of every harmonic is learned from the kernel's ``variances`` at the un-warped
     angle, the MAP SEM solved, and the spectrum learned again at the solution's simulated angle,
-    repeating while it moves (:func:`_settled`), at most ``ard_rounds`` solves, within the time
-    budget. Without ARD one MAP SEM with the kernel's own spectrum.
+    repeating while it moves (:func:`_settled`), at most ``ard_rounds`` solves. Without ARD one
+    MAP SEM with the kernel's own spectrum.
     """
     s2, K, n_m = band.noise_variance, band.K, band.pole_pairs
     relevance: HarmonicRelevance | None = None
@@ -1009,16 +1020,19 @@ def _spectrum_and_map_sem(
         relevance = harmonic_relevance(band.edge.flux, band.x, d, noise_variance=s2, keep=(n_m,),
                                        prior_variance=variances)  # fmt: skip
         variances, s2 = relevance.prior_variance, relevance.noise_variance
-    sem = _map_sem(loop, r, d, band.edge.flux, variances, s2, o)
+    sem = _map_sem(loop, r, d, band.edge.flux, variances, s2, o, o.work_budget)
+    work = _sem_work(sem, r.size)
     rounds = 1
-    while o.use_ard and relevance is not None and sem.status is not SEMStatus.TIME_BUDGET:
+    while o.use_ard and relevance is not None:
         again = harmonic_relevance(_on_band(sem.flux, K), sem.y0_sim, d, noise_variance=s2,
                                    keep=(n_m,), prior_variance=variances)  # fmt: skip
         settled = _settled(again, relevance)
-        if settled or rounds >= o.ard_rounds or time.perf_counter() > o.deadline:
+        unit = _iteration_work(r.size, sem.flux.basis.harmonics)
+        if settled or rounds >= o.ard_rounds or work + 2.0 * unit > o.work_budget:
             break
         relevance, variances, s2 = again, again.prior_variance, again.noise_variance
-        sem = _map_sem(loop, r, d, sem.flux, variances, s2, o)
+        sem = _map_sem(loop, r, d, sem.flux, variances, s2, o, o.work_budget - work)
+        work += _sem_work(sem, r.size)
         rounds += 1
     return _SpectrumFit(sem, variances, s2, relevance, settled, rounds)
 

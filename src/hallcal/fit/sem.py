@@ -65,8 +65,6 @@ class SEMStatus(enum.StrEnum):
     STALLED = "stalled"
     #: the closed loop with the starting model is unstable
     DIVERGED = "diverged"
-    #: a wall-time budget ran out (kernel solver)
-    TIME_BUDGET = "time_budget"
     #: not known (a result rebuilt from an artifact without the solver's status)
     UNKNOWN = "unknown"
 

@@ -58,11 +58,45 @@ __all__ = [
     "ARTIFACT_FORMAT",
     "ARTIFACT_STATUSES",
     "ArtifactData",
+    "TIMING_KEYS",
     "load_artifact",
     "read_artifact",
     "validate_artifact",
+    "without_timings",
     "write_artifact",
 ]
+
+#: The artifact's only wall-clock fields (dotted paths): when it was written and how long steps
+#: took. Nothing else depends on the clock, the machine's load or its thread count, so two
+#: calibrations of the same input by the same version agree byte for byte once these are
+#: removed (:func:`without_timings`; tests/test_determinism.py).
+TIMING_KEYS = ("created", "diagnostics.timings", "diagnostics.solve_time")
+
+
+def without_timings(artifact: Mapping[str, Any]) -> dict[str, Any]:
+    """A copy of the artifact without its wall-clock fields (:data:`TIMING_KEYS`).
+
+    Parameters
+    ----------
+    artifact : mapping
+        An artifact as written (JSON object).
+
+    Returns
+    -------
+    dict
+        The same artifact without ``created``, ``diagnostics.timings`` and
+        ``diagnostics.solve_time``; equal for two runs of the same input and version.
+    """
+    out = json.loads(json.dumps(to_jsonable(dict(artifact))))
+    for key in TIMING_KEYS:
+        *parents, leaf = key.split(".")
+        node = out
+        for part in parents:
+            node = node.get(part, {}) if isinstance(node, dict) else {}
+        if isinstance(node, dict):
+            node.pop(leaf, None)
+    return out
+
 
 #: Value of the ``"format"`` key of every calibration artifact this version writes and reads.
 ARTIFACT_FORMAT = "hallcal-calibration/1"

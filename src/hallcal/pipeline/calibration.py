@@ -462,6 +462,17 @@ def _diagnostics(cal: Calibration) -> dict[str, Any]:
         diag["constant_speed"] = cal.constant_speed.to_dict()
     if cal.cogging_selection is not None:
         diag["cogging"] = cal.cogging_selection.to_dict()
+    if cal.selection is not None:  # without wall times: they live in "timings" only
+        diag["model_selection"] = cal.selection.to_dict(timings=False)
+        del diag["model_selection"]["report"]  # the final fit's is "adequacy"
+    if cal.kernel is not None:
+        diag["model_selection"] = {
+            "basis": "kernel",
+            "ard_rounds": cal.kernel.ard_rounds,
+            "settled": bool(cal.kernel.settled),
+            "budget_hit": not cal.kernel.settled,
+            "sem_status": str(cal.kernel.status),
+        }
     return diag
 
 

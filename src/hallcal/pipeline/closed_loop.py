@@ -530,6 +530,15 @@ def calibrate_closed_loop(
                 loop, s, setup, fit, fit_gain=pm.gain is not None, progress=progress
             )
     timings["sem"] = time.perf_counter() - t0
+    if fit.selection is not None:
+        timings["model_selection"] = fit.selection.elapsed
+        if fit.selection.budget_message is not None:
+            messages.append(fit.selection.budget_message)
+    if fit.kernel is not None and not fit.kernel.settled:
+        messages.append(  # a note: the fit is judged by the adequacy test as always
+            f"note: the kernel's learned spectrum was still moving after its budget of "
+            f"{fit.kernel.ard_rounds} SEM solves"
+        )
     pm = _refined_plant(pm, fit)
     cogging = fit.cogging.cogging if fit.cogging is not None else None
     if fit.cogging is not None and fit.cogging.status is not CoggingStatus.NONE:
