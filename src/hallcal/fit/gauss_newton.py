@@ -79,6 +79,7 @@ from hallcal.sim.loop import (
 )
 
 __all__ = [
+    "checked_weights",
     "gram_from_moments",
     "GaussNewtonSystem",
     "ParameterLayout",
@@ -254,9 +255,26 @@ def _cogging_torque(orders, coef, y0, creg, sreg):
     return t, dt
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _at_rails(gk, rlo, rhi, gf, live):
+    """What f_init sees of the model flux: gf = gk clipped to the ADC rails [rlo, rhi] (the
+    drive's f_init saw the clipped values), live_h = 1 where sensor h is within them, else 0
+    (the clipped value does not move with theta)."""
+    for h in range(3):
+        v = gk[h]
+        live[h] = 1.0
+        if v < rlo[h]:
+            v = rlo[h]
+            live[h] = 0.0
+        elif v > rhi[h]:
+            v = rhi[h]
+            live[h] = 0.0
+        gf[h] = v
+
+
 @nb.njit(cache=True, nogil=True)
 def _simulate_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax, cog_k, cog_x,
-                     r, y_init):  # fmt: skip
+                     rlo, rhi, r, y_init):  # fmt: skip
     """Noise-free closed loop (eq. state_eq) with the flux on ``harm`` and the cogging torque."""
     N = r.size
     ng = Ag.shape[0]
@@ -278,6 +296,8 @@ def _simulate_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax,
     ds = np.full((N, 3), np.nan)
     gk = np.empty(3)
     gp = np.empty(3)
+    gf = np.empty(3)
+    live = np.empty(3)
     yprev = y_init
     y0_last = 0.0
     ok = True
@@ -288,7 +308,8 @@ def _simulate_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax,
         _trig_table(y0, hmax, cs, sn)
         _gather_basis(harm, cs, sn, b, db)
         _flux_and_slope(theta, b, db, gk, gp)
-        al, be = _alpha_beta(P, off, gk)
+        _at_rails(gk, rlo, rhi, gf, live)
+        al, be = _alpha_beta(P, off, gf)
         y = _unwrap(math.atan2(be, al), yprev, n_m)
         e = r[k] - y
         u = _output(Cc, xc, Dc, e)
@@ -311,8 +332,8 @@ def _simulate_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax,
 
 @nb.njit(cache=True, nogil=True)
 def _sens_block(
-    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax, cog_k, cog_x, jgain, jcog,
-    r, d, k0, k1, j0, j1, ustride, primary,
+    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax, cog_k, cog_x, rlo, rhi,
+    jgain, jcog, r, d, wt, k0, k1, j0, j1, ustride, primary,
     xg, xc, st, Sg, Sc, Sg2, Sc2, U, grad, y0s, ds, nvec,
 ):  # fmt: skip
     """Advance the sensitivities of the parameter columns j0..j1-1 over the samples k0..k1-1.
@@ -323,6 +344,12 @@ def _sens_block(
     rows of U (none when ustride = 0) and adds the columns of J^T e into ``grad``. The primary
     block also stores y0, d_sim and n_k = g'/|g'| and returns e^T e of the chunk.
     Returns (ok, sum of squared errors).
+
+    Weights (``wt``, N x 3, or 0 x 3 for none): the cost is ``sum_k e_k^T W_k e_k`` with
+    ``W_k = diag(wt[k])`` (0 for a censored sample of a channel). With ``s = sqrt(wt[k])`` the
+    rows of ``W^(1/2) J_k`` are ``(s o g') dy0^T + diag(s) E_k``, so u_k uses
+    ``a = s o g'``, ``n_k = a / |a|`` and ``diag(s) E_k^T n_k`` (module docstring with g' -> a).
+    Rails (``rlo``, ``rhi``): f_init sees the model flux clipped to them (:func:`_at_rails`).
     """
     ng = Ag.shape[0]
     nc = Ac.shape[0]
@@ -344,6 +371,10 @@ def _sens_block(
     ek = np.empty(3)
     nk = np.empty(3)
     ck = np.empty(3)
+    gf = np.empty(3)
+    live = np.empty(3)
+    sw = np.ones(3)
+    has_w = wt.shape[0] > 0
     yprev = st[0]
     y0_last = st[1]
     sse = 0.0
@@ -355,26 +386,34 @@ def _sens_block(
         _trig_table(y0, hmax, cs, sn)
         _gather_basis(harm, cs, sn, b, db)
         _flux_and_slope(theta, b, db, gk, gp)
+        _at_rails(gk, rlo, rhi, gf, live)
         for h in range(3):
             ek[h] = d[k, h] - gk[h]
-        al, be = _alpha_beta(P, off, gk)
+            if has_w:
+                sw[h] = math.sqrt(wt[k, h])
+        al, be = _alpha_beta(P, off, gf)
         rho2 = al * al + be * be
         if not rho2 > 0.0:  # no angle at alpha = beta = 0 (or NaN): the model is degenerate
             ok = False
             break
         for h in range(3):
-            ck[h] = (al * P[1, h] - be * P[0, h]) / (rho2 * n_m)  # d y / d d_h
+            ck[h] = (al * P[1, h] - be * P[0, h]) / (rho2 * n_m) * live[h]  # d y / d d_h
         q = ck[0] * gp[0] + ck[1] * gp[1] + ck[2] * gp[2]
-        gnorm = math.sqrt(gp[0] * gp[0] + gp[1] * gp[1] + gp[2] * gp[2])
-        ge = gp[0] * ek[0] + gp[1] * ek[1] + gp[2] * ek[2]
+        gnorm = 0.0
+        ge = 0.0
         for h in range(3):
-            nk[h] = gp[h] / gnorm if gnorm > 0.0 else 0.0
+            gnorm += (sw[h] * gp[h]) ** 2
+            ek[h] = wt[k, h] * ek[h] if has_w else ek[h]  # W e, and e^T W e below
+        gnorm = math.sqrt(gnorm)
+        for h in range(3):
+            ge += gp[h] * ek[h]
+            nk[h] = sw[h] * gp[h] / gnorm if gnorm > 0.0 else 0.0
         if primary:
             y0s[k] = y0
             for h in range(3):
                 ds[k, h] = gk[h]
                 nvec[k, h] = nk[h]
-                sse += ek[h] * ek[h]
+                sse += ek[h] * (d[k, h] - gk[h])
         # gradient and dy: feedback term on every column, direct term I_3 kron beta on the
         # theta columns of this block
         for jl in range(pb):
@@ -395,7 +434,7 @@ def _sens_block(
                 lo = max(j0, h * m)
                 hi = min(j1, (h + 1) * m)
                 for j in range(lo, hi):
-                    U[t, j] += nk[h] * b[j - h * m]
+                    U[t, j] += sw[h] * nk[h] * b[j - h * m]
         # controller and plant input w = u + T_c(y0)
         y = _unwrap(math.atan2(be, al), yprev, n_m)
         err = r[k] - y
@@ -526,7 +565,7 @@ def gram_from_moments(C: NDArray, S: NDArray, harmonics: ArrayLike | int) -> NDA
 
 
 def regression_normal_equations(
-    y: ArrayLike, d: ArrayLike, harmonics: ArrayLike
+    y: ArrayLike, d: ArrayLike, harmonics: ArrayLike, *, weights: ArrayLike | None = None
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
     """``B^T B``, ``B^T d`` and ``d^T d`` for the regression of d (N, c) on beta(y).
 
@@ -542,28 +581,41 @@ def regression_normal_equations(
     harmonics : array_like of int
         Mechanical harmonics of the Fourier basis beta (eq. (basis)); the constant term is
         always included.
+    weights : array_like (N,), keyword-only, optional
+        Sample weights w >= 0 (weighted least squares; 0 leaves a sample out).
 
     Returns
     -------
     gram : ndarray (m, m)
-        ``B^T B`` with ``B = beta(y)``, m = 1 + 2 len(harmonics).
+        ``B^T W B`` with ``B = beta(y)``, m = 1 + 2 len(harmonics) (W = I without weights).
     rhs : ndarray (m, c)
-        ``B^T d``.
+        ``B^T W d``.
     sse : float
-        ``d^T d`` summed over the columns.
+        ``d^T W d`` summed over the columns.
     """
     yy = _kernel_array(y)
     dd = np.asarray(d, dtype=np.float64)
     dd = dd[:, None] if dd.ndim == 1 else dd
     h = np.asarray(harmonics, dtype=np.int64)
+    if weights is not None:
+        w = np.asarray(weights, dtype=np.float64)
+        W = np.column_stack([w, w[:, None] * dd])
+        C, S = _moments(yy, W, 2 * int(h.max()) if h.size else 0)
+        M = gram_from_moments(C[0], S[0], h)
+        return M, _rhs_from_moments(C, S, h, dd.shape[1]), float(np.sum(w[:, None] * dd * dd))
     W = np.column_stack([np.ones(yy.size), dd])
     C, S = _moments(yy, W, 2 * int(h.max()) if h.size else 0)
     M = gram_from_moments(C[0], S[0], h)
-    Btd = np.empty((1 + 2 * h.size, dd.shape[1]))
+    return M, _rhs_from_moments(C, S, h, dd.shape[1]), float(np.sum(dd * dd))
+
+
+def _rhs_from_moments(C: NDArray, S: NDArray, h: NDArray, c: int) -> NDArray[np.float64]:
+    """``B^T d`` (m, c) from the moments of the columns 1..c of the weights (column 0: w)."""
+    Btd = np.empty((1 + 2 * h.size, c))
     Btd[0] = C[1:, 0]
     Btd[1::2] = S[1:, h].T
     Btd[2::2] = C[1:, h].T
-    return M, Btd, float(np.sum(dd * dd))
+    return Btd
 
 
 # ================================================================================================
@@ -583,7 +635,8 @@ class SimulatedLoop:
 
 
 def _model_arrays(loop: ClosedLoop, layout: ParameterLayout, x: ArrayLike) -> tuple:
-    """Kernel arguments of a model: loop arrays (B_G scaled by c), theta, harmonics, cogging."""
+    """Kernel arguments of a model: loop arrays (B_G scaled by c), theta, harmonics, cogging,
+    the loop's rails."""
     xx = np.asarray(x, dtype=np.float64).reshape(-1)
     if xx.size != layout.size:
         raise ValueError(f"x must have {layout.size} entries for this layout, got {xx.size}")
@@ -599,7 +652,8 @@ def _model_arrays(loop: ClosedLoop, layout: ParameterLayout, x: ArrayLike) -> tu
     if loop.cogging is not None and loop.cogging.size:
         cog_k = np.concatenate([cog_k, np.asarray(loop.cogging.orders, dtype=np.float64)])
         cog_x = np.concatenate([cog_x, loop.cogging.coefficients])
-    return (*arrs, float(loop.pole_pairs), theta, harm, hmax, cog_k, cog_x)
+    rlo, rhi = (_kernel_array(v) for v in loop.rails)
+    return (*arrs, float(loop.pole_pairs), theta, harm, hmax, cog_k, cog_x, rlo, rhi)
 
 
 def simulate_model(
@@ -732,6 +786,7 @@ def gauss_newton_system(
     gram: bool = True,
     stride: int = 1,
     threads: int | None = None,
+    weights: ArrayLike | None = None,
 ) -> GaussNewtonSystem:
     """J^T J, J^T e and e^T e of problem (problem) at x, without the dense Jacobian.
 
@@ -762,6 +817,10 @@ def gauss_newton_system(
         docstring); 1 for the exact system.
     threads : int, optional
         1 or 2 (default: 2 when the machine has two cores or more).
+    weights : array_like (N, 3), optional
+        Per-sample, per-channel weights w >= 0 of the cost ``sum w e^2`` (0: a censored
+        sample, :mod:`hallcal.fit.censor`); then gram, gradient and sse are J^T W J, J^T W e
+        and e^T W e. Default: 1 everywhere.
 
     Returns
     -------
@@ -772,6 +831,7 @@ def gauss_newton_system(
     N = r.size
     if d.shape != (N, 3):
         raise ValueError("d must have shape (N, 3)")
+    wt = checked_weights(weights, N)
     args = _model_arrays(loop, layout, x)
     p = layout.size
     nthreads = _threads(threads, p)
@@ -784,7 +844,8 @@ def gauss_newton_system(
         f"the Gauss-Newton system ({p} parameters, {N} samples)",
         "use fewer harmonics (or kernel points) or a shorter recording",
     )
-    passes = _SensitivityPass(args, layout, r, d, y_initial, T, stride if gram else 0, nthreads)
+    passes = _SensitivityPass(args, layout, r, d, wt, y_initial, T, stride if gram else 0,
+                              nthreads)  # fmt: skip
     with threadpool_limits(limits=1, user_api="blas"):
         if not passes.run(gram):
             return _diverged_system(N, p, passes.n_chunks)
@@ -792,12 +853,35 @@ def gauss_newton_system(
         if gram:
             G = np.triu(G) + np.triu(G, 1).T
             G[: layout.n_theta, : layout.n_theta] += _normal_part(
-                passes.y0s, passes.nvec, layout, nthreads
+                passes.y0s, passes.nvec, layout, nthreads, wt
             )
     grads = passes.batch_grad
     return GaussNewtonSystem(
         G, grads.sum(axis=0), float(passes.sse), passes.ds, passes.y0s, grads, PassStatus.OK
     )
+
+
+def checked_weights(weights: ArrayLike | None, n_samples: int) -> NDArray[np.float64]:
+    """Per-sample, per-channel weights as the kernels take them: (N, 3) float64, finite, >= 0,
+    or an empty (0, 3) array for none (every weight 1).
+
+    Parameters
+    ----------
+    weights : array_like (N, 3) or None
+        Weights w of the cost ``sum_k sum_h w_kh e_kh^2`` (0: censored).
+    n_samples : int
+        N.
+
+    Returns
+    -------
+    ndarray (N, 3) or (0, 3)
+    """
+    if weights is None:
+        return np.zeros((0, 3))
+    w = _kernel_array(weights)
+    if w.shape != (int(n_samples), 3) or not np.all(np.isfinite(w)) or (w < 0).any():
+        raise ValueError("weights must be (N, 3), finite and >= 0")
+    return w
 
 
 def _threads(threads: int | None, p: int) -> int:
@@ -825,9 +909,10 @@ def _diverged_system(N: int, p: int, n_chunks: int) -> GaussNewtonSystem:
 
 
 def _normal_part(
-    y0: NDArray, nvec: NDArray, layout: ParameterLayout, threads: int
+    y0: NDArray, nvec: NDArray, layout: ParameterLayout, threads: int, wt: NDArray | None = None
 ) -> NDArray[np.float64]:
-    """``sum_k (I_3 - n_k n_k^T) kron beta_k beta_k^T`` from trigonometric moments."""
+    """``sum_k (S_k (I_3 - n_k n_k^T) S_k) kron beta_k beta_k^T`` from trigonometric moments
+    (``S_k = diag(sqrt(w_k))``, the identity without weights)."""
     n = nvec
     W = np.column_stack(
         [
@@ -839,6 +924,9 @@ def _normal_part(
             -n[:, 1] * n[:, 2],
         ]
     )
+    if wt is not None and wt.shape[0]:
+        sw = np.sqrt(wt)
+        W *= np.column_stack([wt, sw[:, 0] * sw[:, 1], sw[:, 0] * sw[:, 2], sw[:, 1] * sw[:, 2]])
     harm = np.asarray(layout.basis.harmonics, dtype=np.int64)
     hmax = int(harm.max()) if harm.size else 0
     C, S = _moments_threaded(y0, W, 2 * hmax, threads)
@@ -864,10 +952,10 @@ class _SensitivityPass:
     is often descheduled for a while) instead of meeting it at a barrier every chunk.
     """
 
-    def __init__(self, args, layout, r, d, y_initial, T, ustride, nthreads, ring=4) -> None:
+    def __init__(self, args, layout, r, d, wt, y_initial, T, ustride, nthreads, ring=4) -> None:
         self.args = args
         self.layout = layout
-        self.r, self.d = r, d
+        self.r, self.d, self.wt = r, d, wt
         self.T = T
         self.ustride = ustride
         N = r.size
@@ -904,7 +992,7 @@ class _SensitivityPass:
         k0, k1 = self._bounds(i)
         ok, sse = _sens_block(
             *self.args, self.layout.gain_index, self.layout.cogging_start,
-            self.r, self.d, k0, k1, blk.j0, blk.j1, self.ustride, b == 0,
+            self.r, self.d, self.wt, k0, k1, blk.j0, blk.j1, self.ustride, b == 0,
             blk.xg, blk.xc, blk.st, blk.Sg, blk.Sc, blk.Sg2, blk.Sc2,
             self.bufs[i % self.ring], self.batch_grad[i], self.y0s, self.ds, self.nvec,
         )  # fmt: skip

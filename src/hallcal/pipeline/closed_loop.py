@@ -22,6 +22,13 @@ from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
 from hallcal.fit.adequacy import AdequacyReport, assess
+from hallcal.fit.censor import (
+    Censoring,
+    detect_censoring,
+    impute,
+    imputed_by_sem,
+    noise_std,
+)
 from hallcal.fit.cogging import CoggingSelection, CoggingStatus, select_cogging
 from hallcal.fit.design import plan_ramp, speed_limits
 from hallcal.fit.sem import SEMResult, SEMStatus, solve_sem
@@ -273,6 +280,56 @@ def _with_cogging(
     )  # fmt: skip
 
 
+def _censored(s: _Signals) -> tuple[Censoring, NDArray, list[str]]:
+    """Samples at an ADC rail (:mod:`hallcal.fit.censor`), the noise per channel, a message."""
+    censoring = detect_censoring(s.d)
+    if not censoring.any:
+        return censoring, np.zeros(3), []
+    note = (
+        f"censored samples (ADC rail) left out of the fit: {censoring.describe()} "
+        "(the loop's f_init saw them clipped, and so does the model's)"
+    )
+    return censoring, noise_std(s.d, censoring), [note]
+
+
+def _imputed(
+    loop: ClosedLoop, s: _Signals, censoring: Censoring, sigma: NDArray, setup: Setup,
+    progress: Progress,
+) -> _Signals:  # fmt: skip
+    """The signals with the censored samples imputed (for the steps that take d without
+    weights) and y the f_init view of them (for the model choice and the starts; the loop
+    keeps the rails)."""
+    if not censoring.any:
+        return s
+    say(progress, "imputing the censored samples (weighted SEM)")
+    d, y, _ = imputed_by_sem(loop, s.r, s.d, censoring, sigma, pole_pairs=setup.pole_pairs)
+    return dataclasses.replace(s, d=d, y=y)
+
+
+def _censored_refit(
+    loop: ClosedLoop, s: _Signals, setup: Setup, fit: _ModelFit, censoring: Censoring,
+    sigma: NDArray, *, fit_gain: bool, progress: Progress,
+) -> tuple[_ModelFit, _Signals]:  # fmt: skip
+    """The final SEM with weight 0 on the censored samples, from the chosen model; the signals
+    re-imputed with its d_sim (the fixed point of :func:`hallcal.fit.censor.impute`)."""
+    if not censoring.any or setup.model.basis != "fourier":
+        return fit, s
+    say(progress, "SEM without the censored samples")
+    sem = solve_sem(
+        loop, s.r, s.d, fit.sem.flux.basis, theta0=fit.sem.flux.theta, fit_gain=fit_gain,
+        gain0=fit.sem.gain, cogging=fit.sem.cogging or (), weights=censoring.weights,
+        max_iterations=setup.model.max_iterations,
+    )  # fmt: skip
+    cog = fit.cogging
+    if cog is not None and cog.cogging is not None:
+        cog = dataclasses.replace(cog, sem=sem, cogging=sem.cogging)
+    fit = dataclasses.replace(
+        fit, sem=sem, flux=sem.flux, model_info=_fourier_info(sem.flux), gain_factor=sem.gain,
+        gain_factor_std=sem.gain_std, adequacy=None, cogging=cog,
+    )  # fmt: skip
+    return fit, dataclasses.replace(s, d=impute(s.d, censoring, sem.d_sim, sigma))
+
+
 #: Predicted / floor above which calibrate says how fast a ramp would have to be.
 RAMP_ADVICE = 1.5
 
@@ -428,6 +485,7 @@ def calibrate_closed_loop(
     for check in preflight:
         check.raise_if_failed(dataset.source)
     s = _signals(dataset, setup.pole_pairs)
+    censoring, sigma, censor_notes = _censored(s)
 
     t0 = time.perf_counter()
     harmonics = setup.model.harmonics
@@ -443,8 +501,8 @@ def calibrate_closed_loop(
         timings["plant"] = time.perf_counter() - t0
     loop_check = check_loop(setup.controller, pm.plant, setup.sample_time, plant_name=pm.name)
     loop_check.raise_if_failed("setup")
-    loop = closed_loop(setup, pm.plant)
-    messages = list(s.messages) + [pm.note]
+    loop = closed_loop(setup, pm.plant).with_rails(*censoring.rails)
+    messages = list(s.messages) + [pm.note] + censor_notes
     if pm.bla is not None:
         messages += list(pm.bla.messages)
     messages += [c.text for c in preflight if c.status is CheckStatus.WARNING]
@@ -453,6 +511,7 @@ def calibrate_closed_loop(
 
     t0 = time.perf_counter()
     with numeric_errors("setup", "model"):
+        s = _imputed(loop, s, censoring, sigma, setup, progress)
         if setup.model.basis == "kernel":
             fit = _fit_kernel(loop, s, setup, progress=progress)
         else:
@@ -460,12 +519,14 @@ def calibrate_closed_loop(
             fit = _with_cogging(
                 loop, s, setup, fit, fit_gain=pm.gain is not None, progress=progress
             )
+            fit, s = _censored_refit(loop, s, setup, fit, censoring, sigma,
+                                     fit_gain=pm.gain is not None, progress=progress)  # fmt: skip
     timings["sem"] = time.perf_counter() - t0
     pm = _refined_plant(pm, fit)
     cogging = fit.cogging.cogging if fit.cogging is not None else None
     if fit.cogging is not None and fit.cogging.status is not CoggingStatus.NONE:
         messages.append(fit.cogging.message)
-    loop = closed_loop(setup, pm.plant).with_cogging(cogging)
+    loop = closed_loop(setup, pm.plant).with_cogging(cogging).with_rails(*censoring.rails)
 
     with numeric_errors("setup", "model"):
         adequacy = fit.adequacy or assess(

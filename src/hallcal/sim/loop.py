@@ -100,6 +100,11 @@ class ClosedLoop:
     cogging : CoggingTorque or None
         A known cogging torque T_c(y0) at the plant input, part of the plant model (e.g. one
         identified earlier); the simulations and sensitivities include it.
+    rails : ndarray (2, 3)
+        The ADC rails [Hall signal unit] (row 0 lowest, row 1 highest value per sensor) between
+        the sensors and f_init: the model's f_init sees its flux clipped to them, as the drive's
+        saw the clipped signals (:mod:`hallcal.fit.censor`); default -inf/+inf (none). Used by
+        the model simulations of :mod:`hallcal.fit.gauss_newton`.
     """
 
     plant: StateSpace
@@ -108,6 +113,9 @@ class ClosedLoop:
     projection: NDArray[np.float64] = field(default_factory=lambda: clarke_matrix()[:2])
     offset: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
     cogging: CoggingTorque | None = None
+    rails: NDArray[np.float64] = field(
+        default_factory=lambda: np.array([[-np.inf] * 3, [np.inf] * 3])
+    )
 
     def __post_init__(self) -> None:
         if self.plant.D != 0.0:
@@ -168,6 +176,18 @@ class ClosedLoop:
         """The loop with a known cogging torque at the plant input (None: without)."""
         return replace(self, cogging=cogging)
 
+    def with_rails(self, low: ArrayLike, high: ArrayLike) -> ClosedLoop:
+        """The loop whose f_init sees the sensors clipped to [low, high] (per sensor)."""
+        rails = np.array([np.broadcast_to(low, 3), np.broadcast_to(high, 3)], dtype=np.float64)
+        if np.isnan(rails).any() or not (rails[0] < rails[1]).all():
+            raise ValueError("rails must satisfy low < high for every sensor")
+        return replace(self, rails=rails)
+
+    @property
+    def clipped(self) -> bool:
+        """Whether any rail is finite."""
+        return bool(np.isfinite(self.rails).any())
+
     def _arrays(self) -> tuple:
         p, c = self.plant, self.controller
         return (
@@ -205,6 +225,11 @@ class SensorADC:
     high: NDArray[np.float64] = field(default_factory=lambda: np.full(3, np.inf))
     step: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
     origin: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+
+    def within(self, rails: ArrayLike) -> SensorADC:
+        """This converter with its rails narrowed to ``rails`` (2 x 3: low, high)."""
+        r = np.asarray(rails, dtype=np.float64)
+        return replace(self, low=np.maximum(self.low, r[0]), high=np.minimum(self.high, r[1]))
 
     def _arrays(self) -> tuple:
         return tuple(
@@ -644,7 +669,7 @@ def simulate_loop(
         float(y_initial),
         float(initial_angle),
         sg,
-        *(adc or SensorADC())._arrays(),
+        *(adc or SensorADC()).within(loop.rails)._arrays(),
     )
     return LoopResult(y0, y, u, d, tq, LoopStatus.OK if ok else LoopStatus.DIVERGED)
 
