@@ -12,9 +12,10 @@ a user would write (the true plant and controller, ``harmonics = "auto"``) on a 
 - ``oracle``: on the validation run with the imperfection, f_star against the exact inverse of
   the true map applied to the same run (DESIGN.md's oracle floor), for the rails and the ADC.
 
-Cases: ``clip1`` one sensor's upper rail at 0.988 (4.4 % of its samples at the rail),
-``clip3`` all three sensors clipped at both rails, ``adc12`` a 12-bit ADC over [-1.2, 1.2] with analog noise below one code, ``drift`` sensor 1's gain drifting 2 % over the
-run, ``skew`` sensors at 0/100/230 electrical degrees.
+Cases: ``clean`` the bench itself, ``clip1`` one sensor's upper rail at 0.988 (4.4 % of its
+samples at the rail), ``clip3`` all three sensors clipped at both rails, ``adc12`` a 12-bit ADC
+over [-1.2, 1.2] with analog noise below one code, ``drift`` sensor 1's gain drifting 2 % over
+the run, ``skew`` sensors at 0/100/230 electrical degrees.
 
 Run ``python benchmarks/bench_sensor.py [--cases clip1 adc12] [-v] [--out FILE]``.
 """
@@ -74,8 +75,13 @@ def run_case(name: str, verbose: bool, harmonics="auto") -> dict:
     cfg, val_cfg = case(name)
     cal_run = ramp_run(cfg, ramp_end=RAMP_END, duration=DURATION)
     at_rail = np.mean(np.isin(cal_run.d, np.r_[cfg.adc_low, cfg.adc_high]), axis=0)
-    setup = Setup(pole_pairs=cfg.pole_pairs, sample_time=cfg.sample_time,
-                  controller=cfg.controller, plant=cfg.plant, model=ModelSpec(harmonics=harmonics))  # fmt: skip
+    setup = Setup(
+        pole_pairs=cfg.pole_pairs,
+        sample_time=cfg.sample_time,
+        controller=cfg.controller,
+        plant=cfg.plant,
+        model=ModelSpec(harmonics=harmonics),
+    )
     t0 = time.perf_counter()
     cal = pipeline.calibrate(Dataset.from_columns(cal_run.columns(with_encoder=False)), setup)
     sec = time.perf_counter() - t0

@@ -21,8 +21,8 @@ more often than a smooth signal with noise allows:
 
 So a channel is censored at its maximum (minimum) when at least ``min_fraction`` of the samples
 sit there and more than ``ratio`` (default 4) times as many as on the next code in. The step q is
-the smallest spacing of the distinct values when at most half of them are distinct and every
-spacing is a whole multiple of it (an ADC's codes), else 0.
+the smallest spacing of the distinct values when at most half of them are distinct and the
+spacings are whole multiples of it (an ADC's codes), else 0.
 
 Quantization enters the noise: the rounding error of a uniform quantizer has variance q^2 / 12
 (Widrow & Kollar 2008, "Quantization Noise", ch. 4), a lower bound on the per-channel noise
@@ -145,7 +145,7 @@ def quantization_step(x: ArrayLike) -> float:
     float
         q [Hall signal unit]: the smallest spacing of the distinct values, when at most half of
         the samples are distinct and 99 % of the spacings are whole multiples of it (within
-        1e-3 q, for values written in decimal), else 0.
+        0.02 q, for codes written in decimal with a few digits), else 0.
     """
     v = np.asarray(x, dtype=np.float64)
     v = v[np.isfinite(v)]
@@ -157,7 +157,7 @@ def quantization_step(x: ArrayLike) -> float:
     if not q > 0:
         return 0.0
     k = du / q
-    if np.mean(np.abs(k - np.round(k)) < 1e-3) < 0.99:
+    if np.mean(np.abs(k - np.round(k)) < 0.02) < 0.99:
         return 0.0
     return float(np.median(du[np.round(k) == 1]))
 

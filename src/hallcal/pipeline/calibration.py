@@ -237,6 +237,10 @@ class Calibration:
         How well the pole pair can be identified at power-up from the magnets' signatures
         (:mod:`hallcal.sensor.absolute`); None without a bijective table or for artifacts
         made before it existed.
+    sensors : dict
+        What the data say about the sensors themselves (:mod:`hallcal.fit.censor`,
+        :mod:`hallcal.fit.drift`): ``censoring`` (censored samples per sensor, rails,
+        quantization step) and ``drift`` when found; the artifact's ``diagnostics.sensors``.
     artifact : dict or None
         The artifact this calibration was loaded from (None when computed here).
     """
@@ -264,6 +268,7 @@ class Calibration:
     cogging: CoggingTorque | None = field(default=None, repr=False)
     cogging_selection: CoggingSelection | None = field(default=None, repr=False)
     identifiability: IdentifiabilityReport | None = field(default=None, repr=False)
+    sensors: Mapping[str, Any] = field(default_factory=dict, repr=False)
     artifact: Mapping[str, Any] | None = field(default=None, repr=False)
 
     @property
@@ -360,6 +365,8 @@ def _diagnostics(cal: Calibration) -> dict[str, Any]:
         diag["constant_speed"] = cal.constant_speed.to_dict()
     if cal.cogging_selection is not None:
         diag["cogging"] = cal.cogging_selection.to_dict()
+    if cal.sensors:
+        diag["sensors"] = dict(cal.sensors)
     return diag
 
 

@@ -590,4 +590,5 @@ def calibrate_closed_loop(
         cogging=cogging,
         cogging_selection=fit.cogging,
         identifiability=identifiability,
+        sensors={"censoring": censoring.to_dict()} if censoring.any else {},
     )
