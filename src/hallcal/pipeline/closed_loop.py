@@ -31,6 +31,7 @@ from hallcal.fit.censor import (
 )
 from hallcal.fit.cogging import CoggingSelection, CoggingStatus, select_cogging
 from hallcal.fit.design import plan_ramp, speed_limits
+from hallcal.fit.drift import DriftReport, detect_drift
 from hallcal.fit.sem import SEMResult, SEMStatus, solve_sem
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
@@ -281,10 +282,11 @@ def _with_cogging(
 
 
 def _censored(s: _Signals) -> tuple[Censoring, NDArray, list[str]]:
-    """Samples at an ADC rail (:mod:`hallcal.fit.censor`), the noise per channel, a message."""
+    """Samples at an ADC rail (:mod:`hallcal.fit.censor`), the noise per channel (flat tops
+    discounted), a message."""
     censoring = detect_censoring(s.d)
     if not censoring.any:
-        return censoring, np.zeros(3), []
+        return censoring, noise_std(s.d, censoring), []
     note = (
         f"censored samples (ADC rail) left out of the fit: {censoring.describe()} "
         "(the loop's f_init saw them clipped, and so does the model's)"
@@ -328,6 +330,31 @@ def _censored_refit(
         gain_factor_std=sem.gain_std, adequacy=None, cogging=cog,
     )  # fmt: skip
     return fit, dataclasses.replace(s, d=impute(s.d, censoring, sem.d_sim, sigma))
+
+
+def _drift_verdict(
+    s: _Signals, fit: _ModelFit, censoring: Censoring, sigma: NDArray,
+    verdict: tuple[CalibrationStatus, str | None, tuple[str, ...]],
+) -> tuple[tuple[CalibrationStatus, str | None, tuple[str, ...]], DriftReport | None]:  # fmt: skip
+    """The verdict with a drifting sensor named (:mod:`hallcal.fit.drift`): first in a
+    refusal's reason, else a warning."""
+    if fit.sem is None or not np.all(np.isfinite(fit.sem.d_sim)):
+        return verdict, None
+    drift = detect_drift(s.d, fit.sem.d_sim, sigma,
+                         weights=censoring.weights if censoring.any else None)  # fmt: skip
+    if not drift.any:
+        return verdict, drift
+    line = (
+        f"the sensors drift during the run ({drift.describe()}): a sensor warming up? The "
+        "table is at best the one of the run's middle: record the calibration run with the "
+        "sensors at their working temperature"
+    )
+    status, refusal, leading = verdict
+    if refusal is not None:  # the model's advice (another basis) cannot help against a drift
+        return (status, f"{line}; {refusal.split(': use ')[0]}", leading), drift
+    if status is CalibrationStatus.OK:
+        status = CalibrationStatus.WARNING
+    return (status, refusal, (f"warning: {line}", *leading)), drift
 
 
 #: Predicted / floor above which calibrate says how fast a ramp would have to be.
@@ -449,6 +476,16 @@ def _verdict(
     return CalibrationStatus.OK, None, ()
 
 
+def _sensor_diagnostics(censoring: Censoring, drift: DriftReport | None) -> dict[str, Any]:
+    """The artifact's ``diagnostics.sensors``: censoring and drift, where found."""
+    out: dict[str, Any] = {}
+    if censoring.any:
+        out["censoring"] = censoring.to_dict()
+    if drift is not None and drift.any:
+        out["drift"] = drift.to_dict()
+    return out
+
+
 def calibrate_closed_loop(
     dataset: Dataset,
     setup: Setup,
@@ -544,7 +581,9 @@ def calibrate_closed_loop(
             projection=loop.projection,
             offset=loop.offset,
         )
-    status, refusal, leading = _verdict(lut, adequacy)
+    (status, refusal, leading), drift = _drift_verdict(
+        s, fit, censoring, sigma, _verdict(lut, adequacy)
+    )
     predicted = adequacy.predicted_error
     if status is CalibrationStatus.WARNING:
         bias, note = _motion_bias(loop, s, setup, fit, lut)
@@ -590,5 +629,5 @@ def calibrate_closed_loop(
         cogging=cogging,
         cogging_selection=fit.cogging,
         identifiability=identifiability,
-        sensors={"censoring": censoring.to_dict()} if censoring.any else {},
+        sensors=_sensor_diagnostics(censoring, drift),
     )
