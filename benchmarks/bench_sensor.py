@@ -9,6 +9,8 @@ a user would write (the true plant and controller, ``harmonics = "auto"``) on a 
   (q: the ADC step, 0 without), on a validation run of the same motor without the
   imperfection that the table cannot undo (no rails: clipping is lost information; drift:
   the sensors frozen at the calibration run's middle, the "mean temperature");
+- ``raw/fl``: the same RMS about zero instead of about the mean (the table's constant offset
+  included, as ``reconstruct`` outputs it);
 - ``oracle``: on the validation run with the imperfection, f_star against the exact inverse of
   the true map applied to the same run (DESIGN.md's oracle floor), for the rails and the ADC.
 
@@ -92,12 +94,14 @@ def run_case(name: str, verbose: bool, harmonics="auto") -> dict:
             print(f"     refusal: {cal.refusal}", flush=True)
     floor = floor_of(cfg)
     row = {"case": name, "status": str(cal.status), "sec": sec, "rail": float(at_rail.max()),
-           "star": math.nan, "oracle": math.nan, "pred": cal.predicted_error / floor,
-           "init": math.nan, "harm": len(cal.model_info.get("harmonics", []))}  # fmt: skip
+           "star": math.nan, "raw": math.nan, "oracle": math.nan,
+           "pred": cal.predicted_error / floor, "init": math.nan,
+           "harm": len(cal.model_info.get("harmonics", []))}  # fmt: skip
     val = ramp_run(val_cfg, ramp_end=0.8 * RAMP_END, duration=0.8 * DURATION, seed=10_001)
     row["init"] = angle_error(cal.lut.f_init(val.d), val.y0).rms / floor
     if cal.lut.bijective:
-        row["star"] = angle_error(cal.lut.f_star(val.d), val.y0).rms / floor
+        err = angle_error(cal.lut.f_star(val.d), val.y0)
+        row["star"], row["raw"] = err.rms / floor, err.rms_raw / floor
         same = ramp_run(cfg, ramp_end=0.8 * RAMP_END, duration=0.8 * DURATION, seed=10_001)
         true_lut = build_lut(cfg.truth(), cfg.pole_pairs, points=16384)
         oracle = angle_error(true_lut.f_star(same.d), same.y0).rms
@@ -118,7 +122,8 @@ def main() -> None:
         f"load average {os.getloadavg()[0]:.1f} (2 cores); star/fl on the validation bench, "
         "oracle = f_star / exact inverse on the same imperfect run",
         "",
-        f"{'case':>6} {'rail%':>6} {'status':>13} {'init/fl':>8} {'star/fl':>8} {'oracle':>7} "
+        f"{'case':>6} {'rail%':>6} {'status':>13} {'init/fl':>8} {'star/fl':>8} {'raw/fl':>7} "
+        f"{'oracle':>7} "
         f"{'pred/fl':>8} {'harm':>5} {'sec':>6}",
     ]
     print("\n".join(lines), flush=True)
@@ -127,7 +132,8 @@ def main() -> None:
         r = run_case(name, args.verbose, h)
         line = (
             f"{r['case']:>6} {100 * r['rail']:6.2f} {r['status']:>13} {r['init']:8.2f} "
-            f"{r['star']:8.3f} {r['oracle']:7.3f} {r['pred']:8.3f} {r['harm']:5d} {r['sec']:6.1f}"
+            f"{r['star']:8.3f} {r['raw']:7.3f} {r['oracle']:7.3f} {r['pred']:8.3f} "
+            f"{r['harm']:5d} {r['sec']:6.1f}"
         )
         print(line, flush=True)
         lines.append(line)

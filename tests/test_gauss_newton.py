@@ -307,3 +307,45 @@ def test_rails_clip_what_the_model_f_init_sees(short_run):
                                atol=1e-5 * (np.abs(J).T @ np.abs(wf * e)).max())  # fmt: skip
     plain = simulate_model(cfg.loop(), layout, x, run.r)
     assert np.abs(plain.y0 - sim.y0).max() > 1e-5  # the rails moved the simulated motor
+
+
+def test_drift_columns_match_central_differences(short_run):
+    """Sensor gain and offset linear in time (``fit_drift``): the simulation carries the drift
+    (f_init sees the drifting signals), and J^T W J, J^T W e equal the products of a
+    central-difference Jacobian over theta, the gain, a cogging order and the six drift
+    parameters, with weights and rails (tolerance as for the rails)."""
+    cfg, run = short_run
+    loop = cfg.loop().with_rails([-0.97, -np.inf, -np.inf], [0.96, np.inf, np.inf])
+    layout = ParameterLayout(FourierBasis((1, 11)), True, (66,), fit_drift=True)
+    drift = [[0.02, 0.001], [-0.01, 0.0], [0.0, -0.002]]
+    x = layout.pack(_theta_near_truth(run, layout.basis), 0.01, CoggingTorque((66,), [1e-3], [0]),
+                    drift)  # fmt: skip
+    np.testing.assert_array_equal(layout.drift(x), drift)
+    sim = simulate_model(loop, layout, x, run.r)
+    tau = np.arange(run.n_samples) / (run.n_samples - 1) - 0.5
+    g = FluxModel(layout.basis, layout.theta(x))(sim.y0)
+    dr = np.asarray(drift)
+    np.testing.assert_allclose(sim.d, (1 + np.outer(tau, dr[:, 0])) * g + np.outer(tau, dr[:, 1]),
+                               rtol=0, atol=1e-12)  # fmt: skip
+    flat = ParameterLayout(FourierBasis((1, 11)), True, (66,))
+    assert np.abs(simulate_model(loop, flat, x[: flat.size], run.r).y - sim.y).max() > 1e-5
+    w = (np.abs(run.d) < 0.95).astype(float)
+    gn = gauss_newton_system(loop, layout, x, run.r, run.d, weights=w, stride=3)
+    exact = gauss_newton_system(loop, layout, x, run.r, run.d, weights=w)
+    h = 1e-6
+    cols = []
+    for j in range(layout.size):
+        dx = np.zeros(layout.size)
+        dx[j] = h
+        up = simulate_model(loop, layout, x + dx, run.r).d
+        dn = simulate_model(loop, layout, x - dx, run.r).d
+        cols.append(((up - dn) / (2 * h)).ravel())
+    J = np.column_stack(cols)
+    e = (run.d - sim.d).ravel()
+    wf = w.ravel()
+    JtWJ = J.T @ (wf[:, None] * J)
+    np.testing.assert_allclose(exact.gram, JtWJ, rtol=0, atol=1e-5 * np.abs(JtWJ).max())
+    np.testing.assert_allclose(exact.gradient, J.T @ (wf * e), rtol=0,
+                               atol=1e-5 * (np.abs(J).T @ np.abs(wf * e)).max())  # fmt: skip
+    np.testing.assert_array_equal(gn.gradient, exact.gradient)  # the stride: J^T J only
+    assert np.linalg.norm(gn.gram - exact.gram) < 0.05 * np.linalg.norm(exact.gram)

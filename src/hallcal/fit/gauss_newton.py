@@ -114,12 +114,18 @@ class ParameterLayout:
     fit_gain : bool
         Whether ``log c`` (a factor c on the plant input matrix) follows theta.
     cogging_orders : tuple of int
-        Orders k of the cogging torque whose coefficients ``(a_k, b_k)`` come last.
+        Orders k of the cogging torque whose coefficients ``(a_k, b_k)`` follow.
+    fit_drift : bool
+        Whether the sensors' gain and offset drifts ``(gamma_1, delta_1, ..., gamma_3,
+        delta_3)`` come last: the model signal of sensor h is
+        ``(1 + gamma_h tau) g_h(y0) + delta_h tau`` with ``tau = k / (N - 1) - 1/2`` over the
+        run (:mod:`hallcal.fit.drift`), so theta is the sensors at the run's middle.
     """
 
     basis: FourierBasis
     fit_gain: bool = False
     cogging_orders: tuple[int, ...] = ()
+    fit_drift: bool = False
 
     def __post_init__(self) -> None:
         k = tuple(int(v) for v in self.cogging_orders)
@@ -127,6 +133,7 @@ class ParameterLayout:
             raise ValueError("cogging orders must be distinct integers >= 1")
         object.__setattr__(self, "cogging_orders", k)
         object.__setattr__(self, "fit_gain", bool(self.fit_gain))
+        object.__setattr__(self, "fit_drift", bool(self.fit_drift))
 
     @property
     def n_theta(self) -> int:
@@ -144,9 +151,27 @@ class ParameterLayout:
         return self.n_theta + (1 if self.fit_gain else 0)
 
     @property
+    def cogging_stop(self) -> int:
+        """One past the last cogging coefficient."""
+        return self.cogging_start + 2 * len(self.cogging_orders)
+
+    @property
+    def drift_start(self) -> int:
+        """Index of gamma_1 (-1 without the drift)."""
+        return self.cogging_stop if self.fit_drift else -1
+
+    @property
     def size(self) -> int:
         """p."""
-        return self.cogging_start + 2 * len(self.cogging_orders)
+        return self.cogging_stop + (6 if self.fit_drift else 0)
+
+    def drift(self, x: ArrayLike) -> NDArray[np.float64]:
+        """(3, 2): per sensor the gain change gamma_h and the offset change delta_h over the
+        run (zeros without the drift)."""
+        if not self.fit_drift:
+            return np.zeros((3, 2))
+        j = self.drift_start
+        return np.asarray(x, dtype=np.float64)[j : j + 6].reshape(3, 2).copy()
 
     def theta(self, x: ArrayLike) -> NDArray[np.float64]:
         """theta (3, m) from x."""
@@ -172,13 +197,14 @@ class ParameterLayout:
             T_c(y0) of the orders ``cogging_orders`` [plant input units].
         """
         xx = np.asarray(x, dtype=np.float64)
-        sl = slice(self.cogging_start, self.size)
+        sl = slice(self.cogging_start, self.cogging_stop)
         cov = None if covariance is None else np.asarray(covariance, dtype=np.float64)[sl, sl]
         return CoggingTorque.from_coefficients(self.cogging_orders, xx[sl], cov)
 
     def pack(
-        self, theta: ArrayLike, log_gain: float = 0.0, cogging: CoggingTorque | None = None
-    ) -> NDArray[np.float64]:
+        self, theta: ArrayLike, log_gain: float = 0.0, cogging: CoggingTorque | None = None,
+        drift: ArrayLike | None = None,
+    ) -> NDArray[np.float64]:  # fmt: skip
         """x from its parts (cogging coefficients of orders not in ``cogging`` are zero).
 
         Parameters
@@ -189,11 +215,13 @@ class ParameterLayout:
             log c, the plant input gain factor (ignored unless ``fit_gain``).
         cogging : CoggingTorque, optional
             Known cogging coefficients to place at their orders.
+        drift : array_like (3, 2), optional
+            Per sensor (gamma_h, delta_h) (ignored unless ``fit_drift``; default zero).
 
         Returns
         -------
         ndarray, shape (p,)
-            ``x = [theta, log c, a_1, b_1, ...]``.
+            ``x = [theta, log c, a_1, b_1, ..., gamma_1, delta_1, ...]``.
         """
         x = np.zeros(self.size)
         x[: self.n_theta] = np.asarray(theta, dtype=np.float64).reshape(-1)
@@ -204,6 +232,8 @@ class ParameterLayout:
             for i, k in enumerate(self.cogging_orders):
                 if k in known:
                     x[self.cogging_start + 2 * i : self.cogging_start + 2 * i + 2] = known[k]
+        if self.fit_drift and drift is not None:
+            x[self.drift_start :] = np.asarray(drift, dtype=np.float64).reshape(6)
         return x
 
 
@@ -272,9 +302,38 @@ def _at_rails(gk, rlo, rhi, gf, live):
         gf[h] = v
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _drifted(drift, tau, gk, gp, sh):
+    """The drifting sensors' signals in place: ``g_h <- (1 + gamma_h tau) g_h + delta_h tau``,
+    ``g'_h <- (1 + gamma_h tau) g'_h`` and ``sh_h = 1 + gamma_h tau``."""
+    for h in range(3):
+        s = 1.0 + drift[2 * h] * tau
+        gk[h] = s * gk[h] + drift[2 * h + 1] * tau
+        gp[h] = s * gp[h]
+        sh[h] = s
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _drift_cross(cross, sw, nk, sh, b, gfl, tau, m):
+    """cross += the drift columns of ``E^T M E`` for one sample, ``M = S (I - n n^T) S``:
+    rows 0..3m-1 the theta columns (sensor-major), rows 3m.. the drift columns."""
+    for c in range(6):
+        hc = c // 2
+        vc = tau * gfl[hc] if c % 2 == 0 else tau
+        for h in range(3):
+            mh = sw[h] * sw[hc] * ((1.0 if h == hc else 0.0) - nk[h] * nk[hc])
+            coef = mh * vc
+            if coef != 0.0:
+                for j in range(m):
+                    cross[h * m + j, c] += coef * sh[h] * b[j]
+                for c2 in range(2 * h, 2 * h + 2):
+                    v2 = tau * gfl[h] if c2 % 2 == 0 else tau
+                    cross[3 * m + c2, c] += v2 * coef
+
+
 @nb.njit(cache=True, nogil=True)
 def _simulate_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax, cog_k, cog_x,
-                     rlo, rhi, r, y_init):  # fmt: skip
+                     rlo, rhi, drift, r, y_init):  # fmt: skip
     """Noise-free closed loop (eq. state_eq) with the flux on ``harm`` and the cogging torque."""
     N = r.size
     ng = Ag.shape[0]
@@ -308,6 +367,8 @@ def _simulate_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax,
         _trig_table(y0, hmax, cs, sn)
         _gather_basis(harm, cs, sn, b, db)
         _flux_and_slope(theta, b, db, gk, gp)
+        if drift.size:
+            _drifted(drift, k / max(N - 1, 1) - 0.5, gk, gp, live)
         _at_rails(gk, rlo, rhi, gf, live)
         al, be = _alpha_beta(P, off, gf)
         y = _unwrap(math.atan2(be, al), yprev, n_m)
@@ -332,9 +393,9 @@ def _simulate_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax,
 
 @nb.njit(cache=True, nogil=True)
 def _sens_block(
-    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax, cog_k, cog_x, rlo, rhi,
-    jgain, jcog, r, d, wt, k0, k1, j0, j1, ustride, primary,
-    xg, xc, st, Sg, Sc, Sg2, Sc2, U, grad, y0s, ds, nvec,
+    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax, cog_k, cog_x, rlo, rhi, drift,
+    jgain, jcog, jdrift, r, d, wt, k0, k1, j0, j1, ustride, primary,
+    xg, xc, st, Sg, Sc, Sg2, Sc2, U, grad, y0s, ds, nvec, cross,
 ):  # fmt: skip
     """Advance the sensitivities of the parameter columns j0..j1-1 over the samples k0..k1-1.
 
@@ -350,6 +411,14 @@ def _sens_block(
     rows of ``W^(1/2) J_k`` are ``(s o g') dy0^T + diag(s) E_k``, so u_k uses
     ``a = s o g'``, ``n_k = a / |a|`` and ``diag(s) E_k^T n_k`` (module docstring with g' -> a).
     Rails (``rlo``, ``rhi``): f_init sees the model flux clipped to them (:func:`_at_rails`).
+
+    Drift (``drift``: (gamma_h, delta_h) per sensor, empty for none; its columns from
+    ``jdrift`` when fitted, -1 otherwise): the model signal is ``sh_h g_h + delta_h tau`` with
+    ``sh_h = 1 + gamma_h tau`` (:func:`_drifted`), so E_k holds ``sh_h beta`` on the theta
+    columns and ``(tau g_h, tau)`` on the drift columns of sensor h. The primary block adds the
+    drift rows and columns of ``E^T S (I - n n^T) S E`` into ``cross`` (3 m + 6, 6): their
+    trigonometric-moment shortcut does not apply (the theta block's does, with the weights
+    ``w sh^2``, :func:`_normal_part`).
     """
     ng = Ag.shape[0]
     nc = Ac.shape[0]
@@ -374,7 +443,11 @@ def _sens_block(
     gf = np.empty(3)
     live = np.empty(3)
     sw = np.ones(3)
+    sh = np.ones(3)
+    gfl = np.empty(3)
     has_w = wt.shape[0] > 0
+    N = r.size
+    tau = 0.0
     yprev = st[0]
     y0_last = st[1]
     sse = 0.0
@@ -386,6 +459,10 @@ def _sens_block(
         _trig_table(y0, hmax, cs, sn)
         _gather_basis(harm, cs, sn, b, db)
         _flux_and_slope(theta, b, db, gk, gp)
+        if drift.size:
+            tau = k / max(N - 1, 1) - 0.5
+            gfl[:] = gk
+            _drifted(drift, tau, gk, gp, sh)
         _at_rails(gk, rlo, rhi, gf, live)
         for h in range(3):
             ek[h] = d[k, h] - gk[h]
@@ -423,8 +500,14 @@ def _sens_block(
             lo = max(j0, h * m)
             hi = min(j1, (h + 1) * m)
             for j in range(lo, hi):
-                grad[j] += ek[h] * b[j - h * m]
-                dy[j - j0] += ck[h] * b[j - h * m]
+                grad[j] += ek[h] * sh[h] * b[j - h * m]
+                dy[j - j0] += ck[h] * sh[h] * b[j - h * m]
+        if jdrift >= 0:  # the drift columns' direct terms (tau g_h, tau) of sensor h
+            for h in range(3):
+                for c, v in ((jdrift + 2 * h, tau * gfl[h]), (jdrift + 2 * h + 1, tau)):
+                    if j0 <= c < j1:
+                        grad[c] += ek[h] * v
+                        dy[c - j0] += ck[h] * v
         # the row u_k = |g'| dy0 + E^T n
         if ustride > 0 and k % ustride == 0:
             t = k // ustride - (k0 + ustride - 1) // ustride  # rank among multiples in [k0, k1)
@@ -434,7 +517,14 @@ def _sens_block(
                 lo = max(j0, h * m)
                 hi = min(j1, (h + 1) * m)
                 for j in range(lo, hi):
-                    U[t, j] += sw[h] * nk[h] * b[j - h * m]
+                    U[t, j] += sw[h] * nk[h] * sh[h] * b[j - h * m]
+            if jdrift >= 0:
+                for h in range(3):
+                    for c, v in ((jdrift + 2 * h, tau * gfl[h]), (jdrift + 2 * h + 1, tau)):
+                        if j0 <= c < j1:
+                            U[t, c] += sw[h] * nk[h] * v
+        if primary and jdrift >= 0 and ustride > 0:  # every sample, whatever the stride
+            _drift_cross(cross, sw, nk, sh, b, gfl, tau, m)
         # controller and plant input w = u + T_c(y0)
         y = _unwrap(math.atan2(be, al), yprev, n_m)
         err = r[k] - y
@@ -648,12 +738,13 @@ def _model_arrays(loop: ClosedLoop, layout: ParameterLayout, x: ArrayLike) -> tu
     theta = _kernel_array(layout.theta(xx))
     # the fitted cogging orders first (their columns), then the loop's own, fixed cogging torque
     cog_k = np.asarray(layout.cogging_orders, dtype=np.float64)
-    cog_x = _kernel_array(xx[layout.cogging_start :])
+    cog_x = _kernel_array(xx[layout.cogging_start : layout.cogging_stop])
     if loop.cogging is not None and loop.cogging.size:
         cog_k = np.concatenate([cog_k, np.asarray(loop.cogging.orders, dtype=np.float64)])
         cog_x = np.concatenate([cog_x, loop.cogging.coefficients])
     rlo, rhi = (_kernel_array(v) for v in loop.rails)
-    return (*arrs, float(loop.pole_pairs), theta, harm, hmax, cog_k, cog_x, rlo, rhi)
+    drift = _kernel_array(layout.drift(xx).ravel() if layout.fit_drift else np.zeros(0))
+    return (*arrs, float(loop.pole_pairs), theta, harm, hmax, cog_k, cog_x, rlo, rhi, drift)
 
 
 def simulate_model(
@@ -853,8 +944,13 @@ def gauss_newton_system(
         if gram:
             G = np.triu(G) + np.triu(G, 1).T
             G[: layout.n_theta, : layout.n_theta] += _normal_part(
-                passes.y0s, passes.nvec, layout, nthreads, wt
+                passes.y0s, passes.nvec, layout, nthreads, _drift_weights(layout, x, wt, N)
             )
+            if layout.fit_drift:
+                nt, jd = layout.n_theta, layout.drift_start
+                G[:nt, jd : jd + 6] += passes.cross[:nt]
+                G[jd : jd + 6, :nt] += passes.cross[:nt].T
+                G[jd : jd + 6, jd : jd + 6] += passes.cross[nt:]
     grads = passes.batch_grad
     return GaussNewtonSystem(
         G, grads.sum(axis=0), float(passes.sse), passes.ds, passes.y0s, grads, PassStatus.OK
@@ -882,6 +978,16 @@ def checked_weights(weights: ArrayLike | None, n_samples: int) -> NDArray[np.flo
     if w.shape != (int(n_samples), 3) or not np.all(np.isfinite(w)) or (w < 0).any():
         raise ValueError("weights must be (N, 3), finite and >= 0")
     return w
+
+
+def _drift_weights(layout: ParameterLayout, x: ArrayLike, wt: NDArray, N: int) -> NDArray:
+    """The weights of the theta block's moments: ``w sh^2`` with ``sh = 1 + gamma tau`` of the
+    drifting sensors (:func:`_drifted`); the given weights without the drift."""
+    if not layout.fit_drift:
+        return wt
+    tau = np.arange(N) / max(N - 1, 1) - 0.5
+    sh = 1.0 + np.outer(tau, layout.drift(x)[:, 0])
+    return sh * sh * (wt if wt.shape[0] else 1.0)
 
 
 def _threads(threads: int | None, p: int) -> int:
@@ -977,6 +1083,7 @@ class _SensitivityPass:
         self.y0s = np.full(N, np.nan)
         self.ds = np.full((N, 3), np.nan)
         self.nvec = np.zeros((N, 3))
+        self.cross = np.zeros((layout.n_theta + 6, 6) if layout.fit_drift else (0, 6))
         self.sse = 0.0
         self.failed = False
         self._cond = threading.Condition()
@@ -992,9 +1099,11 @@ class _SensitivityPass:
         k0, k1 = self._bounds(i)
         ok, sse = _sens_block(
             *self.args, self.layout.gain_index, self.layout.cogging_start,
-            self.r, self.d, self.wt, k0, k1, blk.j0, blk.j1, self.ustride, b == 0,
+            self.layout.drift_start, self.r, self.d, self.wt, k0, k1, blk.j0, blk.j1,
+            self.ustride, b == 0,
             blk.xg, blk.xc, blk.st, blk.Sg, blk.Sc, blk.Sg2, blk.Sc2,
             self.bufs[i % self.ring], self.batch_grad[i], self.y0s, self.ds, self.nvec,
+            self.cross,
         )  # fmt: skip
         if b == 0:
             self.sse += sse
