@@ -22,7 +22,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["DriftReport", "detect_drift"]
+from hallcal.fit.sem import least_squares_start
+from hallcal.sensor.flux import FluxModel, FourierBasis
+
+__all__ = ["DriftReport", "detect_drift", "drift_in_f_init_view", "undrifted"]
 
 #: Standard deviations for a significant trend: 10^5 samples make a normal 5-sigma excursion
 #: improbable (3e-7 per test, six tests).
@@ -140,3 +143,62 @@ def detect_drift(
     z = np.abs(est) / np.where(std > 0, std, math.inf)
     drifting = (z.max(axis=1) > threshold) & (rms > relevance * sig)
     return DriftReport(est[:, 0], std[:, 0], est[:, 1], std[:, 1], rms, sig, drifting)
+
+
+def drift_in_f_init_view(
+    d: ArrayLike, y: ArrayLike, sigma: ArrayLike, *, pole_pairs: int, bands: int = 3,
+    weights: ArrayLike | None = None,
+) -> DriftReport:  # fmt: skip
+    """:func:`detect_drift` before any closed-loop fit: on the residual of each channel
+    regressed on the mechanical harmonics 1..``bands`` n_m at f_init's angle y.
+
+    A periodic function of the angle cannot follow a trend in time, so the drift stays in that
+    residual as well; found here, it can be taken out of the data the model choice sees
+    (:func:`undrifted`) and identified jointly in the final SEM.
+
+    Parameters
+    ----------
+    d : array_like (N, 3)
+        Hall signals.
+    y : array_like (N,)
+        f_init output [rad].
+    sigma : array_like (3,)
+        Noise standard deviation per channel.
+    pole_pairs : int, keyword-only
+        n_m.
+    bands : int, keyword-only
+        Electrical bandwidth of the regression.
+    weights : array_like (N, 3), optional
+        0 on censored samples.
+
+    Returns
+    -------
+    DriftReport
+    """
+    basis = FourierBasis(tuple(range(1, int(bands) * int(pole_pairs) + 1)))
+    yy = np.asarray(y, dtype=np.float64)
+    theta = least_squares_start(basis, d, yy, weights=weights)
+    return detect_drift(d, FluxModel(basis, theta)(yy), sigma, weights=weights)
+
+
+def undrifted(d: ArrayLike, report: DriftReport) -> NDArray[np.float64]:
+    """The signals with the drifts of ``report`` taken out: ``(d - delta tau) / (1 + gamma tau)``
+    per sensor (tau = k / (N - 1) - 1/2), i.e. the sensors at the run's middle.
+
+    Parameters
+    ----------
+    d : array_like (N, 3)
+        Hall signals.
+    report : DriftReport
+        The drifts (only the drifting sensors are corrected).
+
+    Returns
+    -------
+    ndarray (N, 3)
+    """
+    dd = np.array(d, dtype=np.float64)
+    N = dd.shape[0]
+    tau = np.arange(N) / max(N - 1, 1) - 0.5
+    for h in np.flatnonzero(report.drifting):
+        dd[:, h] = (dd[:, h] - report.offset[h] * tau) / (1.0 + report.gain[h] * tau)
+    return dd

@@ -123,6 +123,12 @@ class SEMResult:
         parameters at a time.
     batches : int
         Number of batches B.
+    drift : ndarray (3, 2) or None
+        With ``fit_drift``: per sensor the gain change gamma_h (relative) and the offset change
+        delta_h [Hall signal unit] over the run, identified jointly; theta is then the sensors
+        at the run's middle (:class:`~hallcal.fit.gauss_newton.ParameterLayout`).
+    drift_std : ndarray (3, 2) or None
+        Their standard deviations from the covariance.
     layout : ParameterLayout or None
         What the parameter vector holds.
     message : str
@@ -148,6 +154,8 @@ class SEMResult:
     message: str = ""
     batch_covariance: NDArray[np.float64] | None = field(default=None, repr=False)
     batches: int = 0
+    drift: NDArray[np.float64] | None = None
+    drift_std: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "status", SEMStatus(self.status))
@@ -430,6 +438,8 @@ def solve_sem(
     threads: int | None = None,
     chunk: int = 4096,
     weights: ArrayLike | None = None,
+    fit_drift: bool = False,
+    drift0: ArrayLike | None = None,
 ) -> SEMResult:
     """Solve problem (problem) by Levenberg-Marquardt on exact sensitivities.
 
@@ -477,6 +487,12 @@ def solve_sem(
         Per-sample, per-channel weights of the cost (0: a censored sample, e.g. at an ADC rail,
         :mod:`hallcal.fit.censor`; the loop's f_init still sees it); the default start is then
         a weighted least-squares fit, and sigma^2 counts the uncensored entries only.
+    fit_drift : bool
+        Also identify each sensor's gain and offset linear in time over the run (6 parameters,
+        :mod:`hallcal.fit.drift`); the loop's f_init sees the drifting signals, and theta is the
+        sensors at the run's middle.
+    drift0 : array_like (3, 2), optional
+        Start of the drift (default zero).
 
     Returns
     -------
@@ -486,12 +502,12 @@ def solve_sem(
     r, d = _checked_record(r, d)
     cog0 = cogging if isinstance(cogging, CoggingTorque) else None
     orders = cog0.orders if cog0 is not None else tuple(int(k) for k in cogging)
-    layout = ParameterLayout(basis, fit_gain=fit_gain, cogging_orders=orders)
+    layout = ParameterLayout(basis, fit_gain=fit_gain, cogging_orders=orders, fit_drift=fit_drift)
     w = None if weights is None else checked_weights(weights, r.size)
     theta_start = _theta_start(loop, basis, d, theta0, y, w)
     problem = _problem(loop, layout, r, d, regularization, stride=stride, threads=threads,
                        chunk=chunk, weights=w)  # fmt: skip
-    x0 = layout.pack(theta_start, math.log(gain0) if fit_gain else 0.0, cog0)
+    x0 = layout.pack(theta_start, math.log(gain0) if fit_gain else 0.0, cog0, drift0)
     it = _levenberg_marquardt(problem, x0, max_iterations=max_iterations, tol=tol, damping=damping)
     unc = _uncertainty(problem, it)
     return SEMResult(
@@ -514,7 +530,15 @@ def solve_sem(
         message=_message(it, layout.size),
         batch_covariance=unc.batch,
         batches=int(unc.system.batch_gradients.shape[0]),
+        drift=layout.drift(it.x) if fit_drift else None,
+        drift_std=_drift_std(layout, unc.parameter) if fit_drift else None,
     )
+
+
+def _drift_std(layout: ParameterLayout, cov: NDArray) -> NDArray[np.float64]:
+    """(3, 2) standard deviations of the drift parameters from the parameter covariance."""
+    j = layout.drift_start
+    return np.sqrt(np.maximum(np.diag(cov)[j : j + 6], 0.0)).reshape(3, 2)
 
 
 def _checked_record(r: ArrayLike, d: ArrayLike) -> tuple[NDArray, NDArray]:

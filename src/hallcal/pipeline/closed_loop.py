@@ -22,19 +22,12 @@ from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
 from hallcal.fit.adequacy import AdequacyReport, assess
-from hallcal.fit.censor import (
-    Censoring,
-    detect_censoring,
-    impute,
-    imputed_by_sem,
-    noise_std,
-)
 from hallcal.fit.cogging import CoggingSelection, CoggingStatus, select_cogging
 from hallcal.fit.design import plan_ramp, speed_limits
-from hallcal.fit.drift import DriftReport, detect_drift
 from hallcal.fit.sem import SEMResult, SEMStatus, solve_sem
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
+from hallcal.pipeline import sensors
 from hallcal.pipeline.boundary import numeric_errors
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
 from hallcal.pipeline.checks import CheckStatus, check_direction, check_loop, check_pole_pairs
@@ -281,47 +274,17 @@ def _with_cogging(
     )  # fmt: skip
 
 
-def _censored(s: _Signals) -> tuple[Censoring, NDArray, list[str]]:
-    """Samples at an ADC rail (:mod:`hallcal.fit.censor`), the noise per channel (flat tops
-    discounted), a message."""
-    censoring = detect_censoring(s.d)
-    if not censoring.any:
-        return censoring, noise_std(s.d, censoring), []
-    note = (
-        f"censored samples (ADC rail) left out of the fit: {censoring.describe()} "
-        "(the loop's f_init saw them clipped, and so does the model's)"
-    )
-    return censoring, noise_std(s.d, censoring), [note]
-
-
-def _imputed(
-    loop: ClosedLoop, s: _Signals, censoring: Censoring, sigma: NDArray, setup: Setup,
-    progress: Progress,
-) -> _Signals:  # fmt: skip
-    """The signals with the censored samples imputed (for the steps that take d without
-    weights) and y the f_init view of them (for the model choice and the starts; the loop
-    keeps the rails)."""
-    if not censoring.any:
-        return s
-    say(progress, "imputing the censored samples (weighted SEM)")
-    d, y, _ = imputed_by_sem(loop, s.r, s.d, censoring, sigma, pole_pairs=setup.pole_pairs)
-    return dataclasses.replace(s, d=d, y=y)
-
-
-def _censored_refit(
-    loop: ClosedLoop, s: _Signals, setup: Setup, fit: _ModelFit, censoring: Censoring,
-    sigma: NDArray, *, fit_gain: bool, progress: Progress,
+def _final_fit(
+    loop: ClosedLoop, s: _Signals, setup: Setup, fit: _ModelFit, found: sensors.SensorFindings,
+    *, fit_gain: bool, progress: Progress,
 ) -> tuple[_ModelFit, _Signals]:  # fmt: skip
-    """The final SEM with weight 0 on the censored samples, from the chosen model; the signals
-    re-imputed with its d_sim (the fixed point of :func:`hallcal.fit.censor.impute`)."""
-    if not censoring.any or setup.model.basis != "fourier":
+    """The chosen model refitted without the censored samples and with the sensors' drift
+    (:func:`hallcal.pipeline.sensors.final_fit`), when there are any."""
+    out = sensors.final_fit(loop, s.r, s.d, fit.sem, found, fit_gain=fit_gain, progress=progress,
+                            max_iterations=setup.model.max_iterations)  # fmt: skip
+    if out is None:
         return fit, s
-    say(progress, "SEM without the censored samples")
-    sem = solve_sem(
-        loop, s.r, s.d, fit.sem.flux.basis, theta0=fit.sem.flux.theta, fit_gain=fit_gain,
-        gain0=fit.sem.gain, cogging=fit.sem.cogging or (), weights=censoring.weights,
-        max_iterations=setup.model.max_iterations,
-    )  # fmt: skip
+    sem, d = out
     cog = fit.cogging
     if cog is not None and cog.cogging is not None:
         cog = dataclasses.replace(cog, sem=sem, cogging=sem.cogging)
@@ -329,32 +292,7 @@ def _censored_refit(
         fit, sem=sem, flux=sem.flux, model_info=_fourier_info(sem.flux), gain_factor=sem.gain,
         gain_factor_std=sem.gain_std, adequacy=None, cogging=cog,
     )  # fmt: skip
-    return fit, dataclasses.replace(s, d=impute(s.d, censoring, sem.d_sim, sigma))
-
-
-def _drift_verdict(
-    s: _Signals, fit: _ModelFit, censoring: Censoring, sigma: NDArray,
-    verdict: tuple[CalibrationStatus, str | None, tuple[str, ...]],
-) -> tuple[tuple[CalibrationStatus, str | None, tuple[str, ...]], DriftReport | None]:  # fmt: skip
-    """The verdict with a drifting sensor named (:mod:`hallcal.fit.drift`): first in a
-    refusal's reason, else a warning."""
-    if fit.sem is None or not np.all(np.isfinite(fit.sem.d_sim)):
-        return verdict, None
-    drift = detect_drift(s.d, fit.sem.d_sim, sigma,
-                         weights=censoring.weights if censoring.any else None)  # fmt: skip
-    if not drift.any:
-        return verdict, drift
-    line = (
-        f"the sensors drift during the run ({drift.describe()}): a sensor warming up? The "
-        "table is at best the one of the run's middle: record the calibration run with the "
-        "sensors at their working temperature"
-    )
-    status, refusal, leading = verdict
-    if refusal is not None:  # the model's advice (another basis) cannot help against a drift
-        return (status, f"{line}; {refusal.split(': use ')[0]}", leading), drift
-    if status is CalibrationStatus.OK:
-        status = CalibrationStatus.WARNING
-    return (status, refusal, (f"warning: {line}", *leading)), drift
+    return fit, dataclasses.replace(s, d=d)
 
 
 #: Predicted / floor above which calibrate says how fast a ramp would have to be.
@@ -476,16 +414,6 @@ def _verdict(
     return CalibrationStatus.OK, None, ()
 
 
-def _sensor_diagnostics(censoring: Censoring, drift: DriftReport | None) -> dict[str, Any]:
-    """The artifact's ``diagnostics.sensors``: censoring and drift, where found."""
-    out: dict[str, Any] = {}
-    if censoring.any:
-        out["censoring"] = censoring.to_dict()
-    if drift is not None and drift.any:
-        out["drift"] = drift.to_dict()
-    return out
-
-
 def calibrate_closed_loop(
     dataset: Dataset,
     setup: Setup,
@@ -522,7 +450,7 @@ def calibrate_closed_loop(
     for check in preflight:
         check.raise_if_failed(dataset.source)
     s = _signals(dataset, setup.pole_pairs)
-    censoring, sigma, censor_notes = _censored(s)
+    found = sensors.examine(s.d, s.y, pole_pairs=setup.pole_pairs, basis=setup.model.basis)
 
     t0 = time.perf_counter()
     harmonics = setup.model.harmonics
@@ -538,8 +466,8 @@ def calibrate_closed_loop(
         timings["plant"] = time.perf_counter() - t0
     loop_check = check_loop(setup.controller, pm.plant, setup.sample_time, plant_name=pm.name)
     loop_check.raise_if_failed("setup")
-    loop = closed_loop(setup, pm.plant).with_rails(*censoring.rails)
-    messages = list(s.messages) + [pm.note] + censor_notes
+    loop = closed_loop(setup, pm.plant)
+    messages = list(s.messages) + [pm.note] + list(found.notes)
     if pm.bla is not None:
         messages += list(pm.bla.messages)
     messages += [c.text for c in preflight if c.status is CheckStatus.WARNING]
@@ -548,27 +476,32 @@ def calibrate_closed_loop(
 
     t0 = time.perf_counter()
     with numeric_errors("setup", "model"):
-        s = _imputed(loop, s, censoring, sigma, setup, progress)
+        loop, d, y, d_choice, y_choice = sensors.for_choice(
+            loop, s.r, s.d, s.y, found, pole_pairs=setup.pole_pairs, progress=progress
+        )
+        s, s_choice = (dataclasses.replace(s, d=d, y=y),
+                       dataclasses.replace(s, d=d_choice, y=y_choice))  # fmt: skip
         if setup.model.basis == "kernel":
             fit = _fit_kernel(loop, s, setup, progress=progress)
         else:
-            fit = _fit_fourier(loop, s, setup, fit_gain=pm.gain is not None, progress=progress)
-            fit = _with_cogging(
-                loop, s, setup, fit, fit_gain=pm.gain is not None, progress=progress
+            fit = _fit_fourier(
+                loop, s_choice, setup, fit_gain=pm.gain is not None, progress=progress
             )
-            fit, s = _censored_refit(loop, s, setup, fit, censoring, sigma,
-                                     fit_gain=pm.gain is not None, progress=progress)  # fmt: skip
+            fit = _with_cogging(
+                loop, s_choice, setup, fit, fit_gain=pm.gain is not None, progress=progress
+            )
+            fit, s = _final_fit(loop, s, setup, fit, found, progress=progress,
+                                fit_gain=pm.gain is not None)  # fmt: skip
     timings["sem"] = time.perf_counter() - t0
     pm = _refined_plant(pm, fit)
     cogging = fit.cogging.cogging if fit.cogging is not None else None
     if fit.cogging is not None and fit.cogging.status is not CoggingStatus.NONE:
         messages.append(fit.cogging.message)
-    loop = closed_loop(setup, pm.plant).with_cogging(cogging).with_rails(*censoring.rails)
+    loop = closed_loop(setup, pm.plant).with_cogging(cogging).with_rails(*found.censoring.rails)
 
     with numeric_errors("setup", "model"):
         adequacy = fit.adequacy or assess(
-            fit.sem,
-            s.d,
+            *sensors.at_mid_run(fit.sem, s.d),
             pole_pairs=setup.pole_pairs,
             projection=loop.projection,
             offset=loop.offset,
@@ -581,9 +514,10 @@ def calibrate_closed_loop(
             projection=loop.projection,
             offset=loop.offset,
         )
-    (status, refusal, leading), drift = _drift_verdict(
-        s, fit, censoring, sigma, _verdict(lut, adequacy)
-    )
+    (status, refusal, leading), sensor_info = sensors.verdict(
+        s.d, fit.sem, found, _verdict(lut, adequacy), ok=CalibrationStatus.OK,
+        warning=CalibrationStatus.WARNING,
+    )  # fmt: skip
     predicted = adequacy.predicted_error
     if status is CalibrationStatus.WARNING:
         bias, note = _motion_bias(loop, s, setup, fit, lut)
@@ -629,5 +563,5 @@ def calibrate_closed_loop(
         cogging=cogging,
         cogging_selection=fit.cogging,
         identifiability=identifiability,
-        sensors=_sensor_diagnostics(censoring, drift),
+        sensors=sensor_info,
     )
