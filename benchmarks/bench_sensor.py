@@ -58,6 +58,9 @@ def case(name: str) -> tuple[BenchConfig, BenchConfig]:
         cfg = replace(base, noise_variance=1e-4**2, adc_low=(-1.2,) * 3, adc_high=(1.2,) * 3,
                       adc_bits=12)  # fmt: skip
         return cfg, cfg
+    if name == "quiet":  # the analog noise of adc12 without its ADC
+        cfg = replace(base, noise_variance=1e-4**2)
+        return cfg, cfg
     if name == "drift":
         cfg = replace(base, gain_drift=(0.02 / DURATION, 0.0, 0.0),
                       drift_reference_time=DURATION / 2)  # fmt: skip

@@ -111,3 +111,24 @@ def test_a_clipping_motor_reaches_its_floor_from_the_rest_of_its_samples(clipped
     val = ramp_run(SMALL, **RAMP, seed=99)
     ratio = angle_error(cal.lut.f_star(val.d), val.y0).rms / SMALL.noise_floor
     assert ratio < 1.15
+
+
+def test_quantization_is_a_lower_bound_on_the_noise():
+    """A slow, noise-free quantized signal: its differences see little of the rounding error
+    (a slow sawtooth of the angle), so the floor's variance is raised to q^2 / 12; a signal
+    crossing many codes per sample already shows it (left unchanged)."""
+    from hallcal.fit.adequacy import estimate_noise_variance
+    from hallcal.fit.censor import with_quantization
+
+    q = 1e-3
+    t = np.arange(50_000)
+    slow = np.round(np.column_stack([np.cos(2e-4 * t + p) for p in (0, 2.1, 4.2)]) / q) * q
+    est = estimate_noise_variance(slow)
+    assert np.all(est.per_channel < 0.5 * q * q / 12)
+    up = with_quantization(est, [q, q, q])
+    np.testing.assert_allclose(up.per_channel, q * q / 12)
+    assert up.variance == pytest.approx(q * q / 12)
+    rng = np.random.default_rng(4)
+    fast = np.round(rng.standard_normal((50_000, 3)) * 0.05 / q) * q
+    est = estimate_noise_variance(fast)
+    assert with_quantization(est, [q, q, q]) is est

@@ -502,6 +502,7 @@ def calibrate_closed_loop(
     with numeric_errors("setup", "model"):
         adequacy = fit.adequacy or assess(
             *sensors.at_mid_run(fit.sem, s.d),
+            noise=sensors.noise(found, s.d),
             pole_pairs=setup.pole_pairs,
             projection=loop.projection,
             offset=loop.offset,

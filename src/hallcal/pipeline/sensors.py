@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from hallcal.fit.adequacy import NoiseEstimate, estimate_noise_variance
 from hallcal.fit.censor import (
     MAX_IMPUTATION_HARMONICS,
     Censoring,
@@ -29,6 +30,7 @@ from hallcal.fit.censor import (
     impute,
     imputed_by_sem,
     noise_std,
+    with_quantization,
 )
 from hallcal.fit.drift import DriftReport, detect_drift, drift_in_f_init_view, undrifted
 from hallcal.fit.sem import SEMResult, solve_sem
@@ -37,7 +39,15 @@ from hallcal.sensor.flux import FourierBasis
 from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.loop import ClosedLoop
 
-__all__ = ["SensorFindings", "at_mid_run", "examine", "final_fit", "for_choice", "verdict"]
+__all__ = [
+    "SensorFindings",
+    "at_mid_run",
+    "examine",
+    "final_fit",
+    "for_choice",
+    "noise",
+    "verdict",
+]
 
 #: Fixed-point passes of the drift estimate in f_init's view (the view bends with the drift:
 #: 1.35 % then 1.54, 1.56 % of a true 2 % on the drift bench; the joint SEM finds the rest).
@@ -184,6 +194,13 @@ def final_fit(
     if found.censoring.any:
         d = impute(d, found.censoring, final.d_sim, found.sigma)
     return final, d
+
+
+def noise(found: SensorFindings, d: NDArray) -> NoiseEstimate:
+    """The noise of the signals the fit used, at least the ADC's rounding noise per channel
+    (:func:`hallcal.fit.censor.with_quantization`): what the floor and the predicted error use.
+    """
+    return with_quantization(estimate_noise_variance(d), found.censoring.step)
 
 
 def at_mid_run(sem: SEMResult | None, d: NDArray) -> tuple[SEMResult | None, NDArray]:
