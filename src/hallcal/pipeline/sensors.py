@@ -12,6 +12,13 @@ fit, on plain arrays:
    samples and the drift identified jointly (theta: the sensors at the run's middle);
 4. :func:`verdict`: a drift left in the final residual named first in a refusal, or as a
    warning; an identified drift as a warning.
+
+Skewed sensors (electrical spacing far from 120 degrees): the drive's f_init (Clarke) then has
+a large error of its own, and its view of the flux carries harmonics up to several n_m that the
+model choice takes for flux content (measured: sensors at 0/100/230 degrees, 33 harmonics chosen
+and 1.67x the floor; the true 11 give 1.02x). The choice looks at the flux through the sensors'
+own spacing instead (:func:`hallcal.fit.constant_speed.estimate_sensor_geometry`); with the
+true spacing it chose the 11. The loop keeps the drive's f_init.
 """
 
 from __future__ import annotations
@@ -32,6 +39,7 @@ from hallcal.fit.censor import (
     noise_std,
     with_quantization,
 )
+from hallcal.fit.constant_speed import SensorGeometry, estimate_sensor_geometry
 from hallcal.fit.drift import DriftReport, detect_drift, drift_in_f_init_view, undrifted
 from hallcal.fit.sem import SEMResult, solve_sem
 from hallcal.pipeline.progress import Progress, say
@@ -48,6 +56,10 @@ __all__ = [
     "noise",
     "verdict",
 ]
+
+#: Electrical degrees from the nominal 0/120/240 beyond which the sensors count as skewed (a
+#: few degrees of misalignment are usual and harmless to the choice).
+SKEW_DEG = 5.0
 
 #: Fixed-point passes of the drift estimate in f_init's view (the view bends with the drift:
 #: 1.35 % then 1.54, 1.56 % of a true 2 % on the drift bench; the joint SEM finds the rest).
@@ -66,6 +78,9 @@ class SensorFindings:
         Noise standard deviation per channel (flat tops discounted).
     drift : DriftReport or None
         Gain and offset trends in f_init's view (None for the kernel basis).
+    geometry : SensorGeometry or None
+        The sensors' electrical phases when they are skewed (more than :data:`SKEW_DEG` from
+        0/120/240 degrees), else None.
     notes : tuple of str
         Messages for the user.
     """
@@ -73,6 +88,7 @@ class SensorFindings:
     censoring: Censoring
     sigma: NDArray[np.float64] = field(repr=False)
     drift: DriftReport | None
+    geometry: SensorGeometry | None = None
     notes: tuple[str, ...] = ()
 
     @property
@@ -121,7 +137,19 @@ def examine(d: NDArray, y: NDArray, *, pole_pairs: int, basis: str) -> SensorFin
                 break
             dd = undrifted(d, drift)
             yy = f_init(dd, pole_pairs)
-    return SensorFindings(censoring, sigma, drift, tuple(notes))
+    geometry = estimate_sensor_geometry(d, pole_pairs)
+    dev = np.abs((geometry.phases_deg - np.array([0.0, 120.0, 240.0]) + 180.0) % 360.0 - 180.0)
+    if geometry.ok and dev.max() > SKEW_DEG:
+        notes.append(
+            "skewed sensors: at "
+            + "/".join(f"{v:.0f}" for v in geometry.phases_deg)
+            + " electrical degrees (nominal 0/120/240), f_init's own angle error is large and "
+            "its view of the flux rich in harmonics; the model choice looks through the "
+            "sensors' estimated spacing instead"
+        )
+    else:
+        geometry = None
+    return SensorFindings(censoring, sigma, drift, geometry, tuple(notes))
 
 
 def for_choice(
@@ -147,7 +175,7 @@ def for_choice(
         say(progress, "imputing the censored samples (weighted SEM)")
         d, y, _ = imputed_by_sem(loop, r, d, found.censoring, found.sigma, pole_pairs=pole_pairs)
     if not found.drifting:
-        return loop, d, y, d, y
+        return loop, d, y, d, _view(d, y, found, pole_pairs)
     assert found.drift is not None
     say(progress, "the sensors' drift (SEM on 1..3 n_m)")
     K = max(pole_pairs, min(3 * pole_pairs, MAX_IMPUTATION_HARMONICS))
@@ -158,7 +186,16 @@ def for_choice(
     if sem.drift is not None and np.all(np.isfinite(sem.drift)):
         report = replace(report, gain=sem.drift[:, 0], offset=sem.drift[:, 1])
     dc = undrifted(d, report)
-    return loop, d, y, dc, f_init(dc, pole_pairs)
+    return loop, d, y, dc, _view(dc, f_init(dc, pole_pairs), found, pole_pairs)
+
+
+def _view(d: NDArray, y: NDArray, found: SensorFindings, pole_pairs: int) -> NDArray:
+    """The angle the model choice sees: y, or with skewed sensors f_init through their
+    estimated spacing, shifted to y's mean (the loop's frame)."""
+    if found.geometry is None:
+        return y
+    v = found.geometry.f_init(d, pole_pairs)
+    return v + float(np.mean(y - v))
 
 
 def _drift0(drift: DriftReport) -> NDArray[np.float64]:
