@@ -371,7 +371,10 @@ def prediction_at_f_init(
     bands : int, keyword-only
         Electrical harmonics of the regression (mechanical harmonics up to bands n_m).
     iterations : int, keyword-only
-        EM iterations.
+        Most EM iterations (they stop when no imputed value moves by 0.01 sigma).
+    relaxation : float, keyword-only
+        Over-relaxation of each EM step after the first (1: plain EM; 1.5 converged in about
+        10 iterations where plain EM took 14-20, on the clipping benches).
 
     Returns
     -------

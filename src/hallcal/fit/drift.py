@@ -32,6 +32,10 @@ __all__ = ["DriftReport", "detect_drift", "drift_in_f_init_view", "undrifted"]
 THRESHOLD = 5.0
 #: RMS of the drift in the signal, relative to the noise sigma, below which it is not named.
 RELEVANCE = 0.2
+#: Samples of the trend test in f_init's view (every k-th sample beyond): the flux fit uses all
+#: of them; the test's standard deviations grow as sqrt(k), far below the drifts that matter
+#: (a 2 % gain drift: 300 sigma on 10^5 samples, 150 on 2.5 10^4).
+SAMPLES = 25_000
 
 
 @dataclass(frozen=True)
@@ -177,8 +181,11 @@ def drift_in_f_init_view(
     """
     basis = FourierBasis(tuple(range(1, int(bands) * int(pole_pairs) + 1)))
     yy = np.asarray(y, dtype=np.float64)
-    theta = least_squares_start(basis, d, yy, weights=weights)
-    return detect_drift(d, FluxModel(basis, theta)(yy), sigma, weights=weights)
+    dd = np.asarray(d, dtype=np.float64)
+    theta = least_squares_start(basis, dd, yy, weights=weights)
+    k = slice(None, None, max(1, -(-yy.size // SAMPLES)))  # the test on a sub-sample
+    w = None if weights is None else np.asarray(weights, dtype=np.float64)[k]
+    return detect_drift(dd[k], FluxModel(basis, theta)(yy[k]), sigma, weights=w)
 
 
 def undrifted(d: ArrayLike, report: DriftReport) -> NDArray[np.float64]:

@@ -61,6 +61,10 @@ __all__ = [
 #: few degrees of misalignment are usual and harmless to the choice).
 SKEW_DEG = 5.0
 
+#: Samples of the sensor-spacing estimate (every k-th beyond): the phases of the fundamental
+#: need far fewer than a calibration run holds.
+_GEOMETRY_SAMPLES = 20_000
+
 #: Fixed-point passes of the drift estimate in f_init's view (the view bends with the drift:
 #: 1.35 % then 1.54, 1.56 % of a true 2 % on the drift bench; the joint SEM finds the rest).
 _VIEW_PASSES = 2
@@ -137,7 +141,7 @@ def examine(d: NDArray, y: NDArray, *, pole_pairs: int, basis: str) -> SensorFin
                 break
             dd = undrifted(d, drift)
             yy = f_init(dd, pole_pairs)
-    geometry = estimate_sensor_geometry(d, pole_pairs)
+    geometry = estimate_sensor_geometry(d[:: max(1, -(-d.shape[0] // _GEOMETRY_SAMPLES))])
     dev = np.abs((geometry.phases_deg - np.array([0.0, 120.0, 240.0]) + 180.0) % 360.0 - 180.0)
     if geometry.ok and dev.max() > SKEW_DEG:
         notes.append(
@@ -157,6 +161,23 @@ def for_choice(
     pole_pairs: int, progress: Progress = None,
 ) -> tuple[ClosedLoop, NDArray, NDArray, NDArray, NDArray]:  # fmt: skip
     """Step 2: the loop with the rails, and the signals for the steps without weights.
+
+    Parameters
+    ----------
+    loop : ClosedLoop
+        The loop model of the calibration.
+    r : ndarray (N,)
+        Reference [rad].
+    d : ndarray (N, 3)
+        Recorded Hall signals.
+    y : ndarray (N,)
+        f_init output of the loop [rad].
+    found : SensorFindings
+        Step 1's findings.
+    pole_pairs : int, keyword-only
+        n_m.
+    progress : callable, keyword-only, optional
+        Called with a short message at each step.
 
     Returns
     -------
@@ -211,6 +232,25 @@ def final_fit(
 ) -> tuple[SEMResult, NDArray] | None:  # fmt: skip
     """Step 3: the final SEM without the censored samples and with the drift, from ``sem``.
 
+    Parameters
+    ----------
+    loop : ClosedLoop
+        The loop model with the rails.
+    r : ndarray (N,)
+        Reference [rad].
+    d : ndarray (N, 3)
+        The signals with the censored samples imputed (their values do not count).
+    sem : SEMResult
+        The chosen model's fit (basis, start, gain and cogging).
+    found : SensorFindings
+        Step 1's findings.
+    fit_gain : bool, keyword-only
+        Refine the plant gain c jointly (a BLA plant).
+    max_iterations : int, keyword-only
+        ``[model] max_iterations``.
+    progress : callable, keyword-only, optional
+        Called with a short message.
+
     Returns
     -------
     (SEMResult, ndarray (N, 3)) or None
@@ -236,6 +276,17 @@ def final_fit(
 def noise(found: SensorFindings, d: NDArray) -> NoiseEstimate:
     """The noise of the signals the fit used, at least the ADC's rounding noise per channel
     (:func:`hallcal.fit.censor.with_quantization`): what the floor and the predicted error use.
+
+    Parameters
+    ----------
+    found : SensorFindings
+        Step 1's findings (the quantization step per channel).
+    d : ndarray (N, 3)
+        The signals the fit used.
+
+    Returns
+    -------
+    NoiseEstimate
     """
     return with_quantization(estimate_noise_variance(d), found.censoring.step)
 
@@ -244,7 +295,22 @@ def at_mid_run(sem: SEMResult | None, d: NDArray) -> tuple[SEMResult | None, NDA
     """The fit and the signals as the sensors at the run's middle would give them, for the
     checks that compare the data with the flux curve g_theta (:func:`hallcal.fit.adequacy.
     assess`): both with the identified drift taken out (:func:`hallcal.fit.drift.undrifted`).
-    Unchanged without an identified drift."""
+    Unchanged without an identified drift.
+
+    Parameters
+    ----------
+    sem : SEMResult or None
+        The final fit.
+    d : ndarray (N, 3)
+        The signals it used.
+
+    Returns
+    -------
+    sem : SEMResult or None
+        With d_sim at mid-run.
+    d : ndarray (N, 3)
+        The signals at mid-run.
+    """
     if sem is None or sem.drift is None:
         return sem, d
     report = DriftReport(sem.drift[:, 0], np.ones(3), sem.drift[:, 1], np.ones(3), np.zeros(3),

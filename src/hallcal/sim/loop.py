@@ -177,7 +177,18 @@ class ClosedLoop:
         return replace(self, cogging=cogging)
 
     def with_rails(self, low: ArrayLike, high: ArrayLike) -> ClosedLoop:
-        """The loop whose f_init sees the sensors clipped to [low, high] (per sensor)."""
+        """The loop whose f_init sees the sensors clipped to [low, high] (per sensor).
+
+        Parameters
+        ----------
+        low, high : array_like (3,) or float
+            Rails [Hall signal unit], -inf / +inf for none; low < high.
+
+        Returns
+        -------
+        ClosedLoop
+            This loop with :attr:`rails`.
+        """
         rails = np.array([np.broadcast_to(low, 3), np.broadcast_to(high, 3)], dtype=np.float64)
         if np.isnan(rails).any() or not (rails[0] < rails[1]).all():
             raise ValueError("rails must satisfy low < high for every sensor")
