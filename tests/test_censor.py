@@ -79,10 +79,10 @@ def test_imputation_is_unbiased_where_the_uncensored_samples_are_not():
     c; with the censored ones replaced by E[mu + v | mu + v >= c] the mean is mu again.
 
     200 000 samples per level: the mean's standard error is sigma / 450; 0.01 sigma is 4.5 of
-    them, while dropping the censored samples is off by 0.29-0.8 sigma at these levels."""
+    them, while dropping the censored samples is off by 0.29-0.62 sigma at these levels."""
     sigma, c = 0.1, 1.0
     rng = np.random.default_rng(3)
-    for mu in (0.9, 1.0, 1.05):
+    for mu in (0.9, 0.95, 0.97):  # at most half of the samples at the rail (else: a stuck sensor)
         x = mu + sigma * rng.standard_normal(200_000)
         d = np.column_stack([np.minimum(x, c), x, x])
         cen = detect_censoring(d)

@@ -213,9 +213,10 @@ def with_quantization(noise: NoiseEstimate, step: ArrayLike) -> NoiseEstimate:
 
 
 def _rail(x: NDArray, value: float, q: float, sign: float, min_count: int, ratio: float) -> bool:
-    """Whether ``value`` (the channel's max for sign +1, min for -1) is a rail."""
+    """Whether ``value`` (the channel's max for sign +1, min for -1) is a rail: not when the
+    channel sits there half of the time or more (a dead or stuck sensor, not censoring)."""
     top = int(np.count_nonzero(x == value))
-    if top < max(min_count, 2):
+    if top < max(min_count, 2) or 2 * top >= x.size:
         return False
     if q == 0.0:
         return True  # ties of a continuous variable at its extreme: a rail
@@ -258,6 +259,8 @@ def detect_censoring(
             continue
         step[h] = quantization_step(finite)
         hi, lo = float(finite.max()), float(finite.min())
+        if not hi > lo:
+            continue
         if _rail(finite, hi, step[h], 1.0, min_count, ratio):
             high[h] = hi
             at_high[:, h] = x == hi

@@ -141,9 +141,13 @@ def examine(d: NDArray, y: NDArray, *, pole_pairs: int, basis: str) -> SensorFin
                 break
             dd = undrifted(d, drift)
             yy = f_init(dd, pole_pairs)
-    geometry = estimate_sensor_geometry(d[:: max(1, -(-d.shape[0] // _GEOMETRY_SAMPLES))])
-    dev = np.abs((geometry.phases_deg - np.array([0.0, 120.0, 240.0]) + 180.0) % 360.0 - 180.0)
-    if geometry.ok and dev.max() > SKEW_DEG:
+    geometry = _geometry(d)
+    dev = (
+        np.abs((geometry.phases_deg - np.array([0.0, 120.0, 240.0]) + 180.0) % 360.0 - 180.0)
+        if geometry is not None
+        else np.zeros(3)
+    )
+    if geometry is not None and geometry.ok and dev.max() > SKEW_DEG:
         notes.append(
             "skewed sensors: at "
             + "/".join(f"{v:.0f}" for v in geometry.phases_deg)
@@ -154,6 +158,15 @@ def examine(d: NDArray, y: NDArray, *, pole_pairs: int, basis: str) -> SensorFin
     else:
         geometry = None
     return SensorFindings(censoring, sigma, drift, geometry, tuple(notes))
+
+
+def _geometry(d: NDArray) -> SensorGeometry | None:
+    """The sensors' spacing from a sub-sample of the run (None when it cannot be estimated:
+    too few or non-finite samples; the geometry's own status says when it is degenerate)."""
+    try:
+        return estimate_sensor_geometry(d[:: max(1, -(-d.shape[0] // _GEOMETRY_SAMPLES))])
+    except (ValueError, np.linalg.LinAlgError):
+        return None
 
 
 def for_choice(
