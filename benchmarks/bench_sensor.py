@@ -16,8 +16,9 @@ a user would write (the true plant and controller, ``harmonics = "auto"``) on a 
 
 Cases: ``clean`` the bench itself, ``clip1`` one sensor's upper rail at 0.988 (4.4 % of its
 samples at the rail), ``clip3`` all three sensors clipped at both rails, ``adc12`` a 12-bit ADC
-over [-1.2, 1.2] with analog noise below one code, ``drift`` sensor 1's gain drifting 2 % over
-the run, ``skew`` sensors at 0/100/230 electrical degrees.
+over [-1.2, 1.2] with analog noise below one code, ``quiet`` that analog noise without the ADC,
+``drift`` sensor 1's gain drifting 2 % over the run, ``skew`` sensors at 0/100/230 electrical
+degrees.
 
 Run ``python benchmarks/bench_sensor.py [--cases clip1 adc12] [-v] [--out FILE]``.
 """
@@ -114,8 +115,8 @@ def run_case(name: str, verbose: bool, harmonics="auto") -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--cases", nargs="*",
-                    default=["clean", "clip1", "clip3", "adc12", "drift", "skew"])  # fmt: skip
+    cases = ["clean", "clip1", "clip3", "adc12", "quiet", "drift", "skew"]
+    ap.add_argument("--cases", nargs="*", default=cases)
     ap.add_argument("-v", "--verbose", action="store_true")
     ap.add_argument("--harmonics", type=int, default=0, help="1..H given instead of auto")
     ap.add_argument("--out", default=None)
