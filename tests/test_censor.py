@@ -132,3 +132,31 @@ def test_quantization_is_a_lower_bound_on_the_noise():
     fast = np.round(rng.standard_normal((50_000, 3)) * 0.05 / q) * q
     est = estimate_noise_variance(fast)
     assert with_quantization(est, [q, q, q]) is est
+
+
+def test_calibrate_command_names_the_censored_samples(clipped, tmp_path):
+    """As a user runs it: a recording whose sensors 2 and 3 clip, ``hallcal calibrate`` exits 0
+    and its output names the censored samples per sensor."""
+    import subprocess
+    import sys
+
+    from hallcal.io.dataset import write_dataset
+
+    cfg, run = clipped
+    write_dataset(tmp_path / "cal.csv", run.columns(with_encoder=False))
+    (tmp_path / "s.toml").write_text(
+        "pole_pairs = 4\nsample_time = 2.5e-4\n"
+        "[controller]\nnum = [2.94, -3.29, -2.10, 2.45]\nden = [1, -3.45, 4.52, -2.68, 0.61]\n"
+        "[plant]\nnum = [1.663e5]\nden = [1, 632.6, 2702, 0]\ndelay = 1.2e-4\n"
+        '[model]\nharmonics = [1, 2, 3, 4]\ncogging = "none"\n'
+    )
+    res = subprocess.run(
+        [sys.executable, "-m", "hallcal.cli", "calibrate", "cal.csv", "--setup", "s.toml",
+         "--out", "cal.json"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    out = res.stdout + res.stderr
+    counts = detect_censoring(run.d).counts
+    assert "censored samples (ADC rail)" in out
+    assert f"sensor 2: {counts[1]} " in out and f"sensor 3: {counts[2]} " in out
