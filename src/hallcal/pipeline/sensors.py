@@ -301,7 +301,11 @@ def noise(found: SensorFindings, d: NDArray) -> NoiseEstimate:
     -------
     NoiseEstimate
     """
-    return with_quantization(estimate_noise_variance(d), found.censoring.step)
+    est = estimate_noise_variance(d)
+    if found.censoring.any:  # the imputed samples carry no noise: the raw data's, discounted
+        per = found.sigma**2
+        est = replace(est, per_channel=per, variance=float(np.mean(per)))
+    return with_quantization(est, found.censoring.step)
 
 
 def at_mid_run(sem: SEMResult | None, d: NDArray) -> tuple[SEMResult | None, NDArray]:
