@@ -7,7 +7,7 @@ directions of the table (DESIGN.md, "Numerical facts"). The drive's f_init saw t
 values, so the loop that SEM simulates must clip too (:attr:`hallcal.sim.loop.ClosedLoop.rails`),
 but the cost must leave those samples out: weight 0 per sample and channel
 (:func:`hallcal.fit.sem.solve_sem`), the censored-data likelihood without its tail term
-(Tobin 1958; Pintelon & Schoukens 2012, sec. 19.5 on saturated measurements).
+(Tobin 1958, "Estimation of relationships for limited dependent variables"; Amemiya 1984).
 
 Detection, per sensor, from the data alone. A rail is the extreme value of a channel taken far
 more often than a smooth signal with noise allows:
