@@ -160,3 +160,16 @@ def test_calibrate_command_names_the_censored_samples(clipped, tmp_path):
     counts = detect_censoring(run.d).counts
     assert "censored samples (ADC rail)" in out
     assert f"sensor 2: {counts[1]} " in out and f"sensor 3: {counts[2]} " in out
+
+
+@pytest.mark.parametrize(("shape", "bands"), [(0.0, 3), (0.03, 5)])
+def test_the_imputing_band_follows_the_flux(shape, bands):
+    """The flanks of the gaps choose the imputing model's band: 3 n_m for a flux within n_m,
+    5 n_m when every magnet has its own shape up to the 6th electrical harmonic."""
+    from hallcal.fit.censor import imputation_bands, noise_std
+
+    cfg = replace(SMALL, shape_variation=shape, shape_harmonics=6, adc_high=(INF, 0.97, INF),
+                  adc_low=(-INF, -INF, -0.98))  # fmt: skip
+    run = ramp_run(cfg, **RAMP)
+    c = detect_censoring(run.d)
+    assert imputation_bands(run.d, run.y, c, noise_std(run.d, c), pole_pairs=4) == bands
