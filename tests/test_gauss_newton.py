@@ -246,3 +246,106 @@ def test_known_cogging_of_the_loop_is_simulated_not_fitted(short_run):
     ref = simulate_loop(cfg.loop().with_plant_gain(math.exp(0.01)),
                         FluxModel(layout.basis, layout.theta(x)), run.r, cogging=total)  # fmt: skip
     np.testing.assert_allclose(gn.d, ref.d, rtol=0, atol=RTOL)
+
+
+def test_weights_give_the_weighted_system(short_run):
+    """Per-sample, per-channel weights (0 = censored): J^T W J, J^T W e, e^T W e of the dense
+    oracle, one or two threads; the default (no weights) equals weights of 1 to the bit."""
+    cfg, run = short_run
+    layout = ParameterLayout(FourierBasis(tuple(range(1, 14))), True, (66,))
+    x = layout.pack(_theta_near_truth(run, layout.basis), 0.01, CoggingTorque((66,), [1e-3], [0]))
+    w = np.random.default_rng(5).choice([0.0, 0.5, 1.0], size=run.d.shape)
+    JtJ, _, _, lj, _ = _dense(cfg.loop(), layout, x, run.r, run.d)
+    J = lj.jac.reshape(-1, layout.size)
+    e = (run.d - lj.d).ravel()
+    wf = w.ravel()
+    dense = (J.T @ (wf[:, None] * J), J.T @ (wf * e), float(e @ (wf * e)), lj,
+             np.abs(J).T @ np.abs(wf * e))  # fmt: skip
+    for threads in (1, 2):
+        gn = gauss_newton_system(cfg.loop(), layout, x, run.r, run.d, weights=w, threads=threads)
+        _assert_matches(gn, dense)
+    ones = gauss_newton_system(cfg.loop(), layout, x, run.r, run.d, weights=np.ones_like(w))
+    plain = gauss_newton_system(cfg.loop(), layout, x, run.r, run.d)
+    np.testing.assert_array_equal(ones.gradient, plain.gradient)
+    np.testing.assert_allclose(ones.gram, JtJ, rtol=0, atol=RTOL * np.abs(JtJ).max())
+    with pytest.raises(ValueError):
+        gauss_newton_system(cfg.loop(), layout, x, run.r, run.d, weights=-w)
+
+
+def test_rails_clip_what_the_model_f_init_sees(short_run):
+    """With rails in the loop, f_init sees the model flux clipped (as the drive saw the clipped
+    signals) while d_sim stays the flux: the simulation equals the bench loop with those rails,
+    and J^T W J, J^T W e equal the products of a central-difference Jacobian.
+
+    Differences with h = 1e-6 on a cost whose kinks (a sample crossing a rail) are isolated:
+    truncation and rounding ~1e-8 relative; 1e-5 leaves a margin while a missing rail term
+    (f_init differentiated through a clipped channel) is off by several percent."""
+    cfg, run = short_run
+    loop = cfg.loop().with_rails([-0.97, -np.inf, -0.98], [0.96, 0.99, np.inf])
+    layout = ParameterLayout(FourierBasis((1, 11, 22)))
+    x = layout.pack(_theta_near_truth(run, layout.basis))
+    sim = simulate_model(loop, layout, x, run.r)
+    ref = simulate_loop(loop, FluxModel(layout.basis, layout.theta(x)), run.r)
+    np.testing.assert_allclose(sim.y, ref.y, rtol=0, atol=RTOL)
+    assert ref.d[:, 0].max() == 0.96 and sim.d[:, 0].max() > 0.96  # d_sim: the unclipped flux
+    w = (np.abs(run.d) < 0.95).astype(float)
+    gn = gauss_newton_system(loop, layout, x, run.r, run.d, weights=w)
+    h = 1e-6
+    cols = []
+    for j in range(layout.size):
+        dx = np.zeros(layout.size)
+        dx[j] = h
+        up = simulate_model(loop, layout, x + dx, run.r).d
+        dn = simulate_model(loop, layout, x - dx, run.r).d
+        cols.append(((up - dn) / (2 * h)).ravel())
+    J = np.column_stack(cols)
+    e = (run.d - sim.d).ravel()
+    wf = w.ravel()
+    JtWJ = J.T @ (wf[:, None] * J)
+    np.testing.assert_allclose(gn.gram, JtWJ, rtol=0, atol=1e-5 * np.abs(JtWJ).max())
+    np.testing.assert_allclose(gn.gradient, J.T @ (wf * e), rtol=0,
+                               atol=1e-5 * (np.abs(J).T @ np.abs(wf * e)).max())  # fmt: skip
+    plain = simulate_model(cfg.loop(), layout, x, run.r)
+    assert np.abs(plain.y0 - sim.y0).max() > 1e-5  # the rails moved the simulated motor
+
+
+def test_drift_columns_match_central_differences(short_run):
+    """Sensor gain and offset linear in time (``fit_drift``): the simulation carries the drift
+    (f_init sees the drifting signals), and J^T W J, J^T W e equal the products of a
+    central-difference Jacobian over theta, the gain, a cogging order and the six drift
+    parameters, with weights and rails (tolerance as for the rails)."""
+    cfg, run = short_run
+    loop = cfg.loop().with_rails([-0.97, -np.inf, -np.inf], [0.96, np.inf, np.inf])
+    layout = ParameterLayout(FourierBasis((1, 11)), True, (66,), fit_drift=True)
+    drift = [[0.02, 0.001], [-0.01, 0.0], [0.0, -0.002]]
+    x = layout.pack(_theta_near_truth(run, layout.basis), 0.01, CoggingTorque((66,), [1e-3], [0]),
+                    drift)  # fmt: skip
+    np.testing.assert_array_equal(layout.drift(x), drift)
+    sim = simulate_model(loop, layout, x, run.r)
+    tau = np.arange(run.n_samples) / (run.n_samples - 1) - 0.5
+    g = FluxModel(layout.basis, layout.theta(x))(sim.y0)
+    dr = np.asarray(drift)
+    np.testing.assert_allclose(sim.d, (1 + np.outer(tau, dr[:, 0])) * g + np.outer(tau, dr[:, 1]),
+                               rtol=0, atol=1e-12)  # fmt: skip
+    flat = ParameterLayout(FourierBasis((1, 11)), True, (66,))
+    assert np.abs(simulate_model(loop, flat, x[: flat.size], run.r).y - sim.y).max() > 1e-5
+    w = (np.abs(run.d) < 0.95).astype(float)
+    gn = gauss_newton_system(loop, layout, x, run.r, run.d, weights=w, stride=3)
+    exact = gauss_newton_system(loop, layout, x, run.r, run.d, weights=w)
+    h = 1e-6
+    cols = []
+    for j in range(layout.size):
+        dx = np.zeros(layout.size)
+        dx[j] = h
+        up = simulate_model(loop, layout, x + dx, run.r).d
+        dn = simulate_model(loop, layout, x - dx, run.r).d
+        cols.append(((up - dn) / (2 * h)).ravel())
+    J = np.column_stack(cols)
+    e = (run.d - sim.d).ravel()
+    wf = w.ravel()
+    JtWJ = J.T @ (wf[:, None] * J)
+    np.testing.assert_allclose(exact.gram, JtWJ, rtol=0, atol=1e-5 * np.abs(JtWJ).max())
+    np.testing.assert_allclose(exact.gradient, J.T @ (wf * e), rtol=0,
+                               atol=1e-5 * (np.abs(J).T @ np.abs(wf * e)).max())  # fmt: skip
+    np.testing.assert_array_equal(gn.gradient, exact.gradient)  # the stride: J^T J only
+    assert np.linalg.norm(gn.gram - exact.gram) < 0.05 * np.linalg.norm(exact.gram)

@@ -61,9 +61,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
+from hallcal.fit.layout import ParameterLayout
 from hallcal.limits import check_work_memory
 from hallcal.sensor.flux import FourierBasis
-from hallcal.sim.cogging import CoggingTorque
 from hallcal.sim.loop import (
     ClosedLoop,
     LoopStatus,
@@ -79,6 +79,7 @@ from hallcal.sim.loop import (
 )
 
 __all__ = [
+    "checked_weights",
     "gram_from_moments",
     "GaussNewtonSystem",
     "ParameterLayout",
@@ -94,116 +95,6 @@ __all__ = [
 
 #: Outcome of a simulation or sensitivity pass (OK or DIVERGED).
 PassStatus = LoopStatus
-
-
-# ================================================================================================
-# Parameter layout
-# ================================================================================================
-
-
-@dataclass(frozen=True)
-class ParameterLayout:
-    """Layout of the SEM parameter vector ``x = [theta, log c, a_1, b_1, a_2, b_2, ...]``.
-
-    Parameters
-    ----------
-    basis : FourierBasis
-        The flux model's basis (any set of harmonics); theta occupies ``3 m`` entries,
-        sensor-major (row h of the (3, m) theta is sensor h).
-    fit_gain : bool
-        Whether ``log c`` (a factor c on the plant input matrix) follows theta.
-    cogging_orders : tuple of int
-        Orders k of the cogging torque whose coefficients ``(a_k, b_k)`` come last.
-    """
-
-    basis: FourierBasis
-    fit_gain: bool = False
-    cogging_orders: tuple[int, ...] = ()
-
-    def __post_init__(self) -> None:
-        k = tuple(int(v) for v in self.cogging_orders)
-        if len(set(k)) != len(k) or any(v < 1 for v in k):
-            raise ValueError("cogging orders must be distinct integers >= 1")
-        object.__setattr__(self, "cogging_orders", k)
-        object.__setattr__(self, "fit_gain", bool(self.fit_gain))
-
-    @property
-    def n_theta(self) -> int:
-        """3 m."""
-        return 3 * self.basis.size
-
-    @property
-    def gain_index(self) -> int:
-        """Index of log c (-1 without it)."""
-        return self.n_theta if self.fit_gain else -1
-
-    @property
-    def cogging_start(self) -> int:
-        """Index of a_1."""
-        return self.n_theta + (1 if self.fit_gain else 0)
-
-    @property
-    def size(self) -> int:
-        """p."""
-        return self.cogging_start + 2 * len(self.cogging_orders)
-
-    def theta(self, x: ArrayLike) -> NDArray[np.float64]:
-        """theta (3, m) from x."""
-        return np.asarray(x, dtype=np.float64)[: self.n_theta].reshape(3, self.basis.size)
-
-    def log_gain(self, x: ArrayLike) -> float:
-        """log c from x (0 without it)."""
-        return float(np.asarray(x)[self.gain_index]) if self.fit_gain else 0.0
-
-    def cogging(self, x: ArrayLike, covariance: ArrayLike | None = None) -> CoggingTorque:
-        """The cogging torque of x (with the covariance block of its coefficients, if given).
-
-        Parameters
-        ----------
-        x : array_like, shape (p,)
-            A parameter vector of this layout.
-        covariance : array_like, shape (p, p), optional
-            Covariance of x; its cogging block is attached to the torque.
-
-        Returns
-        -------
-        CoggingTorque
-            T_c(y0) of the orders ``cogging_orders`` [plant input units].
-        """
-        xx = np.asarray(x, dtype=np.float64)
-        sl = slice(self.cogging_start, self.size)
-        cov = None if covariance is None else np.asarray(covariance, dtype=np.float64)[sl, sl]
-        return CoggingTorque.from_coefficients(self.cogging_orders, xx[sl], cov)
-
-    def pack(
-        self, theta: ArrayLike, log_gain: float = 0.0, cogging: CoggingTorque | None = None
-    ) -> NDArray[np.float64]:
-        """x from its parts (cogging coefficients of orders not in ``cogging`` are zero).
-
-        Parameters
-        ----------
-        theta : array_like, shape (3, m)
-            Flux parameters on ``basis``.
-        log_gain : float
-            log c, the plant input gain factor (ignored unless ``fit_gain``).
-        cogging : CoggingTorque, optional
-            Known cogging coefficients to place at their orders.
-
-        Returns
-        -------
-        ndarray, shape (p,)
-            ``x = [theta, log c, a_1, b_1, ...]``.
-        """
-        x = np.zeros(self.size)
-        x[: self.n_theta] = np.asarray(theta, dtype=np.float64).reshape(-1)
-        if self.fit_gain:
-            x[self.gain_index] = float(log_gain)
-        if cogging is not None:
-            known = dict(zip(cogging.orders, zip(cogging.a, cogging.b, strict=True), strict=True))
-            for i, k in enumerate(self.cogging_orders):
-                if k in known:
-                    x[self.cogging_start + 2 * i : self.cogging_start + 2 * i + 2] = known[k]
-        return x
 
 
 # ================================================================================================
@@ -254,9 +145,55 @@ def _cogging_torque(orders, coef, y0, creg, sreg):
     return t, dt
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _at_rails(gk, rlo, rhi, gf, live):
+    """What f_init sees of the model flux: gf = gk clipped to the ADC rails [rlo, rhi] (the
+    drive's f_init saw the clipped values), live_h = 1 where sensor h is within them, else 0
+    (the clipped value does not move with theta)."""
+    for h in range(3):
+        v = gk[h]
+        live[h] = 1.0
+        if v < rlo[h]:
+            v = rlo[h]
+            live[h] = 0.0
+        elif v > rhi[h]:
+            v = rhi[h]
+            live[h] = 0.0
+        gf[h] = v
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _drifted(drift, tau, gk, gp, sh):
+    """The drifting sensors' signals in place: ``g_h <- (1 + gamma_h tau) g_h + delta_h tau``,
+    ``g'_h <- (1 + gamma_h tau) g'_h`` and ``sh_h = 1 + gamma_h tau``."""
+    for h in range(3):
+        s = 1.0 + drift[2 * h] * tau
+        gk[h] = s * gk[h] + drift[2 * h + 1] * tau
+        gp[h] = s * gp[h]
+        sh[h] = s
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _drift_cross(cross, sw, nk, sh, b, gfl, tau, m):
+    """cross += the drift columns of ``E^T M E`` for one sample, ``M = S (I - n n^T) S``:
+    rows 0..3m-1 the theta columns (sensor-major), rows 3m.. the drift columns."""
+    for c in range(6):
+        hc = c // 2
+        vc = tau * gfl[hc] if c % 2 == 0 else tau
+        for h in range(3):
+            mh = sw[h] * sw[hc] * ((1.0 if h == hc else 0.0) - nk[h] * nk[hc])
+            coef = mh * vc
+            if coef != 0.0:
+                for j in range(m):
+                    cross[h * m + j, c] += coef * sh[h] * b[j]
+                for c2 in range(2 * h, 2 * h + 2):
+                    v2 = tau * gfl[h] if c2 % 2 == 0 else tau
+                    cross[3 * m + c2, c] += v2 * coef
+
+
 @nb.njit(cache=True, nogil=True)
 def _simulate_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax, cog_k, cog_x,
-                     r, y_init):  # fmt: skip
+                     rlo, rhi, drift, r, y_init):  # fmt: skip
     """Noise-free closed loop (eq. state_eq) with the flux on ``harm`` and the cogging torque."""
     N = r.size
     ng = Ag.shape[0]
@@ -278,6 +215,8 @@ def _simulate_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax,
     ds = np.full((N, 3), np.nan)
     gk = np.empty(3)
     gp = np.empty(3)
+    gf = np.empty(3)
+    live = np.empty(3)
     yprev = y_init
     y0_last = 0.0
     ok = True
@@ -288,7 +227,10 @@ def _simulate_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax,
         _trig_table(y0, hmax, cs, sn)
         _gather_basis(harm, cs, sn, b, db)
         _flux_and_slope(theta, b, db, gk, gp)
-        al, be = _alpha_beta(P, off, gk)
+        if drift.size:
+            _drifted(drift, k / max(N - 1, 1) - 0.5, gk, gp, live)
+        _at_rails(gk, rlo, rhi, gf, live)
+        al, be = _alpha_beta(P, off, gf)
         y = _unwrap(math.atan2(be, al), yprev, n_m)
         e = r[k] - y
         u = _output(Cc, xc, Dc, e)
@@ -311,9 +253,9 @@ def _simulate_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax,
 
 @nb.njit(cache=True, nogil=True)
 def _sens_block(
-    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax, cog_k, cog_x, jgain, jcog,
-    r, d, k0, k1, j0, j1, ustride, primary,
-    xg, xc, st, Sg, Sc, Sg2, Sc2, U, grad, y0s, ds, nvec,
+    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax, cog_k, cog_x, rlo, rhi, drift,
+    jgain, jcog, jdrift, r, d, wt, k0, k1, j0, j1, ustride, primary,
+    xg, xc, st, Sg, Sc, Sg2, Sc2, U, grad, y0s, ds, nvec, cross,
 ):  # fmt: skip
     """Advance the sensitivities of the parameter columns j0..j1-1 over the samples k0..k1-1.
 
@@ -323,6 +265,20 @@ def _sens_block(
     rows of U (none when ustride = 0) and adds the columns of J^T e into ``grad``. The primary
     block also stores y0, d_sim and n_k = g'/|g'| and returns e^T e of the chunk.
     Returns (ok, sum of squared errors).
+
+    Weights (``wt``, N x 3, or 0 x 3 for none): the cost is ``sum_k e_k^T W_k e_k`` with
+    ``W_k = diag(wt[k])`` (0 for a censored sample of a channel). With ``s = sqrt(wt[k])`` the
+    rows of ``W^(1/2) J_k`` are ``(s o g') dy0^T + diag(s) E_k``, so u_k uses
+    ``a = s o g'``, ``n_k = a / |a|`` and ``diag(s) E_k^T n_k`` (module docstring with g' -> a).
+    Rails (``rlo``, ``rhi``): f_init sees the model flux clipped to them (:func:`_at_rails`).
+
+    Drift (``drift``: (gamma_h, delta_h) per sensor, empty for none; its columns from
+    ``jdrift`` when fitted, -1 otherwise): the model signal is ``sh_h g_h + delta_h tau`` with
+    ``sh_h = 1 + gamma_h tau`` (:func:`_drifted`), so E_k holds ``sh_h beta`` on the theta
+    columns and ``(tau g_h, tau)`` on the drift columns of sensor h. The primary block adds the
+    drift rows and columns of ``E^T S (I - n n^T) S E`` into ``cross`` (3 m + 6, 6): their
+    trigonometric-moment shortcut does not apply (the theta block's does, with the weights
+    ``w sh^2``, :func:`_normal_part`).
     """
     ng = Ag.shape[0]
     nc = Ac.shape[0]
@@ -344,6 +300,14 @@ def _sens_block(
     ek = np.empty(3)
     nk = np.empty(3)
     ck = np.empty(3)
+    gf = np.empty(3)
+    live = np.empty(3)
+    sw = np.ones(3)
+    sh = np.ones(3)
+    gfl = np.empty(3)
+    has_w = wt.shape[0] > 0
+    N = r.size
+    tau = 0.0
     yprev = st[0]
     y0_last = st[1]
     sse = 0.0
@@ -355,26 +319,38 @@ def _sens_block(
         _trig_table(y0, hmax, cs, sn)
         _gather_basis(harm, cs, sn, b, db)
         _flux_and_slope(theta, b, db, gk, gp)
+        if drift.size:
+            tau = k / max(N - 1, 1) - 0.5
+            gfl[:] = gk
+            _drifted(drift, tau, gk, gp, sh)
+        _at_rails(gk, rlo, rhi, gf, live)
         for h in range(3):
             ek[h] = d[k, h] - gk[h]
-        al, be = _alpha_beta(P, off, gk)
+            if has_w:
+                sw[h] = math.sqrt(wt[k, h])
+        al, be = _alpha_beta(P, off, gf)
         rho2 = al * al + be * be
         if not rho2 > 0.0:  # no angle at alpha = beta = 0 (or NaN): the model is degenerate
             ok = False
             break
         for h in range(3):
-            ck[h] = (al * P[1, h] - be * P[0, h]) / (rho2 * n_m)  # d y / d d_h
+            ck[h] = (al * P[1, h] - be * P[0, h]) / (rho2 * n_m) * live[h]  # d y / d d_h
         q = ck[0] * gp[0] + ck[1] * gp[1] + ck[2] * gp[2]
-        gnorm = math.sqrt(gp[0] * gp[0] + gp[1] * gp[1] + gp[2] * gp[2])
-        ge = gp[0] * ek[0] + gp[1] * ek[1] + gp[2] * ek[2]
+        gnorm = 0.0
+        ge = 0.0
         for h in range(3):
-            nk[h] = gp[h] / gnorm if gnorm > 0.0 else 0.0
+            gnorm += (sw[h] * gp[h]) ** 2
+            ek[h] = wt[k, h] * ek[h] if has_w else ek[h]  # W e, and e^T W e below
+        gnorm = math.sqrt(gnorm)
+        for h in range(3):
+            ge += gp[h] * ek[h]
+            nk[h] = sw[h] * gp[h] / gnorm if gnorm > 0.0 else 0.0
         if primary:
             y0s[k] = y0
             for h in range(3):
                 ds[k, h] = gk[h]
                 nvec[k, h] = nk[h]
-                sse += ek[h] * ek[h]
+                sse += ek[h] * (d[k, h] - gk[h])
         # gradient and dy: feedback term on every column, direct term I_3 kron beta on the
         # theta columns of this block
         for jl in range(pb):
@@ -384,8 +360,14 @@ def _sens_block(
             lo = max(j0, h * m)
             hi = min(j1, (h + 1) * m)
             for j in range(lo, hi):
-                grad[j] += ek[h] * b[j - h * m]
-                dy[j - j0] += ck[h] * b[j - h * m]
+                grad[j] += ek[h] * sh[h] * b[j - h * m]
+                dy[j - j0] += ck[h] * sh[h] * b[j - h * m]
+        if jdrift >= 0:  # the drift columns' direct terms (tau g_h, tau) of sensor h
+            for h in range(3):
+                for c, v in ((jdrift + 2 * h, tau * gfl[h]), (jdrift + 2 * h + 1, tau)):
+                    if j0 <= c < j1:
+                        grad[c] += ek[h] * v
+                        dy[c - j0] += ck[h] * v
         # the row u_k = |g'| dy0 + E^T n
         if ustride > 0 and k % ustride == 0:
             t = k // ustride - (k0 + ustride - 1) // ustride  # rank among multiples in [k0, k1)
@@ -395,7 +377,14 @@ def _sens_block(
                 lo = max(j0, h * m)
                 hi = min(j1, (h + 1) * m)
                 for j in range(lo, hi):
-                    U[t, j] += nk[h] * b[j - h * m]
+                    U[t, j] += sw[h] * nk[h] * sh[h] * b[j - h * m]
+            if jdrift >= 0:
+                for h in range(3):
+                    for c, v in ((jdrift + 2 * h, tau * gfl[h]), (jdrift + 2 * h + 1, tau)):
+                        if j0 <= c < j1:
+                            U[t, c] += sw[h] * nk[h] * v
+        if primary and jdrift >= 0 and ustride > 0:  # every sample, whatever the stride
+            _drift_cross(cross, sw, nk, sh, b, gfl, tau, m)
         # controller and plant input w = u + T_c(y0)
         y = _unwrap(math.atan2(be, al), yprev, n_m)
         err = r[k] - y
@@ -526,7 +515,7 @@ def gram_from_moments(C: NDArray, S: NDArray, harmonics: ArrayLike | int) -> NDA
 
 
 def regression_normal_equations(
-    y: ArrayLike, d: ArrayLike, harmonics: ArrayLike
+    y: ArrayLike, d: ArrayLike, harmonics: ArrayLike, *, weights: ArrayLike | None = None
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
     """``B^T B``, ``B^T d`` and ``d^T d`` for the regression of d (N, c) on beta(y).
 
@@ -542,28 +531,41 @@ def regression_normal_equations(
     harmonics : array_like of int
         Mechanical harmonics of the Fourier basis beta (eq. (basis)); the constant term is
         always included.
+    weights : array_like (N,), keyword-only, optional
+        Sample weights w >= 0 (weighted least squares; 0 leaves a sample out).
 
     Returns
     -------
     gram : ndarray (m, m)
-        ``B^T B`` with ``B = beta(y)``, m = 1 + 2 len(harmonics).
+        ``B^T W B`` with ``B = beta(y)``, m = 1 + 2 len(harmonics) (W = I without weights).
     rhs : ndarray (m, c)
-        ``B^T d``.
+        ``B^T W d``.
     sse : float
-        ``d^T d`` summed over the columns.
+        ``d^T W d`` summed over the columns.
     """
     yy = _kernel_array(y)
     dd = np.asarray(d, dtype=np.float64)
     dd = dd[:, None] if dd.ndim == 1 else dd
     h = np.asarray(harmonics, dtype=np.int64)
+    if weights is not None:
+        w = np.asarray(weights, dtype=np.float64)
+        W = np.column_stack([w, w[:, None] * dd])
+        C, S = _moments(yy, W, 2 * int(h.max()) if h.size else 0)
+        M = gram_from_moments(C[0], S[0], h)
+        return M, _rhs_from_moments(C, S, h, dd.shape[1]), float(np.sum(w[:, None] * dd * dd))
     W = np.column_stack([np.ones(yy.size), dd])
     C, S = _moments(yy, W, 2 * int(h.max()) if h.size else 0)
     M = gram_from_moments(C[0], S[0], h)
-    Btd = np.empty((1 + 2 * h.size, dd.shape[1]))
+    return M, _rhs_from_moments(C, S, h, dd.shape[1]), float(np.sum(dd * dd))
+
+
+def _rhs_from_moments(C: NDArray, S: NDArray, h: NDArray, c: int) -> NDArray[np.float64]:
+    """``B^T d`` (m, c) from the moments of the columns 1..c of the weights (column 0: w)."""
+    Btd = np.empty((1 + 2 * h.size, c))
     Btd[0] = C[1:, 0]
     Btd[1::2] = S[1:, h].T
     Btd[2::2] = C[1:, h].T
-    return M, Btd, float(np.sum(dd * dd))
+    return Btd
 
 
 # ================================================================================================
@@ -583,7 +585,8 @@ class SimulatedLoop:
 
 
 def _model_arrays(loop: ClosedLoop, layout: ParameterLayout, x: ArrayLike) -> tuple:
-    """Kernel arguments of a model: loop arrays (B_G scaled by c), theta, harmonics, cogging."""
+    """Kernel arguments of a model: loop arrays (B_G scaled by c), theta, harmonics, cogging,
+    the loop's rails."""
     xx = np.asarray(x, dtype=np.float64).reshape(-1)
     if xx.size != layout.size:
         raise ValueError(f"x must have {layout.size} entries for this layout, got {xx.size}")
@@ -595,11 +598,13 @@ def _model_arrays(loop: ClosedLoop, layout: ParameterLayout, x: ArrayLike) -> tu
     theta = _kernel_array(layout.theta(xx))
     # the fitted cogging orders first (their columns), then the loop's own, fixed cogging torque
     cog_k = np.asarray(layout.cogging_orders, dtype=np.float64)
-    cog_x = _kernel_array(xx[layout.cogging_start :])
+    cog_x = _kernel_array(xx[layout.cogging_start : layout.cogging_stop])
     if loop.cogging is not None and loop.cogging.size:
         cog_k = np.concatenate([cog_k, np.asarray(loop.cogging.orders, dtype=np.float64)])
         cog_x = np.concatenate([cog_x, loop.cogging.coefficients])
-    return (*arrs, float(loop.pole_pairs), theta, harm, hmax, cog_k, cog_x)
+    rlo, rhi = (_kernel_array(v) for v in loop.rails)
+    drift = _kernel_array(layout.drift(xx).ravel() if layout.fit_drift else np.zeros(0))
+    return (*arrs, float(loop.pole_pairs), theta, harm, hmax, cog_k, cog_x, rlo, rhi, drift)
 
 
 def simulate_model(
@@ -732,6 +737,7 @@ def gauss_newton_system(
     gram: bool = True,
     stride: int = 1,
     threads: int | None = None,
+    weights: ArrayLike | None = None,
 ) -> GaussNewtonSystem:
     """J^T J, J^T e and e^T e of problem (problem) at x, without the dense Jacobian.
 
@@ -762,6 +768,10 @@ def gauss_newton_system(
         docstring); 1 for the exact system.
     threads : int, optional
         1 or 2 (default: 2 when the machine has two cores or more).
+    weights : array_like (N, 3), optional
+        Per-sample, per-channel weights w >= 0 of the cost ``sum w e^2`` (0: a censored
+        sample, :mod:`hallcal.fit.censor`); then gram, gradient and sse are J^T W J, J^T W e
+        and e^T W e. Default: 1 everywhere.
 
     Returns
     -------
@@ -772,6 +782,7 @@ def gauss_newton_system(
     N = r.size
     if d.shape != (N, 3):
         raise ValueError("d must have shape (N, 3)")
+    wt = checked_weights(weights, N)
     args = _model_arrays(loop, layout, x)
     p = layout.size
     nthreads = _threads(threads, p)
@@ -784,7 +795,8 @@ def gauss_newton_system(
         f"the Gauss-Newton system ({p} parameters, {N} samples)",
         "use fewer harmonics (or kernel points) or a shorter recording",
     )
-    passes = _SensitivityPass(args, layout, r, d, y_initial, T, stride if gram else 0, nthreads)
+    passes = _SensitivityPass(args, layout, r, d, wt, y_initial, T, stride if gram else 0,
+                              nthreads)  # fmt: skip
     with threadpool_limits(limits=1, user_api="blas"):
         if not passes.run(gram):
             return _diverged_system(N, p, passes.n_chunks)
@@ -792,12 +804,50 @@ def gauss_newton_system(
         if gram:
             G = np.triu(G) + np.triu(G, 1).T
             G[: layout.n_theta, : layout.n_theta] += _normal_part(
-                passes.y0s, passes.nvec, layout, nthreads
+                passes.y0s, passes.nvec, layout, nthreads, _drift_weights(layout, x, wt, N)
             )
+            if layout.fit_drift:
+                nt, jd = layout.n_theta, layout.drift_start
+                G[:nt, jd : jd + 6] += passes.cross[:nt]
+                G[jd : jd + 6, :nt] += passes.cross[:nt].T
+                G[jd : jd + 6, jd : jd + 6] += passes.cross[nt:]
     grads = passes.batch_grad
     return GaussNewtonSystem(
         G, grads.sum(axis=0), float(passes.sse), passes.ds, passes.y0s, grads, PassStatus.OK
     )
+
+
+def checked_weights(weights: ArrayLike | None, n_samples: int) -> NDArray[np.float64]:
+    """Per-sample, per-channel weights as the kernels take them: (N, 3) float64, finite, >= 0,
+    or an empty (0, 3) array for none (every weight 1).
+
+    Parameters
+    ----------
+    weights : array_like (N, 3) or None
+        Weights w of the cost ``sum_k sum_h w_kh e_kh^2`` (0: censored).
+    n_samples : int
+        N.
+
+    Returns
+    -------
+    ndarray (N, 3) or (0, 3)
+    """
+    if weights is None:
+        return np.zeros((0, 3))
+    w = _kernel_array(weights)
+    if w.shape != (int(n_samples), 3) or not np.all(np.isfinite(w)) or (w < 0).any():
+        raise ValueError("weights must be (N, 3), finite and >= 0")
+    return w
+
+
+def _drift_weights(layout: ParameterLayout, x: ArrayLike, wt: NDArray, N: int) -> NDArray:
+    """The weights of the theta block's moments: ``w sh^2`` with ``sh = 1 + gamma tau`` of the
+    drifting sensors (:func:`_drifted`); the given weights without the drift."""
+    if not layout.fit_drift:
+        return wt
+    tau = np.arange(N) / max(N - 1, 1) - 0.5
+    sh = 1.0 + np.outer(tau, layout.drift(x)[:, 0])
+    return sh * sh * (wt if wt.shape[0] else 1.0)
 
 
 def _threads(threads: int | None, p: int) -> int:
@@ -825,9 +875,10 @@ def _diverged_system(N: int, p: int, n_chunks: int) -> GaussNewtonSystem:
 
 
 def _normal_part(
-    y0: NDArray, nvec: NDArray, layout: ParameterLayout, threads: int
+    y0: NDArray, nvec: NDArray, layout: ParameterLayout, threads: int, wt: NDArray | None = None
 ) -> NDArray[np.float64]:
-    """``sum_k (I_3 - n_k n_k^T) kron beta_k beta_k^T`` from trigonometric moments."""
+    """``sum_k (S_k (I_3 - n_k n_k^T) S_k) kron beta_k beta_k^T`` from trigonometric moments
+    (``S_k = diag(sqrt(w_k))``, the identity without weights)."""
     n = nvec
     W = np.column_stack(
         [
@@ -839,6 +890,9 @@ def _normal_part(
             -n[:, 1] * n[:, 2],
         ]
     )
+    if wt is not None and wt.shape[0]:
+        sw = np.sqrt(wt)
+        W *= np.column_stack([wt, sw[:, 0] * sw[:, 1], sw[:, 0] * sw[:, 2], sw[:, 1] * sw[:, 2]])
     harm = np.asarray(layout.basis.harmonics, dtype=np.int64)
     hmax = int(harm.max()) if harm.size else 0
     C, S = _moments_threaded(y0, W, 2 * hmax, threads)
@@ -864,10 +918,10 @@ class _SensitivityPass:
     is often descheduled for a while) instead of meeting it at a barrier every chunk.
     """
 
-    def __init__(self, args, layout, r, d, y_initial, T, ustride, nthreads, ring=4) -> None:
+    def __init__(self, args, layout, r, d, wt, y_initial, T, ustride, nthreads, ring=4) -> None:
         self.args = args
         self.layout = layout
-        self.r, self.d = r, d
+        self.r, self.d, self.wt = r, d, wt
         self.T = T
         self.ustride = ustride
         N = r.size
@@ -889,6 +943,7 @@ class _SensitivityPass:
         self.y0s = np.full(N, np.nan)
         self.ds = np.full((N, 3), np.nan)
         self.nvec = np.zeros((N, 3))
+        self.cross = np.zeros((layout.n_theta + 6, 6) if layout.fit_drift else (0, 6))
         self.sse = 0.0
         self.failed = False
         self._cond = threading.Condition()
@@ -904,9 +959,11 @@ class _SensitivityPass:
         k0, k1 = self._bounds(i)
         ok, sse = _sens_block(
             *self.args, self.layout.gain_index, self.layout.cogging_start,
-            self.r, self.d, k0, k1, blk.j0, blk.j1, self.ustride, b == 0,
+            self.layout.drift_start, self.r, self.d, self.wt, k0, k1, blk.j0, blk.j1,
+            self.ustride, b == 0,
             blk.xg, blk.xc, blk.st, blk.Sg, blk.Sc, blk.Sg2, blk.Sc2,
             self.bufs[i % self.ring], self.batch_grad[i], self.y0s, self.ds, self.nvec,
+            self.cross,
         )  # fmt: skip
         if b == 0:
             self.sse += sse

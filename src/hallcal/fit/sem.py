@@ -34,6 +34,7 @@ from threadpoolctl import threadpool_limits
 from hallcal.fit.gauss_newton import (
     GaussNewtonSystem,
     ParameterLayout,
+    checked_weights,
     gauss_newton_system,
     regression_normal_equations,
     simulate_model,
@@ -120,6 +121,12 @@ class SEMResult:
         parameters at a time.
     batches : int
         Number of batches B.
+    drift : ndarray (3, 2) or None
+        With ``fit_drift``: per sensor the gain change gamma_h (relative) and the offset change
+        delta_h [Hall signal unit] over the run, identified jointly; theta is then the sensors
+        at the run's middle (:class:`~hallcal.fit.gauss_newton.ParameterLayout`).
+    drift_std : ndarray (3, 2) or None
+        Their standard deviations from the covariance.
     layout : ParameterLayout or None
         What the parameter vector holds.
     message : str
@@ -145,6 +152,8 @@ class SEMResult:
     message: str = ""
     batch_covariance: NDArray[np.float64] | None = field(default=None, repr=False)
     batches: int = 0
+    drift: NDArray[np.float64] | None = None
+    drift_std: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "status", SEMStatus(self.status))
@@ -163,7 +172,9 @@ class SEMResult:
         return self.flux.theta
 
 
-def least_squares_start(basis: FourierBasis, d: ArrayLike, y: ArrayLike) -> NDArray[np.float64]:
+def least_squares_start(
+    basis: FourierBasis, d: ArrayLike, y: ArrayLike, *, weights: ArrayLike | None = None
+) -> NDArray[np.float64]:
     """theta_0 by linear least squares of d on the basis at the f_init output y.
 
     Treats the measured f_init angle as if it were y0. The resulting model reproduces f_init's
@@ -180,6 +191,9 @@ def least_squares_start(basis: FourierBasis, d: ArrayLike, y: ArrayLike) -> NDAr
         Hall signals.
     y : array_like (N,)
         f_init output recorded in the loop [rad], used in place of y0.
+    weights : array_like (N, 3), keyword-only, optional
+        Per-sample, per-channel weights (0: censored, :mod:`hallcal.fit.censor`): each
+        sensor's row is then a weighted least-squares fit.
 
     Returns
     -------
@@ -188,22 +202,39 @@ def least_squares_start(basis: FourierBasis, d: ArrayLike, y: ArrayLike) -> NDAr
     """
     yy = np.asarray(y, dtype=np.float64)
     dd = np.asarray(d, dtype=np.float64)
-    G, rhs, _ = regression_normal_equations(yy, dd, basis.harmonics)
+    if weights is None:
+        G, rhs, _ = regression_normal_equations(yy, dd, basis.harmonics)
+        return _normal_solve(basis, G, rhs, yy, dd, None).T.copy()
+    w = np.asarray(weights, dtype=np.float64)
+    rows = []
+    for h in range(3):
+        G, rhs, _ = regression_normal_equations(yy, dd[:, h], basis.harmonics, weights=w[:, h])
+        rows.append(_normal_solve(basis, G, rhs, yy, dd[:, h : h + 1], w[:, h])[:, 0])
+    return np.vstack(rows)
+
+
+def _normal_solve(
+    basis: FourierBasis, G: NDArray, rhs: NDArray, y: NDArray, d: NDArray, w: NDArray | None
+) -> NDArray[np.float64]:
+    """The solution (m, c) of the normal equations ``G x = rhs`` of d (N, c) on beta(y), with
+    sample weights w (None: 1)."""
     # Over whole revolutions the Fourier columns are nearly orthogonal, so G is well conditioned
     # and a Cholesky solve is as accurate as an SVD of the regressors.
     with threadpool_limits(limits=1, user_api="blas"):
         try:
             if np.linalg.cond(G) > 1e10:
                 raise np.linalg.LinAlgError
-            sol = scipy.linalg.cho_solve(scipy.linalg.cho_factor(G), rhs)
+            return scipy.linalg.cho_solve(scipy.linalg.cho_factor(G), rhs)
         except np.linalg.LinAlgError:  # less than a revolution of data: the SVD of the regressors
             check_work_memory(
-                8.0 * yy.size * basis.size,
-                f"the least-squares start ({yy.size} samples x {basis.size} basis functions)",
+                8.0 * y.size * basis.size,
+                f"the least-squares start ({y.size} samples x {basis.size} basis functions)",
                 "use fewer harmonics or a shorter recording",
             )
-            sol = np.linalg.lstsq(basis.evaluate(yy), dd, rcond=None)[0]
-    return sol.T.copy()
+            if w is None:
+                return np.linalg.lstsq(basis.evaluate(y), d, rcond=None)[0]
+            sw = np.sqrt(w)[:, None]
+            return np.linalg.lstsq(sw * basis.evaluate(y), sw * d, rcond=None)[0]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -213,7 +244,8 @@ def least_squares_start(basis: FourierBasis, d: ArrayLike, y: ArrayLike) -> NDAr
 
 @dataclass(frozen=True)
 class _Problem:
-    """Problem (problem) with a diagonal ridge R: F(x) = ||d - d_sim(x)||^2 + x^T R x."""
+    """Problem (problem) with a diagonal ridge R and sample weights W (0: censored):
+    F(x) = sum_k e_k^T W_k e_k + x^T R x, e = d - d_sim(x)."""
 
     loop: ClosedLoop
     layout: ParameterLayout
@@ -223,11 +255,17 @@ class _Problem:
     stride: int
     threads: int | None
     chunk: int
+    weights: NDArray[np.float64] | None = field(default=None, repr=False)
+
+    @property
+    def observations(self) -> int:
+        """Residual entries that count: 3 N, less the censored ones (weight 0)."""
+        return self.d.size if self.weights is None else int(np.count_nonzero(self.weights))
 
     def system(self, x: NDArray, *, exact: bool = False) -> GaussNewtonSystem:
         return gauss_newton_system(
             self.loop, self.layout, x, self.r, self.d, chunk=self.chunk,
-            stride=1 if exact else self.stride, threads=self.threads,
+            stride=1 if exact else self.stride, threads=self.threads, weights=self.weights,
         )  # fmt: skip
 
     def objective(self, system: GaussNewtonSystem, x: NDArray) -> float:
@@ -239,6 +277,8 @@ class _Problem:
         if not sim.status.success:
             return math.inf
         e = self.d - sim.d
+        if self.weights is not None:
+            return float(np.vdot(e, self.weights * e) + self.ridge @ x**2)
         return float(np.vdot(e, e) + self.ridge @ x**2)
 
 
@@ -317,7 +357,7 @@ def _levenberg_marquardt(
     history = [F]
     lam = damping
     iterations = 0
-    dof = max(problem.d.size - problem.layout.size, 1)
+    dof = max(problem.observations - problem.layout.size, 1)
     small_steps = 0
     with threadpool_limits(limits=1, user_api="blas"):
         while True:
@@ -395,6 +435,9 @@ def solve_sem(
     stride: int | None = None,
     threads: int | None = None,
     chunk: int = 4096,
+    weights: ArrayLike | None = None,
+    fit_drift: bool = False,
+    drift0: ArrayLike | None = None,
 ) -> SEMResult:
     """Solve problem (problem) by Levenberg-Marquardt on exact sensitivities.
 
@@ -438,6 +481,16 @@ def solve_sem(
         Threads of the sensitivity pass (1 or 2; default 2 on machines with two cores or more).
     chunk : int
         Samples per chunk of the sensitivity pass.
+    weights : array_like (N, 3), optional
+        Per-sample, per-channel weights of the cost (0: a censored sample, e.g. at an ADC rail,
+        :mod:`hallcal.fit.censor`; the loop's f_init still sees it); the default start is then
+        a weighted least-squares fit, and sigma^2 counts the uncensored entries only.
+    fit_drift : bool
+        Also identify each sensor's gain and offset linear in time over the run (6 parameters,
+        :mod:`hallcal.fit.drift`); the loop's f_init sees the drifting signals, and theta is the
+        sensors at the run's middle.
+    drift0 : array_like (3, 2), optional
+        Start of the drift (default zero).
 
     Returns
     -------
@@ -447,11 +500,12 @@ def solve_sem(
     r, d = _checked_record(r, d)
     cog0 = cogging if isinstance(cogging, CoggingTorque) else None
     orders = cog0.orders if cog0 is not None else tuple(int(k) for k in cogging)
-    layout = ParameterLayout(basis, fit_gain=fit_gain, cogging_orders=orders)
-    theta_start = _theta_start(loop, basis, d, theta0, y)
+    layout = ParameterLayout(basis, fit_gain=fit_gain, cogging_orders=orders, fit_drift=fit_drift)
+    w = None if weights is None else checked_weights(weights, r.size)
+    theta_start = _theta_start(loop, basis, d, theta0, y, w)
     problem = _problem(loop, layout, r, d, regularization, stride=stride, threads=threads,
-                       chunk=chunk)  # fmt: skip
-    x0 = layout.pack(theta_start, math.log(gain0) if fit_gain else 0.0, cog0)
+                       chunk=chunk, weights=w)  # fmt: skip
+    x0 = layout.pack(theta_start, math.log(gain0) if fit_gain else 0.0, cog0, drift0)
     it = _levenberg_marquardt(problem, x0, max_iterations=max_iterations, tol=tol, damping=damping)
     unc = _uncertainty(problem, it)
     return SEMResult(
@@ -474,7 +528,15 @@ def solve_sem(
         message=_message(it, layout.size),
         batch_covariance=unc.batch,
         batches=int(unc.system.batch_gradients.shape[0]),
+        drift=layout.drift(it.x) if fit_drift else None,
+        drift_std=_drift_std(layout, unc.parameter) if fit_drift else None,
     )
+
+
+def _drift_std(layout: ParameterLayout, cov: NDArray) -> NDArray[np.float64]:
+    """(3, 2) standard deviations of the drift parameters from the parameter covariance."""
+    j = layout.drift_start
+    return np.sqrt(np.maximum(np.diag(cov)[j : j + 6], 0.0)).reshape(3, 2)
 
 
 def _checked_record(r: ArrayLike, d: ArrayLike) -> tuple[NDArray, NDArray]:
@@ -489,18 +551,19 @@ def _checked_record(r: ArrayLike, d: ArrayLike) -> tuple[NDArray, NDArray]:
 
 def _theta_start(
     loop: ClosedLoop, basis: FourierBasis, d: NDArray, theta0: ArrayLike | None,
-    y: ArrayLike | None,
+    y: ArrayLike | None, weights: NDArray | None = None,
 ) -> NDArray[np.float64]:  # fmt: skip
     """theta0 as (3, m), by default :func:`least_squares_start` at y (or at f_init(d))."""
     if theta0 is None:
         yy = f_init(d, loop.pole_pairs, projection=loop.projection, offset=loop.offset)
-        theta0 = least_squares_start(basis, d, yy if y is None else y)
+        theta0 = least_squares_start(basis, d, yy if y is None else y, weights=weights)
     return np.array(theta0, dtype=np.float64).reshape(3, basis.size)
 
 
 def _problem(
     loop: ClosedLoop, layout: ParameterLayout, r: NDArray, d: NDArray,
     regularization: ArrayLike | None, *, stride: int | None, threads: int | None, chunk: int,
+    weights: NDArray | None = None,
 ) -> _Problem:  # fmt: skip
     """Problem (problem) with the Tikhonov ridge on theta (zero on the gain and the cogging)."""
     ridge = np.zeros(layout.size)
@@ -509,7 +572,7 @@ def _problem(
     p = layout.size
     return _Problem(
         loop, layout, r, d, ridge, _default_stride(p) if stride is None else max(1, int(stride)),
-        threads, int(chunk),
+        threads, int(chunk), weights,
     )  # fmt: skip
 
 
@@ -532,7 +595,7 @@ def _uncertainty(problem: _Problem, it: _Iterate) -> _Uncertainty:
     system = it.system
     if problem.stride != 1 and system.status.success:
         system = problem.system(it.x, exact=True)  # the exact system for the covariance
-    sigma2 = it.history[-1] / max(3 * problem.r.size - layout.size, 1)
+    sigma2 = it.history[-1] / max(problem.observations - layout.size, 1)
     cov_all = _covariance(system, problem.ridge, sigma2)
     batch_cov = _batch_covariance(system, cov_all, sigma2)
     gain = math.exp(layout.log_gain(it.x))

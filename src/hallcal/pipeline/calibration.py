@@ -297,6 +297,10 @@ class Calibration:
         The model-based observer's check at calibration time (the artifact's ``observer``
         entry: noise variance per channel, whether the three-signal curve is injective with
         its margin; :func:`hallcal.pipeline.observe.observer_check`); None when not checked.
+    sensors : dict
+        What the data say about the sensors themselves (:mod:`hallcal.fit.censor`,
+        :mod:`hallcal.fit.drift`): ``censoring`` (censored samples per sensor, rails,
+        quantization step) and ``drift`` when found; the artifact's ``diagnostics.sensors``.
     artifact : dict or None
         The artifact this calibration was loaded from (None when computed here).
     """
@@ -325,6 +329,7 @@ class Calibration:
     cogging_selection: CoggingSelection | None = field(default=None, repr=False)
     identifiability: IdentifiabilityReport | None = field(default=None, repr=False)
     observer: Mapping[str, Any] | None = field(default=None, repr=False)
+    sensors: Mapping[str, Any] = field(default_factory=dict, repr=False)
     artifact: Mapping[str, Any] | None = field(default=None, repr=False)
 
     @property
@@ -473,6 +478,8 @@ def _diagnostics(cal: Calibration) -> dict[str, Any]:
             "budget_hit": not cal.kernel.settled,
             "sem_status": str(cal.kernel.status),
         }
+    if cal.sensors:
+        diag["sensors"] = dict(cal.sensors)
     return diag
 
 

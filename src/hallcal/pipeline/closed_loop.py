@@ -28,6 +28,7 @@ from hallcal.fit.design import plan_ramp, speed_limits
 from hallcal.fit.sem import SEMResult, SEMStatus, solve_sem
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
+from hallcal.pipeline import sensors
 from hallcal.pipeline.boundary import numeric_errors
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
 from hallcal.pipeline.checks import (
@@ -319,6 +320,27 @@ def _with_cogging(
     )  # fmt: skip
 
 
+def _final_fit(
+    loop: ClosedLoop, s: _Signals, setup: Setup, fit: _ModelFit, found: sensors.SensorFindings,
+    *, fit_gain: bool, progress: Progress,
+) -> tuple[_ModelFit, _Signals]:  # fmt: skip
+    """The chosen model refitted without the censored samples and with the sensors' drift
+    (:func:`hallcal.pipeline.sensors.final_fit`), when there are any."""
+    out = sensors.final_fit(loop, s.r, s.d, fit.sem, found, fit_gain=fit_gain, progress=progress,
+                            max_iterations=setup.model.max_iterations)  # fmt: skip
+    if out is None:
+        return fit, s
+    sem, d = out
+    cog = fit.cogging
+    if cog is not None and cog.cogging is not None:
+        cog = dataclasses.replace(cog, sem=sem, cogging=sem.cogging)
+    fit = dataclasses.replace(
+        fit, sem=sem, flux=sem.flux, model_info=_fourier_info(sem.flux), gain_factor=sem.gain,
+        gain_factor_std=sem.gain_std, adequacy=None, cogging=cog,
+    )  # fmt: skip
+    return fit, dataclasses.replace(s, d=d)
+
+
 #: Predicted / floor above which calibrate says how fast a ramp would have to be.
 RAMP_ADVICE = 1.5
 
@@ -493,6 +515,7 @@ def calibrate_closed_loop(
     cold = setup.model.basis != "kernel" and not _kernels_cached()
     if cold:  # the first run on this machine: numba compiles before the plant's gain or SEM
         say(progress, "compiling the loop kernels once (about 15-60 s; later runs load them)")
+    found = sensors.examine(s.d, s.y, pole_pairs=setup.pole_pairs, basis=setup.model.basis)
 
     t0 = time.perf_counter()
     harmonics = setup.model.harmonics
@@ -509,7 +532,7 @@ def calibrate_closed_loop(
     loop_check = check_loop(setup.controller, pm.plant, setup.sample_time, plant_name=pm.name)
     loop_check.raise_if_failed("setup")
     loop = closed_loop(setup, pm.plant)
-    messages = list(s.messages) + [pm.note]
+    messages = list(s.messages) + [pm.note] + list(found.notes)
     if pm.bla is not None:
         messages += list(pm.bla.messages)
     messages += [c.text for c in preflight if c.status is CheckStatus.WARNING]
@@ -522,13 +545,22 @@ def calibrate_closed_loop(
         timings["compile"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     with numeric_errors("setup", "model"):
+        loop, d, y, d_choice, y_choice = sensors.for_choice(
+            loop, s.r, s.d, s.y, found, pole_pairs=setup.pole_pairs, progress=progress
+        )
+        s, s_choice = (dataclasses.replace(s, d=d, y=y),
+                       dataclasses.replace(s, d=d_choice, y=y_choice))  # fmt: skip
         if setup.model.basis == "kernel":
             fit = _fit_kernel(loop, s, setup, progress=progress)
         else:
-            fit = _fit_fourier(loop, s, setup, fit_gain=pm.gain is not None, progress=progress)
-            fit = _with_cogging(
-                loop, s, setup, fit, fit_gain=pm.gain is not None, progress=progress
+            fit = _fit_fourier(
+                loop, s_choice, setup, fit_gain=pm.gain is not None, progress=progress
             )
+            fit = _with_cogging(
+                loop, s_choice, setup, fit, fit_gain=pm.gain is not None, progress=progress
+            )
+            fit, s = _final_fit(loop, s, setup, fit, found, progress=progress,
+                                fit_gain=pm.gain is not None)  # fmt: skip
     timings["sem"] = time.perf_counter() - t0
     if fit.selection is not None:
         timings["model_selection"] = fit.selection.elapsed
@@ -543,12 +575,12 @@ def calibrate_closed_loop(
     cogging = fit.cogging.cogging if fit.cogging is not None else None
     if fit.cogging is not None and fit.cogging.status is not CoggingStatus.NONE:
         messages.append(fit.cogging.message)
-    loop = closed_loop(setup, pm.plant).with_cogging(cogging)
+    loop = closed_loop(setup, pm.plant).with_cogging(cogging).with_rails(*found.censoring.rails)
 
     with numeric_errors("setup", "model"):
         adequacy = fit.adequacy or assess(
-            fit.sem,
-            s.d,
+            *sensors.at_mid_run(fit.sem, s.d),
+            noise=sensors.noise(found, s.d),
             pole_pairs=setup.pole_pairs,
             projection=loop.projection,
             offset=loop.offset,
@@ -563,7 +595,10 @@ def calibrate_closed_loop(
         )
     with numeric_errors("setup", "model"):
         observer = observer_check(fit.flux, setup.pole_pairs, fit.sem.noise_variance)
-    status, refusal, leading = _verdict(lut, adequacy, observer)
+    (status, refusal, leading), sensor_info = sensors.verdict(
+        s.d, fit.sem, found, _verdict(lut, adequacy, observer), ok=CalibrationStatus.OK,
+        warning=CalibrationStatus.WARNING,
+    )  # fmt: skip
     # a refused table keeps the model for the observer only when the verdict said so
     observer_entry = (
         observer_section(observer, fit.sem.noise_variance)
@@ -616,4 +651,5 @@ def calibrate_closed_loop(
         cogging_selection=fit.cogging,
         identifiability=identifiability,
         observer=observer_entry,
+        sensors=sensor_info,
     )
