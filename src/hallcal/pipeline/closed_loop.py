@@ -595,15 +595,15 @@ def calibrate_closed_loop(
         )
     with numeric_errors("setup", "model"):
         observer = observer_check(fit.flux, setup.pole_pairs, fit.sem.noise_variance)
-    (status, refusal, leading), sensor_info = sensors.verdict(
-        s.d, fit.sem, found, _verdict(lut, adequacy, observer), ok=CalibrationStatus.OK,
-        warning=CalibrationStatus.WARNING,
-    )  # fmt: skip
+    first = _verdict(lut, adequacy, observer)
     # a refused table keeps the model for the observer only when the verdict said so
     observer_entry = (
         observer_section(observer, fit.sem.noise_variance)
-        if status is not CalibrationStatus.NOT_BIJECTIVE or leading
+        if first[0] is not CalibrationStatus.NOT_BIJECTIVE or first[2]
         else None
+    )
+    (status, refusal, leading), sensor_info = sensors.verdict(
+        s.d, fit.sem, found, first, ok=CalibrationStatus.OK, warning=CalibrationStatus.WARNING
     )
     predicted = adequacy.predicted_error
     if status is CalibrationStatus.WARNING:
