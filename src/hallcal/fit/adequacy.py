@@ -674,11 +674,12 @@ class AdequacyReport:
     noise_floor : float
         RMS angle error [rad] that the noise alone causes, from sigma and the model's amplitude.
     predicted_error : float
-        ``sqrt(noise_floor^2 + mean var eta)`` [rad]: expected RMS error of f_star if the model is
-        adequate (cov(theta) propagated to the table).
+        ``sqrt(noise_floor^2 + mean var eta)`` [rad]: expected RMS error of f_star about zero
+        (the table's constant offset included, as ``reconstruct`` outputs it and an encoder
+        measures it) if the model is adequate (cov(theta) propagated to the table).
     correction_rms : float
-        RMS [rad] of the table's correction eta about its mean (the model's view of the f_init
-        error).
+        RMS [rad] of the table's correction eta about zero (the model's view of f_init's error,
+        its constant offset included).
     bijective : bool
         Whether the table is invertible (eq. recon_biject); False refuses the table.
     min_slope : float
@@ -1056,9 +1057,10 @@ def _theta_covariances(sem: SEMResult) -> list[NDArray]:
 def _table(sem: SEMResult, n: int, P: NDArray, o: NDArray, sigma2: float, points: int) -> _Table:
     """Bijectivity and correction size of the table; noise floor of the angle for this model's
     amplitude; predicted error ``sqrt(floor^2 + mean var eta)`` from cov(theta), the larger of
-    the white and the batch-means one (:func:`_theta_covariances`)."""
+    the white and the batch-means one (:func:`_theta_covariances`), the variance of the table's
+    constant offset included (both the correction and the prediction are about zero)."""
     lut = build_lut(sem.flux, n, points=points, projection=P, offset=o)
-    eta = lut.eta - lut.eta.mean()
+    eta = lut.eta  # about zero: f_init's error with its offset, as the prediction
     floor = angle_noise_floor(sem.flux, n, sigma2, projection=P, offset=o, points=lut.y0.size)
     try:
         mean_var_eta = max(
@@ -1184,10 +1186,10 @@ def _gain_reason(tab: _Table) -> str | None:
     """A warning when the table's own predicted error is comparable to its correction.
 
     The table's correction eta is f_init's error as the model sees it; when the table's own
-    predicted error is comparable, f_star is not reliably better than f_init. A warning, not a
-    refusal: the prediction is an expectation dominated by a few weakly identified warps, and a
-    single run's table error is often half of it or less (measured 4.6x against a predicted 9.9x
-    the noise floor, with f_init at 9.0x, on a slow 200 000-sample ramp).
+    predicted error is comparable, f_star is not reliably better than f_init. When it is at
+    least the correction, f_star is predicted worse than f_init (``predicted >= hypot(floor,
+    correction)``): the calibration's status policy refuses the table then
+    (:func:`hallcal.pipeline.verdict.decide`); here it is one of the reasons of a warning.
     """
     table_sd = _table_sd(tab)
     if not (table_sd > tab.floor and table_sd >= 0.5 * tab.correction_rms):

@@ -31,6 +31,17 @@ Choosing the orders (``cogging = "auto"``), in two tests:
    candidates. Orders that fail are dropped and the rest refitted. Nothing is added when nothing
    passes, so a motor without cogging keeps exactly the fit it had.
 
+**A constant load torque** (order 0: friction on a one-way ramp, gravity, a spring) leaves no
+line in the shift spectrum: in a loop whose controller does not integrate it shifts the rotor
+by a constant angle, which the flux model absorbs as a constant offset of the sensors' angle, a
+bias of the table's offset that no covariance shows (DESIGN.md, "Numerical facts": 0.6-1.1x the
+noise floor on its own). Only the start of the run, where the loop leaves rest at y0 = 0 under
+the load, tells the two apart; so "auto" always fits order 0 jointly with the spectrum's
+candidates and keeps it when its coefficient a_0 is significant (T^2 = a_0^2 / var a_0 ~
+F(1, B - 1) with the batch-means variance, Bonferroni with the other orders). Measured on the
+paper's bench with a load of 0.003 (12 000-sample... see ``tests/test_verdict.py``): a_0 found
+at 0.0030006 +- 1.2e-5, the table's offset 0.79x -> -0.12x the noise floor.
+
 Orders searched by default (:func:`plausible_orders`): the multiples of 2 n_m up to 24 n_m. The
 fundamental cogging order of a machine with Q stator slots and 2 n_m poles is LCM(Q, 2 n_m)
 periods per revolution, followed by its multiples (for 11 pole pairs: 66 with 33 slots, 132 with
@@ -56,6 +67,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.special
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal.fit.adequacy import curve_projection
@@ -345,7 +357,8 @@ def order_tests(sem: SEMResult, *, significance: float = 1e-3) -> tuple[OrderTes
 
     ``T^2 = c_k^T V_k^-1 c_k`` for the coefficients c_k = (a_k, b_k) and their 2 x 2 block V_k of
     :attr:`SEMResult.batch_covariance`; ``T^2 (B - 2) / (2 (B - 1)) ~ F(2, B - 2)`` when c_k = 0,
-    with B batches (Bonferroni over the orders).
+    with B batches (Bonferroni over the orders). Order 0 (a constant load torque) has one
+    coefficient a_0: ``T^2 = a_0^2 / V_00 ~ F(1, B - 1)``.
     """
     cog = sem.cogging
     layout = sem.layout
@@ -358,6 +371,13 @@ def order_tests(sem: SEMResult, *, significance: float = 1e-3) -> tuple[OrderTes
     x = cog.coefficients
     for i, k in enumerate(cog.orders):
         j = layout.cogging_start + 2 * i
+        if k == 0:  # a constant load torque: a_0 alone (b_0 has no effect)
+            v = float(sem.batch_covariance[j, j])
+            a0 = float(x[2 * i])
+            t2 = a0 * a0 / v if v > 0 else 0.0
+            crit0 = float(scipy.special.fdtri(1, B - 1, 1.0 - significance / max(n, 1)))
+            tests.append(OrderTest(0, abs(a0), t2, crit0))
+            continue
         V = sem.batch_covariance[j : j + 2, j : j + 2]
         c = x[2 * i : 2 * i + 2]
         try:
@@ -398,6 +418,7 @@ def select_cogging(
     max_order: int | None = None,
     significance: float = 1e-3,
     max_iterations: int = 50,
+    load: bool = True,
 ) -> CoggingSelection:
     """Cogging orders and coefficients, identified jointly with theta (see the module docstring).
 
@@ -420,6 +441,8 @@ def select_cogging(
         Family-wise false-alarm level of each of the two tests.
     max_iterations : int
         Of each SEM.
+    load : bool
+        With "auto", also try a constant load torque (order 0; see the module docstring).
 
     Returns
     -------
@@ -442,7 +465,8 @@ def select_cogging(
     K = int(max_order) if max_order else default_max_order(loop.pole_pairs)
     spectrum = shift_spectrum(sem, dd, max_order=K, significance=significance,
                               tested=plausible_orders(loop.pole_pairs, K))  # fmt: skip
-    candidates = spectrum.candidates
+    # a constant load torque (order 0) leaves no line in the spectrum: always tried
+    candidates = (0, *spectrum.candidates) if load else spectrum.candidates
     tests: tuple[OrderTest, ...] = ()
     joint = sem
     while candidates:
@@ -455,7 +479,8 @@ def select_cogging(
         candidates = kept
     if not candidates:
         msg = "cogging: none found (no line in the residual's shift along the flux curve"
-        msg += " passed both tests)" if spectrum.candidates else ")"
+        msg += " passed both tests" if spectrum.candidates else ""
+        msg += "; no significant constant load torque)" if load else ")"
         return CoggingSelection(CoggingStatus.NONE, (), None, sem, spectrum, tests, msg)
     return CoggingSelection(
         CoggingStatus.FOUND, candidates, joint.cogging, joint, spectrum, tests,
@@ -467,7 +492,7 @@ def _describe(cog: CoggingTorque | None, how: str) -> str:
     if cog is None or not cog.size:
         return "cogging: none"
     parts = [
-        f"{k}/rev {A:.3g} at {math.degrees(p):.1f} deg"
-        for k, A, p in zip(cog.orders, cog.amplitude, cog.phase, strict=True)
+        f"constant load {a:.3g}" if k == 0 else f"{k}/rev {A:.3g} at {math.degrees(p):.1f} deg"
+        for k, A, p, a in zip(cog.orders, cog.amplitude, cog.phase, cog.a, strict=True)
     ]
     return f"cogging torque ({how}, plant input units): " + ", ".join(parts)

@@ -113,7 +113,8 @@ class ParameterLayout:
     fit_gain : bool
         Whether ``log c`` (a factor c on the plant input matrix) follows theta.
     cogging_orders : tuple of int
-        Orders k of the cogging torque whose coefficients ``(a_k, b_k)`` come last.
+        Orders k of the cogging torque whose coefficients ``(a_k, b_k)`` come last; order 0 is
+        a constant load torque a_0 (its b_0 has a zero column: :attr:`inert` lists it).
     """
 
     basis: FourierBasis
@@ -122,8 +123,8 @@ class ParameterLayout:
 
     def __post_init__(self) -> None:
         k = tuple(int(v) for v in self.cogging_orders)
-        if len(set(k)) != len(k) or any(v < 1 for v in k):
-            raise ValueError("cogging orders must be distinct integers >= 1")
+        if len(set(k)) != len(k) or any(v < 0 for v in k):
+            raise ValueError("cogging orders must be distinct integers >= 0")
         object.__setattr__(self, "cogging_orders", k)
         object.__setattr__(self, "fit_gain", bool(self.fit_gain))
 
@@ -146,6 +147,13 @@ class ParameterLayout:
     def size(self) -> int:
         """p."""
         return self.cogging_start + 2 * len(self.cogging_orders)
+
+    @property
+    def inert(self) -> tuple[int, ...]:
+        """Indices of x without effect on the loop: b_0 of a cogging order 0 (sin 0 = 0)."""
+        return tuple(
+            self.cogging_start + 2 * i + 1 for i, k in enumerate(self.cogging_orders) if k == 0
+        )
 
     def theta(self, x: ArrayLike) -> NDArray[np.float64]:
         """theta (3, m) from x."""

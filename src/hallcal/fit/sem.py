@@ -504,10 +504,15 @@ def _problem(
     loop: ClosedLoop, layout: ParameterLayout, r: NDArray, d: NDArray,
     regularization: ArrayLike | None, *, stride: int | None, threads: int | None, chunk: int,
 ) -> _Problem:  # fmt: skip
-    """Problem (problem) with the Tikhonov ridge on theta (zero on the gain and the cogging)."""
+    """Problem (problem) with the Tikhonov ridge on theta (zero on the gain and the cogging).
+
+    The inert b_0 of a cogging order 0 (a constant load torque, whose sine regressor is zero)
+    gets a unit ridge: its column of J is zero, so it stays at 0 and J^T J + R stays regular.
+    """
     ridge = np.zeros(layout.size)
     if regularization is not None:
         ridge[: layout.n_theta] = np.asarray(regularization, dtype=np.float64)
+    ridge[list(layout.inert)] = 1.0
     p = layout.size
     return _Problem(
         loop, layout, r, d, ridge, _default_stride(p) if stride is None else max(1, int(stride)),
@@ -567,13 +572,17 @@ def predicted_angle_error(
     projection: ArrayLike,
     offset: ArrayLike,
     points: int = 512,
+    about_mean: bool = False,
 ) -> NDArray[np.float64]:
-    """Standard deviation of the LUT correction eta(y0) about its mean, implied by cov(theta) [rad].
+    """Standard deviation of the LUT correction eta(y0) implied by cov(theta) [rad].
 
     First-order propagation through eq. (recon_biject): ``eta = y0 - f_init(g_theta(y0))`` so
-    ``d eta / d theta = -(1/n_m) d psi/d d . (I_3 kron beta(y0))``; the mean over y0 of that
-    derivative is removed, because angle errors are measured about their mean (a constant
-    offset of the table is the frame of y0, not an error).
+    ``d eta / d theta = -(1/n_m) d psi/d d . (I_3 kron beta(y0))``. By default the table's
+    constant offset is included: ``reconstruct`` outputs it, a user measures it against an
+    encoder, and the calibration run pins the frame of y0 (y0 = 0 at its first sample, the loop
+    simulated from rest there) only as well as the loop reveals a constant shift of the angle,
+    which cov(theta) says. ``about_mean`` removes the mean over y0 of the derivative (the error
+    about its mean, the offset left out).
 
     Parameters
     ----------
@@ -589,6 +598,8 @@ def predicted_angle_error(
         Sensor offsets f_init subtracts.
     points : int, keyword-only
         Grid size M over one revolution.
+    about_mean : bool, keyword-only
+        Leave the table's constant offset out (default False: include it).
 
     Returns
     -------
@@ -603,9 +614,8 @@ def predicted_angle_error(
     rho2 = ab[:, 0] ** 2 + ab[:, 1] ** 2
     dpsi = (ab[:, [0]] * P[1] - ab[:, [1]] * P[0]) / rho2[:, None]  # (M, 3)
     G = -(dpsi[:, :, None] * B[:, None, :]).reshape(points, -1) / pole_pairs  # (M, 3m)
-    # about the mean, as the angle error is measured: a constant shift of eta (the gauge of y0,
-    # which the loop pins only weakly through y0 = 0 at the first sample) is not an error
-    G -= G.mean(axis=0)
+    if about_mean:
+        G -= G.mean(axis=0)
     C = np.asarray(covariance, float)
     var = np.einsum("ij,jk,ik->i", G, C, G)
     return np.sqrt(np.maximum(var, 0.0))

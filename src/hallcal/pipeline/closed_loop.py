@@ -28,11 +28,12 @@ from hallcal.fit.sem import SEMResult, SEMStatus, solve_sem
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.pipeline.boundary import numeric_errors
-from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
+from hallcal.pipeline.calibration import Calibration, validate
 from hallcal.pipeline.checks import CheckStatus, check_direction, check_loop, check_pole_pairs
 from hallcal.pipeline.plant import BLAIdentification, PlantModel, closed_loop, plant_model
 from hallcal.pipeline.powerup import power_up_analysis
 from hallcal.pipeline.progress import Progress, say
+from hallcal.pipeline.verdict import decide
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sensor.reconstruction import f_init
@@ -334,8 +335,9 @@ def _motion_bias(
     A position-periodic motion error that the model lacks is partly absorbed by flux harmonics
     at its sidebands: a bias of the table that no covariance shows (the residual no longer
     carries it). With ``cogging = "none"`` and a warning from the adequacy check, the cogging
-    search is run as a diagnostic; when it finds cogging, the RMS difference (about the mean)
-    between the two tables estimates that bias, and is added to the predicted error. ``loop``
+    search is run as a diagnostic; when it finds cogging, the RMS difference (about zero: the
+    offset included, as in the predicted error) between the two tables estimates that bias, and
+    is added to the predicted error. ``loop``
     is the final one (a BLA plant with its refined gain), so the gain stays fixed here.
     """
     if setup.model.cogging != "none" or setup.model.basis != "fourier":
@@ -348,7 +350,7 @@ def _motion_bias(
                     projection=loop.projection, offset=loop.offset)  # fmt: skip
     y = TWO_PI * np.arange(4096) / 4096
     delta = lut.correction(y) - alt.correction(y)
-    bias = float(np.std(delta))
+    bias = float(np.sqrt(np.mean(delta**2)))
     orders = ", ".join(str(k) for k in diag.orders)
     return bias, (
         f"warning: the residual shows a cogging torque at {orders}/rev that is not modelled "
@@ -367,29 +369,6 @@ def _refined_plant(pm: PlantModel, fit: _ModelFit) -> PlantModel:
         c_refined_std=pm.gain.c * fit.gain_factor_std,
     )
     return dataclasses.replace(pm, plant=pm.bla.plant.scaled(gain.c_refined), gain=gain)
-
-
-def _verdict(
-    lut: LUT, adequacy: AdequacyReport
-) -> tuple[CalibrationStatus, str | None, tuple[str, ...]]:
-    """Status, refusal reason and leading warning from the table and the adequacy report."""
-    if not lut.bijective:
-        return (
-            CalibrationStatus.NOT_BIJECTIVE,
-            "the identified model's map y0 -> f_init(g(y0)) is not bijective (the paper's "
-            "bijectivity condition): a lookup table would give wrong angles",
-            (),
-        )
-    if adequacy.verdict == "inadequate":
-        return CalibrationStatus.INADEQUATE, adequacy.message, ()
-    if adequacy.verdict == "warning":
-        msg = adequacy.message
-        return (
-            CalibrationStatus.WARNING,
-            None,
-            (msg if msg.startswith("warning") else f"warning: {msg}",),
-        )
-    return CalibrationStatus.OK, None, ()
 
 
 def calibrate_closed_loop(
@@ -483,13 +462,19 @@ def calibrate_closed_loop(
             projection=loop.projection,
             offset=loop.offset,
         )
-    status, refusal, leading = _verdict(lut, adequacy)
     predicted = adequacy.predicted_error
-    if status is CalibrationStatus.WARNING:
+    if lut.bijective and adequacy.verdict == "warning":
         bias, note = _motion_bias(loop, s, setup, fit, lut)
         predicted = math.hypot(predicted, bias)
         if note is not None:
             messages.append(note)
+    verdict = decide(
+        bijective=lut.bijective, predicted=predicted, floor=adequacy.noise_floor,
+        correction_rms=adequacy.correction_rms, adequacy=str(adequacy.verdict),
+        adequacy_message=adequacy.message, min_slope=lut.min_slope,
+        checks_passed=not any(m.startswith("warning") for m in messages),
+    )  # fmt: skip
+    status, refusal, leading = verdict.status, verdict.refusal, verdict.leading
     if math.isfinite(predicted) and predicted > RAMP_ADVICE * adequacy.noise_floor:
         say(progress, "how fast a ramp would determine the table (experiment design)")
         t0 = time.perf_counter()
