@@ -24,6 +24,18 @@ in the mechanical angle), built from physical knobs:
 - Hall noise ``v_h`` with variance ``noise_variance``, a random low-frequency torque disturbance
   and a cogging torque ``cogging sin(cogging_periods y0) + sum A cos(k y0 - phase)``
   (``cogging_terms``) added to the plant input (:class:`~hallcal.sim.cogging.CoggingTorque`).
+
+Sensor imperfections in time (all off by default), applied inside the closed loop so that the
+loop's ``y = f_init(d)`` is computed from the very values recorded as ``d``:
+
+``d_h[k] = ADC_h((1 + gd_h (t_k - t_ref)) d_h(y0[k]) + od_h (t_k - t_ref) + spike_h[k])``
+
+- ``gd_h`` = ``gain_drift`` [1/s], ``od_h`` = ``offset_drift`` [Hall unit/s]: a sensor warming
+  up; ``t_ref`` = ``drift_reference_time`` [s], where the sensor is the static truth;
+- ``spike_h[k]``: impulsive outliers, each sample and channel hit with probability
+  ``spike_rate``, of size ``+-spike_size`` (random sign; own random stream per run seed);
+- ``ADC_h``: quantization to ``adc_step`` (or ``adc_bits`` codes spanning the rails), then the
+  rails ``adc_low``/``adc_high`` (:class:`~hallcal.sim.loop.SensorADC`).
 """
 
 from __future__ import annotations
@@ -37,7 +49,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sim.cogging import CoggingTorque
-from hallcal.sim.loop import ClosedLoop, simulate_loop
+from hallcal.sim.loop import ClosedLoop, SensorADC, simulate_loop
 from hallcal.sim.lti import ContinuousTF, DiscreteTF
 
 __all__ = [
@@ -164,6 +176,30 @@ class BenchConfig:
     shape_harmonics : int
         Electrical bandwidth K of that deformation: the truth gains mechanical harmonics
         1..K n_m.
+    adc_low, adc_high : tuple of 3 float
+        Rails of each sensor's ADC [Hall signal unit]: values below/above are recorded (and
+        seen by f_init in the loop) as the rail (a clipping sensor); default -inf/+inf, none.
+    adc_step : float
+        Quantization step, one ADC code [Hall signal unit], the same for the three sensors;
+        0 = none. The code grid contains ``adc_low`` when it is finite, else 0.
+    adc_bits : int
+        Alternatively the ADC's resolution: ``2**adc_bits`` codes from ``adc_low`` to
+        ``adc_high`` inclusive (both must be finite), step ``(high - low) / (2**bits - 1)`` per
+        sensor; 0 = use ``adc_step``. Setting both is an error.
+    gain_drift : tuple of 3 float
+        Relative sensitivity change of each sensor per second [1/s]: the whole signal of sensor h
+        is multiplied by ``1 + gain_drift_h (t - drift_reference_time)`` (a sensor warming up;
+        0.02 / 26 = 2 % over the paper's 26 s ramp).
+    offset_drift : tuple of 3 float
+        Additive offset change of each sensor per second [Hall signal unit / s], times
+        ``t - drift_reference_time``.
+    drift_reference_time : float
+        Time [s] (from the run's first sample) at which the drifting sensors equal the static
+        truth :meth:`truth` (e.g. the middle of the calibration run); default 0.
+    spike_rate : float
+        Probability per sample and channel of an impulsive outlier, in [0, 1]; default 0.
+    spike_size : float
+        Size of each outlier [Hall signal unit], random sign (before the ADC).
     seed : int
         Seed of the truth (magnet variations) and, unless given per run, of the noise.
     """
@@ -186,6 +222,15 @@ class BenchConfig:
     cogging_terms: tuple[tuple[int, float, float], ...] = ()
     shape_variation: float = 0.0
     shape_harmonics: int = 5
+    adc_low: tuple[float, float, float] = (-math.inf, -math.inf, -math.inf)
+    adc_high: tuple[float, float, float] = (math.inf, math.inf, math.inf)
+    adc_step: float = 0.0
+    adc_bits: int = 0
+    gain_drift: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    offset_drift: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    drift_reference_time: float = 0.0
+    spike_rate: float = 0.0
+    spike_size: float = 0.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -199,11 +244,46 @@ class BenchConfig:
             raise ValueError("shape_variation must be a finite number >= 0")
         if int(self.shape_harmonics) < 1:
             raise ValueError("shape_harmonics must be >= 1")
+        lo, hi = np.asarray(self.adc_low, float), np.asarray(self.adc_high, float)
+        if lo.shape != (3,) or hi.shape != (3,) or np.isnan(lo).any() or not (lo < hi).all():
+            raise ValueError("adc_low and adc_high must be 3 values each with adc_low < adc_high")
+        if not (self.adc_step >= 0 and math.isfinite(self.adc_step)):
+            raise ValueError("adc_step must be a finite number >= 0")
+        if not 0 <= int(self.adc_bits) <= 32:
+            raise ValueError("adc_bits must be in 0..32")
+        if self.adc_bits and (self.adc_step or not np.isfinite(np.r_[lo, hi]).all()):
+            raise ValueError("adc_bits needs finite adc_low/adc_high and adc_step = 0")
+        if not 0.0 <= self.spike_rate <= 1.0:
+            raise ValueError("spike_rate must be in [0, 1]")
+        drifts = np.r_[self.gain_drift, self.offset_drift, self.drift_reference_time]
+        if (
+            drifts.shape != (7,)
+            or not np.isfinite(drifts).all()
+            or not math.isfinite(self.spike_size)
+        ):
+            raise ValueError("gain_drift and offset_drift must be 3 finite values each")
 
     @property
     def noise_floor(self) -> float:
         """RMS angle error [rad] from Hall noise alone (see :func:`noise_floor`)."""
         return noise_floor(self.noise_variance, self.pole_pairs, self.amplitude)
+
+    def adc(self) -> SensorADC | None:
+        """The ADC between the sensors and f_init (rails, quantizer), None when it is ideal."""
+        lo, hi = np.asarray(self.adc_low, float), np.asarray(self.adc_high, float)
+        if self.adc_bits:
+            step = (hi - lo) / (2.0 ** int(self.adc_bits) - 1.0)
+        else:
+            step = np.full(3, float(self.adc_step))
+        if not (step > 0).any() and np.isinf(lo).all() and np.isinf(hi).all():
+            return None
+        return SensorADC(lo, hi, step, np.where(np.isfinite(lo), lo, 0.0))
+
+    @property
+    def quantization_step(self) -> NDArray[np.float64]:
+        """One ADC code of each sensor [Hall signal unit] (0 without quantization)."""
+        adc = self.adc()
+        return np.zeros(3) if adc is None else np.asarray(adc.step, dtype=np.float64)
 
     def loop(self) -> ClosedLoop:
         """The true closed loop (Clarke-based f_init, as in the paper)."""
@@ -431,6 +511,26 @@ def _lowpass_noise(rng: np.random.Generator, n: int, std: float, ts: float, fc: 
     return scipy.signal.lfilter([1.0], [1.0, -a], w)
 
 
+def _sensor_in_time(
+    config: BenchConfig, noise: NDArray[np.float64], *, seed: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    """The additive sensor terms (noise, offset drift, spikes) and the gain per sample and
+    sensor (None: 1) of the module docstring's time-varying sensor model."""
+    N = noise.shape[0]
+    t = config.sample_time * np.arange(N) - float(config.drift_reference_time)
+    gain = None
+    if any(config.gain_drift):
+        gain = 1.0 + np.outer(t, np.asarray(config.gain_drift, dtype=np.float64))
+    if any(config.offset_drift):
+        noise = noise + np.outer(t, np.asarray(config.offset_drift, dtype=np.float64))
+    if config.spike_rate > 0 and config.spike_size != 0:
+        rng = np.random.default_rng([seed, 3])
+        hit = rng.random((N, 3)) < config.spike_rate
+        sign = np.where(rng.random((N, 3)) < 0.5, -1.0, 1.0)
+        noise = noise + np.where(hit, sign * float(config.spike_size), 0.0)
+    return noise, gain
+
+
 def simulate_run(
     config: BenchConfig,
     r: ArrayLike,
@@ -471,6 +571,7 @@ def simulate_run(
     noise = sigma * rng.standard_normal((N, 3))
     td = _lowpass_noise(rng, N, config.torque_disturbance, config.sample_time)
     truth = config.truth()
+    noise, gain = _sensor_in_time(config, noise, seed=config.seed if seed is None else seed)
     res = simulate_loop(
         config.loop(),
         truth,
@@ -479,6 +580,8 @@ def simulate_run(
         torque_disturbance=td,
         cogging=config.cogging_torque(),
         initial_angle=float(initial_angle),
+        sensor_gain=gain,
+        adc=config.adc(),
     )
     return BenchRun(
         t=config.sample_time * np.arange(N),

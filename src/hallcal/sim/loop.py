@@ -3,7 +3,8 @@
 Per sample k (zero initial conditions, y(t_{-1}) = y_initial):
 
     y0[k]  = C_G x_G[k]                              plant output (true angle) [rad]
-    d[k]   = g_theta(y0[k]) + v[k]                   Hall signals
+    d[k]   = ADC(s_k g_theta(y0[k]) + v[k])           Hall signals (s_k: sensor gain, default 1;
+                                                     ADC: quantizer and rails, default none)
     y[k]   = f_init(d[k]; y[k-1])                    eq. (fimp) [rad]
     e[k]   = r[k] - y[k]
     u[k]   = C_C x_C[k] + D_C e[k]                   torque command
@@ -51,6 +52,7 @@ __all__ = [
     "LoopJacobian",
     "LoopResult",
     "LoopStatus",
+    "SensorADC",
     "loop_jacobian",
     "simulate_loop",
 ]
@@ -178,6 +180,36 @@ class ClosedLoop:
             float(c.D),
             _kernel_array(self.projection),
             _kernel_array(self.offset),
+        )
+
+
+@dataclass(frozen=True)
+class SensorADC:
+    """The converter between the Hall sensors and f_init: a quantizer, then the rails.
+
+    Per sensor h, the value f_init sees is ``clip(q_h(v), low_h, high_h)`` with
+    ``q_h(v) = origin_h + step_h floor((v - origin_h) / step_h + 1/2)`` (a uniform mid-tread
+    quantizer; ``step_h = 0``: none). The defaults change nothing (infinite rails, no quantizer).
+
+    Attributes
+    ----------
+    low, high : ndarray (3,)
+        Rails [Hall signal unit]: the lowest and highest value the converter outputs.
+    step : ndarray (3,)
+        Quantization step (one code) [Hall signal unit]; 0 = no quantization.
+    origin : ndarray (3,)
+        A value the quantizer represents exactly [Hall signal unit] (the code grid's anchor).
+    """
+
+    low: NDArray[np.float64] = field(default_factory=lambda: np.full(3, -np.inf))
+    high: NDArray[np.float64] = field(default_factory=lambda: np.full(3, np.inf))
+    step: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    origin: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+
+    def _arrays(self) -> tuple:
+        return tuple(
+            _kernel_array(np.broadcast_to(np.asarray(a, dtype=np.float64), (3,)))
+            for a in (self.low, self.high, self.step, self.origin)
         )
 
 
@@ -346,29 +378,25 @@ def _cogging(orders, coef, y0):
     return t, dt
 
 
+@nb.njit(cache=True, inline="always")
+def _convert(v, lo, hi, step, origin):
+    """The ADC of :class:`SensorADC`: quantize to the code grid, then clip to the rails."""
+    if step > 0.0:
+        v = origin + step * math.floor((v - origin) / step + 0.5)
+    if v < lo:
+        v = lo
+    elif v > hi:
+        v = hi
+    return v
+
+
 @nb.njit(cache=True)
 def _simulate_kernel(
-    Ag,
-    Bg,
-    Cg,
-    Ac,
-    Bc,
-    Cc,
-    Dc,
-    P,
-    off,
-    n_m,
-    harm,
-    theta,
-    r,
-    noise,
-    td,
-    cog_k,
-    cog_x,
-    y_init,
-    y0_start,
-):
+    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, noise, td, cog_k, cog_x, y_init,
+    y0_start, s_gain, adc_lo, adc_hi, adc_step, adc_origin,
+):  # fmt: skip
     N = r.size
+    has_gain = s_gain.shape[0] > 0
     ng = Ag.shape[0]
     nc = Ac.shape[0]
     m = theta.shape[1]
@@ -396,7 +424,9 @@ def _simulate_kernel(
             acc = 0.0
             for j in range(m):
                 acc += theta[h, j] * b[j]
-            dk[h] = acc + noise[k, h]
+            if has_gain:
+                acc *= s_gain[k, h]
+            dk[h] = _convert(acc + noise[k, h], adc_lo[h], adc_hi[h], adc_step[h], adc_origin[h])
             ds[k, h] = dk[h]
         al, be = _alpha_beta(P, off, dk)
         y = _unwrap(math.atan2(be, al), yprev, n_m)
@@ -559,6 +589,8 @@ def simulate_loop(
     cogging: CoggingTorque | None = None,
     y_initial: float = 0.0,
     initial_angle: float = 0.0,
+    sensor_gain: ArrayLike | None = None,
+    adc: SensorADC | None = None,
 ) -> LoopResult:
     """Simulate eq. (state_eq) with optional sensor noise, torque disturbance and cogging.
 
@@ -582,6 +614,12 @@ def simulate_loop(
         ``y0 = initial_angle + C_G x_G`` (a power-up at an arbitrary rotor position; f_init still
         starts from ``y_initial``). The flux, the cogging torque and the returned ``y0`` are all
         at this true angle. Default 0, the convention of DESIGN.md.
+    sensor_gain : array_like (N, 3), keyword-only, optional
+        s_k per sample and sensor multiplying the flux before the noise is added (a sensor whose
+        sensitivity drifts as it warms up); default 1.
+    adc : SensorADC, keyword-only, optional
+        Quantizer and rails between the sensors and f_init (the loop runs on the converted
+        values, which are also the returned ``d``); default none.
 
     Returns
     -------
@@ -591,8 +629,9 @@ def simulate_loop(
     N = r.size
     v = np.zeros((N, 3)) if noise is None else _kernel_array(noise)
     td = np.zeros(N) if torque_disturbance is None else _kernel_array(torque_disturbance)
-    if v.shape != (N, 3) or td.shape != (N,):
-        raise ValueError("noise must be (N, 3) and torque_disturbance (N,)")
+    sg = np.zeros((0, 3)) if sensor_gain is None else _kernel_array(sensor_gain)
+    if v.shape != (N, 3) or td.shape != (N,) or sg.shape not in ((N, 3), (0, 3)):
+        raise ValueError("noise and sensor_gain must be (N, 3) and torque_disturbance (N,)")
     y0, y, u, d, tq, ok = _simulate_kernel(
         *loop._arrays(),
         float(loop.pole_pairs),
@@ -604,6 +643,8 @@ def simulate_loop(
         *_cogging_arrays(loop.cogging, cogging),
         float(y_initial),
         float(initial_angle),
+        sg,
+        *(adc or SensorADC())._arrays(),
     )
     return LoopResult(y0, y, u, d, tq, LoopStatus.OK if ok else LoopStatus.DIVERGED)
 
