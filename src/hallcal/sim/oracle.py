@@ -5,8 +5,9 @@ of the exact inverse of the TRUE sensor map ``psi(y0) = f_init(g(y0))`` applied 
 
     e_oracle = psi^-1(f_init(d)) - y0,
 
-where g is the bench's noiseless sensor output (:meth:`hallcal.sim.bench.BenchConfig.truth`)
-and d the run's recorded (noisy) Hall signals. It is the table of section "Designing a
+where g is the bench's noiseless, static sensor output (:meth:`hallcal.sim.bench.BenchConfig.truth`
+limited by the ADC's rails, where a clipping sensor sits) and d the run's recorded Hall signals
+(with their noise, spikes, quantization and drift). It is the table of section "Designing a
 reconstruction function" (eq. recon_biject) built from the truth instead of an estimate, on a
 grid fine enough that interpolation adds nothing: whatever error remains comes from the signals
 themselves (Gaussian noise, spikes, quantization), not from the model. For Gaussian noise it
@@ -21,6 +22,9 @@ that of the noise, about zero.
 """
 
 from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
 
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sensor.metrics import AngleError, angle_error
@@ -39,8 +43,8 @@ def oracle_table(config: BenchConfig, *, points: int = ORACLE_POINTS) -> LUT:
     Parameters
     ----------
     config : BenchConfig
-        The bench: its truth g (noiseless sensor signals) and the loop's f_init (projection,
-        offsets, n_m).
+        The bench: its truth g (noiseless sensor signals within the ADC's rails) and the loop's
+        f_init (projection, offsets, n_m).
     points : int, keyword-only
         Grid points per revolution.
 
@@ -51,8 +55,15 @@ def oracle_table(config: BenchConfig, *, points: int = ORACLE_POINTS) -> LUT:
         folds: then no table can invert it and the oracle is undefined).
     """
     loop = config.loop()
+    truth = config.truth()
+    lo = np.asarray(config.adc_low, dtype=np.float64)
+    hi = np.asarray(config.adc_high, dtype=np.float64)
+
+    def g(y0: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.clip(truth(y0), lo, hi)  # the rails are part of the static map
+
     return build_lut(
-        config.truth(),
+        g,
         config.pole_pairs,
         points=points,
         projection=loop.projection,
