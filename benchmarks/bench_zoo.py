@@ -28,7 +28,10 @@ to the validation run's f_init (noise, spikes and quantization included).
 
 Columns: ``star/fl`` f_star / floor, ``init/fl`` f_init / floor, ``pred/fl`` the predicted error
 / floor, ``act/pred`` f_star / predicted (calibrated within [0.67, 1.5]), the status, the
-calibration's seconds (wall clock under the load printed in the header), the class.
+calibration's seconds (wall clock under the load printed in the header), the class; diagnostics:
+``off/fl`` f_star's mean error (the table's offset) / floor, ``efl`` the floor the calibration
+estimated / the oracle floor, ``white`` and ``batch`` the prediction from each covariance alone
+(the calibration takes the larger), ``B`` batches, ``p`` flux parameters, the model chosen.
 
 Run ``nice python benchmarks/bench_zoo.py [--motors 30] [--out benchmarks/bench_zoo.txt]
 [--plot benchmarks/bench_zoo_calibration.png]``; ``--seeds 1 3 5`` picks motors, ``--table-only``
@@ -175,7 +178,8 @@ def run_motor(seed: int, verbose: bool = False) -> dict:
         "seed": seed, "kind": kind, "n_m": cfg.pole_pairs,
         "fs": int(round(1 / cfg.sample_time)), "N": cal_run.n_samples, "fast": fast,
         "status": "diverged", "init": math.nan, "star": math.nan, "pred": math.nan,
-        "sec": math.nan, "model": "",
+        "sec": math.nan, "model": "", "off": math.nan, "efl": math.nan, "white": math.nan,
+        "batch": math.nan, "B": 0, "p": 0,
     }  # fmt: skip
     if cal_run.status != "ok":
         return row
@@ -191,8 +195,11 @@ def run_motor(seed: int, verbose: bool = False) -> dict:
     floor = oracle_error(val, table=table).rms_raw if table.bijective else cfg.noise_floor
     row["init"] = angle_error(cal.lut.f_init(val.d), val.y0).rms_raw / floor
     if cal.lut.bijective:
-        row["star"] = angle_error(cal.lut.f_star(val.d), val.y0).rms_raw / floor
+        e = angle_error(cal.lut.f_star(val.d), val.y0)
+        row["star"], row["off"] = e.rms_raw / floor, e.mean / floor
     row["pred"] = cal.predicted_error / floor
+    row["efl"] = cal.noise_floor / floor
+    row.update(_predictions(cal, floor))
     h = cal.model_info.get("harmonics", [])
     row["model"] = f"{len(h)}h<={max(h) if h else 0}"
     if cal.cogging is not None:
@@ -200,12 +207,36 @@ def run_motor(seed: int, verbose: bool = False) -> dict:
     return row
 
 
+def _predictions(cal, floor: float) -> dict:
+    """The two covariances behind the prediction, each propagated to the table (about zero,
+    with the estimated floor) / oracle floor: white ``sigma^2 (J^T J)^-1`` and batch-means."""
+    from hallcal.fit.sem import predicted_angle_error
+
+    sem = cal.sem
+    if sem is None or sem.covariance is None:
+        return {}
+    n = sem.covariance.shape[0]
+    kw = dict(projection=cal.lut.projection, offset=cal.lut.offset)
+    out = {"B": int(sem.batches), "p": int(n)}
+    covs = {"white": sem.covariance}
+    if sem.batch_covariance is not None:
+        covs["batch"] = np.asarray(sem.batch_covariance)[:n, :n]
+    for name, C in covs.items():
+        try:
+            v = float(np.mean(predicted_angle_error(cal.flux, C, cal.lut.pole_pairs, **kw) ** 2))
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        out[name] = math.sqrt(cal.noise_floor**2 + v) / floor
+    return out
+
+
 def _line(r: dict) -> str:
     ratio = r["star"] / r["pred"]
     return (
         f"{r['seed']:4d} {r['kind']:>7} {r['n_m']:3d} {r['fs']:6d} {r['N']:7d} x{r['fast']:<2g}"
         f"{r['status']:>13} {r['star']:8.3f} {r['init']:8.2f} {r['pred']:8.3f} {ratio:8.2f} "
-        f"{r['sec']:6.1f}  {r['model']}"
+        f"{r['sec']:6.1f} {r['off']:6.2f} {r['efl']:5.2f} {r['white']:7.2f} {r['batch']:7.2f} "
+        f"{r['B']:3d} {r['p']:4d}  {r['model']}"
     )
 
 
@@ -285,7 +316,8 @@ def main() -> None:
         "the slowest within 200 000 samples",
         "",
         f"{'seed':>4} {'class':>7} {'n_m':>3} {'fs':>6} {'N':>7} {'':3}{'status':>13} "
-        f"{'star/fl':>8} {'init/fl':>8} {'pred/fl':>8} {'act/pred':>8} {'sec':>6}  model",
+        f"{'star/fl':>8} {'init/fl':>8} {'pred/fl':>8} {'act/pred':>8} {'sec':>6} "
+        f"{'off/fl':>6} {'efl':>5} {'white':>7} {'batch':>7} {'B':>3} {'p':>4}  model",
     ]
     print("\n".join(lines), flush=True)
     rows = []
