@@ -41,10 +41,9 @@ candidates and keeps it when its coefficient a_0 is significant (T^2 = a_0^2 / v
 F(1, B - 1) with the batch-means variance, Bonferroni with the other orders). Measured on the
 paper's bench with a load of 0.003 (ramp 0 -> 7 rad in 14 s, harmonics 1..11): a_0 found at
 0.0030006 +- 1.2e-5, the table's offset 0.79x -> -0.12x the noise floor, its RMS error about
-zero 1.28x -> 1.01x (``tests/test_verdict.py``). With a BLA plant a small constant torque is
-also found without a load (2 % of the cogging on the cogging bench of ``tests/test_cogging.py``):
-it takes up the BLA's viscous-friction error at the ramp's constant speed, and the table is as
-good (1.009x against 1.015x the floor).
+zero 1.28x -> 1.01x (``tests/test_verdict.py``). With a BLA plant whose gain c is refined
+jointly (``fit_gain``) a constant torque trades off against c (both set the loop's steady lag
+on a constant-speed ramp): there the calibration does not try order 0 (``load=False``).
 
 Orders searched by default (:func:`plausible_orders`): the multiples of 2 n_m up to 24 n_m. The
 fundamental cogging order of a machine with Q stator slots and 2 n_m poles is LCM(Q, 2 n_m)
