@@ -100,5 +100,18 @@ def oracle_error(run: BenchRun, *, table: LUT | None = None, y_initial: float = 
 
 
 def oracle_floor(run: BenchRun, *, table: LUT | None = None) -> float:
-    """The oracle noise floor [rad RMS, about zero] of a run (:func:`oracle_error`)."""
+    """The oracle noise floor of a run (:func:`oracle_error`, its RMS about zero).
+
+    Parameters
+    ----------
+    run : BenchRun
+        A run of the bench.
+    table : LUT, keyword-only, optional
+        :func:`oracle_table` of the run's bench, when already built.
+
+    Returns
+    -------
+    float
+        RMS of ``psi^-1(f_init(d)) - y0`` about zero [rad].
+    """
     return oracle_error(run, table=table).rms_raw
