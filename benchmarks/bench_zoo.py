@@ -298,6 +298,21 @@ def plot(rows: list[dict], path: str) -> None:
     fig.savefig(path, dpi=120)
 
 
+def rows_from_table(path: str) -> list[dict]:
+    """The rows of a table this script wrote (or printed), for ``--replot``."""
+    rows = []
+    with open(path, encoding="utf-8") as f:
+        for line in f:
+            parts = line.split()
+            if len(parts) < 17 or not parts[0].isdigit() or parts[1] not in CLASSES:
+                continue
+            rows.append({
+                "seed": int(parts[0]), "kind": parts[1], "status": parts[6],
+                "star": float(parts[7]), "init": float(parts[8]), "pred": float(parts[9]),
+            })  # fmt: skip
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--motors", type=int, default=30)
@@ -308,7 +323,14 @@ def main() -> None:
     ap.add_argument("--plot", default=None, help="write the calibration plot (PNG) here")
     ap.add_argument("--table-only", action="store_true", help="no plot")
     ap.add_argument("--jobs", type=int, default=1, help="motors calibrated in parallel")
+    ap.add_argument("--replot", default=None, help="only draw --plot from this table's rows")
     args = ap.parse_args()
+    if args.replot:
+        rows = rows_from_table(args.replot)
+        print("\n".join(summary(rows)))
+        if args.plot:
+            plot(rows, args.plot)
+        return
     seeds = args.seeds or list(range(args.first, args.first + args.motors))
     lines = [
         "bench_zoo: random motors, calibrate with the defaults, fresh validation run; errors are "
