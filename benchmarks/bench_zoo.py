@@ -280,7 +280,8 @@ def plot(rows: list[dict], path: str) -> None:
                 ax.scatter([r["pred"] for r in sel], [r["star"] for r in sel],
                            c=[colours[kind]], marker="x" if refused else "o",
                            label=kind + (" (refused)" if refused else ""))  # fmt: skip
-    lo, hi = 0.8, 30.0
+    seen = [v for r in rows for v in (r["pred"], r["star"]) if np.isfinite(v)]
+    lo, hi = 0.8, max([30.0] + [1.3 * v for v in seen])
     xs = np.array([lo, hi])
     ax.plot(xs, xs, "k-", lw=0.8, label="actual = predicted")
     ax.plot(xs, CALIBRATED[1] * xs, "k--", lw=0.6, label="x0.67, x1.5")
