@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 from hallcal import pipeline
 from hallcal.io import Dataset, ModelSpec, Setup, write_dataset
 from hallcal.pipeline.calibration import CalibrationStatus
-from hallcal.pipeline.verdict import OK_RATIO, decide
+from hallcal.pipeline.verdict import OK_RATIO, WORSE_FRACTION, decide
 from hallcal.sensor.metrics import angle_error
 from hallcal.sim.bench import BenchConfig, ramp_run
 from hallcal.sim.oracle import oracle_floor
@@ -108,7 +108,7 @@ def test_the_predicted_error_includes_the_variance_of_the_offset():
     bijective=st.booleans(),
     checks=st.booleans(),
 )
-def test_ok_only_within_1_15x_the_floor_and_never_worse_than_f_init(
+def test_ok_only_within_1_15x_the_floor_and_never_predicted_worse_than_f_init(
     predicted, floor, correction, adequacy, bijective, checks
 ):
     v = decide(bijective=bijective, predicted=predicted, floor=floor,
@@ -122,7 +122,12 @@ def test_ok_only_within_1_15x_the_floor_and_never_worse_than_f_init(
         assert predicted < f_init
     else:
         assert v.refusal
-    if bijective and adequacy != "inadequate" and predicted >= f_init:
+    own = math.sqrt(max(predicted**2 - floor**2, 0.0))
+    if (
+        bijective
+        and adequacy != "inadequate"
+        and (predicted >= f_init or (own >= WORSE_FRACTION * correction and own > 0.5 * floor))
+    ):
         assert v.status is CalibrationStatus.INADEQUATE
         assert "worse than f_init" in v.refusal
 

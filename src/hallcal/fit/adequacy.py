@@ -1041,8 +1041,13 @@ def _theta_covariances(sem: SEMResult) -> list[NDArray]:
     unmodelled motion (cogging, load) colours the residual, which the batch-means covariance
     of the scores sees (Ljung 1999, sec. 9.3; the sandwich A^-1 M A^-1): on a zoo motor with
     cogging and load, 1.12x (white) against 1.47x (batch) and 1.53x measured. The batch one
-    is a noisy estimate from B batches and blind to the bias of weakly seen directions: on a
-    slow ramp with 76 harmonics it gave 1.6x against 5.7x measured and 4.9x (white).
+    is a noisy estimate from B batches and blind to the bias of weakly seen directions (and to
+    the table's offset, which only the start of the run informs, one batch): on slow ramps of
+    the zoo (``benchmarks/bench_zoo.py``, 100 000 samples) it gave 12x and 11x against 27x and
+    24x measured, the white one 19x and 14x. The white one overstates directions the loop hides
+    (the loop cancels the apparent noise within its bandwidth): 6.5x (white) against 2.5x
+    (batch) and 1.4x measured on a skewed zoo motor, 22x against 3.0x and 1.1-4.6x on the slow
+    ramp of ``tests/test_design.py``. The larger one errs on the side a user can rely on.
     """
     n_theta = sem.covariance.shape[0]
     covs = [sem.covariance]
