@@ -168,3 +168,13 @@ def test_a_table_predicted_worse_than_f_init_is_refused_exit_3(tmp_path):
     assert len(lines) == 1 and lines[0].startswith("hallcal: refused:")
     assert "worse than f_init" in lines[0]
     assert not out.exists()
+
+
+def test_the_anticogging_table_carries_a_constant_load():
+    """The C feed-forward's table of T_c(y0): order 0 is the constant a_0 (the DC bin of the
+    inverse FFT holds n a_0, not n a_0 / 2)."""
+    from hallcal.output.firmware import _uniform, cogging_map
+
+    k, a, b = np.array([0, 3]), np.array([0.5, 0.1]), np.array([0.0, 0.2])
+    y0 = 2 * np.pi * np.arange(64) / 64
+    np.testing.assert_allclose(_uniform(k, a, b, 64), cogging_map(k, a, b, y0), atol=1e-12)

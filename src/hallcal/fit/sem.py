@@ -493,6 +493,16 @@ def default_chunk(n_samples: int) -> int:
     4096 keeps the per-chunk overhead of the two-thread sensitivity pass small on long runs;
     512 samples are still many times the correlation time of the scores (the loop's closed-loop
     time constant, 1/(2 pi f_c): at most about 100 samples for a crossover at fs / 600).
+
+    Parameters
+    ----------
+    n_samples : int
+        N, samples of the run.
+
+    Returns
+    -------
+    int
+        Samples per chunk.
     """
     return int(min(4096, max(512, int(n_samples) // BATCHES)))
 
