@@ -1193,8 +1193,9 @@ def _gain_reason(tab: _Table) -> str | None:
     The table's correction eta is f_init's error as the model sees it; when the table's own
     predicted error is comparable, f_star is not reliably better than f_init. When it is at
     least the correction, f_star is predicted worse than f_init (``predicted >= hypot(floor,
-    correction)``): the calibration's status policy refuses the table then
-    (:func:`hallcal.pipeline.verdict.decide`); here it is one of the reasons of a warning.
+    correction)``). The calibration's status policy refuses the table in both cases (from half
+    the correction on, beyond half the noise floor: one run's table error scatters up to 2x
+    its prediction; :func:`hallcal.pipeline.verdict.decide`); here it is a reason of a warning.
     """
     table_sd = _table_sd(tab)
     if not (table_sd > tab.floor and table_sd >= 0.5 * tab.correction_rms):
