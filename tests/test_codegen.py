@@ -748,7 +748,7 @@ def test_anticogging_section_matches_the_map(tmp_path, cal):
 @pytest.mark.parametrize(
     ("key", "value", "named"),
     [
-        ("orders", [0, 1], "cogging.orders"),
+        ("orders", [-1, 1], "cogging.orders"),
         ("orders", [1, 1], "cogging.orders"),
         ("a", [1.0], "cogging.a"),
         ("b", "x", "cogging.b"),

@@ -137,7 +137,9 @@ def check_batch(out: Path, rows: list[dict]) -> None:
     assert f"motors/{MISSING}.npz" in by_id[MISSING]["message"]
     good = [r for r in rows if r["motor_id"] not in (*BROKEN, REFUSED)]
     for r in good:
-        assert r["status"] == "ok", r
+        # the BLA motor's plant model leaves 3.9x the BLA's variance per line: a check that did
+        # not pass, so a warning (the status policy: "ok" only when every check passed)
+        assert r["status"] == ("warning" if r["motor_id"] == BLA_MOTOR else "ok"), r
         assert r["model"] == "fourier 1-4"
         assert r["artifact"] == f"{r['motor_id']}/{ARTIFACT_NAME}"
         pred = float(r["predicted_error"])
@@ -165,7 +167,7 @@ def test_cli_local_cluster_and_resume(fleet_dir):
     res = run_cli("fleet", "manifest.csv", "--out", "out-cli", cwd=fleet_dir)
     assert res.returncode == EXIT_INCOMPLETE, res.stderr
     assert "Traceback" not in res.stderr, res.stderr[-3000:]
-    assert "30 motors: 26 ok, 0 warning, 1 refused, 3 failed" in res.stdout
+    assert "30 motors: 25 ok, 1 warning, 1 refused, 3 failed" in res.stdout
     for mid in (*BROKEN, REFUSED):  # one line per motor that did not succeed, as it happens
         assert any(ln.startswith(f"{mid}: ") for ln in res.stderr.splitlines()), res.stderr
     out = fleet_dir / "out-cli"
@@ -207,7 +209,7 @@ def test_api_on_a_distributed_scheduler_by_address(fleet_dir):
     rows = table.to_pylist()
     check_batch(out, rows)
     assert {r["worker"] for r in rows if r["worker"]} <= addresses
-    assert summary_counts(table) == {"ok": 26, "warning": 0, "refused": 1, "failed": 3}
+    assert summary_counts(table) == {"ok": 25, "warning": 1, "refused": 1, "failed": 3}
     assert seen == [(i, N_MOTORS) for i in range(N_MOTORS + 1)]
     assert pq.read_table(out / "summary.parquet").equals(table)
 

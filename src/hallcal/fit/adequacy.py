@@ -674,11 +674,12 @@ class AdequacyReport:
     noise_floor : float
         RMS angle error [rad] that the noise alone causes, from sigma and the model's amplitude.
     predicted_error : float
-        ``sqrt(noise_floor^2 + mean var eta)`` [rad]: expected RMS error of f_star if the model is
-        adequate (cov(theta) propagated to the table).
+        ``sqrt(noise_floor^2 + mean var eta)`` [rad]: expected RMS error of f_star about zero
+        (the table's constant offset included, as ``reconstruct`` outputs it and an encoder
+        measures it) if the model is adequate (cov(theta) propagated to the table).
     correction_rms : float
-        RMS [rad] of the table's correction eta about its mean (the model's view of the f_init
-        error).
+        RMS [rad] of the table's correction eta about zero (the model's view of f_init's error,
+        its constant offset included).
     bijective : bool
         Whether the table is invertible (eq. recon_biject); False refuses the table.
     min_slope : float
@@ -1040,8 +1041,13 @@ def _theta_covariances(sem: SEMResult) -> list[NDArray]:
     unmodelled motion (cogging, load) colours the residual, which the batch-means covariance
     of the scores sees (Ljung 1999, sec. 9.3; the sandwich A^-1 M A^-1): on a zoo motor with
     cogging and load, 1.12x (white) against 1.47x (batch) and 1.53x measured. The batch one
-    is a noisy estimate from B batches and blind to the bias of weakly seen directions: on a
-    slow ramp with 76 harmonics it gave 1.6x against 5.7x measured and 4.9x (white).
+    is a noisy estimate from B batches and blind to the bias of weakly seen directions (and to
+    the table's offset, which only the start of the run informs, one batch): on slow ramps of
+    the zoo (``benchmarks/bench_zoo.py``, 100 000 samples) it gave 12x and 11x against 27x and
+    24x measured, the white one 19x and 14x. The white one overstates directions the loop hides
+    (the loop cancels the apparent noise within its bandwidth): 6.5x (white) against 2.5x
+    (batch) and 1.4x measured on a skewed zoo motor, 22x against 3.0x and 1.1-4.6x on the slow
+    ramp of ``tests/test_design.py``. The larger one errs on the side a user can rely on.
     """
     n_theta = sem.covariance.shape[0]
     covs = [sem.covariance]
@@ -1056,9 +1062,10 @@ def _theta_covariances(sem: SEMResult) -> list[NDArray]:
 def _table(sem: SEMResult, n: int, P: NDArray, o: NDArray, sigma2: float, points: int) -> _Table:
     """Bijectivity and correction size of the table; noise floor of the angle for this model's
     amplitude; predicted error ``sqrt(floor^2 + mean var eta)`` from cov(theta), the larger of
-    the white and the batch-means one (:func:`_theta_covariances`)."""
+    the white and the batch-means one (:func:`_theta_covariances`), the variance of the table's
+    constant offset included (both the correction and the prediction are about zero)."""
     lut = build_lut(sem.flux, n, points=points, projection=P, offset=o)
-    eta = lut.eta - lut.eta.mean()
+    eta = lut.eta  # about zero: f_init's error with its offset, as the prediction
     floor = angle_noise_floor(sem.flux, n, sigma2, projection=P, offset=o, points=lut.y0.size)
     try:
         mean_var_eta = max(
@@ -1184,10 +1191,11 @@ def _gain_reason(tab: _Table) -> str | None:
     """A warning when the table's own predicted error is comparable to its correction.
 
     The table's correction eta is f_init's error as the model sees it; when the table's own
-    predicted error is comparable, f_star is not reliably better than f_init. A warning, not a
-    refusal: the prediction is an expectation dominated by a few weakly identified warps, and a
-    single run's table error is often half of it or less (measured 4.6x against a predicted 9.9x
-    the noise floor, with f_init at 9.0x, on a slow 200 000-sample ramp).
+    predicted error is comparable, f_star is not reliably better than f_init. When it is at
+    least the correction, f_star is predicted worse than f_init (``predicted >= hypot(floor,
+    correction)``). The calibration's status policy refuses the table in both cases (from half
+    the correction on, beyond half the noise floor: one run's table error scatters up to 2x
+    its prediction; :func:`hallcal.pipeline.verdict.decide`); here it is a reason of a warning.
     """
     table_sd = _table_sd(tab)
     if not (table_sd > tab.floor and table_sd >= 0.5 * tab.correction_rms):

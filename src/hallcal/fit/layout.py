@@ -32,7 +32,8 @@ class ParameterLayout:
     fit_gain : bool
         Whether ``log c`` (a factor c on the plant input matrix) follows theta.
     cogging_orders : tuple of int
-        Orders k of the cogging torque whose coefficients ``(a_k, b_k)`` follow.
+        Orders k of the cogging torque whose coefficients ``(a_k, b_k)`` follow; order 0 is
+        a constant load torque a_0 (its b_0 has a zero column: :attr:`inert` lists it).
     fit_drift : bool
         Whether the sensors' gain and offset drifts ``(gamma_1, delta_1, ..., gamma_3,
         delta_3)`` come last: the model signal of sensor h is
@@ -47,8 +48,8 @@ class ParameterLayout:
 
     def __post_init__(self) -> None:
         k = tuple(int(v) for v in self.cogging_orders)
-        if len(set(k)) != len(k) or any(v < 1 for v in k):
-            raise ValueError("cogging orders must be distinct integers >= 1")
+        if len(set(k)) != len(k) or any(v < 0 for v in k):
+            raise ValueError("cogging orders must be distinct integers >= 0")
         object.__setattr__(self, "cogging_orders", k)
         object.__setattr__(self, "fit_gain", bool(self.fit_gain))
         object.__setattr__(self, "fit_drift", bool(self.fit_drift))
@@ -72,6 +73,13 @@ class ParameterLayout:
     def cogging_stop(self) -> int:
         """One past the last cogging coefficient."""
         return self.cogging_start + 2 * len(self.cogging_orders)
+
+    @property
+    def inert(self) -> tuple[int, ...]:
+        """Indices of x without effect on the loop: b_0 of a cogging order 0 (sin 0 = 0)."""
+        return tuple(
+            self.cogging_start + 2 * i + 1 for i, k in enumerate(self.cogging_orders) if k == 0
+        )
 
     @property
     def drift_start(self) -> int:

@@ -49,6 +49,7 @@ __all__ = [
     "SEMResult",
     "SEMStatus",
     "least_squares_start",
+    "default_chunk",
     "predicted_angle_error",
     "solve_sem",
 ]
@@ -434,7 +435,7 @@ def solve_sem(
     cogging: Sequence[int] | CoggingTorque = (),
     stride: int | None = None,
     threads: int | None = None,
-    chunk: int = 4096,
+    chunk: int | None = None,
     weights: ArrayLike | None = None,
     fit_drift: bool = False,
     drift0: ArrayLike | None = None,
@@ -479,8 +480,9 @@ def solve_sem(
         :func:`_default_stride`); the covariance always uses the exact system.
     threads : int, optional
         Threads of the sensitivity pass (1 or 2; default 2 on machines with two cores or more).
-    chunk : int
-        Samples per chunk of the sensitivity pass.
+    chunk : int, optional
+        Samples per chunk of the sensitivity pass, also the batch of the batch-means covariance
+        (default :func:`default_chunk`: at least :data:`BATCHES` batches).
     weights : array_like (N, 3), optional
         Per-sample, per-channel weights of the cost (0: a censored sample, e.g. at an ADC rail,
         :mod:`hallcal.fit.censor`; the loop's f_init still sees it); the default start is then
@@ -504,7 +506,8 @@ def solve_sem(
     w = None if weights is None else checked_weights(weights, r.size)
     theta_start = _theta_start(loop, basis, d, theta0, y, w)
     problem = _problem(loop, layout, r, d, regularization, stride=stride, threads=threads,
-                       chunk=chunk, weights=w)  # fmt: skip
+                       chunk=default_chunk(r.size) if chunk is None else chunk,
+                       weights=w)  # fmt: skip
     x0 = layout.pack(theta_start, math.log(gain0) if fit_gain else 0.0, cog0, drift0)
     it = _levenberg_marquardt(problem, x0, max_iterations=max_iterations, tol=tol, damping=damping)
     unc = _uncertainty(problem, it)
@@ -539,6 +542,32 @@ def _drift_std(layout: ParameterLayout, cov: NDArray) -> NDArray[np.float64]:
     return np.sqrt(np.maximum(np.diag(cov)[j : j + 6], 0.0)).reshape(3, 2)
 
 
+#: Batches of the batch-means (long-run) covariance the default chunk aims at: its variance of a
+#: linear functional of theta has B - 1 degrees of freedom (B = 24: within a factor 0.7-1.5 at
+#: 95 %, the calibration band of the predicted error).
+BATCHES = 24
+
+
+def default_chunk(n_samples: int) -> int:
+    """Samples per chunk (and batch): ``N / BATCHES`` within [512, 4096].
+
+    4096 keeps the per-chunk overhead of the two-thread sensitivity pass small on long runs;
+    512 samples are still many times the correlation time of the scores (the loop's closed-loop
+    time constant, 1/(2 pi f_c): at most about 100 samples for a crossover at fs / 600).
+
+    Parameters
+    ----------
+    n_samples : int
+        N, samples of the run.
+
+    Returns
+    -------
+    int
+        Samples per chunk.
+    """
+    return int(min(4096, max(512, int(n_samples) // BATCHES)))
+
+
 def _checked_record(r: ArrayLike, d: ArrayLike) -> tuple[NDArray, NDArray]:
     """r (N,) and d (N, 3) as contiguous float64 arrays; d within the accepted Hall scale."""
     r = np.ascontiguousarray(r, dtype=np.float64)
@@ -565,10 +594,15 @@ def _problem(
     regularization: ArrayLike | None, *, stride: int | None, threads: int | None, chunk: int,
     weights: NDArray | None = None,
 ) -> _Problem:  # fmt: skip
-    """Problem (problem) with the Tikhonov ridge on theta (zero on the gain and the cogging)."""
+    """Problem (problem) with the Tikhonov ridge on theta (zero on the gain and the cogging).
+
+    The inert b_0 of a cogging order 0 (a constant load torque, whose sine regressor is zero)
+    gets a unit ridge: its column of J is zero, so it stays at 0 and J^T J + R stays regular.
+    """
     ridge = np.zeros(layout.size)
     if regularization is not None:
         ridge[: layout.n_theta] = np.asarray(regularization, dtype=np.float64)
+    ridge[list(layout.inert)] = 1.0
     p = layout.size
     return _Problem(
         loop, layout, r, d, ridge, _default_stride(p) if stride is None else max(1, int(stride)),
@@ -628,13 +662,17 @@ def predicted_angle_error(
     projection: ArrayLike,
     offset: ArrayLike,
     points: int = 512,
+    about_mean: bool = False,
 ) -> NDArray[np.float64]:
-    """Standard deviation of the LUT correction eta(y0) about its mean, implied by cov(theta) [rad].
+    """Standard deviation of the LUT correction eta(y0) implied by cov(theta) [rad].
 
     First-order propagation through eq. (recon_biject): ``eta = y0 - f_init(g_theta(y0))`` so
-    ``d eta / d theta = -(1/n_m) d psi/d d . (I_3 kron beta(y0))``; the mean over y0 of that
-    derivative is removed, because angle errors are measured about their mean (a constant
-    offset of the table is the frame of y0, not an error).
+    ``d eta / d theta = -(1/n_m) d psi/d d . (I_3 kron beta(y0))``. By default the table's
+    constant offset is included: ``reconstruct`` outputs it, a user measures it against an
+    encoder, and the calibration run pins the frame of y0 (y0 = 0 at its first sample, the loop
+    simulated from rest there) only as well as the loop reveals a constant shift of the angle,
+    which cov(theta) says. ``about_mean`` removes the mean over y0 of the derivative (the error
+    about its mean, the offset left out).
 
     Parameters
     ----------
@@ -650,6 +688,8 @@ def predicted_angle_error(
         Sensor offsets f_init subtracts.
     points : int, keyword-only
         Grid size M over one revolution.
+    about_mean : bool, keyword-only
+        Leave the table's constant offset out (default False: include it).
 
     Returns
     -------
@@ -664,9 +704,8 @@ def predicted_angle_error(
     rho2 = ab[:, 0] ** 2 + ab[:, 1] ** 2
     dpsi = (ab[:, [0]] * P[1] - ab[:, [1]] * P[0]) / rho2[:, None]  # (M, 3)
     G = -(dpsi[:, :, None] * B[:, None, :]).reshape(points, -1) / pole_pairs  # (M, 3m)
-    # about the mean, as the angle error is measured: a constant shift of eta (the gauge of y0,
-    # which the loop pins only weakly through y0 = 0 at the first sample) is not an error
-    G -= G.mean(axis=0)
+    if about_mean:
+        G -= G.mean(axis=0)
     C = np.asarray(covariance, float)
     var = np.einsum("ij,jk,ik->i", G, C, G)
     return np.sqrt(np.maximum(var, 0.0))

@@ -638,8 +638,8 @@ def _check_cogging(c: _Checker, cog: Any) -> None:
     """The optional ``"cogging"`` entry: T_c(y0) = sum a_k cos(k y0) + b_k sin(k y0)."""
     cog = c.mapping(cog, "cogging")
     orders = cog.get("orders")
-    if not isinstance(orders, list) or not all(_is_int(k) and k >= 1 for k in orders):
-        c.bad("key 'cogging.orders' must be a list of integers >= 1")
+    if not isinstance(orders, list) or not all(_is_int(k) and k >= 0 for k in orders):
+        c.bad("key 'cogging.orders' must be a list of integers >= 0")
     if len(orders) > MAX_HARMONICS or (orders and max(orders) > MAX_HARMONIC):
         c.bad(
             f"key 'cogging.orders' must hold at most {MAX_HARMONICS} orders up to "

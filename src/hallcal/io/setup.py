@@ -644,7 +644,8 @@ def _parse_model(t: _Table | None) -> ModelSpec:
 
 
 def _parse_cogging(t: _Table, basis: str) -> tuple[int, ...] | str:
-    """``cogging = "auto" | "none" | [orders]`` (distinct integers >= 1; Fourier basis)."""
+    """``cogging = "auto" | "none" | [orders]`` (distinct integers >= 0, 0 a constant load
+    torque; Fourier basis)."""
     value = t.data.get("cogging", "auto")
     if isinstance(value, str) and value in ("auto", "none"):
         return value
@@ -653,10 +654,10 @@ def _parse_cogging(t: _Table, basis: str) -> tuple[int, ...] | str:
     if (
         not isinstance(value, list | tuple)
         or not value
-        or not all(_is_int(k) and k >= 1 for k in value)
+        or not all(_is_int(k) and k >= 0 for k in value)
     ):
-        t.fail("cogging", 'a list of distinct integers >= 1 (periods per revolution), "auto" '
-               'or "none"')  # fmt: skip
+        t.fail("cogging", 'a list of distinct integers >= 0 (periods per revolution, 0 a '
+               'constant load torque), "auto" or "none"')  # fmt: skip
     if len(set(value)) != len(value):
         t.error(f"key '{t.key('cogging')}' lists an order twice: {_show(value)}")
     if len(value) > MAX_COGGING_ORDERS:

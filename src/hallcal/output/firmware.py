@@ -730,7 +730,9 @@ def cogging_map(orders, a, b, y0) -> NDArray[np.float64]:
 def _uniform(orders, a, b, n: int) -> NDArray[np.float64]:
     """The map on y0 = 2 pi i / n, i = 0 .. n - 1 (inverse real FFT; n > 2 max order)."""
     spec = np.zeros(n // 2 + 1, dtype=np.complex128)
-    np.add.at(spec, np.asarray(orders), (np.asarray(a) - 1j * np.asarray(b)) * (n / 2.0))
+    k = np.asarray(orders)
+    scale = np.where(k == 0, float(n), n / 2.0)  # order 0 (a constant load torque): the DC bin
+    np.add.at(spec, k, (np.asarray(a) - 1j * np.asarray(b)) * scale)
     return np.fft.irfft(spec, n)
 
 
@@ -769,7 +771,7 @@ def cogging_table(
     ----------
     cogging : mapping
         The artifact's ``"cogging"`` entry as :func:`hallcal.io.validate_artifact` checks it
-        (distinct orders >= 1, one ``a`` and ``b`` per order).
+        (distinct orders >= 0, one ``a`` and ``b`` per order).
     source : str, keyword-only
         Name of the artifact for error messages.
 

@@ -888,7 +888,7 @@ def plot_cogging(
     -------
     matplotlib.figure.Figure
     """
-    k_low = min(cogging.orders) if cogging.size else 1
+    k_low = min((k for k in cogging.orders if k > 0), default=1)  # order 0: a constant load
     y = TWO_PI * np.arange(points) / points
     zoom = np.linspace(0.0, TWO_PI / k_low, 400)
     has_band = cogging.covariance is not None

@@ -22,11 +22,12 @@ from hallcal.fit.constant_speed import (
 )
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
-from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
+from hallcal.pipeline.calibration import Calibration, validate
 from hallcal.pipeline.checks import CheckStatus, check_pole_pairs, check_recording, raise_if_failed
 from hallcal.pipeline.observe import FOLDING_NOTE, calibrated_noise, observer_section
 from hallcal.pipeline.powerup import power_up_analysis
 from hallcal.pipeline.progress import Progress
+from hallcal.pipeline.verdict import decide
 from hallcal.sensor.flux import FourierBasis
 from hallcal.sensor.observer import observer_model
 
@@ -152,21 +153,17 @@ def calibrate_open_loop(
     messages.extend(f"warning: {w}" for w in res.warnings)
     if res.status is ConstantSpeedStatus.NOT_CONVERGED:
         messages.append("warning: the speed estimate did not converge")
-    refusal = None
     var = calibrated_noise(res.model, n, d, max(res.noise_std, 1e-300) ** 2, start=start, stop=stop)
     injectivity = observer_model(res.model, n, var).injectivity
     if not res.lut.bijective and injectivity.injective:
         messages.insert(0, FOLDING_NOTE.format(sep=injectivity.separation))
-    if not res.lut.bijective:
-        status = CalibrationStatus.NOT_BIJECTIVE
-        refusal = (
-            f"the table is not bijective (min slope {res.lut.min_slope:.3g}): the identified "
-            "sensor map folds, f_star is unavailable"
-        )
-    elif not res.status.success or messages:
-        status = CalibrationStatus.WARNING
-    else:
-        status = CalibrationStatus.OK
+    # the prediction is the noise floor (the constant-speed fit gives no covariance of the table)
+    verdict = decide(
+        bijective=res.lut.bijective, predicted=res.angle_noise_floor,
+        floor=res.angle_noise_floor, correction_rms=float(np.sqrt(np.mean(res.lut.eta**2))),
+        checks_passed=res.status.success and not messages, min_slope=res.lut.min_slope,
+    )  # fmt: skip
+    status, refusal = verdict.status, verdict.refusal
     if progress is not None:
         progress("power-up identifiability of the pole pair")
     t0 = time.perf_counter()
@@ -174,7 +171,9 @@ def calibrate_open_loop(
     timings["identifiability"] = time.perf_counter() - t0
     validation = None
     if "y_ref" in dataset and res.lut.bijective:
-        validation = validate(res.lut, dataset, noise_floor=res.angle_noise_floor)
+        validation = validate(
+            res.lut, dataset, noise_floor=res.angle_noise_floor, remove_mean=True
+        )  # the spin fixes no frame: the table's offset is arbitrary
     return Calibration(
         setup=setup,
         flux=res.model,

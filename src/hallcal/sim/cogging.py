@@ -10,6 +10,13 @@ with ``A_k = hypot(a_k, b_k)`` and ``phi_k = atan2(b_k, a_k)``, in plant input u
 the torque command u, so that firmware can subtract it from its command as a feed-forward), added
 to the plant input of eq. (state_eq): ``x_G[k+1] = A_G x_G[k] + B_G (u[k] + T_c(y0[k]))``.
 
+Order 0 is a constant load torque ``T_c = a_0`` (friction on a ramp in one direction, a
+spring or gravity load): ``cos(0 y0) = 1`` and ``sin(0 y0) = 0``, so b_0 has no effect and is
+stored as 0. In a loop whose controller does not integrate (the paper's C(q), whose integrator
+is cancelled) it shifts the rotor by a constant angle, which a flux model alone explains as a
+constant offset of the sensors' angle: the table then carries that offset (DESIGN.md, "Numerical
+facts": 0.6-1.1x the noise floor on its own).
+
 The artifact stores it under the key ``"cogging"`` (:meth:`CoggingTorque.to_dict`).
 """
 
@@ -31,12 +38,12 @@ class CoggingTorque:
     Parameters
     ----------
     orders : sequence of int
-        Distinct orders k >= 1 (periods per revolution).
+        Distinct orders k >= 0 (periods per revolution; 0: a constant load torque a_0).
     a, b : array_like (n,)
-        Cosine and sine coefficients, one per order.
+        Cosine and sine coefficients, one per order (b of order 0 has no effect: set to 0).
     covariance : array_like (2n, 2n), optional
         Covariance of the interleaved coefficients ``[a_1, b_1, a_2, b_2, ...]`` (an estimate's
-        uncertainty; None for a known torque).
+        uncertainty; None for a known torque); the row and column of b_0 are set to 0.
     """
 
     orders: tuple[int, ...] = ()
@@ -46,12 +53,14 @@ class CoggingTorque:
 
     def __post_init__(self) -> None:
         k = tuple(int(v) for v in self.orders)
-        if len(set(k)) != len(k) or any(v < 1 for v in k):
-            raise ValueError("cogging orders must be distinct integers >= 1")
+        if len(set(k)) != len(k) or any(v < 0 for v in k):
+            raise ValueError("cogging orders must be distinct integers >= 0")
         a = np.array(self.a, dtype=np.float64).reshape(-1)
         b = np.array(self.b, dtype=np.float64).reshape(-1)
         if a.shape != (len(k),) or b.shape != (len(k),):
             raise ValueError("cogging coefficients a and b need one entry per order")
+        zero = [i for i, v in enumerate(k) if v == 0]
+        b[zero] = 0.0  # sin(0 y0) = 0: b_0 has no effect
         for arr in (a, b):
             arr.setflags(write=False)
         object.__setattr__(self, "orders", k)
@@ -61,6 +70,9 @@ class CoggingTorque:
             c = np.array(self.covariance, dtype=np.float64)
             if c.shape != (2 * len(k), 2 * len(k)):
                 raise ValueError("cogging covariance must be (2n, 2n) for n orders")
+            for i in zero:
+                c[2 * i + 1, :] = 0.0
+                c[:, 2 * i + 1] = 0.0
             c.setflags(write=False)
             object.__setattr__(self, "covariance", c)
 
@@ -106,7 +118,7 @@ class CoggingTorque:
         Returns
         -------
         CoggingTorque
-            With a_k = A_k cos(phi_k), b_k = A_k sin(phi_k).
+            With a_k = A_k cos(phi_k), b_k = A_k sin(phi_k) (order 0: a constant A_0 cos(phi_0)).
         """
         k = tuple(int(v) for v in np.atleast_1d(orders))
         A = np.broadcast_to(np.asarray(amplitude, dtype=np.float64), (len(k),))
