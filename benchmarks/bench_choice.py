@@ -1,4 +1,4 @@
-"""Benchmark: the automatic model choice (issue 25 item 2) against the noise floor.
+"""Benchmark: the automatic model choice against the noise floor.
 
 Motors of several kinds (the paper's bench, rich per-magnet shapes at 7 and 11 pole pairs with a
 slow 0.5 rad/s ramp, a trapezoidal flux, two 10-pole-pair drives with loops of their own, with
@@ -14,7 +14,7 @@ wall time is 2-4 times the CPU time.
 
 What it showed: at the paper's noise level the rich-shape benches built here (content up to
 33, 35 and 55 mechanical harmonics, 0.5 rad/s) were already chosen right before (1.00-1.05x);
-the over-fit of issue 25 appeared with a clean sensor (rich11lo: 1..88 chosen, as in the issue)
+the over-fit appeared with a clean sensor (rich11lo: 1..88 chosen, as reported)
 and on the two 10-pole-pair drives, where f_init's view is not clean to the noise level and the
 band test ran to its bound 8 n_m. The Wald test of the nested bands
 (:func:`hallcal.fit.order.nested_bands`) brings all three to the truth's band (the slow ramp
@@ -71,7 +71,7 @@ def _drive(n: int, fs: float, a: float, p: float, K: float, fc: float, **kw) -> 
 MOTORS = {
     # the paper's simulation study (hallcal demo): must stay at the floor
     "paper": Motor(BenchConfig(), 13.0, 26.0, "paper bench, 0.5 rad/s"),
-    # issue 25: rich per-magnet shapes, 11 pole pairs, content up to 55, slow ramp
+    # rich per-magnet shapes, 11 pole pairs, content up to 55, slow ramp
     "rich11": Motor(
         BenchConfig(
             electrical_harmonics=TRAPEZOID,
@@ -85,7 +85,7 @@ MOTORS = {
         "11 pp, shape 5 %/5, 0.5 rad/s",
     ),
     # the same kind with a clean sensor (noise variance 2e-7): f_init's view is not clean to
-    # that noise level, the band test runs to its bound 8 n_m (issue 25: "chose 1..88")
+    # that noise level, the band test runs to its bound 8 n_m ("chose 1..88")
     "rich11lo": Motor(
         BenchConfig(
             electrical_harmonics=TRAPEZOID,
@@ -101,7 +101,7 @@ MOTORS = {
         40.0,
         "11 pp, shape 5 %/5, low noise, 0.5 rad/s",
     ),
-    # issue 25: 7 pole pairs, content up to 35
+    # 7 pole pairs, content up to 35
     "rich7": Motor(
         BenchConfig(
             pole_pairs=7,
@@ -116,7 +116,7 @@ MOTORS = {
         40.0,
         "7 pp, shape 4 %/5, 0.5 rad/s",
     ),
-    # issue 25: 11 pole pairs, content up to 33
+    # 11 pole pairs, content up to 33
     "rich11k3": Motor(
         BenchConfig(
             electrical_harmonics=((3, 0.08),),

@@ -1,4 +1,4 @@
-"""The model-based observer (issue 26): the figures behind tests/test_observer.py, full size.
+"""The model-based observer: the figures behind tests/test_observer.py, full size.
 
 Every case runs the observer of :mod:`hallcal.sensor.observer` on a model identified by the
 usual calibration (not the bench's truth), except where said.

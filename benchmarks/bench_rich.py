@@ -1,4 +1,4 @@
-"""Benchmark: every magnet different (issue 13): automatic model choice and the kernel model.
+"""Benchmark: every magnet different: automatic model choice and the kernel model.
 
 Bench (the paper's loop and plant, experiment-shaped run): 11 pole pairs, trapezoidal flux
 (3rd electrical harmonic 10 %, 5th 4 %), 2 electrical degrees misalignment of sensor 2, per-magnet
@@ -48,7 +48,7 @@ MODELS = {
 
 
 def config(seed: int, strength: float) -> BenchConfig:
-    """The issue-13 motor with per-magnet shape variation ``strength``."""
+    """The rich-shape motor with per-magnet shape variation ``strength``."""
     return BenchConfig(
         pole_pairs=11,
         electrical_harmonics=((3, 0.10), (5, 0.04)),

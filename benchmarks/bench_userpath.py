@@ -1,4 +1,4 @@
-"""The user's mistakes of issue 30, as a user makes them: exit status, time to fail, the line.
+"""The user's mistakes, as a user makes them: exit status, time to fail, the line.
 
 On the README's motor (4 pole pairs, 10 kHz, ``hallcal simulate`` with the sizes of
 ``tests/test_readme.py``: a 1.1-revolution ramp in 8 s, 80 000 samples) the script writes the

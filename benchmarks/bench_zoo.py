@@ -60,7 +60,7 @@ CLASSES = ("shape", "clip", "adc12", "drift", "skew", "cogload", "spikes", "plai
 POLE_PAIRS = (2, 3, 4, 5, 7, 8, 10, 11, 14, 15, 21, 24, 28)
 #: Calibration runs hold at most this many samples (the zoo runs on a shared 2-core machine).
 N_MAX = 100_000
-#: Calibrated prediction: actual / predicted within these bounds (issue 25).
+#: Calibrated prediction: actual / predicted within these bounds.
 CALIBRATED = (0.67, 1.5)
 
 

@@ -5,7 +5,7 @@ there; ``tests/test_hostile.py`` runs them (in a worker process under resource l
 the command-line contract of :mod:`hostile_support`, plus the case's own expectation: the exit
 status (2 for a bad input, detected as such) and, for corrupt files, that the message says so.
 
-Classes (the issue "Hostile input" lists the first four):
+Classes (the hostile-input contract lists the first four):
 
 * datasets, for every reader (CSV, Parquet, HDF5, MATLAB, NPZ): empty, truncated (1 byte,
   100 bytes, half, all but the last byte), corrupt headers and footers, random bytes in the Hall
@@ -1429,7 +1429,7 @@ def artifact_cases() -> list[Case]:
 # Paths and options
 
 
-#: Artifact paths that try to close the C comment the exporter writes them into (the issue's
+#: Artifact paths that try to close the C comment the exporter writes them into (the
 #: injection: a line splice by backslash-newline or by the trigraph ??/, or a plain "*/"), and
 #: other names that must come out as harmless text.
 INJECTION_PATHS: dict[str, str] = {
@@ -1698,7 +1698,7 @@ def option_cases() -> list[Case]:
     c(
         "reconstruct-over-its-input",
         with_inputs(["reconstruct", "a.json", "cal.npz", "--out", "cal.npz"]),
-        msg="is the input",  # the recording would be lost (issue 29): refused before any work
+        msg="is the input",  # the recording would be lost: refused before any work
     )
     # report
     c(

@@ -1,4 +1,4 @@
-"""Hostile cases of output safety (issue "never lose a user's data"): one case per recipe.
+"""Hostile cases of output safety: one case per recipe.
 
 * an output that is an input (the same file by name, ``..``, a symbolic or a hard link) or
   another output of the same command (``bla --out b.png``), refused before any work;

@@ -46,7 +46,7 @@ def _fault(fault: dict | None) -> Iterator[None]:
     from hallcal.io import files
 
     saved_limit = resource.getrlimit(resource.RLIMIT_FSIZE)
-    # where hallcal's writers create their temporary files (before issue 29: tempfile.mkstemp)
+    # where hallcal's writers create their temporary files (before output sets: tempfile.mkstemp)
     owner, name = (files, "_create_temporary")
     if not hasattr(files, name):
         owner, name = (files.tempfile, "mkstemp")

@@ -214,7 +214,7 @@ def test_paper_bench_standstill_200_samples(paper):
 def test_paper_bench_moving_within_one_electrical_revolution(paper):
     """30 power-ups ramping at the calibration run's speed (0.5 rad/s): the test locks on the
     right pole pair long before one electrical revolution (4570 samples), and f_star after the
-    lock is at the noise floor (the table is the truth's here, so 1.15 x floor is the issue's
+    lock is at the noise floor (the table is the truth's here, so 1.15 x floor is the acceptance
     bound with room for the 10 % sampling spread of an RMS over a few thousand samples)."""
     cfg, _, lut, dec = paper
     rev = TWO_PI / 11 / (0.5 * cfg.sample_time)

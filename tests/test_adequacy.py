@@ -1,4 +1,4 @@
-"""Model adequacy (issue 9): noise level from the data, residual analysis and the verdict.
+"""Model adequacy: noise level from the data, residual analysis and the verdict.
 
 Acceptance on the virtual bench: the trapezoidal flux fitted with the paper's harmonics 1..11 is
 refused with a message naming the missing harmonics; the paper's bench is adequate; and no fit in

@@ -1,7 +1,7 @@
-"""Issue 4: the plant from data (closed-loop BLA, gain correction) and Algorithm 1 end to end.
+"""The plant from data (closed-loop BLA, gain correction) and Algorithm 1 end to end.
 
 The virtual bench runs the paper's setup; the calibration then sees only the controller, the
-multisine experiment and the calibration run (no [plant]). Bounds are the issue's: BLA within
+multisine experiment and the calibration run (no [plant]). Bounds (acceptance): BLA within
 1 dB / 5 degrees of the true G where the total variance is small, gain within 2% after the
 correction, f_star within 15% of the noise floor on a fresh run.
 """

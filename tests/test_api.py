@@ -51,7 +51,7 @@ def test_readme_notebook_example_runs_and_reaches_the_noise_floor(paper_files, m
     assert (folder / "cal.json").is_file()
     floor = cal_run.config.noise_floor
     err = angle_error(angles["y_star"], run.y0)
-    # the acceptance on the paper bench: f_star within 15% of the noise floor
+    # the acceptance bound on the paper bench: f_star within 15% of the noise floor
     assert err.rms <= 1.15 * floor
     assert angle_error(angles["y_init"], run.y0).rms > 5 * floor  # there was something to fix
 
@@ -80,7 +80,7 @@ def test_save_load_reconstruct_matches_the_cli_to_1e_12(paper_files, tmp_path):
     )  # fmt: skip
     assert cli.returncode == 0, cli.stderr
     out = read_dataset(tmp_path / "cli.csv", required=("y_init", "y_star"))
-    # CSV stores the shortest repr that reads back exactly; the bound is the issue's
+    # CSV stores the shortest repr that reads back exactly; the bound is the acceptance bound
     np.testing.assert_allclose(out["y_star"], api["y_star"], rtol=0, atol=1e-12)
     np.testing.assert_allclose(out["y_init"], api["y_init"], rtol=0, atol=1e-12)
     # the in-process object and the loaded one reconstruct identically

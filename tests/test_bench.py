@@ -33,7 +33,7 @@ def test_paper_defaults(paper_run):
     assert cfg.noise_floor == pytest.approx(math.sqrt(7.5e-6) * math.sqrt(2 / 3) / 11)
     assert cfg.noise_floor == pytest.approx(2.03e-4, rel=0.01)
     e = paper_run.y - paper_run.y0
-    # "f_init gives about 3 mrad" (issue 3); the magnet variations are random: 2-4.5 mrad
+    # "f_init gives about 3 mrad"; the magnet variations are random: 2-4.5 mrad
     assert 2e-3 < np.std(e) < 4.5e-3
     assert paper_run.status == "ok"
     assert paper_run.y0[0] == 0.0  # y0 = 0 at the first sample (paper's convention)

@@ -413,7 +413,7 @@ def motor_bla_data():
 
 
 def test_the_issues_unstable_bla_is_refused_with_the_order_named(motor_bla_data) -> None:
-    """The issue's motor with the demo's denominator_order = 2: the extra pole lands in the right
+    """The motor with the demo's denominator_order = 2: the extra pole lands in the right
     half-plane (here at about +1e9 rad/s). The fit is refused and the message names the order the
     data support; "auto" (the default) chooses it."""
     from hallcal import pipeline

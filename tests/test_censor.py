@@ -95,7 +95,7 @@ def test_imputation_is_unbiased_where_the_uncensored_samples_are_not():
 
 def test_a_clipping_motor_reaches_its_floor_from_the_rest_of_its_samples(clipped):
     """Calibrated on the clipped run (given harmonics: the truth's 1..4), validated on a fresh
-    run of the same motor without rails: within 1.15x the noise floor (the bar of issue 25);
+    run of the same motor without rails: within 1.15x the noise floor (the acceptance bar);
     the message names the sensors and counts."""
     cfg, run = clipped
     model = ModelSpec(harmonics=(1, 2, 3, 4), cogging="none")

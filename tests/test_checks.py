@@ -81,7 +81,7 @@ def test_wrong_pole_pairs_suggest_the_right_count(run, reference, wrong):
 
 
 def test_wrong_pole_pairs_stop_calibration_within_two_seconds(run):
-    """The issue's case: pole_pairs = 5 for a 4-pole-pair motor used to run 20 s into 'not
+    """The case: pole_pairs = 5 for a 4-pole-pair motor used to run 20 s into 'not
     bijective'; now calibrate fails at once, naming the right count, before any SEM."""
     setup = setup_from_dict({**MOTOR, "pole_pairs": 5})
     messages: list[str] = []

@@ -173,7 +173,7 @@ def test_export_c_writes_sources(workdir):
 
 
 def test_calibrate_with_the_kernel_basis(workdir):
-    """[model] basis = "kernel" with points works end to end (issue 5)."""
+    """[model] basis = "kernel" with points works end to end."""
     text = SETUP.replace('basis = "fourier"\n', "").replace(
         "harmonics = [1,2,3,4,5,6,7,8,9,10,11]", 'basis = "kernel"\npoints = 64'
     )

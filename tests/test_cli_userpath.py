@@ -124,7 +124,7 @@ def test_bla_chooses_the_order_and_writes_a_bode_plot(motor):
 
 
 def test_unstable_bla_is_refused_with_the_fix(motor):
-    """The issue: denominator_order = 2 on this motor put a pole at about +1e9 rad/s and said
+    """denominator_order = 2 on this motor put a pole at about +1e9 rad/s and said
     "ok"; now exit 3 names the pole and the order to use, and the plot is there to look at."""
     write_setup(motor / "two.toml", {**MOTOR, "bla": {**MOTOR["bla"], "denominator_order": 2}})
     res = run("bla", "bla.csv", "--setup", "two.toml", "--out", "bla2.json", cwd=motor)
@@ -275,7 +275,7 @@ def test_generated_c_files_are_world_readable_and_worded(motor, tmp_path):
 
 
 # ------------------------------------------------------------------------------------------------
-# issue 30: each mistake as a user makes it -> exit status and the one line, before the work
+# each mistake as a user makes it -> exit status and the one line, before the work
 
 
 def _variant(motor: Path, source: str, name: str, change) -> str:

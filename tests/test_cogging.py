@@ -1,6 +1,6 @@
 """Cogging in the loop: the torque model, its joint identification and the setup/artifact keys.
 
-The acceptance bounds are the issue's (f_star within 10 % of the noise floor, amplitude within
+The acceptance bounds are the acceptance's (f_star within 10 % of the noise floor, amplitude within
 5 %, phase within 3 degrees); the full table on the paper-size runs, with the BLA plant and
 with a disturbance on top, is printed by ``benchmarks/bench_cogging.py``. The tests here use
 shorter runs (0 -> 7 rad in 14 s, 1.1 revolutions: 56 000 samples).

@@ -1,7 +1,7 @@
 """Determinism: the same input and version give the same artifact bytes, timestamps aside.
 
 Nothing in a calibration may depend on the wall clock, the machine's load or the solver's thread
-count (issue 25: a search stopped by elapsed time gave 113x and 91x the noise floor on two runs
+count (a search stopped by elapsed time gave 113x and 91x the noise floor on two runs
 of one input). Two calibrations of a small bench with ``harmonics = "auto"`` (the search that had
 a time budget), one while a CPU hog spins on both cores with the Gauss-Newton passes forced to
 two threads, one on an idle machine with one thread, must write the same artifact once only its

@@ -120,7 +120,7 @@ def read_summary_csv(path: Path) -> list[dict[str, str]]:
 
 
 def check_batch(out: Path, rows: list[dict]) -> None:
-    """The issue's must-show: 26 artifacts, 4 rows with clear reasons, the others fine."""
+    """The acceptance case: 26 artifacts, 4 rows with clear reasons, the others fine."""
     assert [r["motor_id"] for r in rows] == [f"m{i:02d}" for i in range(N_MOTORS)]
     by_id = {r["motor_id"]: r for r in rows}
     artifacts = sorted(p.parent.name for p in out.glob(f"*/{ARTIFACT_NAME}"))

@@ -35,7 +35,7 @@ PAPER_G = {"num": [1.663e5], "den": [1, 632.6, 2702, 0], "delay": 1.2e-4}
 #: Every drawn setup runs through seven commands; 30 examples keep the module near two minutes
 #: on a quiet 2-core machine while covering each branch of the strategies many times.
 EXAMPLES = 30
-#: Wall time of one command [s]: the hostile suite's bound (issue "hostile input").
+#: Wall time of one command [s]: the hostile suite's bound.
 MAX_SECONDS = 30.0
 
 

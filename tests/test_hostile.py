@@ -55,7 +55,7 @@ from hallcal.io import read_dataset
 
 HERE = Path(__file__).resolve().parent
 WORKER = HERE / "hostile_worker.py"
-#: The issue's bounds for one case.
+#: The bounds for one case.
 CASE_SECONDS = 30.0
 CASE_BYTES = 2 * 2**30
 #: Two workers: the machine has two cores.
@@ -368,7 +368,7 @@ def test_hostile_case_in_a_subprocess(
 
 
 def test_the_suite_covers_every_class_and_subcommand() -> None:
-    """At least 300 cases; every reader, every subcommand and every class of the issue."""
+    """At least 300 cases; every reader, every subcommand and every class of the contract."""
     assert len(CASES) >= 300
     ids = " ".join(c.id for c in CASES)
     for reader in ("-csv-", "-parquet-", "-h5-", "-hdf5-", "-mat-", "-npz-"):
@@ -402,7 +402,7 @@ def test_the_suite_covers_every_class_and_subcommand() -> None:
         "option-export-c-adc-scale-1e30",
         "option-export-c-path-splice",
         "option-export-c-path-trigraph",
-        # issue 29: outputs that are inputs, output sets under faults, the fleet's edges
+        # outputs that are inputs, output sets under faults, the fleet's edges
         "safety-out-symlink-calibrate",
         "safety-out-png-collides-bla",
         "safety-efbig-export-c",

@@ -406,7 +406,7 @@ def test_acceptance_experiment_shaped_bench():
     Fourier 1..11 (SEM)             2.53 mrad  12.4
     kernel (default), this version  0.205      1.01
     kernel, previous version        0.21       1.01 (1.12-1.40 with pole modulation, 1.4-3.7
-                                               on the issue-13 bench)
+                                               on the rich-shape bench)
     ==============================  =========  ====================
 
     The band stops at 55 (the 5th electrical harmonic); within it the shape evidence keeps the
@@ -446,6 +446,6 @@ def test_acceptance_experiment_shaped_bench():
     floor = cfg.noise_floor
     assert err_kernel < 0.5 * err_fourier
     assert err_kernel < 0.3 * err_init
-    assert err_kernel < 1.10 * floor  # the issue's target
+    assert err_kernel < 1.10 * floor  # the acceptance target
     # the solve itself is fast (the paper: 10 hours); generous bound for shared CI machines
     assert res.solve_time < 120.0

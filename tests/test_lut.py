@@ -26,7 +26,7 @@ def test_f_star_inverts_the_model(n, seed, size, offset, spacing):
     The residual is the piecewise-linear interpolation error of the table, at most
     h^2 max|eta''| / 8 with the node spacing h = 2 pi / M; eta'' is estimated from the table's
     second differences (a factor 2 of margin covers that estimate and the nonuniform nodes).
-    The sensors may sit off 120 degrees and carry offsets when f_init knows them (issue 8).
+    The sensors may sit off 120 degrees and carry offsets when f_init knows them.
     """
     rng = np.random.default_rng(seed)
     harmonics = tuple(sorted({1, 2, n, 2 * n, 3 * n}))

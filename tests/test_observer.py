@@ -85,7 +85,7 @@ def test_warm_motor_adapts_to_the_floor_within_two_seconds_where_the_table_does_
     floor = WARM.noise_floor
     obs = angle_error(run.y_obs[TWO_S:], warm.y0[TWO_S:]).rms
     star = angle_error(build_lut(BENCH.truth(), N_M).f_star(warm.d)[TWO_S:], warm.y0[TWO_S:]).rms
-    assert obs < 1.2 * floor  # the requirement
+    assert obs < 1.2 * floor  # the acceptance bound
     assert star > 2.0 * floor  # the static table is far off (the reason for the adaptation)
     states = set(run.state[:TWO_S])
     assert ObserverState.ADAPTING.value in states and run.state[-1] == "ok"
@@ -113,7 +113,7 @@ def test_a_failed_channel_is_excluded_quickly_and_the_angle_never_slips(healthy,
     changed = np.flatnonzero(~(np.abs(d[:, channel] - healthy.d[:, channel]) < 0.05))
     first_bad = int(changed[changed >= k0][0])  # first sample off by 5 % of the amplitude
     assert run.excluded == channel
-    assert 0 <= run.first_exclusion - first_bad < 100  # the requirement
+    assert 0 <= run.first_exclusion - first_bad < 100  # the acceptance bound
     err = run.y_obs - healthy.y0
     assert np.max(np.abs(err)) < math.pi / (2 * N_M)  # never half a pole pitch off
     floor = BENCH.noise_floor
@@ -250,7 +250,7 @@ def test_reconstruct_observer_writes_y_obs_misfit_and_state(folding_dir):
     assert text[-1].rsplit(",", 1)[1] in {s.value for s in ObserverState}
     numbers = read_dataset(d / "val.csv")
     rows = np.loadtxt(d / "a.csv", delimiter=",", skiprows=1, usecols=(1,))
-    # the identified model, not the truth: within 1.2x the floor (the requirement)
+    # the identified model, not the truth: within 1.2x the floor (the acceptance bound)
     assert angle_error(rows, numbers["y_ref"]).rms < 1.2 * FOLDING.noise_floor
 
 
@@ -364,7 +364,7 @@ def test_export_c_observer_agrees_with_python_within_1e_5_rad(folding_dir):
         y, m, st = np.zeros(n), np.zeros(n, np.float32), np.zeros(n, np.uint8)
         so.run(ctypes.c_int(n), *(a.ctypes.data_as(ctypes.c_void_p) for a in (x, y, m, st)))
         py = run_on(cal, x.astype(np.float64))
-        assert np.max(np.abs(y - py.y_obs)) < 1e-5  # the requirement (measured 1e-6)
+        assert np.max(np.abs(y - py.y_obs)) < 1e-5  # the acceptance bound (measured 1e-6)
         assert np.array_equal(st, py.state_code)
         # the misfit in float: a relative 1e-4 of a sum over 256 samples
         assert np.max(np.abs(m - py.misfit) / np.maximum(py.misfit, 1.0)) < 1e-3

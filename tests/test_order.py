@@ -166,7 +166,7 @@ def test_the_search_stops_on_its_work_budget_and_says_so():
 
 
 def test_a_band_the_run_does_not_need_is_narrowed_away():
-    """Issue 25: with a clean sensor f_init's view is not clean to the noise level, the band
+    """with a clean sensor f_init's view is not clean to the noise level, the band
     test runs to its bound 8 n_m and the fit on 1..88 lets the warp float (measured 1.50x the
     floor here, 4.2x on 160 000 samples, benchmarks/bench_choice.txt). The Wald test of the
     nested bands narrows it to the truth's band 1..55 (measured 1.06x)."""

@@ -48,7 +48,7 @@ def test_auto_with_a_given_plant_reaches_the_floor(given_plant):
     assert cal.status is pipeline.CalibrationStatus.OK, cal.messages
     assert cal.selection is not None and s.pole_pairs in cal.selection.harmonics
     assert cal.plant_source == "setup" and cal.gain is None
-    # the issue's bound on the paper bench: within 15 % of the noise floor on a fresh run
+    # the acceptance bound on the paper bench: within 15 % of the noise floor on a fresh run
     assert _error_vs_floor(cal, s) <= 1.15
     # the predicted error is the adequacy report's: the floor and the table's variance
     assert cal.predicted_error >= cal.noise_floor > 0
@@ -61,7 +61,7 @@ def test_auto_with_the_bla_refines_the_gain_and_reaches_the_floor(from_bla):
     assert cal.gain.c_refined is not None and cal.gain.c_refined_std is not None
     true_k = s.plant.num[-1] / s.plant.den[-2]
     k = cal.plant.num[-1] / cal.plant.den[-2]
-    assert k / true_k == pytest.approx(1.0, abs=0.02)  # issue 4's bound on the gain
+    assert k / true_k == pytest.approx(1.0, abs=0.02)  # the acceptance bound on the gain
     assert _error_vs_floor(cal, s) <= 1.15
     assert any("BLA" in m for m in cal.messages)  # the user is told which plant is used
 

@@ -1,4 +1,4 @@
-"""Figures and the HTML report (issue 7): the paper's figure kinds, a self-contained report that
+"""Figures and the HTML report: the paper's figure kinds, a self-contained report that
 headless Chromium renders with every figure loaded, and ``hallcal report`` on the command line.
 
 The demo's objects are computed once per module (``run_demo(..., report=False)``, about 15 s);

@@ -293,7 +293,7 @@ def test_ringjig_power_up_pole_pair(results):
     power-up: f_init from y = 0 at the start, 60 samples (a little more than one electrical
     cycle of 52 samples at this speed). The pole pair it identifies must equal the one that
     continuous tracking from the start of the file gives (the calibration's frame) for >= 95 %
-    of the starts (the issue's figure); all of them lock within the 60 samples here.
+    of the starts (the figure measured before); all of them lock within the 60 samples here.
 
     Every held-out start is also run through the same test: wrong locks stay below 0.2 % of
     the starts (alpha = 0.1 %, doubled because overlapping windows share the rig's vibration

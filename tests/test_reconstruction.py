@@ -53,7 +53,7 @@ def test_unwrap_is_nearest_congruent_value(x, ref):
     offset=st.floats(-1e3, 1e3),
 )
 def test_f_init_inverts_pure_sinusoids(steps, n, start, amplitude, offset):
-    """Property of issue 2: any trajectory with electrical steps below pi is recovered exactly.
+    """Property: any trajectory with electrical steps below pi is recovered exactly.
 
     The electrical step per sample is ``steps * pi`` (|step| < pi). The start lies within
     pi / n of y = 0 (``start`` is that fraction) so the first unwrap picks the right period.
@@ -75,7 +75,7 @@ def test_f_init_inverts_pure_sinusoids(steps, n, start, amplitude, offset):
     noise=st.floats(0, 0.5),
 )
 def test_streaming_equals_whole_array(steps, n, noise):
-    """Issue 2: the per-sample and the vectorized f_init agree to 1e-12, even for steps > pi."""
+    """the per-sample and the vectorized f_init agree to 1e-12, even for steps > pi."""
     rng = np.random.default_rng(0)
     y0 = np.cumsum(steps) / n
     d = three_phase(y0, n) + noise * rng.standard_normal((y0.size, 3))
@@ -91,7 +91,7 @@ def test_streaming_equals_whole_array(steps, n, noise):
 
 
 def test_unequal_sensor_spacing_and_offsets():
-    """With the sensors' true phases and offsets, f_init is exact again (issue 8, ring jig)."""
+    """With the sensors' true phases and offsets, f_init is exact again (ring jig)."""
     phases = np.radians([0.0, 101.0, 261.0])
     y0 = np.linspace(0, 4 * np.pi, 5000)
     d = three_phase(y0, 25, amplitude=1500.0, phases=phases, offset=np.array([2000, -300, 40]))

@@ -1,7 +1,8 @@
 """Every magnet different: automatic model choice and the kernel model reach the noise floor.
 
-The issue-13 bench, made smaller for a test: 5 pole pairs (truth on mechanical harmonics 1..25,
-every sideband 5k +- j), trapezoidal flux (electrical harmonics 3 and 5 at 10 % and 4 %),
+The rich-shape bench (benchmarks/bench_rich.py), smaller for a test: 5 pole pairs (truth on
+mechanical harmonics 1..25, every sideband 5k +- j), trapezoidal flux (electrical harmonics
+3 and 5 at 10 % and 4 %),
 2 degrees misalignment, per-magnet shape variation 0.075, 40 000 samples (0 -> 13 rad in 10 s,
 two revolutions); validation on a fresh run of the same motor. The full-size benchmark
 (11 pole pairs, 160 000 samples, 5 seeds at two strengths) is ``benchmarks/bench_rich.py``.
@@ -65,7 +66,7 @@ def test_auto_and_kernel_reach_the_noise_floor(seed):
     sel = select_harmonics(cfg.loop(), run.r, run.d, y=run.y)
     assert sel.edge.edge == 5 * N_M and sel.edge.status.success  # the truth's band, 1..25
     assert sel.report.verdict == "adequate", sel.report.message
-    assert ratio(sel.sem.flux, seed) < 1.10  # the issue's target
+    assert ratio(sel.sem.flux, seed) < 1.10  # the acceptance target
     ker = solve_kernel_sem(cfg.loop(), run.r, run.d, y=run.y, points=128)
     assert ker.harmonics == 5 * N_M and ker.status == "converged"
     assert ratio(ker.flux, seed) < 1.10

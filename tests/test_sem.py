@@ -1,7 +1,7 @@
-"""SEM (problem/state_eq) and the table (f_final) on the virtual bench: issue 3's acceptance.
+"""SEM (problem/state_eq) and the table (f_final) on the virtual bench: the acceptance bounds.
 
 Each case calibrates on one run and validates on a fresh run (other noise realization, other
-ramp) against the bench's true angle. The bound "within 10% of the noise floor" is the issue's;
+ramp) against the bench's true angle. The bound "within 10% of the noise floor" is the acceptance;
 the noise floor is sigma sqrt(2/3) / (A n_m) (docs/design.md).
 """
 

@@ -1,4 +1,4 @@
-"""The status policy and the predicted error (issue 25, items 6 and 8).
+"""The status policy and the predicted error.
 
 - A constant load torque is a cogging torque of order 0: found when significant, carried in the
   SEM, and the table's constant offset is then right and predicted.

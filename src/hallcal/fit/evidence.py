@@ -13,7 +13,7 @@ Which linear model. The SEM's Gauss-Newton system mixes two kinds of information
 (:mod:`hallcal.fit.gauss_newton`): along the tangent of the flux curve, a flux error cannot be
 told from an error of the simulated motion (torque disturbance, cogging, the loop's response to
 the Hall noise, a slow warp of the angle); across it only the flux shape acts. The evidence of the
-full system therefore keeps harmonics that absorb the motion: measured on the issue-13 bench
+full system therefore keeps harmonics that absorb the motion: measured on the rich-shape bench
 (``benchmarks/bench_rich.py``), groups tested against the full Gauss-Newton system at a solution
 at the noise floor entered at 21 of 22 empty harmonics 56..77. The relevance here is judged on the
 normal-plane (shape) part alone, :func:`shape_system`, in the spirit of restricted maximum
@@ -26,7 +26,7 @@ trapezoidal flux with identical magnets, say) and gives the others their prior v
 
 Groups. One per harmonic (six coefficients). Measured against groups shared by the sidebands at
 the same distance j from a multiple of n_m (the structure of per-pole modulations), with the band
-in place and the MAP SEM after it: on the issue-13 benches (seeds 3 and 4, s = 0.075) all three
+in place and the MAP SEM after it: on the rich-shape benches (seeds 3 and 4, s = 0.075) all three
 gave the same f_star (1.047x, 1.073x the floor: every harmonic of the band has content); on the
 experiment-shaped bench (trapezoidal flux, harmonics 1..11, 33, 55) per harmonic 1.008x, per
 (k, |j|) 1.009x, per |j| alone 1.058x (it cannot drop the empty sidebands of 33 and 55 while

@@ -65,7 +65,7 @@ squared-exponential spectrum never vanishes, so the sidebands just above the flu
 harmonic, which alone pin such a warp, keep a prior variance and the warp floats; learning one
 variance per harmonic by the evidence at a SEM solution (automatic relevance determination,
 MacKay 1992, Tipping 2001), as the previous version did, inherits the warp of the start and kept
-it on the issue-13 bench (every magnet different, truth on harmonics 1..55: 1.4-3.7x the floor).
+it on the rich-shape bench (every magnet different, truth on harmonics 1..55: 1.4-3.7x the floor).
 :func:`solve_kernel_sem` therefore (i) limits the model to the flux's band, found from f_init's
 view without the loop (:mod:`hallcal.fit.warp`), which also gives an un-warped start, and (ii)
 learns the spectrum within the band from the evidence of the data's shape only (the normal-plane
@@ -73,7 +73,7 @@ part of the Gauss-Newton system, free of motion errors, :mod:`hallcal.fit.eviden
 from the kernel's. The prior is still a stationary periodic kernel (any non-negative spectrum is
 one, by Bochner's theorem on the circle); the identified flux is represented exactly by weights on
 the paper's m kernel centres (:meth:`KernelBasis.from_fourier`). Measured: 1.01x the floor on the
-experiment-shaped bench (tests/test_kernel.py), 1.03-1.07x on the issue-13 benches
+experiment-shaped bench (tests/test_kernel.py), 1.03-1.07x on the rich-shape benches
 (``benchmarks/bench_rich.txt``).
 """
 
@@ -889,7 +889,7 @@ def solve_kernel_sem(
        un-warped start; with ARD the spectrum is learned again at the solution's simulated
        angle and the SEM repeated while it moves (``ard_rounds`` solves at most; ``settled``).
 
-    Measured on the issue-13 bench (``benchmarks/bench_rich.txt``, 160 000 samples, m = 400):
+    Measured on the rich-shape bench (``benchmarks/bench_rich.txt``, 160 000 samples, m = 400):
     1.04-1.07x the noise floor on 10 of 10 runs, against 1.4-3.7x for the learned spectrum of
     the previous version, which started from the kernel's spectrum on all of 1..85 and let the
     warp float.

@@ -4,7 +4,7 @@ The paper (section "Model structure") notes that "the order m can be chosen by a
 harmonic content of data d". On a rotor whose magnets all differ, that content is everywhere
 (every mechanical harmonic up to a few n_m, every sideband ``k n_m +- j``), and a model wider
 than the flux's own band costs more than variance: a slow warp of the angle, which the closed loop
-reveals only weakly, is then free, and the table carries it. Measured on the issue-13 bench
+reveals only weakly, is then free, and the table carries it. Measured on the rich-shape bench
 (``benchmarks/bench_rich.txt``: 11 pole pairs, per-magnet shape variation over harmonics 1..55):
 the Fourier model with the truth's harmonics 1..55 reaches 1.04-1.07x the noise floor; with
 1..56 3.7x, with 1..88 5-35x, although every one of these fits the data to the noise level.
@@ -16,7 +16,7 @@ the Fourier model with the truth's harmonics 1..55 reaches 1.04-1.07x the noise 
    content above E; no loop simulation, so no motion error enters). A narrower band leaves
    flux content out (bias); a wider one leaves low-order warps undetermined (unbounded
    variance of the table). The un-warped flux is also the SEM start (1.02-1.07x the floor
-   already on the issue-13 bench).
+   already on the rich-shape bench).
 2. **The harmonics within the band** (:func:`hallcal.fit.evidence.harmonic_relevance`):
    harmonics whose coefficients the evidence of the data's shape (normal-plane part, free of
    motion errors) does not support are dropped, e.g. 40 of 55 for a trapezoidal flux with
@@ -45,7 +45,7 @@ the Fourier model with the truth's harmonics 1..55 reaches 1.04-1.07x the noise 
    are within their covariance of zero, and the Wald test of the dropped block says so without
    any simulation. The narrowest nested band 1..E (E a multiple of n_m, or the static edge)
    that passes it is fitted from its linearized coefficients and kept unless its cost is
-   clearly worse. Measured (``benchmarks/bench_choice.txt``): on the issue-13 motor with a
+   clearly worse. Measured (``benchmarks/bench_choice.txt``): on the rich-shape motor with a
    clean sensor (noise variance 2e-7; truth 1..55) step 1 ran to 88 and the fit gave 4.2x the
    noise floor, narrowed to 1..55 1.05x; on two 10-pole-pair drives 8.1x -> 1.7x (the truth's
    own harmonics: 1.6x) and 3.1x -> 1.05x; the paper's bench and the other rich-shape benches

@@ -4,7 +4,7 @@ Regressing the Hall signals on the f_init angle y (the paper's "harmonic content
 section "Model structure") gives the flux curve as f_init sees it: ``d ~ gamma(y) =
 g(F^-1(y))`` with ``F = f_init o g``. Along the same closed curve in R^3, only the
 parametrization differs from the truth: gamma is g warped by the f_init error, and the warp
-spreads the flux's harmonics far beyond its own band (on the issue-13 bench, flux harmonics
+spreads the flux's harmonics far beyond its own band (on the rich-shape bench, flux harmonics
 1..55, the view has content up to harmonic 275). Conversely, for a flux that is band-limited to
 harmonics 1..E, there is exactly one warp w (up to the noise) that brings the view back into the
 band: ``gamma(x + w(x))`` has no content above E. Each warp harmonic j moves content from every
@@ -16,14 +16,14 @@ above E and are not determined: the table then carries whatever warp the start h
 structure that makes closed-loop SEM hard on rotors whose magnets all differ: the loop reveals a
 slow warp of the angle only through its small low-frequency sensitivity (DESIGN.md), and a model
 one harmonic wider than the flux lets the warp float (measured: f_star 3.7x the noise floor with
-harmonics 1..56 against 1.03x with 1..55, issue-13 bench, seed 3).
+harmonics 1..56 against 1.03x with 1..55, rich-shape bench, seed 3).
 
 :func:`unwarp` finds the warp for a given band by Gauss-Newton on the content above it (an exact
 resampling of the view on a grid, no loop simulation); :func:`band_edge` finds the smallest band
 whose un-warped residual is consistent with the noise (chi-square test), by bisection. Both need
 neither the plant nor the controller: the relation between y and the true angle is static, so
 motion errors (torque disturbance, cogging, the loop's response to the noise) do not enter.
-Static un-warping alone brings f_init's error on the issue-13 bench (29x the noise floor, seed 3,
+Static un-warping alone brings f_init's error on the rich-shape bench (29x the noise floor, seed 3,
 f_init 5.9 mrad) to 1.03x; SEM started there converges in two iterations.
 """
 
@@ -443,7 +443,7 @@ def band_edge(
        :func:`hallcal.fit.adequacy.chi2_isf_even`). The
        residual only decreases as E grows, so the smallest adequate E is found in
        ``log2(7 n_m)`` trials. ``slack`` allows for the approximations in the bound (dof count,
-       coefficient variance averaged over the band); measured on the issue-13 bench the
+       coefficient variance averaged over the band); measured on the rich-shape bench the
        residual at the true edge is 0.8-1.0 dof, one harmonic below it 10^3-10^4 dof.
 
     Parameters

@@ -2,7 +2,7 @@
 
 Every route (closed loop, constant speed) ends here (:func:`decide`), so that a status means the
 same thing whatever produced it. Without an encoder the status and the predicted error are the
-user's only reference, so the policy is stated on them (issue 25):
+user's only reference, so the policy is stated on them:
 
 1. **Refused, no table can be right**: the map y0 -> f_init(g(y0)) is not bijective (the paper's
    bijectivity condition, eq. recon_biject) -> ``NOT_BIJECTIVE``.
@@ -41,7 +41,7 @@ __all__ = ["OK_RATIO", "WORSE_FRACTION", "Verdict", "decide"]
 #: refused as possibly worse than f_init (see the module docstring).
 WORSE_FRACTION = 0.5
 
-#: Predicted error / noise floor up to which a calibration may be "ok" (issue 25: a user reads
+#: Predicted error / noise floor up to which a calibration may be "ok" (a user reads
 #: "ok" as "at the noise floor"; 1.15 leaves room for the spread of one run's error, about
 #: sqrt(2 / revolutions-worth of independent samples), and for a few weak directions).
 OK_RATIO = 1.15

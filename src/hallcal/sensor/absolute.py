@@ -1446,7 +1446,7 @@ def assess_identifiability(
     Verdict, with the target error probability alpha = ``decoder.error_target``:
 
     - ``IDENTIFIABLE``: at every position the standstill error probability reaches alpha within
-      ``standstill_budget`` samples (default 200: 50 ms at the paper's 4 kHz, the issue's
+      ``standstill_budget`` samples (default 200: 50 ms at the paper's 4 kHz, the
       standstill figure);
     - ``NEEDS_MOTION``: some positions need more, but one electrical revolution of uniform
       motion in ``motion_budget`` samples (default 4096: one electrical revolution at about

@@ -340,7 +340,7 @@ def shape_deformation(
     magnetization angle all mixed). Its effect on f_init: the deformation's component along the
     flux curve turns into an angle error of about 0.8 s / n_m rad RMS on top of the nominal
     waveform's (the three sensors see the same pattern, so its triplen bands are nearly common
-    mode and do not count). Measured on the issue-13 bench (paper loop, 11 pole pairs,
+    mode and do not count). Measured on the rich-shape bench (paper loop, 11 pole pairs,
     trapezoidal flux with electrical harmonics 3 and 5 at 10 % and 4 %, 2 degrees misalignment,
     seeds 1..5, ``benchmarks/bench_rich.txt``): f_init 2.6 mrad RMS without shape variation,
     2.8-3.1 mrad at s = 0.02, 5.2-6.8 mrad at s = 0.075; the map y0 -> f_init stays monotone
