@@ -392,7 +392,9 @@ def prediction_at_f_init(
     rows = censoring.mask.any(axis=1)
     mask = censoring.mask
     tol = 0.01 * float(np.min(np.asarray(sigma, dtype=np.float64)))
-    out, weights, prev = dd, censoring.weights, None
+    weights: NDArray[np.float64] | None = censoring.weights
+    prev: NDArray[np.float64] | None = None
+    out = dd
     for _ in range(max(1, int(iterations))):
         y = f_init(out, pole_pairs)
         theta = least_squares_start(basis, out, y, weights=weights)

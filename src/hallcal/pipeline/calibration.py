@@ -688,7 +688,8 @@ def reconstruct_with(lut: LUT, dataset: Dataset, *, y_initial: float = 0.0) -> R
     dataset.require("d1", "d2", "d3")
     _within_budget(dataset, "reconstruct")
     yi, ys = lut.reconstruct(dataset["d1"], dataset["d2"], dataset["d3"], y_initial=y_initial)
-    val, notes = None, ()
+    val: Validation | None = None
+    notes: tuple[str, ...] = ()
     if "y_ref" in dataset:
         val, notes = _scored(lambda: validate(lut, dataset, angles=(yi, ys)))
     return Reconstruction(yi, ys, val, messages=notes)
@@ -740,7 +741,8 @@ def _reconstruct_absolute(cal: Calibration, dataset: Dataset) -> Reconstruction:
     _within_budget(dataset, "reconstruct --absolute")
     decoder = decoder_for(cal.flux, cal.lut, cal.identifiability)
     out = absolute_reconstruction(decoder, cal.lut, dataset.d)
-    validation, notes = None, ()
+    validation: Validation | None = None
+    notes: tuple[str, ...] = ()
     if "y_ref" in dataset:
         ref = same_revolution(out.y_star, dataset["y_ref"])
         moved = dataclasses.replace(dataset, columns={**dataset.columns, "y_ref": ref})

@@ -377,7 +377,7 @@ def check_signals(
             f"but they do with the Hall columns in the order {_order_text(order)}; fix the "
             "wiring or the column order",
             result,
-            order,
+            (order[0], order[1], order[2]),
             scale,
         )
     direction = check_direction(dataset)

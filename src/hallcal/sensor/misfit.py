@@ -220,7 +220,8 @@ class _CostModel(Protocol):
     """What :func:`model_misfit` needs of a decoder
     (:class:`hallcal.sensor.absolute.PowerUpDecoder`, which imports this module)."""
 
-    misfit: MisfitTest
+    @property
+    def misfit(self) -> MisfitTest: ...
 
     def sample_costs(self, d: ArrayLike) -> NDArray[np.float64]: ...
 

@@ -88,7 +88,7 @@ def _noise(art: Mapping[str, Any], flux: FluxModel, n: int) -> np.ndarray:
 
 
 def export_observer_c(
-    artifact: Mapping[str, Any],
+    artifact: Mapping[str, Any] | ArtifactData,
     out_dir: str | os.PathLike[str],
     *,
     prefix: str = "hallcal_obs",
