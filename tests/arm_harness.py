@@ -179,11 +179,9 @@ static uint32_t out[3 * CHUNK_N];
 static void init(void)
 {
 #if HC_Q
-    PFX_q_init(&st, 0, 0u);
-#elif defined(UPFX_POWERUP)
-    PFX_init(&st); /* identifies the pole pair by itself */
+    PFX_q_init(&st);
 #else
-    PFX_init(&st, 0, 0.0f);
+    PFX_init(&st); /* one signature for every variant */
 #endif
 }
 int main(void)

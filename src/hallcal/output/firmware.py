@@ -20,13 +20,19 @@ can be checked here without a C compiler:
   adds at most 0.5 % to the RMS error in quadrature), and never more than 1e-5 rad.
 * Plausibility (:class:`Plausibility`): each Hall channel must lie in its calibrated range, and
   the alpha/beta radius in its calibrated window, both widened by a relative ``tolerance`` (drift
-  of gain and magnet with temperature) and six noise sigmas; the electrical step from the last
-  accepted sample must be within ``step_limit`` (grown by ``step_limit`` for each sample held).
-  With ``step_limit = 2 w + m`` (w the largest speed, m six sigmas of the step noise), one
-  glitch sample cannot make the unwrap slip as long as ``6 w + m < 1/2`` electrical turn: an
-  accepted glitch is at most ``L + w`` away from the true angle, the following samples are held
-  until the grown limit admits them (at most two), and by then the true angle is at most
-  ``L + 4 w < 1/2`` turn away (:attr:`Plausibility.glitch_safe_step`).
+  of gain and magnet with temperature) and six noise sigmas. The step rule: with w the largest
+  speed [electrical turns per sample], s the largest slope of f_init's electrical angle against
+  the true one (the sensors' distortion: f_init's steps at speed w are up to ``ws = s w``) and m
+  six sigmas of the step noise, a sample is accepted when f_init's electrical step from the last
+  accepted sample is within ``A_h = ws + m + 2 ws h`` after h samples held in a row; the
+  ``fault_after``-th rejection in a row latches the fault flag and re-acquires (any step is then
+  accepted, the fault latched). ``fault_after`` is the requested count or fewer: at most
+  ``H + 1``, H the largest hold count at which no step of a rotor at up to twice the speed limit
+  can alias, ``(h + 1) 2 ws + A_h + m < 1`` (f_init's motion since the last accepted sample and
+  the window together stay below one electrical turn). So, without a fault: a rotor at up to
+  2 w never slips (above w its samples are held and the fault latches), one glitch sample at up
+  to w is absorbed within two held samples, and no accepted step is an alias
+  (:attr:`Plausibility.alias_holds`).
 
 Units: angles in rad unless a name says turns (1 turn = 2 pi rad); "electrical" angles are
 n_m times the mechanical ones. Hall signals are in the artifact's unit.
@@ -58,7 +64,7 @@ from hallcal.sensor.lut import LUT
 __all__ = [
     "DEFAULT_BUDGET",
     "DEFAULT_FAULT_AFTER",
-    "DEFAULT_STEP_LIMIT",
+    "DEFAULT_SPEED",
     "DEFAULT_TOLERANCE",
     "table_sizes",
     "MAX_TABLE_POINTS",
@@ -86,8 +92,8 @@ MAX_BUDGET = 1e-5
 BUDGET_FRACTION = 0.1
 #: Relative widening of the calibrated amplitude windows (gain and magnet drift).
 DEFAULT_TOLERANCE = 0.25
-#: Step limit without a maximum speed [electrical turns per sample]: 45 electrical degrees.
-DEFAULT_STEP_LIMIT = 0.125
+#: Speed limit without a maximum speed [electrical turns per sample]: 22.5 electrical degrees.
+DEFAULT_SPEED = 0.0625
 #: Consecutive rejected samples after which the state flags a fault.
 DEFAULT_FAULT_AFTER = 8
 #: Noise sigmas added to every window.
@@ -171,18 +177,31 @@ class Plausibility:
     noise_sigma : float
         Hall noise per channel used for the margins (artifact unit; 0 if unknown).
     step_limit : float
-        Largest electrical step from the last accepted sample [turns per sample]; grows by
-        itself for each sample held.
+        Largest electrical step of f_init from the last accepted sample with no sample held,
+        ``slope w + m`` [turns per sample].
+    step_growth : float
+        What the window grows by for each sample held, ``2 slope w`` [electrical turns].
+    slope : float
+        Largest ratio of f_init's electrical angle to the true one over a small step (the
+        model's d f_init / d y0, at least 1): f_init's steps at speed w are up to slope w.
     step_noise : float
-        Six sigmas of the step's noise [electrical turns], included in ``step_limit``.
+        Six sigmas of the step's noise [electrical turns], m.
     max_speed : float or None
         The maximum speed the step limit was derived from [rad/s mechanical], or None for the
         default limit.
+    speed : float
+        w: the largest true speed [electrical turns per sample] tracked without rejections (up
+        to it no input of one glitch sample makes the angle slip).
     glitch_safe_step : float
-        Largest true step [electrical turns per sample] at which one glitch sample cannot make
-        the unwrap slip.
+        The speed below which nothing slips [electrical turns per sample]: w.
+    alias_holds : int
+        H: the largest count of samples held in a row at which no accepted step can be an alias
+        for a rotor at up to 2 w (``(h + 1) 2 w + A_h + m < 1``).
     fault_after : int
-        Consecutive rejected samples after which the state flags a fault (latched).
+        Consecutive rejected samples after which the state flags a fault (latched) and
+        re-acquires: the requested count, or ``alias_holds + 1`` when that is fewer.
+    requested_fault_after : int
+        The count asked for.
     """
 
     tolerance: float
@@ -193,10 +212,15 @@ class Plausibility:
     radius_model: tuple[float, float]
     noise_sigma: float
     step_limit: float
+    step_growth: float
+    slope: float
     step_noise: float
     max_speed: float | None
+    speed: float
     glitch_safe_step: float
+    alias_holds: int
     fault_after: int
+    requested_fault_after: int
 
 
 @dataclass(frozen=True)
@@ -499,18 +523,18 @@ def _plausibility(
     # step: noise of the electrical angle between two samples, in turns
     sigma_el = sigma_r / r_min  # rad, per sample
     step_noise = NOISE_SIGMAS * math.sqrt(2.0) * sigma_el / TWO_PI
-    if max_speed is None:
-        limit = DEFAULT_STEP_LIMIT
-        w = max(0.0, 0.5 * (limit - step_noise))
-    else:
-        w = max_speed * sample_time * n / TWO_PI  # electrical turns per sample
-        limit = 2.0 * w + step_noise
-        if limit >= 0.5:
-            raise HallcalInputError(
-                f"max_speed {max_speed:g} rad/s is {w:.3g} electrical turns per sample: f_init "
-                "cannot follow a quarter turn per sample or more"
-            )
-    safe = min(max(0.0, 0.5 * (limit - step_noise)), max(0.0, (0.5 - limit) / 4.0))
+    w = DEFAULT_SPEED if max_speed is None else max_speed * sample_time * n / TWO_PI
+    # f_init's electrical angle moves up to `slope` times as fast as the true one (the sensors'
+    # distortion): its steps at the speed limit are up to slope w
+    el = np.unwrap(np.arctan2(ab[:, 1], ab[:, 0]))
+    slope = max(1.0, float(np.max(np.diff(el) / np.diff(n * y0))))
+    ws = slope * w
+    holds = alias_holds(ws, step_noise)
+    if holds < 0:
+        raise HallcalInputError(
+            f"max_speed {max_speed:g} rad/s is {w:.3g} electrical turns per sample: f_init "
+            "cannot follow a third of a turn per sample or more"
+        )
     return Plausibility(
         tolerance=tolerance,
         channel_lo=centre - widen,
@@ -519,12 +543,44 @@ def _plausibility(
         radius_hi=radius_hi,
         radius_model=(r_min, r_max),
         noise_sigma=sigma,
-        step_limit=limit,
+        step_limit=ws + step_noise,
+        step_growth=2.0 * ws,
+        slope=slope,
         step_noise=step_noise,
         max_speed=max_speed,
-        glitch_safe_step=safe,
-        fault_after=fault_after,
+        speed=w,
+        glitch_safe_step=w,
+        alias_holds=holds,
+        fault_after=min(fault_after, holds + 1),
+        requested_fault_after=fault_after,
     )
+
+
+def alias_holds(w: float, m: float, *, cap: int = 1000) -> int:
+    """The largest count h of samples held in a row after which an accepted step cannot be an
+    alias for a rotor at up to twice the speed limit: ``(h + 1) 2 w + (w + m + 2 w h) + m < 1``
+    (w: f_init's largest step at the speed limit).
+
+    Parameters
+    ----------
+    w : float
+        f_init's largest step at the speed limit [electrical turns per sample].
+    m : float
+        Noise margin of a step [electrical turns].
+    cap : int, keyword-only
+        Largest count returned (the largest ``fault_after``).
+
+    Returns
+    -------
+    int
+        H (-1 when even the first sample's window can alias: ``3 w + 2 m >= 1``).
+    """
+    if w <= 0.0:
+        return cap
+    h = math.floor(((1.0 - 2.0 * m) / w - 3.0) / 4.0)
+    while h >= 0 and (4 * h + 3) * w + 2.0 * m >= 1.0:  # the floor's rounding at equality
+        h -= 1
+    return int(min(max(h, -1), cap))
 
 
 # --------------------------------------------------------------------------------------------
@@ -605,10 +661,10 @@ def design_firmware(
         Relative widening of the calibrated amplitude windows, in [0, 0.9].
     max_speed : float, keyword-only
         Largest mechanical speed [rad/s] (with the setup's ``sample_time``); None: the default
-        step limit of 45 electrical degrees per sample.
+        speed limit of 22.5 electrical degrees per sample.
     fault_after : int, keyword-only
         Consecutive rejected samples before the fault flag, 4..1000 (single glitches hold at
-        most three samples).
+        most two samples; fewer when that count could alias, see :func:`alias_holds`).
     sha256 : str, keyword-only
         The artifact's hash, carried into the design.
 
@@ -640,10 +696,11 @@ def design_firmware(
     messages += table_messages
     plaus = _plausibility(flux, n, P, o, floor, float(tolerance), max_speed, ts, fault_after,
                           source)  # fmt: skip
-    if max_speed is not None and plaus.glitch_safe_step * TWO_PI / n < max_speed * ts:
+    if plaus.fault_after < fault_after != DEFAULT_FAULT_AFTER:  # the default: the banner says it
         messages.append(
-            "at this max_speed a single glitch sample may make the angle slip by a pole pitch "
-            f"(safe up to {plaus.glitch_safe_step * TWO_PI / n / ts:.4g} rad/s)"
+            f"the fault flag latches after {plaus.fault_after} rejected samples in a row, not "
+            f"{fault_after}: after a longer outage a rotor at up to twice the speed limit "
+            "could be a pole pitch off"
         )
     return FirmwareDesign(
         pole_pairs=n,

@@ -489,6 +489,7 @@ class _FixedNumbers:
     turns: _FixedTurns
     atan: _FixedAtan2
     step_limit: int
+    step_growth: int
     bound: float
     quant_rms: float
     quant_max: float
@@ -507,6 +508,7 @@ def _fixed_numbers(d: FirmwareDesign, adc_scale: float) -> _FixedNumbers:
     turns = _fixed_turns(n)
     at = _fixed_atan2(r_true_lo, r_true_hi, turns.pe)
     step_limit = int(math.floor(d.plausibility.step_limit * turns.pe))
+    step_growth = int(math.floor(d.plausibility.step_growth * turns.pe))
     # the integer projection: rounding of a0 and the floor of the unsigned part (1.5 units of
     # a), and the rounding of P 2^(ps + kl) (half a unit on each of 3 inputs up to xr)
     proj_err = (1.5 + 1.5 * 3.0 * inp.xr / 2.0**pj.kl) * math.sqrt(2.0) / r_true_lo
@@ -519,6 +521,6 @@ def _fixed_numbers(d: FirmwareDesign, adc_scale: float) -> _FixedNumbers:
     return _FixedNumbers(
         lo=inp.lo, hi=inp.hi, centre=inp.centre, proj_hi=pj.hi_parts, proj_lo=pj.lo_parts,
         lo_shift=pj.kl, bias=pj.xb, a0=pj.a0, proj_shift=pj.ps + pj.kl, r2_lo=r2_lo, r2_hi=r2_hi,
-        turns=turns, atan=at, step_limit=step_limit, bound=bound,
+        turns=turns, atan=at, step_limit=step_limit, step_growth=step_growth, bound=bound,
         quant_rms=inp.quant_rms, quant_max=inp.quant_max,
     )  # fmt: skip
