@@ -139,7 +139,7 @@ static int mode_run(long block) {
  * turns as int32 bits) and n samples; init (and, with homed = 1, set_angle to the start) before
  * each; out per trial: the last reading (revolutions, angle bits, flags) and the OR of the
  * flags of all its samples */
-static int mode_trials(long n, int homed) {
+static int mode_trials(long n, int homed, int every) {
     st_t s;
     rd_t r;
     in_t d[3];
@@ -152,12 +152,21 @@ static int mode_trials(long n, int homed) {
         for (k = 0; k < n; ++k) {
             if (fread(d, sizeof d, 1, stdin) != 1) return fail("short trial", k);
             out[3] |= UPDATE(&s, d[0], d[1], d[2]);
+            if (every) {
+                uint32_t w[4];
+                READ(&s, &r);
+                w[0] = (uint32_t)r.revolutions;
+                w[1] = ANGLE_BITS(r);
+                w[2] = r.flags;
+                w[3] = out[3];
+                fwrite(w, sizeof w, 1, stdout);
+            }
         }
         READ(&s, &r);
         out[0] = (uint32_t)r.revolutions;
         out[1] = ANGLE_BITS(r);
         out[2] = r.flags;
-        fwrite(out, sizeof out, 1, stdout);
+        if (!every) fwrite(out, sizeof out, 1, stdout);
     }
     return 0;
 }
@@ -434,7 +443,7 @@ static int mode_isr(int mode, long reads, long block) {
 int main(int argc, char **argv) {
     if (argc < 2) return fail("usage", 0);
     if (!strcmp(argv[1], "run")) return mode_run(argc > 2 ? atol(argv[2]) : 0);
-    if (!strcmp(argv[1], "trials")) return mode_trials(atol(argv[2]), atoi(argv[3]));
+    if (!strcmp(argv[1], "trials")) return mode_trials(atol(argv[2]), atoi(argv[3]), argc > 4);
     if (!strcmp(argv[1], "angle")) return mode_angle();
     if (!strcmp(argv[1], "long")) return mode_long(argc, argv);
     if (!strcmp(argv[1], "fuzz")) return mode_fuzz(atoll(argv[2]));

@@ -38,7 +38,8 @@ extern "C" {
 /* Flags of a reading (bit mask). */
 #define ${PFX}_Q_HELD 1u           /* this sample was rejected: the reading is the last accepted */
 #define ${PFX}_Q_FAULT 2u          /* ${PFX}_Q_FAULT_AFTER rejected in a row; latched */
-#define ${PFX}_Q_REJ_RANGE 4u      /* a channel outside its calibrated range */
+#define ${PFX}_Q_REJ_RANGE 4u      /* a channel outside its calibrated range, or the three
+                                    * inconsistent (along P's null vector) */
 #define ${PFX}_Q_REJ_AMPLITUDE 8u  /* alpha/beta radius outside its calibrated window */
 #define ${PFX}_Q_REJ_STEP 16u      /* step from the last accepted angle above the limit */
 #define ${PFX}_Q_NO_SAMPLE 32u     /* no sample accepted since init or set_angle: the reading
@@ -58,7 +59,8 @@ typedef struct {
     int32_t turn;      /* f_init: electrical turn within the revolution, 0 .. n_m - 1 */
     uint32_t phase;    /* f_init: electrical angle within the turn, Q0.32 mechanical turns */
     uint32_t limit;    /* step limit for the next sample, Q0.32 mechanical turns */
-    uint32_t held;     /* rejected samples in a row */
+    uint32_t held;     /* rejected (or accepted after rejected) samples, less those accepted
+                        * right after an accepted one */
     uint32_t rejected; /* rejected samples since init */
     uint32_t fault;    /* ${PFX}_Q_FAULT once ${PFX}_Q_FAULT_AFTER samples in a row were rejected */
     volatile uint32_t seq; /* readings published; the last one is pub[seq & 1] */
@@ -250,6 +252,8 @@ uint32_t ${pfx}_q_update(${pfx}_q_state *s, int32_t d1, int32_t d2, int32_t d3)
         const uint32_t x1 = (uint32_t)d1 - ${c1}u;
         const uint32_t x2 = (uint32_t)d2 - ${c2}u;
         const uint32_t x3 = (uint32_t)d3 - ${c3}u;
+        /* the three consistent: the component along P's null vector in its window */
+        const uint32_t cm = ${common_mode};
         const uint32_t y1 = x1 + ${xb}u; /* x + xb >= 0: x is within the channel range */
         const uint32_t y2 = x2 + ${xb}u;
         const uint32_t y3 = x3 + ${xb}u;
@@ -262,7 +266,9 @@ uint32_t ${pfx}_q_update(${pfx}_q_state *s, int32_t d1, int32_t d2, int32_t d3)
         const uint32_t as = hc_abs(a) >> 15;
         const uint32_t bs = hc_abs(b) >> 15;
         const uint32_t r2 = (as * as) + (bs * bs);
-        if ((r2 < ${r2_lo}u) || (r2 > ${r2_hi}u)) {
+        if ((cm - ${cm_lo}u) > ${cm_span}u) {
+            flags = ${PFX}_Q_REJ_RANGE;
+        } else if ((r2 < ${r2_lo}u) || (r2 > ${r2_hi}u)) {
             flags = ${PFX}_Q_REJ_AMPLITUDE;
         } else {
             const uint32_t p = hc_angle(a, b);
@@ -274,7 +280,7 @@ uint32_t ${pfx}_q_update(${pfx}_q_state *s, int32_t d1, int32_t d2, int32_t d3)
                 s->fault = ${PFX}_Q_FAULT;
             }
 ${unwrap}
-            /* step rule: within w + m of the last accepted sample, 2 w more per sample held */
+            /* step rule: within (h + 1) w + m of the last accepted sample, h held since */
             if (mag <= s->limit) {
                 /* eta(u) from the table at f_init's angle u within the revolution */
                 const uint32_t u = hc_turn[turn] + p;
@@ -291,11 +297,17 @@ ${fixed_eta}
                 } else {
                     /* within the revolution */
                 }
+                if (s->limit != ${step_limit}u) {
+                    s->held = s->held + 1u; /* after held samples: unconfirmed, counts as one */
+                } else if (s->held != 0u) {
+                    s->held = s->held - 1u; /* confirmed by the sample before: one forgiven */
+                } else {
+                    /* a run of accepted samples */
+                }
                 s->phase = p;
                 s->turn = turn;
                 s->rev = rev;
                 s->limit = ${step_limit}u;
-                s->held = 0u;
                 flags = s->fault; /* 0 or ${PFX}_Q_FAULT (latched) */
                 hc_publish(s, out_rev, out, flags);
             } else {
@@ -315,6 +327,8 @@ ${fixed_eta}
             /* longer could alias at up to twice the speed limit: fault, then re-acquire */
             s->fault = ${PFX}_Q_FAULT;
             s->limit = 0xFFFFFFFFu;
+        } else if (s->limit == ${step_limit}u) {
+            s->limit = ${step_first}u; /* room for a glitch accepted last, and w */
         } else if (s->limit < 0x80000000u) {
             s->limit = s->limit + ${step_growth}u;
         } else {
@@ -527,9 +541,19 @@ def _fixed_atan2_subs(q: _FixedNumbers, n: int) -> dict[str, object]:
     )
 
 
-def _fixed_input_subs(q: _FixedNumbers) -> dict[str, int]:
-    """The channel ranges, the centres and the integer projection (all modulo 2^32)."""
-    subs = dict(
+def _fixed_input_subs(q: _FixedNumbers) -> dict[str, int | str]:
+    """The channel ranges, the centres, the common-mode window and the integer projection (all
+    modulo 2^32)."""
+    mul, cm_lo, cm_span = q.common_mode
+    common = (
+        "(x1 + x2) + x3"
+        if mul is None
+        else f"(({mul[0] % _U32}u * x1) + ({mul[1] % _U32}u * x2)) + ({mul[2] % _U32}u * x3)"
+    )
+    subs: dict[str, int | str] = dict(
+        common_mode=common,
+        cm_lo=cm_lo % _U32,
+        cm_span=cm_span,
         kl=q.lo_shift,
         xb=q.bias,
         pshift=q.proj_shift,
@@ -560,6 +584,7 @@ def _fixed_source(ctx: _Context, q: _FixedNumbers, banner: str, defs: str) -> st
         n_minus_1=n - 1,
         turn_base=_c_list([_cu(v) for v in q.turns.turn_base], 6),
         step_growth=q.step_growth,
+        step_first=q.step_first,
         rowsum="zero" if d.rejects_common_mode else "the float rows' sums",
         step_limit=q.step_limit,
         section_defs=defs,

@@ -58,7 +58,8 @@ ${api_macros}
 /* Flags of a reading (bit mask). */
 #define ${PFX}_HELD 1u           /* this sample was rejected: the reading is the last accepted */
 #define ${PFX}_FAULT 2u          /* ${PFX}_FAULT_AFTER rejected in a row; latched until cleared */
-#define ${PFX}_REJ_RANGE 4u      /* a channel outside its calibrated range, or not a number */
+#define ${PFX}_REJ_RANGE 4u      /* a channel outside its calibrated range, or not a number, or
+                                  * the three inconsistent (along P's null vector) */
 #define ${PFX}_REJ_AMPLITUDE 8u  /* alpha/beta radius outside its calibrated window */
 #define ${PFX}_REJ_STEP 16u      /* step from the last accepted angle above the limit */
 #define ${PFX}_NO_SAMPLE 32u     /* no sample accepted since init or set_angle: the reading is
@@ -78,7 +79,8 @@ typedef struct {
     int32_t turn;      /* f_init: electrical turn within the revolution, 0 .. n_m - 1 */
     uint32_t phase;    /* f_init: electrical angle within the turn, Q0.32 turns */
     uint32_t limit;    /* step limit for the next sample, Q0.32 electrical turns */
-    uint32_t held;     /* rejected samples in a row */
+    uint32_t held;     /* rejected (or accepted after rejected) samples, less those accepted
+                        * right after an accepted one */
     uint32_t rejected; /* rejected samples since init */
     uint32_t fault;    /* ${PFX}_FAULT once ${PFX}_FAULT_AFTER samples in a row were rejected */
     volatile uint32_t seq; /* readings published; the last one is pub[seq & 1] */
@@ -355,8 +357,9 @@ _FLOAT_UPDATE = string.Template(
     /* f_init: alpha, beta = P (d - o) */
 ${projection}
     const float r2 = (a * a) + (b * b);
-    /* plausibility: each channel in its calibrated range (NaN is not; the three tests without
-     * short-circuit, one branch), then the radius */
+    /* plausibility: each channel in its calibrated range and the three consistent along P's
+     * null vector (NaN is not; the four tests without short-circuit, one branch), then the
+     * radius */
     if (${range_check}) {
         flags = ${PFX}_REJ_RANGE;
     } else if ((hc_bits(r2) - ${r2_lo_bits}u) <= ${r2_span_bits}u) {
@@ -388,7 +391,7 @@ ${projection}
         } else {
             /* no turn boundary crossed */
         }
-        /* step rule: within w + m of the last accepted sample, 2 w more per sample held */
+        /* step rule: within (h + 1) w + m of the last accepted sample, h held since */
         if (mag <= s->limit) {
             /* eta from the table at f_init's angle within the revolution: interval i of
              * ${per_turn} per electrical turn, position i + f in Q16.16 */
@@ -401,11 +404,17 @@ ${index}
                                + ((uint32_t)((int32_t)hc_t[i + 1u] - t0) * fx)${curv};
             /* y_star within the revolution [turns], in (-1/2, 3/2): _read brings it to [0, 1) */
             const float y = ((float)x * ${inv_m16}) + ((float)hc_s32(e) * ${lsb});
+            if (s->limit != ${step_limit}u) {
+                s->held = s->held + 1u; /* after held samples: unconfirmed, counts as one */
+            } else if (s->held != 0u) {
+                s->held = s->held - 1u; /* confirmed by the sample before: one forgiven */
+            } else {
+                /* a run of accepted samples */
+            }
             s->phase = p;
             s->turn = turn;
             s->rev = rev;
             s->limit = ${step_limit}u;
-            s->held = 0u;
             flags = s->fault; /* 0 or ${PFX}_FAULT (latched) */
             hc_publish(s, rev, y, flags);
         } else {
@@ -426,6 +435,8 @@ ${index}
             /* longer could alias at up to twice the speed limit: fault, then re-acquire */
             s->fault = ${PFX}_FAULT;
             s->limit = 0xFFFFFFFFu;
+        } else if (s->limit == ${step_limit}u) {
+            s->limit = ${step_first}u; /* room for a glitch accepted last, and w */
         } else if (s->limit < 0x80000000u) {
             s->limit = s->limit + ${step_growth}u;
         } else {
@@ -440,8 +451,9 @@ ${index}
 )
 
 
-def _range_check(lo: NDArray, hi: NDArray) -> str:
-    """C expression, true when a channel is outside its range (or not a number).
+def _range_check(lo: NDArray, hi: NDArray, common: str) -> str:
+    """C expression, true when a channel is outside its range (or not a number), or the three
+    are inconsistent (``common``: the component along P's null vector outside its window).
 
     Ranges of positive numbers compare the IEEE bit patterns as unsigned integers (their order
     is the numbers' order; negative numbers and NaN fall outside); ranges about zero compare
@@ -463,7 +475,34 @@ def _range_check(lo: NDArray, hi: NDArray) -> str:
             parts.append(f"((hc_bits({d}) & 0x7FFFFFFFu) > {_bits(m)}u)")
         else:
             parts.append(f"(!(({d} >= {_cf(float(lo_f))}) && ({d} <= {_cf(float(hi_f))})))")
+    parts.append(common)
     return "(" + "\n        | ".join(f"(uint32_t){p}" for p in parts) + ") != 0u"
+
+
+def _common_mode_check(d: FirmwareDesign) -> str:
+    """C expression, true when the component along P's null vector is outside its window (or
+    not a number): the sum d1 + d2 + d3 when P's rows sum to zero (the null vector is then
+    (1, 1, 1) / sqrt(3)), else the null vector's products; compared as the magnitude's bit
+    pattern about the window's centre."""
+    pl = d.plausibility
+    if d.rejects_common_mode:
+        k = math.sqrt(3.0)
+        expr = "((d1 + d2) + d3)"
+        lo = k * pl.null_lo + float(np.sum(d.offset))
+        hi = k * pl.null_hi + float(np.sum(d.offset))
+    else:
+        nv = pl.null
+        expr = (
+            f"((({_cf(nv[0], 'null vector')} * d1) + ({_cf(nv[1], 'null vector')} * d2)) + "
+            f"({_cf(nv[2], 'null vector')} * d3))"
+        )
+        lo = pl.null_lo + float(nv @ d.offset)
+        hi = pl.null_hi + float(nv @ d.offset)
+    mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    return (
+        f"((hc_bits({expr} - {_cf(mid, 'common-mode window')}) & 0x7FFFFFFFu) > "
+        f"{_bits(_f32_up(half))}u)"
+    )
 
 
 def _atan2_c(
@@ -615,13 +654,14 @@ def _float_subs(ctx: _Context, fn: _FloatNumbers) -> dict[str, Any]:
         n=n,
         n_minus_1=n - 1,
         projection=_float_projection(d),
-        range_check=_range_check(fn.lo, fn.hi),
+        range_check=_range_check(fn.lo, fn.hi, _common_mode_check(d)),
         r2_lo=_cf(float(_f32_down(fn.r2_lo)), "radius window"),
         r2_hi=_cf(float(_f32_up(fn.r2_hi)), "radius window"),
         r2_lo_bits=_bits(_f32_down(fn.r2_lo)),
         r2_span_bits=_bits(_f32_up(fn.r2_hi)) - _bits(_f32_down(fn.r2_lo)),
         step_limit=int(math.floor(pl.step_limit * 2.0**32)),
         step_growth=int(math.floor(pl.step_growth * 2.0**32)),
+        step_first=int(math.floor(pl.step_first * 2.0**32)),
         per_turn=m // n,
         index=index,
         curv=curv,

@@ -86,7 +86,7 @@ class ExportResult:
     adc_scale : float
     step_limit : float
         Largest electrical step from the last accepted sample [turns] with none held (w + m;
-        2 w more per sample held).
+        w more per sample held).
     glitch_safe_speed : float
         The speed limit w [rad per sample, mechanical]: up to it nothing slips and one glitch
         sample is absorbed; from it to twice it a slip cannot happen without the fault flag
@@ -302,7 +302,7 @@ def _common_banner(design: FirmwareDesign, source: str, sha: str) -> list[str]:
         f"{pl.tolerance:g}, {6:d} noise sigmas).",
         f"Step rule: speed limit w = {pl.speed:.4g} electrical turn per sample",
         f"  ({speed_text}); a step from the last accepted sample within",
-        f"  w + m = {pl.step_limit:.4g} turn (m = {pl.step_noise:.2g}: six noise sigmas), 2 w more "
+        f"  w + m = {pl.step_limit:.4g} turn (m = {pl.step_noise:.2g}: six noise sigmas), w more "
         "per sample held;",
         f"  fault after {pl.fault_after} rejected in a row, then re-acquired with the fault "
         "latched"

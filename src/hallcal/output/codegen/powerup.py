@@ -225,12 +225,10 @@ _IDENTIFY_EDITS: tuple[tuple[str, str], ...] = (
         "            s->turn = turn;\n"
         "            s->rev = rev;\n"
         "            s->limit = ${step_limit}u;\n"
-        "            s->held = 0u;\n"
         "            flags = s->fault; /* 0 or ${PFX}_FAULT (latched) */\n"
         "            hc_publish(s, rev, y, flags);\n",
         "            s->phase = p;\n"
         "            s->limit = ${step_limit}u;\n"
-        "            s->held = 0u;\n"
         "            flags = s->fault; /* 0 or ${PFX}_FAULT (latched) */\n"
         "            if (s->locked != 0u) {\n"
         "                /* identified: f_init moves to the calibration's frame for good; both\n"
