@@ -381,7 +381,7 @@ def test_single_glitches_never_slip(work, cal, exe_f, exe_q, fixed):
           "near the speed limit the other way: the angle cannot be trusted to come back)")
     assert not slips.any()
     assert same.all()
-    # measured 1.2 % at speeds uniform up to the limit: a fault, never a slip; the rest absorbed
+    # measured 0.7 % at speeds uniform up to the limit: a fault, never a slip; the rest absorbed
     assert faults <= trials // 40
     assert accepted < trials // 4  # most glitches are caught (the rest are near the angle)
 

@@ -357,10 +357,12 @@ _FLOAT_UPDATE = string.Template(
     /* f_init: alpha, beta = P (d - o) */
 ${projection}
     const float r2 = (a * a) + (b * b);
-    /* plausibility: each channel in its calibrated range and the three consistent along P's
-     * null vector (NaN is not; the four tests without short-circuit, one branch), then the
+    /* plausibility: each channel in its calibrated range (NaN is not; the three tests without
+     * short-circuit, one branch), the three consistent along P's null vector, then the
      * radius */
     if (${range_check}) {
+        flags = ${PFX}_REJ_RANGE;
+    } else if ${common_check} {
         flags = ${PFX}_REJ_RANGE;
     } else if ((hc_bits(r2) - ${r2_lo_bits}u) <= ${r2_span_bits}u) {
         /* r2 in [${r2_lo}, ${r2_hi}] */
@@ -451,9 +453,8 @@ ${index}
 )
 
 
-def _range_check(lo: NDArray, hi: NDArray, common: str) -> str:
-    """C expression, true when a channel is outside its range (or not a number), or the three
-    are inconsistent (``common``: the component along P's null vector outside its window).
+def _range_check(lo: NDArray, hi: NDArray) -> str:
+    """C expression, true when a channel is outside its range (or not a number).
 
     Ranges of positive numbers compare the IEEE bit patterns as unsigned integers (their order
     is the numbers' order; negative numbers and NaN fall outside); ranges about zero compare
@@ -475,7 +476,6 @@ def _range_check(lo: NDArray, hi: NDArray, common: str) -> str:
             parts.append(f"((hc_bits({d}) & 0x7FFFFFFFu) > {_bits(m)}u)")
         else:
             parts.append(f"(!(({d} >= {_cf(float(lo_f))}) && ({d} <= {_cf(float(hi_f))})))")
-    parts.append(common)
     return "(" + "\n        | ".join(f"(uint32_t){p}" for p in parts) + ") != 0u"
 
 
@@ -654,7 +654,8 @@ def _float_subs(ctx: _Context, fn: _FloatNumbers) -> dict[str, Any]:
         n=n,
         n_minus_1=n - 1,
         projection=_float_projection(d),
-        range_check=_range_check(fn.lo, fn.hi, _common_mode_check(d)),
+        range_check=_range_check(fn.lo, fn.hi),
+        common_check=_common_mode_check(d),
         r2_lo=_cf(float(_f32_down(fn.r2_lo)), "radius window"),
         r2_hi=_cf(float(_f32_up(fn.r2_hi)), "radius window"),
         r2_lo_bits=_bits(_f32_down(fn.r2_lo)),
