@@ -377,8 +377,10 @@ def test_single_glitches_never_slip(work, cal, exe_f, exe_q, fixed):
         f"{int(np.sum(~same))} outputs different at the end, {int(slips.sum())} slips"
     )
     faults = int(np.sum(np.any(raw[:, :, 2] & 2, axis=1)))
-    print(f"  {faults} faults (a glitch accepted at the edge of the window while the rotor runs "
-          "near the speed limit the other way: the angle cannot be trusted to come back)")
+    print(
+        f"  {faults} faults (a glitch accepted at the edge of the window while the rotor runs "
+        "near the speed limit the other way: the angle cannot be trusted to come back)"
+    )
     assert not slips.any()
     assert same.all()
     # measured 0.7 % at speeds uniform up to the limit: a fault, never a slip; the rest absorbed

@@ -314,6 +314,8 @@ def _common_banner(design: FirmwareDesign, source: str, sha: str) -> list[str]:
         "  Up to w nothing slips, one glitch sample included; from w to 2 w a slip cannot",
         "  happen without the fault flag (tests/test_codegen.py, benchmarks/bench_slip.py).",
     ]
+
+
 def _float_files(
     ctx: _Context, fn: _FloatNumbers, common: list[str]
 ) -> tuple[list[tuple[str, str]], list[Section]]:

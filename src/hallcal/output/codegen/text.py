@@ -107,12 +107,18 @@ def _banner(fname: str, lines: Sequence[str]) -> str:
     body = [
         part
         for t in lines
-        for part in (textwrap.wrap(comment_text(t, limit=600), 96, subsequent_indent="    ",
-                                    break_on_hyphens=False, break_long_words=False) or [""])
+        for part in (
+            textwrap.wrap(
+                comment_text(t, limit=600),
+                96,
+                subsequent_indent="    ",
+                break_on_hyphens=False,
+                break_long_words=False,
+            )
+            or [""]
+        )
     ]
-    return (
-        "/*\n" + "\n".join((" * " + t).rstrip() for t in [name_text(fname)] + body) + "\n */\n"
-    )
+    return "/*\n" + "\n".join((" * " + t).rstrip() for t in [name_text(fname)] + body) + "\n */\n"
 
 
 def _version() -> str:
