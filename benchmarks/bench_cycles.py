@@ -1,4 +1,4 @@
-"""Worst-case cycles per sample of the generated firmware, on adversarial inputs, under stated models.
+"""Worst-case cycles per sample of the generated firmware on adversarial inputs, stated models.
 
 Run ``python benchmarks/bench_cycles.py [--out benchmarks/bench_cycles.txt]`` (needs Debian's
 ``gcc-arm-none-eabi``, ``libnewlib-arm-none-eabi`` and ``qemu-system-arm``). It calibrates the

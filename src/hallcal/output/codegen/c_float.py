@@ -17,8 +17,8 @@ from numpy.typing import NDArray
 
 from hallcal.output.codegen.numbers import (
     _TAN_PI_8,
-    TWO_PI,
     RECIPROCAL_MAGIC,
+    TWO_PI,
     _FloatNumbers,
     _table_fraction_bits,
 )

@@ -469,12 +469,14 @@ def _powerup_hooks(ctx: _Context, pu: PowerUpFirmware) -> dict[str, str]:
         ),
         "init_note": (
             ";\n * then the pole pair is identified from the magnets' signatures (no homing): the\n"
-            " * readings are in the frame of the current maximum-likelihood pole pair (angle right\n"
-            " * within the electrical period from the first sample) and reading.identified becomes\n"
-            f" * 1 when the probability of a wrong pole pair is below {pu.report.error_target:g}"
+            " * readings are in the frame of the current maximum-likelihood pole pair (angle\n"
+            " * right within the electrical period from the first sample) and\n"
+            " * reading.identified becomes 1 when the probability of a wrong pole pair is below "
+            f"{pu.report.error_target:g}"
         ),
         "set_angle_note": (
-            "\n * It also ends the power-up identification: the reading says identified, pole pair 0."
+            "\n * It also ends the power-up identification: the reading says identified, pole\n"
+            " * pair 0."
         ),
         "set_angle_extra": (
             "        s->locked = 1u; /* homed: the frame is known, no identification */\n"
