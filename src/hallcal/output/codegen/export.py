@@ -448,16 +448,19 @@ def export_c(
     ``<prefix>_q.h`` and ``<prefix>_q.c`` (32-bit integers only), each atomically, with the
     usual permissions (``0666 & ~umask``). The C API (default prefix)::
 
-        void hallcal_init(hallcal_state *s, int32_t revolutions, float angle);
+        void hallcal_init(hallcal_state *s);  /* after power-up: angle acquired */
+        uint32_t hallcal_set_angle(hallcal_state *s, int32_t revolutions, float angle);
         uint32_t hallcal_update(hallcal_state *s, float d1, float d2, float d3);  /* flags */
         void hallcal_read(const hallcal_state *s, hallcal_reading *r);  /* consistent */
         void hallcal_clear_fault(hallcal_state *s);
         /* hallcal_q_...: the same with int32 counts in and Q0.32 turns out */
 
-    With the power-up identification (the artifact's identifiability verdict allows it; float
-    variant only) ``void hallcal_init(hallcal_state *s);`` takes no angle and the reading has
+    The same signatures for every export (DESIGN.md: one ``init`` for every variant). With the
+    power-up identification (the artifact's identifiability verdict allows it; float variant
+    only) ``init`` also starts the identification of the pole pair and the reading has
     ``identified`` and ``pole_pair`` (see
-    :func:`~hallcal.output.codegen.powerup._powerup_section`).
+    :func:`~hallcal.output.codegen.powerup._powerup_section`); ``set_angle`` (a homed axis)
+    ends it.
 
     Parameters
     ----------
@@ -482,7 +485,7 @@ def export_c(
     tolerance : float, keyword-only
         Relative widening of the calibrated amplitude windows (default 0.25).
     max_speed : float, keyword-only
-        Largest mechanical speed [rad/s] for the step limit; default 45 electrical degrees per
+        Largest mechanical speed [rad/s] for the step rule; default 22.5 electrical degrees per
         sample.
     fault_after : int, keyword-only
         Rejected samples in a row before the fault flag (default 8).
