@@ -153,11 +153,19 @@ def _case(wd: Path, title: str, art: dict, d: np.ndarray, scale: float, noise: f
         pu = fs.PowerUps(BenchConfig(seed=1))
         angles = np.random.default_rng(404).uniform(0.0, TWO_PI, 40)
         x = np.concatenate([pu.run(a, 6, 0.0, seed=9000 + i) for i, a in enumerate(angles)])
-        ct_pre = ah.trace_calls(b, x.astype(np.float32), read=True, block=6)
-        post = ah.trace_calls(b, np.concatenate([d[:2000], _spin(art)]).astype(np.float32),
-                              read=True)  # fmt: skip
+        x6 = x.astype(np.float32)
+        raw6 = ah.run(b, x6, block=6)
+        ct_pre = ah.trace_calls(b, x6, read=True, block=6)
+        pre = np.ones(len(x6), dtype=bool)  # the samples while not identified
+        pre.reshape(-1, 6)[:, 1:] = (raw6[:, 2] >> 31).reshape(-1, 6)[:, :-1] == 0
+        ct_pre = ah.CallTrace([c for c, p in zip(ct_pre.calls, pre, strict=True) if p],
+                              ct_pre.dis)  # fmt: skip
+        px = np.concatenate([d[:2000], _spin(art)]).astype(np.float32)
+        after = np.concatenate([[False], (ah.run(b, px)[:-1, 2] >> 31) == 1])
+        post = ah.trace_calls(b, px, read=True)
+        post = ah.CallTrace([c for c, a in zip(post.calls, after, strict=True) if a], post.dis)
         lines += _table("float with the power-up decoder on Cortex-M4F",
-                        {}, M4_MODELS, {"power-up, first 6 samples, update + read": ct_pre,
+                        {}, M4_MODELS, {"before the lock (power-ups), update + read": ct_pre,
                                         "typical after the lock, update + read": post})  # fmt: skip
     return lines + [""]
 
