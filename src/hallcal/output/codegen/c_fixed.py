@@ -28,7 +28,7 @@ extern "C" {
 
 #define ${PFX}_Q_POLE_PAIRS ${n}
 #define ${PFX}_Q_TABLE_POINTS ${m}
-#define ${PFX}_Q_FAULT_AFTER ${fault_after} /* rejected in a row: fault latched, re-acquired */
+#define ${PFX}_Q_FAULT_AFTER ${fault_after} /* rejected samples: fault latched, re-acquired */
 /* Speed limit [rad per sample, mechanical]${speed_text}: up to it nothing slips (one glitch
  * sample included); from it to twice it a slip cannot happen without ${PFX}_Q_FAULT. */
 #define ${PFX}_Q_SPEED_LIMIT ${speed_limit}
@@ -37,7 +37,8 @@ extern "C" {
 
 /* Flags of a reading (bit mask). */
 #define ${PFX}_Q_HELD 1u           /* this sample was rejected: the reading is the last accepted */
-#define ${PFX}_Q_FAULT 2u          /* ${PFX}_Q_FAULT_AFTER rejected in a row; latched */
+#define ${PFX}_Q_FAULT 2u          /* ${PFX}_Q_FAULT_AFTER rejected (or unconfirmed) samples, or
+                                    * a corrupt state; latched until cleared */
 #define ${PFX}_Q_REJ_RANGE 4u      /* a channel outside its calibrated range, or the three
                                     * inconsistent (along P's null vector) */
 #define ${PFX}_Q_REJ_AMPLITUDE 8u  /* alpha/beta radius outside its calibrated window */

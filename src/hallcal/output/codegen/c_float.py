@@ -47,7 +47,7 @@ extern "C" {
 
 #define ${PFX}_POLE_PAIRS ${n}
 #define ${PFX}_TABLE_POINTS ${m}
-#define ${PFX}_FAULT_AFTER ${fault_after} /* rejected in a row: fault latched, angle re-acquired */
+#define ${PFX}_FAULT_AFTER ${fault_after} /* rejected samples: fault latched, angle re-acquired */
 /* Speed limit [rad per sample, mechanical]${speed_text}: up to it nothing slips (one glitch
  * sample included); from it to twice it a slip cannot happen without ${PFX}_FAULT. */
 #define ${PFX}_SPEED_LIMIT ${speed_limit}
@@ -57,7 +57,8 @@ extern "C" {
 ${api_macros}
 /* Flags of a reading (bit mask). */
 #define ${PFX}_HELD 1u           /* this sample was rejected: the reading is the last accepted */
-#define ${PFX}_FAULT 2u          /* ${PFX}_FAULT_AFTER rejected in a row; latched until cleared */
+#define ${PFX}_FAULT 2u          /* ${PFX}_FAULT_AFTER rejected (or unconfirmed) samples, or a
+                                  * corrupt state; latched until cleared */
 #define ${PFX}_REJ_RANGE 4u      /* a channel outside its calibrated range, or not a number, or
                                   * the three inconsistent (along P's null vector) */
 #define ${PFX}_REJ_AMPLITUDE 8u  /* alpha/beta radius outside its calibrated window */
@@ -94,8 +95,8 @@ ${state_members}} ${pfx}_state;
 
 ${init_decl}
 /* One sample of the three Hall signals in the calibration's unit (see ${PFX}_UNIT_PER_COUNT).
- * Returns the flags of the reading it publishes (0: accepted). No loop${update_loop}, no library
- * call; cycles per sample: see the banner and the firmware guide. */
+ * Returns the flags of the reading it publishes (0: accepted). No library call; no
+ * loop${update_loop}; cycles per sample: the firmware guide. */
 uint32_t ${pfx}_update(${pfx}_state *s, float d1, float d2, float d3);
 
 /* The last reading, consistent (revolutions and angle of the same sample) from any context:

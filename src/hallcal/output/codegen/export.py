@@ -301,18 +301,18 @@ def _common_banner(design: FirmwareDesign, source: str, sha: str) -> list[str]:
         f"  (calibrated {pl.radius_model[0]:.6g} .. {pl.radius_model[1]:.6g}, tolerance "
         f"{pl.tolerance:g}, {6:d} noise sigmas).",
         f"Step rule: speed limit w = {pl.speed:.4g} electrical turn per sample",
-        f"  ({speed_text}); a step from the last accepted sample within",
-        f"  w + m = {pl.step_limit:.4g} turn (m = {pl.step_noise:.2g}: six noise sigmas), w more "
-        "per sample held;",
-        f"  fault after {pl.fault_after} rejected in a row, then re-acquired with the fault "
-        "latched"
+        f"  ({speed_text}); f_init's step from the last accepted sample within",
+        f"  s w + m = {pl.step_limit:.4g} turn (s = {pl.slope:.3f}: f_init's steepest slope; m = "
+        f"{pl.step_noise:.2g}: six noise sigmas), s w more per sample held;",
+        f"  the fault flag when {pl.fault_after} samples were rejected or unconfirmed (each "
+        "confirmed one forgives one), then re-acquired"
         + (
             f" (not {pl.requested_fault_after}: a longer hold could alias at 2 w)."
             if pl.fault_after < pl.requested_fault_after
             else "."
         ),
-        "  Up to w nothing slips, one glitch sample included; from w to 2 w a slip cannot",
-        "  happen without the fault flag (tests/test_codegen.py, benchmarks/bench_slip.py).",
+        "  Up to w nothing slips, whatever one glitch sample reads; from w to 2 w a slip cannot",
+        "  happen without the fault flag (tests/test_codegen_slip.py, benchmarks/bench_slip.py).",
     ]
 
 

@@ -441,8 +441,8 @@ def _powerup_hooks(ctx: _Context, pu: PowerUpFirmware) -> dict[str, str]:
     pfx, PFX, n = ctx.pfx, ctx.PFX, ctx.design.pole_pairs
     return {
         "api_macros": (
-            f"/* This code identifies the pole pair at power-up by itself: {pfx}_init takes no\n"
-            f" * angle, reading.identified says when the angle is in the calibration's frame. */\n"
+            f"/* This code identifies the pole pair at power-up by itself after {pfx}_init:\n"
+            " * reading.identified says when the angle is in the calibration's frame. */\n"
             f"#define {PFX}_POWERUP 1\n"
             f"#define {PFX}_POWERUP_GRID {pu.grid}\n"
         ),
@@ -485,7 +485,7 @@ def _powerup_hooks(ctx: _Context, pu: PowerUpFirmware) -> dict[str, str]:
             "        s->pub_ident[1] = 0x10000u;\n"
         ),
         "update_loop": (
-            " once the pole pair is identified (before: the n_m hypotheses\n * in a loop, about"
+            " once the pole pair is identified (before: the n_m hypotheses in a\n * loop, about"
             " ten times the cycles)"
         ),
         "init_def": _PU_INIT.substitute(pfx=pfx, PFX=PFX, n=n),
