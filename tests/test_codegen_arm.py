@@ -394,3 +394,30 @@ def test_powerup_cycles_before_and_after_the_lock(demo, demo_builds, demo_pu):
     diff = tr_post.cycles[after] - tr_lean.cycles[after]
     print(f"difference per sample {diff.min()} .. {diff.max()}")
     assert tr_post.cycles[after].max() <= tr_lean.cycles[after].max() + 8
+
+
+def test_no_fused_multiply_add_with_ide_flags(demo):
+    """The source's pragma keeps GCC from contracting a * b + c into VFMA on the Cortex-M4F
+    with the flags of an IDE (-std=gnu11 -Os) and with -Ofast; without it GCC emits them."""
+    import re
+    import subprocess
+
+    t = ah.TARGETS["m4f"]
+    src = demo["gen"] / "hallcal.c"
+    bare = demo["dir"] / "bare_hallcal.c"
+    bare.write_text(re.sub(r"#pragma[^\n]*\n", "\n", src.read_text()))
+    counts = {}
+    for name, path, flags in (
+        ("gnu11 -Os", src, ["-std=gnu11", "-Os"]),
+        ("-Ofast", src, ["-Ofast"]),
+        ("gnu11 -Os without the pragma", bare, ["-std=gnu11", "-Os"]),
+    ):
+        obj = demo["dir"] / f"fma_{len(counts)}.o"
+        subprocess.run(["arm-none-eabi-gcc", *t.cflags, *flags, f"-I{demo['gen']}", "-c",
+                        str(path), "-o", str(obj)], check=True)  # fmt: skip
+        dis = subprocess.run(["arm-none-eabi-objdump", "-d", str(obj)], capture_output=True,
+                             text=True, check=True).stdout  # fmt: skip
+        counts[name] = len(re.findall(r"\bvf(?:n?m[as])", dis))
+    print(f"VFMA/VFMS on the Cortex-M4F: {counts}")
+    assert counts["gnu11 -Os"] == 0 and counts["-Ofast"] == 0
+    assert counts["gnu11 -Os without the pragma"] > 0
