@@ -12,6 +12,7 @@ Host C compiler only (the ARM builds of the same C give the same bits:
   and refuses NaN, infinities and larger angles; ``init`` and ``set_angle`` publish a reading
   flagged NO_SAMPLE; a corrupt ``turn`` in the state never indexes out of the table (UBSan and
   ASan) and latches the fault;
+* with the decoder, ``set_angle`` ends the identification (identified, pole pair 0);
 * the README's firmware snippet compiles (strict C99) and runs unchanged against the default
   export (with the power-up decoder) and against ``powerup=False``;
 * contraction into fused multiply-adds is switched off in the source: with ``-std=gnu11 -Os``
@@ -290,3 +291,45 @@ def test_generated_comments_read_as_written(work):
         comments = re.findall(r"/\*.*?\*/", text, re.S)
         assert all("/*" not in c[2:] for c in comments)  # nothing opens a comment inside one
         assert "??" not in text and "\\\n" not in text
+
+
+def test_set_angle_ends_the_power_up_identification(tmp_path):
+    """With the decoder, a homed axis needs no identification: after set_angle the reading
+    says identified, pole pair 0, and the lean path tracks the angle from the given position
+    (within 2 mrad of the truth; the step rule applies from the first sample)."""
+    cfg = BenchConfig()
+    art = bench_artifact(cfg)
+    res = export_c(art, tmp_path, adc_scale=2048.0, fixed_point=False)
+    assert res.identifies_pole_pair
+    y0 = 2.5 + 0.002 * np.arange(1, 201)
+    rng = np.random.default_rng(4)
+    d = cfg.truth()(y0) + rng.normal(0.0, math.sqrt(cfg.noise_variance), (len(y0), 3))
+    vals = ", ".join(f"{v:.9g}f" for v in d.ravel())
+    body = f"""
+int main(void)
+{{
+    static const float d[{d.size}] = {{{vals}}};
+    hallcal_state s;
+    hallcal_reading r;
+    uint32_t fl = 0u;
+    int k;
+    hallcal_init(&s);
+    fl = hallcal_set_angle(&s, 0, 2.5f);
+    hallcal_read(&s, &r);
+    printf("%u %u %u\\n", (unsigned)fl, (unsigned)r.identified, (unsigned)r.flags);
+    for (k = 0; k < {len(y0)}; ++k) {{
+        fl |= hallcal_update(&s, d[3 * k], d[3 * k + 1], d[3 * k + 2]);
+    }}
+    hallcal_read(&s, &r);
+    printf("%u %u %u %ld %.9g\\n", (unsigned)fl, (unsigned)r.identified, (unsigned)r.pole_pair,
+           (long)r.revolutions, (double)r.angle);
+    return 0;
+}}
+"""
+    out = subprocess.run([str(_c_program(tmp_path, tmp_path, body))], capture_output=True,
+                         text=True, check=True).stdout.split("\n")  # fmt: skip
+    ret, ident0, flags0 = (int(v) for v in out[0].split())
+    assert ret == 0 and ident0 == 1 and flags0 == 32  # identified at once, nothing measured yet
+    fl, ident, j, rev, ang = out[1].split()
+    assert int(fl) == 0 and int(ident) == 1 and int(j) == 0  # every sample accepted
+    assert abs(TWO_PI * int(rev) + float(ang) - y0[-1]) < 2e-3
