@@ -298,12 +298,12 @@ ${fixed_eta}
                 } else {
                     /* within the revolution */
                 }
-                if (s->limit != ${step_limit}u) {
-                    s->held = s->held + 1u; /* after held samples: unconfirmed, counts as one */
-                } else if (s->held != 0u) {
-                    s->held = s->held - 1u; /* confirmed by the sample before: one forgiven */
-                } else {
-                    /* a run of accepted samples */
+                if (s->held != 0u) { /* held samples not yet forgiven */
+                    if (s->limit != ${step_limit}u) {
+                        s->held = s->held + 1u; /* right after held samples: unconfirmed */
+                    } else {
+                        s->held = s->held - 1u; /* confirmed by the sample before */
+                    }
                 }
                 s->phase = p;
                 s->turn = turn;

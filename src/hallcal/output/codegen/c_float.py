@@ -407,12 +407,12 @@ ${index}
                                + ((uint32_t)((int32_t)hc_t[i + 1u] - t0) * fx)${curv};
             /* y_star within the revolution [turns], in (-1/2, 3/2): _read brings it to [0, 1) */
             const float y = ((float)x * ${inv_m16}) + ((float)hc_s32(e) * ${lsb});
-            if (s->limit != ${step_limit}u) {
-                s->held = s->held + 1u; /* after held samples: unconfirmed, counts as one */
-            } else if (s->held != 0u) {
-                s->held = s->held - 1u; /* confirmed by the sample before: one forgiven */
-            } else {
-                /* a run of accepted samples */
+            if (s->held != 0u) { /* held samples not yet forgiven */
+                if (s->limit != ${step_limit}u) {
+                    s->held = s->held + 1u; /* right after held samples: unconfirmed */
+                } else {
+                    s->held = s->held - 1u; /* confirmed by the sample before: one forgiven */
+                }
             }
             s->phase = p;
             s->turn = turn;
