@@ -195,7 +195,7 @@ def _fast_spin(art: dict, adc_scale: float, fixed: bool) -> np.ndarray:
 
 def test_cycles_and_instructions_per_sample(demo, demo_builds):
     """The worst traced path (validation run and fast spin; the taken branch at 1 + 2): the
-    float variant within 235 Cortex-M4 cycles (measured 229; 188 before the checks of issue
+    float variant within 235 Cortex-M4 cycles (measured 218; 188 before the checks of issue
     28: the consistency check along P's null vector about 10, the step rule's bookkeeping, the
     turn's validation and the rejected count in the snapshot about 20 more), the fixed variant
     within 400 Cortex-M0+ instructions (measured 357). The adversarial worst case, with read and
@@ -254,10 +254,10 @@ def ringjig_trace(tmp_path_factory):
 
 
 def test_ringjig_cycles_no_worse(ringjig_trace):
-    """Ring jig 1: float at most 270 M4 cycles (measured 264; 218 before the checks of issue
+    """Ring jig 1: float at most 270 M4 cycles (measured 255; 218 before the checks of issue
     28, see the demo's test: here the consistency check needs the null vector's three products,
     the projection does not reject common mode), fixed at most 440 M0+ instructions (measured
-    422, 391 before). The issue's budget of 220 is not met: the checks cost about 45 cycles."""
+    422, 391 before). The issue's budget of 220 is not met: the checks cost about 40 cycles."""
     assert ringjig_trace["float"].cycles.max() <= 270
     assert ringjig_trace["fixed"].counts.max() <= 440
 
@@ -366,7 +366,7 @@ def test_powerup_cycles_before_and_after_the_lock(demo, demo_builds, demo_pu):
     the rest once). After the lock the lean path: at most 240 cycles (the lean bound, 235),
     and its worst path at most 8 more than that of the build without the decoder (the dispatch
     is a load, a compare and a branch, 4 cycles; GCC's block layout adds or saves taken branches
-    here and there: measured worst paths 231 against 225, single samples 0 .. +13)."""
+    here and there: measured worst paths 226 against 218, single samples 0 .. +13)."""
     b = demo_pu["b"]
     x = demo_pu["x"][:, :6].reshape(-1, 3)  # the first 6 samples of each power-up: the lock
     raw = ah.run(b, x, block=6)
