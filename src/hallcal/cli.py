@@ -841,7 +841,7 @@ def _print_identification(ident, pole_pairs: int) -> None:
     "--max-speed",
     type=float,
     default=None,
-    help="Largest mechanical speed [rad/s] for the step limit (default: 45 electrical "
+    help="Largest mechanical speed [rad/s] for the step rule (default: 22.5 electrical "
     "degrees per sample).",
 )
 @click.option(
@@ -875,7 +875,7 @@ def _print_identification(ident, pole_pairs: int) -> None:
     "--no-powerup",
     is_flag=True,
     help="No pole-pair identification at power-up in the float variant (saves its tables; "
-    "init then needs the calibration's starting position, as the fixed-point variant).",
+    "the angle then comes from set_angle after init, as in the fixed-point variant).",
 )
 @_handle_errors
 def export_c(
