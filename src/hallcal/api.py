@@ -169,7 +169,7 @@ class Calibration(_Result):
             Folder (created if needed).
         data : path, Dataset or mapping
             The calibration recording (the report's figures and model fit are drawn from it;
-            required, a ValueError without it).
+            required: a HallcalInputError without it).
         validation : path, Dataset or mapping, optional
             A fresh recording with ``y_ref`` to validate on.
         units : {"mrad", "electrical-deg"}
@@ -178,7 +178,7 @@ class Calibration(_Result):
         from hallcal.output.report import write_calibration_report
 
         if data is None:  # the report is drawn from the recording: it cannot be written without
-            raise ValueError("report needs data=, the calibration recording")
+            raise HallcalInputError("report needs data=, the calibration recording")
         return write_calibration_report(
             self,
             as_dataset(data),
