@@ -161,19 +161,12 @@ def _fit_with_order(
         integrator=integrator,
         fit_delay=fit_delay,
     )
+    supported: _par.OrderSelection | None = None
     if not fit.stable:  # find an order the data support, for the message
-        return (
-            fit,
-            order,
-            _par.select_order(
-                npb,
-                numerator_order=spec.numerator_order,
-                integrator=integrator,
-                fit_delay=fit_delay,
-            ),
-            messages,
+        supported = _par.select_order(
+            npb, numerator_order=spec.numerator_order, integrator=integrator, fit_delay=fit_delay
         )
-    return fit, order, None, messages
+    return fit, order, supported, messages
 
 
 def identify_bla(dataset: Dataset, setup: Setup, *, progress: Progress = None) -> BLAIdentification:
