@@ -116,18 +116,19 @@ def _single_threaded() -> Iterator[None]:
     """BLAS (threadpoolctl) and numba at one thread, so n workers use n cores, not n^2."""
     from threadpoolctl import threadpool_limits
 
+    previous: int | None = None
     try:
         import numba
 
         previous = numba.get_num_threads()
         numba.set_num_threads(1)
     except (ImportError, ValueError, RuntimeError):  # pragma: no cover - numba always present
-        numba, previous = None, None
+        previous = None
     try:
         with threadpool_limits(limits=1):
             yield
     finally:
-        if numba is not None and previous is not None:
+        if previous is not None:
             numba.set_num_threads(previous)
 
 

@@ -1005,4 +1005,4 @@ def write_dataset(path: str | os.PathLike[str], columns: Mapping[str, Any]) -> N
                     # the bytes numpy.lib.format.write_array writes, without its 16 MiB copies
                     header = np.lib.format.header_data_from_array_1_0(arr)
                     np.lib.format.write_array_header_1_0(member, header)
-                    member.write(memoryview(np.ascontiguousarray(arr)).cast("B"))
+                    member.write(np.ascontiguousarray(arr).data.cast("B"))

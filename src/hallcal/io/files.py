@@ -573,14 +573,13 @@ def _check_parsed(p: str | os.PathLike[str], data: Any) -> None:
                     f"{p}: key '{where or '(top level)'}' is nested more than {MAX_JSON_DEPTH} "
                     "levels deep (the limit)"
                 )
-            items = value.items() if isinstance(value, dict) else enumerate(value)
-            for key, item in items:
-                if isinstance(value, dict):
+            if isinstance(value, dict):
+                for key, item in value.items():
                     _check_text(p, key, where)
-                    path = f"{where}.{key}" if where else str(key)
-                else:
-                    path = f"{where}[{key}]"
-                stack.append((item, path, depth + 1))
+                    stack.append((item, f"{where}.{key}" if where else str(key), depth + 1))
+            else:
+                for i, item in enumerate(value):
+                    stack.append((item, f"{where}[{i}]", depth + 1))
 
 
 def _check_text(p: str | os.PathLike[str], text: str, where: str) -> None:

@@ -739,7 +739,7 @@ def _parse_bla(t: _Table | None, sample_time: float) -> BLASpec | None:
         periods=periods,
         transient_periods=transient,
         realizations=realizations,
-        band=band,  # type: ignore[arg-type]
+        band=band,
         rms=t.number("rms", default=0.05, positive=True),
         lines=t.choice("lines", ("full", "odd", "random-odd"), default="random-odd"),
         drift=t.number("drift", default=1.0),

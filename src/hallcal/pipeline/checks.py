@@ -31,7 +31,7 @@ import enum
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -307,7 +307,7 @@ def check_pole_pairs(dataset: Dataset, pole_pairs: int) -> PolePairCheck:
         f"the Hall signals turn {abs(fit.cycles):.1f} electrical cycles while the {fit.method} "
         f"moves {abs(fit.revolutions):.2f} revolutions: {est:.2f} cycles per revolution"
     )
-    common = dict(
+    common: dict[str, Any] = dict(
         pole_pairs=n,
         estimate=est,
         electrical_cycles=fit.cycles,
@@ -469,7 +469,7 @@ def _signature_check(dataset: Dataset, n: int) -> PolePairCheck:
     sig = pole_pairs_from_signature(np.asarray(dataset.d, dtype=np.float64))
     method = "magnet signature"
     best = sig.best
-    common = dict(pole_pairs=n, electrical_cycles=float(sig.cycles), method=method)
+    common: dict[str, Any] = dict(pole_pairs=n, electrical_cycles=float(sig.cycles), method=method)
     if best is None:
         return PolePairCheck(
             CheckStatus.SKIPPED,
@@ -815,7 +815,8 @@ def closed_loop_poles(
         a[:ng, ng:] = np.outer(p.B, c.C)
         a[ng:, :ng] = -np.outer(c.B, p.C)
         a[ng:, ng:] = c.A
-    z = np.linalg.eigvals(a) if a.size else np.zeros(0, complex)
+    # eigvals returns float64 when every eigenvalue is real: complex always, as documented
+    z = np.linalg.eigvals(a).astype(np.complex128) if a.size else np.zeros(0, np.complex128)
     return z[np.argsort(-np.abs(z))]
 
 
