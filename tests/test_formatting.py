@@ -14,6 +14,7 @@ from hallcal.formatting import (
     MISSING,
     AngleUnit,
     esc,
+    finite,
     number,
     one_line,
     polynomial_text,
@@ -79,6 +80,7 @@ def test_the_report_refuses_an_unknown_unit_before_any_work(tmp_path):
 
 
 def test_numbers_ranges_and_messages():
+    assert finite("1.5") == 1.5 and finite(math.inf) is None and finite(None) is None
     assert number(None) == MISSING
     assert number("x") == MISSING
     assert number(math.nan, ".1f") == MISSING

@@ -21,6 +21,7 @@ __all__ = [
     "MISSING",
     "AngleUnit",
     "esc",
+    "finite",
     "number",
     "one_line",
     "polynomial_text",
@@ -121,13 +122,19 @@ def esc(x: Any) -> str:
     return html.escape(str(x), quote=True)
 
 
-def number(x: Any, fmt: str = ".4g", *, missing: str = MISSING) -> str:
-    """``format(x, fmt)``, or ``missing`` for None, a non-number or a non-finite value."""
+def finite(x: Any) -> float | None:
+    """``float(x)``, or None for None, a non-number or a non-finite value."""
     try:
         v = float(x)
     except (TypeError, ValueError):
-        return missing
-    return format(v, fmt) if math.isfinite(v) else missing
+        return None
+    return v if math.isfinite(v) else None
+
+
+def number(x: Any, fmt: str = ".4g", *, missing: str = MISSING) -> str:
+    """``format(x, fmt)``, or ``missing`` for None, a non-number or a non-finite value."""
+    v = finite(x)
+    return missing if v is None else format(v, fmt)
 
 
 def ranges(values: Iterable[Any], *, to: str = "..", sep: str = ", ") -> str:

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 from hallcal.errors import HallcalInputError
 from hallcal.fleet.manifest import MotorSpec
 from hallcal.fleet.summary import ARTIFACT_NAME, C_DIR, SUMMARY_COLUMNS, MotorStatus
-from hallcal.formatting import one_line, ranges
+from hallcal.formatting import finite, one_line, ranges
 
 if TYPE_CHECKING:
     from hallcal.api import Calibration
@@ -171,7 +171,7 @@ def _calibrate_into(task: _Task, result: _Result) -> None:
 
     row = result.row
     cal = _calibrate(task.data, task.setup, task.bla_data)
-    row["predicted_error"] = _finite(cal.predicted_error)
+    row["predicted_error"] = finite(cal.predicted_error)
     row["model"] = _model_text(cal.model_info)
     force = bool(cal.setup.model.force)  # as `hallcal calibrate` honours [model] force = true
     notes = list(cal.messages)
@@ -209,8 +209,8 @@ def _calibrate_into(task: _Task, result: _Result) -> None:
                 raise HallcalInputError(
                     rec.messages[0].removeprefix("warning: validation skipped: ")
                 )
-            row["f_init_rms"] = _finite(v.init.rms)
-            row["f_star_rms"] = _finite(v.star.rms)
+            row["f_init_rms"] = finite(v.init.rms)
+            row["f_star_rms"] = finite(v.star.rms)
             if v.star.rms > v.init.rms:
                 status = MotorStatus.WARNING
                 notes.insert(
@@ -224,14 +224,6 @@ def _calibrate_into(task: _Task, result: _Result) -> None:
     row["status"] = status.value
     row["artifact"] = f"{task.motor_id}/{ARTIFACT_NAME}"
     row["message"] = one_line(notes[0]) if notes else ""
-
-
-def _finite(x: Any) -> float | None:
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        return None
-    return v if math.isfinite(v) else None
 
 
 def _failed_result(motor_id: str, message: str, *, retry: bool) -> _Result:
