@@ -36,19 +36,19 @@ def test_the_cli_offers_every_unit_and_keeps_its_spellings():
 @given(x=_ANGLES, n_m=st.integers(min_value=1, max_value=256))
 def test_the_text_is_what_the_cli_and_the_report_wrote_before(x, n_m):
     # the formulas the CLI (4 decimals, "-") and the report (3 decimals, en dash) used
-    assert AngleUnit.MRAD.format(x, n_m) == f"{1e3 * x:.4f} mrad"
-    assert AngleUnit.ELECTRICAL_DEG.format(x, n_m) == f"{math.degrees(x) * n_m:.4f} electrical deg"
-    assert AngleUnit.MRAD.format(x, n_m, page=True) == f"{1e3 * x:.3f} mrad"
+    assert AngleUnit.MRAD.text(x, n_m) == f"{1e3 * x:.4f} mrad"
+    assert AngleUnit.ELECTRICAL_DEG.text(x, n_m) == f"{math.degrees(x) * n_m:.4f} electrical deg"
+    assert AngleUnit.MRAD.text(x, n_m, page=True) == f"{1e3 * x:.3f} mrad"
     assert (
-        AngleUnit.ELECTRICAL_DEG.format(x, n_m, page=True)
+        AngleUnit.ELECTRICAL_DEG.text(x, n_m, page=True)
         == f"{math.degrees(x) * n_m:.3f} electrical deg"
     )
 
 
 @pytest.mark.parametrize("x", [None, math.nan, math.inf])
 def test_a_missing_angle_is_a_dash(x):
-    assert AngleUnit.MRAD.format(x) == "-"
-    assert AngleUnit.DEG.format(x, page=True) == MISSING
+    assert AngleUnit.MRAD.text(x) == "-"
+    assert AngleUnit.DEG.text(x, page=True) == MISSING
 
 
 def test_conversion_of_arrays_and_the_mechanical_units():
@@ -56,8 +56,8 @@ def test_conversion_of_arrays_and_the_mechanical_units():
     np.testing.assert_array_equal(AngleUnit.MRAD.convert(x), 1e3 * x)
     np.testing.assert_array_equal(AngleUnit.DEG.convert(x), np.degrees(x))
     np.testing.assert_array_equal(AngleUnit.ELECTRICAL_DEG.convert(x, 4), np.degrees(x) * 4)
-    assert AngleUnit.RAD.format(0.0012345) == "0.0012345 rad"
-    assert AngleUnit.DEG.format(math.pi / 180) == "1.0000 deg"
+    assert AngleUnit.RAD.text(0.0012345) == "0.0012345 rad"
+    assert AngleUnit.DEG.text(math.pi / 180) == "1.0000 deg"
     assert AngleUnit.MRAD.description == "mechanical mrad"
     assert AngleUnit.ELECTRICAL_DEG.description == "electrical degrees"
 

@@ -363,7 +363,7 @@ def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int
         write_dataset(out_path, run.columns())
         write_json(sidecar, run.truth_dict())
     e = run.y - run.y0
-    mrad = AngleUnit.MRAD.format
+    mrad = AngleUnit.MRAD.text
     _out.print(f"wrote {out_path} ({run.n_samples} samples) and {sidecar}")
     _out.print(
         f"f_init error against the truth: RMS {mrad(float((e - e.mean()).std()))}, "
@@ -594,11 +594,11 @@ def _print_calibration(cal, units: AngleUnit = AngleUnit.MRAD) -> None:
     if cs is not None:
         _out.print(
             f"constant-speed fit: {cs.revolutions:.2f} revolutions, rotor motion off the straight "
-            f"line {units.format(cs.motion_rms, n_m)} RMS"
+            f"line {units.text(cs.motion_rms, n_m)} RMS"
         )
     _out.print(
-        f"predicted f_star error: RMS {units.format(cal.predicted_error, n_m)} "
-        f"(noise floor {units.format(cal.noise_floor, n_m)})"
+        f"predicted f_star error: RMS {units.text(cal.predicted_error, n_m)} "
+        f"(noise floor {units.text(cal.noise_floor, n_m)})"
     )
     if cal.adequacy is not None:
         _out.print(f"model adequacy: {cal.adequacy.verdict}")
@@ -612,9 +612,9 @@ def _print_validation(v, units: AngleUnit, n_m: int) -> None:
     """One line: f_init and f_star against the recording's y_ref, when it has one."""
     if v is not None:
         _out.print(
-            f"against y_ref: f_init RMS {units.format(v.init.rms, n_m)} peak "
-            f"{units.format(v.init.peak, n_m)}; f_star RMS {units.format(v.star.rms, n_m)} "
-            f"peak {units.format(v.star.peak, n_m)}"
+            f"against y_ref: f_init RMS {units.text(v.init.rms, n_m)} peak "
+            f"{units.text(v.init.peak, n_m)}; f_star RMS {units.text(v.star.rms, n_m)} "
+            f"peak {units.text(v.star.peak, n_m)}"
         )
 
 
@@ -701,7 +701,7 @@ def _print_observer(rec, units: AngleUnit, n_m: int) -> None:
     if rec.observer_error is not None:
         e = rec.observer_error
         _out.print(
-            f"against y_ref: y_obs RMS {units.format(e.rms, n_m)} peak {units.format(e.peak, n_m)}"
+            f"against y_ref: y_obs RMS {units.text(e.rms, n_m)} peak {units.text(e.peak, n_m)}"
         )
 
 
@@ -756,7 +756,7 @@ def plan(artifact: str, revolutions: float, speeds: str | None, target: float) -
     cal = load(artifact)
     result = plan_next_ramp(cal, revolutions=revolutions, speeds=grid, target=target)
     floor = result.predictions[0].floor if result.predictions else math.nan
-    _out.print(f"noise floor {AngleUnit.MRAD.format(floor)}; ramp over {revolutions:g} revolutions")
+    _out.print(f"noise floor {AngleUnit.MRAD.text(floor)}; ramp over {revolutions:g} revolutions")
     _out.print(f"{'speed [rad/s]':>14} {'samples':>9} {'f_star [mrad]':>14} {'x floor':>8}")
     for p in result.predictions:
         mark = (

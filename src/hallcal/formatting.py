@@ -79,7 +79,7 @@ class AngleUnit(enum.StrEnum):
         deg = x * (180.0 / math.pi)
         return deg * pole_pairs if self is AngleUnit.ELECTRICAL_DEG else deg
 
-    def format(self, x: float | None, pole_pairs: int = 1, *, page: bool = False) -> str:
+    def text(self, x: float | None, pole_pairs: int = 1, *, page: bool = False) -> str:
         """``x`` [rad, mechanical] as text with the unit.
 
         Parameters

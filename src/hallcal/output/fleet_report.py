@@ -135,7 +135,7 @@ def find_outliers(rows: Sequence[Mapping[str, Any]]) -> list[Outlier]:
     reasons: dict[str, list[str]] = {r["motor_id"]: [] for r in good}
 
     def mrad(x: float | None) -> str:
-        return AngleUnit.MRAD.format(x, page=True)
+        return AngleUnit.MRAD.text(x, page=True)
 
     for key, what in (("predicted_error", "predicted error"), ("f_star_rms", "f_star RMS")):
         vals = _column(good, key)
@@ -174,7 +174,7 @@ def _figure_predicted(rows: Sequence[Mapping[str, Any]]) -> Figure | None:
     vals = vals[np.isfinite(vals) & (vals > 0)]
     if vals.size == 0:
         return None
-    mrad = 1e3 * vals
+    mrad = AngleUnit.MRAD.convert(vals)
     fig = Figure(figsize=(8.0, 3.4), layout="constrained")
     ax = fig.add_subplot()
     ax.hist(mrad, bins=_bins(mrad), color="#1f77b4", edgecolor="white")
@@ -184,7 +184,8 @@ def _figure_predicted(rows: Sequence[Mapping[str, Any]]) -> Figure | None:
     ax.axvline(float(np.median(mrad)), color="black", ls="--", lw=1, label="median")
     _, thr = robust_outliers(vals)
     if thr is not None:
-        ax.axvline(1e3 * thr, color="#d62728", ls=":", lw=1.2, label="outlier threshold")
+        thr_mrad = AngleUnit.MRAD.convert(thr)
+        ax.axvline(thr_mrad, color="#d62728", ls=":", lw=1.2, label="outlier threshold")
     ax.set_xlabel("predicted f_star error, RMS [mrad]")
     ax.set_ylabel("motors")
     ax.legend(frameon=False)
@@ -195,8 +196,8 @@ def _figure_validation(rows: Sequence[Mapping[str, Any]]) -> Figure | None:
     val = [r for r in rows if r.get("f_init_rms") is not None and r.get("f_star_rms") is not None]
     if not val:
         return None
-    fi = 1e3 * _column(val, "f_init_rms")
-    fs = 1e3 * _column(val, "f_star_rms")
+    fi = AngleUnit.MRAD.convert(_column(val, "f_init_rms"))
+    fs = AngleUnit.MRAD.convert(_column(val, "f_star_rms"))
     fig = Figure(figsize=(9.0, 3.8), layout="constrained")
     ax1, ax2 = fig.subplots(1, 2, width_ratios=(1.0, 1.3))
     colors = [_COLORS.get(str(r.get("status")), "#1f77b4") for r in val]
@@ -389,7 +390,7 @@ def _motor_table(rows: Sequence[Mapping[str, Any]], keys: Sequence[str]) -> str:
         for k in keys:
             v = r.get(k)
             if k in ("predicted_error", "f_init_rms", "f_star_rms"):
-                cells.append(f'<td class="num">{AngleUnit.MRAD.format(v, page=True)}</td>')
+                cells.append(f'<td class="num">{AngleUnit.MRAD.text(v, page=True)}</td>')
             elif k == "seconds":
                 cells.append(f'<td class="num">{number(v, ".1f")}</td>')
             elif k == "status":

@@ -169,7 +169,7 @@ class ReportContent:
     def angle(self, x: float | None) -> str:
         """An angle error [rad, mechanical] in this report's units."""
         unit = AngleUnit.parse(self.angle_units)
-        return unit.format(x, self.pole_pairs, page=True)
+        return unit.text(x, self.pole_pairs, page=True)
 
 
 @dataclass(frozen=True)
