@@ -71,7 +71,20 @@ class AngleUnit(enum.StrEnum):
         return _DESCRIPTIONS[self]
 
     def convert(self, x: Any, pole_pairs: int = 1) -> Any:
-        """``x`` [rad, mechanical] (a float or an array) in this unit; n_m = ``pole_pairs``."""
+        """``x`` [rad, mechanical] in this unit.
+
+        Parameters
+        ----------
+        x : float or ndarray
+            Angle [rad, mechanical].
+        pole_pairs : int
+            n_m, for electrical degrees (electrical angle = n_m x mechanical angle).
+
+        Returns
+        -------
+        float or ndarray
+            ``x`` in this unit.
+        """
         if self is AngleUnit.RAD:
             return x
         if self is AngleUnit.MRAD:
@@ -91,6 +104,11 @@ class AngleUnit(enum.StrEnum):
         page : bool
             The HTML pages' style (``1.234 mrad``, :data:`MISSING` for a missing value) instead
             of the terminal's (``1.2345 mrad``, ``-``). rad get three more decimals.
+
+        Returns
+        -------
+        str
+            The number and the unit's :attr:`label`.
         """
         if x is None or not math.isfinite(x):
             return MISSING if page else "-"
@@ -113,17 +131,50 @@ _DESCRIPTIONS = {
 
 
 def one_line(text: object) -> str:
-    """A message (or an exception's text) in one line: runs of white space become one space."""
+    """A message (or an exception's text) in one line: runs of white space become one space.
+
+    Parameters
+    ----------
+    text : object
+        The message or exception.
+
+    Returns
+    -------
+    str
+        Its text in one line.
+    """
     return " ".join(str(text).split())
 
 
 def esc(x: Any) -> str:
-    """``x`` as HTML text, quotes escaped too."""
+    """``x`` as HTML text, quotes escaped too.
+
+    Parameters
+    ----------
+    x : object
+        Anything; its ``str``.
+
+    Returns
+    -------
+    str
+        The escaped text.
+    """
     return html.escape(str(x), quote=True)
 
 
 def finite(x: Any) -> float | None:
-    """``float(x)``, or None for None, a non-number or a non-finite value."""
+    """``float(x)``, or None for None, a non-number or a non-finite value.
+
+    Parameters
+    ----------
+    x : object
+        A value read from a result or a summary row.
+
+    Returns
+    -------
+    float or None
+        The finite number, or None.
+    """
     try:
         v = float(x)
     except (TypeError, ValueError):
@@ -132,13 +183,43 @@ def finite(x: Any) -> float | None:
 
 
 def number(x: Any, fmt: str = ".4g", *, missing: str = MISSING) -> str:
-    """``format(x, fmt)``, or ``missing`` for None, a non-number or a non-finite value."""
+    """``format(x, fmt)``, or ``missing`` for None, a non-number or a non-finite value.
+
+    Parameters
+    ----------
+    x : object
+        The value.
+    fmt : str
+        A format specification (``".4g"``).
+    missing : str, keyword-only
+        The text of a missing value.
+
+    Returns
+    -------
+    str
+        The text.
+    """
     v = finite(x)
     return missing if v is None else format(v, fmt)
 
 
 def ranges(values: Iterable[Any], *, to: str = "..", sep: str = ", ") -> str:
-    """[1, 2, 3, 5, 33] -> '1..3, 5, 33' (three or more consecutive integers as a range)."""
+    """[1, 2, 3, 5, 33] -> '1..3, 5, 33' (three or more consecutive integers as a range).
+
+    Parameters
+    ----------
+    values : iterable of int
+        The integers (harmonic orders), in any order.
+    to : str, keyword-only
+        Between the ends of a range.
+    sep : str, keyword-only
+        Between the items.
+
+    Returns
+    -------
+    str
+        The sorted integers, runs of three or more as ranges.
+    """
     v = sorted(int(x) for x in values)
     out, i = [], 0
     while i < len(v):
@@ -180,8 +261,20 @@ def polynomial_text(coefficients: Sequence[float], var: str = "s") -> str:
 def tf_text(num: Sequence[float], den: Sequence[float], delay: float, *, page: bool = False) -> str:
     """A continuous transfer function G(s) = num / den with input delay [s] as text.
 
-    The terminal writes ``G(s) = N / (D), input delay 0.5 ms``; the report's page
-    (``page=True``) writes ``(N) / (D) · exp(-0.0005 s)``.
+    Parameters
+    ----------
+    num, den : sequence of float
+        Coefficients of the numerator and denominator in descending powers of s.
+    delay : float
+        Input delay [s].
+    page : bool, keyword-only
+        The report page's form instead of the terminal's.
+
+    Returns
+    -------
+    str
+        The terminal writes ``G(s) = N / (D), input delay 0.5 ms``; the report's page
+        (``page=True``) writes ``(N) / (D) · exp(-0.0005 s)``.
     """
     n, d = polynomial_text(num), polynomial_text(den)
     if page:

@@ -109,7 +109,20 @@ def _mrad(x: ArrayLike) -> NDArray[np.float64]:
 
 
 def figure_png(fig: Figure, *, dpi: int) -> bytes:
-    """The figure as PNG bytes at ``dpi``, without the matplotlib version in its metadata."""
+    """The figure as PNG bytes, without the matplotlib version in its metadata.
+
+    Parameters
+    ----------
+    fig : matplotlib.figure.Figure
+        The figure.
+    dpi : int, keyword-only
+        Resolution [dots per inch].
+
+    Returns
+    -------
+    bytes
+        The PNG file.
+    """
     buf = io.BytesIO()
     with warnings.catch_warnings():
         # a figure of degenerate data (a flat trace, a tiny run) may not fit constrained layout;
@@ -141,6 +154,13 @@ def log_axis(axis: Any, lo: float, hi: float) -> None:
     """Plain-text labels on a log axis (no mathtext: faster and the same font as the rest).
 
     Spans of less than about two decades also get labels at 2x and 5x each decade.
+
+    Parameters
+    ----------
+    axis : matplotlib.axis.Axis
+        An axis already on a log scale.
+    lo, hi : float
+        The span of the data on it (> 0).
     """
     axis.set_major_locator(LogLocator(base=10.0))
     axis.set_major_formatter(FuncFormatter(_log_label))
