@@ -98,3 +98,22 @@ def test_transfer_function_text_on_the_terminal_and_the_page():
     assert tf_text(num, den, 5e-4) == "G(s) = 1.5e+04 / (s^2 - 2 s), input delay 0.5 ms"
     assert tf_text(num, den, 0.0) == "G(s) = 1.5e+04 / (s^2 - 2 s)"
     assert tf_text(num, den, 5e-4, page=True) == "(1.5e+04) / (s^2 - 2 s) · exp(-0.0005 s)"
+
+
+def test_the_cli_names_the_setup_file_of_the_running_command_only():
+    """The numeric layers say "setup:"; the CLI puts the file of this command there (kept on
+    the click context, not in a module-level global that outlives the command)."""
+    import click
+    import click.testing
+
+    from hallcal import cli
+
+    @click.command()
+    def command() -> None:
+        click.get_current_context().meta["hallcal.setup_path"] = "motor.toml"
+        click.echo(cli._one_line(HallcalInputError("setup: [plant] and\n  [controller]: x")))
+
+    runner = click.testing.CliRunner()
+    assert runner.invoke(command).output == "motor.toml: [plant] and [controller]: x\n"
+    # outside a command (or after it) nothing is remembered
+    assert cli._one_line(HallcalInputError("setup: y")) == "setup: y"
