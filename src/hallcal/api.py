@@ -172,8 +172,9 @@ class Calibration(_Result):
             required: a HallcalInputError without it).
         validation : path, Dataset or mapping, optional
             A fresh recording with ``y_ref`` to validate on.
-        units : {"mrad", "electrical-deg"}
-            Units of the angle errors in the report's text.
+        units : {"mrad", "rad", "deg", "electrical-deg"}
+            Units of the angle errors in the report's text (:class:`hallcal.formatting.AngleUnit`;
+            another name is a :class:`~hallcal.errors.HallcalInputError` naming the valid ones).
         """
         from hallcal.output.report import write_calibration_report
 

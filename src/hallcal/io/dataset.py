@@ -57,6 +57,7 @@ from typing import IO, Any, NoReturn
 import numpy as np
 
 from hallcal.errors import HallcalInputError
+from hallcal.formatting import one_line
 from hallcal.io.files import _existing_file, _suggest, atomic_path, atomic_write
 from hallcal.io.text import TEXT_EXTENSIONS, read_text_table, write_text_table
 from hallcal.limits import (
@@ -483,7 +484,7 @@ def _head(p: Path, n: int) -> bytes:
 
 def _why(exc: BaseException) -> str:
     """``"OSError: first line of the message"``, at most 150 characters."""
-    text = " ".join(str(exc).split())
+    text = one_line(exc)
     text = f"{type(exc).__name__}: {text}" if text else type(exc).__name__
     return text if len(text) <= 150 else text[:147] + "..."
 

@@ -19,6 +19,7 @@ from typing import Any, Literal, NoReturn
 import numpy as np
 
 from hallcal.errors import HallcalInputError
+from hallcal.formatting import one_line
 from hallcal.io.files import (
     _check_parsed,
     _closest,
@@ -908,7 +909,7 @@ def read_setup(path: str | os.PathLike[str]) -> Setup:
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        message = " ".join(str(exc).split())
+        message = one_line(exc)
         raise HallcalInputError(f"{p}: invalid TOML: {message}") from None
     except RecursionError:
         raise _nested_too_deeply(p) from None

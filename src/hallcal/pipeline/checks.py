@@ -230,7 +230,7 @@ def _hall_matrix(dataset: Dataset) -> NDArray[np.float64]:
     return d - np.mean(d, axis=0)  # raw ADC offsets cancel to first order
 
 
-def electrical_angle(dataset: Dataset) -> NDArray[np.float64]:
+def unwrapped_electrical_angle(dataset: Dataset) -> NDArray[np.float64]:
     """Unwrapped electrical angle of the Hall signals (Clarke + atan2, offsets removed) [rad]."""
     return f_init(_hall_matrix(dataset), 1)
 
@@ -258,7 +258,7 @@ def _electrical_per_mechanical(dataset: Dataset) -> _Slope | None:
     mech, method = ref
     if mech.size < 8 or not np.all(np.isfinite(mech)):
         return None
-    psi = electrical_angle(dataset)
+    psi = unwrapped_electrical_angle(dataset)
     span = float(np.ptp(mech))
     if span / TWO_PI < MIN_REVOLUTIONS:
         return _Slope(math.nan, float(psi[-1] - psi[0]) / TWO_PI, span / TWO_PI, method)
@@ -641,8 +641,8 @@ def check_angle_units(
 ) -> Check:
     """The angle columns must be in mechanical rad: their travel against the Hall angle / n_m.
 
-    f_init of the Hall signals (:func:`electrical_angle`) divided by n_m is a mechanical angle
-    in rad whatever the drive logged; each of ``columns`` present is regressed on it, and a
+    f_init of the Hall signals (:func:`unwrapped_electrical_angle`) divided by n_m is a mechanical
+    angle in rad whatever the drive logged; each of ``columns`` present is regressed on it, and a
     slope near 180/pi (or 180 n_m / pi) is a column logged in degrees (electrical degrees). The
     columns are also compared with ``y`` directly (no n_m involved), so a column in another unit
     than ``y`` is found with a wrong ``pole_pairs`` too.
@@ -666,7 +666,7 @@ def check_angle_units(
         return Check(CheckStatus.SKIPPED, "angle units not checked: no angle column")
     if hall_lag_correlation(dataset) < STANDSTILL_CORRELATION:
         return Check(CheckStatus.SKIPPED, "angle units not checked: the Hall signals stand still")
-    psi = electrical_angle(dataset)
+    psi = unwrapped_electrical_angle(dataset)
     if float(np.ptp(psi)) < MIN_HALL_TRAVEL:
         return Check(CheckStatus.SKIPPED, "angle units not checked: the rotor hardly moved")
     n = max(int(pole_pairs), 1)
