@@ -194,7 +194,7 @@ def motor_dir(tmp_path_factory) -> Path:
 def test_the_other_readme_examples_run_as_written(motor_dir):
     """Quick start aside (the demo: run by the --help test), every bash line of the README."""
     cmds = other_readme_commands()
-    assert [c[1] for c in cmds] == ["demo", "plan", "fleet", "fleet", "reconstruct"]
+    assert [c[1] for c in cmds] == ["demo", "plan", "fleet", "fleet", "reconstruct", "reconstruct"]
     for args in cmds:
         if args[1] == "demo":
             continue  # the same command is a --help example, run in test_every_help_example...
