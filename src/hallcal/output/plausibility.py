@@ -180,9 +180,11 @@ def _plausibility(
     ws = slope * w
     holds = alias_holds(ws, step_noise)
     if holds < 0:
+        given = "the default speed limit" if max_speed is None else f"max_speed {max_speed:g} rad/s"
         raise HallcalInputError(
-            f"max_speed {max_speed:g} rad/s is {w:.3g} electrical turns per sample: f_init "
-            "cannot follow a third of a turn per sample or more"
+            f"{given} is {ws:.3g} electrical turns per sample of f_init (the sensor map's "
+            f"distortion speeds f_init up to {slope:.3g}x): f_init cannot follow a third of a "
+            "turn per sample or more; give a lower --max-speed"
         )
     return Plausibility(
         tolerance=tolerance,
