@@ -73,7 +73,6 @@ from __future__ import annotations
 
 import math
 import os
-import time
 from pathlib import Path
 
 import numpy as np
@@ -152,9 +151,7 @@ def results():
         d = hall_matrix(load_dataset(path))
         seg = find_constant_speed(d, POLE_PAIRS)
         start, mid, stop = seg.split(CAL_REVOLUTIONS)
-        t0 = time.perf_counter()
         res = calibrate_constant_speed(d, POLE_PAIRS, basis, start=start, stop=mid)
-        elapsed = time.perf_counter() - t0
         y_init = res.lut.f_init(d)  # whole file, from y = 0 before the first sample
         y_star = res.lut.f_star(d)
         k = np.arange(mid, stop)
@@ -166,7 +163,6 @@ def results():
             "seg": seg,
             "split": (start, mid, stop),
             "res": res,
-            "time": elapsed,
             "r_init": r_init,
             "r_star": r_star,
             "init": elec_deg_rms(r_init),
