@@ -422,15 +422,6 @@ class HarmonicContent:
         idx = np.flatnonzero(self.harmonics == int(harmonic))
         return float(self.amplitude[idx[0]]) if idx.size else 0.0
 
-    def is_significant(self, harmonic: int) -> bool:
-        idx = np.flatnonzero(self.harmonics == int(harmonic))
-        return bool(idx.size and self.significant[idx[0]])
-
-    def significant_harmonics(self, min_amplitude: float = 0.0) -> tuple[int, ...]:
-        """Significant harmonics with ``amplitude >= min_amplitude``, ascending."""
-        sel = self.significant & (self.amplitude >= min_amplitude)
-        return tuple(int(h) for h in self.harmonics[sel])
-
     def to_dict(self, *, scale: float = 1.0) -> dict:
         """Per-harmonic table; ``scale`` divides the amplitudes (e.g. by sigma)."""
         return {

@@ -440,28 +440,6 @@ class PowerUpDecoder:
             **self.misfit.to_dict(),
         }
 
-    def tables(self) -> dict[str, Any]:
-        """Every constant of the decoder specification (for code generation)."""
-        return {
-            "pole_pairs": int(self.pole_pairs),
-            "grid": int(self.grid),
-            "projection": self.projection.tolist(),
-            "offset": self.offset.tolist(),
-            "null": self.null.tolist(),
-            "gram_a": self.gram_a.tolist(),
-            "gram_b": self.gram_b.tolist(),
-            "gram_c": float(self.gram_c),
-            "radius": self.radius.tolist(),
-            "zero": self.zero.tolist(),
-            "error_target": float(self.error_target),
-            "lock_threshold": self.lock_threshold,
-            "cost_cap": float(self.cost_cap),
-            "misfit_weight": self.misfit.weight,
-            "misfit_drift": self.misfit.drift,
-            "misfit_bound": self.misfit.bound,
-            "fit_bound": self.misfit.fit_bound,
-        }
-
 
 def _gram(
     projection: NDArray, null: NDArray, covariance: NDArray

@@ -194,11 +194,6 @@ class ClosedLoop:
             raise ValueError("rails must satisfy low < high for every sensor")
         return replace(self, rails=rails)
 
-    @property
-    def clipped(self) -> bool:
-        """Whether any rail is finite."""
-        return bool(np.isfinite(self.rails).any())
-
     def _arrays(self) -> tuple:
         p, c = self.plant, self.controller
         return (
