@@ -238,10 +238,6 @@ class NoiseEstimate:
         """Pooled noise standard deviation sigma."""
         return math.sqrt(self.variance) if self.variance >= 0 else math.nan
 
-    @property
-    def white(self) -> bool:
-        return self.status is NoiseStatus.OK
-
     def __post_init__(self) -> None:
         object.__setattr__(self, "status", NoiseStatus(self.status))
 
