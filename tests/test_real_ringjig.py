@@ -202,7 +202,6 @@ def test_ringjig_calibration_beats_f_init(results):
     print()
     print(
         "file  start   mid  stop  held-revs  Clarke  f_init  f_star  floor  motion  b[rad/sample]"
-        "  time[s]"
     )
     for i, r in results.items():
         res = r["res"]
@@ -212,7 +211,6 @@ def test_ringjig_calibration_beats_f_init(results):
         print(
             f"{i:4d} {start:6d} {mid:5d} {stop:5d} {r['held_revs']:9.2f} {r['clarke']:7.2f}"
             f" {r['init']:7.2f} {r['star']:7.2f} {floor:6.2f} {motion:7.2f} {res.b:14.7e}"
-            f" {r['time']:8.2f}"
         )
     for i, r in results.items():
         res = r["res"]
