@@ -315,7 +315,7 @@ def _c_problems(folder: Path, api: tuple[set[str], set[str]]) -> list[str]:
 
 
 #: One hostile case per subcommand, run as a real process: the console script's own start-up,
-#: imports, output streams and exit status, under the same limits (RLIMIT_AS, 30 s).
+#: imports, output streams and exit status, under the same limits (RLIMIT_AS and the watchdog).
 SUBPROCESS_SAMPLES = (
     "data-hall-data-random-d1-h5-calibrate",
     "setup-delay-1e6-simulate",
