@@ -16,9 +16,7 @@ import math
 import numpy as np
 import pytest
 
-from hallcal.fit.sem import solve_sem
 from hallcal.sensor import absolute as ab
-from hallcal.sensor.flux import FourierBasis
 from hallcal.sensor.lut import build_lut
 from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.bench import BenchConfig, power_up_run, power_up_start, ramp_run
@@ -42,13 +40,9 @@ def paper():
 
 
 @pytest.fixture(scope="module")
-def weak():
-    """7 pole pairs, weak magnet variation, calibrated by SEM on the usual ramp."""
-    cfg = BenchConfig(pole_pairs=7, magnet_variation=0.01, seed=0)
-    run = ramp_run(cfg)
-    basis = FourierBasis(tuple(range(1, 8)))
-    sem = solve_sem(cfg.loop(), run.r, run.d, basis, y=run.y)
-    lut = build_lut(sem.flux, 7)
+def weak(weak_bench):
+    """7 pole pairs, weak magnet variation, calibrated by SEM on the usual ramp (conftest)."""
+    cfg, run, sem, lut = weak_bench
     noise = ab.estimate_normal_noise(sem.flux, lut, run.d)
     dec = ab.build_decoder(sem.flux, lut, noise_std=noise.total_std)
     return cfg, cfg.truth(), lut, dec, noise
