@@ -3,14 +3,10 @@
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import pytest
 from hypothesis import HealthCheck, settings
-
-from hallcal.fit.sem import SEMResult, solve_sem
-from hallcal.sensor.flux import FourierBasis
-from hallcal.sensor.lut import LUT, build_lut
-from hallcal.sim.bench import BenchConfig, BenchRun, ramp_run
 
 settings.register_profile(
     "hallcal",
@@ -39,10 +35,22 @@ _MARKERS = {
 
 
 @pytest.fixture(scope="session")
-def weak_bench() -> tuple[BenchConfig, BenchRun, SEMResult, LUT]:
+def weak_bench() -> tuple[Any, Any, Any, Any]:
     """7 pole pairs, weak magnet variation, calibrated by SEM (harmonics 1..7) on the usual ramp:
     ``(cfg, run, sem, lut)``, simulated and solved once per session for test_absolute.py and
-    test_misfit.py (read-only: frozen results)."""
+    test_misfit.py (read-only: frozen results). The imports are local: a session that
+    needs no bench loads no solver.
+
+    Returns
+    -------
+    tuple
+        ``(BenchConfig, BenchRun, SEMResult, LUT)``.
+    """
+    from hallcal.fit.sem import solve_sem
+    from hallcal.sensor.flux import FourierBasis
+    from hallcal.sensor.lut import build_lut
+    from hallcal.sim.bench import BenchConfig, ramp_run
+
     cfg = BenchConfig(pole_pairs=7, magnet_variation=0.01, seed=0)
     run = ramp_run(cfg)
     sem = solve_sem(cfg.loop(), run.r, run.d, FourierBasis(tuple(range(1, 8))), y=run.y)
