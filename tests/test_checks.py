@@ -254,6 +254,15 @@ def test_a_wrong_pole_pair_count_is_not_taken_for_a_unit():
     assert check_angle_units(Dataset.from_columns(_synthetic(4)), 5).status is CheckStatus.OK
 
 
+def test_a_reference_that_stands_still_is_not_taken_for_a_unit():
+    """r constant while the rotor turns (found by tests/test_fuzz_setups.py: ramp_end = 0 with a
+    constant-speed trajectory): slope 0 is no unit, and no math domain error."""
+    from hallcal.pipeline.checks import CheckStatus, check_angle_units
+
+    cols = dict(_synthetic(4), r=np.zeros(_synthetic(4)["r"].size))
+    assert check_angle_units(Dataset.from_columns(cols), 4).status is CheckStatus.OK
+
+
 def test_standstill_is_not_motion():
     from hallcal.pipeline.checks import CheckStatus, check_angle_units, check_hall_motion
 
