@@ -179,11 +179,9 @@ static uint32_t out[3 * CHUNK_N];
 static void init(void)
 {
 #if HC_Q
-    PFX_q_init(&st, 0, 0u);
-#elif defined(UPFX_POWERUP)
-    PFX_init(&st); /* identifies the pole pair by itself */
+    PFX_q_init(&st);
 #else
-    PFX_init(&st, 0, 0.0f);
+    PFX_init(&st); /* one signature for every variant */
 #endif
 }
 int main(void)
@@ -546,3 +544,146 @@ def trace(b: Build, samples: np.ndarray, *, entry: str | None = None,
         counts.append(n)
         cycles.append(c)
     return Trace(np.array(counts), np.array(cycles), mnem, unknown, per_pc)
+
+
+# ------------------------------------------------------------------------------------------
+# Cycle models for the worst case: branch penalty, flash wait states, the Cortex-M0+
+# ------------------------------------------------------------------------------------------
+
+#: Cortex-M0+ cycles per instruction (Cortex-M0+ TRM r0p1, table 3-1 "Cortex-M0+ instruction
+#: summary"): ALU 1, loads and stores 2, taken branch 2 (B, Bcc, BX, BLX) and 3 (BL),
+#: not-taken Bcc 1, PUSH/POP/LDM/STM 1 + N (POP with the PC 3 + N), MULS 1 or 32 (the
+#: implementer's multiplier option: fast single-cycle or small iterative).
+M0P_CYCLES: dict[str, int] = {
+    **dict.fromkeys("ldr ldrh ldrb ldrsh ldrsb str strh strb".split(), 2),
+}
+
+
+@dataclass(frozen=True)
+class CycleModel:
+    """How a traced instruction stream is turned into cycles.
+
+    Attributes
+    ----------
+    core : str
+        "m4" (the table :data:`M4_CYCLES` and its load/store notes) or "m0plus"
+        (:data:`M0P_CYCLES`).
+    branch_penalty : int
+        Extra cycles of a taken branch on the M4 (the TRM gives 1..3: pipeline refill).
+    wait_states : int
+        Flash wait states W, applied conservatively: every taken branch (a fetch from a new
+        line) and every load (tables and literals are in flash; the state in RAM would pay
+        nothing) costs W more. 0: code and tables in zero-wait memory or hits of a flash
+        accelerator's cache.
+    muls : int
+        Cycles of MULS on the M0+ (1 or 32).
+    """
+
+    core: str = "m4"
+    branch_penalty: int = 2
+    wait_states: int = 0
+    muls: int = 1
+
+    def label(self) -> str:
+        if self.core == "m4":
+            return f"M4, taken branch 1+{self.branch_penalty}, {self.wait_states} wait states"
+        return f"M0+, MULS {self.muls} cycles, {self.wait_states} wait states"
+
+
+@dataclass(frozen=True)
+class CallTrace:
+    """Per call of ``update`` (and, with ``read``, of the reader that follows it): the program
+    counters executed and whether each instruction was followed by a jump (a taken branch)."""
+
+    calls: list  # of (pcs ndarray, taken ndarray of bool)
+    dis: dict
+
+
+def trace_calls(b: Build, samples: np.ndarray, *, read: bool = True, block: int = 0,
+                timeout: float = 600.0) -> CallTrace:  # fmt: skip
+    """The instruction stream of each sample: ``update`` (with the static helpers and the
+    power-up decoder it calls) and, with ``read``, ``read`` after it (what a control loop pays
+    per sample). ``init`` and ``clear_fault`` are not traced."""
+    entry = f"{b.prefix}_q_update" if b.fixed else f"{b.prefix}_update"
+    skip = ("_init", "_clear_fault", "_set_angle") + (() if read else ("_read",))
+    ranges = {k: v for k, v in b.functions.items() if not k.endswith(skip)}
+    start = ranges[entry][0]
+    data = np.ascontiguousarray(samples, dtype=np.int32 if b.fixed else np.float32)
+    (b.workdir / "in.bin").write_bytes(data.tobytes())
+    (b.workdir / "block.bin").write_bytes(np.uint32(block).tobytes())
+    log = b.workdir / "trace.log"
+    log.unlink(missing_ok=True)
+    dfilter = ",".join(f"0x{a:x}+0x{s:x}" for a, s in ranges.values())
+    _qemu(b, ["-singlestep", "-d", "exec,nochain", "-dfilter", dfilter, "-D", str(log)], timeout)
+    dis = _disassembly(b)
+    pcs = np.array([int(m.group(1), 16) for m in re.finditer(
+        r"/([0-9a-f]{8})/[0-9a-f]{8}/[0-9a-f]{8}\]", log.read_text())], dtype=np.int64)  # fmt: skip
+    log.unlink(missing_ok=True)
+    size = np.array([dis.get(int(pc), ("?", "", 2))[2] for pc in pcs], dtype=np.int64)
+    taken = np.ones(len(pcs), dtype=bool)
+    taken[:-1] = pcs[1:] != pcs[:-1] + size[:-1]
+    starts = np.flatnonzero(pcs == start)
+    bounds = list(starts) + [len(pcs)]
+    calls = [(pcs[a:z], taken[a:z]) for a, z in zip(bounds[:-1], bounds[1:], strict=True)]
+    return CallTrace(calls, dis)
+
+
+def _cost_table(dis: dict, model: CycleModel) -> dict:
+    """pc -> (cost if not taken, cost if taken) under the model (the M4's pipelined-load rule
+    is applied in :func:`model_cycles`)."""
+    out = {}
+    for pc, (mn, ops, _size) in dis.items():
+        low = mn.lower().split(".")[0]
+        base = _fp_base(low) if low.startswith("v") else _base(mn)
+        load = base in _INT_LOADS or base in ("ldrd", "vldr", "ldm", "ldmia", "ldmdb", "vldm",
+                                               "vldmia") or (base == "pop")  # fmt: skip
+        w = model.wait_states if (load and base != "pop") else 0
+        if model.core == "m4":
+            if base in _BRANCHES:
+                nt, tk = 1, 1 + model.branch_penalty
+            elif base in _MULTI:
+                nt = tk = 1 + _register_count(ops) + (model.branch_penalty if "pc" in ops else 0)
+            elif base in M4_CYCLES:
+                nt = tk = M4_CYCLES[base]
+            else:
+                nt = tk = 1
+        else:
+            if base in ("bl",):
+                nt, tk = 3, 3
+            elif base in _BRANCHES:
+                nt, tk = 1, 2
+            elif base in _MULTI:
+                nt = tk = 1 + _register_count(ops) + (2 if "pc" in ops else 0)
+            elif base in ("mul", "muls"):
+                nt = tk = model.muls
+            elif base in M0P_CYCLES:
+                nt = tk = M0P_CYCLES[base]
+            else:
+                nt = tk = 1
+        out[pc] = (nt + w, tk + w + model.wait_states, base, ops)
+    return out
+
+
+def model_cycles(ct: CallTrace, model: CycleModel) -> np.ndarray:
+    """Cycles of each traced call under ``model`` (the M4 model applies the TRM's load/store
+    notes of :func:`trace`: STR with an immediate offset 1 cycle, an integer load pipelined
+    after a load 1 cycle)."""
+    table = _cost_table(ct.dis, model)
+    out = np.empty(len(ct.calls), dtype=np.int64)
+    for k, (pcs, taken) in enumerate(ct.calls):
+        c = 0
+        prev_load = None
+        for pc, tk in zip(pcs.tolist(), taken.tolist(), strict=True):
+            nt, tkc, base, ops = table.get(pc, (1, 1, "?", ""))
+            cost = tkc if tk else nt
+            if model.core == "m4" and (base in _INT_LOADS or base in _INT_STORES):
+                base_reg = ops.split("[", 1)[1].split(",")[0].split("]")[0].strip() if "[" in ops \
+                    else ""  # fmt: skip
+                if base in _INT_STORES and re.search(r"\[\w+(, #-?\d+)?\]$", ops.strip()):
+                    cost -= 1  # STR Rx, [Ry, #imm] is one cycle
+                elif prev_load is not None and base_reg != prev_load and base_reg != "pc":
+                    cost -= 1  # pipelined with the previous load
+            prev_load = ops.split(",")[0].strip() if base in _INT_LOADS else None
+            c += cost
+        out[k] = c
+    return out

@@ -67,7 +67,8 @@ DRIVER = r"""/* Host test driver for the generated sources: -DHC_Q=0 (float), -D
 typedef PFX_q_state st_t;
 typedef PFX_q_reading rd_t;
 typedef int32_t in_t;
-#define INIT(s) PFX_q_init((s), 0, 0u)
+#define INIT(s) PFX_q_init((s))
+#define SET_ANGLE(s, a) PFX_q_set_angle((s), 0, (uint32_t)(a))
 #define UPDATE PFX_q_update
 #define READ PFX_q_read
 #define ANGLE_BITS(r) ((r).angle)
@@ -76,11 +77,8 @@ typedef int32_t in_t;
 typedef PFX_state st_t;
 typedef PFX_reading rd_t;
 typedef float in_t;
-#if defined(UPFX_POWERUP)
 #define INIT(s) PFX_init((s))
-#else
-#define INIT(s) PFX_init((s), 0, 0.0f)
-#endif
+#define SET_ANGLE(s, a) PFX_set_angle((s), 0, (a))
 #define UPDATE PFX_update
 #define READ PFX_read
 static uint32_t fbits(float f) { uint32_t u; memcpy(&u, &f, sizeof u); return u; }
@@ -133,6 +131,42 @@ static int mode_run(long block) {
 #endif
         fwrite(out, sizeof out, 1, stdout);
         ++k;
+    }
+    return 0;
+}
+
+/* trials n homed: per trial a header (3 inputs: the start angle first, float rad or Q0.32
+ * turns as int32 bits) and n samples; init (and, with homed = 1, set_angle to the start) before
+ * each; out per trial: the last reading (revolutions, angle bits, flags) and the OR of the
+ * flags of all its samples */
+static int mode_trials(long n, int homed, int every) {
+    st_t s;
+    rd_t r;
+    in_t d[3];
+    for (;;) {
+        uint32_t out[4] = {0u, 0u, 0u, 0u};
+        long k;
+        if (fread(d, sizeof d, 1, stdin) != 1) break;
+        INIT(&s);
+        if (homed) (void)SET_ANGLE(&s, d[0]);
+        for (k = 0; k < n; ++k) {
+            if (fread(d, sizeof d, 1, stdin) != 1) return fail("short trial", k);
+            out[3] |= UPDATE(&s, d[0], d[1], d[2]);
+            if (every) {
+                uint32_t w[4];
+                READ(&s, &r);
+                w[0] = (uint32_t)r.revolutions;
+                w[1] = ANGLE_BITS(r);
+                w[2] = r.flags;
+                w[3] = out[3];
+                fwrite(w, sizeof w, 1, stdout);
+            }
+        }
+        READ(&s, &r);
+        out[0] = (uint32_t)r.revolutions;
+        out[1] = ANGLE_BITS(r);
+        out[2] = r.flags;
+        if (!every) fwrite(out, sizeof out, 1, stdout);
     }
     return 0;
 }
@@ -409,6 +443,7 @@ static int mode_isr(int mode, long reads, long block) {
 int main(int argc, char **argv) {
     if (argc < 2) return fail("usage", 0);
     if (!strcmp(argv[1], "run")) return mode_run(argc > 2 ? atol(argv[2]) : 0);
+    if (!strcmp(argv[1], "trials")) return mode_trials(atol(argv[2]), atoi(argv[3]), argc > 4);
     if (!strcmp(argv[1], "angle")) return mode_angle();
     if (!strcmp(argv[1], "long")) return mode_long(argc, argv);
     if (!strcmp(argv[1], "fuzz")) return mode_fuzz(atoll(argv[2]));

@@ -85,6 +85,10 @@ def test_save_load_reconstruct_matches_the_cli_to_1e_12(paper_files, tmp_path):
     np.testing.assert_allclose(out["y_init"], api["y_init"], rtol=0, atol=1e-12)
     # the in-process object and the loaded one reconstruct identically
     np.testing.assert_array_equal(cal.reconstruct(folder / "run.csv")["y_star"], api["y_star"])
+    # the report is drawn from the recording: without it, the error family, not an AttributeError
+    with pytest.raises(hallcal.HallcalInputError, match="report needs data="):
+        loaded.report(tmp_path / "report")
+    assert not (tmp_path / "report").exists()
 
 
 def test_a_refused_calibration_is_not_saved(paper_files, tmp_path):

@@ -21,6 +21,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "hallcal"
 LAYERS: dict[str, int] = {
     "_version": 0,
     "errors": 0,
+    "formatting": 0,
     "limits": 0,
     "sensor": 1,
     "sim": 2,

@@ -249,11 +249,11 @@ def test_atan2_within_its_bound(work, cal, exe_f, exe_q, fixed):
 
 @pytest.mark.parametrize("fixed", [False, True])
 def test_million_revolutions(work, cal, exe_f, exe_q, fixed):
-    """10^6 revolutions forward at 0.118 electrical turn per sample (below the default step
-    limit, 1/8), then 5e4 back, on exact synthetic signals; every 10^5 samples the reading is
+    """10^6 revolutions forward at 0.058 electrical turn per sample (below the default speed
+    limit, 1/16), then 5e4 back, on exact synthetic signals; every 10^5 samples the reading is
     compared with f_star of that very sample (unwrapped at the true position)."""
     _, res = work
-    a, b = 107, 10007  # mechanical position k a / b turn, exact in integers in the driver
+    a, b = 53, 10007  # mechanical position k a / b turn, exact in integers in the driver
     nfwd = 10**6 * b // a
     ntot = nfwd + 50_000 * b // a
     amp = cal.amplitude
@@ -341,10 +341,11 @@ def test_common_mode_is_rejected_exactly(work, cal, exe_q, exe_f, fixed):
 
 @pytest.mark.parametrize("fixed", [False, True])
 def test_single_glitches_never_slip(work, cal, exe_f, exe_q, fixed):
-    """10 000 trials: constant speed (uniform up to the stated glitch-safe speed, either way),
-    one sample replaced at a random time by a glitch; half are the signals of a random angle
-    (plausible amplitude: only the step limit can catch them), half random counts. After the
-    glitch the output must come back to the clean run's output exactly: no slip."""
+    """10 000 trials: constant speed (uniform up to the stated speed limit, either way), one
+    sample replaced at a random time by a glitch; half are the signals of a random angle
+    (plausible amplitude: only the step rule can catch them), half random counts. After the
+    glitch the output must come back to the clean run's output exactly: no slip; a fault only
+    where the glitch was accepted at the edge of the window near the speed limit."""
     _, res = work
     rng = np.random.default_rng(2024)
     trials, length = 10_000, 40
@@ -375,9 +376,15 @@ def test_single_glitches_never_slip(work, cal, exe_f, exe_q, fixed):
         f"{'fixed' if fixed else 'float'}: {trials} glitches, {accepted} accepted by the checks, "
         f"{int(np.sum(~same))} outputs different at the end, {int(slips.sum())} slips"
     )
+    faults = int(np.sum(np.any(raw[:, :, 2] & 2, axis=1)))
+    print(
+        f"  {faults} faults (a glitch accepted at the edge of the window while the rotor runs "
+        "near the speed limit the other way: the angle cannot be trusted to come back)"
+    )
     assert not slips.any()
     assert same.all()
-    assert not np.any(raw[:, :, 2] & 2)  # a single glitch never raises the fault flag
+    # measured 0.7 % at speeds uniform up to the limit: a fault, never a slip; the rest absorbed
+    assert faults <= trials // 40
     assert accepted < trials // 4  # most glitches are caught (the rest are near the angle)
 
 
@@ -421,7 +428,7 @@ def test_clear_fault_and_recovery(tmp_path, cal, work):
     drv.write_text(
         '#include <stdio.h>\n#include "hallcal.c"\n'
         "int main(void) { hallcal_state s; hallcal_reading r; float v[3]; int k = 0;\n"
-        "  hallcal_init(&s, 0, 0.0f);\n"
+        "  hallcal_init(&s);\n"
         "  while (fread(v, sizeof v, 1, stdin) == 1) {\n"
         "    if (k == 120) hallcal_clear_fault(&s);\n"
         "    (void)hallcal_update(&s, v[0], v[1], v[2]); hallcal_read(&s, &r);\n"
@@ -602,12 +609,19 @@ def test_bad_options(tmp_path, cal, kwargs, why):
 
 def test_max_speed_sets_the_step_limit(tmp_path, cal):
     slow = export_c(cal.artifact, tmp_path / "a", max_speed=20.0)
-    fast = export_c(cal.artifact, tmp_path / "b", max_speed=150.0)
+    fast = export_c(cal.artifact, tmp_path / "b", max_speed=150.0, fault_after=10)
     assert slow.step_limit < fast.step_limit < 0.5
-    # 20 rad/s at 4 kHz, n = 11: 0.0088 electrical turn per sample; limit = 2 w + noise margin
+    # 20 rad/s at 4 kHz, n = 11: 0.0088 electrical turn per sample; the window is f_init's
+    # largest step there (slope s w, s from the sensors' distortion) plus the noise margin
+    pl = slow.design.plausibility
     w = 20.0 * 2.5e-4 * cal.n / TWO_PI
-    assert slow.step_limit == pytest.approx(2 * w, rel=0.2)
-    assert slow.glitch_safe_speed >= 20.0 * 2.5e-4
+    assert pl.speed == pytest.approx(w, rel=1e-12)
+    assert slow.step_limit == pytest.approx(pl.slope * w + pl.step_noise, rel=1e-12)
+    assert 1.0 <= pl.slope < 1.5  # the test sensors' distortion
+    assert slow.glitch_safe_speed == pytest.approx(20.0 * 2.5e-4, rel=1e-12)
+    # slow: many holds are alias-free, so the requested fault count stands; fast: fewer
+    assert slow.fault_after == 8 and slow.design.plausibility.alias_holds >= 7
+    assert fast.fault_after < 10 and any("fault flag latches after" in m for m in fast.messages)
 
 
 # ------------------------------------------------------------------------------------------

@@ -194,8 +194,12 @@ def _fast_spin(art: dict, adc_scale: float, fixed: bool) -> np.ndarray:
 
 
 def test_cycles_and_instructions_per_sample(demo, demo_builds):
-    """The worst traced path: the float variant within 200 Cortex-M4 cycles, the fixed
-    variant within 400 Cortex-M0+ instructions (validation run and fast spin)."""
+    """The worst traced path (validation run and fast spin; the taken branch at 1 + 2): the
+    float variant within 235 Cortex-M4 cycles (measured 218; 188 before the checks of issue
+    28: the consistency check along P's null vector about 10, the step rule's bookkeeping, the
+    turn's validation and the rejected count in the snapshot about 20 more), the fixed variant
+    within 400 Cortex-M0+ instructions (measured 357). The adversarial worst case, with read and
+    the other branch penalties and wait states: benchmarks/bench_cycles.txt."""
     d = demo["d"][:2000]
     worst = {}
     for variant, b in demo_builds.items():
@@ -211,7 +215,7 @@ def test_cycles_and_instructions_per_sample(demo, demo_builds):
                           int(np.median(tr.cycles)), int(tr.cycles.max()))  # fmt: skip
         print(f"{variant} on {b.target.name}: instructions median/max {worst[variant][:2]}, "
               f"M4 cycle estimate median/max {worst[variant][2:]}")  # fmt: skip
-    assert worst["float"][3] <= 200
+    assert worst["float"][3] <= 235
     assert worst["fixed"][1] <= 400
 
 
@@ -250,13 +254,12 @@ def ringjig_trace(tmp_path_factory):
 
 
 def test_ringjig_cycles_no_worse(ringjig_trace):
-    """Ring jig 1: float at most 220 M4 cycles (measured 218; 232 before the integer table
-    interpolation and the bit-pattern reciprocal seed), fixed at most 400 M0+ instructions.
-    The issue's 200-cycle budget is met on the demo (188) and on 28 pole pairs (193), not yet
-    here: the quadratic table of a 25-pole-pair raw-count recording costs about 20 cycles more;
-    this test keeps what was won."""
-    assert ringjig_trace["float"].cycles.max() <= 220
-    assert ringjig_trace["fixed"].counts.max() <= 400
+    """Ring jig 1: float at most 270 M4 cycles (measured 255; 218 before the checks of issue
+    28, see the demo's test: here the consistency check needs the null vector's three products,
+    the projection does not reject common mode), fixed at most 440 M0+ instructions (measured
+    422, 391 before). The issue's budget of 220 is not met: the checks cost about 40 cycles."""
+    assert ringjig_trace["float"].cycles.max() <= 270
+    assert ringjig_trace["fixed"].counts.max() <= 440
 
 
 @pytest.mark.parametrize("variant", ["float", "fixed"])
@@ -288,9 +291,13 @@ def test_glitches_on_arm(demo, demo_builds, variant):
     y_c = ah.angles(b, clean[:, -1])
     y_d = ah.angles(b, raw[:, -1])
     slips = int(np.sum(np.abs(y_d - y_c) > math.pi / art["pole_pairs"]))
-    print(f"{variant} on {b.target.name}: {trials} glitches, {slips} slips")
+    faults = int(np.sum(raw[:, -1, 2] & 2 != 0))
+    print(f"{variant} on {b.target.name}: {trials} glitches, {slips} slips, {faults} faults")
     assert slips == 0
-    np.testing.assert_array_equal(raw[:, -1], clean[:, -1])
+    np.testing.assert_array_equal(raw[:, -1, :2], clean[:, -1, :2])
+    # a fault where the glitch was accepted at the window's edge near the speed limit (1.8 %
+    # measured on the demo, 0.7 % on the host test's motor); never a slip
+    assert faults <= trials // 40
 
 
 # ------------------------------------------------------------------------------------------
@@ -356,11 +363,10 @@ def test_powerup_on_m4f_locks_like_python(demo, demo_pu):
 def test_powerup_cycles_before_and_after_the_lock(demo, demo_builds, demo_pu):
     """Before the lock every sample evaluates all n_m hypotheses: bounded (a fixed loop), at
     most 2500 M4 cycles for 11 pole pairs (measured about 1770: about 140 per hypothesis and
-    the rest once). After the lock the lean path: at most 200 cycles (the lean bound), and
-    its worst path at most 8 more than that of the build without the decoder (the dispatch is
-    a load, a compare and a branch, 4 cycles; GCC's block layout adds or saves taken branches
-    here and there, so that single samples differ by -4 .. +13: measured worst paths 191
-    against 188)."""
+    the rest once). After the lock the lean path: at most 240 cycles (the lean bound, 235),
+    and its worst path at most 8 more than that of the build without the decoder (the dispatch
+    is a load, a compare and a branch, 4 cycles; GCC's block layout adds or saves taken branches
+    here and there: measured worst paths 226 against 218, single samples 0 .. +13)."""
     b = demo_pu["b"]
     x = demo_pu["x"][:, :6].reshape(-1, 3)  # the first 6 samples of each power-up: the lock
     raw = ah.run(b, x, block=6)
@@ -384,7 +390,34 @@ def test_powerup_cycles_before_and_after_the_lock(demo, demo_builds, demo_pu):
           f"{int(np.median(tr_lean.cycles[after]))}/{tr_lean.cycles[after].max()}")  # fmt: skip
     assert pre.sum() >= 30 and after.sum() > 4000
     assert before.max() <= 2500
-    assert tr_post.cycles[after].max() <= 200
+    assert tr_post.cycles[after].max() <= 240
     diff = tr_post.cycles[after] - tr_lean.cycles[after]
     print(f"difference per sample {diff.min()} .. {diff.max()}")
     assert tr_post.cycles[after].max() <= tr_lean.cycles[after].max() + 8
+
+
+def test_no_fused_multiply_add_with_ide_flags(demo):
+    """The source's pragma keeps GCC from contracting a * b + c into VFMA on the Cortex-M4F
+    with the flags of an IDE (-std=gnu11 -Os) and with -Ofast; without it GCC emits them."""
+    import re
+    import subprocess
+
+    t = ah.TARGETS["m4f"]
+    src = demo["gen"] / "hallcal.c"
+    bare = demo["dir"] / "bare_hallcal.c"
+    bare.write_text(re.sub(r"#pragma[^\n]*\n", "\n", src.read_text()))
+    counts = {}
+    for name, path, flags in (
+        ("gnu11 -Os", src, ["-std=gnu11", "-Os"]),
+        ("-Ofast", src, ["-Ofast"]),
+        ("gnu11 -Os without the pragma", bare, ["-std=gnu11", "-Os"]),
+    ):
+        obj = demo["dir"] / f"fma_{len(counts)}.o"
+        subprocess.run(["arm-none-eabi-gcc", *t.cflags, *flags, f"-I{demo['gen']}", "-c",
+                        str(path), "-o", str(obj)], check=True)  # fmt: skip
+        dis = subprocess.run(["arm-none-eabi-objdump", "-d", str(obj)], capture_output=True,
+                             text=True, check=True).stdout  # fmt: skip
+        counts[name] = len(re.findall(r"\bvf(?:n?m[as])", dis))
+    print(f"VFMA/VFMS on the Cortex-M4F: {counts}")
+    assert counts["gnu11 -Os"] == 0 and counts["-Ofast"] == 0
+    assert counts["gnu11 -Os without the pragma"] > 0

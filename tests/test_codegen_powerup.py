@@ -259,13 +259,15 @@ def test_header_documents_the_api(paper):
     res = paper["res"]
     assert res.identifies_pole_pair and "powerup" in res.sections
     assert "void hallcal_init(hallcal_state *s);" in h
+    assert "uint32_t hallcal_set_angle(hallcal_state *s, int32_t revolutions, float angle);" in h
     assert "uint32_t identified;" in h and "uint32_t pole_pair;" in h
     assert "#define HALLCAL_POWERUP 1" in h
     assert res.powerup_table_bytes == 8 * (res.pole_pairs * paper["dec"].grid + 1)
     # the fixed-point variant keeps the homing API and says why
     hq = (paper["dir"] / "hallcal_q.h").read_text()
     assert "does NOT identify the pole pair" in hq
-    assert "void hallcal_q_init(hallcal_q_state *s, int32_t revolutions, uint32_t angle);" in hq
+    assert "void hallcal_q_init(hallcal_q_state *s);" in hq
+    assert "hallcal_q_set_angle(hallcal_q_state *s, int32_t revolutions, uint32_t angle);" in hq
 
 
 # ------------------------------------------------------------------------------------------
@@ -287,7 +289,8 @@ def test_ideal_sensors_emit_no_decoder(tmp_path):
         text = (tmp_path / name).read_text()
         assert "does NOT identify the pole pair" in text and "NOT identifiable" in text
     h = (tmp_path / "hallcal.h").read_text()
-    assert "void hallcal_init(hallcal_state *s, int32_t revolutions, float angle);" in h
+    assert "void hallcal_init(hallcal_state *s);" in h  # one init signature for every variant
+    assert "uint32_t hallcal_set_angle(hallcal_state *s, int32_t revolutions, float angle);" in h
     assert "POWERUP" not in h and "identified" not in c_code(h)
     assert "hc_evidence" not in (tmp_path / "hallcal.c").read_text()
     exe = compile_driver(tmp_path, fixed=False, flags=["-O2"])
@@ -305,7 +308,8 @@ def test_one_pole_pair_needs_no_decoder(tmp_path):
     assert not any("power-up" in m for m in res.messages)
     h = (tmp_path / "hallcal.h").read_text()
     assert "one pole pair" in h and "homed" not in h
-    assert "void hallcal_init(hallcal_state *s, int32_t revolutions, float angle);" in h
+    assert "void hallcal_init(hallcal_state *s);" in h  # one init signature for every variant
+    assert "uint32_t hallcal_set_angle(hallcal_state *s, int32_t revolutions, float angle);" in h
 
 
 def test_rejected_sample_before_the_lock_brings_no_evidence(paper):
@@ -335,7 +339,8 @@ def test_no_powerup_option(paper, tmp_path):
     res = export_c(paper["art"], tmp_path, adc_scale=ADC_SCALE, powerup=False)
     assert not res.identifies_pole_pair and "powerup" not in res.sections
     h = (tmp_path / "hallcal.h").read_text()
-    assert "void hallcal_init(hallcal_state *s, int32_t revolutions, float angle);" in h
+    assert "void hallcal_init(hallcal_state *s);" in h  # one init signature for every variant
+    assert "uint32_t hallcal_set_angle(hallcal_state *s, int32_t revolutions, float angle);" in h
     assert "left out on request" in h
 
 

@@ -113,7 +113,7 @@ class Calibration(_Result):
     def _from_result(cls, result: _Result) -> Calibration:
         return cls(**{f.name: getattr(result, f.name) for f in dataclasses.fields(_Result)})
 
-    def reconstruct(  # type: ignore[override]
+    def reconstruct(
         self,
         data: DataLike,
         *,
@@ -167,18 +167,22 @@ class Calibration(_Result):
         ----------
         out_dir : path
             Folder (created if needed).
-        data : path, Dataset or mapping, optional
-            The calibration recording (needed for the model-fit figures).
+        data : path, Dataset or mapping
+            The calibration recording (the report's figures and model fit are drawn from it;
+            required: a HallcalInputError without it).
         validation : path, Dataset or mapping, optional
             A fresh recording with ``y_ref`` to validate on.
-        units : {"mrad", "electrical-deg"}
-            Units of the angle errors in the report's text.
+        units : {"mrad", "rad", "deg", "electrical-deg"}
+            Units of the angle errors in the report's text (:class:`hallcal.formatting.AngleUnit`;
+            another name is a :class:`~hallcal.errors.HallcalInputError` naming the valid ones).
         """
         from hallcal.output.report import write_calibration_report
 
+        if data is None:  # the report is drawn from the recording: it cannot be written without
+            raise HallcalInputError("report needs data=, the calibration recording")
         return write_calibration_report(
             self,
-            None if data is None else as_dataset(data),
+            as_dataset(data),
             out_dir,
             validation=None if validation is None else as_dataset(validation, required=("y_ref",)),
             units=units,

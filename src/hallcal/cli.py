@@ -25,6 +25,7 @@ from typing import Any
 import click
 
 from hallcal.errors import CalibrationRefused, HallcalError, HallcalInputError
+from hallcal.formatting import AngleUnit, one_line, ranges, tf_text
 from hallcal.limits import MAX_POLE_PAIRS
 
 EXIT_INPUT = HallcalInputError.exit_status
@@ -55,16 +56,18 @@ _out = _Stream(err=False)
 #: Seeds of the random generators: non-negative and within 64 bits with room for the demo's
 #: validation run (seed + 1000), so that they fit the artifact's JSON.
 _SEED = click.IntRange(0, 2**62)
-UNITS = ("mrad", "electrical-deg")
+UNITS = tuple(u.value for u in AngleUnit)
 _EXITS = "0 success, 2 bad input (one line naming the file, column or key)"
 _EXITS_REFUSED = _EXITS + ", 3 refused"
 
 
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split())
-    if text.startswith("setup:") and _setup_path[0]:
+def _one_line(exc: BaseException | str) -> str:
+    text = one_line(exc)
+    ctx = click.get_current_context(silent=True)
+    path = None if ctx is None else ctx.meta.get("hallcal.setup_path")
+    if text.startswith("setup:") and path:
         # the numeric layers say "setup:"; the user wants the file's name
-        text = _setup_path[0] + text[len("setup") :]
+        text = path + text[len("setup") :]
     return text
 
 
@@ -123,18 +126,13 @@ class _Progress:
             _err.print(f"{elapsed}  {message}")
 
 
-_setup_path: list[str | None] = [None]  # the setup file of this command, for error messages
-
-
 def _setup(path: str | None):
     from hallcal.io import default_setup, read_setup
 
-    _setup_path[0] = path
+    ctx = click.get_current_context(silent=True)
+    if ctx is not None:  # the setup file of this command, for error messages
+        ctx.meta["hallcal.setup_path"] = path
     return default_setup() if path is None else read_setup(path)
-
-
-def _mrad(x: float | None) -> str:
-    return "-" if x is None or not math.isfinite(x) else f"{1e3 * x:.4f} mrad"
 
 
 def _output_dir(path: str) -> Path:
@@ -244,15 +242,6 @@ def _interrupted(exc: BaseException) -> bool:
     return False
 
 
-def _angle(x: float | None, units: str, pole_pairs: int) -> str:
-    """An angle error [rad, mechanical] in the chosen units."""
-    if x is None or not math.isfinite(x):
-        return "-"
-    if units == "electrical-deg":
-        return f"{math.degrees(x) * pole_pairs:.4f} electrical deg"
-    return _mrad(x)
-
-
 def _plural(count: int, word: str) -> str:
     return f"{count} {word}" + ("" if count == 1 else "s")
 
@@ -266,9 +255,11 @@ def _epilog(*examples: str, exits: str = _EXITS) -> str:
 _units_option = click.option(
     "--units",
     type=click.Choice(UNITS),
-    default="mrad",
+    default=AngleUnit.MRAD.value,
     show_default=True,
-    help="Angle errors in mechanical mrad or in electrical degrees (mechanical x pole pairs).",
+    callback=lambda _ctx, _param, value: AngleUnit(value),
+    help="Angle errors in mechanical mrad, rad or deg, or in electrical degrees (mechanical x "
+    "pole pairs).",
 )
 
 
@@ -372,11 +363,12 @@ def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int
         write_dataset(out_path, run.columns())
         write_json(sidecar, run.truth_dict())
     e = run.y - run.y0
+    mrad = AngleUnit.MRAD.text
     _out.print(f"wrote {out_path} ({run.n_samples} samples) and {sidecar}")
     _out.print(
-        f"f_init error against the truth: RMS {_mrad(float((e - e.mean()).std()))}, "
-        f"peak {_mrad(float(abs(e - e.mean()).max()))}; noise floor "
-        f"{_mrad(run.config.noise_floor)}"
+        f"f_init error against the truth: RMS {mrad(float((e - e.mean()).std()))}, "
+        f"peak {mrad(float(abs(e - e.mean()).max()))}; noise floor "
+        f"{mrad(run.config.noise_floor)}"
     )
 
 
@@ -429,15 +421,6 @@ def inspect(data: str, setup_path: str | None, pole_pairs: int | None) -> None:
         _out.print(toml)
     if found.pole_pairs_given:  # a wrong count: the report above used the data's; exit 2
         found.pole_pair_check.raise_if_failed(ds.source)
-
-
-def _tf_text(num: tuple[float, ...], den: tuple[float, ...], delay: float) -> str:
-    from hallcal.sim.lti import polynomial_text
-
-    text = f"G(s) = {polynomial_text(num)} / ({polynomial_text(den)})"
-    if delay > 0:
-        text += f", input delay {1e3 * delay:.4g} ms"
-    return text
 
 
 def _pole_list(poles: tuple[complex, ...]) -> str:
@@ -517,7 +500,7 @@ def bla(data: str, setup_path: str, out: str) -> None:
                 f"{c.criterion:<10.4g}  {_pole_list(c.poles)}{mark}"
             )
     p = res.plant
-    _out.print(_tf_text(p.num, p.den, p.delay))
+    _out.print(tf_text(p.num, p.den, p.delay))
     if res.check is not None:
         _out.print(f"poles (besides the integrator): {_pole_list(res.check.poles)} rad/s")
     _out.print(f"fit cost {par.cost:.4g} for {par.freq.size} lines; status {res.status}")
@@ -563,7 +546,7 @@ def _write_bla_plot(res: Any, path: Path) -> None:
 @_units_option
 @_handle_errors
 def calibrate(
-    data: str, setup_path: str, bla_data: str | None, out: str, force: bool, units: str
+    data: str, setup_path: str, bla_data: str | None, out: str, force: bool, units: AngleUnit
 ) -> None:
     """Calibrate: checks, plant (BLA if given), SEM, lookup table; write the JSON artifact.
 
@@ -581,26 +564,13 @@ def calibrate(
     _out.print(f"wrote {out}")
 
 
-def _ranges(values: list[int]) -> str:
-    """[1, 2, 3, 5, 33] -> '1..3, 5, 33'."""
-    out, v = [], sorted(int(x) for x in values)
-    i = 0
-    while i < len(v):
-        j = i
-        while j + 1 < len(v) and v[j + 1] == v[j] + 1:
-            j += 1
-        out.append(f"{v[i]}..{v[j]}" if j > i + 1 else ", ".join(map(str, v[i : j + 1])))
-        i = j + 1
-    return ", ".join(out)
-
-
-def _print_calibration(cal, units: str = "mrad") -> None:
+def _print_calibration(cal, units: AngleUnit = AngleUnit.MRAD) -> None:
     n_m = cal.pole_pairs
     sem = cal.sem
     _notes(cal.messages)
     info = cal.model_info
     if info.get("basis") == "fourier":
-        _out.print(f"model: Fourier basis, mechanical harmonics {_ranges(info['harmonics'])}")
+        _out.print(f"model: Fourier basis, mechanical harmonics {ranges(info['harmonics'])}")
     elif info.get("basis") == "kernel":
         _out.print(
             f"model: periodic kernel basis, {info.get('points')} points, "
@@ -624,11 +594,11 @@ def _print_calibration(cal, units: str = "mrad") -> None:
     if cs is not None:
         _out.print(
             f"constant-speed fit: {cs.revolutions:.2f} revolutions, rotor motion off the straight "
-            f"line {_angle(cs.motion_rms, units, n_m)} RMS"
+            f"line {units.text(cs.motion_rms, n_m)} RMS"
         )
     _out.print(
-        f"predicted f_star error: RMS {_angle(cal.predicted_error, units, n_m)} "
-        f"(noise floor {_angle(cal.noise_floor, units, n_m)})"
+        f"predicted f_star error: RMS {units.text(cal.predicted_error, n_m)} "
+        f"(noise floor {units.text(cal.noise_floor, n_m)})"
     )
     if cal.adequacy is not None:
         _out.print(f"model adequacy: {cal.adequacy.verdict}")
@@ -638,13 +608,13 @@ def _print_calibration(cal, units: str = "mrad") -> None:
     _print_validation(cal.validation, units, n_m)
 
 
-def _print_validation(v, units: str, n_m: int) -> None:
+def _print_validation(v, units: AngleUnit, n_m: int) -> None:
     """One line: f_init and f_star against the recording's y_ref, when it has one."""
     if v is not None:
         _out.print(
-            f"against y_ref: f_init RMS {_angle(v.init.rms, units, n_m)} peak "
-            f"{_angle(v.init.peak, units, n_m)}; f_star RMS {_angle(v.star.rms, units, n_m)} "
-            f"peak {_angle(v.star.peak, units, n_m)}"
+            f"against y_ref: f_init RMS {units.text(v.init.rms, n_m)} peak "
+            f"{units.text(v.init.peak, n_m)}; f_star RMS {units.text(v.star.rms, n_m)} "
+            f"peak {units.text(v.star.peak, n_m)}"
         )
 
 
@@ -682,7 +652,7 @@ def _print_validation(v, units: str, n_m: int) -> None:
 @_units_option
 @_handle_errors
 def reconstruct(
-    artifact: str, data: str, out: str, absolute: bool, observer: bool, units: str
+    artifact: str, data: str, out: str, absolute: bool, observer: bool, units: AngleUnit
 ) -> None:
     """Apply a calibration to a recording: columns y_init and y_star.
 
@@ -717,7 +687,7 @@ def reconstruct(
         _print_observer(rec, units, cal.pole_pairs)
 
 
-def _print_observer(rec, units: str, n_m: int) -> None:
+def _print_observer(rec, units: AngleUnit, n_m: int) -> None:
     """Two lines: the observer's states and first exclusion; y_obs against y_ref."""
     obs = rec.observer
     counts = Counter(obs.state.tolist())
@@ -731,8 +701,7 @@ def _print_observer(rec, units: str, n_m: int) -> None:
     if rec.observer_error is not None:
         e = rec.observer_error
         _out.print(
-            f"against y_ref: y_obs RMS {_angle(e.rms, units, n_m)} "
-            f"peak {_angle(e.peak, units, n_m)}"
+            f"against y_ref: y_obs RMS {units.text(e.rms, n_m)} peak {units.text(e.peak, n_m)}"
         )
 
 
@@ -787,7 +756,7 @@ def plan(artifact: str, revolutions: float, speeds: str | None, target: float) -
     cal = load(artifact)
     result = plan_next_ramp(cal, revolutions=revolutions, speeds=grid, target=target)
     floor = result.predictions[0].floor if result.predictions else math.nan
-    _out.print(f"noise floor {_mrad(floor)}; ramp over {revolutions:g} revolutions")
+    _out.print(f"noise floor {AngleUnit.MRAD.text(floor)}; ramp over {revolutions:g} revolutions")
     _out.print(f"{'speed [rad/s]':>14} {'samples':>9} {'f_star [mrad]':>14} {'x floor':>8}")
     for p in result.predictions:
         mark = (
@@ -841,7 +810,7 @@ def _print_identification(ident, pole_pairs: int) -> None:
     "--max-speed",
     type=float,
     default=None,
-    help="Largest mechanical speed [rad/s] for the step limit (default: 45 electrical "
+    help="Largest mechanical speed [rad/s] for the step rule (default: 22.5 electrical "
     "degrees per sample).",
 )
 @click.option(
@@ -875,7 +844,7 @@ def _print_identification(ident, pole_pairs: int) -> None:
     "--no-powerup",
     is_flag=True,
     help="No pole-pair identification at power-up in the float variant (saves its tables; "
-    "init then needs the calibration's starting position, as the fixed-point variant).",
+    "the angle then comes from set_angle after init, as in the fixed-point variant).",
 )
 @_handle_errors
 def export_c(
@@ -970,7 +939,7 @@ def _echo(text: str, *, err: bool = False) -> None:
 )
 @_units_option
 @_handle_errors
-def report(artifact: str, data: str, validation: str | None, out: str, units: str) -> None:
+def report(artifact: str, data: str, validation: str | None, out: str, units: AngleUnit) -> None:
     """Figures and an HTML report of a calibration (docs/report.md).
 
     DATA is the calibration recording; a bla.json next to the artifact is plotted when the

@@ -159,6 +159,7 @@ def run_demo(
         cal.lut, _dataset(val_run, "validation"), noise_floor=cal_run.config.noise_floor
     )
     plant = truth_setup.plant
+    assert plant is not None  # default_setup() has the paper's plant
     true_gain = plant.num[-1] / plant.den[-2]
     result_files = list(files)
     runs: dict[str, Any] = {"bla": ms, "calibration": cal_run, "validation": val_run}

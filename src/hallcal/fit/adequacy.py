@@ -62,7 +62,7 @@ from threadpoolctl import threadpool_limits
 from hallcal.fit.design import angle_noise_floor
 from hallcal.fit.sem import SEMResult, predicted_angle_error
 from hallcal.sensor.flux import FluxModel
-from hallcal.sensor.lut import build_lut
+from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sensor.reconstruction import clarke_matrix
 
 __all__ = [
@@ -1006,7 +1006,7 @@ def _levels(
 class _Table:
     """Step 2 of :func:`assess`: the table, its correction, the floor and the predicted error."""
 
-    lut: object
+    lut: LUT
     correction_rms: float
     floor: float
     predicted: float

@@ -489,7 +489,7 @@ def select_cogging(
     if orders == "none":
         return CoggingSelection(CoggingStatus.OFF, (), None, sem, message="cogging: not modelled")
     if orders != "auto":
-        given = tuple(int(k) for k in orders)  # type: ignore[union-attr]
+        given = tuple(int(k) for k in orders)
         joint = _fit(loop, rr, dd, sem, given, fit_gain=fit_gain, max_iterations=max_iterations)
         return CoggingSelection(
             CoggingStatus.GIVEN, given, joint.cogging, joint, None,

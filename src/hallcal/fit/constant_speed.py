@@ -665,7 +665,11 @@ class ConstantSpeedResult:
 
     def y0(self, k: ArrayLike | None = None) -> NDArray[np.float64]:
         """The fitted straight line ``a + b k`` (default: the segment's samples) [rad]."""
-        kk = np.arange(self.start, self.stop) if k is None else np.asarray(k, dtype=np.float64)
+        kk = (
+            np.arange(self.start, self.stop, dtype=np.float64)
+            if k is None
+            else np.asarray(k, dtype=np.float64)
+        )
         return self.a + self.b * kk
 
     def to_dict(self) -> dict:
@@ -718,10 +722,10 @@ class _WeightedLS:
 
     def coef(self, Xw: NDArray) -> NDArray:
         """C minimizing ||Xw - Bw C|| (Xw already weighted)."""
-        if self._cho is not None:
-            return scipy.linalg.cho_solve(self._cho, self.Bw.T @ Xw, check_finite=False)
-        Q, R = self._qr
-        return np.linalg.solve(R, Q.T @ Xw)
+        if self._qr is not None:
+            Q, R = self._qr
+            return np.linalg.solve(R, Q.T @ Xw)
+        return scipy.linalg.cho_solve(self._cho, self.Bw.T @ Xw, check_finite=False)
 
     def solve(self, D: NDArray) -> tuple[NDArray, NDArray]:
         """(theta^T, weighted residual) for data D (unweighted)."""

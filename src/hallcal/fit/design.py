@@ -218,7 +218,7 @@ def predict_ramp_error(
     """
     if not (speed > 0 and revolutions > 0 and noise_variance > 0):
         raise ValueError("speed, revolutions and noise_variance must be > 0")
-    ts = float(loop.plant.dt)
+    ts = loop.sample_time
     r = _ramp(speed, revolutions, ts)
     flux = FluxModel(layout.basis, layout.theta(x))
     floor = angle_noise_floor(flux, loop.pole_pairs, noise_variance,
@@ -274,7 +274,7 @@ def speed_limits(
     tuple of float
         (v_min, v_max) [rad/s].
     """
-    ts = float(loop.plant.dt)
+    ts = loop.sample_time
     h_max = max(int(max(layout.basis.harmonics)), int(loop.pole_pairs))
     v_max = TWO_PI / (SAMPLES_PER_PERIOD * h_max * ts)
     n_min = SAMPLES_PER_PARAMETER * layout.size
@@ -358,10 +358,9 @@ def plan_ramp(
             capped = True
             break
         preds.insert(0, predict(slower))
-    preds = tuple(preds)
     finite = [p for p in preds if math.isfinite(p.predicted)]
     if not finite:
-        return RampPlan(PlanStatus.FAILED, preds, None, target,
+        return RampPlan(PlanStatus.FAILED, tuple(preds), None, target,
                         "the closed loop diverged at every candidate speed")  # fmt: skip
     good = [p for p in finite if p.ratio <= target]
     if good:
@@ -389,4 +388,4 @@ def plan_ramp(
                 f" (the fastest speed tried, {v[-1]:.3g} rad/s, is the limit of "
                 f"{SAMPLES_PER_PERIOD} samples per period of the highest flux harmonic)"
             )
-    return RampPlan(status, preds, best, target, msg)
+    return RampPlan(status, tuple(preds), best, target, msg)

@@ -64,7 +64,9 @@ from threadpoolctl import threadpool_limits
 from hallcal.fit.layout import ParameterLayout
 from hallcal.limits import check_work_memory
 from hallcal.sim.loop import (
+    F64,
     ClosedLoop,
+    LoopArrays,
     LoopStatus,
     _advance,
     _advance_sensitivity,
@@ -581,15 +583,23 @@ class SimulatedLoop:
     status: PassStatus = PassStatus.OK
 
 
-def _model_arrays(loop: ClosedLoop, layout: ParameterLayout, x: ArrayLike) -> tuple:
+# the kernel arguments of a model: the loop's (LoopArrays), n_m, theta, harm, hmax, cog_k, cog_x,
+# rlo, rhi, drift
+ModelArrays = tuple[
+    F64, F64, F64, F64, F64, F64, float, F64, F64,
+    float, F64, NDArray[np.int64], int, F64, F64, F64, F64, F64,
+]  # fmt: skip
+
+
+def _model_arrays(loop: ClosedLoop, layout: ParameterLayout, x: ArrayLike) -> ModelArrays:
     """Kernel arguments of a model: loop arrays (B_G scaled by c), theta, harmonics, cogging,
     the loop's rails."""
     xx = np.asarray(x, dtype=np.float64).reshape(-1)
     if xx.size != layout.size:
         raise ValueError(f"x must have {layout.size} entries for this layout, got {xx.size}")
-    arrs = list(loop._arrays())
+    arrs: LoopArrays = loop._arrays()
     if layout.fit_gain:
-        arrs[1] = arrs[1] * math.exp(layout.log_gain(xx))
+        arrs = (arrs[0], arrs[1] * math.exp(layout.log_gain(xx)), *arrs[2:])
     harm = np.asarray(layout.basis.harmonics, dtype=np.int64)
     hmax = int(harm.max()) if harm.size else 0
     theta = _kernel_array(layout.theta(xx))
@@ -915,7 +925,19 @@ class _SensitivityPass:
     is often descheduled for a while) instead of meeting it at a barrier every chunk.
     """
 
-    def __init__(self, args, layout, r, d, wt, y_initial, T, ustride, nthreads, ring=4) -> None:
+    def __init__(
+        self,
+        args: ModelArrays,
+        layout: ParameterLayout,
+        r: F64,
+        d: F64,
+        wt: F64,
+        y_initial: float,
+        T: int,
+        ustride: int,
+        nthreads: int,
+        ring: int = 4,
+    ) -> None:
         self.args = args
         self.layout = layout
         self.r, self.d, self.wt = r, d, wt

@@ -565,7 +565,7 @@ class _Options:
     cap: int
     lengthscale: float | tuple[float, float]
     lengthscale_range: tuple[float, float]
-    criterion: str
+    criterion: Literal["evidence", "gcv"]
     use_ard: bool
     max_iterations: int
     tol: float

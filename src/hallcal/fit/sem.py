@@ -387,7 +387,8 @@ def _covariance(system: GaussNewtonSystem, ridge: NDArray, sigma2: float) -> NDA
         return np.full((p, p), math.nan)
     with threadpool_limits(limits=1, user_api="blas"):
         try:
-            return sigma2 * np.linalg.inv(system.gram + np.diag(ridge))
+            inv = np.linalg.inv(system.gram + np.diag(ridge))
+            return (sigma2 * inv).astype(np.float64, copy=False)
         except np.linalg.LinAlgError:
             return np.full((p, p), math.nan)
 
@@ -500,8 +501,11 @@ def solve_sem(
     """
     t_start = time.perf_counter()
     r, d = _checked_record(r, d)
-    cog0 = cogging if isinstance(cogging, CoggingTorque) else None
-    orders = cog0.orders if cog0 is not None else tuple(int(k) for k in cogging)
+    cog0: CoggingTorque | None = None
+    if isinstance(cogging, CoggingTorque):
+        cog0, orders = cogging, cogging.orders
+    else:
+        orders = tuple(int(k) for k in cogging)
     layout = ParameterLayout(basis, fit_gain=fit_gain, cogging_orders=orders, fit_drift=fit_drift)
     w = None if weights is None else checked_weights(weights, r.size)
     theta_start = _theta_start(loop, basis, d, theta0, y, w)

@@ -525,11 +525,12 @@ def _too_short(y: NDArray, d: ArrayLike, n: int, noise_variance: float, t0: floa
     """Less than a revolution: harmonics 1..n_m by least squares at y, no warp."""
     basis = FourierBasis(tuple(range(1, n + 1)))
     dd = np.asarray(d, dtype=np.float64)
-    theta = (
+    theta = np.ascontiguousarray(
         np.linalg.lstsq(basis.evaluate(y), dd, rcond=None)[0].T
         if y.size
-        else np.zeros((3, basis.size))
+        else np.zeros((3, basis.size)),
+        dtype=np.float64,
     )
-    view = FInitView(np.ascontiguousarray(theta), math.nan, float(noise_variance))
+    view = FInitView(theta, math.nan, float(noise_variance))
     u = Unwarp(n, np.zeros(0), FluxModel(basis, theta), math.nan, 0, 0, UnwarpStatus.CONVERGED)
     return BandEdge(n, u, view, (), BandEdgeStatus.TOO_SHORT, time.perf_counter() - t0)

@@ -26,7 +26,8 @@ from hallcal.fleet.summary import (
     SUMMARY_SCHEMA,
     _write_summary,
 )
-from hallcal.fleet.worker import _failed_result, _one_line, _Result, _run_motor, _Task, _version
+from hallcal.fleet.worker import _failed_result, _Result, _run_motor, _Task, _version
+from hallcal.formatting import one_line
 
 #: How long to wait for an existing scheduler (``scheduler="tcp://..."``) to answer.
 _CONNECT_TIMEOUT = "10s"
@@ -352,7 +353,7 @@ def _client(scheduler: Any, workers: int | None) -> Iterator[Any]:
         try:
             client = Client(scheduler, timeout=_CONNECT_TIMEOUT, set_as_default=False)
         except (OSError, TimeoutError, ValueError) as exc:
-            why = _one_line(str(exc)) or type(exc).__name__
+            why = one_line(exc) or type(exc).__name__
             raise HallcalInputError(f"scheduler {scheduler}: cannot connect ({why})") from None
         with client:
             yield client

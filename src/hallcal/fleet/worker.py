@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 from hallcal.errors import HallcalInputError
 from hallcal.fleet.manifest import MotorSpec
 from hallcal.fleet.summary import ARTIFACT_NAME, C_DIR, SUMMARY_COLUMNS, MotorStatus
+from hallcal.formatting import finite, one_line, ranges
 
 if TYPE_CHECKING:
     from hallcal.api import Calibration
@@ -66,10 +67,6 @@ class _Result:
     detail: str | None = None
 
 
-def _one_line(text: str) -> str:
-    return " ".join(str(text).split())
-
-
 def _calibrate(data: str, setup: str, bla_data: str | None) -> Calibration:
     """The one call into the calibration: the front door, as ``hallcal calibrate`` uses it.
 
@@ -90,9 +87,7 @@ def _calibrate(data: str, setup: str, bla_data: str | None) -> Calibration:
 def _model_text(model: Mapping[str, Any]) -> str:
     basis = model.get("basis")
     if basis == "fourier":
-        from hallcal.output.report.page import _ranges
-
-        return "fourier " + _ranges(model.get("harmonics", []), to="-", sep=",")
+        return "fourier " + ranges(model.get("harmonics", []), to="-", sep=",")
     if basis == "kernel":
         text = f"kernel m={model.get('points')}"
         ls = model.get("lengthscale")
@@ -116,18 +111,19 @@ def _single_threaded() -> Iterator[None]:
     """BLAS (threadpoolctl) and numba at one thread, so n workers use n cores, not n^2."""
     from threadpoolctl import threadpool_limits
 
+    previous: int | None = None
     try:
         import numba
 
         previous = numba.get_num_threads()
         numba.set_num_threads(1)
     except (ImportError, ValueError, RuntimeError):  # pragma: no cover - numba always present
-        numba, previous = None, None
+        previous = None
     try:
         with threadpool_limits(limits=1):
             yield
     finally:
-        if numba is not None and previous is not None:
+        if previous is not None:
             numba.set_num_threads(previous)
 
 
@@ -153,14 +149,14 @@ def _run_motor(task: _Task) -> _Result:
         with _single_threaded():
             _calibrate_into(task, result)
     except HallcalInputError as exc:
-        row.update(status=MotorStatus.FAILED.value, message=_one_line(str(exc)))
+        row.update(status=MotorStatus.FAILED.value, message=one_line(str(exc)))
     except MemoryError:
         row.update(status=MotorStatus.FAILED.value, message="out of memory in the worker")
         result.retry = True
     except Exception as exc:  # a bug or an unforeseen input: report it, go on with the others
         row.update(
             status=MotorStatus.FAILED.value,
-            message=_one_line(f"internal error: {type(exc).__name__}: {exc}"),
+            message=one_line(f"internal error: {type(exc).__name__}: {exc}"),
         )
         result.retry = True
         result.detail = traceback.format_exc()
@@ -176,13 +172,13 @@ def _calibrate_into(task: _Task, result: _Result) -> None:
 
     row = result.row
     cal = _calibrate(task.data, task.setup, task.bla_data)
-    row["predicted_error"] = _finite(cal.predicted_error)
+    row["predicted_error"] = finite(cal.predicted_error)
     row["model"] = _model_text(cal.model_info)
     force = bool(cal.setup.model.force)  # as `hallcal calibrate` honours [model] force = true
     notes = list(cal.messages)
     if cal.status is CalibrationStatus.NOT_BIJECTIVE or (cal.status.refused and not force):
         reason = cal.refusal or (notes[0] if notes else str(cal.status))
-        row.update(status=MotorStatus.REFUSED.value, message=_one_line(reason))
+        row.update(status=MotorStatus.REFUSED.value, message=one_line(reason))
         return
     status = MotorStatus.OK if cal.status is CalibrationStatus.OK else MotorStatus.WARNING
     if cal.status.refused:
@@ -214,8 +210,8 @@ def _calibrate_into(task: _Task, result: _Result) -> None:
                 raise HallcalInputError(
                     rec.messages[0].removeprefix("warning: validation skipped: ")
                 )
-            row["f_init_rms"] = _finite(v.init.rms)
-            row["f_star_rms"] = _finite(v.star.rms)
+            row["f_init_rms"] = finite(v.init.rms)
+            row["f_star_rms"] = finite(v.star.rms)
             if v.star.rms > v.init.rms:
                 status = MotorStatus.WARNING
                 notes.insert(
@@ -228,22 +224,14 @@ def _calibrate_into(task: _Task, result: _Result) -> None:
             notes.insert(0, f"warning: validation run unusable: {exc}")
     row["status"] = status.value
     row["artifact"] = f"{task.motor_id}/{ARTIFACT_NAME}"
-    row["message"] = _one_line(notes[0]) if notes else ""
-
-
-def _finite(x: Any) -> float | None:
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        return None
-    return v if math.isfinite(v) else None
+    row["message"] = one_line(notes[0]) if notes else ""
 
 
 def _failed_result(motor_id: str, message: str, *, retry: bool) -> _Result:
     row = _empty_row(motor_id)
     row.update(
         status=MotorStatus.FAILED.value,
-        message=_one_line(message),
+        message=one_line(message),
         computed_at=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
     )
     return _Result(row, retry=retry)

@@ -19,7 +19,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any, Literal, NoReturn, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -218,6 +218,10 @@ class _Checker:
             self.bad(f"key '{where}' must be an object")
         return value
 
+    @overload
+    def text(self, value: Any, where: str, *, optional: Literal[False] = False) -> str: ...
+    @overload
+    def text(self, value: Any, where: str, *, optional: bool) -> str | None: ...
     def text(self, value: Any, where: str, *, optional: bool = False) -> str | None:
         if value is None and optional:
             return None

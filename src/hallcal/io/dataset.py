@@ -57,6 +57,7 @@ from typing import IO, Any, NoReturn
 import numpy as np
 
 from hallcal.errors import HallcalInputError
+from hallcal.formatting import one_line
 from hallcal.io.files import _existing_file, _suggest, atomic_path, atomic_write
 from hallcal.io.text import TEXT_EXTENSIONS, read_text_table, write_text_table
 from hallcal.limits import (
@@ -483,7 +484,7 @@ def _head(p: Path, n: int) -> bytes:
 
 def _why(exc: BaseException) -> str:
     """``"OSError: first line of the message"``, at most 150 characters."""
-    text = " ".join(str(exc).split())
+    text = one_line(exc)
     text = f"{type(exc).__name__}: {text}" if text else type(exc).__name__
     return text if len(text) <= 150 else text[:147] + "..."
 
@@ -1005,4 +1006,4 @@ def write_dataset(path: str | os.PathLike[str], columns: Mapping[str, Any]) -> N
                     # the bytes numpy.lib.format.write_array writes, without its 16 MiB copies
                     header = np.lib.format.header_data_from_array_1_0(arr)
                     np.lib.format.write_array_header_1_0(member, header)
-                    member.write(memoryview(np.ascontiguousarray(arr)).cast("B"))
+                    member.write(np.ascontiguousarray(arr).data.cast("B"))

@@ -29,6 +29,7 @@ from typing import IO, Any, Literal, NoReturn
 import numpy as np
 
 from hallcal.errors import HallcalInputError
+from hallcal.formatting import one_line
 from hallcal.limits import MAX_JSON_BYTES, MAX_JSON_CONTAINERS, MAX_JSON_DEPTH
 
 __all__ = [
@@ -95,7 +96,7 @@ def write_error(path: str | os.PathLike[str], exc: OSError) -> HallcalInputError
     HallcalInputError
         Exit status 2.
     """
-    why = exc.strerror or " ".join(str(exc).split()) or type(exc).__name__
+    why = exc.strerror or one_line(exc) or type(exc).__name__
     return HallcalInputError(f"{os.fspath(path)}: cannot write ({why})")
 
 
@@ -573,14 +574,13 @@ def _check_parsed(p: str | os.PathLike[str], data: Any) -> None:
                     f"{p}: key '{where or '(top level)'}' is nested more than {MAX_JSON_DEPTH} "
                     "levels deep (the limit)"
                 )
-            items = value.items() if isinstance(value, dict) else enumerate(value)
-            for key, item in items:
-                if isinstance(value, dict):
+            if isinstance(value, dict):
+                for key, item in value.items():
                     _check_text(p, key, where)
-                    path = f"{where}.{key}" if where else str(key)
-                else:
-                    path = f"{where}[{key}]"
-                stack.append((item, path, depth + 1))
+                    stack.append((item, f"{where}.{key}" if where else str(key), depth + 1))
+            else:
+                for i, item in enumerate(value):
+                    stack.append((item, f"{where}[{i}]", depth + 1))
 
 
 def _check_text(p: str | os.PathLike[str], text: str, where: str) -> None:
@@ -758,7 +758,7 @@ def _read_json_raw(path: str | os.PathLike[str]) -> tuple[Any, bytes]:
             f"{p}: invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}"
         ) from None
     except ValueError as exc:  # NaN/Infinity, integers of more than 4300 digits
-        raise HallcalInputError(f"{p}: invalid JSON: {' '.join(str(exc).split())}") from None
+        raise HallcalInputError(f"{p}: invalid JSON: {one_line(exc)}") from None
     except RecursionError:
         raise _nested_too_deeply(p) from None
     _check_parsed(p, data)

@@ -19,6 +19,7 @@ from typing import Any, Literal, NoReturn
 import numpy as np
 
 from hallcal.errors import HallcalInputError
+from hallcal.formatting import one_line
 from hallcal.io.files import (
     _check_parsed,
     _closest,
@@ -735,7 +736,7 @@ def _parse_bla(t: _Table | None, sample_time: float) -> BLASpec | None:
         periods=periods,
         transient_periods=transient,
         realizations=realizations,
-        band=band,  # type: ignore[arg-type]
+        band=band,
         rms=t.number("rms", default=0.05, positive=True),
         lines=t.choice("lines", ("full", "odd", "random-odd"), default="random-odd"),
         drift=t.number("drift", default=1.0),
@@ -904,7 +905,7 @@ def read_setup(path: str | os.PathLike[str]) -> Setup:
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        message = " ".join(str(exc).split())
+        message = one_line(exc)
         raise HallcalInputError(f"{p}: invalid TOML: {message}") from None
     except RecursionError:
         raise _nested_too_deeply(p) from None

@@ -187,8 +187,8 @@ def _layout(lines: Iterable[str], source: str, *, headerless_ok: bool) -> _Layou
         assert first_data is not None
         delimiter = _txt_delimiter(first_data[1])
         width = len(_split(first_data[1], delimiter))
-        names = HEADERLESS_NAMES.get(width)
-        if names is None:
+        default_names = HEADERLESS_NAMES.get(width)
+        if default_names is None:
             known = ", ".join(
                 f"{n} columns ({' '.join(v)})" for n, v in sorted(HEADERLESS_NAMES.items())
             )
@@ -197,7 +197,7 @@ def _layout(lines: Iterable[str], source: str, *, headerless_ok: bool) -> _Layou
                 f"only with {known}: add a first line naming the columns (for example "
                 "'t d1 d2 d3')"
             )
-        return _Layout(names, delimiter, first_data[0], headerless=True)
+        return _Layout(default_names, delimiter, first_data[0], headerless=True)
 
     index, line = header
     if line.startswith("#"):
@@ -415,7 +415,7 @@ class _LinesOnDemand(Sequence[int]):
     def __len__(self) -> int:
         return self._n
 
-    def __getitem__(self, i):  # type: ignore[override]
+    def __getitem__(self, i):
         return self._load()[i]
 
 

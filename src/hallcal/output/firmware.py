@@ -18,15 +18,9 @@ can be checked here without a C compiler:
   and electrical angle with shifts); the table is the cheapest whose difference is within the
   budget: a tenth of the calibration's noise floor (so the table
   adds at most 0.5 % to the RMS error in quadrature), and never more than 1e-5 rad.
-* Plausibility (:class:`Plausibility`): each Hall channel must lie in its calibrated range, and
-  the alpha/beta radius in its calibrated window, both widened by a relative ``tolerance`` (drift
-  of gain and magnet with temperature) and six noise sigmas; the electrical step from the last
-  accepted sample must be within ``step_limit`` (grown by ``step_limit`` for each sample held).
-  With ``step_limit = 2 w + m`` (w the largest speed, m six sigmas of the step noise), one
-  glitch sample cannot make the unwrap slip as long as ``6 w + m < 1/2`` electrical turn: an
-  accepted glitch is at most ``L + w`` away from the true angle, the following samples are held
-  until the grown limit admits them (at most two), and by then the true angle is at most
-  ``L + 4 w < 1/2`` turn away (:attr:`Plausibility.glitch_safe_step`).
+* Plausibility (:class:`Plausibility`, :mod:`hallcal.output.plausibility`): the channel
+  ranges, the alpha/beta radius window, the consistency window along the projection's null
+  vector, and the step rule with its fault count.
 
 Units: angles in rad unless a name says turns (1 turn = 2 pi rad); "electrical" angles are
 n_m times the mechanical ones. Hall signals are in the artifact's unit.
@@ -47,6 +41,11 @@ from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
 from hallcal.io.artifact import ArtifactData, validate_artifact
+from hallcal.output.plausibility import (
+    DEFAULT_SPEED,
+    Plausibility,
+    _plausibility,
+)
 from hallcal.sensor.absolute import (
     GRID_CHOICES,
     IdentifiabilityReport,
@@ -58,7 +57,7 @@ from hallcal.sensor.lut import LUT
 __all__ = [
     "DEFAULT_BUDGET",
     "DEFAULT_FAULT_AFTER",
-    "DEFAULT_STEP_LIMIT",
+    "DEFAULT_SPEED",
     "DEFAULT_TOLERANCE",
     "table_sizes",
     "MAX_TABLE_POINTS",
@@ -86,13 +85,8 @@ MAX_BUDGET = 1e-5
 BUDGET_FRACTION = 0.1
 #: Relative widening of the calibrated amplitude windows (gain and magnet drift).
 DEFAULT_TOLERANCE = 0.25
-#: Step limit without a maximum speed [electrical turns per sample]: 45 electrical degrees.
-DEFAULT_STEP_LIMIT = 0.125
 #: Consecutive rejected samples after which the state flags a fault.
 DEFAULT_FAULT_AFTER = 8
-#: Noise sigmas added to every window.
-NOISE_SIGMAS = 6.0
-_MODEL_GRID = 4096  # points per revolution to evaluate the flux model for the windows
 _FIT_PER_INTERVAL = 8  # least-squares points per table interval (besides the artifact's nodes)
 
 
@@ -152,51 +146,6 @@ class CorrectionTable:
         c = self.curvature.astype(np.float64) * 2.0**self.curvature_shift
         j = (i + 1) % self.points
         return (t[i] * (1.0 - f) + t[j] * f + c[i] * f * (1.0 - f)) * self.lsb_rad
-
-
-@dataclass(frozen=True)
-class Plausibility:
-    """What a plausible sample looks like, from the calibration.
-
-    Attributes
-    ----------
-    tolerance : float
-        Relative widening of the calibrated ranges (gain and magnet drift).
-    channel_lo, channel_hi : ndarray, shape (3,)
-        Range of each Hall channel (artifact unit).
-    radius_lo, radius_hi : float
-        Window of the alpha/beta radius |P (d - o)| (artifact unit).
-    radius_model : tuple of float
-        Smallest and largest radius of the calibrated model over the revolution.
-    noise_sigma : float
-        Hall noise per channel used for the margins (artifact unit; 0 if unknown).
-    step_limit : float
-        Largest electrical step from the last accepted sample [turns per sample]; grows by
-        itself for each sample held.
-    step_noise : float
-        Six sigmas of the step's noise [electrical turns], included in ``step_limit``.
-    max_speed : float or None
-        The maximum speed the step limit was derived from [rad/s mechanical], or None for the
-        default limit.
-    glitch_safe_step : float
-        Largest true step [electrical turns per sample] at which one glitch sample cannot make
-        the unwrap slip.
-    fault_after : int
-        Consecutive rejected samples after which the state flags a fault (latched).
-    """
-
-    tolerance: float
-    channel_lo: NDArray[np.float64]
-    channel_hi: NDArray[np.float64]
-    radius_lo: float
-    radius_hi: float
-    radius_model: tuple[float, float]
-    noise_sigma: float
-    step_limit: float
-    step_noise: float
-    max_speed: float | None
-    glitch_safe_step: float
-    fault_after: int
 
 
 @dataclass(frozen=True)
@@ -458,76 +407,6 @@ def _choose_table(lut: LUT, budget: float) -> CorrectionTable:
 
 
 # --------------------------------------------------------------------------------------------
-# Plausibility
-# --------------------------------------------------------------------------------------------
-
-
-def _plausibility(
-    flux: FluxModel,
-    n: int,
-    P: NDArray,
-    o: NDArray,
-    noise_floor: float | None,
-    tolerance: float,
-    max_speed: float | None,
-    sample_time: float,
-    fault_after: int,
-    source: str,
-) -> Plausibility:
-    y0 = TWO_PI * np.arange(_MODEL_GRID) / _MODEL_GRID
-    g = flux(y0)
-    ab = (g - o) @ P.T
-    r = np.hypot(ab[:, 0], ab[:, 1])
-    r_min, r_max = float(np.min(r)), float(np.max(r))
-    if not r_min > 0.0:
-        raise _bad(source, "model", "gives a zero alpha/beta vector: no angle there")
-    # Hall noise per channel from the noise floor: floor = sigma |P|_F / (sqrt(2) r n)
-    sigma = 0.0
-    if noise_floor is not None:
-        sigma = noise_floor * math.sqrt(2.0) * float(np.mean(r)) * n / float(np.linalg.norm(P))
-    sigma_r = sigma * float(np.max(np.linalg.norm(P, axis=1)))
-    gmin, gmax = np.min(g, axis=0), np.max(g, axis=0)
-    centre, half = 0.5 * (gmax + gmin), 0.5 * (gmax - gmin)
-    widen = (1.0 + tolerance) * half + NOISE_SIGMAS * sigma
-    radius_lo = (1.0 - tolerance) * r_min - NOISE_SIGMAS * sigma_r
-    radius_hi = (1.0 + tolerance) * r_max + NOISE_SIGMAS * sigma_r
-    if not radius_lo > 0.05 * r_min:
-        raise HallcalInputError(
-            f"{source}: the amplitude window would reach zero (tolerance {tolerance:g} and the "
-            "noise are too large for this sensor map)"
-        )
-    # step: noise of the electrical angle between two samples, in turns
-    sigma_el = sigma_r / r_min  # rad, per sample
-    step_noise = NOISE_SIGMAS * math.sqrt(2.0) * sigma_el / TWO_PI
-    if max_speed is None:
-        limit = DEFAULT_STEP_LIMIT
-        w = max(0.0, 0.5 * (limit - step_noise))
-    else:
-        w = max_speed * sample_time * n / TWO_PI  # electrical turns per sample
-        limit = 2.0 * w + step_noise
-        if limit >= 0.5:
-            raise HallcalInputError(
-                f"max_speed {max_speed:g} rad/s is {w:.3g} electrical turns per sample: f_init "
-                "cannot follow a quarter turn per sample or more"
-            )
-    safe = min(max(0.0, 0.5 * (limit - step_noise)), max(0.0, (0.5 - limit) / 4.0))
-    return Plausibility(
-        tolerance=tolerance,
-        channel_lo=centre - widen,
-        channel_hi=centre + widen,
-        radius_lo=radius_lo,
-        radius_hi=radius_hi,
-        radius_model=(r_min, r_max),
-        noise_sigma=sigma,
-        step_limit=limit,
-        step_noise=step_noise,
-        max_speed=max_speed,
-        glitch_safe_step=safe,
-        fault_after=fault_after,
-    )
-
-
-# --------------------------------------------------------------------------------------------
 # The design
 # --------------------------------------------------------------------------------------------
 
@@ -605,10 +484,10 @@ def design_firmware(
         Relative widening of the calibrated amplitude windows, in [0, 0.9].
     max_speed : float, keyword-only
         Largest mechanical speed [rad/s] (with the setup's ``sample_time``); None: the default
-        step limit of 45 electrical degrees per sample.
+        speed limit of 22.5 electrical degrees per sample.
     fault_after : int, keyword-only
         Consecutive rejected samples before the fault flag, 4..1000 (single glitches hold at
-        most three samples).
+        most two samples; fewer when that count could alias, see :func:`alias_holds`).
     sha256 : str, keyword-only
         The artifact's hash, carried into the design.
 
@@ -640,10 +519,11 @@ def design_firmware(
     messages += table_messages
     plaus = _plausibility(flux, n, P, o, floor, float(tolerance), max_speed, ts, fault_after,
                           source)  # fmt: skip
-    if max_speed is not None and plaus.glitch_safe_step * TWO_PI / n < max_speed * ts:
+    if plaus.fault_after < fault_after != DEFAULT_FAULT_AFTER:  # the default: the banner says it
         messages.append(
-            "at this max_speed a single glitch sample may make the angle slip by a pole pitch "
-            f"(safe up to {plaus.glitch_safe_step * TWO_PI / n / ts:.4g} rad/s)"
+            f"the fault flag latches after {plaus.fault_after} rejected samples in a row, not "
+            f"{fault_after}: after a longer outage a rotor at up to twice the speed limit "
+            "could be a pole pitch off"
         )
     return FirmwareDesign(
         pole_pairs=n,

@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import base64
 import datetime as _dt
-import html
-import io as _io
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -23,11 +21,12 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 from matplotlib.figure import Figure
-from matplotlib.ticker import FuncFormatter
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal._version import __version__
+from hallcal.formatting import AngleUnit, esc, number
 from hallcal.io import atomic_write
+from hallcal.output.plots import figure_png, log_axis
 from hallcal.output.report.page import _CSS as _REPORT_CSS
 
 __all__ = ["Outlier", "find_outliers", "render_fleet_html", "robust_outliers", "write_fleet_report"]
@@ -134,6 +133,10 @@ def find_outliers(rows: Sequence[Mapping[str, Any]]) -> list[Outlier]:
     """
     good = [r for r in rows if r.get("status") in ("ok", "warning")]
     reasons: dict[str, list[str]] = {r["motor_id"]: [] for r in good}
+
+    def mrad(x: float | None) -> str:
+        return AngleUnit.MRAD.text(x, page=True)
+
     for key, what in (("predicted_error", "predicted error"), ("f_star_rms", "f_star RMS")):
         vals = _column(good, key)
         mask, thr = robust_outliers(vals)
@@ -141,34 +144,20 @@ def find_outliers(rows: Sequence[Mapping[str, Any]]) -> list[Outlier]:
         for r, v, m in zip(good, vals, mask, strict=True):
             if m and thr is not None:
                 reasons[r["motor_id"]].append(
-                    f"{what} {_mrad(v)} (batch median {_mrad(med)}, outlier above {_mrad(thr)})"
+                    f"{what} {mrad(v)} (batch median {mrad(med)}, outlier above {mrad(thr)})"
                 )
     for r in good:
         fi, fs = r.get("f_init_rms"), r.get("f_star_rms")
         if fi is not None and fs is not None and fs >= fi:
             reasons[r["motor_id"]].append(
-                f"f_star RMS {_mrad(fs)} is not better than f_init {_mrad(fi)}"
+                f"f_star RMS {mrad(fs)} is not better than f_init {mrad(fi)}"
             )
     return [Outlier(r["motor_id"], reasons[r["motor_id"]]) for r in good if reasons[r["motor_id"]]]
-
-
-def _mrad(x: float | None) -> str:
-    return "–" if x is None or not math.isfinite(x) else f"{1e3 * x:.3f} mrad"
-
-
-def _esc(x: Any) -> str:
-    return html.escape(str(x), quote=True)
 
 
 def _log_scale(values: NDArray[np.float64]) -> bool:
     """A log axis when the values span more than a factor 3, else a linear one."""
     return float(values.max()) > 3.0 * float(values.min())
-
-
-def _log_axis(axis: Any) -> None:
-    """Log scale with plain numbers (0.6, 2) instead of powers of ten."""
-    axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
-    axis.set_minor_formatter(FuncFormatter(lambda v, _: ""))
 
 
 def _bins(values: NDArray[np.float64], n: int = 24) -> NDArray[np.float64]:
@@ -185,17 +174,18 @@ def _figure_predicted(rows: Sequence[Mapping[str, Any]]) -> Figure | None:
     vals = vals[np.isfinite(vals) & (vals > 0)]
     if vals.size == 0:
         return None
-    mrad = 1e3 * vals
+    mrad = AngleUnit.MRAD.convert(vals)
     fig = Figure(figsize=(8.0, 3.4), layout="constrained")
     ax = fig.add_subplot()
     ax.hist(mrad, bins=_bins(mrad), color="#1f77b4", edgecolor="white")
     if _log_scale(mrad):
         ax.set_xscale("log")
-        _log_axis(ax.xaxis)
+        log_axis(ax.xaxis, float(mrad.min()), float(mrad.max()))
     ax.axvline(float(np.median(mrad)), color="black", ls="--", lw=1, label="median")
     _, thr = robust_outliers(vals)
     if thr is not None:
-        ax.axvline(1e3 * thr, color="#d62728", ls=":", lw=1.2, label="outlier threshold")
+        thr_mrad = AngleUnit.MRAD.convert(thr)
+        ax.axvline(thr_mrad, color="#d62728", ls=":", lw=1.2, label="outlier threshold")
     ax.set_xlabel("predicted f_star error, RMS [mrad]")
     ax.set_ylabel("motors")
     ax.legend(frameon=False)
@@ -206,8 +196,8 @@ def _figure_validation(rows: Sequence[Mapping[str, Any]]) -> Figure | None:
     val = [r for r in rows if r.get("f_init_rms") is not None and r.get("f_star_rms") is not None]
     if not val:
         return None
-    fi = 1e3 * _column(val, "f_init_rms")
-    fs = 1e3 * _column(val, "f_star_rms")
+    fi = AngleUnit.MRAD.convert(_column(val, "f_init_rms"))
+    fs = AngleUnit.MRAD.convert(_column(val, "f_star_rms"))
     fig = Figure(figsize=(9.0, 3.8), layout="constrained")
     ax1, ax2 = fig.subplots(1, 2, width_ratios=(1.0, 1.3))
     colors = [_COLORS.get(str(r.get("status")), "#1f77b4") for r in val]
@@ -217,8 +207,8 @@ def _figure_validation(rows: Sequence[Mapping[str, Any]]) -> Figure | None:
     ax1.plot([lo, hi], [lo, hi], color="grey", lw=1, ls="--", label="f_star = f_init")
     ax1.set_xscale("log")
     ax1.set_yscale("log")
-    _log_axis(ax1.xaxis)
-    _log_axis(ax1.yaxis)
+    log_axis(ax1.xaxis, lo, hi)
+    log_axis(ax1.yaxis, lo, hi)
     ax1.set_xlim(lo, hi)
     ax1.set_ylim(lo, hi)
     ax1.set_xlabel("f_init RMS [mrad]")
@@ -230,31 +220,21 @@ def _figure_validation(rows: Sequence[Mapping[str, Any]]) -> Figure | None:
     ax2.hist(fs, bins=bins, color="#d62728", alpha=0.75, label="f_star")
     if _log_scale(both[both > 0]):
         ax2.set_xscale("log")
-        _log_axis(ax2.xaxis)
+        log_axis(ax2.xaxis, float(both[both > 0].min()), float(both.max()))
     ax2.set_xlabel("RMS angle error on the validation run [mrad]")
     ax2.set_ylabel("motors")
     ax2.legend(frameon=False)
     return fig
 
 
-def _png(fig: Figure) -> bytes:
-    buf = _io.BytesIO()
-    fig.savefig(buf, format="png", dpi=_DPI, metadata={"Software": None})
-    return buf.getvalue()
-
-
 def _img(fig: Figure, title: str, caption: str) -> str:
     w, h = fig.get_size_inches() * _DPI
-    b64 = base64.b64encode(_png(fig)).decode("ascii")
+    b64 = base64.b64encode(figure_png(fig, dpi=_DPI)).decode("ascii")
     return (
-        f'<figure><img src="data:image/png;base64,{b64}" alt="{_esc(title)}" '
-        f'width="{int(round(w))}" height="{int(round(h))}"><figcaption><b>{_esc(title)}.</b> '
-        f"{_esc(caption)}</figcaption></figure>"
+        f'<figure><img src="data:image/png;base64,{b64}" alt="{esc(title)}" '
+        f'width="{int(round(w))}" height="{int(round(h))}"><figcaption><b>{esc(title)}.</b> '
+        f"{esc(caption)}</figcaption></figure>"
     )
-
-
-def _num(x: Any, fmt: str) -> str:
-    return "–" if x is None else format(float(x), fmt)
 
 
 def render_fleet_html(rows: Sequence[Mapping[str, Any]], *, source: str = "") -> str:
@@ -314,8 +294,8 @@ def _head(rows: Sequence[Mapping[str, Any]], source: str) -> list[str]:
         f"<title>hallcal fleet: {len(rows)} motors</title><style>{_CSS}</style></head>",
         "<body><main>",
         f"<h1>Fleet calibration: {len(rows)} motors</h1>",
-        f'<p class="meta">manifest: {_esc(source or "in memory")} · created {created} · '
-        f"hallcal {_esc(__version__)}"
+        f'<p class="meta">manifest: {esc(source or "in memory")} · created {created} · '
+        f"hallcal {esc(__version__)}"
         + (f" · {reused} results reused from an earlier run" if reused else "")
         + "</p>",
         '<p class="counts">'
@@ -348,7 +328,7 @@ def _outlier_section(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     ]
     if outliers:
         body = "".join(
-            f"<tr><td>{_esc(o.motor_id)}</td><td class=msg>{'<br>'.join(map(_esc, o.reasons))}"
+            f"<tr><td>{esc(o.motor_id)}</td><td class=msg>{'<br>'.join(map(esc, o.reasons))}"
             "</td></tr>"
             for o in outliers
         )
@@ -410,17 +390,17 @@ def _motor_table(rows: Sequence[Mapping[str, Any]], keys: Sequence[str]) -> str:
         for k in keys:
             v = r.get(k)
             if k in ("predicted_error", "f_init_rms", "f_star_rms"):
-                cells.append(f'<td class="num">{_mrad(v)}</td>')
+                cells.append(f'<td class="num">{AngleUnit.MRAD.text(v, page=True)}</td>')
             elif k == "seconds":
-                cells.append(f'<td class="num">{_num(v, ".1f")}</td>')
+                cells.append(f'<td class="num">{number(v, ".1f")}</td>')
             elif k == "status":
                 color = _COLORS.get(str(v), "#616161")
                 style = f"color:{color};font-weight:600"
-                cells.append(f'<td><span style="{style}">{_esc(v)}</span></td>')
+                cells.append(f'<td><span style="{style}">{esc(v)}</span></td>')
             elif k == "message":
-                cells.append(f'<td class="msg">{_esc(v or "")}</td>')
+                cells.append(f'<td class="msg">{esc(v or "")}</td>')
             else:
-                cells.append(f'<td class="nowrap">{_esc("" if v is None else v)}</td>')
+                cells.append(f'<td class="nowrap">{esc("" if v is None else v)}</td>')
         body.append("<tr>" + "".join(cells) + "</tr>")
     return f'<table class="motors"><tr>{head}</tr>{"".join(body)}</table>'
 

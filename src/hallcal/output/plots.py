@@ -23,14 +23,18 @@ degrees, angle errors in mrad, spatial frequencies in cycles per revolution.
 
 from __future__ import annotations
 
+import io
 import math
+import warnings
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormatter
 from numpy.typing import ArrayLike, NDArray
+
+from hallcal.formatting import AngleUnit
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -48,6 +52,8 @@ __all__ = [
     "NOISE_COLOR",
     "STAR_COLOR",
     "TRUTH_COLOR",
+    "figure_png",
+    "log_axis",
     "plot_angle_error",
     "plot_bla",
     "plot_cogging",
@@ -95,11 +101,35 @@ def _vec(x: ArrayLike, name: str) -> NDArray[np.float64]:
 
 
 def _deg(x: ArrayLike) -> NDArray[np.float64]:
-    return np.degrees(np.asarray(x, dtype=np.float64))
+    return AngleUnit.DEG.convert(np.asarray(x, dtype=np.float64))
 
 
 def _mrad(x: ArrayLike) -> NDArray[np.float64]:
-    return 1e3 * np.asarray(x, dtype=np.float64)
+    return AngleUnit.MRAD.convert(np.asarray(x, dtype=np.float64))
+
+
+def figure_png(fig: Figure, *, dpi: int) -> bytes:
+    """The figure as PNG bytes, without the matplotlib version in its metadata.
+
+    Parameters
+    ----------
+    fig : matplotlib.figure.Figure
+        The figure.
+    dpi : int, keyword-only
+        Resolution [dots per inch].
+
+    Returns
+    -------
+    bytes
+        The PNG file.
+    """
+    buf = io.BytesIO()
+    with warnings.catch_warnings():
+        # a figure of degenerate data (a flat trace, a tiny run) may not fit constrained layout;
+        # matplotlib then draws it without and says so on stderr, which is no news to the user
+        warnings.filterwarnings("ignore", message="constrained_layout not applied")
+        fig.savefig(buf, format="png", dpi=dpi, metadata={"Software": None})
+    return buf.getvalue()
 
 
 def _centred(e: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -120,10 +150,17 @@ def _log_label(value: float, _pos: object = None) -> str:
     return f"{value:.3g}"
 
 
-def _log_axis(axis, lo: float, hi: float) -> None:
+def log_axis(axis: Any, lo: float, hi: float) -> None:
     """Plain-text labels on a log axis (no mathtext: faster and the same font as the rest).
 
     Spans of less than about two decades also get labels at 2x and 5x each decade.
+
+    Parameters
+    ----------
+    axis : matplotlib.axis.Axis
+        An axis already on a log scale.
+    lo, hi : float
+        The span of the data on it (> 0).
     """
     axis.set_major_locator(LogLocator(base=10.0))
     axis.set_major_formatter(FuncFormatter(_log_label))
@@ -476,13 +513,13 @@ def plot_error_spectrum(
         )
     ax.set_xscale("log")
     ax.set_xlim(fmin, fmax)
-    _log_axis(ax.xaxis, fmin, fmax)
+    log_axis(ax.xaxis, fmin, fmax)
     if log:
         ax.set_yscale("log")
         both = unit * np.concatenate([si.cumulative, ss.cumulative])
         both = both[both > 0]
         if both.size:
-            _log_axis(ax.yaxis, float(both.min()), float(both.max()))
+            log_axis(ax.yaxis, float(both.min()), float(both.max()))
     ax.set_xlabel("spatial frequency [cycles/rev]")
     ax.set_ylabel("cumulative PSD of the error [mrad²]")
     revs = f"{si.revolutions:.3g} revolution" + ("" if si.revolutions == 1 else "s")
@@ -602,7 +639,7 @@ def plot_bla(
     axp.set_xlabel("frequency [Hz]")
     axp.yaxis.set_major_locator(MaxNLocator(nbins=6, steps=[1, 2, 4.5, 9, 10]))
     for a in (axm, axp):
-        _log_axis(a.xaxis, float(fd[0]), float(fd[-1]))
+        log_axis(a.xaxis, float(fd[0]), float(fd[-1]))
     _legend(axp, loc="lower left")
     return fig
 
@@ -750,7 +787,7 @@ def plot_sem_cost(sem: SEMResult, *, noise_variance: float | None = None) -> Fig
         lo, hi = float(finite.min()), float(finite.max())
         if math.isfinite(s2) and s2 > 0:
             lo, hi = min(lo, 3 * sem.n_samples * s2), max(hi, 3 * sem.n_samples * s2)
-        _log_axis(ax.yaxis, lo, hi)
+        log_axis(ax.yaxis, lo, hi)
     ax.set_xlabel("iteration")
     ax.set_ylabel("cost J(θ) = Σ ‖d − d_sim‖² [(Hall signal unit)²]")
     _title(

@@ -10,6 +10,7 @@ import contextlib
 from collections.abc import Iterator
 
 from hallcal.errors import HallcalError, HallcalInputError
+from hallcal.formatting import one_line
 
 __all__ = ["numeric_errors"]
 
@@ -48,10 +49,10 @@ def numeric_errors(source: str, key: str | None = None) -> Iterator[None]:
         if exc.source is not None or str(exc).startswith(f"{source}:"):
             raise
         # raised by the core, which knew the column or key but not the file
-        text = " ".join(str(exc).split())
+        text = one_line(exc)
         raise HallcalInputError(f"{where}: {text}", source=source, key=exc.key or key) from None
     except HallcalError:
         raise
     except ValueError as exc:
-        text = " ".join(str(exc).split())
+        text = one_line(exc)
         raise HallcalInputError(f"{where}: {text}", source=source, key=key) from None

@@ -31,7 +31,7 @@ import enum
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -230,7 +230,7 @@ def _hall_matrix(dataset: Dataset) -> NDArray[np.float64]:
     return d - np.mean(d, axis=0)  # raw ADC offsets cancel to first order
 
 
-def electrical_angle(dataset: Dataset) -> NDArray[np.float64]:
+def unwrapped_electrical_angle(dataset: Dataset) -> NDArray[np.float64]:
     """Unwrapped electrical angle of the Hall signals (Clarke + atan2, offsets removed) [rad]."""
     return f_init(_hall_matrix(dataset), 1)
 
@@ -258,7 +258,7 @@ def _electrical_per_mechanical(dataset: Dataset) -> _Slope | None:
     mech, method = ref
     if mech.size < 8 or not np.all(np.isfinite(mech)):
         return None
-    psi = electrical_angle(dataset)
+    psi = unwrapped_electrical_angle(dataset)
     span = float(np.ptp(mech))
     if span / TWO_PI < MIN_REVOLUTIONS:
         return _Slope(math.nan, float(psi[-1] - psi[0]) / TWO_PI, span / TWO_PI, method)
@@ -307,7 +307,7 @@ def check_pole_pairs(dataset: Dataset, pole_pairs: int) -> PolePairCheck:
         f"the Hall signals turn {abs(fit.cycles):.1f} electrical cycles while the {fit.method} "
         f"moves {abs(fit.revolutions):.2f} revolutions: {est:.2f} cycles per revolution"
     )
-    common = dict(
+    common: dict[str, Any] = dict(
         pole_pairs=n,
         estimate=est,
         electrical_cycles=fit.cycles,
@@ -469,7 +469,7 @@ def _signature_check(dataset: Dataset, n: int) -> PolePairCheck:
     sig = pole_pairs_from_signature(np.asarray(dataset.d, dtype=np.float64))
     method = "magnet signature"
     best = sig.best
-    common = dict(pole_pairs=n, electrical_cycles=float(sig.cycles), method=method)
+    common: dict[str, Any] = dict(pole_pairs=n, electrical_cycles=float(sig.cycles), method=method)
     if best is None:
         return PolePairCheck(
             CheckStatus.SKIPPED,
@@ -643,8 +643,8 @@ def check_angle_units(
 ) -> Check:
     """The angle columns must be in mechanical rad: their travel against the Hall angle / n_m.
 
-    f_init of the Hall signals (:func:`electrical_angle`) divided by n_m is a mechanical angle
-    in rad whatever the drive logged; each of ``columns`` present is regressed on it, and a
+    f_init of the Hall signals (:func:`unwrapped_electrical_angle`) divided by n_m is a mechanical
+    angle in rad whatever the drive logged; each of ``columns`` present is regressed on it, and a
     slope near 180/pi (or 180 n_m / pi) is a column logged in degrees (electrical degrees). The
     columns are also compared with ``y`` directly (no n_m involved), so a column in another unit
     than ``y`` is found with a wrong ``pole_pairs`` too.
@@ -668,7 +668,7 @@ def check_angle_units(
         return Check(CheckStatus.SKIPPED, "angle units not checked: no angle column")
     if hall_lag_correlation(dataset) < STANDSTILL_CORRELATION:
         return Check(CheckStatus.SKIPPED, "angle units not checked: the Hall signals stand still")
-    psi = electrical_angle(dataset)
+    psi = unwrapped_electrical_angle(dataset)
     if float(np.ptp(psi)) < MIN_HALL_TRAVEL:
         return Check(CheckStatus.SKIPPED, "angle units not checked: the rotor hardly moved")
     n = max(int(pole_pairs), 1)
@@ -817,7 +817,8 @@ def closed_loop_poles(
         a[:ng, ng:] = np.outer(p.B, c.C)
         a[ng:, :ng] = -np.outer(c.B, p.C)
         a[ng:, ng:] = c.A
-    z = np.linalg.eigvals(a) if a.size else np.zeros(0, complex)
+    # eigvals returns float64 when every eigenvalue is real: complex always, as documented
+    z = np.linalg.eigvals(a).astype(np.complex128) if a.size else np.zeros(0, np.complex128)
     return z[np.argsort(-np.abs(z))]
 
 

@@ -117,7 +117,7 @@ def _kernels_cached() -> bool:
 
     kernel = loop_module._simulate_kernel
     try:
-        index = kernel._cache._cache_file._index_path
+        index = kernel._cache._cache_file._index_path  # type: ignore[attr-defined]  # numba private
     except AttributeError:  # another numba: cannot tell, so say nothing
         return True
     return bool(kernel.signatures) or os.path.exists(index)
@@ -435,12 +435,11 @@ def _refined_plant(pm: PlantModel, fit: _ModelFit) -> PlantModel:
     """Apply the gain refined jointly with theta to a BLA plant (no-op for a given plant)."""
     if pm.gain is None or pm.bla is None:
         return pm
+    c_refined = pm.gain.c * fit.gain_factor
     gain = dataclasses.replace(
-        pm.gain,
-        c_refined=pm.gain.c * fit.gain_factor,
-        c_refined_std=pm.gain.c * fit.gain_factor_std,
+        pm.gain, c_refined=c_refined, c_refined_std=pm.gain.c * fit.gain_factor_std
     )
-    return dataclasses.replace(pm, plant=pm.bla.plant.scaled(gain.c_refined), gain=gain)
+    return dataclasses.replace(pm, plant=pm.bla.plant.scaled(c_refined), gain=gain)
 
 
 def _folding_ok(adequacy: AdequacyReport, observer: Injectivity | None) -> bool:

@@ -87,7 +87,7 @@ def plan_next_ramp(
                 f"plan: {speeds.size} speeds, above the limit of {MAX_PLAN_SPEEDS}"
             )
     grid = candidate_speeds(loop, layout, revolutions, speeds)
-    ts = float(loop.plant.dt)
+    ts = loop.sample_time
     total = sum(ramp_samples(float(v), revolutions, ts) for v in grid)
     if not total <= MAX_PLAN_SAMPLES:
         raise HallcalInputError(

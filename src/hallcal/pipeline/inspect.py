@@ -34,9 +34,9 @@ from hallcal.pipeline.checks import (
     check_hall_motion,
     check_pole_pairs,
     check_recording,
-    electrical_angle,
     pole_pairs_from_signature,
     raise_if_failed,
+    unwrapped_electrical_angle,
 )
 
 __all__ = ["Inspection", "inspect_recording"]
@@ -348,7 +348,8 @@ def inspect_recording(
     geometry = estimate_sensor_geometry(d, n)
     if geometry.message:
         messages.append(f"note: sensor geometry: {geometry.message}")
-    cycles = float(electrical_angle(dataset)[-1] - electrical_angle(dataset)[0]) / TWO_PI
+    psi = unwrapped_electrical_angle(dataset)
+    cycles = float(psi[-1] - psi[0]) / TWO_PI
     segment = trajectory = held_out = None
     if n is not None and abs(cycles) >= 2.0:
         segment = find_constant_speed(d, n, geometry=geometry)

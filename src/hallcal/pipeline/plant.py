@@ -139,10 +139,12 @@ def _fit_with_order(
 
     spec = setup.bla
     assert spec is not None
-    options = dict(integrator=spec.integrator, fit_delay=spec.fit_delay)
+    integrator, fit_delay = spec.integrator, spec.fit_delay
     messages: list[str] = []
     if spec.denominator_order == "auto":
-        selection = _par.select_order(npb, numerator_order=spec.numerator_order, **options)
+        selection = _par.select_order(
+            npb, numerator_order=spec.numerator_order, integrator=integrator, fit_delay=fit_delay
+        )
         chosen = selection.chosen or min(selection.candidates, key=lambda c: c.criterion)
         messages.append(
             f"plant model: denominator order {chosen.denominator_order} chosen from the data "
@@ -153,12 +155,18 @@ def _fit_with_order(
         return chosen.fit, chosen.denominator_order, selection, messages
     order = int(spec.denominator_order)
     fit = _par.fit_parametric(
-        npb, numerator_order=spec.numerator_order, denominator_order=order, **options
+        npb,
+        numerator_order=spec.numerator_order,
+        denominator_order=order,
+        integrator=integrator,
+        fit_delay=fit_delay,
     )
-    selection = None
+    supported: _par.OrderSelection | None = None
     if not fit.stable:  # find an order the data support, for the message
-        selection = _par.select_order(npb, numerator_order=spec.numerator_order, **options)
-    return fit, order, selection, messages
+        supported = _par.select_order(
+            npb, numerator_order=spec.numerator_order, integrator=integrator, fit_delay=fit_delay
+        )
+    return fit, order, supported, messages
 
 
 def identify_bla(dataset: Dataset, setup: Setup, *, progress: Progress = None) -> BLAIdentification:

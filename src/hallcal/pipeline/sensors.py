@@ -309,7 +309,7 @@ def noise(found: SensorFindings, d: NDArray) -> NoiseEstimate:
     return with_quantization(est, found.censoring.step)
 
 
-def at_mid_run(sem: SEMResult | None, d: NDArray) -> tuple[SEMResult | None, NDArray]:
+def at_mid_run(sem: SEMResult, d: NDArray) -> tuple[SEMResult, NDArray]:
     """The fit and the signals as the sensors at the run's middle would give them, for the
     checks that compare the data with the flux curve g_theta (:func:`hallcal.fit.adequacy.
     assess`): both with the identified drift taken out (:func:`hallcal.fit.drift.undrifted`).
@@ -317,19 +317,19 @@ def at_mid_run(sem: SEMResult | None, d: NDArray) -> tuple[SEMResult | None, NDA
 
     Parameters
     ----------
-    sem : SEMResult or None
+    sem : SEMResult
         The final fit.
     d : ndarray (N, 3)
         The signals it used.
 
     Returns
     -------
-    sem : SEMResult or None
+    sem : SEMResult
         With d_sim at mid-run.
     d : ndarray (N, 3)
         The signals at mid-run.
     """
-    if sem is None or sem.drift is None:
+    if sem.drift is None:
         return sem, d
     report = DriftReport(sem.drift[:, 0], np.ones(3), sem.drift[:, 1], np.ones(3), np.zeros(3),
                          np.ones(3), np.ones(3, dtype=bool))  # fmt: skip

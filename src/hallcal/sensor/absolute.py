@@ -530,8 +530,8 @@ def build_decoder(
     choices = (int(grid),) if grid is not None else GRID_CHOICES
     if choices[0] < 4:
         raise ValueError("grid must be >= 4")
-    best = None
     L = choices[0]
+    err = math.inf
     R, Z = _tables(flux, lut, TWO_PI * np.arange(n * L) / (n * L))
     Rm = Zm = np.empty(0)
     for k, L in enumerate(choices):
@@ -548,10 +548,8 @@ def build_decoder(
         guu = A[0, 0] * c * c + 2 * A[0, 1] * c * s + A[1, 1] * s * s
         gun = B[0] * c + B[1] * s
         err = float(np.sqrt(np.max(a * a * guu + 2 * a * b * gun + b * b * C)))
-        best = (L, R, Z, err)
         if err <= interpolation_tolerance:
-            break
-    L, R, Z, err = best
+            break  # L, R, Z and err are the last candidate's (the finest, if none is fine enough)
     return PowerUpDecoder(
         pole_pairs=n,
         grid=L,
@@ -1091,7 +1089,7 @@ class IdentifiabilityReport:
         def num(x: float | None) -> float | None:
             return None if x is None or not math.isfinite(x) else float(x)
 
-        out = {
+        out: dict[str, Any] = {
             "status": self.status.value,
             "reason": self.reason.value,
             "message": self.message,
@@ -1400,7 +1398,7 @@ def assess_identifiability(
     floor = _model_floor(calibration_samples, basis_size)
     worst_K = float(np.max(need.standstill))
     status, reason = _verdict(need, floor, standstill_budget, motion_budget)
-    report = dict(
+    report: dict[str, Any] = dict(
         status=status,
         reason=reason,
         pole_pairs=dec.pole_pairs,

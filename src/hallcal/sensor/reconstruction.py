@@ -179,7 +179,11 @@ class InitReconstructor:
         self.y = float(y_initial)
         P = clarke_matrix()[:2] if projection is None else np.asarray(projection, float)
         self._P = [[float(v) for v in row] for row in P]
-        self._o = [0.0, 0.0, 0.0] if offset is None else [float(v) for v in offset]
+        self._o = (
+            [0.0, 0.0, 0.0]
+            if offset is None
+            else [float(v) for v in np.asarray(offset, dtype=np.float64)]
+        )
 
     def update(self, d1: float, d2: float, d3: float) -> float:
         """Process one sample: y(t_k) = f_init(d(t_k)) relative to y(t_k-1) (eq. (fimp)).

@@ -306,7 +306,9 @@ class BenchConfig:
                                      math.sin(math.radians(phase_deg)))  # fmt: skip
             coef[int(k)] = coef.get(int(k), 0j) + z
         orders = tuple(sorted(coef))
-        return CoggingTorque(orders, [coef[k].real for k in orders], [coef[k].imag for k in orders])
+        a = np.array([coef[k].real for k in orders], dtype=np.float64)
+        b = np.array([coef[k].imag for k in orders], dtype=np.float64)
+        return CoggingTorque(orders, a, b)
 
 
 def shape_deformation(
@@ -584,7 +586,7 @@ def simulate_run(
         adc=config.adc(),
     )
     return BenchRun(
-        t=config.sample_time * np.arange(N),
+        t=config.sample_time * np.arange(N, dtype=np.float64),
         r=r,
         y=res.y,
         u=res.u,

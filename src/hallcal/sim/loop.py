@@ -59,6 +59,10 @@ __all__ = [
 
 TWO_PI = 2.0 * math.pi
 
+F64 = NDArray[np.float64]
+LoopArrays = tuple[F64, F64, F64, F64, F64, F64, float, F64, F64]
+"""The kernel arguments of a loop: A_G, B_G, C_G, A_C, B_C, C_C, D_C, P, offset."""
+
 
 def _kernel_array(a: ArrayLike) -> NDArray[np.float64]:
     """float64, C-contiguous and writeable: the one array type the numba kernels are compiled for.
@@ -194,7 +198,15 @@ class ClosedLoop:
             raise ValueError("rails must satisfy low < high for every sensor")
         return replace(self, rails=rails)
 
-    def _arrays(self) -> tuple:
+    @property
+    def sample_time(self) -> float:
+        """T_s [s]: the plant's (and controller's) dt, set for every loop (discrete)."""
+        dt = self.plant.dt
+        if dt is None:  # refused by __post_init__; here for the type checker
+            raise ValueError("plant and controller must be discrete")
+        return float(dt)
+
+    def _arrays(self) -> LoopArrays:
         p, c = self.plant, self.controller
         return (
             _kernel_array(p.A),
@@ -237,11 +249,12 @@ class SensorADC:
         r = np.asarray(rails, dtype=np.float64)
         return replace(self, low=np.maximum(self.low, r[0]), high=np.minimum(self.high, r[1]))
 
-    def _arrays(self) -> tuple:
-        return tuple(
+    def _arrays(self) -> tuple[F64, F64, F64, F64]:
+        lo, hi, step, origin = (
             _kernel_array(np.broadcast_to(np.asarray(a, dtype=np.float64), (3,)))
             for a in (self.low, self.high, self.step, self.origin)
         )
+        return lo, hi, step, origin
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal.formatting import polynomial_text
+
 __all__ = [
     "ContinuousTF",
     "DiscreteTF",
@@ -29,33 +31,6 @@ __all__ = [
     "polynomial_text",
     "tf2ss",
 ]
-
-
-def polynomial_text(coefficients: tuple[float, ...] | list[float], var: str = "s") -> str:
-    """A polynomial in descending powers as people write it: ``s^3 + 632.6 s^2 + 2702 s``.
-
-    Parameters
-    ----------
-    coefficients : sequence of float
-        Coefficients in descending powers of ``var`` (4 significant digits are shown).
-    var : str
-        The variable's name (``"s"`` or ``"q"``).
-
-    Returns
-    -------
-    str
-        The text; zero terms left out, a unit coefficient not written, "0" for none.
-    """
-    n = len(coefficients) - 1
-    terms = []
-    for i, a in enumerate(coefficients):
-        if a == 0.0:
-            continue
-        p = n - i
-        power = "" if p == 0 else (var if p == 1 else f"{var}^{p}")
-        coef = f"{a:.4g}"
-        terms.append(coef if not power else (power if coef == "1" else f"{coef} {power}"))
-    return " + ".join(terms).replace("+ -", "- ") or "0"
 
 
 def _trim(c: ArrayLike) -> NDArray[np.float64]:

@@ -28,7 +28,6 @@ ${values}
 float ${pfx}_anticogging(float angle)
 {
     float a = angle;
-    float q;
     float u;
     int32_t r;
     uint32_t i;
@@ -36,16 +35,8 @@ float ${pfx}_anticogging(float angle)
     if (!((a > -1.0e5f) && (a < 1.0e5f))) { /* NaN, infinite or far beyond one revolution */
         a = 0.0f;
     }
-    /* to one revolution: a - 2 pi floor(a / 2 pi), with 2 pi = 6.28125 + 1.93530717e-3 (the
-     * first part has 8 significant bits, so r times it is exact) */
-    q = a * 0.159154937f;
-    r = (int32_t)q;
-    if (q < (float)r) {
-        r = r - 1; /* floor */
-    }
-    a = (a - ((float)r * 6.28125f)) - ((float)r * 1.93530717e-3f);
-    u = a * ${n_over_2pi}; /* table position, ${points} per revolution */
-    if (!((u >= 0.0f) && (u < ${points}.0f))) {
+    u = hc_turns(a, &r) * ${points}.0f; /* table position, ${points} per revolution */
+    if (!(u < ${points}.0f)) {
         u = 0.0f; /* rounding at the revolution boundary */
     }
     i = (uint32_t)u;
@@ -87,7 +78,6 @@ def _anticogging_section(ctx: _Context) -> Section | None:
         slope_error=f"{tab.slope * 2.0 * TWO_PI * 2.0**-24:.1e}",
         values=_c_list([_cf(float(v), "anticogging table") for v in ext], 6),
         pfx=ctx.pfx,
-        n_over_2pi=_cf(m / TWO_PI),
     )
     header = (
         "\n/* Anticogging feed-forward T_c(y0) [" + unit + "] at the mechanical angle y0 [rad]\n"

@@ -10,9 +10,9 @@ from __future__ import annotations
 import string
 from collections.abc import Sequence
 
-from hallcal.output.codegen.numbers import CORDIC_STEPS, _FixedNumbers
+from hallcal.output.codegen.numbers import CORDIC_STEPS, TWO_PI, _FixedNumbers
 from hallcal.output.codegen.sections import Section, _Context
-from hallcal.output.codegen.text import _U32, _c_list, _cu, _int_add, _int_sub
+from hallcal.output.codegen.text import _U32, _c_list, _cu, _int_add, _int_sub, _speed_text
 from hallcal.output.firmware import CorrectionTable
 
 _FIXED_H = string.Template(
@@ -28,16 +28,23 @@ extern "C" {
 
 #define ${PFX}_Q_POLE_PAIRS ${n}
 #define ${PFX}_Q_TABLE_POINTS ${m}
-#define ${PFX}_Q_FAULT_AFTER ${fault_after}
+#define ${PFX}_Q_FAULT_AFTER ${fault_after} /* rejected samples: fault latched, re-acquired */
+/* Speed limit [rad per sample, mechanical]${speed_text}: up to it nothing slips (one glitch
+ * sample included); from it to twice it a slip cannot happen without ${PFX}_Q_FAULT. */
+#define ${PFX}_Q_SPEED_LIMIT ${speed_limit}
 /* Angles are Q0.32 turns: 2^32 = one revolution = 2 pi rad; one unit is this many rad: */
 #define ${PFX}_Q_RAD_PER_LSB 1.4629180792671596e-9
 
 /* Flags of a reading (bit mask). */
 #define ${PFX}_Q_HELD 1u           /* this sample was rejected: the reading is the last accepted */
-#define ${PFX}_Q_FAULT 2u          /* ${PFX}_Q_FAULT_AFTER rejected in a row; latched */
-#define ${PFX}_Q_REJ_RANGE 4u      /* a channel outside its calibrated range */
+#define ${PFX}_Q_FAULT 2u          /* ${PFX}_Q_FAULT_AFTER rejected (or unconfirmed) samples, or
+                                    * a corrupt state; latched until cleared */
+#define ${PFX}_Q_REJ_RANGE 4u      /* a channel outside its calibrated range, or the three
+                                    * inconsistent (along P's null vector) */
 #define ${PFX}_Q_REJ_AMPLITUDE 8u  /* alpha/beta radius outside its calibrated window */
 #define ${PFX}_Q_REJ_STEP 16u      /* step from the last accepted angle above the limit */
+#define ${PFX}_Q_NO_SAMPLE 32u     /* no sample accepted since init or set_angle: the reading
+                                    * is theirs, not a measurement */
 
 /* One consistent reading: y_star = revolutions turns + angle / 2^32 turn. */
 typedef struct {
@@ -53,22 +60,32 @@ typedef struct {
     int32_t turn;      /* f_init: electrical turn within the revolution, 0 .. n_m - 1 */
     uint32_t phase;    /* f_init: electrical angle within the turn, Q0.32 mechanical turns */
     uint32_t limit;    /* step limit for the next sample, Q0.32 mechanical turns */
-    uint32_t held;     /* rejected samples in a row */
-    volatile uint32_t rejected; /* rejected samples since init */
+    uint32_t held;     /* rejected (or accepted after rejected) samples, less those accepted
+                        * right after an accepted one */
+    uint32_t rejected; /* rejected samples since init */
     uint32_t fault;    /* ${PFX}_Q_FAULT once ${PFX}_Q_FAULT_AFTER samples in a row were rejected */
     volatile uint32_t seq; /* readings published; the last one is pub[seq & 1] */
     volatile struct {
         int32_t revolutions;
         uint32_t angle; /* Q0.32 turns */
         uint32_t flags;
+        uint32_t rejected;
     } pub[2];
 } ${pfx}_q_state;
 
-/* Start at y = revolutions + angle / 2^32 turns (0, 0 by convention). */
-void ${pfx}_q_init(${pfx}_q_state *s, int32_t revolutions, uint32_t angle);
+/* Start after power-up: the electrical angle is acquired from the first plausible sample, the
+ * revolutions from y = 0 (the calibration run's start). The reading is flagged
+ * ${PFX}_Q_NO_SAMPLE until a sample is accepted. */
+void ${pfx}_q_init(${pfx}_q_state *s);
+
+/* Homed use: the rotor is at y = revolutions + angle / 2^32 turns (every angle is in range);
+ * the step rule applies from the next sample on. Returns 0. Call it from the context that
+ * calls update, after init. */
+uint32_t ${pfx}_q_set_angle(${pfx}_q_state *s, int32_t revolutions, uint32_t angle);
 
 /* One sample of the three Hall signals as raw ADC counts (any int32 is safe). Returns the flags
- * of the reading it publishes (0: accepted). Constant worst-case time, 32-bit integers only. */
+ * of the reading it publishes (0: accepted). No loop, 32-bit integers only; cycles per sample:
+ * see the banner and the firmware guide. */
 uint32_t ${pfx}_q_update(${pfx}_q_state *s, int32_t d1, int32_t d2, int32_t d3);
 
 /* The last reading, consistent (revolutions and angle of the same sample) from any context:
@@ -182,10 +199,25 @@ static void hc_publish(${pfx}_q_state *s, int32_t rev, uint32_t angle, uint32_t 
     s->pub[q & 1u].revolutions = rev;
     s->pub[q & 1u].angle = angle;
     s->pub[q & 1u].flags = flags;
+    s->pub[q & 1u].rejected = s->rejected;
     s->seq = q;
 }
 
-void ${pfx}_q_init(${pfx}_q_state *s, int32_t revolutions, uint32_t angle)
+void ${pfx}_q_init(${pfx}_q_state *s)
+{
+    s->rev = 0; /* f_init from y = 0 before the first sample, as the calibration run */
+    s->turn = 0;
+    s->phase = 0u;
+    s->limit = 0xFFFFFFFFu; /* the electrical angle is acquired from the first sample */
+    s->held = 0u;
+    s->rejected = 0u;
+    s->fault = 0u;
+    s->seq = 0u;
+    hc_publish(s, 0, 0u, ${PFX}_Q_NO_SAMPLE);
+    hc_publish(s, 0, 0u, ${PFX}_Q_NO_SAMPLE);
+}
+
+uint32_t ${pfx}_q_set_angle(${pfx}_q_state *s, int32_t revolutions, uint32_t angle)
 {
     uint32_t t = ((angle >> 16) * ${n}u) >> 16; /* at or below the turn of angle */
     if (t > ${n_minus_1}u) {
@@ -198,13 +230,11 @@ void ${pfx}_q_init(${pfx}_q_state *s, int32_t revolutions, uint32_t angle)
     s->turn = (int32_t)t;
     s->phase = angle - hc_turn[t];
 ${init_wrap}
-    s->limit = 0xFFFFFFFFu; /* no step limit before the first accepted sample */
+    s->limit = ${step_limit}u; /* the step rule from the first sample on */
     s->held = 0u;
-    s->rejected = 0u;
-    s->fault = 0u;
-    s->seq = 0u;
-    hc_publish(s, revolutions, angle, 0u);
-    hc_publish(s, revolutions, angle, 0u);
+    hc_publish(s, revolutions, angle, ${PFX}_Q_NO_SAMPLE | s->fault);
+    hc_publish(s, revolutions, angle, ${PFX}_Q_NO_SAMPLE | s->fault);
+    return 0u;
 }
 
 uint32_t ${pfx}_q_update(${pfx}_q_state *s, int32_t d1, int32_t d2, int32_t d3)
@@ -223,6 +253,8 @@ uint32_t ${pfx}_q_update(${pfx}_q_state *s, int32_t d1, int32_t d2, int32_t d3)
         const uint32_t x1 = (uint32_t)d1 - ${c1}u;
         const uint32_t x2 = (uint32_t)d2 - ${c2}u;
         const uint32_t x3 = (uint32_t)d3 - ${c3}u;
+        /* the three consistent: the component along P's null vector in its window */
+        const uint32_t cm = ${common_mode};
         const uint32_t y1 = x1 + ${xb}u; /* x + xb >= 0: x is within the channel range */
         const uint32_t y2 = x2 + ${xb}u;
         const uint32_t y3 = x3 + ${xb}u;
@@ -235,15 +267,21 @@ uint32_t ${pfx}_q_update(${pfx}_q_state *s, int32_t d1, int32_t d2, int32_t d3)
         const uint32_t as = hc_abs(a) >> 15;
         const uint32_t bs = hc_abs(b) >> 15;
         const uint32_t r2 = (as * as) + (bs * bs);
-        if ((r2 < ${r2_lo}u) || (r2 > ${r2_hi}u)) {
+        if ((cm - ${cm_lo}u) > ${cm_span}u) {
+            flags = ${PFX}_Q_REJ_RANGE;
+        } else if ((r2 < ${r2_lo}u) || (r2 > ${r2_hi}u)) {
             flags = ${PFX}_Q_REJ_AMPLITUDE;
         } else {
             const uint32_t p = hc_angle(a, b);
             int32_t turn = s->turn;
             int32_t rev = s->rev;
             uint32_t mag;
+            if ((uint32_t)turn > ${n_minus_1}u) { /* a corrupt state: never an index out of range */
+                turn = 0;
+                s->fault = ${PFX}_Q_FAULT;
+            }
 ${unwrap}
-            /* step limit from the last accepted sample (grown while samples are held) */
+            /* step rule: within (h + 1) w + m of the last accepted sample, h held since */
             if (mag <= s->limit) {
                 /* eta(u) from the table at f_init's angle u within the revolution */
                 const uint32_t u = hc_turn[turn] + p;
@@ -260,11 +298,17 @@ ${fixed_eta}
                 } else {
                     /* within the revolution */
                 }
+                if (s->held != 0u) { /* held samples not yet forgiven */
+                    if (s->limit != ${step_limit}u) {
+                        s->held = s->held + 1u; /* right after held samples: unconfirmed */
+                    } else {
+                        s->held = s->held - 1u; /* confirmed by the sample before */
+                    }
+                }
                 s->phase = p;
                 s->turn = turn;
                 s->rev = rev;
                 s->limit = ${step_limit}u;
-                s->held = 0u;
                 flags = s->fault; /* 0 or ${PFX}_Q_FAULT (latched) */
                 hc_publish(s, out_rev, out, flags);
             } else {
@@ -281,12 +325,17 @@ ${fixed_eta}
             s->held = s->held + 1u;
         }
         if (s->held >= ${PFX}_Q_FAULT_AFTER) {
+            /* longer could alias at up to twice the speed limit: fault, then re-acquire */
             s->fault = ${PFX}_Q_FAULT;
+            s->limit = 0xFFFFFFFFu;
+        } else if (s->limit == ${step_limit}u) {
+            s->limit = ${step_first}u; /* room for a glitch accepted last, and w */
+        } else if (s->limit < 0x80000000u) {
+            s->limit = s->limit + ${step_growth}u;
+        } else {
+            /* not yet acquired after init */
         }
-        if (s->limit < ${limit_cap}u) {
-            s->limit = s->limit + ${step_limit}u;
-        }
-        flags = flags | ${PFX}_Q_HELD | s->fault;
+        flags = flags | ${PFX}_Q_HELD | s->fault | (s->pub[last].flags & ${PFX}_Q_NO_SAMPLE);
         hc_publish(s, s->pub[last].revolutions, s->pub[last].angle, flags);
     }
     return flags;
@@ -301,9 +350,9 @@ void ${pfx}_q_read(const ${pfx}_q_state *s, ${pfx}_q_reading *r)
         r->revolutions = s->pub[before & 1u].revolutions;
         r->angle = s->pub[before & 1u].angle;
         r->flags = s->pub[before & 1u].flags;
+        r->rejected = s->pub[before & 1u].rejected;
         after = s->seq;
     } while ((after - before) > 1u);
-    r->rejected = s->rejected;
 }
 
 void ${pfx}_q_clear_fault(${pfx}_q_state *s)
@@ -365,7 +414,10 @@ _UNWRAP_1 = """\
 
 def _fixed_header(ctx: _Context, banner: str, secs: Sequence[Section]) -> str:
     d = ctx.design
+    speed = d.plausibility.speed * TWO_PI / d.pole_pairs  # rad per sample, mechanical
     return _FIXED_H.substitute(
+        speed_limit=f"{speed:.6e}",
+        speed_text=_speed_text(speed, d.sample_time),
         banner=banner,
         pfx=ctx.pfx,
         PFX=ctx.PFX,
@@ -490,9 +542,19 @@ def _fixed_atan2_subs(q: _FixedNumbers, n: int) -> dict[str, object]:
     )
 
 
-def _fixed_input_subs(q: _FixedNumbers) -> dict[str, int]:
-    """The channel ranges, the centres and the integer projection (all modulo 2^32)."""
-    subs = dict(
+def _fixed_input_subs(q: _FixedNumbers) -> dict[str, int | str]:
+    """The channel ranges, the centres, the common-mode window and the integer projection (all
+    modulo 2^32)."""
+    mul, cm_lo, cm_span = q.common_mode
+    common = (
+        "(x1 + x2) + x3"
+        if mul is None
+        else f"(({mul[0] % _U32}u * x1) + ({mul[1] % _U32}u * x2)) + ({mul[2] % _U32}u * x3)"
+    )
+    subs: dict[str, int | str] = dict(
+        common_mode=common,
+        cm_lo=cm_lo % _U32,
+        cm_span=cm_span,
         kl=q.lo_shift,
         xb=q.bias,
         pshift=q.proj_shift,
@@ -522,7 +584,8 @@ def _fixed_source(ctx: _Context, q: _FixedNumbers, banner: str, defs: str) -> st
         n=n,
         n_minus_1=n - 1,
         turn_base=_c_list([_cu(v) for v in q.turns.turn_base], 6),
-        limit_cap=(q.turns.half if n > 1 else 1 << 31),
+        step_growth=q.step_growth,
+        step_first=q.step_first,
         rowsum="zero" if d.rejects_common_mode else "the float rows' sums",
         step_limit=q.step_limit,
         section_defs=defs,

@@ -18,11 +18,20 @@ from numpy.typing import NDArray
 from hallcal.output.codegen.numbers import (
     _TAN_PI_8,
     RECIPROCAL_MAGIC,
+    TWO_PI,
     _FloatNumbers,
     _table_fraction_bits,
 )
 from hallcal.output.codegen.sections import Section, _Context
-from hallcal.output.codegen.text import _bits, _c_list, _cf, _f32, _f32_down, _f32_up
+from hallcal.output.codegen.text import (
+    _bits,
+    _c_list,
+    _cf,
+    _f32,
+    _f32_down,
+    _f32_up,
+    _speed_text,
+)
 from hallcal.output.firmware import FirmwareDesign
 
 _FLOAT_H = string.Template(
@@ -38,14 +47,24 @@ extern "C" {
 
 #define ${PFX}_POLE_PAIRS ${n}
 #define ${PFX}_TABLE_POINTS ${m}
-#define ${PFX}_FAULT_AFTER ${fault_after}
+#define ${PFX}_FAULT_AFTER ${fault_after} /* rejected samples: fault latched, angle re-acquired */
+/* Speed limit [rad per sample, mechanical]${speed_text}: up to it nothing slips (one glitch
+ * sample included); from it to twice it a slip cannot happen without ${PFX}_FAULT. */
+#define ${PFX}_SPEED_LIMIT ${speed_limit}
+/* Inputs: the Hall signals in the calibration's unit. This export's ADC scale is ${adc_scale}
+ * counts per unit: pass ${PFX}_UNIT_PER_COUNT * (float)count (1.0f: counts are the unit). */
+#define ${PFX}_UNIT_PER_COUNT ${unit_per_count}
 ${api_macros}
 /* Flags of a reading (bit mask). */
 #define ${PFX}_HELD 1u           /* this sample was rejected: the reading is the last accepted */
-#define ${PFX}_FAULT 2u          /* ${PFX}_FAULT_AFTER rejected in a row; latched until cleared */
-#define ${PFX}_REJ_RANGE 4u      /* a channel outside its calibrated range, or not a number */
+#define ${PFX}_FAULT 2u          /* ${PFX}_FAULT_AFTER rejected (or unconfirmed) samples, or a
+                                  * corrupt state; latched until cleared */
+#define ${PFX}_REJ_RANGE 4u      /* a channel outside its calibrated range, or not a number, or
+                                  * the three inconsistent (along P's null vector) */
 #define ${PFX}_REJ_AMPLITUDE 8u  /* alpha/beta radius outside its calibrated window */
 #define ${PFX}_REJ_STEP 16u      /* step from the last accepted angle above the limit */
+#define ${PFX}_NO_SAMPLE 32u     /* no sample accepted since init or set_angle: the reading is
+                                  * theirs, not a measurement */
 
 /* One consistent reading: y_star = 2 pi revolutions + angle [rad]. */
 typedef struct {
@@ -61,20 +80,23 @@ typedef struct {
     int32_t turn;      /* f_init: electrical turn within the revolution, 0 .. n_m - 1 */
     uint32_t phase;    /* f_init: electrical angle within the turn, Q0.32 turns */
     uint32_t limit;    /* step limit for the next sample, Q0.32 electrical turns */
-    uint32_t held;     /* rejected samples in a row */
-    volatile uint32_t rejected; /* rejected samples since init */
+    uint32_t held;     /* rejected (or accepted after rejected) samples, less those accepted
+                        * right after an accepted one */
+    uint32_t rejected; /* rejected samples since init */
     uint32_t fault;    /* ${PFX}_FAULT once ${PFX}_FAULT_AFTER samples in a row were rejected */
     volatile uint32_t seq; /* readings published; the last one is pub[seq & 1] */
     volatile struct {
         int32_t revolutions;
         float turns; /* y_star within the revolution [turns] */
         uint32_t flags;
+        uint32_t rejected;
     } pub[2];
 ${state_members}} ${pfx}_state;
 
 ${init_decl}
-/* One sample of the three Hall signals in the calibration's unit. Returns the flags of the
- * reading it publishes (0: accepted). Constant worst-case time, no library call. */
+/* One sample of the three Hall signals in the calibration's unit (see ${PFX}_UNIT_PER_COUNT).
+ * Returns the flags of the reading it publishes (0: accepted). No library call; no
+ * loop${update_loop}; cycles per sample: the firmware guide. */
 uint32_t ${pfx}_update(${pfx}_state *s, float d1, float d2, float d3);
 
 /* The last reading, consistent (revolutions and angle of the same sample) from any context:
@@ -98,6 +120,15 @@ _FLOAT_C = string.Template(
 #include <stdint.h>
 
 #include "${header}"
+
+/* Bit-exact with hallcal reconstruct only without contraction of a * b + c into one fused
+ * multiply-add (GCC's default for GNU dialects, e.g. -std=gnu11, and -Ofast): switched off
+ * here for the compilers that take a pragma; otherwise compile with -ffp-contract=off. */
+#if defined(__clang__)
+#pragma STDC FP_CONTRACT OFF
+#elif defined(__GNUC__)
+#pragma GCC optimize("fp-contract=off")
+#endif
 
 /* The sign, absolute value and range checks read the IEEE 754 binary32 pattern of a float
  * through a union (MISRA C:2012 Rule 19.2, advisory, deviated here: hc_bits and hc_float). The
@@ -155,10 +186,12 @@ static void hc_publish(${pfx}_state *s, int32_t rev, float turns, uint32_t flags
     s->pub[q & 1u].revolutions = rev;
     s->pub[q & 1u].turns = turns;
     s->pub[q & 1u].flags = flags;
+    s->pub[q & 1u].rejected = s->rejected;
     s->seq = q;
 }
 
 ${init_def}
+${set_angle_def}
 ${before_update}${update_def}
 void ${pfx}_read(const ${pfx}_state *s, ${pfx}_reading *r)
 {
@@ -170,9 +203,9 @@ ${read_locals}    do {
         r->revolutions = s->pub[before & 1u].revolutions;
         turns = s->pub[before & 1u].turns;
         r->flags = s->pub[before & 1u].flags;
+        r->rejected = s->pub[before & 1u].rejected;
 ${read_copy}        after = s->seq;
-    } while ((after - before) > 1u);
-    r->rejected = s->rejected;${read_after}
+    } while ((after - before) > 1u);${read_after}
     if (turns < 0.0f) { /* update keeps y_star in (-1/2, 3/2) turns of its revolution */
         turns = turns + 1.0f;
         r->revolutions = hc_s32((uint32_t)r->revolutions - 1u);
@@ -236,36 +269,85 @@ ${newton_steps}
 )
 
 _FLOAT_INIT = string.Template(
-    r"""void ${pfx}_init(${pfx}_state *s, int32_t revolutions, float angle)
+    r"""void ${pfx}_init(${pfx}_state *s)
 {
-    float a = angle * 0.159154943f; /* turns */
-    float e;
-    int32_t t;
-    if (!((a >= 0.0f) && (a < 1.0f))) {
-        a = 0.0f;
-    }
-    e = a * ${n}.0f; /* electrical turns within the revolution */
-    t = (int32_t)e;
-    if (t > ${n_minus_1}) {
-        t = ${n_minus_1};
-    }
-    s->rev = revolutions;
-    s->turn = t;
-    s->phase = (uint32_t)((e - (float)t) * 4294967296.0f);
-    s->limit = 0xFFFFFFFFu; /* no step limit before the first accepted sample */
+    s->rev = 0; /* f_init from y = 0 before the first sample, as the calibration run */
+    s->turn = 0;
+    s->phase = 0u;
+    s->limit = 0xFFFFFFFFu; /* the electrical angle is acquired from the first sample */
     s->held = 0u;
     s->rejected = 0u;
     s->fault = 0u;
     s->seq = 0u;
-    hc_publish(s, revolutions, a, 0u);
-    hc_publish(s, revolutions, a, 0u);
+    hc_publish(s, 0, 0.0f, ${PFX}_NO_SAMPLE);
+    hc_publish(s, 0, 0.0f, ${PFX}_NO_SAMPLE);
+}
+"""
+)
+
+#: ``set_angle`` (homed use) and the angle reduction it shares with the anticogging section.
+_FLOAT_SET_ANGLE = string.Template(
+    r"""/* angle [rad] as whole revolutions *r and turns in [0, 1), for |angle| < 1e5 rad: with
+ * 2 pi = 6.28125 + 1.93530717e-3 (the first part has 8 significant bits, so r times it is
+ * exact), then the rounding at either end of the revolution moved into r */
+static float hc_turns(float angle, int32_t *r)
+{
+    const float q = angle * 0.159154937f;
+    int32_t k = (int32_t)q;
+    float a;
+    if (q < (float)k) {
+        k = k - 1; /* floor */
+    }
+    a = ((angle - ((float)k * 6.28125f)) - ((float)k * 1.93530717e-3f)) * 0.159154943f;
+    if (a < 0.0f) {
+        a = a + 1.0f;
+        k = k - 1;
+    }
+    if (!(a < 1.0f)) {
+        a = 0.0f;
+        k = k + 1;
+    }
+    *r = k;
+    return a;
+}
+
+uint32_t ${pfx}_set_angle(${pfx}_state *s, int32_t revolutions, float angle)
+{
+    uint32_t flags = ${PFX}_REJ_RANGE;
+    if ((angle > -1.0e5f) && (angle < 1.0e5f)) { /* not NaN, infinite or beyond */
+        int32_t k;
+        const float a = hc_turns(angle, &k);
+        const float e = a * ${n}.0f; /* electrical turns within the revolution */
+        int32_t t = (int32_t)e;
+        const int32_t rev = hc_s32((uint32_t)revolutions + (uint32_t)k);
+        if (t > ${n_minus_1}) {
+            t = ${n_minus_1};
+        }
+        s->rev = rev;
+        s->turn = t;
+        s->phase = (uint32_t)((e - (float)t) * 4294967296.0f);
+        s->limit = ${step_limit}u; /* the step rule from the first sample on */
+        s->held = 0u;
+${set_angle_extra}        hc_publish(s, rev, a, ${PFX}_NO_SAMPLE | s->fault);
+        hc_publish(s, rev, a, ${PFX}_NO_SAMPLE | s->fault);
+        flags = 0u;
+    }
+    return flags;
 }
 """
 )
 
 _INIT_DECL = """\
-/* Start at y = 2 pi revolutions + angle (angle in [0, 2 pi) rad, else 0); 0, 0 by convention. */
-void ${pfx}_init(${pfx}_state *s, int32_t revolutions, float angle);
+/* Start after power-up: the electrical angle is acquired from the first plausible sample, the
+ * revolutions from y = 0 (the calibration run's start)${init_note}. The reading
+ * is flagged ${PFX}_NO_SAMPLE until a sample is accepted. */
+void ${pfx}_init(${pfx}_state *s);
+
+/* Homed use: the rotor is at y = 2 pi revolutions + angle [rad] (any angle within 1e5 rad is
+ * reduced to [0, 2 pi) and the revolutions adjusted); the step rule applies from the next
+ * sample on. Returns 0, or ${PFX}_REJ_RANGE (state unchanged) for NaN, infinite or larger
+ * angles. Call it from the context that calls update, after init.${set_angle_note} */
+uint32_t ${pfx}_set_angle(${pfx}_state *s, int32_t revolutions, float angle);
 """
 
 #: The lean sample path (with the power-up decoder, it runs once the pole pair is identified).
@@ -277,8 +359,11 @@ _FLOAT_UPDATE = string.Template(
 ${projection}
     const float r2 = (a * a) + (b * b);
     /* plausibility: each channel in its calibrated range (NaN is not; the three tests without
-     * short-circuit, one branch), then the radius */
+     * short-circuit, one branch), the three consistent along P's null vector, then the
+     * radius */
     if (${range_check}) {
+        flags = ${PFX}_REJ_RANGE;
+    } else if ${common_check} {
         flags = ${PFX}_REJ_RANGE;
     } else if ((hc_bits(r2) - ${r2_lo_bits}u) <= ${r2_span_bits}u) {
         /* r2 in [${r2_lo}, ${r2_hi}] */
@@ -287,6 +372,10 @@ ${projection}
         const uint32_t mag = (step < 0) ? (0u - (uint32_t)step) : (uint32_t)step;
         int32_t turn = s->turn;
         int32_t rev = s->rev;
+        if ((uint32_t)turn > ${n_minus_1}u) { /* a corrupt state: never an index out of the table */
+            turn = 0;
+            s->fault = ${PFX}_FAULT;
+        }
         /* the unwrap of f_init: crossing the start of the turn moves the turn count */
         if ((step >= 0) && (p < s->phase)) {
             if (turn == ${n_minus_1}) {
@@ -305,7 +394,7 @@ ${projection}
         } else {
             /* no turn boundary crossed */
         }
-        /* step limit from the last accepted sample (grown while samples are held) */
+        /* step rule: within (h + 1) w + m of the last accepted sample, h held since */
         if (mag <= s->limit) {
             /* eta from the table at f_init's angle within the revolution: interval i of
              * ${per_turn} per electrical turn, position i + f in Q16.16 */
@@ -318,11 +407,17 @@ ${index}
                                + ((uint32_t)((int32_t)hc_t[i + 1u] - t0) * fx)${curv};
             /* y_star within the revolution [turns], in (-1/2, 3/2): _read brings it to [0, 1) */
             const float y = ((float)x * ${inv_m16}) + ((float)hc_s32(e) * ${lsb});
+            if (s->held != 0u) { /* held samples not yet forgiven */
+                if (s->limit != ${step_limit}u) {
+                    s->held = s->held + 1u; /* right after held samples: unconfirmed */
+                } else {
+                    s->held = s->held - 1u; /* confirmed by the sample before: one forgiven */
+                }
+            }
             s->phase = p;
             s->turn = turn;
             s->rev = rev;
             s->limit = ${step_limit}u;
-            s->held = 0u;
             flags = s->fault; /* 0 or ${PFX}_FAULT (latched) */
             hc_publish(s, rev, y, flags);
         } else {
@@ -340,12 +435,17 @@ ${index}
             s->held = s->held + 1u;
         }
         if (s->held >= ${PFX}_FAULT_AFTER) {
+            /* longer could alias at up to twice the speed limit: fault, then re-acquire */
             s->fault = ${PFX}_FAULT;
+            s->limit = 0xFFFFFFFFu;
+        } else if (s->limit == ${step_limit}u) {
+            s->limit = ${step_first}u; /* room for a glitch accepted last, and w */
+        } else if (s->limit < 0x80000000u) {
+            s->limit = s->limit + ${step_growth}u;
+        } else {
+            /* not yet acquired after init */
         }
-        if (s->limit < 0x80000000u) {
-            s->limit = s->limit + ${step_limit}u;
-        }
-        flags = flags | ${PFX}_HELD | s->fault;
+        flags = flags | ${PFX}_HELD | s->fault | (s->pub[last].flags & ${PFX}_NO_SAMPLE);
         hc_publish(s, s->pub[last].revolutions, s->pub[last].turns, flags);
     }
     return flags;
@@ -378,6 +478,32 @@ def _range_check(lo: NDArray, hi: NDArray) -> str:
         else:
             parts.append(f"(!(({d} >= {_cf(float(lo_f))}) && ({d} <= {_cf(float(hi_f))})))")
     return "(" + "\n        | ".join(f"(uint32_t){p}" for p in parts) + ") != 0u"
+
+
+def _common_mode_check(d: FirmwareDesign) -> str:
+    """C expression, true when the component along P's null vector is outside its window (or
+    not a number): the sum d1 + d2 + d3 when P's rows sum to zero (the null vector is then
+    (1, 1, 1) / sqrt(3)), else the null vector's products; compared as the magnitude's bit
+    pattern about the window's centre."""
+    pl = d.plausibility
+    if d.rejects_common_mode:
+        k = math.sqrt(3.0)
+        expr = "((d1 + d2) + d3)"
+        lo = k * pl.null_lo + float(np.sum(d.offset))
+        hi = k * pl.null_hi + float(np.sum(d.offset))
+    else:
+        nv = pl.null
+        expr = (
+            f"((({_cf(nv[0], 'null vector')} * d1) + ({_cf(nv[1], 'null vector')} * d2)) + "
+            f"({_cf(nv[2], 'null vector')} * d3))"
+        )
+        lo = pl.null_lo + float(nv @ d.offset)
+        hi = pl.null_hi + float(nv @ d.offset)
+    mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    return (
+        f"((hc_bits({expr} - {_cf(mid, 'common-mode window')}) & 0x7FFFFFFFu) > "
+        f"{_bits(_f32_up(half))}u)"
+    )
 
 
 def _atan2_c(
@@ -422,12 +548,15 @@ def _atan2_c(
 
 #: Insertion points of the float variant's templates an optional Section may fill (``hooks``;
 #: ``state_members`` go after the lean members, whose offsets stay those of the lean build).
-#: ``init_decl`` and ``init_def`` replace the default ``init`` (angle given: homing);
+#: ``init_decl`` adds declarations before ``init``'s, ``init_note``, ``set_angle_note`` and
+#: ``update_loop`` add to their comments, ``init_def`` replaces the default ``init``,
+#: ``set_angle_extra`` adds statements to ``set_angle`` (before it publishes);
 #: ``update_dispatch`` is ``(condition, function)``-like text "cond|name": while the condition
 #: holds, ``update`` hands the sample to that function instead of running the lean path.
 FLOAT_HOOKS = (
     "api_macros", "reading_members", "state_members", "init_decl", "init_def",
     "read_locals", "read_copy", "read_after", "before_update", "update_dispatch",
+    "init_note", "set_angle_note", "set_angle_extra", "update_loop",
 )  # fmt: skip
 
 
@@ -527,11 +656,14 @@ def _float_subs(ctx: _Context, fn: _FloatNumbers) -> dict[str, Any]:
         n_minus_1=n - 1,
         projection=_float_projection(d),
         range_check=_range_check(fn.lo, fn.hi),
+        common_check=_common_mode_check(d),
         r2_lo=_cf(float(_f32_down(fn.r2_lo)), "radius window"),
         r2_hi=_cf(float(_f32_up(fn.r2_hi)), "radius window"),
         r2_lo_bits=_bits(_f32_down(fn.r2_lo)),
         r2_span_bits=_bits(_f32_up(fn.r2_hi)) - _bits(_f32_down(fn.r2_lo)),
         step_limit=int(math.floor(pl.step_limit * 2.0**32)),
+        step_growth=int(math.floor(pl.step_growth * 2.0**32)),
+        step_first=int(math.floor(pl.step_first * 2.0**32)),
         per_turn=m // n,
         index=index,
         curv=curv,
@@ -557,13 +689,21 @@ def _hooks(secs: Sequence[Section], names: Sequence[str]) -> dict[str, str]:
 def _float_header(ctx: _Context, banner: str, secs: Sequence[Section]) -> str:
     d = ctx.design
     hooks = _hooks(secs, FLOAT_HOOKS)
-    init_decl = hooks["init_decl"] or string.Template(_INIT_DECL).substitute(
-        pfx=ctx.pfx, PFX=ctx.PFX
-    )
+    init_decl = hooks["init_decl"] + string.Template(_INIT_DECL).substitute(
+        pfx=ctx.pfx, PFX=ctx.PFX, init_note=hooks["init_note"],
+        set_angle_note=hooks["set_angle_note"],
+    )  # fmt: skip
+    pl = d.plausibility
+    speed = pl.speed * TWO_PI / d.pole_pairs  # rad per sample, mechanical
     return _FLOAT_H.substitute(
         banner=banner,
         pfx=ctx.pfx,
         PFX=ctx.PFX,
+        speed_limit=f"{speed:.6e}",
+        speed_text=_speed_text(speed, d.sample_time),
+        adc_scale=f"{ctx.adc_scale:g}",
+        unit_per_count=_cf(1.0 / ctx.adc_scale, "1 / adc_scale"),
+        update_loop=hooks["update_loop"],
         n=d.pole_pairs,
         m=d.table.points,
         fault_after=d.plausibility.fault_after,
@@ -598,6 +738,7 @@ def _float_source(ctx: _Context, banner: str, secs: Sequence[Section]) -> str:
         subs,
         banner=banner,
         init_def=hooks["init_def"] or _FLOAT_INIT.substitute(subs),
+        set_angle_def=_FLOAT_SET_ANGLE.substitute(subs, set_angle_extra=hooks["set_angle_extra"]),
         before_update=hooks["before_update"],
         update_def=update,
         read_locals=hooks["read_locals"],

@@ -489,9 +489,35 @@ class _FixedNumbers:
     turns: _FixedTurns
     atan: _FixedAtan2
     step_limit: int
+    step_growth: int
+    step_first: int
+    common_mode: tuple[list[int] | None, int, int]  # multipliers (None: the sum), lo, span
     bound: float
     quant_rms: float
     quant_max: float
+
+
+def _fixed_common_mode(
+    d: FirmwareDesign, inp: _FixedInputs, s: float
+) -> tuple[list[int] | None, int, int]:
+    """The window of the component along P's null vector in the integers of the fixed variant:
+    of ``x1 + x2 + x3`` (x = counts - centre) when P's rows sum to zero, else of
+    ``sum q_h x_h`` with q = round(null 2^k) (k such that the sum fits in int32; the rounding of
+    q widens the window by 1.5 (xr + 1))."""
+    pl = d.plausibility
+    if d.rejects_common_mode:
+        k3 = math.sqrt(3.0)
+        extra = float(np.sum(inp.frac))
+        lo = math.floor(k3 * s * pl.null_lo + extra) - 1
+        hi = math.ceil(k3 * s * pl.null_hi + extra) + 1
+        return None, lo, hi - lo
+    k = 29 - _bitlen(3 * (inp.xr + 1))
+    q = [int(round(float(v) * 2.0**k)) for v in pl.null]
+    extra = float(np.dot(q, inp.frac))
+    slack = 1.5 * (inp.xr + 1)
+    lo = math.floor(2.0**k * s * pl.null_lo + extra - slack) - 1
+    hi = math.ceil(2.0**k * s * pl.null_hi + extra + slack) + 1
+    return q, lo, hi - lo
 
 
 def _fixed_numbers(d: FirmwareDesign, adc_scale: float) -> _FixedNumbers:
@@ -507,6 +533,8 @@ def _fixed_numbers(d: FirmwareDesign, adc_scale: float) -> _FixedNumbers:
     turns = _fixed_turns(n)
     at = _fixed_atan2(r_true_lo, r_true_hi, turns.pe)
     step_limit = int(math.floor(d.plausibility.step_limit * turns.pe))
+    step_growth = int(math.floor(d.plausibility.step_growth * turns.pe))
+    step_first = int(math.floor(d.plausibility.step_first * turns.pe))
     # the integer projection: rounding of a0 and the floor of the unsigned part (1.5 units of
     # a), and the rounding of P 2^(ps + kl) (half a unit on each of 3 inputs up to xr)
     proj_err = (1.5 + 1.5 * 3.0 * inp.xr / 2.0**pj.kl) * math.sqrt(2.0) / r_true_lo
@@ -519,6 +547,7 @@ def _fixed_numbers(d: FirmwareDesign, adc_scale: float) -> _FixedNumbers:
     return _FixedNumbers(
         lo=inp.lo, hi=inp.hi, centre=inp.centre, proj_hi=pj.hi_parts, proj_lo=pj.lo_parts,
         lo_shift=pj.kl, bias=pj.xb, a0=pj.a0, proj_shift=pj.ps + pj.kl, r2_lo=r2_lo, r2_hi=r2_hi,
-        turns=turns, atan=at, step_limit=step_limit, bound=bound,
+        turns=turns, atan=at, step_limit=step_limit, step_growth=step_growth, step_first=step_first,
+        common_mode=_fixed_common_mode(d, inp, float(adc_scale)), bound=bound,
         quant_rms=inp.quant_rms, quant_max=inp.quant_max,
     )  # fmt: skip

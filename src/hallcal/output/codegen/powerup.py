@@ -39,6 +39,7 @@ _PU_INIT = string.Template(
     s->pub[q & 1u].revolutions = rev;
     s->pub[q & 1u].turns = turns;
     s->pub[q & 1u].flags = flags;
+    s->pub[q & 1u].rejected = s->rejected;
     s->pub_ident[q & 1u] = ident;
     s->seq = q;
 }
@@ -58,8 +59,8 @@ void ${pfx}_init(${pfx}_state *s)
     s->best = 0u;
     s->samples = 0u; /* lam is set by the first sample of evidence (no loop: no memset) */
     s->seq = 0u;
-    hc_publish_id(s, 0, 0.0f, 0u, 0u);
-    hc_publish_id(s, 0, 0.0f, 0u, 0u);
+    hc_publish_id(s, 0, 0.0f, ${PFX}_NO_SAMPLE, 0u);
+    hc_publish_id(s, 0, 0.0f, ${PFX}_NO_SAMPLE, 0u);
 }
 """
 )
@@ -239,12 +240,10 @@ _IDENTIFY_EDITS: tuple[tuple[str, str], ...] = (
         "            s->turn = turn;\n"
         "            s->rev = rev;\n"
         "            s->limit = ${step_limit}u;\n"
-        "            s->held = 0u;\n"
         "            flags = s->fault; /* 0 or ${PFX}_FAULT (latched) */\n"
         "            hc_publish(s, rev, y, flags);\n",
         "            s->phase = p;\n"
         "            s->limit = ${step_limit}u;\n"
-        "            s->held = 0u;\n"
         "            flags = s->fault; /* 0 or ${PFX}_FAULT (latched) */\n"
         "            if (s->locked != 0u) {\n"
         "                /* identified: f_init moves to the calibration's frame for good; both\n"
@@ -465,8 +464,8 @@ def _powerup_hooks(ctx: _Context, pu: PowerUpFirmware) -> dict[str, str]:
     pfx, PFX, n = ctx.pfx, ctx.PFX, ctx.design.pole_pairs
     return {
         "api_macros": (
-            f"/* This code identifies the pole pair at power-up by itself: {pfx}_init takes no\n"
-            f" * angle, reading.identified says when the angle is in the calibration's frame. */\n"
+            f"/* This code identifies the pole pair at power-up by itself after {pfx}_init:\n"
+            " * reading.identified says when the angle is in the calibration's frame. */\n"
             f"#define {PFX}_POWERUP 1\n"
             f"#define {PFX}_POWERUP_GRID {pu.grid}\n"
         ),
@@ -495,16 +494,31 @@ def _powerup_hooks(ctx: _Context, pu: PowerUpFirmware) -> dict[str, str]:
             " * function; it has external linkage only so that compilers keep it out of the lean\n"
             f" * path (whose cycles it would lengthen). Call {pfx}_update, not this. */\n"
             f"uint32_t {pfx}_identify_sample({pfx}_state *s, float d1, float d2, float d3);\n\n"
-            "/* Start after power-up wherever the rotor is: no angle and no homing. The first\n"
+        ),
+        "init_note": (
+            ";\n * then the pole pair is identified from the magnets' signatures (no homing): the\n"
             " * readings are in the frame of the current maximum-likelihood pole pair (angle\n"
-            " * right within the electrical period from the first sample); reading.identified\n"
-            " * becomes 1 when the probability of a wrong pole pair is below "
+            " * right within the electrical period from the first sample) and\n"
+            " * reading.identified becomes 1 when the probability of a wrong pole pair is below "
             f"{pu.report.error_target:g}\n"
             " * and the signals fit the model; reading.mismatch becomes 1 instead when no pole\n"
-            " * pair fits (recalibrate). */\n"
-            f"void {pfx}_init({pfx}_state *s);\n"
+            " * pair fits (ring remounted, wiring changed: recalibrate)"
         ),
-        "init_def": _PU_INIT.substitute(pfx=pfx, n=n),
+        "set_angle_note": (
+            "\n * It also ends the power-up identification: the reading says identified, pole\n"
+            " * pair 0."
+        ),
+        "set_angle_extra": (
+            "        s->locked = 1u; /* homed: the frame is known, no identification */\n"
+            "        s->best = 0u;\n"
+            "        s->pub_ident[0] = 0x10000u;\n"
+            "        s->pub_ident[1] = 0x10000u;\n"
+        ),
+        "update_loop": (
+            " once the pole pair is identified (before: the n_m hypotheses in a\n * loop, about"
+            " ten times the cycles)"
+        ),
+        "init_def": _PU_INIT.substitute(pfx=pfx, PFX=PFX, n=n),
         "read_locals": "    uint32_t ident;\n",
         "read_copy": "        ident = s->pub_ident[before & 1u];\n",
         "read_after": (
@@ -541,7 +555,7 @@ def _powerup_section(ctx: _Context) -> Section | None:
 def _homing_note(pu: PowerUpFirmware, *, fixed: bool = False) -> list[str]:
     """Banner lines of a variant that does not identify the pole pair (homing API)."""
     if pu.status is PowerUpCode.SINGLE_POLE_PAIR:
-        text = comment_text("Power-up: " + pu.message.replace("'", ""), limit=600)
+        text = comment_text("Power-up: " + pu.message, limit=600)
         return ["", *textwrap.wrap(text, 90, subsequent_indent="  ")]
     if fixed and pu.emitted:
         why = (
@@ -550,10 +564,11 @@ def _homing_note(pu: PowerUpFirmware, *, fixed: bool = False) -> list[str]:
         )
     else:
         why = pu.message
-    why = comment_text(why.replace("'", "").replace(";", ","), limit=600)
+    why = comment_text(why, limit=600)
     return [
         "",
-        "Power-up: this code does NOT identify the pole pair. Init it with the calibration run",
-        "  starting position (the same rotor position, or a homed axis). Why:",
+        "Power-up: this code does NOT identify the pole pair. After init, set_angle gives it the",
+        "  rotor's position in the calibration's frame (0, 0 at the calibration run's start: the",
+        "  same rotor position, or a homed axis). Why:",
         *("  " + line for line in textwrap.wrap(why, 88)),
     ]

@@ -51,3 +51,4 @@ class _Context:
     variant: str  # "float" or "fixed"
     subs: Mapping[str, Any] = field(default_factory=dict)  # the lean templates' substitutions
     powerup: Any = None  # hallcal.output.firmware.PowerUpFirmware
+    adc_scale: float = 1.0  # ADC counts per unit of the artifact's Hall signals

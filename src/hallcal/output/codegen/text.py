@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import textwrap
 from collections.abc import Sequence
 
 import numpy as np
@@ -17,21 +18,26 @@ import numpy as np
 from hallcal.errors import HallcalInputError
 
 _U32 = 1 << 32
-_COMMENT_SAFE = re.compile(r"[^A-Za-z0-9 ._+=,:()\[\]-]")
+_NAME_SAFE = re.compile(r"[^A-Za-z0-9 ._+=,:()\[\]-]")
+_NOT_PRINTABLE = re.compile(r"[^\x20-\x7e]")
+_COMMENT_BREAKERS = (("*/", "* /"), ("/*", "/ *"), ("??", "? ?"), ("//", "/ /"))
 
 
 def comment_text(text: str, *, limit: int = 80) -> str:
-    """Text safe inside a C block comment on one line.
+    """Text safe inside a C block comment on one line, its punctuation kept.
 
-    Only ``A-Za-z0-9``, space and ``._+=,:()[]-`` survive; anything else (``*``, ``/``, ``\\``,
-    ``?``, quotes, control characters, non-ASCII) becomes ``_``. So the result cannot end the
-    comment (``*/``), splice a line (backslash-newline), form a trigraph (``??/``) or open a
-    nested comment, and has no newline. Truncated to ``limit`` characters.
+    Characters outside printable ASCII (control characters, newlines, non-ASCII) and the
+    backslash become ``_``; the sequences that could end or open a comment (``*/``, ``/*``,
+    ``//``) or form a trigraph (``??``) get a space in between, until none is left. So the
+    result cannot end the comment, splice a line (backslash-newline), form a trigraph or open
+    a nested comment, and has no newline, while "the calibration's table", "956.9 rad/s" and
+    "|error| <= 3.6e-06" read as written. Truncated to ``limit`` characters (the cut cannot
+    create a sequence: it only removes characters from the end).
 
     Parameters
     ----------
     text : str
-        Any text (a file name, a message).
+        Any text (a message, a file name).
     limit : int, keyword-only
         Maximum length of the result [characters], ``...`` included.
 
@@ -40,7 +46,20 @@ def comment_text(text: str, *, limit: int = 80) -> str:
     str
         The sanitized, possibly truncated text.
     """
-    out = _COMMENT_SAFE.sub("_", str(text))
+    out = _NOT_PRINTABLE.sub("_", str(text)).replace("\\", "_")
+    while any(bad in out for bad, _ in _COMMENT_BREAKERS):
+        for bad, good in _COMMENT_BREAKERS:
+            out = out.replace(bad, good)
+    if len(out) > limit:
+        out = out[: limit - 3].rstrip("/*?") + "..."
+    return out
+
+
+def name_text(text: str, *, limit: int = 60) -> str:
+    """What comes from outside and names something (a file name, a prefix): only
+    ``A-Za-z0-9``, space and ``._+=,:()[]-`` survive, anything else becomes ``_``; truncated
+    to ``limit`` characters."""
+    out = _NAME_SAFE.sub("_", str(text))
     return out if len(out) <= limit else out[: limit - 3] + "..."
 
 
@@ -49,7 +68,7 @@ def _source_name(source: str | os.PathLike[str] | None) -> str:
     if source is None:
         return "(in memory)"
     name = os.path.basename(os.fspath(source).replace("\\", "/").rstrip("/")) or "(unnamed)"
-    return comment_text(name, limit=60)
+    return name_text(name, limit=60)
 
 
 def _f32(value: float, what: str) -> float:
@@ -85,16 +104,32 @@ def _c_list(values: Sequence[str], per_line: int, indent: str = "    ") -> str:
 
 
 def _banner(fname: str, lines: Sequence[str]) -> str:
-    body = [comment_text(t, limit=100) for t in lines]
-    return (
-        "/*\n" + "\n".join((" * " + t).rstrip() for t in [comment_text(fname)] + body) + "\n */\n"
-    )
+    body = [
+        part
+        for t in lines
+        for part in (
+            textwrap.wrap(
+                comment_text(t, limit=600),
+                96,
+                subsequent_indent="    ",
+                break_on_hyphens=False,
+                break_long_words=False,
+            )
+            or [""]
+        )
+    ]
+    return "/*\n" + "\n".join((" * " + t).rstrip() for t in [name_text(fname)] + body) + "\n */\n"
 
 
 def _version() -> str:
     from hallcal._version import __version__
 
-    return comment_text(__version__, limit=20)
+    return name_text(__version__, limit=20)
+
+
+def _speed_text(speed: float, sample_time: float) -> str:
+    """`` (= X rad/s)`` when the sample time is known (the artifact's setup), else empty."""
+    return f" (= {speed / sample_time:.4g} rad/s)" if sample_time != 1.0 else ""
 
 
 def _int_sub(var: str, value: int) -> str:

@@ -14,8 +14,9 @@ shown when a recording has the ``y_ref`` column (validation only, never used by 
 without one the report says so and shows what needs no encoder: the model fit, the table, the
 cost and the correction f_star - f_init. For an open-loop (constant-speed) calibration the
 straight-line check stands in for the encoder: f_init and f_star against their best straight line
-on the constant-speed samples the calibration did not use. Angle errors are in mechanical mrad or,
-with ``angle_units="electrical-deg"``, in electrical degrees.
+on the constant-speed samples the calibration did not use. Angle errors are in mechanical mrad or
+another :class:`hallcal.formatting.AngleUnit` (``angle_units="electrical-deg"``: electrical
+degrees).
 
 The modules: :mod:`~hallcal.output.report.content` (:class:`ReportContent`, from an in-memory
 calibration), :mod:`~hallcal.output.report.from_artifact` (from an artifact and its recording),

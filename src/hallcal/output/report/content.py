@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
+from hallcal.formatting import AngleUnit
 from hallcal.io import (
     Dataset,
     Setup,
@@ -115,8 +116,8 @@ class ReportContent:
         The constant-speed fit's summary (``diagnostics.constant_speed`` of the artifact).
     straight_line : StraightLineCheck or None
         f_init and f_star against a straight line on held-out constant-speed samples.
-    angle_units : {"mrad", "electrical-deg"}
-        Units of the angle errors in the text.
+    angle_units : AngleUnit
+        Units of the angle errors in the text (an unknown name is an error).
     cogging : CoggingTorque or None
         The cogging torque identified with the flux (with the covariance of its coefficients).
     true_cogging : CoggingTorque or None
@@ -157,7 +158,7 @@ class ReportContent:
     hall_noise_variance: float | None = None
     constant_speed: dict[str, Any] | None = None
     straight_line: StraightLineCheck | None = None
-    angle_units: str = "mrad"
+    angle_units: AngleUnit = AngleUnit.MRAD
     cogging: Any = None
     true_cogging: Any = None
 
@@ -167,11 +168,8 @@ class ReportContent:
 
     def angle(self, x: float | None) -> str:
         """An angle error [rad, mechanical] in this report's units."""
-        if x is None or not math.isfinite(x):
-            return "–"
-        if self.angle_units == "electrical-deg":
-            return f"{math.degrees(x) * self.pole_pairs:.3f} electrical deg"
-        return f"{1e3 * x:.3f} mrad"
+        unit = AngleUnit.parse(self.angle_units)
+        return unit.text(x, self.pole_pairs, page=True)
 
 
 @dataclass(frozen=True)

@@ -5,20 +5,18 @@ from __future__ import annotations
 
 import base64
 import datetime as _dt
-import html
 import math
 import re
-from typing import Any
 
 import numpy as np
 
 from hallcal._version import __version__
+from hallcal.formatting import AngleUnit, esc, number, ranges, tf_text
 from hallcal.io import (
     setup_to_toml,
 )
 from hallcal.output.report.content import ReportContent
 from hallcal.output.report.figures import ReportFigure
-from hallcal.sim.lti import ContinuousTF, polynomial_text
 
 _DPI = 120
 
@@ -59,41 +57,9 @@ footer { color: var(--grey); font-size: 12px; margin-top: 36px; }
 """
 
 
-def _esc(x: Any) -> str:
-    return html.escape(str(x), quote=True)
-
-
 def _prose(x: object) -> str:
     """A message as HTML: escaped, with its `command` spans set as code (not raw backticks)."""
-    return re.sub(r"`([^`]+)`", r"<code>\1</code>", _esc(x))
-
-
-def _num(x: Any, fmt: str = ".4g") -> str:
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        return "–"
-    return format(v, fmt) if math.isfinite(v) else "–"
-
-
-def _tf_text(tf: ContinuousTF) -> str:
-    text = f"({polynomial_text(tf.num)}) / ({polynomial_text(tf.den)})"
-    if tf.delay:
-        text += f" · exp(-{tf.delay:.4g} s)"
-    return text
-
-
-def _ranges(values: Any, *, to: str = "..", sep: str = ", ") -> str:
-    """[1, 2, 3, 5, 33] -> '1..3, 5, 33' (three or more consecutive integers as a range)."""
-    v = sorted(int(x) for x in values)
-    out, i = [], 0
-    while i < len(v):
-        j = i
-        while j + 1 < len(v) and v[j + 1] == v[j] + 1:
-            j += 1
-        out.append(f"{v[i]}{to}{v[j]}" if j > i + 1 else sep.join(map(str, v[i : j + 1])))
-        i = j + 1
-    return sep.join(out)
+    return re.sub(r"`([^`]+)`", r"<code>\1</code>", esc(x))
 
 
 def _status_class(status: str) -> str:
@@ -107,7 +73,7 @@ def _status_class(status: str) -> str:
 
 
 def _kv(rows: list[tuple[str, str]]) -> str:
-    body = "".join(f"<tr><th>{_esc(k)}</th><td>{v}</td></tr>" for k, v in rows)
+    body = "".join(f"<tr><th>{esc(k)}</th><td>{v}</td></tr>" for k, v in rows)
     return f'<table class="kv">{body}</table>'
 
 
@@ -123,10 +89,10 @@ def _accuracy_table(c: ReportContent) -> str:
             f'<td class="num">{c.angle(v.init.peak)}</td></tr>'
             f'<tr class="star"><td>f_star (after)</td><td class="num">{c.angle(v.star.rms)}</td>'
             f'<td class="num">{c.angle(v.star.peak)}</td></tr>'
-            f'<tr><td>improvement</td><td class="num">×{_num(ri, ".3g")}</td>'
-            f'<td class="num">×{_num(pi, ".3g")}</td></tr>'
+            f'<tr><td>improvement</td><td class="num">×{number(ri, ".3g")}</td>'
+            f'<td class="num">×{number(pi, ".3g")}</td></tr>'
             "</table>"
-            f'<p class="meta">Against the reference angle y_ref of {_esc(c.validation_source)}; '
+            f'<p class="meta">Against the reference angle y_ref of {esc(c.validation_source)}; '
             "RMS and peak about the mean error (a constant offset of the angle origin is not a "
             "reconstruction error).</p>"
         )
@@ -135,7 +101,7 @@ def _accuracy_table(c: ReportContent) -> str:
         e = vt.y_init - vt.y_ref
         e = e - e.mean()
         parts.append(
-            f"<p>f_init against y_ref of {_esc(c.validation_source)}: RMS "
+            f"<p>f_init against y_ref of {esc(c.validation_source)}: RMS "
             f"{c.angle(float(np.sqrt(np.mean(e**2))))}, peak {c.angle(float(np.max(np.abs(e))))}; "
             "no f_star (table not bijective).</p>"
         )
@@ -156,10 +122,10 @@ def _accuracy_table(c: ReportContent) -> str:
                 "</tr>"
                 f'<tr class="star"><td>f_star</td><td class="num">{c.angle(sl.star_rms)}</td>'
                 "</tr>"
-                f'<tr><td>improvement</td><td class="num">×{_num(ratio, ".3g")}</td></tr>'
+                f'<tr><td>improvement</td><td class="num">×{number(ratio, ".3g")}</td></tr>'
                 "</table>"
                 f'<p class="meta">At constant speed the true angle is a straight line in the '
-                f"sample index, so on {_esc(where)} the residual of the best line bounds the "
+                f"sample index, so on {esc(where)} the residual of the best line bounds the "
                 "error from above (the rig's own speed ripple is included).</p>"
             )
         cv = c.calibration
@@ -173,7 +139,7 @@ def _accuracy_table(c: ReportContent) -> str:
     rows = [
         (
             "noise floor (RMS)",
-            f"{c.angle(c.noise_floor)} <span class='meta'>({_esc(c.noise_floor_source)})</span>",
+            f"{c.angle(c.noise_floor)} <span class='meta'>({esc(c.noise_floor_source)})</span>",
         ),
         (
             "predicted f_star error (RMS)",
@@ -192,7 +158,7 @@ def _accuracy_table(c: ReportContent) -> str:
 def _calibration_rows(c: ReportContent) -> list[tuple[str, str]]:
     rows: list[tuple[str, str]] = []
     rows.append(
-        ("status", f'<span class="status {_status_class(c.status)}">{_esc(c.status)}</span>')
+        ("status", f'<span class="status {_status_class(c.status)}">{esc(c.status)}</span>')
     )
     sem = c.sem
     if sem is not None:
@@ -202,42 +168,43 @@ def _calibration_rows(c: ReportContent) -> list[tuple[str, str]]:
         rows += [
             (
                 "SEM cost before → after",
-                f"{_num(sem.initial_cost)} → {_num(sem.cost)} "
-                f"<span class='meta'>(noise level 3Nσ² = {_num(level)}, N = {n})</span>",
+                f"{number(sem.initial_cost)} → {number(sem.cost)} "
+                f"<span class='meta'>(noise level 3Nσ² = {number(level)}, N = {n})</span>",
             ),
-            ("SEM iterations", f"{int(sem.iterations)} ({_esc(sem.status)})"),
-            ("SEM solve time", f"{_num(sem.solve_time, '.2f')} s"),
+            ("SEM iterations", f"{int(sem.iterations)} ({esc(sem.status)})"),
+            ("SEM solve time", f"{number(sem.solve_time, '.2f')} s"),
             (
                 "noise variance σ² (from residual)",
-                f"{_num(sem.noise_variance, '.4g')} (Hall signal unit)² per channel",
+                f"{number(sem.noise_variance, '.4g')} (Hall signal unit)² per channel",
             ),
         ]
     if c.gain_correction is not None:
-        text = _num(c.gain_correction, ".5g")
+        text = number(c.gain_correction, ".5g")
         g = c.gain_details or {}
         if g.get("c_refined") is not None:
             std = g.get("c_refined_std")
             if std is not None:
-                text += f" ± {_num(std, '.2g')}"
+                text += f" ± {number(std, '.2g')}"
             text += (
                 " <span class='meta'>(refined jointly with θ in SEM; the gain-correction estimate "
-                f"was {_num(g.get('c'), '.5g')})</span>"
+                f"was {number(g.get('c'), '.5g')})</span>"
             )
         rows.append(("gain correction ĉ", text))
     if c.plant is not None:
-        rows.append(("plant model used in SEM", f"<code>{_esc(_tf_text(c.plant))}</code>"))
+        plant = tf_text(c.plant.num, c.plant.den, c.plant.delay, page=True)
+        rows.append(("plant model used in SEM", f"<code>{esc(plant)}</code>"))
     lut = c.lut
     rows.append(
         (
             "lookup table",
             f"{lut.points} points; bijective: <b>{'yes' if lut.bijective else 'NO'}</b> "
-            f"(min slope of y0 → ŷ: {_num(lut.min_slope, '.3g')})",
+            f"(min slope of y0 → ŷ: {number(lut.min_slope, '.3g')})",
         )
     )
     rows += _model_rows(c)
     if c.timings:
         rows.append(
-            ("time per step", _esc(", ".join(f"{k} {v:.2f} s" for k, v in c.timings.items())))
+            ("time per step", esc(", ".join(f"{k} {v:.2f} s" for k, v in c.timings.items())))
         )
     return rows
 
@@ -248,26 +215,24 @@ def _model_rows(c: ReportContent) -> list[tuple[str, str]]:
     info = c.model_info
     if info:
         basis = info.get("basis", "?")
-        desc = _esc(basis)
+        desc = esc(basis)
         if "harmonics" in info and basis == "fourier":
-            desc += f", mechanical harmonics {_esc(_ranges(info['harmonics']))}"
+            desc += f", mechanical harmonics {esc(ranges(info['harmonics']))}"
         elif "points" in info:
-            desc += f", {_esc(info['points'])} points"
+            desc += f", {esc(info['points'])} points"
         out.append(("flux model", desc))
     if c.adequacy is not None:
         verdict = c.adequacy.get("verdict", "–")
         msg = str(c.adequacy.get("message", "") or "")
         if msg.lower().startswith(str(verdict).lower()):
             msg = msg[len(str(verdict)) :].lstrip(" :,-")
-        out.append(
-            ("model adequacy", f"<b>{_esc(verdict)}</b>" + (f": {_esc(msg)}" if msg else ""))
-        )
+        out.append(("model adequacy", f"<b>{esc(verdict)}</b>" + (f": {esc(msg)}" if msg else "")))
     elif c.constant_speed is not None:
         cs = c.constant_speed
         motion = cs.get("motion_rms")
         floor = cs.get("angle_noise_floor")
         ratio = (
-            f" ({_num(motion / floor, '.3g')} × the noise floor)"
+            f" ({number(motion / floor, '.3g')} × the noise floor)"
             if isinstance(motion, int | float) and isinstance(floor, int | float) and floor > 0
             else ""
         )
@@ -275,19 +240,19 @@ def _model_rows(c: ReportContent) -> list[tuple[str, str]]:
         out.append(
             (
                 "model adequacy (constant speed)",
-                f"<b>{_esc(cs.get('status', '–'))}</b>: rotor motion off the straight line "
+                f"<b>{esc(cs.get('status', '–'))}</b>: rotor motion off the straight line "
                 f"{c.angle(motion)} RMS{ratio}; "
-                f"{_num(100 * float(cs.get('downweighted_fraction', 0.0)), '.3g')} % of the "
+                f"{number(100 * float(cs.get('downweighted_fraction', 0.0)), '.3g')} % of the "
                 "samples down-weighted as outliers"
-                + (f"; {_esc('; '.join(warnings))}" if warnings else ""),
+                + (f"; {esc('; '.join(warnings))}" if warnings else ""),
             )
         )
         out.append(
             (
                 "constant-speed segment",
-                f"samples {_esc(cs.get('start'))}..{_esc(cs.get('stop'))}, "
-                f"{_num(cs.get('revolutions'), '.3g')} revolutions, Hall noise "
-                f"{_num(cs.get('noise_std'), '.3g')} per channel",
+                f"samples {esc(cs.get('start'))}..{esc(cs.get('stop'))}, "
+                f"{number(cs.get('revolutions'), '.3g')} revolutions, Hall noise "
+                f"{number(cs.get('noise_std'), '.3g')} per channel",
             )
         )
     else:
@@ -315,18 +280,18 @@ def render_html(content: ReportContent, images: list[tuple[ReportFigure, bytes]]
         "<!DOCTYPE html>",
         '<html lang="en"><head><meta charset="utf-8">',
         '<meta name="viewport" content="width=device-width, initial-scale=1">',
-        f"<title>{_esc(c.title)}</title><style>{_CSS}</style></head><body><main>",
-        f"<h1>{_esc(c.title)}</h1>",
+        f"<title>{esc(c.title)}</title><style>{_CSS}</style></head><body><main>",
+        f"<h1>{esc(c.title)}</h1>",
         f'<p class="meta">{c.pole_pairs} pole pairs · '
         + (
             "time in samples (sample_time = 1)"
             if c.setup.sample_time == 1.0
-            else f"sample time {_num(c.setup.sample_time, '.4g')} s"
+            else f"sample time {number(c.setup.sample_time, '.4g')} s"
         )
         + " · angle errors in "
-        + ("electrical degrees" if c.angle_units == "electrical-deg" else "mechanical mrad")
-        + f" · inputs: {_esc(src)} · created {created} · hallcal {_esc(__version__)}</p>",
-        f'<p><span class="status {_status_class(c.status)}">status: {_esc(c.status)}</span></p>',
+        + AngleUnit.parse(c.angle_units).description
+        + f" · inputs: {esc(src)} · created {created} · hallcal {esc(__version__)}</p>",
+        f'<p><span class="status {_status_class(c.status)}">status: {esc(c.status)}</span></p>',
     ]
     if c.messages or c.notes:
         out.append('<div class="notes">')
@@ -341,13 +306,13 @@ def render_html(content: ReportContent, images: list[tuple[ReportFigure, bytes]]
         w, h = fig.figure.get_size_inches() * _DPI
         b64 = base64.b64encode(png).decode("ascii")
         out.append(
-            f'<figure id="fig-{_esc(fig.key)}"><img src="data:image/png;base64,{b64}" '
-            f'alt="{_esc(fig.title)}" width="{int(round(w))}" height="{int(round(h))}">'
-            f"<figcaption><b>Figure {i}. {_esc(fig.title)}.</b> {_esc(fig.caption)}"
+            f'<figure id="fig-{esc(fig.key)}"><img src="data:image/png;base64,{b64}" '
+            f'alt="{esc(fig.title)}" width="{int(round(w))}" height="{int(round(h))}">'
+            f"<figcaption><b>Figure {i}. {esc(fig.title)}.</b> {esc(fig.caption)}"
             "</figcaption></figure>"
         )
     out.append("<h2>Setup</h2>")
-    out.append(f"<pre>{_esc(setup_to_toml(c.setup))}</pre>")
+    out.append(f"<pre>{esc(setup_to_toml(c.setup))}</pre>")
     out.append(
         "<footer>hallcal implements van Meer et al., “Self-Calibrating Position Measurements: "
         "Applied to Imperfect Hall Sensors”. Figures are also written as PNG files next to this "

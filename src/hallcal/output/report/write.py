@@ -4,14 +4,13 @@
 from __future__ import annotations
 
 import dataclasses
-import io as _io
 import os
-import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from hallcal.errors import HallcalInputError
+from hallcal.formatting import AngleUnit
 from hallcal.io import (
     Dataset,
     atomic_write,
@@ -20,6 +19,7 @@ from hallcal.io import (
     read_artifact,
     read_dataset,
 )
+from hallcal.output.plots import figure_png
 from hallcal.output.report.content import (
     Progress,
     ReportContent,
@@ -33,16 +33,6 @@ from hallcal.pipeline.calibration import Calibration
 
 REPORT_NAME = "report.html"
 FIGURE_DIR = "figures"
-
-
-def _png(fig: Any) -> bytes:
-    buf = _io.BytesIO()
-    with warnings.catch_warnings():
-        # a figure of degenerate data (a flat trace, a tiny run) may not fit constrained layout;
-        # matplotlib then draws it without and says so on stderr, which is no news to the user
-        warnings.filterwarnings("ignore", message="constrained_layout not applied")
-        fig.savefig(buf, format="png", dpi=_DPI, metadata={"Software": None})
-    return buf.getvalue()
 
 
 def write_report(
@@ -72,7 +62,7 @@ def write_report(
         raise HallcalInputError(f"{out}: exists and is not a directory")
     _say(progress, "figures")
     figs = make_figures(content)
-    images = [(f, _png(f.figure)) for f in figs]
+    images = [(f, figure_png(f.figure, dpi=_DPI)) for f in figs]
     _say(progress, "HTML report")
     text = render_html(content, images)
     path = out / REPORT_NAME
@@ -99,7 +89,7 @@ def write_report_from_files(
     bla: str | os.PathLike[str] | None = "auto",
     out_dir: str | os.PathLike[str],
     progress: Progress = None,
-    units: str = "mrad",
+    units: str | AngleUnit = AngleUnit.MRAD,
 ) -> Path:
     """``hallcal report ARTIFACT DATA [--validation VAL] --out DIR [--units U]``.
 
@@ -117,7 +107,7 @@ def write_report_from_files(
     out_dir : path-like
         Folder for ``report.html`` and ``figures/``.
     progress : callable, optional
-    units : {"mrad", "electrical-deg"}
+    units : AngleUnit or its name ("mrad", "rad", "deg", "electrical-deg")
         Units of the angle errors in the text (the figures stay in mrad).
 
     Returns
@@ -131,6 +121,7 @@ def write_report_from_files(
         Missing or malformed artifact or data (the message names the file and key or column).
     """
     # read and check every input before saying anything: a bad input is one line on stderr
+    unit = AngleUnit.parse(units)
     art = read_artifact(artifact_path)
     data = read_dataset(data_path, required=("d1", "d2", "d3"))
     val = None
@@ -155,7 +146,7 @@ def write_report_from_files(
     content = content_from_artifact(
         art, data, validation_data=val, bla=bla_obj, sources=sources, progress=progress
     )
-    content = dataclasses.replace(content, angle_units=units)
+    content = dataclasses.replace(content, angle_units=unit)
     return write_report(content, out_dir, progress=progress)
 
 
@@ -216,7 +207,7 @@ def write_calibration_report(
     *,
     validation: Dataset | None = None,
     progress: Progress = None,
-    units: str = "mrad",
+    units: str | AngleUnit = AngleUnit.MRAD,
 ) -> Path:
     """The report of a calibration object (``Calibration.report``), computed or loaded.
 
@@ -233,7 +224,7 @@ def write_calibration_report(
         A fresh recording with ``y_ref``.
     progress : callable, optional
         Called with a short message per step.
-    units : {"mrad", "electrical-deg"}
+    units : AngleUnit or its name ("mrad", "rad", "deg", "electrical-deg")
         Units of the angle errors in the text.
 
     Returns
@@ -241,11 +232,12 @@ def write_calibration_report(
     pathlib.Path
         The HTML file.
     """
+    unit = AngleUnit.parse(units)  # before the work
     if cal.artifact is not None:
         content = content_from_artifact(
             cal.artifact, data, validation_data=validation, progress=progress
         )
     else:
         content = content_from_calibration(cal, data, validation_data=validation)
-    content = dataclasses.replace(content, angle_units=units)
+    content = dataclasses.replace(content, angle_units=unit)
     return write_report(content, out_dir, progress=progress)
