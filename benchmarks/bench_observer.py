@@ -30,6 +30,7 @@ Run: ``python benchmarks/bench_observer.py``; output committed beside it (bench_
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from pathlib import Path
@@ -48,7 +49,7 @@ from hallcal.pipeline.observe import calibrated_noise, observer_for
 from hallcal.sensor.flux import FourierBasis
 from hallcal.sensor.metrics import angle_error
 from hallcal.sensor.observer import observer_model, run_observer
-from hallcal.sim.bench import BenchConfig, simulate_run, with_changes
+from hallcal.sim.bench import BenchConfig, simulate_run
 
 TWO_PI = 2.0 * math.pi
 WARM = {"amplitude": 0.928, "gain_mismatch": (0.01, -0.008, 0.004),
@@ -101,7 +102,7 @@ def paper_bench():
               f"(threshold {obs.threshold:.3f}); {states(obs)}; "
               f"{1e6 * dt / len(obs):.2f} us/sample")  # fmt: skip
 
-    warm = with_changes(cfg, **WARM)
+    warm = dataclasses.replace(cfg, **WARM)
     wfloor = warm.noise_floor
     two_s = int(round(2.0 / cfg.sample_time))
     print("   warm validation (60 K: remanence -7.2 %, sensitivities +1.0/-0.8/+0.4 %, offsets "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import pytest
 from hypothesis import HealthCheck, settings
@@ -31,6 +32,29 @@ _MARKERS = {
     "test_real_ringjig.py": ("slow",),
     "test_whole_recordings.py": ("slow",),
 }
+
+
+@pytest.fixture(scope="session")
+def weak_bench() -> tuple[Any, Any, Any, Any]:
+    """7 pole pairs, weak magnet variation, calibrated by SEM (harmonics 1..7) on the usual ramp:
+    ``(cfg, run, sem, lut)``, simulated and solved once per session for test_absolute.py and
+    test_misfit.py (read-only: frozen results). The imports are local: a session that
+    needs no bench loads no solver.
+
+    Returns
+    -------
+    tuple
+        ``(BenchConfig, BenchRun, SEMResult, LUT)``.
+    """
+    from hallcal.fit.sem import solve_sem
+    from hallcal.sensor.flux import FourierBasis
+    from hallcal.sensor.lut import build_lut
+    from hallcal.sim.bench import BenchConfig, ramp_run
+
+    cfg = BenchConfig(pole_pairs=7, magnet_variation=0.01, seed=0)
+    run = ramp_run(cfg)
+    sem = solve_sem(cfg.loop(), run.r, run.d, FourierBasis(tuple(range(1, 8))), y=run.y)
+    return cfg, run, sem, build_lut(sem.flux, 7)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

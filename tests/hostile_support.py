@@ -18,7 +18,6 @@ import json
 import math
 import os
 import re
-import time
 import traceback
 from collections.abc import Sequence
 from pathlib import Path
@@ -53,15 +52,12 @@ class Outcome:
     stdout, stderr : str
     exception : str or None
         The traceback of an exception that escaped the command (None when it exited normally).
-    seconds : float
-        Wall time.
     """
 
     exit_code: int
     stdout: str
     stderr: str
     exception: str | None
-    seconds: float
 
 
 def run_in_process(args: Sequence[str]) -> Outcome:
@@ -81,13 +77,11 @@ def run_in_process(args: Sequence[str]) -> Outcome:
     from hallcal.cli import cli
 
     runner = CliRunner()
-    t0 = time.perf_counter()
     result = runner.invoke(cli, list(args), prog_name="hallcal", catch_exceptions=True)
-    seconds = time.perf_counter() - t0
     exception = None
     if result.exception is not None and not isinstance(result.exception, SystemExit):
         exception = "".join(traceback.format_exception(result.exception))
-    return Outcome(result.exit_code, result.stdout, result.stderr, exception, seconds)
+    return Outcome(result.exit_code, result.stdout, result.stderr, exception)
 
 
 def files_under(paths: Sequence[Path]) -> set[Path]:

@@ -287,7 +287,7 @@ def test_fit_other_structures() -> None:
     np.testing.assert_array_equal(fit2.den, [1.0, 0.0, 0.0])
 
 
-def test_scaled_control_and_dict_roundtrip(loop_bla) -> None:
+def test_scaled_and_dict_roundtrip(loop_bla) -> None:
     fit = fit_parametric(loop_bla, numerator_order=0, denominator_order=2)
     half = fit.scaled(0.5)
     np.testing.assert_allclose(half.num, 0.5 * fit.num)
@@ -295,14 +295,6 @@ def test_scaled_control_and_dict_roundtrip(loop_bla) -> None:
     assert half.delay == fit.delay and half.gain_scale == 0.5
     f = np.array([3.0, 30.0])
     np.testing.assert_allclose(half.frequency_response(f), 0.5 * fit.frequency_response(f))
-
-    tf = fit.to_control()
-    np.testing.assert_allclose(
-        np.asarray(tf(2j * np.pi * f)).ravel(),
-        fit.frequency_response(f) * np.exp(2j * np.pi * f * fit.delay),
-    )
-    frd = loop_bla.to_frd()
-    np.testing.assert_allclose(np.asarray(frd.omega), 2 * np.pi * loop_bla.freq)
 
     back = ParametricBLA.from_dict(json.loads(json.dumps(fit.to_dict())))
     np.testing.assert_array_equal(back.num, fit.num)

@@ -14,7 +14,6 @@ from hallcal.fit.censor import (
     detect_censoring,
     impute,
     quantization_step,
-    quantization_variance,
 )
 from hallcal.io import Dataset, ModelSpec, Setup
 from hallcal.sensor.metrics import angle_error
@@ -71,7 +70,6 @@ def test_quantization_step_and_its_variance():
         2.4 / 4095, rel=2e-3
     )
     assert quantization_step(rng.standard_normal(20_000)) == 0.0
-    assert quantization_variance([0.012, 0.012, 0.0]) == pytest.approx(2 * 0.012**2 / 36)
 
 
 def test_imputation_is_unbiased_where_the_uncensored_samples_are_not():

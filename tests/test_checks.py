@@ -8,7 +8,6 @@ needs no reference.
 from __future__ import annotations
 
 import dataclasses
-import time
 from pathlib import Path
 
 import numpy as np
@@ -68,27 +67,23 @@ def _ring(i: int = 1) -> Dataset:
 def test_wrong_pole_pairs_suggest_the_right_count(run, reference, wrong):
     other = {"r": "y_ref", "y_ref": "r"}[reference]
     ds = _dataset(run, drop=(other,))
-    t0 = time.perf_counter()
     check = check_pole_pairs(ds, wrong)
-    elapsed = time.perf_counter() - t0
     assert check.status is CheckStatus.FAILED
     assert check.suggested == 4 and check.key == "pole_pairs"
     assert "set pole_pairs = 4" in check.text and f"pole_pairs = {wrong}" in check.text
     # the loop tracks the ramp with a constant lag: the measured ratio is 4 to within 1 %
     assert check.estimate == pytest.approx(4.0, rel=0.01)
-    assert elapsed < 2.0  # measured 0.03-0.3 s for 80 000 samples on a shared 2-core machine
     assert check_pole_pairs(ds, 4).status is CheckStatus.OK
 
 
-def test_wrong_pole_pairs_stop_calibration_within_two_seconds(run):
+def test_wrong_pole_pairs_stop_calibration_before_any_sem(run):
     """The case: pole_pairs = 5 for a 4-pole-pair motor used to run 20 s into 'not
-    bijective'; now calibrate fails at once, naming the right count, before any SEM."""
+    bijective'; now calibrate fails at once, naming the right count, before any SEM (the
+    progress messages show no SEM or harmonic-selection step: the check is work, not time)."""
     setup = setup_from_dict({**MOTOR, "pole_pairs": 5})
     messages: list[str] = []
-    t0 = time.perf_counter()
     with pytest.raises(HallcalInputError, match="set pole_pairs = 4") as exc:
         pipeline.calibrate(_dataset(run, drop=("y_ref",)), setup, progress=messages.append)
-    assert time.perf_counter() - t0 < 2.0  # measured 0.1-0.4 s
     assert exc.value.key == "pole_pairs"
     assert not any("SEM" in m or "harmonics" in m for m in messages), messages
 
@@ -257,6 +252,15 @@ def test_a_wrong_pole_pair_count_is_not_taken_for_a_unit():
     from hallcal.pipeline.checks import CheckStatus, check_angle_units
 
     assert check_angle_units(Dataset.from_columns(_synthetic(4)), 5).status is CheckStatus.OK
+
+
+def test_a_reference_that_stands_still_is_not_taken_for_a_unit():
+    """r constant while the rotor turns (found by tests/test_fuzz_setups.py: ramp_end = 0 with a
+    constant-speed trajectory): slope 0 is no unit, and no math domain error."""
+    from hallcal.pipeline.checks import CheckStatus, check_angle_units
+
+    cols = dict(_synthetic(4), r=np.zeros(_synthetic(4)["r"].size))
+    assert check_angle_units(Dataset.from_columns(cols), 4).status is CheckStatus.OK
 
 
 def test_standstill_is_not_motion():

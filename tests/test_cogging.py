@@ -44,7 +44,11 @@ SHORT = {"ramp_end": 7.0, "duration": 14.0}
     phase=st.floats(-179.0, 179.0),
 )
 def test_amplitude_and_phase_round_trip(orders, amp, phase):
-    cog = CoggingTorque.from_amplitudes(orders, amp, phase)
+    phi = math.radians(phase)  # T_c = sum_k A cos(k y0 - phi): a_k = A cos phi, b_k = A sin phi
+    n = len(orders)
+    cog = CoggingTorque(
+        tuple(orders), np.full(n, amp * math.cos(phi)), np.full(n, amp * math.sin(phi))
+    )
     np.testing.assert_allclose(cog.amplitude, amp, rtol=1e-12)
     np.testing.assert_allclose(np.degrees(cog.phase), phase, atol=1e-9)
     y = np.linspace(0.0, 7.0, 50)

@@ -7,13 +7,15 @@ corrupt or truncated file said to be one; 4 for a fleet with a failed motor, 130
 exactly one error line, never a traceback or a warning, never output left behind by a failure
 and no existing file changed by it (an input, the previous outputs);
 export-c's C must compile with no symbol or macro beyond those of a valid export; a report must
-escape the artifact's texts. Each case must finish within 30 s and 2 GB.
+escape the artifact's texts. Each case must stay within 2 GB; how long a case takes is not
+asserted (timings belong in ``benchmarks/``).
 
 How they run: interpreter start-up costs about a second per command, so the cases run in two
 worker processes (:mod:`hostile_worker`) that call the command line in-process, one case after
 the other. The workers run under an address-space limit (``RLIMIT_AS`` = 2 GiB: a case that
-allocates more fails with MemoryError) and a watchdog ends a worker whose case runs over 30 s
-(the case fails as a timeout; the worker restarts with the next one). A sample of cases per
+allocates more fails with MemoryError) and a watchdog ends a worker whose case hangs (over
+120 s, far above any case's run time even on a loaded machine: the case fails as a hang; the
+worker restarts with the next one). A sample of cases per
 subcommand also runs as a real ``python -m hallcal.cli`` subprocess under the same limits. With
 ``-k``, only the selected cases are built and run.
 """
@@ -27,7 +29,6 @@ import resource
 import shutil
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -55,8 +56,10 @@ from hallcal.io import read_dataset
 
 HERE = Path(__file__).resolve().parent
 WORKER = HERE / "hostile_worker.py"
-#: The bounds for one case.
-CASE_SECONDS = 30.0
+#: The watchdog of one case [s]: it stops a hung case, it does not time a slow one (the old
+#: 30 s per-case bound was a speed assertion; the whole suite took 18 min under load).
+WATCHDOG_SECONDS = 120.0
+#: The memory bound of one case.
 CASE_BYTES = 2 * 2**30
 #: Two workers: the machine has two cores.
 WORKERS = 2
@@ -81,7 +84,7 @@ def _env() -> dict[str, str]:
     # reservation as memory; the system allocator reserves only what it uses
     env["ARROW_DEFAULT_MEMORY_POOL"] = "system"
     env["MPLBACKEND"] = "Agg"
-    env["HOSTILE_CASE_SECONDS"] = str(CASE_SECONDS)
+    env["HOSTILE_CASE_SECONDS"] = str(WATCHDOG_SECONDS)
     env["PYTHONPATH"] = os.pathsep.join(
         [str(HERE.parent / "src"), str(HERE), env.get("PYTHONPATH", "")]
     )
@@ -153,7 +156,7 @@ def _run_workers(cases: list[dict[str, Any]], d: Path) -> dict[str, dict[str, An
                 crashed = [i for i in started if i not in finished]
                 if not crashed:  # the worker died outside a case: that is the suite's failure
                     raise AssertionError(f"hostile worker failed: {stderr[-3000:]}")
-                why = "timeout" if proc.returncode == WATCHDOG_EXIT else "crash"
+                why = "hang" if proc.returncode == WATCHDOG_EXIT else "crash"
                 for case_id in crashed:
                     record = {"id": case_id, "exit_code": None, "killed": why}
                     record["stderr"] = stderr[-3000:]
@@ -234,7 +237,6 @@ def hostile(
     d = tmp_path_factory.mktemp("hostile")
     base = _build_base(d)
     api = _c_api(d / "fw") if CC else (set(), set())
-    t0 = time.perf_counter()
     manifest = []
     for case in _selected(request):
         folder = d / "cases" / re.sub(r"[^A-Za-z0-9_.-]", "_", case.id)
@@ -243,22 +245,15 @@ def hostile(
         manifest.append(
             {"id": case.id, "args": args, "cwd": str(folder), "watch": ["."], "fault": case.fault}
         )
-    build_seconds = time.perf_counter() - t0
-    t0 = time.perf_counter()
     results = _run_workers(manifest, d)
-    if os.environ.get("HOSTILE_KEEP"):  # for debugging: keep the folders, say where and how long
-        print(
-            f"hostile: {len(manifest)} cases built in {build_seconds:.1f} s, run in "
-            f"{time.perf_counter() - t0:.1f} s; results kept in {d}"
-        )
+    if os.environ.get("HOSTILE_KEEP"):  # for debugging: keep the folders and say where
+        print(f"hostile: {len(manifest)} cases; results kept in {d}")
     yield {
         "results": results,
         "folders": {m["id"]: Path(m["cwd"]) for m in manifest},
         "args": {m["id"]: m["args"] for m in manifest},
         "base": base,
         "api": api,
-        "build_seconds": build_seconds,
-        "run_seconds": time.perf_counter() - t0,
     }
     if not os.environ.get("HOSTILE_KEEP"):
         remove(d)
@@ -273,15 +268,13 @@ def _param(case: Case) -> Any:
 def test_hostile_case(case: Case, hostile: dict[str, Any]) -> None:
     r = hostile["results"][case.id]
     folder = hostile["folders"][case.id]
-    assert "killed" not in r, f"{r['killed']} (over {CASE_SECONDS:.0f} s or 2 GB?): {r['stderr']}"
+    assert "killed" not in r, f"{r['killed']} (>{WATCHDOG_SECONDS:.0f} s or 2 GB?): {r['stderr']}"
     assert r["maxrss_mb"] * 2**20 <= CASE_BYTES, f"resident memory {r['maxrss_mb']:.0f} MB"
-    outcome = Outcome(r["exit_code"], r["stdout"], r["stderr"], r["exception"], r["seconds"])
+    outcome = Outcome(r["exit_code"], r["stdout"], r["stderr"], r["exception"])
     new = {Path(p) for p in r["new_files"]}
     problems = contract_violations(
         outcome, new_files=new, expected_exits=case.expect, changed_files=r["changed_files"]
     )
-    if r["seconds"] > CASE_SECONDS:
-        problems.append(f"took {r['seconds']:.1f} s, above {CASE_SECONDS:.0f} s")
     if case.message and outcome.exit_code != 0:
         last = outcome.stderr.strip().splitlines()[-1] if outcome.stderr.strip() else ""
         if not re.search(case.message, last):
@@ -322,7 +315,7 @@ def _c_problems(folder: Path, api: tuple[set[str], set[str]]) -> list[str]:
 
 
 #: One hostile case per subcommand, run as a real process: the console script's own start-up,
-#: imports, output streams and exit status, under the same limits (RLIMIT_AS, 30 s).
+#: imports, output streams and exit status, under the same limits (RLIMIT_AS and the watchdog).
 SUBPROCESS_SAMPLES = (
     "data-hall-data-random-d1-h5-calibrate",
     "setup-delay-1e6-simulate",
@@ -343,7 +336,6 @@ def test_hostile_case_in_a_subprocess(
     case = _BY_ID[case_id]
     args = case.build(tmp_path, hostile["base"])
     before = files_under([tmp_path])
-    t0 = time.perf_counter()
     res = subprocess.run(
         [sys.executable, "-m", "hallcal.cli", *args],
         cwd=tmp_path,
@@ -351,10 +343,9 @@ def test_hostile_case_in_a_subprocess(
         preexec_fn=_limits,
         capture_output=True,
         text=True,
-        timeout=CASE_SECONDS + 30,  # + interpreter start-up on a loaded machine
+        timeout=WATCHDOG_SECONDS + 30,  # a watchdog (+ interpreter start-up), not a speed bound
     )
-    seconds = time.perf_counter() - t0
-    outcome = Outcome(res.returncode, res.stdout, res.stderr, None, seconds)
+    outcome = Outcome(res.returncode, res.stdout, res.stderr, None)
     new = files_under([tmp_path]) - before
     problems = contract_violations(
         outcome, new_files=new if res.returncode else set(), expected_exits=case.expect

@@ -606,8 +606,7 @@ def test_defaults_of_a_minimal_setup() -> None:
     assert setup.model == ModelSpec()
     assert setup.model.harmonics == "auto" and setup.model.lut_points == 4096
     assert setup.trajectory == TrajectorySpec(kind="closed-loop")
-    assert setup.bench.cogging_periods_per_revolution(11) == 66
-    assert BenchSpec(cogging_periods=4).cogging_periods_per_revolution(11) == 4
+    assert setup.bench.cogging_periods == 0  # 0: six per pole pair (sim.bench)
 
 
 def _kernel_setup() -> Setup:

@@ -251,7 +251,6 @@ def test_validate_artifact_returns_the_typed_view(tmp_path: Path) -> None:
     assert data.projection.shape == (2, 3) and not data.projection.flags.writeable
     np.testing.assert_array_equal(data.y_hat, art["lut"]["y_hat"])
     np.testing.assert_allclose(data.y0, art["lut"]["y0"], atol=1e-15)
-    assert data.condition == pytest.approx(1.0)
     assert data.setup == default_setup()
     lut = data.lut()
     assert lut.bijective and lut.points == 256

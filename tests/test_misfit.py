@@ -19,15 +19,13 @@ import numpy as np
 import pytest
 from firmware_support import CC, bench_artifact, python_decoder
 
-from hallcal.fit.sem import solve_sem
 from hallcal.io import Dataset
 from hallcal.output.codegen import export_c
 from hallcal.pipeline.powerup import MISMATCH_TEXT, SignalStatus, check_signals
 from hallcal.sensor import absolute as ab
-from hallcal.sensor.flux import FourierBasis
 from hallcal.sensor.lut import build_lut
 from hallcal.sensor.misfit import MisfitStatus, MisfitTest, model_misfit
-from hallcal.sim.bench import BenchConfig, power_up_run, ramp_run
+from hallcal.sim.bench import BenchConfig, power_up_run
 
 TWO_PI = 2.0 * math.pi
 
@@ -47,11 +45,8 @@ def paper():
 
 
 @pytest.fixture(scope="module")
-def weak():
-    cfg = BenchConfig(pole_pairs=7, magnet_variation=0.01, seed=0)
-    run = ramp_run(cfg)
-    sem = solve_sem(cfg.loop(), run.r, run.d, FourierBasis(tuple(range(1, 8))), y=run.y)
-    lut = build_lut(sem.flux, 7)
+def weak(weak_bench):
+    cfg, run, sem, lut = weak_bench  # conftest: one simulation and SEM per session
     dec, _ = ab.analyze_calibration(sem.flux, lut, run.d)
     return cfg, lut, dec
 

@@ -73,7 +73,6 @@ from __future__ import annotations
 
 import math
 import os
-import time
 from pathlib import Path
 
 import numpy as np
@@ -152,9 +151,7 @@ def results():
         d = hall_matrix(load_dataset(path))
         seg = find_constant_speed(d, POLE_PAIRS)
         start, mid, stop = seg.split(CAL_REVOLUTIONS)
-        t0 = time.perf_counter()
         res = calibrate_constant_speed(d, POLE_PAIRS, basis, start=start, stop=mid)
-        elapsed = time.perf_counter() - t0
         y_init = res.lut.f_init(d)  # whole file, from y = 0 before the first sample
         y_star = res.lut.f_star(d)
         k = np.arange(mid, stop)
@@ -166,7 +163,6 @@ def results():
             "seg": seg,
             "split": (start, mid, stop),
             "res": res,
-            "time": elapsed,
             "r_init": r_init,
             "r_star": r_star,
             "init": elec_deg_rms(r_init),
@@ -206,7 +202,6 @@ def test_ringjig_calibration_beats_f_init(results):
     print()
     print(
         "file  start   mid  stop  held-revs  Clarke  f_init  f_star  floor  motion  b[rad/sample]"
-        "  time[s]"
     )
     for i, r in results.items():
         res = r["res"]
@@ -216,7 +211,6 @@ def test_ringjig_calibration_beats_f_init(results):
         print(
             f"{i:4d} {start:6d} {mid:5d} {stop:5d} {r['held_revs']:9.2f} {r['clarke']:7.2f}"
             f" {r['init']:7.2f} {r['star']:7.2f} {floor:6.2f} {motion:7.2f} {res.b:14.7e}"
-            f" {r['time']:8.2f}"
         )
     for i, r in results.items():
         res = r["res"]

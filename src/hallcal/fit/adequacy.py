@@ -238,10 +238,6 @@ class NoiseEstimate:
         """Pooled noise standard deviation sigma."""
         return math.sqrt(self.variance) if self.variance >= 0 else math.nan
 
-    @property
-    def white(self) -> bool:
-        return self.status is NoiseStatus.OK
-
     def __post_init__(self) -> None:
         object.__setattr__(self, "status", NoiseStatus(self.status))
 
@@ -421,15 +417,6 @@ class HarmonicContent:
         """``amplitude`` of one harmonic (0 when not tested)."""
         idx = np.flatnonzero(self.harmonics == int(harmonic))
         return float(self.amplitude[idx[0]]) if idx.size else 0.0
-
-    def is_significant(self, harmonic: int) -> bool:
-        idx = np.flatnonzero(self.harmonics == int(harmonic))
-        return bool(idx.size and self.significant[idx[0]])
-
-    def significant_harmonics(self, min_amplitude: float = 0.0) -> tuple[int, ...]:
-        """Significant harmonics with ``amplitude >= min_amplitude``, ascending."""
-        sel = self.significant & (self.amplitude >= min_amplitude)
-        return tuple(int(h) for h in self.harmonics[sel])
 
     def to_dict(self, *, scale: float = 1.0) -> dict:
         """Per-harmonic table; ``scale`` divides the amplitudes (e.g. by sigma)."""

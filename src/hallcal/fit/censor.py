@@ -26,7 +26,7 @@ spacings are whole multiples of it (an ADC's codes), else 0.
 
 Quantization enters the noise: the rounding error of a uniform quantizer has variance q^2 / 12
 (Widrow & Kollar 2008, "Quantization Noise", ch. 4), a lower bound on the per-channel noise
-variance that sets the floor (:func:`quantization_variance`).
+variance that sets the floor (:func:`with_quantization`).
 """
 
 from __future__ import annotations
@@ -52,7 +52,6 @@ __all__ = [
     "noise_std",
     "prediction_at_f_init",
     "quantization_step",
-    "quantization_variance",
     "with_quantization",
 ]
 
@@ -162,23 +161,6 @@ def quantization_step(x: ArrayLike) -> float:
     if np.mean(np.abs(k - np.round(k)) < 0.02) < 0.99:
         return 0.0
     return float(np.median(du[np.round(k) == 1]))
-
-
-def quantization_variance(step: ArrayLike) -> float:
-    """q^2 / 12 pooled over the channels: the rounding noise of a uniform quantizer.
-
-    Parameters
-    ----------
-    step : array_like (3,)
-        q per channel [Hall signal unit] (0: none).
-
-    Returns
-    -------
-    float
-        mean_h q_h^2 / 12 [Hall signal unit squared].
-    """
-    q = np.asarray(step, dtype=np.float64)
-    return float(np.mean(q * q)) / 12.0
 
 
 def with_quantization(noise: NoiseEstimate, step: ArrayLike) -> NoiseEstimate:

@@ -786,7 +786,7 @@ def harmonic_relevance(
     else:
         v0 = np.asarray(prior_variance, dtype=np.float64)
     alpha0 = np.where(v0 > 0, 1.0 / np.where(v0 > 0, v0, 1.0), np.inf)
-    groups = np.tile((np.arange(1 + 2 * len(H)) + 1) // 2, 3)
+    groups = harmonic_groups(len(H))
     keep_groups = (0, *[1 + H.index(h) for h in keep if h in H])
     ev = group_evidence(
         sys_.gram, sys_.gradient, sys_.sse, th.ravel(), groups, alpha0, noise_variance,

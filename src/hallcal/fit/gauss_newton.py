@@ -63,7 +63,6 @@ from threadpoolctl import threadpool_limits
 
 from hallcal.fit.layout import ParameterLayout
 from hallcal.limits import check_work_memory
-from hallcal.sensor.flux import FourierBasis
 from hallcal.sim.loop import (
     F64,
     ClosedLoop,
@@ -87,10 +86,8 @@ __all__ = [
     "ParameterLayout",
     "PassStatus",
     "SimulatedLoop",
-    "fourier_gauss_newton",
     "gauss_newton_system",
     "regression_normal_equations",
-    "simulate_fourier",
     "simulate_model",
 ]
 
@@ -1048,87 +1045,3 @@ class _SensitivityPass:
             for f in futures:
                 f.result()
         return not self.failed
-
-
-# ================================================================================================
-# Harmonics 1..K (the kernel basis' Fourier equivalent)
-# ================================================================================================
-
-
-def _layout_of_theta(theta: ArrayLike) -> tuple[NDArray[np.float64], ParameterLayout]:
-    th = np.ascontiguousarray(theta, dtype=np.float64)
-    if th.ndim != 2 or th.shape[0] != 3 or th.shape[1] % 2 != 1:
-        raise ValueError("theta must have shape (3, 2K + 1) (harmonics 1..K)")
-    K = (th.shape[1] - 1) // 2
-    return th, ParameterLayout(FourierBasis(tuple(range(1, K + 1))))
-
-
-def simulate_fourier(
-    loop: ClosedLoop, theta: ArrayLike, r: ArrayLike, *, y_initial: float = 0.0
-) -> tuple[NDArray, NDArray, NDArray, NDArray, PassStatus]:
-    """:func:`simulate_model` for a flux on harmonics 1..K: ``(y0, y, u, d, status)``.
-
-    Parameters
-    ----------
-    loop : ClosedLoop
-        Plant model, controller, n_m and f_init.
-    theta : array_like, shape (3, 2K + 1)
-        Flux parameters on ``[1, sin 1y, cos 1y, ..., cos Ky]``.
-    r : array_like (N,)
-        Reference [rad].
-    y_initial : float, keyword-only
-        f_init's estimate before the first sample [rad].
-
-    Returns
-    -------
-    y0, y, u : ndarray (N,)
-        Simulated true angle [rad], f_init output [rad] and torque command.
-    d : ndarray (N, 3)
-        Simulated Hall signals.
-    status : PassStatus
-        OK or DIVERGED (then NaN after the divergence).
-    """
-    th, layout = _layout_of_theta(theta)
-    res = simulate_model(loop, layout, th.ravel(), r, y_initial=y_initial)
-    return res.y0, res.y, res.u, res.d, res.status
-
-
-def fourier_gauss_newton(
-    loop: ClosedLoop,
-    theta: ArrayLike,
-    r: ArrayLike,
-    d: ArrayLike,
-    *,
-    y_initial: float = 0.0,
-    chunk: int = 4096,
-    gram: bool = True,
-    stride: int = 1,
-    threads: int | None = None,
-) -> GaussNewtonSystem:
-    """:func:`gauss_newton_system` for a flux on harmonics 1..K, theta (3, 2K + 1).
-
-    Parameters
-    ----------
-    loop : ClosedLoop
-        Plant model, controller, n_m and the f_init of the experiment.
-    theta : array_like, shape (3, 2K + 1)
-        Flux parameters on ``[1, sin 1y, cos 1y, ..., cos Ky]``.
-    r : array_like (N,)
-        Reference [rad].
-    d : array_like (N, 3)
-        Recorded Hall signals.
-    y_initial : float, keyword-only
-        f_init's estimate before the first sample [rad].
-    chunk, gram, stride, threads
-        As for :func:`gauss_newton_system`.
-
-    Returns
-    -------
-    GaussNewtonSystem
-        J^T J, J^T e and e^T e of problem (problem) at theta (no gain, no cogging).
-    """
-    th, layout = _layout_of_theta(theta)
-    return gauss_newton_system(
-        loop, layout, th.ravel(), r, d, y_initial=y_initial, chunk=chunk, gram=gram,
-        stride=stride, threads=threads,
-    )  # fmt: skip

@@ -25,7 +25,7 @@ computed stably with ``scipy.special.ive``. Consequences used here (Wahba 1990, 
   diagonal ridge ``theta_0^2 / s_0 + sum_k (theta_sk^2 + theta_ck^2) / (2 s_k)``, i.e. the
   Gaussian-process prior ``theta_0 ~ N(0, s_0)``, ``theta_sk, theta_ck ~ N(0, 2 s_k)``.
 * Truncation. Modes whose prior variance ``2 s_k`` is negligible relative to the Hall noise
-  variance cannot carry signal above the noise and are dropped (:meth:`KernelBasis.truncation`).
+  variance cannot carry signal above the noise and are dropped.
 
 Hyperparameters. ``sf`` only scales the weights (``g`` is unchanged by ``sf -> c sf``,
 ``w -> w / c^2``), so it cannot be identified from the fit alone; the paper made it a design
@@ -96,9 +96,7 @@ from hallcal.fit.adequacy import estimate_noise_variance
 from hallcal.fit.evidence import HarmonicRelevance, harmonic_relevance
 from hallcal.fit.gauss_newton import (
     GaussNewtonSystem,
-    fourier_gauss_newton,
     regression_normal_equations,
-    simulate_fourier,
 )
 from hallcal.fit.order import WORK_BUDGET
 from hallcal.fit.sem import SEMResult, SEMStatus, solve_sem
@@ -113,10 +111,7 @@ __all__ = [
     "GaussNewtonSystem",
     "KernelBasis",
     "KernelSEMResult",
-    "fourier_gauss_newton",
-    "fourier_rkhs_norm2",
     "select_hyperparameters",
-    "simulate_fourier",
     "solve_kernel_sem",
 ]
 
@@ -189,62 +184,11 @@ class KernelBasis:
         a = self.inverse_square_lengthscale
         return -a * np.sin(t) * self.sf**2 * np.exp((np.cos(t) - 1.0) * a)
 
-    def kernel_flux(self, w: ArrayLike, y0: ArrayLike) -> NDArray[np.float64]:
-        """g(y0) = beta(y0) w_h^T for the three sensors.
-
-        Parameters
-        ----------
-        w : array_like, shape (3, m) or (m,)
-            Kernel weights per sensor.
-        y0 : array_like (N,)
-            Mechanical angle [rad].
-
-        Returns
-        -------
-        ndarray, shape (N, 3)
-            The flux g_w(y0) (one column per row of w).
-        """
-        return self.evaluate(y0) @ self._weights(w).T
-
-    def gram(self) -> NDArray[np.float64]:
-        """K_ij = k(y_i, y_j), shape (m, m) (circulant)."""
-        return self.evaluate(self.centres)
-
     # -- spectrum ----------------------------------------------------------------------------
     def spectrum(self, kmax: int) -> NDArray[np.float64]:
         """Fourier coefficients s_k = sf^2 ive(k, 1/l^2) of k(t), k = 0..kmax."""
         k = np.arange(int(kmax) + 1, dtype=np.float64)
         return self.sf**2 * scipy.special.ive(k, self.inverse_square_lengthscale)
-
-    def gram_eigenvalues(self) -> NDArray[np.float64]:
-        """Eigenvalues of the circulant Gram matrix, lambda_q = m sum_{k = q mod m} s_k.
-
-        Ordered as the DFT bins q = 0..m-1 (eigenvector e^{i q y_j}); aliases are summed until
-        s_k underflows.
-        """
-        m = self.points
-        kmax = max(self.exact_harmonics(), m)
-        s = self.spectrum(kmax + m)
-        lam = np.zeros(m)
-        for k in range(-(kmax + m), kmax + m + 1):
-            lam[k % m] += s[abs(k)]
-        return m * lam
-
-    def exact_harmonics(self, rtol: float = 1e-17) -> int:
-        """Smallest K with s_k < rtol s_0 for all k > K (the series is exact to rtol beyond K)."""
-        a = self.inverse_square_lengthscale
-        # s_k / s_0 decreases monotonically in k; bracket then bisect.
-        hi = max(8, int(4 * math.sqrt(a) + 8))
-        while scipy.special.ive(hi, a) >= rtol * scipy.special.ive(0, a):
-            hi *= 2
-        lo = 0
-        while hi - lo > 1:
-            mid = (lo + hi) // 2
-            if scipy.special.ive(mid, a) >= rtol * scipy.special.ive(0, a):
-                lo = mid
-            else:
-                hi = mid
-        return lo
 
     def prior_variance(self, harmonics: int) -> NDArray[np.float64]:
         """Prior variances of the Fourier coefficients ``[1, sin 1y, cos 1y, ..., cos Ky]``.
@@ -260,90 +204,14 @@ class KernelBasis:
         v[2::2] = 2.0 * s[1:]
         return v
 
-    def ridge_weights(self, harmonics: int) -> NDArray[np.float64]:
-        """Diagonal ridge of the RKHS norm in the Fourier coefficients, shape (3 (2K + 1),).
-
-        ``sum_h ||g_h||^2_H = sum_j ridge_j theta_j^2`` with theta flattened sensor-major (the
-        layout of :func:`hallcal.fit.sem.solve_sem`'s ``regularization``).
-        """
-        return np.tile(1.0 / np.maximum(self.prior_variance(harmonics), 1e-300), 3)
-
-    def truncation(self, noise_variance: float, *, tol: float = 1e-3) -> int:
-        """Highest harmonic K worth modelling: the last k with ``2 s_k >= tol^2 sigma^2``.
-
-        A mode whose prior standard deviation is below ``tol`` times the Hall noise standard
-        deviation changes the fitted signal by less than ``tol`` sigma, i.e. the angle by less
-        than ``tol`` times the noise floor; dropping it is exact to that level. Capped at
-        ``(m - 1) // 2`` (the grid's Nyquist harmonic) and at least 1.
-
-        Parameters
-        ----------
-        noise_variance : float
-            Hall noise sigma^2 per channel (> 0).
-        tol : float, keyword-only
-            Relative level below which a mode is dropped.
-
-        Returns
-        -------
-        int
-            K, the highest mechanical harmonic kept.
-        """
-        if not noise_variance > 0:
-            raise ValueError("noise_variance must be > 0")
-        cap = (self.points - 1) // 2
-        s = self.spectrum(cap)
-        keep = np.nonzero(2.0 * s[1:] >= tol**2 * noise_variance)[0]
-        return int(max(1, min(cap, (keep[-1] + 1) if keep.size else 1)))
-
-    def aliasing(self, harmonics: int) -> float:
-        """Relative size s_{m-K} / s_K of the first alias of harmonic K on the m-point grid."""
-        K = int(harmonics)
-        s = self.spectrum(max(self.points - K, K))
-        return float(s[self.points - K] / s[K]) if s[K] > 0 else math.inf
-
-    def fourier_basis(self, harmonics: int) -> FourierBasis:
-        """The equivalent Fourier basis with harmonics 1..K (and the constant term)."""
-        return FourierBasis(tuple(range(1, int(harmonics) + 1)))
-
     # -- spectral maps -----------------------------------------------------------------------
-    def _weights(self, w: ArrayLike) -> NDArray[np.float64]:
-        W = np.asarray(w, dtype=np.float64)
-        if W.ndim == 1:
-            W = W[None, :]
-        if W.shape[-1] != self.points:
-            raise ValueError(f"weights must have {self.points} columns")
-        return W
-
-    def to_fourier(self, w: ArrayLike, *, harmonics: int | None = None) -> FluxModel:
-        """The kernel model ``g_h(y) = sum_j w_hj k(y, y_j)`` as a Fourier :class:`FluxModel`.
-
-        Parameters
-        ----------
-        w : array_like, shape (3, m)
-            Kernel weights.
-        harmonics : int, keyword-only, optional
-            Highest harmonic K kept; default :meth:`exact_harmonics` (exact to about 1e-17
-            relative). Harmonics above m / 2 are the aliases ``G_k = s_k W_{k mod m}``.
-        """
-        W = self._weights(w)
-        if W.shape[0] != 3:
-            raise ValueError("to_fourier needs the weights of three sensors, shape (3, m)")
-        K = self.exact_harmonics() if harmonics is None else int(harmonics)
-        F = np.fft.fft(W, axis=-1)  # W_q = sum_j w_j e^{-i q y_j}
-        k = np.arange(K + 1)
-        G = self.spectrum(K)[None, :] * F[:, k % self.points]
-        theta = np.empty((W.shape[0], 2 * K + 1))
-        theta[:, 0] = G[:, 0].real
-        theta[:, 1::2] = -2.0 * G[:, 1:].imag
-        theta[:, 2::2] = 2.0 * G[:, 1:].real
-        return FluxModel(self.fourier_basis(K), theta)
-
     def from_fourier(self, flux: FluxModel) -> NDArray[np.float64]:
         """Kernel weights w (3, m) whose kernel model equals a Fourier model with harmonics < m/2.
 
-        The inverse of :meth:`to_fourier` on band-limited models: ``W_k = G_k / s_k`` for
-        ``|k| <= K`` and zero elsewhere (the minimum-RKHS-norm representer). Exact up to the
-        aliases of the kept harmonics, relative size :meth:`aliasing`.
+        The inverse of the spectral map (module docstring) on band-limited models:
+        ``W_k = G_k / s_k`` for ``|k| <= K`` and zero elsewhere (the minimum-RKHS-norm
+        representer). Exact up to the aliases of the kept harmonics, relative size
+        ``s_{m-K} / s_K``.
         """
         harm = np.asarray(flux.basis.harmonics, dtype=int)
         m = self.points
@@ -359,33 +227,6 @@ class KernelBasis:
         F[:, harm] = Gk / s[harm]
         F[:, (m - harm) % m] = np.conj(Gk) / s[harm]
         return np.fft.ifft(F, axis=-1).real.copy()
-
-    def rkhs_norm2(self, w: ArrayLike) -> NDArray[np.float64]:
-        """||g_h||^2_H = w_h^T K w_h for each sensor, via the circulant eigenvalues."""
-        W = self._weights(w)
-        F = np.fft.fft(W, axis=-1)
-        return (np.abs(F) ** 2 @ self.gram_eigenvalues()) / self.points
-
-
-def fourier_rkhs_norm2(basis: KernelBasis, flux: FluxModel) -> NDArray[np.float64]:
-    """RKHS norm of a Fourier model with harmonics 1..K in the kernel's space, per sensor.
-
-    Parameters
-    ----------
-    basis : KernelBasis
-        The kernel (its Fourier prior variances).
-    flux : FluxModel
-        A Fourier model on harmonics exactly 1..K.
-
-    Returns
-    -------
-    ndarray, shape (3,)
-        ``sum_j theta_hj^2 / var_j`` for each sensor h (squared norm).
-    """
-    K = len(flux.basis.harmonics)
-    if flux.basis.harmonics != tuple(range(1, K + 1)):
-        raise ValueError("needs harmonics 1..K")
-    return (np.asarray(flux.theta) ** 2) @ (1.0 / basis.prior_variance(K))
 
 
 # ================================================================================================
@@ -634,7 +475,7 @@ class KernelSEMResult:
         The kernel basis with the chosen lengthscale and sf.
     weights : ndarray (3, m)
         Kernel weights w with ``g_h(y) = sum_j w_hj k(y, y_j)`` (equal to ``flux`` up to the
-        aliases of :meth:`KernelBasis.aliasing`).
+        aliases of the kept harmonics, relative size ``s_{m-K} / s_K``).
     lengthscale, sf : float
         Chosen hyperparameters of the kernel (the reference spectrum).
     penalty : float

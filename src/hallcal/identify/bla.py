@@ -97,12 +97,6 @@ class NonparametricBLA:
     sample_time: float
     status: str = "ok"
 
-    def to_frd(self) -> Any:
-        """The BLA as a ``control.FRD`` (python-control, imported lazily), omega in rad/s."""
-        import control
-
-        return control.FRD(np.asarray(self.G), 2.0 * np.pi * np.asarray(self.freq))
-
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary: floats, lists of floats, complex values as ``[re, im]`` pairs.
 

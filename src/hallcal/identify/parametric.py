@@ -126,17 +126,6 @@ class ParametricBLA:
             raise ValueError(f"scale factor must be finite and nonzero, got {c!r}")
         return replace(self, num=np.asarray(self.num) * c, gain_scale=self.gain_scale * c)
 
-    def to_control(self) -> Any:
-        """The rational part ``num / den`` as a continuous ``control.TransferFunction``.
-
-        python-control is imported lazily. The delay cannot be represented exactly by a
-        transfer function and is left out: it is in :attr:`delay` (discretize it exactly, not
-        with a Pade approximation).
-        """
-        import control
-
-        return control.TransferFunction(np.asarray(self.num), np.asarray(self.den))
-
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary (floats and lists of floats).
 
@@ -613,12 +602,6 @@ class OrderSelection:
     candidates: tuple[OrderCandidate, ...]
     chosen: OrderCandidate | None
     lines: int
-
-    @property
-    def best_unstable(self) -> OrderCandidate | None:
-        """The candidate with the smallest criterion when it is unstable (then not chosen)."""
-        best = min(self.candidates, key=lambda c: c.criterion)
-        return None if best.stable else best
 
     def to_dict(self) -> dict[str, Any]:
         return {

@@ -178,12 +178,6 @@ class ArtifactData:
         """The table's grid y0_i = y_hat_i + eta_i [rad]."""
         return self.y_hat + self.eta
 
-    @property
-    def condition(self) -> float:
-        """Condition number of the projection (ratio of its singular values)."""
-        s = np.linalg.svd(self.projection, compute_uv=False)
-        return float(s[0] / s[1])
-
     @cached_property
     def sha256(self) -> str:
         """SHA-256 of the artifact file as read (:func:`load_artifact`: what ``sha256sum``

@@ -225,8 +225,8 @@ class BenchSpec:
     cogging : float
         Amplitude of a cogging torque at the plant input.
     cogging_periods : int
-        Cogging periods per revolution; 0 means ``6 * pole_pairs`` (see
-        :meth:`cogging_periods_per_revolution`).
+        Cogging periods per revolution; 0 means ``6 * pole_pairs`` (the bench's
+        :class:`~hallcal.sim.bench.BenchConfig` resolves it).
     """
 
     experiment: Literal["ramp", "multisine"] = "ramp"
@@ -252,10 +252,6 @@ class BenchSpec:
             object.__setattr__(self, name, _tuple_of_floats(getattr(self, name)))
         pairs = tuple((int(h), float(a)) for h, a in self.electrical_harmonics)
         object.__setattr__(self, "electrical_harmonics", pairs)
-
-    def cogging_periods_per_revolution(self, pole_pairs: int) -> int:
-        """Cogging periods per revolution: :attr:`cogging_periods`, or ``6 * pole_pairs`` if 0."""
-        return self.cogging_periods if self.cogging_periods > 0 else 6 * pole_pairs
 
 
 @dataclass(frozen=True)

@@ -629,6 +629,8 @@ def check_hall_motion(dataset: Dataset) -> Check:
 
 def _unit_name(ratio: float, pole_pairs: int) -> str | None:
     """The unit that a column moving ``ratio`` times the mechanical rad looks like, if any."""
+    if not (math.isfinite(ratio) and ratio != 0.0):  # a column that does not move: no unit
+        return None
     deg = 180.0 / math.pi
     for factor, name in ((deg, "degrees"), (deg * pole_pairs, "electrical degrees")):
         if pole_pairs >= 1 and abs(math.log(abs(ratio) / factor)) < math.log(UNIT_FACTOR_TOLERANCE):

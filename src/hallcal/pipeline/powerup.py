@@ -29,7 +29,6 @@ from hallcal.sensor.absolute import (
     IdentifiabilityReport,
     PowerUpDecoder,
     PowerUpStatus,
-    absolute_reconstruction,
     analyze_calibration,
 )
 from hallcal.sensor.flux import FluxModel
@@ -45,7 +44,6 @@ __all__ = [
     "identifiability_from_artifact",
     "identification_check",
     "power_up_analysis",
-    "reconstruct_absolute",
     "same_revolution",
 ]
 
@@ -153,38 +151,6 @@ def decoder_for(flux: FluxModel, lut: LUT, report: IdentifiabilityReport | None)
     if not lut.bijective:
         raise CalibrationRefused("the lookup table is not bijective; refusing to use it")
     return report.decoder(flux, lut)
-
-
-def reconstruct_absolute(
-    flux: FluxModel, lut: LUT, report: IdentifiabilityReport | None, d: ArrayLike
-) -> AbsoluteAngles:
-    """f_init and f_star in the calibration's frame from power-up (no homing).
-
-    The recording starts at power-up; every sample is decoded as firmware would (the offset in
-    force is the current maximum-likelihood one until the sequential test locks).
-
-    Parameters
-    ----------
-    flux : FluxModel
-        The calibration's g_theta.
-    lut : LUT
-        The calibration's table.
-    report : IdentifiabilityReport or None
-        The calibration's identifiability analysis.
-    d : array_like (K, 3)
-        Hall signals from power-up.
-
-    Returns
-    -------
-    AbsoluteAngles
-        y_init and y_star [rad] in the calibration's frame, and the identification.
-
-    Raises
-    ------
-    HallcalInputError, CalibrationRefused
-        See :func:`decoder_for`.
-    """
-    return absolute_reconstruction(decoder_for(flux, lut, report), lut, d)
 
 
 def same_revolution(y: ArrayLike, y_ref: ArrayLike) -> np.ndarray:

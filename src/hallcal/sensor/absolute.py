@@ -126,7 +126,6 @@ from hallcal.sensor.misfit import (
 
 __all__ = [
     "AbsoluteAngles",
-    "AbsoluteReconstructor",
     "Identifiability",
     "IdentifiabilityReason",
     "IdentifiabilityReport",
@@ -440,28 +439,6 @@ class PowerUpDecoder:
             **self.misfit.to_dict(),
         }
 
-    def tables(self) -> dict[str, Any]:
-        """Every constant of the decoder specification (for code generation)."""
-        return {
-            "pole_pairs": int(self.pole_pairs),
-            "grid": int(self.grid),
-            "projection": self.projection.tolist(),
-            "offset": self.offset.tolist(),
-            "null": self.null.tolist(),
-            "gram_a": self.gram_a.tolist(),
-            "gram_b": self.gram_b.tolist(),
-            "gram_c": float(self.gram_c),
-            "radius": self.radius.tolist(),
-            "zero": self.zero.tolist(),
-            "error_target": float(self.error_target),
-            "lock_threshold": self.lock_threshold,
-            "cost_cap": float(self.cost_cap),
-            "misfit_weight": self.misfit.weight,
-            "misfit_drift": self.misfit.drift,
-            "misfit_bound": self.misfit.bound,
-            "fit_bound": self.misfit.fit_bound,
-        }
-
 
 def _gram(
     projection: NDArray, null: NDArray, covariance: NDArray
@@ -652,11 +629,6 @@ class PowerUpIdentification:
     misfit: float = math.nan
     cost_per_dof: float = math.nan
     mismatch_sample: int | None = None
-
-    @property
-    def error_probability(self) -> float:
-        """1 - posterior: the stated probability that ``offset`` is wrong."""
-        return 1.0 - self.posterior
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -877,58 +849,6 @@ class PowerUpIdentifier:
         return self.best
 
 
-class AbsoluteReconstructor:
-    """Streaming f_star in the calibration's frame from power-up (no homing).
-
-    Runs :class:`PowerUpIdentifier`; each output is ``y_abs + eta(y_abs)`` with
-    ``y_abs = y + 2 pi best / n`` (see the module docstring), ``y`` f_init's output from y = 0
-    before the first sample.
-
-    Parameters
-    ----------
-    decoder : PowerUpDecoder
-    lut : LUT
-        The calibration's table (eq. f_final), the same f_init projection and offsets.
-    """
-
-    def __init__(self, decoder: PowerUpDecoder, lut: LUT) -> None:
-        lut._require_bijective()
-        if lut.pole_pairs != decoder.pole_pairs:
-            raise ValueError("the decoder and the table have different pole pairs")
-        self.lut = lut
-        self.identifier = PowerUpIdentifier(decoder)
-        self.y_init = math.nan
-        self.y_star = math.nan
-
-    @property
-    def identified(self) -> bool:
-        return self.identifier.locked
-
-    @property
-    def offset(self) -> int:
-        return self.identifier.best
-
-    def update(self, d1: float, d2: float, d3: float) -> float:
-        """Process one sample; return y_star in the calibration's frame [rad].
-
-        Parameters
-        ----------
-        d1, d2, d3 : float
-            The three Hall signals of the sample (sensor's unit).
-
-        Returns
-        -------
-        float
-            ``y_abs + eta(y_abs)`` (eq. (f_final)) with ``y_abs = y + 2 pi best / n_m``
-            [rad, mechanical]; ``y_init`` and ``y_star`` are updated too.
-        """
-        ident = self.identifier
-        j = ident.update(d1, d2, d3)
-        self.y_init = ident.y + TWO_PI * j / ident._n
-        self.y_star = self.y_init + float(self.lut.correction(self.y_init))
-        return self.y_star
-
-
 @dataclass(frozen=True)
 class AbsoluteAngles:
     """Angles in the calibration's frame over a recording from power-up.
@@ -948,7 +868,7 @@ class AbsoluteAngles:
 
 
 def absolute_reconstruction(decoder: PowerUpDecoder, lut: LUT, d: ArrayLike) -> AbsoluteAngles:
-    """What :class:`AbsoluteReconstructor` outputs sample by sample, vectorized.
+    """f_init and f_star in the calibration's frame from power-up (no homing), as firmware decodes.
 
     Parameters
     ----------

@@ -154,9 +154,6 @@ class FluxModel:
             out[a:b] = basis(y[a:b]) @ self.theta.T
         return out
 
-    def with_theta(self, theta: ArrayLike) -> FluxModel:
-        return FluxModel(self.basis, np.asarray(theta, dtype=np.float64).reshape(3, -1))
-
 
 #: Samples per block when a flux model is evaluated on many angles: bounds the (rows, m) basis
 #: matrices (8192 x 111 float64, 7 MB, for 55 harmonics) instead of building them for all N.

@@ -87,24 +87,6 @@ class SpatialSpectrum:
     cumulative: NDArray[np.float64] = field(repr=False)
     revolutions: float
 
-    def power_at(self, cycles: float, *, width: float = 0.5) -> float:
-        """Power within +-width cycles/rev of a spatial frequency.
-
-        Parameters
-        ----------
-        cycles : float
-            Spatial frequency [cycles/rev], e.g. n_m for the pole-pair harmonic.
-        width : float, keyword-only
-            Half-width of the band summed [cycles/rev].
-
-        Returns
-        -------
-        float
-            Sum of ``power`` over the lines in the band [rad^2].
-        """
-        sel = np.abs(self.frequency - cycles) <= width
-        return float(self.power[sel].sum())
-
 
 def spatial_spectrum(
     error: ArrayLike, position: ArrayLike, *, points_per_rev: int | None = None

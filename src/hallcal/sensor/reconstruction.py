@@ -30,7 +30,6 @@ __all__ = [
     "electrical_angle",
     "f_init",
     "f_init_columns",
-    "f_init_step",
     "projection_matrix",
     "unwrap_to",
 ]
@@ -153,36 +152,6 @@ def unwrap_to(angle: float, reference: float) -> float:
         + math.fmod(math.fmod(angle - reference + math.pi, TWO_PI) + TWO_PI, TWO_PI)
         - (math.pi)
     )
-
-
-def f_init_step(
-    d_k: ArrayLike,
-    y_prev: float,
-    pole_pairs: int,
-    *,
-    projection: ArrayLike | None = None,
-    offset: ArrayLike | None = None,
-) -> float:
-    """One sample of f_init: ``y_k = Gamma(atan2(beta, alpha), n_m y_{k-1}) / n_m``.
-
-    Parameters
-    ----------
-    d_k : array_like, shape (3,)
-        Hall signals at sample k.
-    y_prev : float
-        Previous estimate y(t_{k-1}) [rad, mechanical].
-    pole_pairs : int
-        n_m.
-    projection, offset : array_like, optional
-        As in :func:`f_init`.
-
-    Returns
-    -------
-    float
-        y(t_k) [rad, mechanical].
-    """
-    a, b = alpha_beta(d_k, projection=projection, offset=offset)
-    return unwrap_to(math.atan2(b, a), pole_pairs * y_prev) / pole_pairs
 
 
 class InitReconstructor:

@@ -41,7 +41,7 @@ loop's ``y = f_init(d)`` is computed from the very values recorded as ``d``:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.signal
@@ -693,8 +693,3 @@ def power_up_run(
     y_start = power_up_start(config, initial_angle)
     r = y_start + speed * config.sample_time * np.arange(int(samples))
     return simulate_run(config, r, seed=seed, initial_angle=initial_angle)
-
-
-def with_changes(config: BenchConfig, **changes) -> BenchConfig:
-    """A copy of the configuration with some knobs changed."""
-    return replace(config, **changes)

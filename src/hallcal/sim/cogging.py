@@ -100,31 +100,6 @@ class CoggingTorque:
         cov = None if covariance is None else np.asarray(covariance, dtype=np.float64)
         return cls(tuple(np.atleast_1d(orders).tolist()), xx[0::2], xx[1::2], cov)
 
-    @classmethod
-    def from_amplitudes(
-        cls, orders: ArrayLike, amplitude: ArrayLike, phase_deg: ArrayLike = 0.0
-    ) -> CoggingTorque:
-        """``T_c = sum_k A_k cos(k y0 - phi_k)`` with phases in degrees.
-
-        Parameters
-        ----------
-        orders : array_like of int, shape (n,)
-            Orders k (periods per mechanical revolution).
-        amplitude : array_like, scalar or shape (n,)
-            A_k [plant input units].
-        phase_deg : array_like, scalar or shape (n,)
-            phi_k [degrees].
-
-        Returns
-        -------
-        CoggingTorque
-            With a_k = A_k cos(phi_k), b_k = A_k sin(phi_k) (order 0: a constant A_0 cos(phi_0)).
-        """
-        k = tuple(int(v) for v in np.atleast_1d(orders))
-        A = np.broadcast_to(np.asarray(amplitude, dtype=np.float64), (len(k),))
-        phi = np.radians(np.broadcast_to(np.asarray(phase_deg, dtype=np.float64), (len(k),)))
-        return cls(k, A * np.cos(phi), A * np.sin(phi))
-
     # -- evaluation ---------------------------------------------------------------------------
     @property
     def size(self) -> int:

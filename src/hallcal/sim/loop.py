@@ -206,11 +206,6 @@ class ClosedLoop:
             raise ValueError("plant and controller must be discrete")
         return float(dt)
 
-    @property
-    def clipped(self) -> bool:
-        """Whether any rail is finite."""
-        return bool(np.isfinite(self.rails).any())
-
     def _arrays(self) -> LoopArrays:
         p, c = self.plant, self.controller
         return (
