@@ -12,11 +12,11 @@ from __future__ import annotations
 import json
 import math
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_support import run_cli as run
 
 import hallcal
 from hallcal.io import read_dataset, read_setup, write_dataset
@@ -44,16 +44,6 @@ duration = 14.0
 seed = 0
 magnet_variation = {mv}
 """
-
-
-def run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "hallcal.cli", *args],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
 
 
 def power_up_csv(path: Path, setup_path: Path, angle: float, *, speed: float, seed: int) -> None:

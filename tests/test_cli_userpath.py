@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_support import run_cli as run
 
 from hallcal.io import read_artifact, setup_from_dict, setup_to_toml
 
@@ -40,16 +41,6 @@ LEAKS = re.compile(
     r"\beq\. ?\(?[a-z_]{3,}\)?|Figs?\. [a-z_]{3,}|problem \(problem\)|\b1 iterations\b|"
     r"sec\. BLA|c_hat"
 )
-
-
-def run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "hallcal.cli", *args],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
 
 
 def write_setup(path: Path, data: dict) -> None:

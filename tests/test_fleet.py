@@ -20,6 +20,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+from cli_support import run_cli
 
 from hallcal import pipeline
 from hallcal.errors import HallcalInputError
@@ -100,16 +101,6 @@ def fleet_dir(tmp_path_factory) -> Path:
         lines.append(f"{mid},{data},motors/{mid}.toml,{bla},{val}")
     (root / "manifest.csv").write_text("\n".join(lines) + "\n")
     return root
-
-
-def run_cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "hallcal.cli", *args],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
 
 
 def read_summary_csv(path: Path) -> list[dict[str, str]]:

@@ -11,13 +11,13 @@ import dataclasses
 import json
 import math
 import subprocess
-import sys
 import tomllib
 from pathlib import Path
 
 import numpy as np
 import pytest
 import scipy.stats
+from cli_support import run_cli
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -199,16 +199,6 @@ delay = 1.2e-4
 basis = "fourier"
 harmonics = [1,2,3,4,5,6,7,8,9,10,11,12,13,14,15,16,17,18,19,20]
 """
-
-
-def run_cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "hallcal.cli", *args],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
 
 
 @pytest.fixture(scope="module")
