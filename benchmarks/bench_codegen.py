@@ -61,9 +61,7 @@ from hallcal.sensor.flux import FluxModel, FourierBasis  # noqa: E402
 
 TWO_PI = 2.0 * math.pi
 DEMO_ADC_SCALE = 2.0**14
-RINGJIG = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "ring-jig"
-if not RINGJIG.exists():
-    RINGJIG = Path("/work/shared/data/real/ring-jig")
+RINGJIG = Path(__file__).resolve().parents[1] / "tests" / "data" / "ring-jig"  # shipped copies
 
 
 def _fast_spin(art: dict) -> np.ndarray:

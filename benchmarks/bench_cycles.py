@@ -57,9 +57,7 @@ from hallcal.sensor.flux import FluxModel, FourierBasis  # noqa: E402
 
 TWO_PI = 2.0 * math.pi
 DEMO_ADC_SCALE = 2.0**14
-RINGJIG = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "ring-jig"
-if not RINGJIG.exists():
-    RINGJIG = Path("/work/shared/data/real/ring-jig")
+RINGJIG = Path(__file__).resolve().parents[1] / "tests" / "data" / "ring-jig"  # shipped copies
 M4_MODELS = [ah.CycleModel("m4", p, 0) for p in (1, 2, 3)] + [ah.CycleModel("m4", 3, 1)]
 M0_MODELS = [ah.CycleModel("m0plus", muls=1), ah.CycleModel("m0plus", muls=32)]
 

@@ -53,8 +53,7 @@ def _ringjig_dir() -> Path:
     env = os.environ.get("HALLCAL_REAL_DATA")
     if env:
         return Path(env)
-    beside = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "ring-jig"
-    return beside if beside.exists() else Path("/work/shared/data/real/ring-jig")
+    return Path(__file__).parent / "data" / "ring-jig"  # shipped with the tests
 
 
 RINGJIG = [_ringjig_dir() / f"hall_calibration_one_rotation_{i}.txt" for i in (1, 2, 3)]
