@@ -87,10 +87,13 @@ COMMAND_MEMORY_BYTES = 1_500_000_000
 
 #: Peak resident bytes per sample of those commands, measured on this machine (peak RSS at 1e6
 #: and 4e6 samples, the slope, rounded up; benchmarks/bench_memory.txt): the recording's eight
-#: columns, the angles, the validation's sort and spectrum. ``--absolute`` evaluates the
-#: power-up likelihood of every pole pair at every sample.
+#: columns, the angles, the validation's sort and spectrum. Without ``y_ref`` reconstruct
+#: streams through the recording in blocks and keeps only the Hall columns and the two angles
+#: (10 M samples from a mapped .npz: 680 MB peak, benchmarks/bench_cli.txt: 68 B/sample).
+#: ``--absolute`` evaluates the power-up likelihood of every pole pair at every sample.
 BYTES_PER_SAMPLE: dict[str, int] = {
     "reconstruct": 200,
+    "reconstruct without y_ref": 80,
     "reconstruct --absolute": 1300,
     "inspect": 240,
     "simulate": 110,

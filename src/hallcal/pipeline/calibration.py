@@ -686,7 +686,7 @@ def reconstruct_with(lut: LUT, dataset: Dataset, *, y_initial: float = 0.0) -> R
     if not lut.bijective:
         raise CalibrationRefused("the lookup table is not bijective; refusing to use it")
     dataset.require("d1", "d2", "d3")
-    _within_budget(dataset, "reconstruct")
+    _within_budget(dataset, "reconstruct" if "y_ref" in dataset else "reconstruct without y_ref")
     yi, ys = lut.reconstruct(dataset["d1"], dataset["d2"], dataset["d3"], y_initial=y_initial)
     val: Validation | None = None
     notes: tuple[str, ...] = ()
