@@ -272,6 +272,29 @@ def test_weights_give_the_weighted_system(short_run):
         gauss_newton_system(cfg.loop(), layout, x, run.r, run.d, weights=-w)
 
 
+def _assert_matches_central_differences(gn, loop, layout, x, run, sim, w) -> None:
+    """J^T W J and J^T W e of `gn` against a Jacobian of central differences of
+    simulate_model: the oracle where the dense one has no columns (ADC rails, drift).
+
+    Step 1e-6: truncation O(h^2) ~ 1e-12 and rounding O(eps / h) ~ 1e-10 per entry, far below
+    the 1e-5 relative tolerance of the sums."""
+    h = 1e-6
+    cols = []
+    for j in range(layout.size):
+        dx = np.zeros(layout.size)
+        dx[j] = h
+        up = simulate_model(loop, layout, x + dx, run.r).d
+        dn = simulate_model(loop, layout, x - dx, run.r).d
+        cols.append(((up - dn) / (2 * h)).ravel())
+    J = np.column_stack(cols)
+    e = (run.d - sim.d).ravel()
+    wf = w.ravel()
+    JtWJ = J.T @ (wf[:, None] * J)
+    np.testing.assert_allclose(gn.gram, JtWJ, rtol=0, atol=1e-5 * np.abs(JtWJ).max())
+    np.testing.assert_allclose(gn.gradient, J.T @ (wf * e), rtol=0,
+                               atol=1e-5 * (np.abs(J).T @ np.abs(wf * e)).max())  # fmt: skip
+
+
 def test_rails_clip_what_the_model_f_init_sees(short_run):
     """With rails in the loop, f_init sees the model flux clipped (as the drive saw the clipped
     signals) while d_sim stays the flux: the simulation equals the bench loop with those rails,
@@ -290,21 +313,7 @@ def test_rails_clip_what_the_model_f_init_sees(short_run):
     assert ref.d[:, 0].max() == 0.96 and sim.d[:, 0].max() > 0.96  # d_sim: the unclipped flux
     w = (np.abs(run.d) < 0.95).astype(float)
     gn = gauss_newton_system(loop, layout, x, run.r, run.d, weights=w)
-    h = 1e-6
-    cols = []
-    for j in range(layout.size):
-        dx = np.zeros(layout.size)
-        dx[j] = h
-        up = simulate_model(loop, layout, x + dx, run.r).d
-        dn = simulate_model(loop, layout, x - dx, run.r).d
-        cols.append(((up - dn) / (2 * h)).ravel())
-    J = np.column_stack(cols)
-    e = (run.d - sim.d).ravel()
-    wf = w.ravel()
-    JtWJ = J.T @ (wf[:, None] * J)
-    np.testing.assert_allclose(gn.gram, JtWJ, rtol=0, atol=1e-5 * np.abs(JtWJ).max())
-    np.testing.assert_allclose(gn.gradient, J.T @ (wf * e), rtol=0,
-                               atol=1e-5 * (np.abs(J).T @ np.abs(wf * e)).max())  # fmt: skip
+    _assert_matches_central_differences(gn, loop, layout, x, run, sim, w)
     plain = simulate_model(cfg.loop(), layout, x, run.r)
     assert np.abs(plain.y0 - sim.y0).max() > 1e-5  # the rails moved the simulated motor
 
@@ -332,20 +341,6 @@ def test_drift_columns_match_central_differences(short_run):
     w = (np.abs(run.d) < 0.95).astype(float)
     gn = gauss_newton_system(loop, layout, x, run.r, run.d, weights=w, stride=3)
     exact = gauss_newton_system(loop, layout, x, run.r, run.d, weights=w)
-    h = 1e-6
-    cols = []
-    for j in range(layout.size):
-        dx = np.zeros(layout.size)
-        dx[j] = h
-        up = simulate_model(loop, layout, x + dx, run.r).d
-        dn = simulate_model(loop, layout, x - dx, run.r).d
-        cols.append(((up - dn) / (2 * h)).ravel())
-    J = np.column_stack(cols)
-    e = (run.d - sim.d).ravel()
-    wf = w.ravel()
-    JtWJ = J.T @ (wf[:, None] * J)
-    np.testing.assert_allclose(exact.gram, JtWJ, rtol=0, atol=1e-5 * np.abs(JtWJ).max())
-    np.testing.assert_allclose(exact.gradient, J.T @ (wf * e), rtol=0,
-                               atol=1e-5 * (np.abs(J).T @ np.abs(wf * e)).max())  # fmt: skip
+    _assert_matches_central_differences(exact, loop, layout, x, run, sim, w)
     np.testing.assert_array_equal(gn.gradient, exact.gradient)  # the stride: J^T J only
     assert np.linalg.norm(gn.gram - exact.gram) < 0.05 * np.linalg.norm(exact.gram)
