@@ -7,20 +7,18 @@ import subprocess
 
 import numpy as np
 import pytest
+from cli_support import PAPER_LOOP_TOML
 from cli_support import run_cli as run
 
 from hallcal.io import read_dataset, write_dataset
 
-SETUP = """\
+SETUP = (
+    """\
 pole_pairs = 11
 sample_time = 2.5e-4
-[controller]
-num = [2.94, -3.29, -2.10, 2.45]
-den = [1, -3.45, 4.52, -2.68, 0.61]
-[plant]
-num = [1.663e5]
-den = [1, 632.6, 2702, 0]
-delay = 1.2e-4
+"""
+    + PAPER_LOOP_TOML
+    + """\
 [model]
 basis = "fourier"
 harmonics = [1,2,3,4,5,6,7,8,9,10,11]
@@ -29,6 +27,7 @@ ramp_end = 7.0
 duration = 10.0
 seed = 5
 """
+)
 
 
 @pytest.fixture(scope="module")

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_support import PAPER_LOOP_TOML
 from cli_support import run_cli as run
 
 import hallcal
@@ -25,16 +26,13 @@ from hallcal.sim.bench import power_up_run
 
 TWO_PI = 2.0 * math.pi
 
-SETUP = """\
+SETUP = (
+    """\
 pole_pairs = 11
 sample_time = 2.5e-4
-[controller]
-num = [2.94, -3.29, -2.10, 2.45]
-den = [1, -3.45, 4.52, -2.68, 0.61]
-[plant]
-num = [1.663e5]
-den = [1, 632.6, 2702, 0]
-delay = 1.2e-4
+"""
+    + PAPER_LOOP_TOML
+    + """\
 [model]
 basis = "fourier"
 harmonics = [1,2,3,4,5,6,7,8,9,10,11]
@@ -44,6 +42,7 @@ duration = 14.0
 seed = 0
 magnet_variation = {mv}
 """
+)
 
 
 def power_up_csv(path: Path, setup_path: Path, angle: float, *, speed: float, seed: int) -> None:

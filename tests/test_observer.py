@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.stats
-from cli_support import run_cli
+from cli_support import PAPER_LOOP_TOML, run_cli
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -185,20 +185,18 @@ def test_settings_are_checked():
 
 # ------------------------------------------------------------------ the command line, end to end
 
-SETUP = """\
+SETUP = (
+    """\
 pole_pairs = 4
 sample_time = 2.5e-4
-[controller]
-num = [2.94, -3.29, -2.10, 2.45]
-den = [1, -3.45, 4.52, -2.68, 0.61]
-[plant]
-num = [1.663e5]
-den = [1, 632.6, 2702, 0]
-delay = 1.2e-4
+"""
+    + PAPER_LOOP_TOML
+    + """\
 [model]
 basis = "fourier"
 harmonics = [1,2,3,4,5,6,7,8,9,10,11,12,13,14,15,16,17,18,19,20]
 """
+)
 
 
 @pytest.fixture(scope="module")
