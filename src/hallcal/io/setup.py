@@ -600,7 +600,9 @@ class _Table:
         """Key `name`, read and checked as the schema declares it (kind, range, limit)."""
         s = self.setting(name)
         if s.kind == "integer":
-            return self.integer(name, default=s.default, minimum=s.minimum, maximum=s.limit)
+            low = None if s.minimum is None else int(s.minimum)
+            high = None if s.limit is None else int(s.limit)
+            return self.integer(name, default=s.default, minimum=low, maximum=high)
         if s.kind == "number":
             return self.number(
                 name, default=s.default, minimum=s.minimum, positive=s.positive, maximum=s.limit
