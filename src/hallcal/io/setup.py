@@ -403,17 +403,19 @@ def default_setup() -> Setup:
 def _tf_settings(what: str, variable: str, proper: str) -> tuple[Setting, ...]:
     """``num``/``den`` of a transfer function (limits.MAX_TF_ORDER: the loop's cost grows with
     the square of its states) and nothing else."""
-    coefficients = dict(kind="numbers", max_length=MAX_TF_ORDER + 1)
+    longest = MAX_TF_ORDER + 1
     return (
         Setting(
             "num",
-            **coefficients,  # type: ignore[arg-type]
+            "numbers",
+            max_length=longest,
             accepts=f"not all zero, at most as long as `den` ({proper})",
             doc=f"Numerator of {what}, descending powers of {variable}.",
         ),
         Setting(
             "den",
-            **coefficients,  # type: ignore[arg-type]
+            "numbers",
+            max_length=longest,
             accepts="leading coefficient ≠ 0",
             doc=f"Denominator of {what}, descending powers of {variable}"
             + (" (a trailing 0 is the integrator)." if variable == "s" else "."),
