@@ -173,8 +173,10 @@ def test_a_table_predicted_worse_than_f_init_is_refused_exit_3(tmp_path):
 def test_the_anticogging_table_carries_a_constant_load():
     """The C feed-forward's table of T_c(y0): order 0 is the constant a_0 (the DC bin of the
     inverse FFT holds n a_0, not n a_0 / 2)."""
-    from hallcal.output.firmware import _uniform, cogging_map
+    from hallcal.sim.cogging import CoggingTorque, tabulate
 
-    k, a, b = np.array([0, 3]), np.array([0.5, 0.1]), np.array([0.0, 0.2])
-    y0 = 2 * np.pi * np.arange(64) / 64
-    np.testing.assert_allclose(_uniform(k, a, b, 64), cogging_map(k, a, b, y0), atol=1e-12)
+    torque = CoggingTorque((0, 3), [0.5, 0.1], [0.0, 0.2])
+    tab = tabulate(torque)
+    y0 = 2 * np.pi * np.arange(tab.points) / tab.points
+    # the table's nodes are the map rounded to float32 (relative 2^-24 of values of order 0.7)
+    np.testing.assert_allclose(tab.values, torque(y0), atol=1e-7)
