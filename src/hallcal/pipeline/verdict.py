@@ -20,7 +20,14 @@ user's only reference, so the policy is stated on them:
 4. **Warning**: any warning another step raised (``checks_passed`` False), an adequacy
    warning, no finite predicted error, or a predicted error above :data:`OK_RATIO` times the
    noise floor.
-5. **Ok**: none of the above; then ``predicted <= OK_RATIO * floor`` and every check passed.
+5. **Warning, one run may be far off**: the upper quantile of one run's error
+   (:func:`hallcal.fit.adequacy.error_spread`, 95 %) above :data:`OK_UPPER_RATIO` times the
+   floor. The predicted error is an expectation; when a few directions carry it (the table's
+   constant offset, which only the start of the run informs, a single chi-square(1) term) one
+   run's table scatters far about it: zoo motor 30 was "ok" at 1.34x the floor with 1.12x
+   predicted (its offset 0.86x the floor; 1.11-1.34x over four noise seeds).
+6. **Ok**: none of the above; then ``predicted <= OK_RATIO * floor``, the upper quantile within
+   ``OK_UPPER_RATIO * floor`` and every check passed.
 
 The predicted error is the expected RMS error of f_star about zero on a fresh run,
 ``sqrt(floor^2 + mean_y0 var eta(y0) + bias^2)`` (cov(theta) propagated to the table with its
@@ -35,7 +42,7 @@ from dataclasses import dataclass
 
 from hallcal.pipeline.calibration import CalibrationStatus
 
-__all__ = ["OK_RATIO", "WORSE_FRACTION", "Verdict", "decide"]
+__all__ = ["OK_RATIO", "OK_UPPER_RATIO", "WORSE_FRACTION", "Verdict", "decide"]
 
 #: Fraction of the correction the table's own predicted error may reach before the table is
 #: refused as possibly worse than f_init (see the module docstring).
@@ -45,6 +52,10 @@ WORSE_FRACTION = 0.5
 #: "ok" as "at the noise floor"; 1.15 leaves room for the spread of one run's error, about
 #: sqrt(2 / revolutions-worth of independent samples), and for a few weak directions).
 OK_RATIO = 1.15
+
+#: Upper quantile of one run's error / noise floor up to which a calibration may be "ok": "ok"
+#: above 1.3x the floor is what the zoo counts as dishonest (``benchmarks/bench_zoo.py``).
+OK_UPPER_RATIO = 1.3
 
 
 @dataclass(frozen=True)
@@ -75,6 +86,7 @@ def decide(
     adequacy_message: str = "",
     checks_passed: bool = True,
     min_slope: float = math.nan,
+    predicted_upper: float = math.nan,
 ) -> Verdict:
     """The status of a calibration (see the module docstring for the policy).
 
@@ -97,6 +109,8 @@ def decide(
         status): the calibration is then a warning at best.
     min_slope : float, keyword-only
         Smallest slope of the table's map (for the not-bijective message).
+    predicted_upper : float, keyword-only
+        Upper quantile of one run's RMS error of f_star about zero [rad] (NaN: not checked).
 
     Returns
     -------
@@ -144,6 +158,13 @@ def decide(
         leading.append(
             f"warning: predicted error {mrad * predicted:.3g} mrad RMS is {ratio:.2f}x the noise "
             f"floor ({mrad * floor:.3g} mrad), above the {OK_RATIO}x of an ok calibration"
+        )
+    upper = predicted_upper / floor if floor > 0 else math.nan
+    if not leading and math.isfinite(upper) and upper > OK_UPPER_RATIO:
+        leading.append(
+            f"warning: predicted error {mrad * predicted:.3g} mrad RMS ({ratio:.2f}x the noise "
+            f"floor), but one run's table may reach {upper:.2f}x (95 %): a few directions carry "
+            "its error (e.g. the table's offset, which only the start of the run informs)"
         )
     if leading or not checks_passed:
         return Verdict(CalibrationStatus.WARNING, None, tuple(leading))
