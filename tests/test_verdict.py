@@ -195,9 +195,13 @@ def test_ok_only_when_one_runs_upper_quantile_is_within_1_3x_the_floor(
         assert upper <= OK_UPPER_RATIO * floor and predicted <= OK_RATIO * floor
     elif v.status is CalibrationStatus.WARNING and upper > OK_UPPER_RATIO * floor:
         assert len(v.leading) == 1  # one reason, one line
-    # without the quantile (NaN: e.g. the constant-speed route) the rule is the old one
+    # one run's table may reach half the correction it applies: refused, not written
+    own_up = math.sqrt(max(max(upper, predicted) ** 2 - floor**2, 0.0))
+    # without the quantile (NaN: e.g. the constant-speed route) the rule is the expectation's
     old = decide(bijective=True, predicted=predicted, floor=floor, correction_rms=correction)
-    if upper <= OK_UPPER_RATIO * floor:
+    if own_up >= WORSE_FRACTION * correction and own_up > 0.5 * floor:
+        assert v.status is CalibrationStatus.INADEQUATE and "worse than f_init" in v.refusal
+    elif upper <= OK_UPPER_RATIO * floor:
         assert v.status is old.status
 
 
