@@ -242,3 +242,25 @@ def test_the_load_bench_stays_ok_and_its_upper_quantile_is_reported():
     upper = cal.adequacy.predicted_upper
     assert cal.predicted_error < upper <= OK_UPPER_RATIO * cal.noise_floor
     assert cal.status is CalibrationStatus.OK
+
+
+def test_error_sources_name_the_offset_and_the_harmonics_that_carry_the_variance():
+    from hallcal.fit.adequacy import error_sources
+
+    rng = np.random.default_rng(3)
+    harmonics = (1, 2, 3)
+    m = 1 + 2 * len(harmonics)
+    G = rng.normal(size=(512, 3 * m))
+    # all of cov(theta) on the constant column of sensor 0 plus a common shift of every point:
+    # the offset carries it; variance on harmonic 3's columns alone: harmonic 3 carries all
+    G[:, 0] += 5.0
+    C = np.zeros((3 * m, 3 * m))
+    C[0, 0] = 1.0
+    assert "constant offset carries" in error_sources(G, C, harmonics)
+    C = np.zeros((3 * m, 3 * m))
+    for s in range(3):
+        for c in (5, 6):  # sine and cosine of harmonic 3 in sensor s
+            C[s * m + c, s * m + c] = 1.0
+    G = rng.normal(size=(512, 3 * m))  # zero-mean columns: no offset
+    assert error_sources(G, C, harmonics) == "harmonic 3 carries 100 %"
+    assert error_sources(G, np.zeros_like(C), harmonics) == ""

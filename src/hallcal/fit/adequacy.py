@@ -683,6 +683,9 @@ class AdequacyReport:
     predicted_upper : float
         Upper quantile (:data:`UPPER_PROBABILITY`) of one run's RMS error of f_star about zero
         [rad] (:func:`error_spread`): the predicted error is its expectation.
+    error_sources : str
+        What carries the predicted variance of the table (:func:`error_sources`), "" when
+        nothing stands out.
     """
 
     verdict: Verdict
@@ -715,6 +718,7 @@ class AdequacyReport:
     thresholds: dict = field(repr=False)
     status: AdequacyStatus = AdequacyStatus.OK
     predicted_upper: float = math.nan
+    error_sources: str = ""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "verdict", Verdict(self.verdict))
@@ -762,6 +766,7 @@ class AdequacyReport:
             "noise_floor": _f(self.noise_floor),
             "predicted_error": _f(self.predicted_error),
             "predicted_error_upper": _f(self.predicted_upper),
+            "error_sources": self.error_sources,
             "correction_rms": _f(self.correction_rms),
             "bijective": bool(self.bijective),
             "min_slope": _f(self.min_slope),
@@ -1017,6 +1022,7 @@ class _Table:
     floor: float
     predicted: float
     upper: float = math.nan
+    sources: str = ""
 
 
 #: Batches of the SEM residual needed before the batch-means covariance is used at all: each
@@ -1062,14 +1068,76 @@ def _table(sem: SEMResult, n: int, P: NDArray, o: NDArray, sigma2: float, points
     lut = build_lut(sem.flux, n, points=points, projection=P, offset=o)
     eta = lut.eta  # about zero: f_init's error with its offset, as the prediction
     floor = angle_noise_floor(sem.flux, n, sigma2, projection=P, offset=o, points=lut.y0.size)
+    sources = ""
     try:
         G = angle_error_gradient(sem.flux, n, projection=P, offset=o)
-        mean_var_eta, excess_q = max(error_spread(G, C) for C in _theta_covariances(sem))
+        mean_var_eta, excess_q, C = max(
+            ((*error_spread(G, C), C) for C in _theta_covariances(sem)), key=lambda t: t[0]
+        )
+        sources = error_sources(G, C, sem.flux.basis.harmonics, fundamental=n)
     except (ValueError, np.linalg.LinAlgError):
         mean_var_eta = excess_q = math.nan
     predicted = math.sqrt(floor**2 + mean_var_eta) if math.isfinite(mean_var_eta) else math.nan
     upper = math.sqrt(floor**2 + excess_q) if math.isfinite(excess_q) else math.nan
-    return _Table(lut, float(np.sqrt(np.mean(eta**2))), floor, predicted, upper)
+    return _Table(lut, float(np.sqrt(np.mean(eta**2))), floor, predicted, upper, sources)
+
+
+def error_sources(
+    G: NDArray, C: ArrayLike, harmonics: tuple[int, ...], *, top: int = 3, fundamental: int = 0
+) -> str:
+    """What carries the table's predicted variance ``tr A``, ``A = G C G^T / M``: one phrase.
+
+    The table's constant offset takes ``mean(G) C mean(G)^T`` of it; each flux harmonic h takes
+    ``tr(G_h C_h. G^T) / M`` over the columns of theta at h (its sine and cosine in the three
+    sensors; the shares sum to the whole, cross terms split between the two harmonics). Names the
+    offset when it carries at least a quarter, and the fewest harmonics (at most ``top``) that
+    carry at least half, when they do.
+
+    Parameters
+    ----------
+    G : ndarray (M, 3 m)
+        d eta / d theta (:func:`hallcal.fit.sem.angle_error_gradient`), sensor-major columns.
+    C : array_like (3 m, 3 m)
+        cov(theta).
+    harmonics : tuple of int
+        The Fourier basis's harmonics (its columns: constant, then sine and cosine of each).
+    top : int, keyword-only
+        At most this many harmonics named.
+    fundamental : int, keyword-only
+        n_m: not named with the offset (the offset is the phase of the fundamental).
+
+    Returns
+    -------
+    str
+        e.g. "the table's constant offset carries 45 % of it; harmonics 16, 17, 18 carry 80 %",
+        or "" when nothing stands out.
+    """
+    C = np.asarray(C, dtype=np.float64)
+    M = G.shape[0]
+    total = float(np.sum((G.T @ G) * C)) / M
+    if not (math.isfinite(total) and total > 0):
+        return ""
+    gbar = G.mean(axis=0)
+    parts = []
+    offset = float(gbar @ C @ gbar) / total
+    if offset >= 0.25:
+        parts.append(f"the table's constant offset carries {100 * offset:.0f} % of it")
+    m = 1 + 2 * len(harmonics)
+    col = np.arange(G.shape[1]) % m
+    owner = np.where(col == 0, 0, np.asarray((0, *harmonics))[(col + 1) // 2])
+    per_column = np.sum((G.T @ G) * C, axis=1) / M / total
+    share = {int(h): float(per_column[owner == h].sum()) for h in harmonics}
+    ranked = [h for h in sorted(share, key=lambda h: -share[h])
+              if not (parts and h == fundamental)]  # fmt: skip
+    acc = 0.0
+    for i, h in enumerate(ranked[:top]):
+        acc += share[h]
+        if acc >= 0.5:
+            named = ", ".join(str(v) for v in sorted(ranked[: i + 1]))
+            parts.append(f"harmonic{'s' if i else ''} {named} carr{'y' if i else 'ies'} "
+                         f"{100 * acc:.0f} %")  # fmt: skip
+            break
+    return "; ".join(parts)
 
 
 #: Probability of the upper quantile of one run's table error (:func:`error_spread`).
@@ -1289,7 +1357,9 @@ def _reasons(
     if math.isfinite(tab.predicted) and tab.predicted > warn_predicted * tab.floor:
         warns.append(
             f"the data determine the table poorly (the covariance of theta predicts "
-            f"{tab.predicted / tab.floor:.2g}x the noise floor)"
+            f"{tab.predicted / tab.floor:.2g}x the noise floor"
+            + (f"; {tab.sources}" if tab.sources else "")
+            + ")"
         )
         notes.append(
             "The covariance of theta gives a table error well above the noise floor: some "
@@ -1416,6 +1486,7 @@ def _report(
         thresholds=lv.thresholds,
         status=AdequacyStatus.OK,
         predicted_upper=tab.upper,
+        error_sources=tab.sources,
     )
 
 

@@ -89,6 +89,7 @@ def decide(
     checks_passed: bool = True,
     min_slope: float = math.nan,
     predicted_upper: float = math.nan,
+    limit: str = "",
 ) -> Verdict:
     """The status of a calibration (see the module docstring for the policy).
 
@@ -113,6 +114,10 @@ def decide(
         Smallest slope of the table's map (for the not-bijective message).
     predicted_upper : float, keyword-only
         Upper quantile of one run's RMS error of f_star about zero [rad] (NaN: not checked).
+    limit : str, keyword-only
+        What carries the table's predicted variance (one phrase,
+        :func:`hallcal.fit.adequacy.error_sources`), named in a refusal for a poorly determined
+        table.
 
     Returns
     -------
@@ -152,7 +157,11 @@ def decide(
             + (f" (one run's up to {mrad * own_up:.3g} mrad, 95 %)" if own_up > own else "")
             + f" is at least {WORSE_FRACTION:g} of the "
             f"correction it applies ({mrad * correction_rms:.3g} mrad): the run determines the "
-            "table too poorly (a longer or faster ramp helps, see the ramp advice)",
+            "table too poorly ("
+            + (f"{limit}; " if limit else "")
+            + "a longer or faster ramp helps"
+            + (", or fewer harmonics" if "harmonic" in limit else "")
+            + ")",
             (),
         )
     leading: list[str] = []
