@@ -445,11 +445,18 @@ def _fit(
     fit_gain: bool,
     max_iterations: int,
 ) -> SEMResult:
-    """SEM with the start's flux (and gain) and cogging at ``orders`` (start: zero torque)."""
+    """SEM with the start's flux (and gain) and cogging at ``orders``, each order's coefficients
+    from the start's torque where it has them (zero otherwise)."""
+    known = start.cogging
+    a, b = np.zeros(len(orders)), np.zeros(len(orders))
+    if known is not None:
+        for i, k in enumerate(orders):
+            if k in known.orders:
+                j = known.orders.index(k)
+                a[i], b[i] = known.a[j], known.b[j]
     return solve_sem(
         loop, r, d, start.flux.basis, theta0=start.flux.theta, fit_gain=fit_gain,
-        gain0=start.gain if fit_gain else 1.0,
-        cogging=CoggingTorque(orders, np.zeros(len(orders)), np.zeros(len(orders))),
+        gain0=start.gain if fit_gain else 1.0, cogging=CoggingTorque(orders, a, b),
         max_iterations=max_iterations,
     )  # fmt: skip
 
@@ -560,7 +567,8 @@ def select_cogging(
         if not related:
             break
         wider = tuple(sorted({*candidates, *related, *zero}))
-        trial, trial_tests, kept = _pruned(loop, rr, dd, sem, wider, fit_gain=fit_gain,
+        # warm from the fit with the found orders (flux, gain and their coefficients)
+        trial, trial_tests, kept = _pruned(loop, rr, dd, joint, wider, fit_gain=fit_gain,
                                            max_iterations=max_iterations,
                                            significance=significance)  # fmt: skip
         if kept == candidates or not kept:
