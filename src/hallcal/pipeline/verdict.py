@@ -17,8 +17,9 @@ user's only reference, so the policy is stated on them:
    directions carry the error (slow warps, the table's offset, which only the start of the run
    informs) one run's table error scatters about it by up to 2x (``benchmarks/bench_zoo.txt``:
    1.4x and 1.7x on two slow ramps whose tables came out worse than f_init with a prediction
-   just below it; zoo motor 113, 4 pole pairs with rich shapes: predicted 13x the floor, upper
-   quantile 23x, f_init 27x, the table 64x).
+   just below it). Not caught: a model whose table is wrong beyond its covariance (zoo motor
+   113, harmonics chosen above the flux content: predicted 13x the floor, upper quantile 23x,
+   the model's correction 77x against f_init's 27x, the table 64x).
 4. **Warning**: any warning another step raised (``checks_passed`` False), an adequacy
    warning, no finite predicted error, or a predicted error above :data:`OK_RATIO` times the
    noise floor.
