@@ -50,6 +50,7 @@ __all__ = [
     "SEMStatus",
     "least_squares_start",
     "default_chunk",
+    "angle_error_gradient",
     "predicted_angle_error",
     "solve_sem",
 ]
@@ -700,6 +701,32 @@ def predicted_angle_error(
     ndarray (points,)
         std of eta on a uniform grid of y0 over one revolution.
     """
+    G = angle_error_gradient(flux, pole_pairs, projection=projection, offset=offset,
+                             points=points)  # fmt: skip
+    if about_mean:
+        G -= G.mean(axis=0)
+    C = np.asarray(covariance, float)
+    var = np.einsum("ij,jk,ik->i", G, C, G)
+    return np.sqrt(np.maximum(var, 0.0))
+
+
+def angle_error_gradient(
+    flux: FluxModel,
+    pole_pairs: int,
+    *,
+    projection: ArrayLike,
+    offset: ArrayLike,
+    points: int = 512,
+) -> NDArray[np.float64]:
+    """d eta(y0) / d theta on a uniform grid of y0 over one revolution [rad per unit of theta].
+
+    ``eta = y0 - f_init(g_theta(y0))`` (eq. recon_biject), so ``d eta / d theta = -(1/n_m)
+    d psi/d d . (I_3 kron beta(y0))``; the rows of :func:`predicted_angle_error`.
+
+    Returns
+    -------
+    ndarray (points, 3 m)
+    """
     y0 = TWO_PI * np.arange(points) / points
     B = flux.basis.evaluate(y0)  # (M, m)
     g = flux(y0) - np.asarray(offset, float)
@@ -707,9 +734,4 @@ def predicted_angle_error(
     ab = g @ P.T
     rho2 = ab[:, 0] ** 2 + ab[:, 1] ** 2
     dpsi = (ab[:, [0]] * P[1] - ab[:, [1]] * P[0]) / rho2[:, None]  # (M, 3)
-    G = -(dpsi[:, :, None] * B[:, None, :]).reshape(points, -1) / pole_pairs  # (M, 3m)
-    if about_mean:
-        G -= G.mean(axis=0)
-    C = np.asarray(covariance, float)
-    var = np.einsum("ij,jk,ik->i", G, C, G)
-    return np.sqrt(np.maximum(var, 0.0))
+    return -(dpsi[:, :, None] * B[:, None, :]).reshape(points, -1) / pole_pairs  # (M, 3m)

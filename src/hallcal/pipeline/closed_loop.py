@@ -577,16 +577,20 @@ def calibrate_closed_loop(
             projection=loop.projection,
             offset=loop.offset,
         )
-    predicted = adequacy.predicted_error
+    predicted, upper = adequacy.predicted_error, adequacy.predicted_upper
     if lut.bijective and adequacy.verdict == "warning":
         bias, note = _motion_bias(loop, s, setup, fit, lut)
-        predicted = math.hypot(predicted, bias)
+        predicted, upper = math.hypot(predicted, bias), math.hypot(upper, bias)
         if note is not None:
             messages.append(note)
+    limit = adequacy.error_sources
+    if cogging is not None and 0 in cogging.orders and "offset" in limit:
+        limit += ", which trades off with the constant load torque in the model (cogging 0)"
     verdict = decide(
         bijective=lut.bijective, predicted=predicted, floor=adequacy.noise_floor,
         correction_rms=adequacy.correction_rms, adequacy=str(adequacy.verdict),
-        adequacy_message=adequacy.message, min_slope=lut.min_slope,
+        adequacy_message=adequacy.message, min_slope=lut.min_slope, predicted_upper=upper,
+        limit=limit,
         checks_passed=not any(m.startswith("warning") for m in messages),
     )  # fmt: skip
     first = (verdict.status, verdict.refusal, verdict.leading)
