@@ -169,6 +169,7 @@ def _calibrate_into(task: _Task, result: _Result) -> None:
     from hallcal.api import export_c  # the export defaults every entry point shares
     from hallcal.io import load_artifact, read_dataset
     from hallcal.pipeline.calibration import CalibrationStatus
+    from hallcal.pipeline.verdict import refusal
 
     row = result.row
     cal = _calibrate(task.data, task.setup, task.bla_data)
@@ -176,9 +177,9 @@ def _calibrate_into(task: _Task, result: _Result) -> None:
     row["model"] = _model_text(cal.model_info)
     force = bool(cal.setup.model.force)  # as `hallcal calibrate` honours [model] force = true
     notes = list(cal.messages)
-    if cal.status is CalibrationStatus.NOT_BIJECTIVE or (cal.status.refused and not force):
-        reason = cal.refusal or (notes[0] if notes else str(cal.status))
-        row.update(status=MotorStatus.REFUSED.value, message=one_line(reason))
+    refused = refusal(cal.status, cal.refusal or (notes[0] if notes else None), force=force)
+    if refused is not None:
+        row.update(status=MotorStatus.REFUSED.value, message=one_line(refused.text))
         return
     status = MotorStatus.OK if cal.status is CalibrationStatus.OK else MotorStatus.WARNING
     if cal.status.refused:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
-import enum
 import math
 import os
 from collections.abc import Mapping
@@ -26,6 +25,7 @@ from hallcal.io.artifact import ARTIFACT_FORMAT, ArtifactData, validate_artifact
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.limits import check_command_samples
+from hallcal.messages import MessageCode
 from hallcal.pipeline.powerup import (
     SignalCheck,
     SignalStatus,
@@ -35,6 +35,7 @@ from hallcal.pipeline.powerup import (
     identification_check,
     same_revolution,
 )
+from hallcal.pipeline.verdict import CalibrationStatus, refusal
 from hallcal.sensor.absolute import (
     IdentifiabilityReport,
     PowerUpIdentification,
@@ -68,30 +69,6 @@ __all__ = [
     "require_table",
     "validate",
 ]
-
-
-class CalibrationStatus(enum.StrEnum):
-    """Outcome of a calibration; the string values are the artifact's ``diagnostics.status``.
-
-    ``OK`` and ``WARNING`` give a usable table (a warning says what to look at);
-    ``INADEQUATE`` (the model does not explain the data) and ``NOT_BIJECTIVE`` (no table can
-    invert the sensor map, the paper's bijectivity condition) are refusals.
-    """
-
-    OK = "ok"
-    WARNING = "warning"
-    INADEQUATE = "inadequate"
-    NOT_BIJECTIVE = "not-bijective"
-
-    @property
-    def success(self) -> bool:
-        """True when the table may be used."""
-        return self in (CalibrationStatus.OK, CalibrationStatus.WARNING)
-
-    @property
-    def refused(self) -> bool:
-        """True when the table must not be used."""
-        return not self.success
 
 
 @dataclass(frozen=True)
@@ -386,13 +363,14 @@ class Calibration:
         if self.observer_only:
             write_artifact(path, self.to_artifact())
             return
-        if self.status is CalibrationStatus.NOT_BIJECTIVE or (self.status.refused and not force):
+        refused = refusal(self.status, self.refusal, force=force)
+        if refused is not None:
             hint = (
                 ""
-                if self.status is CalibrationStatus.NOT_BIJECTIVE
+                if refused.code is MessageCode.NOT_BIJECTIVE
                 else " (use --force, or force=True, to write it anyway)"
             )
-            raise CalibrationRefused(f"{self.refusal}; no artifact written{hint}")
+            raise CalibrationRefused(f"{refused.text}; no artifact written{hint}")
         write_artifact(path, self.to_artifact())
 
     def reconstruct(

@@ -22,6 +22,10 @@ user's only reference, so the policy is stated on them:
    noise floor.
 5. **Ok**: none of the above; then ``predicted <= OK_RATIO * floor`` and every check passed.
 
+What a refusal means for the user is stated once too (:func:`refusal`, "refuse unless
+forced"): a table that is not bijective is never written, an inadequate one only when forced
+(``--force``, ``force=True``, ``[model] force = true``); the command line exits with status 3.
+
 The predicted error is the expected RMS error of f_star about zero on a fresh run,
 ``sqrt(floor^2 + mean_y0 var eta(y0) + bias^2)`` (cov(theta) propagated to the table with its
 constant offset, :func:`hallcal.fit.sem.predicted_angle_error`); a validation against an encoder
@@ -30,12 +34,13 @@ constant offset, :func:`hallcal.fit.sem.predicted_angle_error`); a validation ag
 
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass
 
-from hallcal.pipeline.calibration import CalibrationStatus
+from hallcal.messages import Message, MessageCode
 
-__all__ = ["OK_RATIO", "WORSE_FRACTION", "Verdict", "decide"]
+__all__ = ["OK_RATIO", "WORSE_FRACTION", "CalibrationStatus", "Verdict", "decide", "refusal"]
 
 #: Fraction of the correction the table's own predicted error may reach before the table is
 #: refused as possibly worse than f_init (see the module docstring).
@@ -45,6 +50,30 @@ WORSE_FRACTION = 0.5
 #: "ok" as "at the noise floor"; 1.15 leaves room for the spread of one run's error, about
 #: sqrt(2 / revolutions-worth of independent samples), and for a few weak directions).
 OK_RATIO = 1.15
+
+
+class CalibrationStatus(enum.StrEnum):
+    """Outcome of a calibration; the string values are the artifact's ``diagnostics.status``.
+
+    ``OK`` and ``WARNING`` give a usable table (a warning says what to look at);
+    ``INADEQUATE`` (the model does not explain the data) and ``NOT_BIJECTIVE`` (no table can
+    invert the sensor map, the paper's bijectivity condition) are refusals.
+    """
+
+    OK = "ok"
+    WARNING = "warning"
+    INADEQUATE = "inadequate"
+    NOT_BIJECTIVE = "not-bijective"
+
+    @property
+    def success(self) -> bool:
+        """True when the table may be used."""
+        return self in (CalibrationStatus.OK, CalibrationStatus.WARNING)
+
+    @property
+    def refused(self) -> bool:
+        """True when the table must not be used."""
+        return not self.success
 
 
 @dataclass(frozen=True)
@@ -148,3 +177,33 @@ def decide(
     if leading or not checks_passed:
         return Verdict(CalibrationStatus.WARNING, None, tuple(leading))
     return Verdict(CalibrationStatus.OK, None, ())
+
+
+def refusal(status: CalibrationStatus, reason: str | None, *, force: bool) -> Message | None:
+    """The one refusal rule, "refuse unless forced": why a result must not be written, or None.
+
+    Used by :meth:`hallcal.pipeline.Calibration.save` (which raises
+    :class:`~hallcal.errors.CalibrationRefused`, exit status 3), the command line and the fleet
+    worker (a "refused" row).
+
+    Parameters
+    ----------
+    status : CalibrationStatus
+        The calibration's status (:func:`decide`).
+    reason : str or None
+        Its refusal reason (:attr:`Verdict.refusal`).
+    force : bool, keyword-only
+        Write an inadequate model anyway (``--force``, ``force=True``, ``[model] force``); a
+        table that is not bijective is refused all the same.
+
+    Returns
+    -------
+    Message or None
+        A refusal (code ``NOT_BIJECTIVE`` or ``INADEQUATE``) naming the reason; None when the
+        result may be written.
+    """
+    if status is CalibrationStatus.NOT_BIJECTIVE:
+        return Message.refusal(MessageCode.NOT_BIJECTIVE, reason or "the table is not bijective")
+    if status.refused and not force:
+        return Message.refusal(MessageCode.INADEQUATE, reason or str(status))
+    return None
