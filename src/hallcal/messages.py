@@ -87,6 +87,7 @@ class MessageCode(enum.StrEnum):
     VALIDATION_WORSE = "validation_worse"
     POWERUP = "powerup"
     C_EXPORT = "c_export"
+    SEE_DIAGNOSTICS = "see_diagnostics"
     #: a stored string read back (:meth:`Message.from_record`): its producer is not recorded
     STORED = "stored"
 

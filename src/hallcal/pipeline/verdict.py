@@ -85,13 +85,13 @@ class Verdict:
     status : CalibrationStatus
     refusal : str or None
         Why the table must not be used (one line), None unless refused.
-    leading : tuple of str
+    leading : tuple of Message
         Warnings to put first in the calibration's messages (the reason for a "warning").
     """
 
     status: CalibrationStatus
     refusal: str | None
-    leading: tuple[str, ...]
+    leading: tuple[Message, ...]
 
 
 def decide(
@@ -162,17 +162,25 @@ def decide(
             "table too poorly (a longer or faster ramp helps, see the ramp advice)",
             (),
         )
-    leading: list[str] = []
-    if adequacy == "warning":
-        msg = adequacy_message
-        leading.append(msg if msg.startswith("warning") else f"warning: {msg}")
+    leading: list[Message] = []
+    if adequacy == "warning":  # the adequacy message starts with its verdict, "warning: "
+        text = adequacy_message.removeprefix(f"{adequacy}: ")
+        leading.append(Message.warning(MessageCode.ADEQUACY, text))
     ratio = predicted / floor if floor > 0 else math.nan
     if not math.isfinite(ratio):
-        leading.append("warning: no predicted error (the covariance of theta is not available)")
+        leading.append(
+            Message.warning(
+                MessageCode.NO_PREDICTION,
+                "no predicted error (the covariance of theta is not available)",
+            )
+        )
     elif ratio > OK_RATIO and not leading:
         leading.append(
-            f"warning: predicted error {mrad * predicted:.3g} mrad RMS is {ratio:.2f}x the noise "
-            f"floor ({mrad * floor:.3g} mrad), above the {OK_RATIO}x of an ok calibration"
+            Message.warning(
+                MessageCode.ABOVE_NOISE_FLOOR,
+                f"predicted error {mrad * predicted:.3g} mrad RMS is {ratio:.2f}x the noise "
+                f"floor ({mrad * floor:.3g} mrad), above the {OK_RATIO}x of an ok calibration",
+            )
         )
     if leading or not checks_passed:
         return Verdict(CalibrationStatus.WARNING, None, tuple(leading))
