@@ -420,7 +420,7 @@ def test_the_issues_unstable_bla_is_refused_with_the_order_named(motor_bla_data)
     assert auto.status is pipeline.BLAStatus.OK
     assert auto.selection.chosen.denominator_order == 1
     assert auto.plant.den == pytest.approx((1.0, 50.0, 0.0), rel=0.05, abs=1e-9)
-    assert any("denominator order 1 chosen from the data" in m for m in auto.messages)
+    assert any("denominator order 1 chosen from the data" in m.text for m in auto.messages)
     # calibrate refuses before the gain correction or SEM, with the same fix
     run = pipeline.simulate(two, ramp_end=7.0, duration=8.0).columns()
     from hallcal.errors import CalibrationRefused

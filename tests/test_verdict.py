@@ -72,7 +72,7 @@ def test_a_constant_load_torque_is_found_as_order_0_and_its_offset_carried():
     assert auto.cogging is not None and auto.cogging.orders == (0,)
     # the load found within 1 % (measured 0.0030006 +- 1.2e-5 on a longer run)
     assert auto.cogging.a[0] == pytest.approx(LOAD, rel=0.01)
-    assert any("constant load" in m for m in auto.messages)
+    assert any("constant load" in m.text for m in auto.messages)
     e_none = angle_error(none.lut.f_star(val.d), val.y0)
     e_auto = angle_error(auto.lut.f_star(val.d), val.y0)
     # without the load in the model the table carries an offset of the order of the floor

@@ -63,7 +63,7 @@ class CalibrationStatus(enum.StrEnum):
     OK = "ok"
     WARNING = "warning"
     INADEQUATE = "inadequate"
-    NOT_BIJECTIVE = "not-bijective"
+    NOT_BIJECTIVE = "not_bijective"
 
     @property
     def success(self) -> bool:
@@ -125,7 +125,7 @@ def decide(
         False when another step raised a warning (a preflight check, the plant, the fit's
         status): the calibration is then a warning at best.
     min_slope : float, keyword-only
-        Smallest slope of the table's map (for the not-bijective message).
+        Smallest slope of the table's map (for the not_bijective message).
 
     Returns
     -------
