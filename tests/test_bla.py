@@ -321,7 +321,7 @@ def test_single_realization_and_single_period_status() -> None:
     one = nonparametric_bla(
         ex.r, ex.r, y, ex.realization, period_samples=256, transient_periods=1, sample_time=1e-3
     )
-    assert one.status == "single-realization"
+    assert one.status == "single_realization"
     np.testing.assert_array_equal(one.var_total, one.var_noise)
     assert np.all(np.isnan(one.var_nonlinear))
     np.testing.assert_allclose(one.G, 2.0, atol=1e-3)
@@ -329,7 +329,7 @@ def test_single_realization_and_single_period_status() -> None:
         ex.r, ex.r, y, ex.realization, period_samples=256, transient_periods=2,
         sample_time=1e-3, detrend=False,
     )  # fmt: skip
-    assert single.status == "single-realization+single-period"
+    assert single.status == "single_realization_and_period"
     assert np.all(np.isnan(single.var_noise))
     json.dumps(single.to_dict())  # NaN written as null: valid JSON
 

@@ -395,7 +395,7 @@ def verdict(
             f" %, offset {sem.drift[h, 1]:+.2g} +- {sem.drift_std[h, 1]:.2g}"
             for h in range(3)
         ]
-        line = Message.warning(
+        identified = Message.warning(
             MessageCode.SENSOR_DRIFT,
             "the sensors drift during the run (gain and offset changes over the run, "
             f"identified with the flux: {'; '.join(parts)}); the table is the one of the run's "
@@ -403,7 +403,7 @@ def verdict(
         )
         if status == ok:
             status = warning
-        return (status, refusal, (line, *leading)), out
+        return (status, refusal, (identified, *leading)), out
     drift = detect_drift(d, sem.d_sim, found.sigma, weights=found.weights)
     if not drift.any:
         return verdict, out
