@@ -347,7 +347,8 @@ def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int
     prog = _Progress()
     kind = experiment or setup.bench.experiment
     if setup.controller is None:
-        _err.print("note: the setup has no [controller]: the virtual bench uses the paper's C(q)")
+        default = "the setup has no [controller]: the virtual bench uses the paper's C(q)"
+        _err.print(Message.note(MessageCode.DEFAULT_USED, default).line())
     prog(f"simulating the {kind} experiment")
     run = pipeline.simulate(setup, experiment=experiment, seed=seed)
     if run.status != "ok":
@@ -899,7 +900,7 @@ def export_c(
         powerup=not no_powerup,
     )
     for m in res.messages:
-        _echo(f"note: {m}", err=True)
+        _echo(Message.note(MessageCode.C_EXPORT, m).line(), err=True)
     for p in res.paths:
         _echo(f"wrote {p}")
     bounds = f"float {res.float_bound:.2g} rad"

@@ -61,6 +61,7 @@ class MessageCode(enum.StrEnum):
     TRAJECTORY_WINDOW = "trajectory_window"
     SPEED_VARIES = "speed_varies"
     UNUSED_INPUT = "unused_input"
+    DEFAULT_USED = "default_used"
     # the plant
     PLANT = "plant"
     BLA_EXPERIMENT = "bla_experiment"
