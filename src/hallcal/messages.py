@@ -117,22 +117,70 @@ class Message:
 
     @classmethod
     def info(cls, code: MessageCode, text: str) -> Message:
-        """A :attr:`Severity.INFO` message."""
+        """A :attr:`Severity.INFO` message.
+
+        Parameters
+        ----------
+        code : MessageCode
+            What it is about.
+        text : str
+            One line without a severity label.
+
+        Returns
+        -------
+        Message
+        """
         return cls(Severity.INFO, code, text)
 
     @classmethod
     def note(cls, code: MessageCode, text: str) -> Message:
-        """A :attr:`Severity.NOTE` message."""
+        """A :attr:`Severity.NOTE` message.
+
+        Parameters
+        ----------
+        code : MessageCode
+            What it is about.
+        text : str
+            One line without a severity label.
+
+        Returns
+        -------
+        Message
+        """
         return cls(Severity.NOTE, code, text)
 
     @classmethod
     def warning(cls, code: MessageCode, text: str) -> Message:
-        """A :attr:`Severity.WARNING` message."""
+        """A :attr:`Severity.WARNING` message.
+
+        Parameters
+        ----------
+        code : MessageCode
+            What it is about.
+        text : str
+            One line without a severity label.
+
+        Returns
+        -------
+        Message
+        """
         return cls(Severity.WARNING, code, text)
 
     @classmethod
     def refusal(cls, code: MessageCode, text: str) -> Message:
-        """A :attr:`Severity.REFUSAL` message."""
+        """A :attr:`Severity.REFUSAL` message.
+
+        Parameters
+        ----------
+        code : MessageCode
+            What it is about.
+        text : str
+            One line without a severity label.
+
+        Returns
+        -------
+        Message
+        """
         return cls(Severity.REFUSAL, code, text)
 
     @property
@@ -159,6 +207,16 @@ class Message:
 
         A ``warning:``, ``refused:`` or ``note:`` label gives the severity (artifacts up to
         0.1.0 stored two notes with their label); anything else is a note.
+
+        Parameters
+        ----------
+        record : str
+            The stored string.
+
+        Returns
+        -------
+        Message
+            With code :attr:`MessageCode.STORED` (the producer is not stored).
         """
         for severity in (Severity.WARNING, Severity.REFUSAL, Severity.NOTE):
             label = _LABELS[severity]
@@ -168,5 +226,15 @@ class Message:
 
 
 def has_warning(messages: tuple[Message, ...] | list[Message]) -> bool:
-    """True when any of `messages` is a warning or a refusal (a status "warning" at best)."""
+    """Whether any of `messages` is a warning or a refusal (a status "warning" at best).
+
+    Parameters
+    ----------
+    messages : sequence of Message
+        What the steps reported.
+
+    Returns
+    -------
+    bool
+    """
     return any(m.is_warning for m in messages)

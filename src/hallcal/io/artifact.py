@@ -133,7 +133,17 @@ def migrate_values(data: Any) -> Any:
     """Rename the old status values of a parsed file in place (:data:`RENAMED_VALUES`).
 
     Every ``"status"`` and ``"reason"`` key at any depth of nested objects; other values are
-    left as they are. Returns `data`.
+    left as they are.
+
+    Parameters
+    ----------
+    data : object
+        Parsed JSON (an artifact or a ``hallcal-bla/1`` document).
+
+    Returns
+    -------
+    object
+        `data`, renamed in place.
     """
     if isinstance(data, dict):
         for key, value in data.items():

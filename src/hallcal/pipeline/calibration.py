@@ -674,7 +674,17 @@ def reconstruct_with(lut: LUT, dataset: Dataset, *, y_initial: float = 0.0) -> R
 
 
 def validation_skipped(exc: Exception) -> Message:
-    """The warning when ``y_ref`` cannot be scored (a standstill run): the result stands."""
+    """The warning when ``y_ref`` cannot be scored (a standstill run): the result stands.
+
+    Parameters
+    ----------
+    exc : Exception
+        Why it cannot be scored.
+
+    Returns
+    -------
+    Message
+    """
     return Message.warning(MessageCode.VALIDATION_SKIPPED, f"validation skipped: {exc}")
 
 
