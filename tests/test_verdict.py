@@ -21,6 +21,7 @@ from hypothesis import strategies as st
 
 from hallcal import pipeline
 from hallcal.io import Dataset, ModelSpec, Setup, write_dataset
+from hallcal.messages import MessageCode
 from hallcal.pipeline.calibration import CalibrationStatus
 from hallcal.pipeline.verdict import OK_RATIO, WORSE_FRACTION, decide
 from hallcal.sensor.metrics import angle_error
@@ -135,7 +136,8 @@ def test_ok_only_within_1_15x_the_floor_and_never_predicted_worse_than_f_init(
 def test_no_predicted_error_is_not_ok():
     v = decide(bijective=True, predicted=math.nan, floor=1e-4, correction_rms=1e-3)
     assert v.status is CalibrationStatus.WARNING
-    assert v.leading[0].startswith("warning: no predicted error")
+    assert v.leading[0].code is MessageCode.NO_PREDICTION and v.leading[0].is_warning
+    assert v.leading[0].line().startswith("warning: no predicted error")
 
 
 @functools.cache

@@ -145,15 +145,17 @@ def migrate_values(data: Any) -> Any:
     object
         `data`, renamed in place.
     """
-    if isinstance(data, dict):
-        for key, value in data.items():
-            if key in _RENAMED_KEYS and isinstance(value, str):
-                data[key] = RENAMED_VALUES.get(value, value)
-            elif isinstance(value, dict | list):
-                migrate_values(value)
-    elif isinstance(data, list) and data and isinstance(data[0], dict | list):
-        for item in data:
-            migrate_values(item)
+    stack = [data]  # no recursion: a hostile file's nesting cannot exhaust the stack
+    while stack:
+        node = stack.pop()
+        if isinstance(node, dict):
+            for key, value in node.items():
+                if key in _RENAMED_KEYS and isinstance(value, str):
+                    node[key] = RENAMED_VALUES.get(value, value)
+                elif isinstance(value, dict | list):
+                    stack.append(value)
+        elif node and isinstance(node[0], dict | list):  # lists of numbers are left alone
+            stack.extend(node)
     return data
 
 
