@@ -321,7 +321,7 @@ def test_single_realization_and_single_period_status() -> None:
     one = nonparametric_bla(
         ex.r, ex.r, y, ex.realization, period_samples=256, transient_periods=1, sample_time=1e-3
     )
-    assert one.status == "single-realization"
+    assert one.status == "single_realization"
     np.testing.assert_array_equal(one.var_total, one.var_noise)
     assert np.all(np.isnan(one.var_nonlinear))
     np.testing.assert_allclose(one.G, 2.0, atol=1e-3)
@@ -329,7 +329,7 @@ def test_single_realization_and_single_period_status() -> None:
         ex.r, ex.r, y, ex.realization, period_samples=256, transient_periods=2,
         sample_time=1e-3, detrend=False,
     )  # fmt: skip
-    assert single.status == "single-realization+single-period"
+    assert single.status == "single_realization_and_period"
     assert np.all(np.isnan(single.var_noise))
     json.dumps(single.to_dict())  # NaN written as null: valid JSON
 
@@ -420,7 +420,7 @@ def test_the_issues_unstable_bla_is_refused_with_the_order_named(motor_bla_data)
     assert auto.status is pipeline.BLAStatus.OK
     assert auto.selection.chosen.denominator_order == 1
     assert auto.plant.den == pytest.approx((1.0, 50.0, 0.0), rel=0.05, abs=1e-9)
-    assert any("denominator order 1 chosen from the data" in m for m in auto.messages)
+    assert any("denominator order 1 chosen from the data" in m.text for m in auto.messages)
     # calibrate refuses before the gain correction or SEM, with the same fix
     run = pipeline.simulate(two, ramp_end=7.0, duration=8.0).columns()
     from hallcal.errors import CalibrationRefused

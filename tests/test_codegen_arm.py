@@ -313,7 +313,7 @@ def demo_pu(demo):
     decoder, built for the M4F, and power-ups on the demo's bench motor (seed 1)."""
     from hallcal.sim.bench import BenchConfig
 
-    assert demo["art"]["identifiability"]["status"] != "not-identifiable"
+    assert demo["art"]["identifiability"]["status"] != "not_identifiable"
     gen = demo["dir"] / "fw_pu"
     res = export_c(demo["art"], gen, source="calibration.json", adc_scale=DEMO_ADC_SCALE,
                    fixed_point=False)  # fmt: skip

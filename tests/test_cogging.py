@@ -226,7 +226,7 @@ def test_calibrate_identifies_cogging_with_either_plant(bench_data, tmp_path, pl
     # plant it is not tried (the gain c refined jointly takes up a constant torque's effect)
     assert cal.status.success and cal.cogging is not None and cal.cogging.orders == (66,)
     _check_torque(cal.cogging, cfg.cogging_torque())
-    assert any(m.startswith("cogging torque (found in the data") for m in cal.messages)
+    assert any(m.text.startswith("cogging torque (found in the data") for m in cal.messages)
     actual = validate(cal.lut, val).star.rms
     assert actual < 1.10 * cfg.noise_floor
     assert cal.predicted_error == pytest.approx(actual, rel=0.25)
@@ -294,7 +294,7 @@ def test_predicted_error_stays_honest_when_the_table_absorbs_motion(cogging):
     assert cal.predicted_error == pytest.approx(actual, rel=0.25)
     if cogging == "none":
         assert cal.status.value == "warning" and actual > 2 * cfg.noise_floor
-        assert any("cogging torque at 66/rev that is not modelled" in m for m in cal.messages)
+        assert any("cogging torque at 66/rev that is not modelled" in m.text for m in cal.messages)
     else:
         assert cal.status.value == "ok" and actual < 1.10 * cfg.noise_floor
 

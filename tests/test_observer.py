@@ -217,7 +217,7 @@ def test_calibrate_keeps_a_folding_maps_model_for_the_observer(folding_dir):
     assert res.returncode == 0, res.stderr
     assert "use 'hallcal reconstruct --observer'" in res.stderr  # the notes go to stderr
     art = json.loads((d / "cal.json").read_text())
-    assert art["diagnostics"]["status"] == "not-bijective"
+    assert art["diagnostics"]["status"] == "not_bijective"
     assert art["observer"]["injective"] is True
 
 

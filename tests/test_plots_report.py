@@ -281,7 +281,7 @@ def test_report_degrades_without_sem_or_a_bijective_table(demo, tmp_path):
     assert "calibration recording" in text  # validated in-sample on its y_ref, and says so
     # a table that is not bijective: f_star is undefined, f_init is still shown
     lut = dataclasses.replace(cal.lut, bijective=False)
-    broken = dataclasses.replace(cal, lut=lut, status="not-bijective")
+    broken = dataclasses.replace(cal, lut=lut, status="not_bijective")
     text = write_report(content_from_calibration(broken, data), tmp_path / "broken").read_text()
     assert "bijective: <b>NO</b>" in text and "status-bad" in text
     assert 'id="fig-angle_error"' in text and 'id="fig-spectrum"' not in text

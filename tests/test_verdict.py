@@ -21,6 +21,7 @@ from hypothesis import strategies as st
 
 from hallcal import pipeline
 from hallcal.io import Dataset, ModelSpec, Setup, write_dataset
+from hallcal.messages import MessageCode
 from hallcal.pipeline.calibration import CalibrationStatus
 from hallcal.pipeline.verdict import OK_RATIO, OK_UPPER_RATIO, WORSE_FRACTION, decide
 from hallcal.sensor.metrics import angle_error
@@ -72,7 +73,7 @@ def test_a_constant_load_torque_is_found_as_order_0_and_its_offset_carried():
     assert auto.cogging is not None and auto.cogging.orders == (0,)
     # the load found within 1 % (measured 0.0030006 +- 1.2e-5 on a longer run)
     assert auto.cogging.a[0] == pytest.approx(LOAD, rel=0.01)
-    assert any("constant load" in m for m in auto.messages)
+    assert any("constant load" in m.text for m in auto.messages)
     e_none = angle_error(none.lut.f_star(val.d), val.y0)
     e_auto = angle_error(auto.lut.f_star(val.d), val.y0)
     # without the load in the model the table carries an offset of the order of the floor
@@ -135,7 +136,8 @@ def test_ok_only_within_1_15x_the_floor_and_never_predicted_worse_than_f_init(
 def test_no_predicted_error_is_not_ok():
     v = decide(bijective=True, predicted=math.nan, floor=1e-4, correction_rms=1e-3)
     assert v.status is CalibrationStatus.WARNING
-    assert v.leading[0].startswith("warning: no predicted error")
+    assert v.leading[0].code is MessageCode.NO_PREDICTION and v.leading[0].is_warning
+    assert v.leading[0].line().startswith("warning: no predicted error")
 
 
 @functools.cache

@@ -12,6 +12,7 @@ elsewhere (:meth:`ParametricBLA.scaled`).
 
 from __future__ import annotations
 
+import enum
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -32,6 +33,7 @@ from hallcal.identify._serial import (
 from hallcal.identify.bla import NonparametricBLA
 
 __all__ = [
+    "FitStatus",
     "OrderCandidate",
     "OrderSelection",
     "ParametricBLA",
@@ -39,6 +41,13 @@ __all__ = [
     "model_poles",
     "select_order",
 ]
+
+
+class FitStatus(enum.StrEnum):
+    """Outcome of the parametric fit of G(s)."""
+
+    OK = "ok"
+    NOT_CONVERGED = "not_converged"  # the evaluation budget ran out
 
 
 @dataclass(frozen=True, eq=False)
@@ -75,8 +84,8 @@ class ParametricBLA:
         Model evaluations of the nonlinear least-squares refinement.
     gain_scale : float
         Product of the factors applied by :meth:`scaled` since the fit (1 for a fresh fit).
-    status : str
-        ``"ok"`` or ``"not-converged"`` (evaluation budget exhausted).
+    status : FitStatus
+        ``ok`` or ``not_converged`` (evaluation budget exhausted).
     """
 
     num: np.ndarray
@@ -91,7 +100,10 @@ class ParametricBLA:
     stable: bool = True
     nfev: int = 0
     gain_scale: float = 1.0
-    status: str = "ok"
+    status: FitStatus = FitStatus.OK
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "status", FitStatus(self.status))
 
     def frequency_response(self, freq_hz: np.ndarray | float, *, zoh: bool = False) -> np.ndarray:
         """``G(j 2 pi f) = exp(-j 2 pi f delay) num / den`` at the frequencies ``freq_hz`` [Hz].
@@ -184,7 +196,7 @@ class ParametricBLA:
             stable=bool(data.get("stable", True)),
             nfev=int(data.get("nfev", 0)),
             gain_scale=float(data.get("gain_scale", 1.0)),
-            status=str(data.get("status", "ok")),
+            status=FitStatus(str(data.get("status", "ok"))),
         )
 
 
@@ -282,7 +294,7 @@ def fit_parametric(
         weights=weights,
         stable=stable,
         nfev=fit.nfev,
-        status="ok" if fit.converged else "not-converged",
+        status=FitStatus.OK if fit.converged else FitStatus.NOT_CONVERGED,
     )
 
 

@@ -57,9 +57,11 @@ from hallcal.sensor.lut import LUT
 __all__ = [
     "ARTIFACT_FORMAT",
     "ARTIFACT_STATUSES",
+    "RENAMED_VALUES",
     "ArtifactData",
     "TIMING_KEYS",
     "load_artifact",
+    "migrate_values",
     "read_artifact",
     "validate_artifact",
     "without_timings",
@@ -103,7 +105,59 @@ ARTIFACT_FORMAT = "hallcal-calibration/1"
 
 #: Values of ``diagnostics.status``: those of :class:`hallcal.pipeline.CalibrationStatus`, which
 #: lives above this layer (tests/test_limits.py checks that the two agree).
-ARTIFACT_STATUSES = ("ok", "warning", "inadequate", "not-bijective")
+ARTIFACT_STATUSES = ("ok", "warning", "inadequate", "not_bijective")
+
+#: Status values renamed to the one spelling (snake_case) after 0.1.0, old -> new: a file
+#: written before (artifact or ``hallcal-bla/1``) is read with the new values
+#: (:func:`migrate_values`; CHANGELOG.md states the migration).
+RENAMED_VALUES: Mapping[str, str] = {
+    "not-bijective": "not_bijective",
+    "needs-motion": "needs_motion",
+    "not-identifiable": "not_identifiable",
+    "weak-positions": "weak_positions",
+    "too-uniform": "too_uniform",
+    "below-model-uncertainty": "below_model_uncertainty",
+    "partial-coverage": "partial_coverage",
+    "not-found": "not_found",
+    "not-converged": "not_converged",
+    "single-realization": "single_realization",
+    "single-period": "single_period",
+    "single-realization+single-period": "single_realization_and_period",
+}
+
+#: Keys whose values :data:`RENAMED_VALUES` renames, at any depth.
+_RENAMED_KEYS = ("status", "reason")
+
+
+def migrate_values(data: Any) -> Any:
+    """Rename the old status values of a parsed file in place (:data:`RENAMED_VALUES`).
+
+    Every ``"status"`` and ``"reason"`` key at any depth of nested objects; other values are
+    left as they are.
+
+    Parameters
+    ----------
+    data : object
+        Parsed JSON (an artifact or a ``hallcal-bla/1`` document).
+
+    Returns
+    -------
+    object
+        `data`, renamed in place.
+    """
+    stack = [data]  # no recursion: a hostile file's nesting cannot exhaust the stack
+    while stack:
+        node = stack.pop()
+        if isinstance(node, dict):
+            for key, value in node.items():
+                if key in _RENAMED_KEYS and isinstance(value, str):
+                    node[key] = RENAMED_VALUES.get(value, value)
+                elif isinstance(value, dict | list):
+                    stack.append(value)
+        elif node and isinstance(node[0], dict | list):  # lists of numbers are left alone
+            stack.extend(node)
+    return data
+
 
 TWO_PI = 2.0 * math.pi
 
@@ -554,6 +608,7 @@ def validate_artifact(artifact: Mapping[str, Any], source: str = "<artifact>") -
     except (ValueError, TypeError) as exc:
         c.bad(str(exc))
     _check_parsed(source, data)
+    migrate_values(data)
     if "format" not in data:
         c.bad("not a hallcal calibration artifact (format key missing)")
     if data["format"] != ARTIFACT_FORMAT:
@@ -576,7 +631,7 @@ def validate_artifact(artifact: Mapping[str, Any], source: str = "<artifact>") -
     folding = False
     if data.get("observer") is not None:
         folding = _check_observer(c, data["observer"]) and (
-            data["diagnostics"].get("status") == "not-bijective"
+            data["diagnostics"].get("status") == "not_bijective"
         )
     y_hat, eta = _check_lut(c, data["lut"], int(n), folding=folding)
     _check_model(c, data["model"])
@@ -616,7 +671,7 @@ def validate_artifact(artifact: Mapping[str, Any], source: str = "<artifact>") -
 
 def _check_observer(c: _Checker, entry: Any) -> bool:
     """The ``observer`` entry (:mod:`hallcal.pipeline.observe`); True when it says the
-    three-signal curve is injective, which lets a folding map's table (status "not-bijective")
+    three-signal curve is injective, which lets a folding map's table (status "not_bijective")
     be stored for the observer."""
     entry = c.mapping(entry, "observer")
     nv = c.array(c.need(entry, "noise_variance", "observer.noise_variance"),
@@ -743,6 +798,6 @@ def read_artifact(path: str | os.PathLike[str]) -> dict[str, Any]:
         Missing file, invalid JSON, not an artifact, unsupported format, or a missing, malformed
         or implausible key (named in the message).
     """
-    data = read_json(path)
+    data = migrate_values(read_json(path))
     validate_artifact(data, str(Path(path)))
     return data

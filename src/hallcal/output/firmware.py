@@ -354,10 +354,10 @@ class PowerUpCode(enum.StrEnum):
     """Whether the exported float variant identifies the pole pair at power-up."""
 
     EMITTED = "emitted"  # the decoder is in the float variant
-    NO_ANALYSIS = "no-analysis"  # the artifact has no "identifiability" entry
-    NOT_IDENTIFIABLE = "not-identifiable"  # the analysis says the magnets are too alike
+    NO_ANALYSIS = "no_analysis"  # the artifact has no "identifiability" entry
+    NOT_IDENTIFIABLE = "not_identifiable"  # the analysis says the magnets are too alike
     UNSUPPORTED = "unsupported"  # a grid the C cannot index with shifts, or a huge table
-    SINGLE_POLE_PAIR = "single-pole-pair"  # nothing to identify: f_init's frame is absolute
+    SINGLE_POLE_PAIR = "single_pole_pair"  # nothing to identify: f_init's frame is absolute
     DISABLED = "disabled"  # left out on request (export_c(powerup=False), --no-powerup)
 
     @property

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
-import enum
 import math
 import os
 from collections.abc import Mapping
@@ -26,6 +25,7 @@ from hallcal.io.artifact import ARTIFACT_FORMAT, ArtifactData, validate_artifact
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.limits import check_command_samples
+from hallcal.messages import Message, MessageCode
 from hallcal.pipeline.powerup import (
     SignalCheck,
     SignalStatus,
@@ -35,6 +35,7 @@ from hallcal.pipeline.powerup import (
     identification_check,
     same_revolution,
 )
+from hallcal.pipeline.verdict import CalibrationStatus, refusal
 from hallcal.sensor.absolute import (
     IdentifiabilityReport,
     PowerUpIdentification,
@@ -68,30 +69,6 @@ __all__ = [
     "require_table",
     "validate",
 ]
-
-
-class CalibrationStatus(enum.StrEnum):
-    """Outcome of a calibration; the string values are the artifact's ``diagnostics.status``.
-
-    ``OK`` and ``WARNING`` give a usable table (a warning says what to look at);
-    ``INADEQUATE`` (the model does not explain the data) and ``NOT_BIJECTIVE`` (no table can
-    invert the sensor map, the paper's bijectivity condition) are refusals.
-    """
-
-    OK = "ok"
-    WARNING = "warning"
-    INADEQUATE = "inadequate"
-    NOT_BIJECTIVE = "not-bijective"
-
-    @property
-    def success(self) -> bool:
-        """True when the table may be used."""
-        return self in (CalibrationStatus.OK, CalibrationStatus.WARNING)
-
-    @property
-    def refused(self) -> bool:
-        """True when the table must not be used."""
-        return not self.success
 
 
 @dataclass(frozen=True)
@@ -214,7 +191,7 @@ class Reconstruction:
         y_obs against the recording's ``y_ref``, when it has one.
 
     ``y_star`` is None when the calibration has no table (a folding map, observer only).
-    messages : tuple of str
+    messages : tuple of Message
         Warnings: a ``y_ref`` that cannot be scored (a recording at standstill) leaves
         ``validation`` None and says so here; the angles stand.
     """
@@ -226,7 +203,7 @@ class Reconstruction:
     observer: ObserverRun | None = field(default=None, repr=False)
     observer_error: AngleError | None = None
     signals: SignalCheck | None = None
-    messages: tuple[str, ...] = ()
+    messages: tuple[Message, ...] = ()
 
     @property
     def status(self) -> SignalStatus:
@@ -268,7 +245,7 @@ class Calibration:
     status : CalibrationStatus
     refusal : str or None
         Why the table must not be used (``status.refused``), else None.
-    messages : tuple of str
+    messages : tuple of Message
         Warnings and notes for the user, most important first.
     predicted_error : float
         Predicted RMS angle error of f_star [rad]: the noise floor and the table's uncertainty
@@ -323,7 +300,7 @@ class Calibration:
     predicted_error: float
     noise_floor: float
     refusal: str | None = None
-    messages: tuple[str, ...] = ()
+    messages: tuple[Message, ...] = ()
     plant: ContinuousTF | None = None
     plant_source: str | None = None
     gain: GainCorrection | None = None
@@ -386,13 +363,14 @@ class Calibration:
         if self.observer_only:
             write_artifact(path, self.to_artifact())
             return
-        if self.status is CalibrationStatus.NOT_BIJECTIVE or (self.status.refused and not force):
+        refused = refusal(self.status, self.refusal, force=force)
+        if refused is not None:
             hint = (
                 ""
-                if self.status is CalibrationStatus.NOT_BIJECTIVE
+                if refused.code is MessageCode.NOT_BIJECTIVE
                 else " (use --force, or force=True, to write it anyway)"
             )
-            raise CalibrationRefused(f"{self.refusal}; no artifact written{hint}")
+            raise CalibrationRefused(f"{refused.text}; no artifact written{hint}")
         write_artifact(path, self.to_artifact())
 
     def reconstruct(
@@ -447,7 +425,7 @@ def _diagnostics(cal: Calibration) -> dict[str, Any]:
     diag: dict[str, Any] = {
         "status": cal.status.value,
         "refusal": cal.refusal,
-        "messages": list(cal.messages),
+        "messages": [m.record() for m in cal.messages],
         "bijective": bool(cal.lut.bijective),
         "min_slope": cal.lut.min_slope,
         "predicted_angle_error_rms": cal.predicted_error,
@@ -641,7 +619,7 @@ def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Cal
         predicted_error=_float_or_nan(diag.get("predicted_angle_error_rms")),
         noise_floor=_float_or_nan(diag.get("noise_floor")),
         refusal=diag.get("refusal"),
-        messages=tuple(diag.get("messages", ())),
+        messages=tuple(Message.from_record(m) for m in diag.get("messages", ())),
         plant=plant,
         plant_source=plant_source,
         timings=dict(diag.get("timings", {})),
@@ -689,18 +667,33 @@ def reconstruct_with(lut: LUT, dataset: Dataset, *, y_initial: float = 0.0) -> R
     _within_budget(dataset, "reconstruct" if "y_ref" in dataset else "reconstruct without y_ref")
     yi, ys = lut.reconstruct(dataset["d1"], dataset["d2"], dataset["d3"], y_initial=y_initial)
     val: Validation | None = None
-    notes: tuple[str, ...] = ()
+    notes: tuple[Message, ...] = ()
     if "y_ref" in dataset:
         val, notes = _scored(lambda: validate(lut, dataset, angles=(yi, ys)))
     return Reconstruction(yi, ys, val, messages=notes)
 
 
-def _scored(score: Any) -> tuple[Validation | None, tuple[str, ...]]:
+def validation_skipped(exc: Exception) -> Message:
+    """The warning when ``y_ref`` cannot be scored (a standstill run): the result stands.
+
+    Parameters
+    ----------
+    exc : Exception
+        Why it cannot be scored.
+
+    Returns
+    -------
+    Message
+    """
+    return Message.warning(MessageCode.VALIDATION_SKIPPED, f"validation skipped: {exc}")
+
+
+def _scored(score: Any) -> tuple[Validation | None, tuple[Message, ...]]:
     """The validation, or None and a warning when ``y_ref`` cannot be scored."""
     try:
         return score(), ()
     except HallcalInputError as exc:
-        return None, (f"warning: validation skipped: {exc}",)
+        return None, (validation_skipped(exc),)
 
 
 def _within_budget(dataset: Dataset, command: str) -> None:
@@ -742,7 +735,7 @@ def _reconstruct_absolute(cal: Calibration, dataset: Dataset) -> Reconstruction:
     decoder = decoder_for(cal.flux, cal.lut, cal.identifiability)
     out = absolute_reconstruction(decoder, cal.lut, dataset.d)
     validation: Validation | None = None
-    notes: tuple[str, ...] = ()
+    notes: tuple[Message, ...] = ()
     if "y_ref" in dataset:
         ref = same_revolution(out.y_star, dataset["y_ref"])
         moved = dataclasses.replace(dataset, columns={**dataset.columns, "y_ref": ref})

@@ -28,6 +28,7 @@ from hallcal.fit.design import plan_ramp, speed_limits
 from hallcal.fit.sem import SEMResult, SEMStatus, solve_sem
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
+from hallcal.messages import Message, MessageCode, has_warning
 from hallcal.pipeline import sensors
 from hallcal.pipeline.boundary import numeric_errors
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
@@ -66,7 +67,7 @@ class _Signals:
     r: NDArray[np.float64]
     d: NDArray[np.float64]
     y: NDArray[np.float64]
-    messages: tuple[str, ...]
+    messages: tuple[Message, ...]
 
 
 def _signals(dataset: Dataset, pole_pairs: int) -> _Signals:
@@ -92,14 +93,17 @@ def _signals(dataset: Dataset, pole_pairs: int) -> _Signals:
             f"{dataset.source}: the recording covers {span / TWO_PI:.2f} revolutions; the flux "
             "model is periodic over one revolution and needs at least one full revolution"
         )
-    messages: tuple[str, ...] = ()
+    messages: tuple[Message, ...] = ()
     if "y" in dataset:
         y = np.ascontiguousarray(dataset["y"])
         mismatch = float(np.max(np.abs(y - y_clarke)))
         if mismatch > 1e-6 * max(1.0, float(np.max(np.abs(y)))) + 1e-9:
             messages = (
-                f"warning: column 'y' differs from the Clarke/atan2 f_init of d by up to "
-                f"{mismatch:.3g} rad; the loop is simulated with the paper's f_init",
+                Message.warning(
+                    MessageCode.Y_COLUMN_MISMATCH,
+                    f"column 'y' differs from the Clarke/atan2 f_init of d by up to "
+                    f"{mismatch:.3g} rad; the loop is simulated with the paper's f_init",
+                ),
             )
     else:
         y = y_clarke
@@ -401,7 +405,7 @@ def _ramp_advice(
 
 def _motion_bias(
     loop: ClosedLoop, s: _Signals, setup: Setup, fit: _ModelFit, lut: LUT
-) -> tuple[float, str | None]:
+) -> tuple[float, Message | None]:
     """How far unmodelled cogging may have moved the table, when cogging is not modelled.
 
     A position-periodic motion error that the model lacks is partly absorbed by flux harmonics
@@ -424,10 +428,11 @@ def _motion_bias(
     delta = lut.correction(y) - alt.correction(y)
     bias = float(np.sqrt(np.mean(delta**2)))
     orders = ", ".join(str(k) for k in diag.orders)
-    return bias, (
-        f"warning: the residual shows a cogging torque at {orders}/rev that is not modelled "
+    return bias, Message.warning(
+        MessageCode.UNMODELLED_COGGING,
+        f"the residual shows a cogging torque at {orders}/rev that is not modelled "
         f'(cogging = "none"); modelled, it moves the table by {1e3 * bias:.3g} mrad RMS, '
-        'which the predicted error includes: set cogging = "auto"'
+        'which the predicted error includes: set cogging = "auto"',
     )
 
 
@@ -516,12 +521,17 @@ def calibrate_closed_loop(
     loop_check = check_loop(setup.controller, pm.plant, setup.sample_time, plant_name=pm.name)
     loop_check.raise_if_failed("setup")
     loop = closed_loop(setup, pm.plant)
-    messages = list(s.messages) + [pm.note] + list(found.notes)
+    messages = [*s.messages, Message.info(MessageCode.PLANT, pm.note), *found.notes]
     if pm.bla is not None:
         messages += list(pm.bla.messages)
-    messages += [c.text for c in preflight if c.status is CheckStatus.WARNING]
+    messages += [c.to_message() for c in preflight if c.status is CheckStatus.WARNING]
     if pm.gain is not None and pm.gain.status != "ok":
-        messages.append(f"warning: gain correction c = {pm.gain.c:.3g} hit its search bound")
+        messages.append(
+            Message.warning(
+                MessageCode.GAIN_AT_BOUND,
+                f"gain correction c = {pm.gain.c:.3g} hit its search bound",
+            )
+        )
 
     if cold:  # compile the fit's kernels on a small copy, out of the SEM's solve time
         t0 = time.perf_counter()
@@ -552,13 +562,16 @@ def calibrate_closed_loop(
             messages.append(fit.selection.budget_message)
     if fit.kernel is not None and not fit.kernel.settled:
         messages.append(  # a note: the fit is judged by the adequacy test as always
-            f"note: the kernel's learned spectrum was still moving after its budget of "
-            f"{fit.kernel.ard_rounds} SEM solves"
+            Message.note(
+                MessageCode.KERNEL_UNSETTLED,
+                f"the kernel's learned spectrum was still moving after its budget of "
+                f"{fit.kernel.ard_rounds} SEM solves",
+            )
         )
     pm = _refined_plant(pm, fit)
     cogging = fit.cogging.cogging if fit.cogging is not None else None
     if fit.cogging is not None and fit.cogging.status is not CoggingStatus.NONE:
-        messages.append(fit.cogging.message)
+        messages.append(Message.note(MessageCode.COGGING, fit.cogging.message))
     loop = closed_loop(setup, pm.plant).with_cogging(cogging).with_rails(*found.censoring.rails)
 
     with numeric_errors("setup", "model"):
@@ -590,14 +603,14 @@ def calibrate_closed_loop(
         bijective=lut.bijective, predicted=predicted, floor=adequacy.noise_floor,
         correction_rms=adequacy.correction_rms, adequacy=str(adequacy.verdict),
         adequacy_message=adequacy.message, min_slope=lut.min_slope, predicted_upper=upper,
-        limit=limit,
-        checks_passed=not any(m.startswith("warning") for m in messages),
+        limit=limit, checks_passed=not has_warning(messages),
     )  # fmt: skip
     first = (verdict.status, verdict.refusal, verdict.leading)
     with numeric_errors("setup", "model"):
         observer = observer_check(fit.flux, setup.pole_pairs, fit.sem.noise_variance)
     if not lut.bijective and observer is not None and _folding_ok(adequacy, observer):
-        first = (verdict.status, verdict.refusal, (FOLDING_NOTE.format(sep=observer.separation),))
+        folding = Message.note(MessageCode.FOLDING, FOLDING_NOTE.format(sep=observer.separation))
+        first = (verdict.status, verdict.refusal, (folding,))
     # a refused table keeps the model for the observer only when the verdict said so
     observer_entry = (
         observer_section(observer, fit.sem.noise_variance)
@@ -615,7 +628,7 @@ def calibrate_closed_loop(
         advice = _ramp_advice(plan_loop, setup, s, fit, predicted / adequacy.noise_floor)
         timings["ramp_plan"] = time.perf_counter() - t0
         if advice is not None:
-            messages.append(advice)
+            messages.append(Message.note(MessageCode.RAMP_ADVICE, advice))
     say(progress, "power-up identifiability of the pole pair")
     t0 = time.perf_counter()
     identifiability = power_up_analysis(fit.flux, lut, s.d)

@@ -32,6 +32,10 @@ user's only reference, so the policy is stated on them:
 6. **Ok**: none of the above; then ``predicted <= OK_RATIO * floor``, the upper quantile within
    ``OK_UPPER_RATIO * floor`` and every check passed.
 
+What a refusal means for the user is stated once too (:func:`refusal`, "refuse unless
+forced"): a table that is not bijective is never written, an inadequate one only when forced
+(``--force``, ``force=True``, ``[model] force = true``); the command line exits with status 3.
+
 The predicted error is the expected RMS error of f_star about zero on a fresh run,
 ``sqrt(floor^2 + mean_y0 var eta(y0) + bias^2)`` (cov(theta) propagated to the table with its
 constant offset, :func:`hallcal.fit.sem.predicted_angle_error`); a validation against an encoder
@@ -40,12 +44,21 @@ constant offset, :func:`hallcal.fit.sem.predicted_angle_error`); a validation ag
 
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass
 
-from hallcal.pipeline.calibration import CalibrationStatus
+from hallcal.messages import Message, MessageCode
 
-__all__ = ["OK_RATIO", "OK_UPPER_RATIO", "WORSE_FRACTION", "Verdict", "decide"]
+__all__ = [
+    "OK_RATIO",
+    "OK_UPPER_RATIO",
+    "WORSE_FRACTION",
+    "CalibrationStatus",
+    "Verdict",
+    "decide",
+    "refusal",
+]
 
 #: Fraction of the correction the table's own predicted error may reach before the table is
 #: refused as possibly worse than f_init (see the module docstring).
@@ -61,6 +74,30 @@ OK_RATIO = 1.15
 OK_UPPER_RATIO = 1.3
 
 
+class CalibrationStatus(enum.StrEnum):
+    """Outcome of a calibration; the string values are the artifact's ``diagnostics.status``.
+
+    ``OK`` and ``WARNING`` give a usable table (a warning says what to look at);
+    ``INADEQUATE`` (the model does not explain the data) and ``NOT_BIJECTIVE`` (no table can
+    invert the sensor map, the paper's bijectivity condition) are refusals.
+    """
+
+    OK = "ok"
+    WARNING = "warning"
+    INADEQUATE = "inadequate"
+    NOT_BIJECTIVE = "not_bijective"
+
+    @property
+    def success(self) -> bool:
+        """True when the table may be used."""
+        return self in (CalibrationStatus.OK, CalibrationStatus.WARNING)
+
+    @property
+    def refused(self) -> bool:
+        """True when the table must not be used."""
+        return not self.success
+
+
 @dataclass(frozen=True)
 class Verdict:
     """Outcome of :func:`decide`.
@@ -70,13 +107,13 @@ class Verdict:
     status : CalibrationStatus
     refusal : str or None
         Why the table must not be used (one line), None unless refused.
-    leading : tuple of str
+    leading : tuple of Message
         Warnings to put first in the calibration's messages (the reason for a "warning").
     """
 
     status: CalibrationStatus
     refusal: str | None
-    leading: tuple[str, ...]
+    leading: tuple[Message, ...]
 
 
 def decide(
@@ -112,7 +149,7 @@ def decide(
         False when another step raised a warning (a preflight check, the plant, the fit's
         status): the calibration is then a warning at best.
     min_slope : float, keyword-only
-        Smallest slope of the table's map (for the not-bijective message).
+        Smallest slope of the table's map (for the not_bijective message).
     predicted_upper : float, keyword-only
         Upper quantile of one run's RMS error of f_star about zero [rad] (NaN: not checked).
     limit : str, keyword-only
@@ -165,25 +202,67 @@ def decide(
             + ")",
             (),
         )
-    leading: list[str] = []
-    if adequacy == "warning":
-        msg = adequacy_message
-        leading.append(msg if msg.startswith("warning") else f"warning: {msg}")
+    leading: list[Message] = []
+    if adequacy == "warning":  # the adequacy message starts with its verdict, "warning: "
+        text = adequacy_message.removeprefix(f"{adequacy}: ")
+        leading.append(Message.warning(MessageCode.ADEQUACY, text))
     ratio = predicted / floor if floor > 0 else math.nan
     if not math.isfinite(ratio):
-        leading.append("warning: no predicted error (the covariance of theta is not available)")
+        leading.append(
+            Message.warning(
+                MessageCode.NO_PREDICTION,
+                "no predicted error (the covariance of theta is not available)",
+            )
+        )
     elif ratio > OK_RATIO and not leading:
         leading.append(
-            f"warning: predicted error {mrad * predicted:.3g} mrad RMS is {ratio:.2f}x the noise "
-            f"floor ({mrad * floor:.3g} mrad), above the {OK_RATIO}x of an ok calibration"
+            Message.warning(
+                MessageCode.ABOVE_NOISE_FLOOR,
+                f"predicted error {mrad * predicted:.3g} mrad RMS is {ratio:.2f}x the noise "
+                f"floor ({mrad * floor:.3g} mrad), above the {OK_RATIO}x of an ok calibration",
+            )
         )
     upper = predicted_upper / floor if floor > 0 else math.nan
     if not leading and math.isfinite(upper) and upper > OK_UPPER_RATIO:
         leading.append(
-            f"warning: predicted error {mrad * predicted:.3g} mrad RMS ({ratio:.2f}x the noise "
-            f"floor), but one run's table may reach {upper:.2f}x (95 %): a few directions carry "
-            "its error (e.g. the table's offset, which only the start of the run informs)"
+            Message.warning(
+                MessageCode.ONE_RUN_SPREAD,
+                f"predicted error {mrad * predicted:.3g} mrad RMS ({ratio:.2f}x the noise "
+                f"floor), but one run's table may reach {upper:.2f}x (95 %): a few directions "
+                "carry its error (e.g. the table's offset, which only the start of the run "
+                "informs)",
+            )
         )
     if leading or not checks_passed:
         return Verdict(CalibrationStatus.WARNING, None, tuple(leading))
     return Verdict(CalibrationStatus.OK, None, ())
+
+
+def refusal(status: CalibrationStatus, reason: str | None, *, force: bool) -> Message | None:
+    """The one refusal rule, "refuse unless forced": why a result must not be written, or None.
+
+    Used by :meth:`hallcal.pipeline.Calibration.save` (which raises
+    :class:`~hallcal.errors.CalibrationRefused`, exit status 3), the command line and the fleet
+    worker (a "refused" row).
+
+    Parameters
+    ----------
+    status : CalibrationStatus
+        The calibration's status (:func:`decide`).
+    reason : str or None
+        Its refusal reason (:attr:`Verdict.refusal`).
+    force : bool, keyword-only
+        Write an inadequate model anyway (``--force``, ``force=True``, ``[model] force``); a
+        table that is not bijective is refused all the same.
+
+    Returns
+    -------
+    Message or None
+        A refusal (code ``NOT_BIJECTIVE`` or ``INADEQUATE``) naming the reason; None when the
+        result may be written.
+    """
+    if status is CalibrationStatus.NOT_BIJECTIVE:
+        return Message.refusal(MessageCode.NOT_BIJECTIVE, reason or "the table is not bijective")
+    if status.refused and not force:
+        return Message.refusal(MessageCode.INADEQUATE, reason or str(status))
+    return None

@@ -50,7 +50,7 @@ from numpy.typing import ArrayLike, NDArray
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sim.bench_spec import BenchSpec
 from hallcal.sim.cogging import CoggingTorque
-from hallcal.sim.loop import ClosedLoop, SensorADC, simulate_loop
+from hallcal.sim.loop import ClosedLoop, LoopStatus, SensorADC, simulate_loop
 from hallcal.sim.lti import ContinuousTF, DiscreteTF
 
 __all__ = [
@@ -472,7 +472,7 @@ class BenchRun:
     truth: FluxModel = field(repr=False)
     config: BenchConfig
     realization: NDArray[np.float64] | None = field(default=None, repr=False)
-    status: str = "ok"
+    status: LoopStatus = LoopStatus.OK
 
     @property
     def n_samples(self) -> int:

@@ -373,6 +373,7 @@ def _validation_parts(
     Returns ``(validation, validation_traces, validation_source)``.
     """
     from hallcal.pipeline import validate
+    from hallcal.pipeline.calibration import validation_skipped
 
     val_traces: Traces | None = None
     val_source: str | None = None
@@ -383,7 +384,7 @@ def _validation_parts(
             if validation is None and lut.bijective:
                 validation = validate(lut, validation_data, noise_floor=noise_floor)
         except HallcalInputError as exc:  # a standstill run: the calibration's report stands
-            notes.insert(0, f"warning: validation skipped: {exc}")
+            notes.insert(0, validation_skipped(exc).record())
             return None, None, None
         val_traces = _traces(lut, validation_data)
     elif cal_traces.y_ref is not None:
@@ -521,7 +522,7 @@ def _calibration_fields(cal: Any) -> dict[str, Any]:
         gain_details=_gain_details(cal.gain),
         predicted_error=float(cal.predicted_error),
         status=str(cal.status),
-        messages=list(cal.messages),
+        messages=[m.record() for m in cal.messages],
         adequacy=_adequacy_dict(cal.adequacy),
         timings=dict(cal.timings),
         model_info={k: v for k, v in cal.model_info.items() if k not in ("theta", "weights")},

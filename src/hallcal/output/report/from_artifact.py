@@ -17,6 +17,7 @@ from hallcal.io import (
     read_json,
     validate_artifact,
 )
+from hallcal.io.artifact import migrate_values
 from hallcal.output.report.content import (
     _ESTIMATED_FLOOR,
     Progress,
@@ -65,7 +66,7 @@ def _read_bla(path: Path) -> Any:
     from hallcal.identify.parametric import ParametricBLA
     from hallcal.pipeline import BLAIdentification
 
-    data = read_json(path)
+    data = migrate_values(read_json(path))
     if not isinstance(data, Mapping) or data.get("format") != "hallcal-bla/1":
         raise HallcalInputError(f"{path}: not a hallcal BLA file (format 'hallcal-bla/1')")
     try:

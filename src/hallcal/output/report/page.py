@@ -67,7 +67,7 @@ def _status_class(status: str) -> str:
         return "status-ok"
     if status in ("warning",):
         return "status-warning"
-    if status in ("not-bijective", "inadequate"):
+    if status in ("not_bijective", "inadequate"):
         return "status-bad"
     return "status-unknown"
 
