@@ -80,3 +80,18 @@ def test_artifact_round_trip_reconstructs_identically(study, tmp_path):
     np.testing.assert_allclose(rec.y_star, result.lut.f_star(ds["val"].d), atol=1e-13)
     assert art["plant"]["source"] == "bla"
     assert art["diagnostics"]["gain_correction"]["c_refined"] > 0
+
+
+def test_the_predicted_error_carries_the_plants_uncertainty(study):
+    """With a plant from the BLA the table's offset rests on a plant known to a few per cent:
+    the predicted error adds the table's move along the BLA fit's one-sigma directions, says so
+    in a note, and stays honest against the fresh run (the zoo's bound on actual/predicted)."""
+    _, ds, result, cal = study
+    notes = [m for m in result.messages if "BLA is known to its fit's uncertainty" in m]
+    assert len(notes) == 1 and notes[0].startswith("note:")
+    assert result.predicted_error > result.adequacy.predicted_error
+    star = pipeline.validate(result.lut, ds["val"]).star.rms
+    assert 1 / 1.5 <= star / result.predicted_error <= 1.5
+    # the verdict promises the floor only where the prediction is within 1.15x of it
+    if result.status == "ok":
+        assert result.predicted_error <= 1.15 * result.noise_floor

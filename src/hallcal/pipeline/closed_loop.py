@@ -48,6 +48,7 @@ from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.loop import ClosedLoop
+from hallcal.sim.lti import ContinuousTF
 
 if TYPE_CHECKING:
     from hallcal.fit.kernel import KernelSEMResult
@@ -420,14 +421,66 @@ def _motion_bias(
         return 0.0, None
     alt = build_lut(diag.sem.flux, setup.pole_pairs, points=setup.model.lut_points,
                     projection=loop.projection, offset=loop.offset)  # fmt: skip
-    y = TWO_PI * np.arange(4096) / 4096
-    delta = lut.correction(y) - alt.correction(y)
-    bias = float(np.sqrt(np.mean(delta**2)))
+    bias = _table_shift(lut, alt)
     orders = ", ".join(str(k) for k in diag.orders)
     return bias, (
         f"warning: the residual shows a cogging torque at {orders}/rev that is not modelled "
         f'(cogging = "none"); modelled, it moves the table by {1e3 * bias:.3g} mrad RMS, '
         'which the predicted error includes: set cogging = "auto"'
+    )
+
+
+def _table_shift(lut: LUT, other: LUT) -> float:
+    """RMS difference of two tables over the revolution [rad], about zero (their offset
+    included, as in the predicted error)."""
+    y = TWO_PI * np.arange(4096) / 4096
+    return float(np.sqrt(np.mean((lut.correction(y) - other.correction(y)) ** 2)))
+
+
+def _plant_bias(
+    setup: Setup, pm: PlantModel, s: _Signals, fit: _ModelFit, lut: LUT,
+    found: sensors.SensorFindings,
+) -> tuple[float, str | None]:  # fmt: skip
+    """How far the BLA's own uncertainty may have moved the table (a BLA plant only).
+
+    The table's offset rests on the loop's dynamics (on a constant-speed ramp the sensors' common
+    angle and the loop's steady lag are told apart only where the motion changes, DESIGN.md
+    "Numerical facts"), so a plant known to a few per cent biases it by a fraction of the floor
+    that no covariance of theta shows (the paper study: 0.4-1.1x the floor). For each principal
+    direction of the BLA fit's covariance (:meth:`PlantModel.deviations`, one standard
+    deviation), one Gauss-Newton step of the final SEM problem (c refined again) from its optimum
+    gives the linearized move of theta, and the RMS move of the table (offset included) is
+    summed in quadrature and added to the predicted error.
+    """
+    sem = fit.sem
+    deviations = pm.deviations()
+    if not deviations:
+        return 0.0, None
+
+    def stepped(plant: ContinuousTF) -> LUT:
+        loop = closed_loop(setup, plant).with_rails(*found.censoring.rails)
+        step = solve_sem(
+            loop, s.r, s.d, sem.flux.basis, theta0=sem.flux.theta, fit_gain=True, gain0=1.0,
+            cogging=sem.cogging or (), weights=found.weights, fit_drift=found.drifting,
+            drift0=sem.drift, max_iterations=1,
+        )  # fmt: skip
+        return build_lut(step.flux, setup.pole_pairs, points=setup.model.lut_points,
+                         projection=loop.projection, offset=loop.offset)  # fmt: skip
+
+    # the step with the plant as it is (zero at a converged optimum) is subtracted, so that only
+    # what the plant's deviation moves counts
+    base = stepped(pm.plant)
+    shifts = [
+        _table_shift(base, moved) if moved.bijective else math.inf
+        for moved in map(stepped, deviations)
+    ]
+    if not shifts:
+        return 0.0, None
+    bias = float(np.sqrt(np.sum(np.square(shifts))))
+    return bias, (
+        f"note: the plant from the BLA is known to its fit's uncertainty, which may move the "
+        f"table by {1e3 * bias:.3g} mrad RMS (mostly its offset); the predicted error includes "
+        "it (a [plant] known better, or a longer multisine experiment, narrows it)"
     )
 
 
@@ -578,6 +631,13 @@ def calibrate_closed_loop(
             offset=loop.offset,
         )
     predicted = adequacy.predicted_error
+    if lut.bijective and pm.source == "bla" and setup.model.basis == "fourier":
+        say(progress, "how far the BLA's uncertainty moves the table")
+        with numeric_errors("setup", "model"):
+            bias, note = _plant_bias(setup, pm, s, fit, lut, found)
+        predicted = math.hypot(predicted, bias)
+        if note is not None:
+            messages.append(note)
     if lut.bijective and adequacy.verdict == "warning":
         bias, note = _motion_bias(loop, s, setup, fit, lut)
         predicted = math.hypot(predicted, bias)
