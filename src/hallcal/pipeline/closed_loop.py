@@ -41,6 +41,7 @@ from hallcal.pipeline.checks import (
 )
 from hallcal.pipeline.observe import FOLDING_NOTE, observer_check, observer_section
 from hallcal.pipeline.plant import BLAIdentification, PlantModel, closed_loop, plant_model
+from hallcal.pipeline.plant_refine import PlantRefinement, refine_plant
 from hallcal.pipeline.powerup import power_up_analysis
 from hallcal.pipeline.progress import Progress, say
 from hallcal.pipeline.verdict import decide
@@ -48,7 +49,6 @@ from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.loop import ClosedLoop
-from hallcal.sim.lti import ContinuousTF
 
 if TYPE_CHECKING:
     from hallcal.fit.kernel import KernelSEMResult
@@ -437,62 +437,18 @@ def _table_shift(lut: LUT, other: LUT) -> float:
     return float(np.sqrt(np.mean((lut.correction(y) - other.correction(y)) ** 2)))
 
 
-def _plant_bias(
-    setup: Setup, pm: PlantModel, s: _Signals, fit: _ModelFit, lut: LUT,
-    found: sensors.SensorFindings,
-) -> tuple[float, str | None]:  # fmt: skip
-    """How far the BLA's own uncertainty may have moved the table (a BLA plant only).
-
-    The table's offset rests on the loop's dynamics (on a constant-speed ramp the sensors' common
-    angle and the loop's steady lag are told apart only where the motion changes, DESIGN.md
-    "Numerical facts"), so a plant known to a few per cent biases it by a fraction of the floor
-    that no covariance of theta shows (the paper study: 0.4-1.1x the floor). For each principal
-    direction of the BLA fit's covariance (:meth:`PlantModel.deviations`, one standard
-    deviation), one Gauss-Newton step of the final SEM problem (c refined again) from its optimum
-    gives the linearized move of theta, and the RMS move of the table (offset included) is
-    summed in quadrature and added to the predicted error.
-    """
-    sem = fit.sem
-    deviations = pm.deviations()
-    if not deviations:
-        return 0.0, None
-
-    def stepped(plant: ContinuousTF) -> LUT:
-        loop = closed_loop(setup, plant).with_rails(*found.censoring.rails)
-        step = solve_sem(
-            loop, s.r, s.d, sem.flux.basis, theta0=sem.flux.theta, fit_gain=True, gain0=1.0,
-            cogging=sem.cogging or (), weights=found.weights, fit_drift=found.drifting,
-            drift0=sem.drift, max_iterations=1,
-        )  # fmt: skip
-        return build_lut(step.flux, setup.pole_pairs, points=setup.model.lut_points,
-                         projection=loop.projection, offset=loop.offset)  # fmt: skip
-
-    # the step with the plant as it is (zero at a converged optimum) is subtracted, so that only
-    # what the plant's deviation moves counts
-    base = stepped(pm.plant)
-    shifts = [
-        _table_shift(base, moved) if moved.bijective else math.inf
-        for moved in map(stepped, deviations)
-    ]
-    if not shifts:
-        return 0.0, None
-    bias = float(np.sqrt(np.sum(np.square(shifts))))
-    return bias, (
-        f"note: the plant from the BLA is known to its fit's uncertainty, which may move the "
-        f"table by {1e3 * bias:.3g} mrad RMS (mostly its offset); the predicted error includes "
-        "it (a [plant] known better, or a longer multisine experiment, narrows it)"
-    )
-
-
-def _refined_plant(pm: PlantModel, fit: _ModelFit) -> PlantModel:
-    """Apply the gain refined jointly with theta to a BLA plant (no-op for a given plant)."""
+def _refined_plant(
+    pm: PlantModel, fit: _ModelFit, refinement: PlantRefinement | None = None
+) -> PlantModel:
+    """Apply the gain refined jointly with theta to a BLA plant (no-op for a given plant); with
+    a refinement of the BLA's shape (:mod:`hallcal.pipeline.plant_refine`), to that shape."""
     if pm.gain is None or pm.bla is None:
         return pm
-    c_refined = pm.gain.c * fit.gain_factor
-    gain = dataclasses.replace(
-        pm.gain, c_refined=c_refined, c_refined_std=pm.gain.c * fit.gain_factor_std
-    )
-    return dataclasses.replace(pm, plant=pm.bla.plant.scaled(c_refined), gain=gain)
+    c, shape = (pm.gain.c, pm.bla.plant) if refinement is None else (
+        refinement.gain, refinement.shape)  # fmt: skip
+    c_refined = c * fit.gain_factor
+    gain = dataclasses.replace(pm.gain, c_refined=c_refined, c_refined_std=c * fit.gain_factor_std)
+    return dataclasses.replace(pm, plant=shape.scaled(c_refined), gain=gain)
 
 
 def _folding_ok(adequacy: AdequacyReport, observer: Injectivity | None) -> bool:
@@ -608,7 +564,18 @@ def calibrate_closed_loop(
             f"note: the kernel's learned spectrum was still moving after its budget of "
             f"{fit.kernel.ard_rounds} SEM solves"
         )
-    pm = _refined_plant(pm, fit)
+    refinement = None
+    if pm.source == "bla" and setup.model.basis == "fourier":
+        say(progress, "refining the BLA's plant with the calibration run (within its uncertainty)")
+        with numeric_errors("setup", "model"):
+            refinement = refine_plant(setup, pm, s.r, s.d, fit.sem, found)
+        if refinement is not None:
+            sem = refinement.sem
+            fit = dataclasses.replace(
+                fit, sem=sem, flux=sem.flux, model_info=_fourier_info(sem.flux),
+                gain_factor=sem.gain, gain_factor_std=sem.gain_std, adequacy=None,
+            )  # fmt: skip
+    pm = _refined_plant(pm, fit, refinement)
     cogging = fit.cogging.cogging if fit.cogging is not None else None
     if fit.cogging is not None and fit.cogging.status is not CoggingStatus.NONE:
         messages.append(fit.cogging.message)
@@ -631,13 +598,9 @@ def calibrate_closed_loop(
             offset=loop.offset,
         )
     predicted = adequacy.predicted_error
-    if lut.bijective and pm.source == "bla" and setup.model.basis == "fourier":
-        say(progress, "how far the BLA's uncertainty moves the table")
-        with numeric_errors("setup", "model"):
-            bias, note = _plant_bias(setup, pm, s, fit, lut, found)
-        predicted = math.hypot(predicted, bias)
-        if note is not None:
-            messages.append(note)
+    if refinement is not None:
+        predicted = math.hypot(predicted, refinement.bias)
+        messages.append(refinement.note)
     if lut.bijective and adequacy.verdict == "warning":
         bias, note = _motion_bias(loop, s, setup, fit, lut)
         predicted = math.hypot(predicted, bias)

@@ -1,0 +1,186 @@
+"""The BLA's plant refined by the calibration run itself, within the BLA's own uncertainty.
+
+With a plant from the BLA (section "Obtaining a Best Linear Approximation") the calibration knows
+G(s) to a few per cent, and the paper refines only its gain c (eq. (c_hat)). What the gain does
+not absorb still matters: on a constant-speed ramp the sensors' common angle and the loop's steady
+lag are told apart only where the motion changes, so a plant a few per cent off moves the table's
+offset by 0.4-1.1x the noise floor on the paper's study (DESIGN.md, "Numerical facts"), a bias no
+covariance of theta shows.
+
+The calibration run carries far more information about the loop than that: moving the BLA by one
+standard deviation along a principal direction of its fit's covariance
+(:attr:`hallcal.identify.parametric.ParametricBLA.deviations`) changes the SEM cost by tens to
+hundreds of noise variances. So the plant is refined as a maximum a posteriori estimate with the
+BLA as the prior (Pintelon & Schoukens 2012, sec. 9.11 for the prior's covariance; the SEM as the
+likelihood, problem (problem) of the paper):
+
+1. For each deviation ``G_i`` one Gauss-Newton step of the SEM from its optimum (theta, the gain c
+   and the cogging re-estimated) gives the simulated signals ``d_sim,i``; their differences to the
+   step with the plant as it is, ``rho_i = d_sim,i - d_sim,0``, are the profiled residual's
+   derivatives in the deviations' coordinates alpha (alpha = e_i is one standard deviation).
+2. ``A = R^T W R / sigma^2``, ``b = R^T W e_0 / sigma^2`` with ``e_0 = d - d_sim,0``; the posterior
+   of alpha (prior N(0, I)) is ``N(P b, P)``, ``P = (A + I)^-1``.
+3. The plant at alpha_hat (the model's coefficients are linear in the fit's parameters, so the
+   deviations combine linearly), and the SEM solved again with it, warm.
+4. What remains uncertain moves the table by ``Delta(y)^T P Delta(y)`` (RMS over the revolution,
+   offset included), with ``Delta_i`` the table's move in step 1: added to the predicted error.
+
+Units: as the SEM (Hall signals in the data's unit, angles in rad).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hallcal.fit.sem import SEMResult, solve_sem
+from hallcal.io.setup import Setup
+from hallcal.pipeline.checks import CheckStatus, check_loop
+from hallcal.pipeline.plant import PlantModel, closed_loop
+from hallcal.pipeline.sensors import SensorFindings
+from hallcal.sensor.lut import LUT, build_lut
+from hallcal.sim.lti import ContinuousTF
+
+__all__ = ["PlantRefinement", "refine_plant"]
+
+TWO_PI = 2.0 * math.pi
+#: Angles at which table moves are compared (RMS over the revolution).
+_GRID = TWO_PI * np.arange(4096) / 4096
+
+
+@dataclass(frozen=True)
+class PlantRefinement:
+    """The BLA's plant refined by the calibration run (module doc).
+
+    Attributes
+    ----------
+    shape : ContinuousTF
+        The refined G(s) before the gain correction (the BLA's shape moved by alpha).
+    alpha : ndarray (p,)
+        The move, in the BLA's standard deviations along its principal directions.
+    posterior : ndarray (p, p)
+        Covariance of alpha after the calibration run (``(A + I)^-1``).
+    sem : SEMResult
+        The SEM solved with the refined plant (its ``gain`` is relative to ``gain`` below).
+    gain : float
+        The gain the refined shape is scaled by in ``sem``'s loop (c before the SEM's factor).
+    bias : float
+        RMS move of the table that the remaining plant uncertainty allows [rad].
+    """
+
+    shape: ContinuousTF
+    alpha: NDArray[np.float64]
+    posterior: NDArray[np.float64] = field(repr=False)
+    sem: SEMResult = field(repr=False)
+    gain: float
+    bias: float
+
+    @property
+    def note(self) -> str:
+        """One line for the user."""
+        moved = float(np.sqrt(np.sum(self.alpha**2)))
+        return (
+            f"note: the BLA's plant was refined by the calibration run within the BLA's "
+            f"uncertainty (moved {moved:.2g} standard deviations); what remains uncertain may "
+            f"move the table by {1e3 * self.bias:.3g} mrad RMS, which the predicted error "
+            "includes"
+        )
+
+
+def _shape(nominal: tuple, deviations: tuple, alpha: NDArray[np.float64]) -> ContinuousTF:
+    """The BLA's model moved by ``sum alpha_i (deviation_i - nominal)`` (coefficients and delay
+    are linear in the fit's parameters)."""
+    num = np.asarray(nominal[0], dtype=np.float64).copy()
+    den = np.asarray(nominal[1], dtype=np.float64).copy()
+    delay = float(nominal[2])
+    for a, (n_i, d_i, t_i) in zip(alpha, deviations, strict=True):
+        num += a * (np.asarray(n_i) - nominal[0])
+        den += a * (np.asarray(d_i) - nominal[1])
+        delay += a * (float(t_i) - nominal[2])
+    return ContinuousTF(tuple(num), tuple(den), max(delay, 0.0))
+
+
+def refine_plant(
+    setup: Setup,
+    pm: PlantModel,
+    r: NDArray[np.float64],
+    d: NDArray[np.float64],
+    sem: SEMResult,
+    found: SensorFindings,
+) -> PlantRefinement | None:
+    """Refine the BLA's plant with the calibration run (module doc, steps 1-4).
+
+    Parameters
+    ----------
+    setup : Setup
+        The controller, n_m, the sample time and ``[model]``.
+    pm : PlantModel
+        A plant from the BLA (``pm.bla`` and ``pm.gain`` set), before the SEM's gain factor.
+    r : ndarray (N,)
+        Reference [rad].
+    d : ndarray (N, 3)
+        The signals the final SEM saw.
+    sem : SEMResult
+        The final SEM (its ``gain`` relative to ``pm.plant``).
+    found : SensorFindings
+        Rails, weights and drift of the sensors (as the final SEM used them).
+
+    Returns
+    -------
+    PlantRefinement or None
+        None when the BLA has no deviations (a singular fit) or the refined loop is not usable.
+    """
+    if pm.bla is None or pm.gain is None or not pm.bla.parametric.deviations:
+        return None
+    par = pm.bla.parametric
+    nominal = (np.asarray(par.num, float), np.asarray(par.den, float), float(par.delay))
+    deviations = par.deviations
+    gain = pm.gain.c * sem.gain
+    rails = found.censoring.rails
+
+    def solve(shape: ContinuousTF, iterations: int, theta0: NDArray) -> SEMResult:
+        loop = closed_loop(setup, shape.scaled(gain)).with_rails(*rails)
+        return solve_sem(
+            loop, r, d, sem.flux.basis, theta0=theta0, fit_gain=True, gain0=1.0,
+            cogging=sem.cogging or (), weights=found.weights, fit_drift=found.drifting,
+            drift0=sem.drift, max_iterations=iterations,
+        )  # fmt: skip
+
+    def table(fit: SEMResult) -> LUT:
+        loop = closed_loop(setup, pm.plant)
+        return build_lut(fit.flux, setup.pole_pairs, points=setup.model.lut_points,
+                         projection=loop.projection, offset=loop.offset)  # fmt: skip
+
+    base = solve(_shape(nominal, deviations, np.zeros(len(deviations))), 1, sem.flux.theta)
+    steps = [solve(ContinuousTF(tuple(n), tuple(dd), max(float(t), 0.0)), 1, sem.flux.theta)
+             for n, dd, t in deviations]  # fmt: skip
+    sigma2 = base.noise_variance
+    w = np.ones_like(d) if found.weights is None else np.broadcast_to(found.weights, d.shape)
+    e0 = (d - base.d_sim) * w
+    rho = np.stack([(st.d_sim - base.d_sim).ravel() for st in steps])
+    info = (rho * w.ravel()) @ rho.T / sigma2
+    posterior = np.asarray(np.linalg.inv(info + np.eye(len(steps))), dtype=np.float64)
+    alpha = posterior @ (rho @ e0.ravel() / sigma2)
+    shape = _shape(nominal, deviations, alpha)
+    check = check_loop(setup.controller, shape.scaled(gain), setup.sample_time)
+    if check.status is CheckStatus.FAILED:
+        return None
+    final = solve(shape, setup.model.max_iterations, base.flux.theta)
+    # the prior's cost in noise variances (alpha^T alpha) against the data's gain: a refinement
+    # that does not pay for itself keeps the BLA as it is
+    if final.cost / sigma2 + float(alpha @ alpha) > sem.cost / sigma2:
+        return None
+    lut0 = table(base)
+    moves = []
+    for st in steps:
+        lut_i = table(st)
+        if not lut_i.bijective:
+            moves.append(np.full(_GRID.size, np.inf))
+            continue
+        moves.append(lut_i.correction(_GRID) - lut0.correction(_GRID))
+    delta = np.stack(moves)  # (p, G)
+    bias = float(np.sqrt(np.mean(np.einsum("ig,ij,jg->g", delta, posterior, delta))))
+    return PlantRefinement(shape, alpha, posterior, final, gain, bias)
