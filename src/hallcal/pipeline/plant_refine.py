@@ -58,7 +58,8 @@ class PlantRefinement:
     Attributes
     ----------
     shape : ContinuousTF
-        The refined G(s) before the gain correction (the BLA's shape moved by alpha).
+        The refined G(s) before the gain correction (the BLA's shape moved by alpha, its
+        numerator's constant term kept at the BLA's).
     alpha : ndarray (p,)
         The move, in the BLA's standard deviations along its principal directions.
     posterior : ndarray (p, p)
@@ -183,4 +184,7 @@ def refine_plant(
         moves.append(lut_i.correction(_GRID) - lut0.correction(_GRID))
     delta = np.stack(moves)  # (p, G)
     bias = float(np.sqrt(np.mean(np.einsum("ig,ij,jg->g", delta, posterior, delta))))
-    return PlantRefinement(shape, alpha, posterior, final, gain, bias)
+    # the shape keeps the BLA's static gain, so that c (the gain) says how far the loop's gain
+    # moved, as with the paper's correction alone (the product is the same plant)
+    k = float(nominal[0][-1] / shape.num[-1]) if shape.num[-1] != 0.0 else 1.0
+    return PlantRefinement(shape.scaled(k), alpha, posterior, final, gain / k, bias)
