@@ -569,13 +569,13 @@ def calibrate_closed_loop(
         say(progress, "refining the BLA's plant with the calibration run (within its uncertainty)")
         with numeric_errors("setup", "model"):
             refinement = refine_plant(setup, pm, s.r, s.d, fit.sem, found)
-        if refinement is not None:
+        if refinement is not None and refinement.refined:
             sem = refinement.sem
             fit = dataclasses.replace(
                 fit, sem=sem, flux=sem.flux, model_info=_fourier_info(sem.flux),
                 gain_factor=sem.gain, gain_factor_std=sem.gain_std, adequacy=None,
             )  # fmt: skip
-    pm = _refined_plant(pm, fit, refinement)
+    pm = _refined_plant(pm, fit, refinement if refinement and refinement.refined else None)
     cogging = fit.cogging.cogging if fit.cogging is not None else None
     if fit.cogging is not None and fit.cogging.status is not CoggingStatus.NONE:
         messages.append(fit.cogging.message)

@@ -25,6 +25,12 @@ likelihood, problem (problem) of the paper):
 4. What remains uncertain moves the table by ``Delta(y)^T P Delta(y)`` (RMS over the revolution,
    offset included), with ``Delta_i`` the table's move in step 1: added to the predicted error.
 
+When ``alpha^T alpha`` exceeds the chi-square bound of p degrees of freedom, the run and the BLA
+disagree beyond the BLA's uncertainty: something neither models moves the loop (a constant load
+torque or friction sets the same steady lag as a velocity gain, DESIGN.md "Numerical facts"),
+and moving the plant to absorb it would bias the table. The plant is then kept, the BLA's whole
+uncertainty (P = I) is added to the predicted error and a warning names the disagreement.
+
 Units: as the SEM (Hall signals in the data's unit, angles in rad).
 """
 
@@ -35,6 +41,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2
 
 from hallcal.fit.sem import SEMResult, solve_sem
 from hallcal.io.setup import Setup
@@ -47,6 +54,9 @@ from hallcal.sim.lti import ContinuousTF
 __all__ = ["PlantRefinement", "refine_plant"]
 
 TWO_PI = 2.0 * math.pi
+#: Risk of calling a healthy BLA and run "in disagreement": alpha^T alpha above the chi-square
+#: quantile of p degrees of freedom (under the prior, alpha_hat is about N(0, I - P)).
+DISAGREEMENT_RISK = 1e-3
 #: Angles at which table moves are compared (RMS over the revolution).
 _GRID = TWO_PI * np.arange(4096) / 4096
 
@@ -70,6 +80,12 @@ class PlantRefinement:
         The gain the refined shape is scaled by in ``sem``'s loop (c before the SEM's factor).
     bias : float
         RMS move of the table that the remaining plant uncertainty allows [rad].
+    refined : bool
+        Whether the plant was refined; if not, ``shape``, ``gain`` and ``sem`` are the BLA's and
+        the final SEM's as they came, and ``bias`` is the BLA's own uncertainty.
+    distance, bound : float
+        ``alpha^T alpha`` and the chi-square bound (p degrees of freedom, risk
+        :data:`DISAGREEMENT_RISK`) above which the run and the BLA disagree.
     """
 
     shape: ContinuousTF
@@ -78,16 +94,32 @@ class PlantRefinement:
     sem: SEMResult = field(repr=False)
     gain: float
     bias: float
+    refined: bool = True
+    distance: float = 0.0
+    bound: float = math.inf
 
     @property
     def note(self) -> str:
-        """One line for the user."""
-        moved = float(np.sqrt(np.sum(self.alpha**2)))
+        """One line for the user (a warning when the run and the BLA disagree)."""
+        moved = math.sqrt(self.distance)
+        if self.refined:
+            return (
+                f"note: the BLA's plant was refined by the calibration run within the BLA's "
+                f"uncertainty (moved {moved:.2g} standard deviations); what remains uncertain "
+                f"may move the table by {1e3 * self.bias:.3g} mrad RMS, which the predicted "
+                "error includes"
+            )
+        if self.distance > self.bound:
+            return (
+                f"warning: the calibration run disagrees with the BLA's plant ({moved:.2g} "
+                f"standard deviations of the BLA, more than {math.sqrt(self.bound):.2g}): a load "
+                "torque, friction or dynamics the BLA's model misses; the plant is kept as the "
+                f"BLA says, and its uncertainty may move the table by {1e3 * self.bias:.3g} "
+                "mrad RMS (in the predicted error): check the [bla] model order, or give [plant]"
+            )
         return (
-            f"note: the BLA's plant was refined by the calibration run within the BLA's "
-            f"uncertainty (moved {moved:.2g} standard deviations); what remains uncertain may "
-            f"move the table by {1e3 * self.bias:.3g} mrad RMS, which the predicted error "
-            "includes"
+            f"note: the BLA's uncertainty may move the table by {1e3 * self.bias:.3g} mrad RMS, "
+            "which the predicted error includes (the calibration run did not refine the plant)"
         )
 
 
@@ -132,7 +164,7 @@ def refine_plant(
     Returns
     -------
     PlantRefinement or None
-        None when the BLA has no deviations (a singular fit) or the refined loop is not usable.
+        None when the BLA has no deviations (a singular fit).
     """
     if pm.bla is None or pm.gain is None or not pm.bla.parametric.deviations:
         return None
@@ -165,26 +197,35 @@ def refine_plant(
     info = (rho * w.ravel()) @ rho.T / sigma2
     posterior = np.asarray(np.linalg.inv(info + np.eye(len(steps))), dtype=np.float64)
     alpha = posterior @ (rho @ e0.ravel() / sigma2)
-    shape = _shape(nominal, deviations, alpha)
-    check = check_loop(setup.controller, shape.scaled(gain), setup.sample_time)
-    if check.status is CheckStatus.FAILED:
-        return None
-    final = solve(shape, setup.model.max_iterations, base.flux.theta)
-    # the prior's cost in noise variances (alpha^T alpha) against the data's gain: a refinement
-    # that does not pay for itself keeps the BLA as it is
-    if final.cost / sigma2 + float(alpha @ alpha) > sem.cost / sigma2:
-        return None
     lut0 = table(base)
     moves = []
     for st in steps:
         lut_i = table(st)
-        if not lut_i.bijective:
-            moves.append(np.full(_GRID.size, np.inf))
-            continue
-        moves.append(lut_i.correction(_GRID) - lut0.correction(_GRID))
-    delta = np.stack(moves)  # (p, G)
-    bias = float(np.sqrt(np.mean(np.einsum("ig,ij,jg->g", delta, posterior, delta))))
+        moves.append(lut_i.correction(_GRID) - lut0.correction(_GRID) if lut_i.bijective
+                     else np.full(_GRID.size, np.inf))  # fmt: skip
+    delta = np.stack(moves)  # (p, G): the table's move per standard deviation of the BLA
+
+    def bias(cov: NDArray) -> float:
+        return float(np.sqrt(np.mean(np.einsum("ig,ij,jg->g", delta, cov, delta))))
+
+    prior = np.eye(len(steps))
+    distance = float(alpha @ alpha)  # squared, in the BLA's standard deviations
+    bound = float(chi2.ppf(1.0 - DISAGREEMENT_RISK, len(steps)))
+    kept = PlantRefinement(pm.bla.plant, alpha, prior, sem, pm.gain.c, bias(prior),
+                           refined=False, distance=distance, bound=bound)  # fmt: skip
+    if distance > bound:
+        return kept  # the run and the BLA disagree: something neither models (module doc)
+    shape = _shape(nominal, deviations, alpha)
+    check = check_loop(setup.controller, shape.scaled(gain), setup.sample_time)
+    if check.status is CheckStatus.FAILED:
+        return kept
+    final = solve(shape, setup.model.max_iterations, base.flux.theta)
+    # the prior's cost in noise variances (alpha^T alpha) against the data's gain: a refinement
+    # that does not pay for itself keeps the BLA as it is
+    if final.cost / sigma2 + distance > sem.cost / sigma2:
+        return kept
     # the shape keeps the BLA's static gain, so that c (the gain) says how far the loop's gain
     # moved, as with the paper's correction alone (the product is the same plant)
     k = float(nominal[0][-1] / shape.num[-1]) if shape.num[-1] != 0.0 else 1.0
-    return PlantRefinement(shape.scaled(k), alpha, posterior, final, gain / k, bias)
+    return PlantRefinement(shape.scaled(k), alpha, posterior, final, gain / k, bias(posterior),
+                           refined=True, distance=distance, bound=bound)  # fmt: skip
