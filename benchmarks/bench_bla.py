@@ -51,6 +51,9 @@ def _score(cfg: BenchConfig, cal, val_run, plant: ContinuousTF) -> dict:
     table = oracle_table(cfg)
     floor = oracle_error(val_run, table=table).rms_raw if table.bijective else cfg.noise_floor
     row = {"status": str(cal.status), "pred": cal.predicted_error / floor}
+    row["refined"] = next(("disagrees" if "disagrees with the BLA" in m else "refined"
+                           for m in cal.messages if "the BLA" in m and "plant" in m
+                           and ("refined" in m or "disagrees" in m)), "-")  # fmt: skip
     row["star"] = row["off"] = math.nan
     if cal.lut.bijective:
         e = angle_error(cal.lut.f_star(val_run.d), val_run.y0)
@@ -131,7 +134,7 @@ def main() -> None:
     args = ap.parse_args()
     print(f"bench_bla {args.label}: load average at start {os.getloadavg()[0]:.1f} (2 cores)")
     print(f"{'motor':<18} {'n_m':>3} {'status':>10} {'star/fl':>8} {'off/fl':>7} {'pred/fl':>8} "
-          f"{'act/pred':>8} {'Kv BLA %':>8} {'Kv %':>7} {'sec':>6}")  # fmt: skip
+          f"{'act/pred':>8} {'Kv BLA %':>8} {'Kv %':>7} {'sec':>6}  plant")  # fmt: skip
     rows = []
     jobs = ([lambda s=s: paper_study(s) for s in args.paper]
             + [lambda s=s: readme_motor(s) for s in args.readme]
@@ -141,7 +144,7 @@ def main() -> None:
         rows.append(r)
         print(f"{r['motor']:<18} {r['n_m']:>3} {r['status']:>10} {r['star']:8.3f} {r['off']:7.2f} "
               f"{r['pred']:8.3f} {r['star'] / r['pred']:8.2f} {r['kv_bla']:8.2f} {r['kv']:7.2f} "
-              f"{r['sec']:6.1f}", flush=True)  # fmt: skip
+              f"{r['sec']:6.1f}  {r['refined']}", flush=True)  # fmt: skip
     ok = [r for r in rows if r["status"] == "ok"]
     honest = [r for r in rows if np.isfinite(r["star"]) and 0.67 <= r["star"] / r["pred"] <= 1.5]
     calibrated = [r for r in rows if np.isfinite(r["star"])]

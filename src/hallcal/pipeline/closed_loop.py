@@ -574,6 +574,7 @@ def calibrate_closed_loop(
             fit = dataclasses.replace(
                 fit, sem=sem, flux=sem.flux, model_info=_fourier_info(sem.flux),
                 gain_factor=sem.gain, gain_factor_std=sem.gain_std, adequacy=None,
+                cogging=refinement.cogging or fit.cogging,
             )  # fmt: skip
     pm = _refined_plant(pm, fit, refinement if refinement and refinement.refined else None)
     cogging = fit.cogging.cogging if fit.cogging is not None else None
