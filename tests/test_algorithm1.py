@@ -93,8 +93,8 @@ def test_the_calibration_run_refines_the_blas_plant(study):
     refined_error = abs(K(result.plant) / K(PAPER_PLANT) - 1.0)
     print(f"velocity gain: BLA {bla_error:.2%} off, refined {refined_error:.2%} off")
     assert refined_error < bla_error
-    notes = [m for m in result.messages if "plant was refined by the calibration run" in m]
-    assert len(notes) == 1 and notes[0].startswith("note:")
+    notes = [m for m in result.messages if "plant was refined by the calibration run" in m.text]
+    assert len(notes) == 1 and notes[0].severity == "note" and notes[0].code == "plant_refined"
     assert result.predicted_error > result.adequacy.predicted_error
     star = pipeline.validate(result.lut, ds["val"]).star.rms
     print(f"f_star / predicted {star / result.predicted_error:.3f}")

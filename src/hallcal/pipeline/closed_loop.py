@@ -601,7 +601,7 @@ def calibrate_closed_loop(
     predicted = adequacy.predicted_error
     if refinement is not None:
         predicted = math.hypot(predicted, refinement.bias)
-        messages.append(refinement.note)
+        messages.append(refinement.message)
     if lut.bijective and adequacy.verdict == "warning":
         bias, note = _motion_bias(loop, s, setup, fit, lut)
         predicted = math.hypot(predicted, bias)

@@ -56,6 +56,7 @@ from scipy.stats import chi2
 from hallcal.fit.cogging import CoggingSelection, select_cogging
 from hallcal.fit.sem import SEMResult, solve_sem
 from hallcal.io.setup import Setup
+from hallcal.messages import Message, MessageCode
 from hallcal.pipeline.checks import CheckStatus, check_loop
 from hallcal.pipeline.plant import PlantModel, closed_loop
 from hallcal.pipeline.sensors import SensorFindings
@@ -115,27 +116,30 @@ class PlantRefinement:
     cogging: CoggingSelection | None = field(default=None, repr=False)
 
     @property
-    def note(self) -> str:
+    def message(self) -> Message:
         """One line for the user (a warning when the run and the BLA disagree)."""
         moved = math.sqrt(self.distance)
         if self.refined and self.distance <= self.bound:
-            return (
-                f"note: the BLA's plant was refined by the calibration run within the BLA's "
+            return Message.note(
+                MessageCode.PLANT_REFINED,
+                f"the BLA's plant was refined by the calibration run within the BLA's "
                 f"uncertainty (moved {moved:.2g} standard deviations); what remains uncertain "
                 f"may move the table by {1e3 * self.bias:.3g} mrad RMS, which the predicted "
-                "error includes"
+                "error includes",
             )
         if self.distance > self.bound:
-            return (
-                f"warning: the calibration run disagrees with the BLA's plant ({moved:.2g} "
-                f"standard deviations of the BLA, more than {math.sqrt(self.bound):.2g}): a load "
-                "torque, friction or dynamics the BLA's model misses; the BLA's whole "
-                f"uncertainty may move the table by {1e3 * self.bias:.3g} mrad RMS (in the "
-                "predicted error): check the [bla] model order, or give [plant]"
+            return Message.warning(
+                MessageCode.PLANT_DISAGREES,
+                f"the calibration run disagrees with the BLA's plant ({moved:.2g} standard "
+                f"deviations of the BLA, more than {math.sqrt(self.bound):.2g}): a load torque, "
+                "friction or dynamics the BLA's model misses; the BLA's whole uncertainty may "
+                f"move the table by {1e3 * self.bias:.3g} mrad RMS (in the predicted error): "
+                "check the [bla] model order, or give [plant]",
             )
-        return (
-            f"note: the BLA's uncertainty may move the table by {1e3 * self.bias:.3g} mrad RMS, "
-            "which the predicted error includes (the calibration run did not refine the plant)"
+        return Message.note(
+            MessageCode.PLANT_REFINED,
+            f"the BLA's uncertainty may move the table by {1e3 * self.bias:.3g} mrad RMS, which "
+            "the predicted error includes (the calibration run did not refine the plant)",
         )
 
 
