@@ -97,8 +97,9 @@ def test_readme_steps_run_as_written(tmp_path):
     assert any("wins over the setup's [plant]" in m for m in art["diagnostics"]["messages"])
     bla = json.loads((tmp_path / "bla.json").read_text())
     assert bla["status"] == "ok"
-    # the plant used is the BLA (gain-corrected), not [plant]: its denominator is the BLA's
-    assert art["plant"]["den"] == pytest.approx(bla["plant"]["den"])
+    # the plant used is the BLA (refined by the run within the BLA's uncertainty, a few per cent),
+    # not [plant]
+    assert art["plant"]["den"] == pytest.approx(bla["plant"]["den"], rel=0.05)
     assert art["plant"]["den"] != [1.0, 50.0, 0.0]
     # the model order was chosen from the data: one pole besides the integrator (s^2 + a s)
     assert len(bla["plant"]["den"]) == 3

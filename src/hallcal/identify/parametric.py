@@ -86,6 +86,13 @@ class ParametricBLA:
         Product of the factors applied by :meth:`scaled` since the fit (1 for a fresh fit).
     status : FitStatus
         ``ok`` or ``not_converged`` (evaluation budget exhausted).
+    deviations : tuple of (num, den, delay)
+        The model moved by one standard deviation along each principal direction of the
+        parameters' covariance (``sigma_i v_i`` for the eigenpairs of
+        ``max(1, cost / (2 F - p)) (J^T J)^-1`` at the optimum, Pintelon & Schoukens 2012,
+        sec. 9.11): what the data of the BLA leave undetermined, as whole models that a
+        calibration can propagate (:func:`hallcal.pipeline.closed_loop` uses them for the table's
+        bias). Empty when the Jacobian is singular.
     """
 
     num: np.ndarray
@@ -101,6 +108,7 @@ class ParametricBLA:
     nfev: int = 0
     gain_scale: float = 1.0
     status: FitStatus = FitStatus.OK
+    deviations: tuple[tuple[np.ndarray, np.ndarray, float], ...] = field(default=(), repr=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "status", FitStatus(self.status))
@@ -136,7 +144,12 @@ class ParametricBLA:
         c = float(c)
         if not np.isfinite(c) or c == 0.0:
             raise ValueError(f"scale factor must be finite and nonzero, got {c!r}")
-        return replace(self, num=np.asarray(self.num) * c, gain_scale=self.gain_scale * c)
+        return replace(
+            self,
+            num=np.asarray(self.num) * c,
+            gain_scale=self.gain_scale * c,
+            deviations=tuple((np.asarray(n) * c, dd, t) for n, dd, t in self.deviations),
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary (floats and lists of floats).
@@ -295,6 +308,7 @@ def fit_parametric(
         stable=stable,
         nfev=fit.nfev,
         status=FitStatus.OK if fit.converged else FitStatus.NOT_CONVERGED,
+        deviations=_deviations(sc, fit),
     )
 
 
@@ -482,6 +496,7 @@ class _RefinedFit:
     cost: float
     nfev: int
     converged: bool
+    covariance: np.ndarray | None = None  # of (b, a, tau) (scaled), None when J^T J is singular
 
 
 def _output_error_refinement(sc: _ScaledProblem, start: _StartValues) -> _RefinedFit:
@@ -516,9 +531,43 @@ def _output_error_refinement(sc: _ScaledProblem, start: _StartValues) -> _Refine
     cost = float(np.sum(oe.residual(theta) ** 2))
     start_cost = float(np.sum(oe.residual(theta0) ** 2))
     if start_cost < cost:  # never worse than the linear start
+        theta = theta0
         b, a, tau = oe.unpack(theta0)
         cost = start_cost
-    return _RefinedFit(b, a, tau, cost, int(sol.nfev), sol.status > 0)
+    return _RefinedFit(b, a, tau, cost, int(sol.nfev), sol.status > 0,
+                       _covariance(oe.jacobian(theta), cost))  # fmt: skip
+
+
+def _covariance(jac: np.ndarray, cost: float) -> np.ndarray | None:
+    """Covariance of the weighted least-squares estimate, ``s^2 (J^T J)^-1`` with
+    ``s^2 = max(1, cost / (rows - p))``: the variances of the data as given, or the fit's own
+    residual level when the model does not reach them (structure error; Pintelon & Schoukens
+    2012, sec. 9.11). None when ``J^T J`` is singular."""
+    rows, p = jac.shape
+    jtj = jac.T @ jac
+    if rows <= p or not np.all(np.isfinite(jtj)) or np.linalg.cond(jtj) > 1e14:
+        return None
+    return np.linalg.inv(jtj) * max(1.0, cost / (rows - p))
+
+
+def _deviations(
+    sc: _ScaledProblem, fit: _RefinedFit
+) -> tuple[tuple[np.ndarray, np.ndarray, float], ...]:
+    """The model moved by one standard deviation along each principal direction of its
+    covariance (``num``, ``den``, delay [s] each); the delay kept >= 0."""
+    if fit.covariance is None:
+        return ()
+    lam, vec = np.linalg.eigh(0.5 * (fit.covariance + fit.covariance.T))
+    theta = np.concatenate([fit.b, fit.a, [fit.tau] if sc.order.fit_delay else []])
+    nb, na = sc.order.nb, sc.order.na
+    out = []
+    for k in range(theta.size):
+        th = theta + math.sqrt(max(float(lam[k]), 0.0)) * vec[:, k]
+        tau = max(float(th[-1]), 0.0) if sc.order.fit_delay else fit.tau
+        moved = replace(fit, b=th[: nb + 1], a=th[nb + 1 : nb + 1 + na], tau=tau)
+        num, den, _ = _unscaled_model(sc, moved)
+        out.append((num, den, tau / sc.w0))
+    return tuple(out)
 
 
 def _unscaled_model(sc: _ScaledProblem, fit: _RefinedFit) -> tuple[np.ndarray, np.ndarray, bool]:

@@ -42,6 +42,7 @@ from hallcal.pipeline.checks import (
 )
 from hallcal.pipeline.observe import FOLDING_NOTE, observer_check, observer_section
 from hallcal.pipeline.plant import BLAIdentification, PlantModel, closed_loop, plant_model
+from hallcal.pipeline.plant_refine import PlantRefinement, refine_plant
 from hallcal.pipeline.powerup import power_up_analysis
 from hallcal.pipeline.progress import Progress, say
 from hallcal.pipeline.verdict import decide
@@ -424,9 +425,7 @@ def _motion_bias(
         return 0.0, None
     alt = build_lut(diag.sem.flux, setup.pole_pairs, points=setup.model.lut_points,
                     projection=loop.projection, offset=loop.offset)  # fmt: skip
-    y = TWO_PI * np.arange(4096) / 4096
-    delta = lut.correction(y) - alt.correction(y)
-    bias = float(np.sqrt(np.mean(delta**2)))
+    bias = _table_shift(lut, alt)
     orders = ", ".join(str(k) for k in diag.orders)
     return bias, Message.warning(
         MessageCode.UNMODELLED_COGGING,
@@ -436,15 +435,25 @@ def _motion_bias(
     )
 
 
-def _refined_plant(pm: PlantModel, fit: _ModelFit) -> PlantModel:
-    """Apply the gain refined jointly with theta to a BLA plant (no-op for a given plant)."""
+def _table_shift(lut: LUT, other: LUT) -> float:
+    """RMS difference of two tables over the revolution [rad], about zero (their offset
+    included, as in the predicted error)."""
+    y = TWO_PI * np.arange(4096) / 4096
+    return float(np.sqrt(np.mean((lut.correction(y) - other.correction(y)) ** 2)))
+
+
+def _refined_plant(
+    pm: PlantModel, fit: _ModelFit, refinement: PlantRefinement | None = None
+) -> PlantModel:
+    """Apply the gain refined jointly with theta to a BLA plant (no-op for a given plant); with
+    a refinement of the BLA's shape (:mod:`hallcal.pipeline.plant_refine`), to that shape."""
     if pm.gain is None or pm.bla is None:
         return pm
-    c_refined = pm.gain.c * fit.gain_factor
-    gain = dataclasses.replace(
-        pm.gain, c_refined=c_refined, c_refined_std=pm.gain.c * fit.gain_factor_std
-    )
-    return dataclasses.replace(pm, plant=pm.bla.plant.scaled(c_refined), gain=gain)
+    c, shape = (pm.gain.c, pm.bla.plant) if refinement is None else (
+        refinement.gain, refinement.shape)  # fmt: skip
+    c_refined = c * fit.gain_factor
+    gain = dataclasses.replace(pm.gain, c_refined=c_refined, c_refined_std=c * fit.gain_factor_std)
+    return dataclasses.replace(pm, plant=shape.scaled(c_refined), gain=gain)
 
 
 def _folding_ok(adequacy: AdequacyReport, observer: Injectivity | None) -> bool:
@@ -568,7 +577,19 @@ def calibrate_closed_loop(
                 f"{fit.kernel.ard_rounds} SEM solves",
             )
         )
-    pm = _refined_plant(pm, fit)
+    refinement = None
+    if pm.source == "bla" and setup.model.basis == "fourier":
+        say(progress, "refining the BLA's plant with the calibration run (within its uncertainty)")
+        with numeric_errors("setup", "model"):
+            refinement = refine_plant(setup, pm, s.r, s.d, fit.sem, found)
+        if refinement is not None and refinement.refined:
+            sem = refinement.sem
+            fit = dataclasses.replace(
+                fit, sem=sem, flux=sem.flux, model_info=_fourier_info(sem.flux),
+                gain_factor=sem.gain, gain_factor_std=sem.gain_std, adequacy=None,
+                cogging=refinement.cogging or fit.cogging,
+            )  # fmt: skip
+    pm = _refined_plant(pm, fit, refinement if refinement and refinement.refined else None)
     cogging = fit.cogging.cogging if fit.cogging is not None else None
     if fit.cogging is not None and fit.cogging.status is not CoggingStatus.NONE:
         messages.append(Message.note(MessageCode.COGGING, fit.cogging.message))
@@ -591,6 +612,12 @@ def calibrate_closed_loop(
             offset=loop.offset,
         )
     predicted, upper = adequacy.predicted_error, adequacy.predicted_upper
+    if refinement is not None:
+        # the plant's remaining uncertainty moves the table mostly along one direction (its
+        # offset): its 95 % quantile for one run is 1.96 times its standard deviation
+        predicted = math.hypot(predicted, refinement.bias)
+        upper = math.hypot(upper, 1.96 * refinement.bias)
+        messages.append(refinement.message)
     if lut.bijective and adequacy.verdict == "warning":
         bias, note = _motion_bias(loop, s, setup, fit, lut)
         predicted, upper = math.hypot(predicted, bias), math.hypot(upper, bias)

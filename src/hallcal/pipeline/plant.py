@@ -461,6 +461,17 @@ class PlantModel:
     gain: GainCorrection | None = None
     where: str = "[plant]"
 
+    def deviations(self) -> tuple[ContinuousTF, ...]:
+        """The plant moved by one standard deviation of its BLA fit along each principal
+        direction of the fit's covariance (:attr:`ParametricBLA.deviations`), with the same gain
+        correction; empty for a given ``[plant]``."""
+        if self.bla is None or self.gain is None:
+            return ()
+        return tuple(
+            ContinuousTF(tuple(num), tuple(den), max(float(delay), 0.0)).scaled(self.gain.value)
+            for num, den, delay in self.bla.parametric.deviations
+        )
+
     @property
     def name(self) -> str:
         """How messages name this plant: ``[plant]`` or ``the BLA of FILE (c = ...)``."""
