@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from hallcal.errors import HallcalInputError
-from hallcal.io.artifact import load_artifact
+from hallcal.io.artifact import read_artifact
 from hallcal.io.dataset import Dataset, read_dataset
 from hallcal.io.setup import Setup, read_setup, setup_from_dict
 from hallcal.pipeline import calibrate as _calibrate
@@ -351,4 +351,4 @@ def load(path: str | os.PathLike[str]) -> Calibration:
     HallcalInputError
         Missing file or an invalid artifact (the message names the key).
     """
-    return Calibration._from_result(calibration_from_artifact(load_artifact(path)))
+    return Calibration._from_result(calibration_from_artifact(read_artifact(path)))

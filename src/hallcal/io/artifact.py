@@ -2,8 +2,10 @@
 one validator, one typed view, reading and writing.
 
 :func:`validate_artifact` is the only place that decides whether an artifact may be used; it
-returns an :class:`ArtifactData` (read-only arrays, the parsed :class:`Setup`) that every consumer
-(``reconstruct``, ``report``, ``export-c``, :func:`hallcal.load`) works from. It checks the format
+returns an :class:`ArtifactData` (read-only arrays, the parsed :class:`Setup`, and read-only
+mapping access to every key) that every consumer (``reconstruct``, ``report``, ``export-c``,
+``fleet``, :func:`hallcal.load`) works from; :func:`read_artifact` is the one reader and
+:func:`write_artifact` the one writer. It checks the format
 and version, the numbers (finite, within :mod:`hallcal.limits`), f_init's projection (rank 2, a
 sane condition number, a plausible scale), the lookup table (node count, monotone nodes, bijective
 map, corrections below pi), the flux model's shape, the setup and the optional plant.
@@ -15,7 +17,7 @@ import hashlib
 import json
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
@@ -31,7 +33,6 @@ from hallcal.io.files import (
     _dump_json,
     _read_json_raw,
     atomic_write,
-    read_json,
     to_jsonable,
 )
 from hallcal.io.setup import Setup, _is_int, _is_number, _parse_setup, _show
@@ -59,7 +60,6 @@ __all__ = [
     "ARTIFACT_STATUSES",
     "ArtifactData",
     "TIMING_KEYS",
-    "load_artifact",
     "read_artifact",
     "validate_artifact",
     "without_timings",
@@ -118,8 +118,11 @@ def _readonly(a: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 @dataclass(frozen=True, eq=False)
-class ArtifactData:
+class ArtifactData(Mapping[str, Any]):
     """A calibration artifact that passed :func:`validate_artifact`: typed, read-only.
+
+    Also a read-only mapping of the artifact's JSON keys (``art["lut"]["eta"]``,
+    ``art.get("plant")``, ``dict(art)``), so that code reading one key needs no second form.
 
     Attributes
     ----------
@@ -150,7 +153,7 @@ class ArtifactData:
     source : str
         Where it came from (the file), for messages.
     file_sha256 : str or None
-        SHA-256 of the file's bytes when read from a file (:func:`load_artifact`).
+        SHA-256 of the file's bytes when read from a file (:func:`read_artifact`).
     """
 
     format: str
@@ -168,6 +171,15 @@ class ArtifactData:
     source: str = "<artifact>"
     file_sha256: str | None = None
 
+    def __getitem__(self, key: str) -> Any:
+        return self.data[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.data)
+
+    def __len__(self) -> int:
+        return len(self.data)
+
     @property
     def points(self) -> int:
         """M, table nodes per revolution."""
@@ -180,7 +192,7 @@ class ArtifactData:
 
     @cached_property
     def sha256(self) -> str:
-        """SHA-256 of the artifact file as read (:func:`load_artifact`: what ``sha256sum``
+        """SHA-256 of the artifact file as read (:func:`read_artifact`: what ``sha256sum``
         prints for it), else of the artifact's canonical JSON (sorted keys, no spaces)."""
         if self.file_sha256 is not None:
             return self.file_sha256
@@ -508,8 +520,8 @@ def _check_plant(c: _Checker, plant: Mapping[str, Any], setup: Setup) -> None:
 def validate_artifact(artifact: Mapping[str, Any], source: str = "<artifact>") -> ArtifactData:
     """Check a calibration artifact and return its typed view: the one validator.
 
-    Accepts the parsed JSON (:func:`read_json`) or the in-memory artifact of a calibration
-    (NumPy arrays, a :class:`Setup`), which is converted to plain JSON data first.
+    Accepts the parsed JSON (:func:`~hallcal.io.read_json`) or the in-memory artifact of a
+    calibration (NumPy arrays, a :class:`Setup`), which is converted to plain JSON data first.
 
     Checks, each with a one-line message naming `source` and the key:
 
@@ -696,8 +708,8 @@ def write_artifact(path: str | os.PathLike[str], artifact: Mapping[str, Any]) ->
         f.write(text)
 
 
-def load_artifact(path: str | os.PathLike[str]) -> ArtifactData:
-    """Read a calibration artifact and return its checked, typed view.
+def read_artifact(path: str | os.PathLike[str]) -> ArtifactData:
+    """Read a calibration artifact and return its checked, typed view: the one reader.
 
     Parameters
     ----------
@@ -708,41 +720,15 @@ def load_artifact(path: str | os.PathLike[str]) -> ArtifactData:
     -------
     ArtifactData
         The validated content: pole pairs, f_init's projection and offsets and the table
-        nodes as arrays, the setup as a :class:`Setup`, the rest as read-only mappings.
-
-    Raises
-    ------
-    HallcalInputError
-        Missing file, invalid JSON or anything :func:`validate_artifact` refuses.
-    """
-    data, raw = _read_json_raw(path)
-    art = validate_artifact(data, str(Path(path)))
-    return replace(art, file_sha256=hashlib.sha256(raw).hexdigest())
-
-
-def read_artifact(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Read and check a calibration artifact; return it as parsed JSON.
-
-    The checks are those of :func:`validate_artifact` (use :func:`load_artifact` for the typed
-    view).
-
-    Parameters
-    ----------
-    path : path-like
-        The artifact (JSON).
-
-    Returns
-    -------
-    dict
-        The artifact as parsed JSON (lists, not arrays). ``setup_from_dict(a["setup"])`` gives
-        the :class:`Setup`.
+        nodes as arrays, the setup as a :class:`Setup`, every key as a read-only mapping
+        (``art["plant"]``), and the SHA-256 of the file's bytes.
 
     Raises
     ------
     HallcalInputError
         Missing file, invalid JSON, not an artifact, unsupported format, or a missing, malformed
-        or implausible key (named in the message).
+        or implausible key (named in the message): anything :func:`validate_artifact` refuses.
     """
-    data = read_json(path)
-    validate_artifact(data, str(Path(path)))
-    return data
+    data, raw = _read_json_raw(path)
+    art = validate_artifact(data, str(Path(path)))
+    return replace(art, file_sha256=hashlib.sha256(raw).hexdigest())

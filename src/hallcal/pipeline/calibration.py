@@ -575,7 +575,7 @@ def _float_or_nan(value: Any) -> float:
 
 
 def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Calibration:
-    """Rebuild a :class:`Calibration` from an artifact (:func:`~hallcal.io.load_artifact`'s, or
+    """Rebuild a :class:`Calibration` from an artifact (:func:`~hallcal.io.read_artifact`'s, or
     a mapping, which is checked by :func:`~hallcal.io.validate_artifact` first).
 
     The flux model, table, setup, status, messages, predicted error and plant come back; the
