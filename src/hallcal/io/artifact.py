@@ -517,7 +517,9 @@ def _check_plant(c: _Checker, plant: Mapping[str, Any], setup: Setup) -> None:
         c.text(plant["source"], "plant.source", optional=True)
 
 
-def validate_artifact(artifact: Mapping[str, Any], source: str = "<artifact>") -> ArtifactData:
+def validate_artifact(
+    artifact: Mapping[str, Any], source: str = "<artifact>", *, bijective: bool = True
+) -> ArtifactData:
     """Check a calibration artifact and return its typed view: the one validator.
 
     Accepts the parsed JSON (:func:`~hallcal.io.read_json`) or the in-memory artifact of a
@@ -548,6 +550,10 @@ def validate_artifact(artifact: Mapping[str, Any], source: str = "<artifact>") -
         The artifact.
     source : str
         Its name for messages (normally the file).
+    bijective : bool, keyword-only
+        False also accepts a table that is not bijective: the in-memory artifact of a
+        calibration refused as not bijective, for its report (such an artifact is never
+        written: :func:`write_artifact` keeps the default).
 
     Returns
     -------
@@ -585,11 +591,10 @@ def validate_artifact(artifact: Mapping[str, Any], source: str = "<artifact>") -
     for key in ("reconstruction", "lut", "model", "diagnostics"):
         c.mapping(data[key], key)
     projection, offset = _check_projection(c, data["reconstruction"])
-    folding = False
+    folding = not bijective
     if data.get("observer") is not None:
-        folding = _check_observer(c, data["observer"]) and (
-            data["diagnostics"].get("status") == "not-bijective"
-        )
+        injective = _check_observer(c, data["observer"])
+        folding |= injective and data["diagnostics"].get("status") == "not-bijective"
     y_hat, eta = _check_lut(c, data["lut"], int(n), folding=folding)
     _check_model(c, data["model"])
     if data.get("cogging") is not None:
