@@ -431,18 +431,40 @@ class ReportExtras:
 
     @classmethod
     def of(cls, cal: Any, **extras: Any) -> ReportExtras:
-        """What a :class:`~hallcal.pipeline.Calibration` has beyond its artifact: the SEM
-        solve and the BLA when computed in this process, nothing when loaded from an artifact
-        (its report is the one ``hallcal report`` writes); ``extras`` are further fields."""
+        """What a :class:`~hallcal.pipeline.Calibration` has beyond its artifact.
+
+        Parameters
+        ----------
+        cal : Calibration
+            Computed in this process: its SEM solve and BLA are added; loaded from an artifact:
+            nothing (its report is the one ``hallcal report`` writes).
+        **extras
+            Further fields (``validation``, ``noise_floor``, the truth).
+
+        Returns
+        -------
+        ReportExtras
+        """
         if cal.artifact is not None:
             return cls(**extras)
         return cls(sem=cal.sem, bla=cal.bla, **extras)
 
 
 def calibration_artifact(cal: Any) -> ArtifactData:
-    """The typed artifact of a :class:`~hallcal.pipeline.Calibration`: the one it was loaded
-    from, or its own (a table that is not bijective accepted, so that a calibration refused as
-    such can still be reported; :meth:`~hallcal.pipeline.Calibration.save` never writes it)."""
+    """The typed artifact of a calibration, for its report.
+
+    Parameters
+    ----------
+    cal : Calibration
+        Loaded from an artifact (that artifact) or computed in this process (its own).
+
+    Returns
+    -------
+    ArtifactData
+        Checked by :func:`~hallcal.io.validate_artifact`, a table that is not bijective
+        accepted so that a calibration refused as such can still be reported
+        (:meth:`~hallcal.pipeline.Calibration.save` never writes it).
+    """
     return validate_artifact(cal.to_artifact(), "in memory", bijective=False)
 
 
