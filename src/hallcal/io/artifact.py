@@ -54,6 +54,8 @@ from hallcal.limits import (
 )
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT
+from hallcal.sim.cogging import CoggingTorque
+from hallcal.sim.lti import ContinuousTF
 
 __all__ = [
     "ARTIFACT_FORMAT",
@@ -202,6 +204,32 @@ class ArtifactData(Mapping[str, Any]):
     def lut(self) -> LUT:
         """The lookup table and the f_init it corrects (:class:`hallcal.sensor.lut.LUT`)."""
         return LUT.from_arrays(self.pole_pairs, self.projection, self.offset, self.y_hat, self.eta)
+
+    def plant_model(self) -> ContinuousTF | None:
+        """The plant G(s) the calibration used (``plant``: gain correction applied), or None
+        when the artifact has none (open-loop runs, older artifacts)."""
+        p = self.plant
+        if p is None:
+            return None
+        num, den = (tuple(float(v) for v in p[k]) for k in ("num", "den"))
+        return ContinuousTF(num, den, float(p["delay"]))
+
+    def cogging_torque(self) -> CoggingTorque | None:
+        """The cogging torque identified with the flux (``cogging``), or None.
+
+        Raises
+        ------
+        HallcalInputError
+            When the model refuses the checked coefficients (the message names the key).
+        """
+        if self.data.get("cogging") is None:
+            return None
+        try:
+            return CoggingTorque.from_dict(self.data["cogging"])
+        except ValueError as exc:
+            raise HallcalInputError(
+                f"{self.source}: key 'cogging': {exc}", source=self.source, key="cogging"
+            ) from None
 
     def flux(self) -> FluxModel:
         """The flux model as a Fourier series (a kernel model stores its harmonics and

@@ -40,7 +40,7 @@ from hallcal.sensor.absolute import (
     PowerUpIdentification,
     absolute_reconstruction,
 )
-from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT
 from hallcal.sensor.metrics import AngleError, SpatialSpectrum, angle_error, spatial_spectrum
 from hallcal.sim.cogging import CoggingTorque
@@ -358,6 +358,14 @@ class Calibration:
             and self.observer.get("injective") is True
         )
 
+    @property
+    def diagnostics(self) -> Mapping[str, Any]:
+        """The artifact's ``diagnostics`` (status, costs, noise variance, ...): as loaded, or as
+        :meth:`save` writes them; the same keys whichever way this calibration was made."""
+        if self.artifact is not None:
+            return self.artifact["diagnostics"]
+        return _diagnostics(self)
+
     def to_artifact(self) -> dict[str, Any]:
         """The JSON artifact (a plain dict; see :func:`artifact_from_calibration`); for a
         calibration loaded from an artifact, that artifact."""
@@ -597,12 +605,7 @@ def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Cal
         :class:`CalibrationStatus`.
     """
     art = _checked(artifact)
-    setup = art.setup
-    model = art.model
     diag = art.diagnostics
-    lut = art.lut()
-    harmonics = tuple(int(h) for h in model["harmonics"])
-    flux = FluxModel(FourierBasis(harmonics), np.asarray(model["theta"], dtype=np.float64))
     try:
         status = CalibrationStatus(diag.get("status", "ok"))
     except ValueError:
@@ -619,37 +622,23 @@ def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Cal
         raise HallcalInputError(
             f"{art.source}: {text}", source=art.source, key=exc.key or "identifiability"
         ) from None
-    plant = None
-    plant_source = None
-    if art.plant is not None:
-        p = art.plant
-        plant = ContinuousTF(tuple(p["num"]), tuple(p["den"]), float(p["delay"]))
-        plant_source = p.get("source")
-    cogging = None
-    if art.data.get("cogging") is not None:
-        try:
-            cogging = CoggingTorque.from_dict(art.data["cogging"])
-        except ValueError as exc:  # the validator checked the shapes; the model may still refuse
-            raise HallcalInputError(
-                f"{art.source}: key 'cogging': {exc}", source=art.source, key="cogging"
-            ) from None
     return Calibration(
-        setup=setup,
-        flux=flux,
-        lut=lut,
+        setup=art.setup,
+        flux=art.flux(),
+        lut=art.lut(),
         status=status,
         predicted_error=_float_or_nan(diag.get("predicted_angle_error_rms")),
         noise_floor=_float_or_nan(diag.get("noise_floor")),
         refusal=diag.get("refusal"),
         messages=tuple(diag.get("messages", ())),
-        plant=plant,
-        plant_source=plant_source,
+        plant=art.plant_model(),
+        plant_source=None if art.plant is None else art.plant.get("source"),
         timings=dict(diag.get("timings", {})),
-        model_info=dict(model),
+        model_info=dict(art.model),
         identifiability=identifiability,
         observer=art.data.get("observer"),
         artifact=art.data,
-        cogging=cogging,
+        cogging=art.cogging_torque(),
     )
 
 

@@ -480,16 +480,6 @@ def _artifact_floor(diag: Mapping[str, Any], flux: FluxModel, n_m: int) -> tuple
     )
 
 
-def _artifact_plant(art: ArtifactData) -> ContinuousTF | None:
-    """The plant the calibration used: the artifact's (a BLA's), else the setup's."""
-    p = art.plant
-    if p is None:
-        return art.setup.plant
-    return ContinuousTF(
-        tuple(float(v) for v in p["num"]), tuple(float(v) for v in p["den"]), float(p["delay"])
-    )
-
-
 def _replayed_sem(
     art: ArtifactData,
     flux: FluxModel,
@@ -610,14 +600,12 @@ def report_content(
     -------
     ReportContent
     """
-    from hallcal.sim.cogging import CoggingTorque
-
     x = extras or ReportExtras()
     source = (sources or {}).get("artifact", "artifact")
     art = artifact if isinstance(artifact, ArtifactData) else validate_artifact(artifact, source)
     setup, lut, flux, diag = art.setup, art.lut(), art.flux(), art.diagnostics
-    cogging = None if art.get("cogging") is None else CoggingTorque.from_dict(art["cogging"])
-    plant = _artifact_plant(art)
+    cogging = art.cogging_torque()
+    plant = art.plant_model() or setup.plant  # the calibration's (a BLA's), else the setup's
     notes: list[str] = []
     cal_traces = _traces(lut, data)
     sem = x.sem
