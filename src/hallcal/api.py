@@ -132,6 +132,9 @@ class Calibration:
     def __repr__(self) -> str:
         return f"hallcal.{self.result!r}"
 
+    def __reduce__(self) -> tuple[Any, ...]:  # copy.copy / deepcopy
+        return (Calibration, (self.result,))
+
     def reconstruct(
         self,
         data: DataLike,
