@@ -156,6 +156,9 @@ class ArtifactData(Mapping[str, Any]):
         Where it came from (the file), for messages.
     file_sha256 : str or None
         SHA-256 of the file's bytes when read from a file (:func:`read_artifact`).
+    bijective_checked : bool
+        False when validated with ``bijective=False`` (an in-memory refused calibration's
+        report): checked again, not passed through, where a usable table is required.
     """
 
     format: str
@@ -172,6 +175,7 @@ class ArtifactData(Mapping[str, Any]):
     data: Mapping[str, Any] = field(repr=False)
     source: str = "<artifact>"
     file_sha256: str | None = None
+    bijective_checked: bool = field(default=True, repr=False)
 
     def __getitem__(self, key: str) -> Any:
         return self.data[key]
@@ -551,7 +555,8 @@ def validate_artifact(
     """Check a calibration artifact and return its typed view: the one validator.
 
     Accepts the parsed JSON (:func:`~hallcal.io.read_json`) or the in-memory artifact of a
-    calibration (NumPy arrays, a :class:`Setup`), which is converted to plain JSON data first.
+    calibration (NumPy arrays, a :class:`Setup`), which is converted to plain JSON data first;
+    an :class:`ArtifactData` (already checked) is returned as it is.
 
     Checks, each with a one-line message naming `source` and the key:
 
@@ -592,6 +597,8 @@ def validate_artifact(
     HallcalInputError
         The first problem found.
     """
+    if isinstance(artifact, ArtifactData) and (artifact.bijective_checked or not bijective):
+        return artifact
     c = _Checker(source)
     if not isinstance(artifact, Mapping):
         c.bad("not a hallcal calibration artifact (not a JSON object)")
@@ -656,6 +663,7 @@ def validate_artifact(
         plant=plant,
         data=data,
         source=source,
+        bijective_checked=bijective,
     )
 
 

@@ -549,13 +549,6 @@ def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
     return art
 
 
-def _checked(artifact: ArtifactData | Mapping[str, Any]) -> ArtifactData:
-    """The typed view of an artifact: as given, or from the one validator."""
-    if isinstance(artifact, ArtifactData):
-        return artifact
-    return validate_artifact(artifact, "artifact")
-
-
 def lut_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> LUT:
     """Rebuild the table (and its f_init) from an artifact (checked by
     :func:`~hallcal.io.validate_artifact` unless it is an :class:`~hallcal.io.ArtifactData`).
@@ -575,7 +568,7 @@ def lut_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> LUT:
     HallcalInputError
         The artifact does not pass :func:`~hallcal.io.validate_artifact`.
     """
-    return _checked(artifact).lut()
+    return validate_artifact(artifact, "artifact").lut()
 
 
 def _float_or_nan(value: Any) -> float:
@@ -604,7 +597,7 @@ def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Cal
         The artifact does not pass the validator, or its ``diagnostics.status`` is not one of
         :class:`CalibrationStatus`.
     """
-    art = _checked(artifact)
+    art = validate_artifact(artifact, "artifact")
     diag = art.diagnostics
     try:
         status = CalibrationStatus(diag.get("status", "ok"))
@@ -657,7 +650,7 @@ def require_table(artifact: ArtifactData | Mapping[str, Any], source: str = "art
     CalibrationRefused
         When the artifact's table is not bijective (a folding map written for the observer).
     """
-    if not _checked(artifact).lut().bijective:
+    if not validate_artifact(artifact, "artifact").lut().bijective:
         raise CalibrationRefused(
             f"{source}: no lookup table can exist for this motor (the sensor map folds); the "
             "calibration is for the model-based observer ('reconstruct --observer')"

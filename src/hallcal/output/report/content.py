@@ -602,7 +602,7 @@ def report_content(
     """
     x = extras or ReportExtras()
     source = (sources or {}).get("artifact", "artifact")
-    art = artifact if isinstance(artifact, ArtifactData) else validate_artifact(artifact, source)
+    art = validate_artifact(artifact, source)
     setup, lut, flux, diag = art.setup, art.lut(), art.flux(), art.diagnostics
     cogging = art.cogging_torque()
     plant = art.plant_model() or setup.plant  # the calibration's (a BLA's), else the setup's
