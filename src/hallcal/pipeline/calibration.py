@@ -63,7 +63,6 @@ __all__ = [
     "Validation",
     "artifact_from_calibration",
     "calibration_from_artifact",
-    "lut_from_artifact",
     "reconstruct",
     "require_table",
     "validate",
@@ -547,28 +546,6 @@ def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
     if cal.observer is not None:
         art["observer"] = dict(cal.observer)
     return art
-
-
-def lut_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> LUT:
-    """Rebuild the table (and its f_init) from an artifact (checked by
-    :func:`~hallcal.io.validate_artifact` unless it is an :class:`~hallcal.io.ArtifactData`).
-
-    Parameters
-    ----------
-    artifact : ArtifactData or mapping
-        A loaded artifact, or its parsed JSON.
-
-    Returns
-    -------
-    LUT
-        The table of eq. (f_final) with f_init's projection and offsets.
-
-    Raises
-    ------
-    HallcalInputError
-        The artifact does not pass :func:`~hallcal.io.validate_artifact`.
-    """
-    return validate_artifact(artifact, "artifact").lut()
 
 
 def _float_or_nan(value: Any) -> float:
