@@ -29,6 +29,7 @@ from hallcal.output.report import (
     write_report,
     write_report_from_files,
 )
+from hallcal.pipeline import CalibrationStatus
 
 CHROMIUM = "/usr/bin/chromium"
 DEMO_FIGURES = ("ripple", "hall_model", "angle_error", "spectrum", "bla", "sem_cost", "lut")
@@ -287,7 +288,7 @@ def test_report_degrades_without_sem_or_a_bijective_table(demo, tmp_path):
     art = cal.to_artifact()
     y_hat = np.asarray(art["lut"]["y_hat"])
     lut = {"y_hat": y_hat.tolist(), "eta": (0.5 * np.sin(20.0 * y_hat)).tolist()}
-    diag = {**art["diagnostics"], "status": "not-bijective"}
+    diag = {**art["diagnostics"], "status": CalibrationStatus.NOT_BIJECTIVE.value}
     folded = validate_artifact({**art, "lut": lut, "diagnostics": diag}, bijective=False)
     assert not folded.lut().bijective
     with pytest.raises(HallcalInputError, match="not bijective"):  # never by default
