@@ -617,13 +617,13 @@ def _bench_setup(n: int, sample_time: float) -> dict:
 
 def python_decoder(artifact: dict):
     """``(decoder, lut)`` as ``hallcal reconstruct --absolute`` builds them from an artifact."""
-    from hallcal.pipeline.calibration import lut_from_artifact
+    from hallcal.io import validate_artifact
     from hallcal.pipeline.powerup import decoder_for, identifiability_from_artifact
 
     flux = FluxModel(
         FourierBasis(tuple(artifact["model"]["harmonics"])), np.array(artifact["model"]["theta"])
     )
-    lut = lut_from_artifact(artifact)
+    lut = validate_artifact(artifact).lut()
     return decoder_for(flux, lut, identifiability_from_artifact(artifact)), lut
 
 

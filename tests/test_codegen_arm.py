@@ -38,7 +38,6 @@ import pytest
 
 from hallcal.io import read_artifact, read_dataset
 from hallcal.output.codegen import export_c
-from hallcal.pipeline.calibration import lut_from_artifact
 from hallcal.sensor.metrics import angle_error
 
 TWO_PI = 2.0 * math.pi
@@ -117,7 +116,7 @@ def test_demo_on_arm_matches_python(demo, demo_builds, variant, tmp_path):
     raw = ah.run(b, x)
     assert not np.any(raw[:, 2])  # nothing rejected on the validation run
     y = ah.angles(b, raw)
-    lut = lut_from_artifact(demo["art"])
+    lut = demo["art"].lut()
     y_py = lut.f_star(x / DEMO_ADC_SCALE if fixed else x.astype(np.float64))
     err = float(np.max(np.abs(y - y_py)))
     bound = res.fixed_bound if fixed else res.float_bound
@@ -160,7 +159,7 @@ def test_ringjig_on_arm_matches_python(tmp_path, i):
     cal.save(art_path)
     art = read_artifact(art_path)
     res = export_c(_lean(art), tmp_path / "fw", source="cal.json")
-    lut = lut_from_artifact(art)
+    lut = art.lut()
     y_py = lut.f_star(d)
     k = np.arange(mid, stop)
     deg_py = math.degrees(_rms(_line_residual(y_py[mid:stop], k))) * 25

@@ -258,12 +258,18 @@ def test_none_and_auto_agree_without_cogging():
 
 def test_report_draws_the_cogging_map(bench_data, tmp_path):
     from hallcal.output import plots
-    from hallcal.output.report import content_from_calibration, make_figures
+    from hallcal.output.report import (
+        ReportExtras,
+        calibration_artifact,
+        make_figures,
+        report_content,
+    )
 
     cfg, run, _ = bench_data
     data = Dataset.from_columns(run.columns(with_encoder=False), path="cal")
     cal = hallcal.calibrate(data, _bench_setup(plant=True))
-    content = content_from_calibration(cal, data, true_cogging=cfg.cogging_torque())
+    extras = ReportExtras.of(cal, true_cogging=cfg.cogging_torque())
+    content = report_content(calibration_artifact(cal), data, extras=extras)
     figs = {f.key: f for f in make_figures(content)}
     assert "cogging" in figs
     axes = figs["cogging"].figure.axes

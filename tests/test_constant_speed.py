@@ -384,7 +384,7 @@ def test_pipeline_constant_speed(tmp_path):
     np.testing.assert_allclose(cs["geometry"]["phases_deg"], np.degrees(PHASES), atol=0.5)
     np.testing.assert_allclose(art["reconstruction"]["projection"], cal.lut.projection)
     write_artifact(tmp_path / "cal.json", art)
-    lut = pipeline.lut_from_artifact(read_artifact(tmp_path / "cal.json"))
+    lut = read_artifact(tmp_path / "cal.json").lut()
     e = lut.f_star(d)[N // 2 :] - y0[N // 2 :]
     assert centred_rms(e) < 1.3 * noise_floor(hall(y0[N // 2 :], n), d[N // 2 :], lut)
     # user mistakes are one-line input errors naming the key

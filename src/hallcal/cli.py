@@ -753,7 +753,7 @@ def plan(artifact: str, revolutions: float, speeds: str | None, target: float) -
                 f"--speeds: expected comma-separated numbers [rad/s], got {speeds!r}"
             ) from None
     cal = load(artifact)
-    result = plan_next_ramp(cal, revolutions=revolutions, speeds=grid, target=target)
+    result = plan_next_ramp(cal.result, revolutions=revolutions, speeds=grid, target=target)
     floor = result.predictions[0].floor if result.predictions else math.nan
     _out.print(f"noise floor {AngleUnit.MRAD.text(floor)}; ramp over {revolutions:g} revolutions")
     _out.print(f"{'speed [rad/s]':>14} {'samples':>9} {'f_star [mrad]':>14} {'x floor':>8}")
@@ -866,14 +866,14 @@ def export_c(
     The API, the plausibility checks and the error bounds: docs/firmware.md.
     """
     from hallcal.api import export_c as _export
-    from hallcal.io import load_artifact
+    from hallcal.io import read_artifact
     from hallcal.pipeline.calibration import require_table
 
     if observer:
         from hallcal.output.codegen.observer import export_observer_c
 
         _guard([Path(out) / f"{prefix}_obs.{x}" for x in ("h", "c")], [artifact])
-        art = load_artifact(artifact)
+        art = read_artifact(artifact)
         res_obs = export_observer_c(art, _output_dir(out), prefix=f"{prefix}_obs", source=artifact)
         for p in res_obs.paths:
             _echo(f"wrote {p}")
@@ -883,7 +883,7 @@ def export_c(
     names = [f"{prefix}.h", f"{prefix}.c"]
     names += [] if no_fixed_point else [f"{prefix}_q.h", f"{prefix}_q.c"]
     _guard([Path(out) / n for n in names], [artifact])
-    art = load_artifact(artifact)  # its sha256 is the file's, as sha256sum prints it
+    art = read_artifact(artifact)  # its sha256 is the file's, as sha256sum prints it
     require_table(art, artifact)
     out_dir = _output_dir(out)
     res = _export(

@@ -168,7 +168,7 @@ def _run_motor(task: _Task) -> _Result:
 
 def _calibrate_into(task: _Task, result: _Result) -> None:
     from hallcal.api import export_c  # the export defaults every entry point shares
-    from hallcal.io import load_artifact, read_dataset
+    from hallcal.io import read_artifact, read_dataset
     from hallcal.pipeline.calibration import CalibrationStatus
     from hallcal.pipeline.verdict import refusal
 
@@ -197,7 +197,7 @@ def _calibrate_into(task: _Task, result: _Result) -> None:
             cdir = Path(tmp) / C_DIR
             try:
                 # from the saved file: the banner's sha256 is the artifact file's
-                art = load_artifact(Path(tmp) / ARTIFACT_NAME)
+                art = read_artifact(Path(tmp) / ARTIFACT_NAME)
                 res = export_c(art, cdir, adc_scale=task.adc_scale)
             except HallcalInputError as exc:  # the artifact stands; its C sources do not
                 status = MotorStatus.WARNING

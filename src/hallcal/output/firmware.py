@@ -151,13 +151,6 @@ def _bad(source: str, key: str, why: str) -> HallcalInputError:
     return HallcalInputError(f"{source}: key '{key}' {why}")
 
 
-def _checked(artifact: Mapping | ArtifactData, source: str) -> ArtifactData:
-    """The artifact as the one validator (:func:`hallcal.io.validate_artifact`) passed it."""
-    if isinstance(artifact, ArtifactData):
-        return artifact
-    return validate_artifact(artifact, source)
-
-
 def _lut(art: ArtifactData, source: str) -> LUT:
     """The artifact's table; the firmware keeps y_star within half a turn of f_init's
     revolution, so it takes corrections below pi/2 only (the validator allows up to pi)."""
@@ -274,7 +267,7 @@ def design_firmware(
         An artifact the validator refuses (the key named), corrections the firmware cannot
         take, a sensor map without a usable amplitude window, or an option out of range.
     """
-    art = _checked(artifact, source)
+    art = validate_artifact(artifact, source)
     _check_options(tolerance, fault_after, max_speed)
     n, P, o = art.pole_pairs, art.projection, art.offset
     lut = _lut(art, source)
@@ -496,7 +489,7 @@ def design_powerup(
         The artifact is refused by :func:`hallcal.io.validate_artifact`, or its
         ``"identifiability"`` entry is malformed (named).
     """
-    entry = _checked(artifact, source).data.get("identifiability")
+    entry = validate_artifact(artifact, source).data.get("identifiability")
     if entry is None:
         return PowerUpFirmware(
             PowerUpCode.NO_ANALYSIS,

@@ -28,7 +28,6 @@ from hallcal.pipeline.calibration import (
     Validation,
     artifact_from_calibration,
     calibration_from_artifact,
-    lut_from_artifact,
     reconstruct,
     validate,
 )
@@ -85,7 +84,6 @@ __all__ = [
     "calibration_from_artifact",
     "estimate_gain",
     "identify_bla",
-    "lut_from_artifact",
     "plant_model",
     "reconstruct",
     "simulate",

@@ -41,7 +41,7 @@ from hallcal.sensor.absolute import (
     PowerUpIdentification,
     absolute_reconstruction,
 )
-from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT
 from hallcal.sensor.metrics import AngleError, SpatialSpectrum, angle_error, spatial_spectrum
 from hallcal.sim.cogging import CoggingTorque
@@ -64,7 +64,6 @@ __all__ = [
     "Validation",
     "artifact_from_calibration",
     "calibration_from_artifact",
-    "lut_from_artifact",
     "reconstruct",
     "require_table",
     "validate",
@@ -335,6 +334,14 @@ class Calibration:
             and self.observer.get("injective") is True
         )
 
+    @property
+    def diagnostics(self) -> Mapping[str, Any]:
+        """The artifact's ``diagnostics`` (status, costs, noise variance, ...): as loaded, or as
+        :meth:`save` writes them; the same keys whichever way this calibration was made."""
+        if self.artifact is not None:
+            return self.artifact["diagnostics"]
+        return _diagnostics(self)
+
     def to_artifact(self) -> dict[str, Any]:
         """The JSON artifact (a plain dict; see :func:`artifact_from_calibration`); for a
         calibration loaded from an artifact, that artifact."""
@@ -519,41 +526,12 @@ def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
     return art
 
 
-def _checked(artifact: ArtifactData | Mapping[str, Any]) -> ArtifactData:
-    """The typed view of an artifact: as given, or from the one validator."""
-    if isinstance(artifact, ArtifactData):
-        return artifact
-    return validate_artifact(artifact, "artifact")
-
-
-def lut_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> LUT:
-    """Rebuild the table (and its f_init) from an artifact (checked by
-    :func:`~hallcal.io.validate_artifact` unless it is an :class:`~hallcal.io.ArtifactData`).
-
-    Parameters
-    ----------
-    artifact : ArtifactData or mapping
-        A loaded artifact, or its parsed JSON.
-
-    Returns
-    -------
-    LUT
-        The table of eq. (f_final) with f_init's projection and offsets.
-
-    Raises
-    ------
-    HallcalInputError
-        The artifact does not pass :func:`~hallcal.io.validate_artifact`.
-    """
-    return _checked(artifact).lut()
-
-
 def _float_or_nan(value: Any) -> float:
     return float(value) if isinstance(value, int | float) else math.nan
 
 
 def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Calibration:
-    """Rebuild a :class:`Calibration` from an artifact (:func:`~hallcal.io.load_artifact`'s, or
+    """Rebuild a :class:`Calibration` from an artifact (:func:`~hallcal.io.read_artifact`'s, or
     a mapping, which is checked by :func:`~hallcal.io.validate_artifact` first).
 
     The flux model, table, setup, status, messages, predicted error and plant come back; the
@@ -574,13 +552,8 @@ def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Cal
         The artifact does not pass the validator, or its ``diagnostics.status`` is not one of
         :class:`CalibrationStatus`.
     """
-    art = _checked(artifact)
-    setup = art.setup
-    model = art.model
+    art = validate_artifact(artifact, "artifact")
     diag = art.diagnostics
-    lut = art.lut()
-    harmonics = tuple(int(h) for h in model["harmonics"])
-    flux = FluxModel(FourierBasis(harmonics), np.asarray(model["theta"], dtype=np.float64))
     try:
         status = CalibrationStatus(diag.get("status", "ok"))
     except ValueError:
@@ -597,37 +570,23 @@ def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Cal
         raise HallcalInputError(
             f"{art.source}: {text}", source=art.source, key=exc.key or "identifiability"
         ) from None
-    plant = None
-    plant_source = None
-    if art.plant is not None:
-        p = art.plant
-        plant = ContinuousTF(tuple(p["num"]), tuple(p["den"]), float(p["delay"]))
-        plant_source = p.get("source")
-    cogging = None
-    if art.data.get("cogging") is not None:
-        try:
-            cogging = CoggingTorque.from_dict(art.data["cogging"])
-        except ValueError as exc:  # the validator checked the shapes; the model may still refuse
-            raise HallcalInputError(
-                f"{art.source}: key 'cogging': {exc}", source=art.source, key="cogging"
-            ) from None
     return Calibration(
-        setup=setup,
-        flux=flux,
-        lut=lut,
+        setup=art.setup,
+        flux=art.flux(),
+        lut=art.lut(),
         status=status,
         predicted_error=_float_or_nan(diag.get("predicted_angle_error_rms")),
         noise_floor=_float_or_nan(diag.get("noise_floor")),
         refusal=diag.get("refusal"),
         messages=tuple(Message.from_record(m) for m in diag.get("messages", ())),
-        plant=plant,
-        plant_source=plant_source,
+        plant=art.plant_model(),
+        plant_source=None if art.plant is None else art.plant.get("source"),
         timings=dict(diag.get("timings", {})),
-        model_info=dict(model),
+        model_info=dict(art.model),
         identifiability=identifiability,
         observer=art.data.get("observer"),
         artifact=art.data,
-        cogging=cogging,
+        cogging=art.cogging_torque(),
     )
 
 
@@ -646,7 +605,7 @@ def require_table(artifact: ArtifactData | Mapping[str, Any], source: str = "art
     CalibrationRefused
         When the artifact's table is not bijective (a folding map written for the observer).
     """
-    if not _checked(artifact).lut().bijective:
+    if not validate_artifact(artifact, "artifact").lut().bijective:
         raise CalibrationRefused(
             f"{source}: no lookup table can exist for this motor (the sensor map folds); the "
             "calibration is for the model-based observer ('reconstruct --observer')"
