@@ -313,7 +313,7 @@ void run(int n, const float *d, double *y, float *misfit, unsigned char *st)
     static hallcal_obs_state s;
     hallcal_obs_reading r;
     int k;
-    hallcal_obs_init(&s, 0, 0.0f);
+    hallcal_obs_init(&s);
     for (k = 0; k < n; k++) {
         st[k] = hallcal_obs_update(&s, d[3 * k], d[3 * k + 1], d[3 * k + 2]);
         hallcal_obs_read(&s, &r);

@@ -59,6 +59,7 @@ from numpy.typing import ArrayLike, NDArray
 from hallcal.sensor.flux import FluxModel
 
 __all__ = [
+    "ADAPT_CYCLE",
     "Injectivity",
     "ObserverModel",
     "ObserverRun",
@@ -143,7 +144,7 @@ class ObserverSettings:
         [electrical rad].
     """
 
-    acquire_points: int = 16
+    acquire_points: int = 8
     speed_gain: float = 0.05
     window: int = 256
     false_alarm: float = 1e-9
@@ -596,7 +597,7 @@ def _acquire(G, dk, c, a, b, w, yp, h, offsets):
 #: gradient (weighted by the cycle's length) enter the 6x6 information matrix, the solve and the
 #: update follow on the cycle's last sample (firmware spreads the factorization over the samples
 #: in between, so that no sample carries the whole 6x6 update).
-ADAPT_CYCLE = 4
+ADAPT_CYCLE = 16
 
 
 @nb.njit(cache=True)
@@ -787,7 +788,7 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, offsets, a, b, y_out, misf
         p0[i, 1] = b[i]
         H[2 * i, 2 * i] = cfg[10] * w0[i] * amp[i] * amp[i]
         H[2 * i + 1, 2 * i + 1] = cfg[10] * w0[i]
-    pending = False
+    pending, phase = False, 0
     S = np.zeros(6)
     S[_Y] = y_initial
     I = np.array([-1, -1, 0, 0, 1], dtype=np.int64)
@@ -835,17 +836,21 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, offsets, a, b, y_out, misf
             # the two channels left do not fit either: not a channel fault but a model that no
             # longer fits (remount): readmit the channel and let the misfit monitor speak
             I[_EXCL], I[_SUPPRESS] = -1, 1
-        phase = k % ADAPT_CYCLE
-        if phase == 0 and fitted and not stale and blamed < 0:
-            x = ADAPT_CYCLE * travel / cfg[9]  # the cycle's forgetting, exp(-x) to 1.6e-4
-            lam = 1.0 - x + 0.5 * x * x - x * x * x / 6.0  # (x <= 1/4: |v| <= a quarter pitch)
-            pending = _adapt_measure(f, dg, r, step, den, amp, w, w0, a, H, gr, lam, cfg[10],
-                                     float(ADAPT_CYCLE))  # fmt: skip
-            wm[:] = w
-        elif phase == ADAPT_CYCLE - 1 and pending:
-            if not stale:
-                _adapt_solve(H, gr, wm, amp, a, b, p0, cfg[11], cfg[12], cfg[13], L, P)
-            pending = False
+        if not outlier:  # the adaptation's cycle advances on samples without the fits of _robust
+            if phase == 0:
+                if fitted and not stale and blamed < 0:
+                    x = min(ADAPT_CYCLE * travel / cfg[9], 1.0)  # the cycle's forgetting
+                    lam = 1.0 - x + 0.5 * x * x - x * x * x / 6.0  # exp(-x), 1.6e-4 to x = 1/4
+                    pending = _adapt_measure(f, dg, r, step, den, amp, w, w0, a, H, gr, lam,
+                                             cfg[10], float(ADAPT_CYCLE))  # fmt: skip
+                    wm[:] = w
+                    phase = 1
+            else:
+                if phase == ADAPT_CYCLE - 1 and pending:
+                    if not stale:
+                        _adapt_solve(H, gr, wm, amp, a, b, p0, cfg[11], cfg[12], cfg[13], L, P)
+                    pending = False
+                phase = (phase + 1) % ADAPT_CYCLE
         if fitted:
             _readmit(d, k, r, a, dg, step, w0, travel, cfg[15], S, I)
         y_out[k], misfit[k] = S[_Y], mf
