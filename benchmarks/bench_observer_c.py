@@ -7,7 +7,7 @@ strict flags, ``-O2``, bare metal on ``mps2-an386``) and run on
 * 3000 samples of a validation run with a channel stuck at its zero-field level from sample
   1500 and 10 glitch samples (3.0 on channel 0) from sample 2500: the largest difference from
   Python's y_obs on the same float32 inputs;
-* an adversarial set (:func:`adversarial`): the start (the node search), glitches of every size on
+* an adversarial set (``firmware_support.observer_adversarial``): the start (the node search), glitches of every size on
   every channel at every phase of the adaptation's 4-sample cycle, a channel stuck, at a rail,
   clipped and disconnected (the exclusion samples), non-finite readings, random readings (every
   sample an outlier), a remount (stale) and a return to healthy signals (readmission);
@@ -32,41 +32,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import arm_harness as ah  # noqa: E402
+from firmware_support import observer_adversarial as adversarial  # noqa: E402
 from bench_observer import ramp, setup_for  # noqa: E402
 
 import hallcal  # noqa: E402
 from hallcal.output.codegen.observer import export_observer_c  # noqa: E402
 from hallcal.pipeline.observe import run_on  # noqa: E402
 from hallcal.sim.bench import BenchConfig  # noqa: E402
-
-
-def adversarial(d: np.ndarray, center: np.ndarray, seed: int = 5) -> np.ndarray:
-    """Hostile inputs after ``d`` (a healthy run of at least 6000 samples), float32."""
-    rng = np.random.default_rng(seed)
-    parts = [d[:1000].copy()]
-    g = d[1000:2000].copy()  # glitches: sizes 0.05 .. 3, every channel, every phase of 4
-    for j, k in enumerate(range(0, 1000, 7)):
-        g[k, j % 3] += (-1) ** j * [0.05, 0.1, 0.3, 1.0, 3.0][j % 5]
-    parts.append(g)
-    for kind in ("stuck", "rail", "clipped", "nan", "inf"):  # one channel failing, then healthy
-        for ch in range(3):
-            x = d[2000:2300].copy()
-            if kind == "stuck":
-                x[:, ch] = center[ch]
-            elif kind == "rail":
-                x[:, ch] = 1.4
-            elif kind == "clipped":
-                x[:, ch] = np.clip(x[:, ch], -0.75, 0.75)
-            else:
-                x[::3, ch] = np.nan if kind == "nan" else np.inf
-            parts.append(x)
-            parts.append(d[2300:2400])
-    parts.append(rng.uniform(-2.0, 2.0, size=(600, 3)))  # random readings: all outliers
-    parts.append(np.roll(d[3000:5000], 3, axis=1))  # wires swapped: the model no longer fits
-    parts.append(d[5000:6000])  # healthy again
-    out = np.concatenate(parts).astype(np.float32)
-    out[-900::13, 1] = np.nan  # non-finite samples sprinkled over the healthy return
-    return out
 
 
 def main() -> None:

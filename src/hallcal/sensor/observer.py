@@ -31,9 +31,11 @@ Around it:
   adaptation freezes.
 * **online adaptation**: per sensor, (a_i, b_i) by exponentially weighted least squares of d_i
   on [g_i(y_obs) - c_i, 1] (forgetting per electrical radian of travel, a weak prior on the
-  calibrated values, bounded; per channel a 2x2 solve: the block-diagonal part of the joint
-  information, outlier samples left out); this absorbs the temperature drift of NdFeB remanence (common
-  gain), Hall sensitivity (per-sensor gain) and offsets.
+  calibrated values, bounded; the regressors projected off the angle's direction in the
+  joint 6x6 information; one sample in each cycle of ``ADAPT_CYCLE`` samples without an
+  unexplained outlier is measured, its update applied at the cycle's end, so that firmware
+  spreads the 6x6 work over the cycle); this absorbs the temperature drift of NdFeB
+  remanence (common gain), Hall sensitivity (per-sensor gain) and offsets.
 * **one-sensor fallback**: a sample whose chi-square is an outlier and that one channel alone
   explains (the fit without it is within the noise) is reconstructed from the other two; a
   channel so blamed ``fault_count`` times within ``fault_window`` samples (or non-finite) is

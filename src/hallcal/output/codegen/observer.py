@@ -4,18 +4,19 @@
 per-sample algorithm as :func:`hallcal.sensor.observer.run_observer` (tracking
 maximum-likelihood angle by Gauss-Newton on cubic Hermite tables of g and dg/dy, the misfit
 window, the gain/offset adaptation, the one-sensor fallback), in ``float``, with the API style
-of the lean export: ``_init``, ``_set_angle`` (revolutions and angle before the next sample),
-``_update`` (one sample), ``_read`` (one consistent snapshot: revolutions, angle, misfit, state, excluded
-channel). It includes only ``<stdint.h>``, uses no library function (the square roots and the
-chi-square thresholds are tabulated here; the adaptation's 6x6 system is solved by an LDL^T
-factorization, which needs no square root; exp(-x) of the forgetting is 1 - x + x^2/2 - x^3/6,
-within 5e-6 for the x below 0.06 it takes up to a quarter electrical turn per sample), no
-dynamic memory, and divisions only in the Gauss-Newton steps and the 6x6 solve.
+of the lean export: ``_init``, ``_set_angle`` (revolutions and angle before the next
+sample), ``_update`` (one sample), ``_read`` (one consistent snapshot: revolutions, angle,
+misfit, state, excluded channel). It includes only ``<stdint.h>``, uses no library function
+(the chi-square thresholds and the reciprocals of the window's degrees of freedom are
+tabulated; the adaptation's 6x6 system is solved by an L D L^T factorization, which needs no
+square root; exp(-x) of the forgetting is its cubic Taylor polynomial), no dynamic memory.
 
 The angle is kept as a revolution count and a float angle within the revolution, so that its
-resolution does not degrade over a long run. Worst-case work per sample is bounded (no loop
-depends on the data): 2 Gauss-Newton steps, on an outlier sample 1 scaled fit and 3 fits
-without one channel, the adaptation; a 64-point search at start and after an exclusion.
+resolution does not degrade over a long run. Work per sample is bounded (no loop depends on
+the data): one table look-up and one Gauss-Newton step; on an outlier sample the common-gain
+test and the three fits without one channel (closed form on the linearized model); one part
+of the adaptation's 16-sample cycle (a row or a column of the 6x6, a triangular solve); an
+8-node search on the first sample after init/set_angle. Cycles: benchmarks/bench_observer_c.txt.
 """
 
 from __future__ import annotations
@@ -59,7 +60,8 @@ class ObserverExport:
     table_points : int
         M, table points per revolution.
     table_bytes : int
-        Bytes of the g and dg/dy tables (float) plus the threshold table.
+        Bytes of the g and dg/dy tables (float) plus the threshold and reciprocal tables and
+        the start's search offsets.
     """
 
     paths: tuple[Path, ...]
@@ -126,8 +128,9 @@ def export_observer_c(
     model = observer_model(flux, n, _noise(art.data, flux, n))
     texts = _texts(model, ObserverSettings(), prefix, comment_text(Path(source).name))
     paths = _write_files(out_dir, texts)  # one set, write errors as one line (hallcal.io)
-    W = ObserverSettings().window
-    nbytes = model.points * 3 * 2 * 4 + (2 * W + 1) * 4
+    s = ObserverSettings()
+    # g and dg/dy (float), the thresholds and the reciprocals (float), the search offsets (int16)
+    nbytes = model.points * 3 * 2 * 4 + 2 * (2 * s.window + 1) * 4 + s.acquire_points * 2
     return ObserverExport(paths, model.points, nbytes)
 
 
