@@ -566,7 +566,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
 {
     float d[3], w[3], f[3], dg[3], r[3], J[3], yp, y, step = 0.0f, chi = 0.0f, srr = 0.0f;
     float num = 0.0f, den = 0.0f, best, best_step, cq, sq, e, travel, mf = 0.0f, cc, cmax;
-    float A01, A11, r1, Js0, Js1, Js2, det;
+    float A01, A11, r1, Js0, Js1, Js2, det, tr[3], tn[3], td[3], chi_b = 0.0f;
     int i, q, active, blamed = -1, mark = -1, others, above = 0, stale, fin[3];
     int acquired, fitted, loo = 0, u0, u1, u2;
     uint32_t slot, jw, ph;
@@ -605,9 +605,18 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         r[1] = d[1] - s->a[1] * f[1] - s->b[1];
         r[2] = d[2] - s->a[2] * f[2] - s->b[2];
         /* an unused channel has w = 0 and a finite r: it adds exact zeros */
-        srr = w[0] * r[0] * r[0] + w[1] * r[1] * r[1] + w[2] * r[2] * r[2];
-        num = w[0] * J[0] * r[0] + w[1] * J[1] * r[1] + w[2] * J[2] * r[2];
-        den = w[0] * J[0] * J[0] + w[1] * J[1] * J[1] + w[2] * J[2] * J[2];
+        tr[0] = w[0] * r[0] * r[0];
+        tr[1] = w[1] * r[1] * r[1];
+        tr[2] = w[2] * r[2] * r[2];
+        tn[0] = w[0] * J[0] * r[0];
+        tn[1] = w[1] * J[1] * r[1];
+        tn[2] = w[2] * J[2] * r[2];
+        td[0] = w[0] * J[0] * J[0];
+        td[1] = w[1] * J[1] * J[1];
+        td[2] = w[2] * J[2] * J[2];
+        srr = tr[0] + tr[1] + tr[2];
+        num = tn[0] + tn[1] + tn[2];
+        den = td[0] + td[1] + td[2];
         step = gn(srr, num, den, &chi);
         if (active == 3 && chi > OUTLIER) {
             /* explained by a common gain of the field parts? else the fits without a channel */
@@ -624,8 +633,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                 best = 3.0e38f;
                 best_step = step;
                 for (q = 0; q < 3; q++) {
-                    sq = gn(srr - w[q] * r[q] * r[q], num - w[q] * J[q] * r[q],
-                            den - w[q] * J[q] * J[q], &cq);
+                    sq = gn(srr - tr[q], num - tn[q], den - td[q], &cq);
                     if (cq < best) {
                         best = cq;
                         best_step = sq;
@@ -641,6 +649,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                         blamed = -1;
                     } else {
                         step = best_step;
+                        chi_b = best; /* the two channels' chi2 there, if it is excluded */
                         mark = blamed;
                     }
                 }
@@ -665,13 +674,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
             s->blamed_out = 1u;
             s->clean = 0.0f;
             w[blamed] = 0.0f;
-            chi = 0.0f; /* the two channels' chi2 at the fitted angle */
-            for (i = 0; i < 3; i++) {
-                if (w[i] > 0.0f) {
-                    e = r[i] - J[i] * step;
-                    chi += w[i] * e * e;
-                }
-            }
+            chi = chi_b; /* the two channels' chi2 at the fitted angle */
             s->blame_from = s->k + 1u; /* the blame ring and the window start again */
             s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0;
             s->window_from = s->k;
