@@ -680,6 +680,28 @@ def _adapt_solve(H, gr, wm, amp, a, b, p0, a_lo, a_hi, b_bound, L, P):
             b[i] = min(max(b[i] + z[2 * i + 1], p0[i, 1] - lim), p0[i, 1] + lim)
 
 
+@nb.njit(cache=True)
+def _adapt_cycle(phase, pending, eligible, stale, travel, f, dg, r, step, den, amp, w, w0, a, b,
+                 p0, H, gr, wm, L, P, cfg):  # fmt: skip
+    """One sample of the adaptation's cycle of ``ADAPT_CYCLE`` samples: on its first (an
+    eligible sample: fitted, not stale, no channel blamed) the measurement, on its last the
+    solve and the update (not while stale). Returns (pending, next phase)."""
+    if phase == 0:
+        if eligible:
+            x = min(ADAPT_CYCLE * travel / cfg[9], 1.0)  # the cycle's forgetting
+            lam = 1.0 - x + 0.5 * x * x - x * x * x / 6.0  # exp(-x), 1.6e-4 up to x = 1/4
+            pending = _adapt_measure(f, dg, r, step, den, amp, w, w0, a, H, gr, lam, cfg[10],
+                                     float(ADAPT_CYCLE))  # fmt: skip
+            wm[:] = w
+            return pending, 1
+        return pending, 0
+    if phase == ADAPT_CYCLE - 1 and pending:
+        if not stale:
+            _adapt_solve(H, gr, wm, amp, a, b, p0, cfg[11], cfg[12], cfg[13], L, P)
+        pending = False
+    return pending, (phase + 1) % ADAPT_CYCLE
+
+
 #: Indices of the tracker's float state: angle, speed [rad/sample], the misfit window's sums,
 #: the consistent travel of an excluded channel and the travel with the misfit above threshold.
 _Y, _V, _SUM_CHI, _SUM_DOF, _CLEAN, _BAD = 0, 1, 2, 3, 4, 5
@@ -839,20 +861,11 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, offsets, a, b, y_out, misf
             # longer fits (remount): readmit the channel and let the misfit monitor speak
             I[_EXCL], I[_SUPPRESS] = -1, 1
         if not outlier:  # the adaptation's cycle advances on samples without the fits of _robust
-            if phase == 0:
-                if fitted and not stale and blamed < 0:
-                    x = min(ADAPT_CYCLE * travel / cfg[9], 1.0)  # the cycle's forgetting
-                    lam = 1.0 - x + 0.5 * x * x - x * x * x / 6.0  # exp(-x), 1.6e-4 to x = 1/4
-                    pending = _adapt_measure(f, dg, r, step, den, amp, w, w0, a, H, gr, lam,
-                                             cfg[10], float(ADAPT_CYCLE))  # fmt: skip
-                    wm[:] = w
-                    phase = 1
-            else:
-                if phase == ADAPT_CYCLE - 1 and pending:
-                    if not stale:
-                        _adapt_solve(H, gr, wm, amp, a, b, p0, cfg[11], cfg[12], cfg[13], L, P)
-                    pending = False
-                phase = (phase + 1) % ADAPT_CYCLE
+            eligible = fitted and not stale and blamed < 0
+            pending, phase = _adapt_cycle(
+                phase, pending, eligible, stale, travel, f, dg, r, step, den, amp, w, w0, a, b,
+                p0, H, gr, wm, L, P, cfg,
+            )  # fmt: skip
         if fitted:
             _readmit(d, k, r, a, dg, step, w0, travel, cfg[15], S, I)
         y_out[k], misfit[k] = S[_Y], mf
