@@ -566,7 +566,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
 {
     float d[3], w[3], f[3], dg[3], r[3], J[3], yp, y, step = 0.0f, chi = 0.0f, srr = 0.0f;
     float num = 0.0f, den = 0.0f, best, best_step, cq, sq, e, travel, mf = 0.0f, cc, cmax;
-    float A01, A11, r1, Js0, Js1, Js2, det, tr[3], tn[3], td[3], chi_b = 0.0f;
+    float A01, A11, r1, Js0, Js1, Js2, det, tr[3], tn[3], td[3];
     int i, q, active, blamed = -1, mark = -1, others, above = 0, stale, fin[3];
     int acquired, fitted, loo = 0, u0, u1, u2;
     uint32_t slot, jw, ph;
@@ -649,7 +649,6 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                         blamed = -1;
                     } else {
                         step = best_step;
-                        chi_b = best; /* the two channels' chi2 there, if it is excluded */
                         mark = blamed;
                     }
                 }
@@ -674,7 +673,12 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
             s->blamed_out = 1u;
             s->clean = 0.0f;
             w[blamed] = 0.0f;
-            chi = chi_b; /* the two channels' chi2 at the fitted angle */
+            chi = 0.0f; /* the two channels' chi2 at the fitted angle (recomputed: the closed
+                         * form cancels in float) */
+            for (i = 0; i < 3; i++) {
+                e = r[i] - J[i] * step;
+                chi += w[i] * e * e;
+            }
             s->blame_from = s->k + 1u; /* the blame ring and the window start again */
             s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0;
             s->window_from = s->k;
