@@ -79,11 +79,11 @@ def test_m4f_observer_agrees_with_python_within_1e_5_rad(observer_m4f):
 
 def test_m4f_observer_worst_case_cycles_update_and_read(observer_m4f):
     """Worst case over the adversarial set, ``update`` + ``read``: at most 1000 Cortex-M4
-    cycles (measured 986 on the paper bench in benchmarks/bench_observer_c.txt; 4282 per
+    cycles (984 on the paper bench, benchmarks/bench_observer_c.txt, at an exclusion; 4282 per
     normal sample and 28112 at an exclusion before the linearized step and the spread
-    adaptation of issue 26). The issue's budget of 600 is not met: the per-sample path alone
-    (one table look-up, the Gauss-Newton step, the window, the fault ring, the snapshot) costs
-    about 560, an outlier's common-gain test and fits without one channel about 400 more."""
+    adaptation). The issue's budget of 600 is not met: the per-sample path without the
+    adaptation's part costs about 600, the adaptation's part up to about 250, an outlier's tests
+    about 300 more (docs/firmware.md)."""
     cal, res, b, val = observer_m4f
     adv = observer_adversarial(val.d[:6000], cal.flux.theta[:, 0])
     cyc = ah.model_cycles(ah.trace_calls(b, adv, read=True), ah.CycleModel())
