@@ -27,6 +27,7 @@ _MARKERS = {
     "test_hostile.py": ("hostile", "slow"),
     "test_fuzz_setups.py": ("hostile", "slow"),
     "test_codegen_arm.py": ("arm", "slow"),
+    "test_codegen_observer_arm.py": ("arm", "slow"),
     "test_fleet.py": ("slow",),
     "test_readme.py": ("slow",),
     "test_real_ringjig.py": ("slow",),
