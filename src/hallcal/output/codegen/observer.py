@@ -122,7 +122,7 @@ def export_observer_c(
     """
     if not prefix.isidentifier() or not prefix.isascii():
         raise HallcalInputError(f"--prefix '{prefix}' is not a C identifier")
-    art = artifact if isinstance(artifact, ArtifactData) else validate_artifact(artifact, source)
+    art = validate_artifact(artifact, source)
     flux = art.flux()
     n = art.pole_pairs
     model = observer_model(flux, n, _noise(art.data, flux, n))
