@@ -27,7 +27,7 @@ from hypothesis import strategies as st
 
 import hallcal
 from hallcal.formatting import AngleUnit
-from hallcal.io import load_artifact, read_artifact, read_dataset, write_dataset
+from hallcal.io import read_artifact, read_dataset, write_dataset
 from hallcal.io.artifact import RENAMED_VALUES, migrate_values
 from hallcal.messages import Message, MessageCode, Severity, has_warning
 from hallcal.pipeline.calibration import CalibrationStatus
@@ -153,7 +153,7 @@ def test_an_artifact_written_by_the_previous_version_is_read():
     # written by `hallcal calibrate --force` of main 52b72d7 (harmonics = [11], lut_points 256)
     path = OLD_ARTIFACT
     assert '"status": "not-identifiable"' in path.read_text()  # the old spelling is in the file
-    art = load_artifact(path)
+    art = read_artifact(path)
     assert art.data["identifiability"]["status"] == "not_identifiable"
     assert art.data["identifiability"]["reason"] == "below_model_uncertainty"
     assert read_artifact(path)["identifiability"]["status"] == "not_identifiable"
