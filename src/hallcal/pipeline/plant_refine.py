@@ -51,7 +51,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2
 
 from hallcal.fit.cogging import CoggingSelection, select_cogging
 from hallcal.fit.sem import SEMResult, solve_sem
@@ -258,6 +257,8 @@ def refine_plant(
     deviations = par.deviations
     sigma2 = sem.noise_variance
     p = len(deviations)
+    from scipy.stats import chi2  # a BLA plant only (the import costs 0.2 s)
+
     bound = float(chi2.ppf(1.0 - DISAGREEMENT_RISK, p))
     prior = np.eye(p)
     gain = pm.gain.c * sem.gain
