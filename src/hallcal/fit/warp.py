@@ -323,15 +323,10 @@ def unwarp(
             it += 1
             g, gp = _curve(th, x + Bw @ c)
             F = np.fft.rfft(g, axis=0)[E + 1 : L + 1] / M  # (L - E, 3)
-            r = _real_coefficients(F)
-            Jc = np.fft.rfft(gp[:, None, :] * Bw[:, :, None], axis=0)[E + 1 : L + 1] / M
-            Jr = np.concatenate(
-                [(-2.0 * Jc.imag).transpose(0, 2, 1).reshape(-1, 2 * J),
-                 (2.0 * Jc.real).transpose(0, 2, 1).reshape(-1, 2 * J)]
-            )  # fmt: skip
-            A = Jr.T @ Jr
+            Gp = np.fft.fft(gp, axis=0) / M
+            A, grad = _warp_normal_equations(Gp, F, E, L, J)
             A[np.diag_indices_from(A)] += 1e-9 * max(float(np.trace(A)) / A.shape[0], 1e-300)
-            step = scipy.linalg.solve(A, -(Jr.T @ r), assume_a="pos", check_finite=False)
+            step = scipy.linalg.solve(A, -grad, assume_a="pos", check_finite=False)
             c = c + step
             if float(np.max(np.abs(step))) < tol:
                 status = UnwarpStatus.CONVERGED
@@ -346,6 +341,78 @@ def unwarp(
     flux = FluxModel(FourierBasis(tuple(range(1, E + 1))), theta)
     residual = float(r @ r) / view.coefficient_variance
     return Unwarp(E, c, flux, residual, 6 * (L - E) - 2 * J, it, status)
+
+
+def _warp_normal_equations(
+    Gp: NDArray, F: NDArray, E: int, L: int, J: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``Jr^T Jr`` and ``Jr^T r`` of :func:`unwarp`'s Gauss-Newton step without Jr.
+
+    Jr holds the coefficients E+1..L (sin and cos parts, three sensors) of ``gp(x) cos(j x)``
+    and ``gp(x) sin(j x)``, j = 1..J. With ``cos(j x) = (e^{ijx} + e^{-ijx}) / 2`` their
+    transforms are the transform of gp shifted by -+j: the columns are ``(lo_j + hi_j) / 2``
+    and ``-i (lo_j - hi_j) / 2`` with ``lo_j[k] = Gp[k - j]``, ``hi_j[k] = Gp[k + j]`` (exact for
+    the DFT on the grid), so every entry of ``Jr^T Jr = 4 Re(Jc^H Jc)`` is a sum over a window
+    of k of the lagged products ``q_l[m] = sum_h conj(Gp_h[m]) Gp_h[m + l]``: the difference
+    of two prefix sums of q_l. That is O(J (L - E + J)) work instead of the O((L - E) J^2)
+    of the product (measured: 644 x 644 from 3100 rows, 10 times per trial of
+    :func:`band_edge`, the larger part of its time). The prefix sums' rounding, about
+    ``1e-16`` of the largest partial sum, stays far below the step's relative ridge of 1e-9.
+
+    Parameters
+    ----------
+    Gp : ndarray (M, 3), complex
+        ``fft(gp, axis=0) / M`` of g' on the grid.
+    F : ndarray (L - E, 3), complex
+        The residual coefficients E+1..L (``rfft(g) / M``).
+    E, L, J : int
+        Band edge, view harmonics, warp harmonics (J + L < M).
+
+    Returns
+    -------
+    A : ndarray (2 J, 2 J)
+        ``Jr^T Jr`` (cos columns first, then sin, as the warp's coefficients).
+    grad : ndarray (2 J,)
+        ``Jr^T r`` with r the real coefficients of F.
+    """
+    M = Gp.shape[0]
+    j = np.arange(1, J + 1)
+    k = np.arange(E + 1, L + 1)
+    lo = Gp[(k[:, None] - j[None, :]) % M]  # (L - E, J, 3)
+    hi = Gp[(k[:, None] + j[None, :]) % M]
+    # Jr^T r = 4 Re(Jc^H F) for the columns (lo + hi) / 2 and -i (lo - hi) / 2
+    pl = np.einsum("kjh,kh->j", lo.conj(), F)
+    ph = np.einsum("kjh,kh->j", hi.conj(), F)
+    grad = np.concatenate([2.0 * (pl + ph).real, -2.0 * (pl - ph).imag])
+    # prefix sums of q_l[m] over m = E+1-J .. L+J, lags l = -(J-1) .. 2J
+    m0 = E + 1 - J
+    m = np.arange(m0, L + J + 1)
+    lags = np.arange(-(J - 1), 2 * J + 1)
+    Gt = np.ascontiguousarray(Gp.T)  # (3, M)
+    Gm = Gt[:, m % M].conj()
+    # row l of the lagged factor is Gp[m + l]: a sliding window over the periodic extension
+    ext = Gt[:, np.arange(m0 + lags[0], L + J + lags[-1] + 1) % M]
+    P = np.zeros((lags.size, m.size + 1), dtype=np.complex128)
+    for h in range(3):
+        P[:, 1:] += Gm[h][None, :] * np.lib.stride_tricks.sliding_window_view(ext[h], m.size)
+    np.cumsum(P[:, 1:], axis=1, out=P[:, 1:])
+
+    def window(lag: NDArray, a: NDArray, b: NDArray) -> NDArray:
+        """sum_{m=a}^{b} q_lag[m] (a, b inclusive, one row of bounds per j)."""
+        li = lag + (J - 1)
+        return P[li, b - m0 + 1] - P[li, a - m0]
+
+    jr, jc = j[:, None], j[None, :]
+    LL = window(jr - jc, E + 1 - jr, L - jr)  # conj(lo_j) . lo_j'
+    LH = window(jr + jc, E + 1 - jr, L - jr)  # conj(lo_j) . hi_j'
+    HH = window(jc - jr, E + 1 + jr, L + jr)  # conj(hi_j) . hi_j'
+    HL = LH.conj().T  # conj(hi_j) . lo_j'
+    A = np.empty((2 * J, 2 * J))
+    A[:J, :J] = (LL + LH + HL + HH).real
+    A[:J, J:] = (LL - LH + HL - HH).imag
+    A[J:, :J] = A[:J, J:].T
+    A[J:, J:] = (LL - LH - HL + HH).real
+    return A, grad
 
 
 # ================================================================================================
