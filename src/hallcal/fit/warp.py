@@ -120,11 +120,24 @@ def f_init_view(y: ArrayLike, d: ArrayLike, *, harmonics: int, noise_variance: f
     if L < 1:
         raise ValueError("harmonics must be >= 1")
     M, Btd, _ = regression_normal_equations(y, d, np.arange(1, L + 1))
+    return _view_from_normal_equations(M, Btd, noise_variance)
+
+
+def _view_from_normal_equations(M: NDArray, Btd: NDArray, noise_variance: float) -> FInitView:
+    """:func:`f_init_view` from its normal equations on 1..L. Those of 1..L' < L are their
+    leading ``2 L' + 1`` rows and columns (the same moments, bit for bit): a narrower view
+    needs no second pass over the samples."""
+    L = (M.shape[0] - 1) // 2
     with threadpool_limits(limits=1, user_api="blas"):
         try:
             cf = scipy.linalg.cho_factor(M, check_finite=False)
             theta = scipy.linalg.cho_solve(cf, Btd, check_finite=False).T
-            Minv_diag = np.diag(scipy.linalg.cho_solve(cf, np.eye(M.shape[0]), check_finite=False))
+            # diag(M^-1): the squared column norms of U^-1 (M = U^T U), p^3 / 3 work
+            Ui, info = scipy.linalg.lapack.dtrtri(np.triu(cf[0]) if not cf[1] else
+                                                  np.tril(cf[0]).T, lower=False)  # fmt: skip
+            if info != 0:
+                raise np.linalg.LinAlgError("singular normal equations")
+            Minv_diag = np.sum(Ui * Ui, axis=1)
         except np.linalg.LinAlgError as exc:
             raise ValueError(
                 f"the f_init angle does not cover enough of a revolution to resolve {L} harmonics"
@@ -343,6 +356,44 @@ def unwarp(
     return Unwarp(E, c, flux, residual, 6 * (L - E) - 2 * J, it, status)
 
 
+@nb.njit(cache=True, nogil=True)
+def _lag_prefix(gc, ext, nl):  # pragma: no cover - numba
+    """P[l, t] = sum_{i < t} sum_h gc[h, i] ext[h, i + l]: prefix sums of the lagged products
+    (gc: the conjugated factor (3, T); ext: (3, T + nl - 1))."""
+    T = gc.shape[1]
+    P = np.zeros((nl, T + 1), dtype=np.complex128)
+    for li in range(nl):
+        acc = 0.0j
+        for i in range(T):
+            acc += gc[0, i] * ext[0, i + li] + gc[1, i] * ext[1, i + li] + gc[2, i] * ext[2, i + li]
+            P[li, i + 1] = acc
+    return P
+
+
+@nb.njit(cache=True, nogil=True)
+def _shifted_products(Gt, Ft, E, J):  # pragma: no cover - numba
+    """pl[j] = sum_{k, h} conj(Gt[h, k - j]) Ft[h, k], ph[j] the same at k + j (k = E+1..L,
+    indices modulo M): ``lo_j^H F`` and ``hi_j^H F`` of :func:`_warp_normal_equations`."""
+    M = Gt.shape[1]
+    K = Ft.shape[1]
+    pl = np.zeros(J, dtype=np.complex128)
+    ph = np.zeros(J, dtype=np.complex128)
+    for jj in range(J):
+        j = jj + 1
+        a = 0.0j
+        b = 0.0j
+        for i in range(K):
+            k = E + 1 + i
+            lo = (k - j) % M
+            hi = (k + j) % M
+            for h in range(3):
+                a += Gt[h, lo].conjugate() * Ft[h, i]
+                b += Gt[h, hi].conjugate() * Ft[h, i]
+        pl[jj] = a
+        ph[jj] = b
+    return pl, ph
+
+
 def _warp_normal_equations(
     Gp: NDArray, F: NDArray, E: int, L: int, J: int
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -377,25 +428,17 @@ def _warp_normal_equations(
     """
     M = Gp.shape[0]
     j = np.arange(1, J + 1)
-    k = np.arange(E + 1, L + 1)
-    lo = Gp[(k[:, None] - j[None, :]) % M]  # (L - E, J, 3)
-    hi = Gp[(k[:, None] + j[None, :]) % M]
+    Gt = np.ascontiguousarray(Gp.T)  # (3, M)
     # Jr^T r = 4 Re(Jc^H F) for the columns (lo + hi) / 2 and -i (lo - hi) / 2
-    pl = np.einsum("kjh,kh->j", lo.conj(), F)
-    ph = np.einsum("kjh,kh->j", hi.conj(), F)
+    pl, ph = _shifted_products(Gt, np.ascontiguousarray(F.T), E, J)
     grad = np.concatenate([2.0 * (pl + ph).real, -2.0 * (pl - ph).imag])
     # prefix sums of q_l[m] over m = E+1-J .. L+J, lags l = -(J-1) .. 2J
     m0 = E + 1 - J
     m = np.arange(m0, L + J + 1)
     lags = np.arange(-(J - 1), 2 * J + 1)
-    Gt = np.ascontiguousarray(Gp.T)  # (3, M)
-    Gm = Gt[:, m % M].conj()
-    # row l of the lagged factor is Gp[m + l]: a sliding window over the periodic extension
-    ext = Gt[:, np.arange(m0 + lags[0], L + J + lags[-1] + 1) % M]
-    P = np.zeros((lags.size, m.size + 1), dtype=np.complex128)
-    for h in range(3):
-        P[:, 1:] += Gm[h][None, :] * np.lib.stride_tricks.sliding_window_view(ext[h], m.size)
-    np.cumsum(P[:, 1:], axis=1, out=P[:, 1:])
+    # lag l's factor Gp[m + l] is a window of the periodic extension starting at lags[0]
+    ext = np.ascontiguousarray(Gt[:, np.arange(m0 + lags[0], L + J + lags[-1] + 1) % M])
+    P = _lag_prefix(np.ascontiguousarray(Gt[:, m % M].conj()), ext, lags.size)
 
     def window(lag: NDArray, a: NDArray, b: NDArray) -> NDArray:
         """sum_{m=a}^{b} q_lag[m] (a, b inclusive, one row of bounds per j)."""
@@ -545,19 +588,20 @@ def band_edge(
         return _too_short(yy, d, n, noise_variance, t0)
     # a view needs a few samples per coefficient (1 + 2 L < N / 8)
     L0 = min(32 * n, max(yy.size // 16, n + 1))
+    Lp = L0 if view_harmonics is None else int(view_harmonics)
     try:
-        if view_harmonics is None:
-            probe = f_init_view(y, d, harmonics=L0, noise_variance=noise_variance)
-        else:
-            probe = f_init_view(y, d, harmonics=int(view_harmonics), noise_variance=noise_variance)
+        normal, rhs, _ = regression_normal_equations(y, d, np.arange(1, Lp + 1))
+        probe = _view_from_normal_equations(normal, rhs, noise_variance)
     except ValueError:  # the angle does not cover the view's harmonics well enough
         return _too_short(yy, d, n, noise_variance, t0)
     view = probe
     if view_harmonics is None:
         amp, std = probe.amplitude(), math.sqrt(probe.coefficient_variance)
         L = min(max(_view_band(amp, std, pole_pairs=n), top + 2 * n), L0)
-        if L < 0.75 * L0:  # refit only when it saves much (the regression costs O(N L))
-            view = f_init_view(y, d, harmonics=L, noise_variance=noise_variance)
+        if L < 0.75 * L0:  # a narrower view: the leading block of the probe's equations
+            view = _view_from_normal_equations(
+                normal[: 2 * L + 1, : 2 * L + 1], rhs[: 2 * L + 1], noise_variance
+            )
     L = view.harmonics
     top = max(min(top, L - 1), n)
     J = max(L // 2, 1)
