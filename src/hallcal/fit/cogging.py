@@ -433,13 +433,19 @@ def _fit(
     *,
     fit_gain: bool,
     max_iterations: int,
+    covariance: str = "moved",
 ) -> SEMResult:
-    """SEM with the start's flux (and gain) and cogging at ``orders`` (start: zero torque)."""
+    """SEM with the start's flux (and gain) and cogging at ``orders`` (start: zero torque).
+
+    In the search, a fit that takes no step keeps the torque at zero (every order's statistic
+    is zero and the fit is not kept): its covariance then comes from the iterations' system,
+    without a pass for the exact one (``covariance="moved"``, :func:`~hallcal.fit.sem.solve_sem`).
+    """
     return solve_sem(
         loop, r, d, start.flux.basis, theta0=start.flux.theta, fit_gain=fit_gain,
         gain0=start.gain if fit_gain else 1.0,
         cogging=CoggingTorque(orders, np.zeros(len(orders)), np.zeros(len(orders))),
-        max_iterations=max_iterations,
+        max_iterations=max_iterations, covariance=covariance,
     )  # fmt: skip
 
 
@@ -490,7 +496,8 @@ def select_cogging(
         return CoggingSelection(CoggingStatus.OFF, (), None, sem, message="cogging: not modelled")
     if orders != "auto":
         given = tuple(int(k) for k in orders)
-        joint = _fit(loop, rr, dd, sem, given, fit_gain=fit_gain, max_iterations=max_iterations)
+        joint = _fit(loop, rr, dd, sem, given, fit_gain=fit_gain, max_iterations=max_iterations,
+                     covariance="exact")  # fmt: skip
         return CoggingSelection(
             CoggingStatus.GIVEN, given, joint.cogging, joint, None,
             order_tests(joint, significance=significance), _describe(joint.cogging, "given"),

@@ -308,16 +308,12 @@ def _posterior(G: NDArray, b: NDArray, alpha_j: NDArray, s2: float) -> _Posterio
     ia = np.nonzero(np.isfinite(alpha_j))[0]
     H = G[np.ix_(ia, ia)] / s2
     H[np.diag_indices_from(H)] += alpha_j[ia]
-    # Sigma from the Cholesky factor by LAPACK's potri (p^3 multiply-adds in all, against
-    # 1.8 p^3 for a triangular solve on the identity and the product of its transpose)
-    c, info = scipy.linalg.lapack.dpotrf(H, lower=True, clean=True)
-    if info != 0:
+    try:
+        L = scipy.linalg.cholesky(H, lower=True, check_finite=False)
+    except np.linalg.LinAlgError:
         return None
-    L = c
-    inv, info = scipy.linalg.lapack.dpotri(c, lower=True)
-    if info != 0:
-        return None
-    sigma = np.tril(inv) + np.tril(inv, -1).T
+    Li = scipy.linalg.solve_triangular(L, np.eye(ia.size), lower=True, check_finite=False)
+    sigma = Li.T @ Li
     mean = sigma @ b[ia] / s2
     gamma_j = np.clip(1.0 - alpha_j[ia] * np.diag(sigma), 0.0, 1.0)
     return _Posterior(ia, sigma, mean, gamma_j, 2.0 * float(np.sum(np.log(np.diag(L)))))
