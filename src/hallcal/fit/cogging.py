@@ -444,9 +444,16 @@ def _fit(
     *,
     fit_gain: bool,
     max_iterations: int,
+    covariance: str = "moved",
 ) -> SEMResult:
     """SEM with the start's flux (and gain) and cogging at ``orders``, each order's coefficients
-    from the start's torque where it has them (zero otherwise)."""
+    from the start's torque where it has them (zero otherwise).
+
+    In the search, a fit from a zero torque that takes no step keeps it at zero (every order's
+    statistic is zero and the fit is not kept): its covariance then comes from the iterations'
+    system, without a pass for the exact one (``covariance="moved"``,
+    :func:`~hallcal.fit.sem.solve_sem`); a warm start always gets the exact one.
+    """
     known = start.cogging
     a, b = np.zeros(len(orders)), np.zeros(len(orders))
     if known is not None:
@@ -454,10 +461,11 @@ def _fit(
             if k in known.orders:
                 j = known.orders.index(k)
                 a[i], b[i] = known.a[j], known.b[j]
+    warm = bool(np.any(a) or np.any(b))
     return solve_sem(
         loop, r, d, start.flux.basis, theta0=start.flux.theta, fit_gain=fit_gain,
         gain0=start.gain if fit_gain else 1.0, cogging=CoggingTorque(orders, a, b),
-        max_iterations=max_iterations,
+        max_iterations=max_iterations, covariance="exact" if warm else covariance,
     )  # fmt: skip
 
 
@@ -535,7 +543,8 @@ def select_cogging(
         return CoggingSelection(CoggingStatus.OFF, (), None, sem, message="cogging: not modelled")
     if orders != "auto":
         given = tuple(int(k) for k in orders)
-        joint = _fit(loop, rr, dd, sem, given, fit_gain=fit_gain, max_iterations=max_iterations)
+        joint = _fit(loop, rr, dd, sem, given, fit_gain=fit_gain, max_iterations=max_iterations,
+                     covariance="exact")  # fmt: skip
         return CoggingSelection(
             CoggingStatus.GIVEN, given, joint.cogging, joint, None,
             order_tests(joint, significance=significance), _describe(joint.cogging, "given"),

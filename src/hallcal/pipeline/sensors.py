@@ -221,9 +221,10 @@ def for_choice(
     assert found.drift is not None
     say(progress, "the sensors' drift (SEM on 1..3 n_m)")
     K = max(pole_pairs, min(3 * pole_pairs, MAX_IMPUTATION_HARMONICS))
+    # only its drift is used: no exact system for a covariance
     sem = solve_sem(loop, r, d, FourierBasis(tuple(range(1, K + 1))), y=y,
                     weights=found.weights, fit_drift=True, drift0=_drift0(found.drift),
-                    max_iterations=5)  # fmt: skip
+                    max_iterations=5, covariance="iterations")  # fmt: skip
     report = found.drift
     if sem.drift is not None and np.all(np.isfinite(sem.drift)):
         report = replace(report, gain=sem.drift[:, 0], offset=sem.drift[:, 1])
