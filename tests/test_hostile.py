@@ -22,6 +22,7 @@ subcommand also runs as a real ``python -m hallcal.cli`` subprocess under the sa
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import re
@@ -168,8 +169,13 @@ def _run_workers(cases: list[dict[str, Any]], d: Path) -> dict[str, dict[str, An
     return results
 
 
-def _macros(path: Path | None) -> set[str]:
-    """Names of the macros defined at the end of preprocessing `path` (None: stdint.h alone)."""
+@functools.cache
+def _macros(path: Path | None) -> frozenset[str]:
+    """Names of the macros defined at the end of preprocessing `path` (None: stdint.h alone).
+
+    Cached: the compiler's and <stdint.h>'s own macros (``path`` None) are the same for every
+    generated file; each case's files have paths of their own, so those are preprocessed once.
+    """
     source = ["-x", "c", str(path)] if path is not None else ["-x", "c", "-"]
     res = subprocess.run(
         [CC, "-std=c99", "-dM", "-E", *source],
@@ -178,7 +184,9 @@ def _macros(path: Path | None) -> set[str]:
         text=True,
         timeout=60,
     )
-    return {ln.split()[1].split("(")[0] for ln in res.stdout.splitlines() if ln.startswith("#")}
+    return frozenset(
+        ln.split()[1].split("(")[0] for ln in res.stdout.splitlines() if ln.startswith("#")
+    )
 
 
 def _c_symbols(path: Path) -> tuple[bool, str, set[str], set[str]]:
