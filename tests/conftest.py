@@ -63,6 +63,29 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(getattr(pytest.mark, name))
 
 
+def _hostile_module(session: pytest.Session) -> Any:
+    """tests/test_hostile.py's module when this session runs any of its tests, else None."""
+    for item in session.items:
+        if item.path.name == "test_hostile.py" and isinstance(item, pytest.Function):
+            return item.module
+    return None
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """The hostile cases start in the background as soon as the tests are known: their two
+    worker processes use the core the one-at-a-time suite leaves idle (tests/test_hostile.py,
+    ``start_in_background``)."""
+    module = _hostile_module(session)
+    if module is not None and not session.config.option.collectonly:
+        module.start_in_background(session)
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    module = _hostile_module(session)
+    if module is not None:
+        module.stop_background(session)
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]):  # type: ignore[no-untyped-def]
     """On CI (``HALLCAL_REQUIRE_TOOLS=1``, set by .ci/run) a skip is a failure.
