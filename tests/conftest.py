@@ -57,6 +57,24 @@ def weak_bench() -> tuple[Any, Any, Any, Any]:
     return cfg, run, sem, build_lut(sem.flux, 7)
 
 
+@pytest.fixture(scope="session")
+def demo_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Any, Any]:
+    """The demo's study (``run_demo(..., report=False)``: BLA, calibration and validation runs,
+    Algorithm 1; about 15 s) once per session for test_plots_report.py and test_codegen_arm.py.
+    Read-only: a module writes its own outputs into a folder of its own.
+
+    Returns
+    -------
+    tuple
+        ``(folder, DemoResult)``: the folder holds calibration.json, validation.npz and the
+        other files of the demo.
+    """
+    from hallcal.demo import run_demo
+
+    out = tmp_path_factory.mktemp("demo")
+    return out, run_demo(out, report=False)
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
         for name in _MARKERS.get(item.path.name, ()):
