@@ -12,10 +12,12 @@ asserted (timings belong in ``benchmarks/``).
 
 How they run: interpreter start-up costs about a second per command, so the cases run in two
 worker processes (:mod:`hostile_worker`) that call the command line in-process, one case after
-the other. The workers run under an address-space limit (``RLIMIT_AS`` = 2 GiB: a case that
-allocates more fails with MemoryError) and a watchdog ends a worker whose case hangs (over
-120 s, far above any case's run time even on a loaded machine: the case fails as a hang; the
-worker restarts with the next one). A sample of cases per
+the other. They start as soon as the session's tests are collected (a driver process, see
+:func:`start_in_background`): the suite runs its other tests one at a time, and the workers use
+the core that leaves idle. The workers run under an address-space limit (``RLIMIT_AS`` =
+2 GiB: a case that allocates more fails with MemoryError) and a watchdog ends a worker whose
+case hangs (over 120 s, far above any case's run time even on a loaded machine: the case fails
+as a hang; the worker restarts with the next one). A sample of cases per
 subcommand also runs as a real ``python -m hallcal.cli`` subprocess under the same limits. With
 ``-k``, only the selected cases are built and run.
 """
