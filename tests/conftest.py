@@ -81,26 +81,30 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(getattr(pytest.mark, name))
 
 
-def _hostile_module(session: pytest.Session) -> Any:
-    """tests/test_hostile.py's module when this session runs any of its tests, else None."""
+def _background_modules(session: pytest.Session) -> list[Any]:
+    """The test modules of this session that run their work in the background: those that
+    define ``start_in_background`` and ``stop_background`` (tests/test_hostile.py,
+    tests/test_fuzz_setups.py)."""
+    modules: list[Any] = []
     for item in session.items:
-        if item.path.name == "test_hostile.py" and isinstance(item, pytest.Function):
-            return item.module
-    return None
+        module = getattr(item, "module", None)
+        if hasattr(module, "start_in_background") and module not in modules:
+            modules.append(module)
+    return modules
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
-    """The hostile cases start in the background as soon as the tests are known: their two
-    worker processes use the core the one-at-a-time suite leaves idle (tests/test_hostile.py,
-    ``start_in_background``)."""
-    module = _hostile_module(session)
-    if module is not None and not session.config.option.collectonly:
+    """The hostile cases and the setup fuzz start in the background as soon as the tests are
+    known: their processes use the core the one-at-a-time suite leaves idle; their tests wait
+    for them and check what they found."""
+    if session.config.option.collectonly:
+        return
+    for module in _background_modules(session):
         module.start_in_background(session)
 
 
 def pytest_sessionfinish(session: pytest.Session) -> None:
-    module = _hostile_module(session)
-    if module is not None:
+    for module in _background_modules(session):
         module.stop_background(session)
 
 
