@@ -59,17 +59,16 @@ RINGJIG = [_ringjig_dir() / f"hall_calibration_one_rotation_{i}.txt" for i in (1
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory):
-    """The demo's calibration and validation run, exported (float and fixed point)."""
-    from hallcal.demo import run_demo
-
-    out = tmp_path_factory.mktemp("demo")
-    run_demo(out, report=False)
+def demo(demo_run, tmp_path_factory):
+    """The demo's calibration and validation run (conftest: one run_demo per session),
+    exported (float and fixed point) into this module's own folder."""
+    out, _ = demo_run
     art = read_artifact(out / "calibration.json")
-    gen = out / "fw"
+    work = tmp_path_factory.mktemp("demo_arm")
+    gen = work / "fw"
     res = export_c(_lean(art), gen, source="calibration.json", adc_scale=DEMO_ADC_SCALE)
     val = read_dataset(out / "validation.npz")
-    return {"art": art, "gen": gen, "res": res, "d": val.d, "y_ref": val["y_ref"], "dir": out}
+    return {"art": art, "gen": gen, "res": res, "d": val.d, "y_ref": val["y_ref"], "dir": work}
 
 
 def _lean(art: dict) -> dict:

@@ -1,7 +1,7 @@
 """Figures and the HTML report: the paper's figure kinds, a self-contained report that
 headless Chromium renders with every figure loaded, and ``hallcal report`` on the command line.
 
-The demo's objects are computed once per module (``run_demo(..., report=False)``, about 15 s);
+The demo's objects are computed once per session (conftest ``demo_run``, about 15 s);
 every test then only plots or writes.
 """
 
@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 from matplotlib.figure import Figure
 
-from hallcal.demo import run_demo
 from hallcal.errors import HallcalInputError
 from hallcal.io import Dataset, read_dataset, validate_artifact, write_dataset
 from hallcal.output import plots
@@ -36,8 +35,8 @@ DEMO_FIGURES = ("ripple", "hall_model", "angle_error", "spectrum", "bla", "sem_c
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory):
-    return run_demo(tmp_path_factory.mktemp("demo"), report=False)
+def demo(demo_run):
+    return demo_run[1]  # conftest: one run_demo per session
 
 
 @pytest.fixture(scope="module")
