@@ -766,6 +766,19 @@ def angle_error_gradient(
     ``eta = y0 - f_init(g_theta(y0))`` (eq. recon_biject), so ``d eta / d theta = -(1/n_m)
     d psi/d d . (I_3 kron beta(y0))``; the rows of :func:`predicted_angle_error`.
 
+    Parameters
+    ----------
+    flux : FluxModel
+        g_theta.
+    pole_pairs : int
+        n_m.
+    projection : array_like (2, 3), keyword-only
+        Clarke's projection of f_init.
+    offset : array_like (3,), keyword-only
+        Sensor offsets removed before it.
+    points : int, keyword-only
+        Grid points over the revolution.
+
     Returns
     -------
     ndarray (points, 3 m)

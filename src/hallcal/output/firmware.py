@@ -316,6 +316,17 @@ def cogging_table(
     ``cogging`` is the artifact's ``"cogging"`` entry as :func:`hallcal.io.validate_artifact`
     checks it (distinct orders >= 0, one ``a`` and ``b`` per order).
 
+    Parameters
+    ----------
+    cogging : mapping
+        The artifact's ``"cogging"`` entry.
+    source : str, keyword-only
+        Name of the artifact for error messages.
+
+    Returns
+    -------
+    CoggingTable
+
     Raises
     ------
     HallcalInputError

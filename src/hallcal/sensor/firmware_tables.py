@@ -133,6 +133,18 @@ def table_error(table: CorrectionTable, lut: LUT) -> tuple[float, float]:
 
     On every piece between consecutive breakpoints of both, the difference is a quadratic: its
     largest magnitude is at an end or at its vertex, which are all evaluated.
+
+    Parameters
+    ----------
+    table : CorrectionTable
+        The firmware's table.
+    lut : LUT
+        The artifact's table (the reference).
+
+    Returns
+    -------
+    (float, float)
+        Largest and RMS difference [rad].
     """
     m = table.points
     xb, _ = _reference_breaks(lut)
@@ -263,7 +275,19 @@ def choose_table(lut: LUT, budget: float) -> CorrectionTable:
     fewest estimated cycles (:data:`TABLE_EVAL_CYCLES`: linear, one load and a multiply-add
     less per sample, whenever one fits), the smaller one between equals; when none fits in the
     bytes, the smallest quadratic table within the budget (or the closest to it), each size
-    ascending from 256."""
+    ascending from 256.
+
+    Parameters
+    ----------
+    lut : LUT
+        The artifact's table (the reference).
+    budget : float
+        Largest difference to it the table may have [rad].
+
+    Returns
+    -------
+    CorrectionTable
+    """
     sizes = [m for m in table_sizes(lut.pole_pairs) if m >= min(256, MAX_TABLE_POINTS)]
     fitting: list[CorrectionTable] = []
     for quadratic in (False, True):
@@ -294,7 +318,18 @@ def choose_table(lut: LUT, budget: float) -> CorrectionTable:
 
 
 def reciprocal_seed(lo: float, hi: float) -> tuple[float, float, float]:
-    """Linear minimax seed ``c0 - c1 x`` of 1/x on [lo, hi] (relative error) and that error."""
+    """Linear minimax seed ``c0 - c1 x`` of 1/x on [lo, hi] (relative error) and that error.
+
+    Parameters
+    ----------
+    lo, hi : float
+        The window of x, 0 < lo < hi.
+
+    Returns
+    -------
+    (float, float, float)
+        c0, c1 and the largest relative error.
+    """
     c1 = 8.0 / (4.0 * lo * hi + (lo + hi) ** 2)
     c0 = c1 * (lo + hi)
     return c0, c1, abs(1.0 - c1 * lo * hi)
@@ -304,7 +339,18 @@ def rsqrt_seed(lo: float, hi: float) -> tuple[float, float, float]:
     """Linear minimax seed ``c0 - c1 x`` of 1/sqrt(x) on [lo, hi] (relative error) and that
     error. The error ``sqrt(x) (c0 - c1 x) - 1`` equioscillates at lo, hi and its maximum
     ``x* = c0 / (3 c1)``: equal values at the ends give ``c0 / c1 = lo + sqrt(lo hi) + hi``,
-    opposite ones at an end and at x* fix c1."""
+    opposite ones at an end and at x* fix c1.
+
+    Parameters
+    ----------
+    lo, hi : float
+        The window of x, 0 < lo < hi.
+
+    Returns
+    -------
+    (float, float, float)
+        c0, c1 and the largest relative error.
+    """
     ratio = lo + math.sqrt(lo * hi) + hi
     xs = ratio / 3.0
     c1 = 2.0 / (math.sqrt(lo) * (ratio - lo) + 2.0 * xs**1.5)
@@ -314,7 +360,18 @@ def rsqrt_seed(lo: float, hi: float) -> tuple[float, float, float]:
 def exp2_poly(target: float = 2.0**-24) -> tuple[NDArray[np.float64], float]:
     """Polynomial of 2^-f on [0, 1] (ascending powers) with the fewest terms whose relative error
     is within ``target``: Chebyshev interpolation (within a factor 2 of minimax), the error
-    measured on a dense grid."""
+    measured on a dense grid.
+
+    Parameters
+    ----------
+    target : float
+        Largest relative error allowed (default single precision, 2^-24).
+
+    Returns
+    -------
+    (ndarray, float)
+        Coefficients in ascending powers of f, and the measured largest relative error.
+    """
     from numpy.polynomial import Chebyshev
 
     x = np.linspace(0.0, 1.0, 100_001)
@@ -330,7 +387,22 @@ def exp2_poly(target: float = 2.0**-24) -> tuple[NDArray[np.float64], float]:
 
 def newton_steps(e0: float, square: float, limit: int = 6) -> tuple[int, float]:
     """Newton steps from a relative error e0 until below single precision; each step takes e to
-    ``square e^2`` (plus the cube term for the reciprocal square root, covered by ``square``)."""
+    ``square e^2`` (plus the cube term for the reciprocal square root, covered by ``square``).
+
+    Parameters
+    ----------
+    e0 : float
+        Relative error of the seed.
+    square : float
+        Factor of e^2 per step (1 for 1/x, 1.5 + e0 for 1/sqrt(x)).
+    limit : int
+        Most steps.
+
+    Returns
+    -------
+    (int, float)
+        Steps and the relative error after them.
+    """
     steps, e = 0, e0
     while e > F32_TARGET and steps < limit:
         e = square * e * e
@@ -341,7 +413,22 @@ def newton_steps(e0: float, square: float, limit: int = 6) -> tuple[int, float]:
 def tangent_range(dec: PowerUpDecoder, sigma: float, A, B, C) -> tuple[float, float]:
     """Smallest and largest tt = t' S t (sigma units) over all table positions: 16 points per
     interval and both ends (tt is smooth within an interval: a quadratic in the fraction times
-    trigonometric terms of the angle, which moves by 2 pi / L over it)."""
+    trigonometric terms of the angle, which moves by 2 pi / L over it).
+
+    Parameters
+    ----------
+    dec : PowerUpDecoder
+        The decoder (tables R, Z on its grid).
+    sigma : float
+        Noise sigma the lengths are divided by (artifact unit).
+    A, B, C :
+        The metric's Gram terms in sigma units (2 x 2, 2, scalar).
+
+    Returns
+    -------
+    (float, float)
+        Smallest and largest tt.
+    """
     L, M = dec.grid, dec.table_size
     R = dec.radius / sigma
     Z = dec.zero / sigma

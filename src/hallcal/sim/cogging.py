@@ -290,6 +290,15 @@ def tabulate(torque: CoggingTorque) -> CoggingTable:
     single-precision arithmetic) at 16 points per interval (dense enough for a cubic's error
     curve); the map on uniform grids comes from an inverse FFT.
 
+    Parameters
+    ----------
+    torque : CoggingTorque
+        The map T_c(y0).
+
+    Returns
+    -------
+    CoggingTable
+
     Raises
     ------
     ValueError
