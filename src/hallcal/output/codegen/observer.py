@@ -370,11 +370,12 @@ static float gn(float srr, float num, float den, float *chi)
 }
 
 /* the start: the best of NA table nodes within half a pole pitch of y0 */
-NOINLINE static float acquire(const @p@_state *s, const float d[3], const float w[3], float y0)
+NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, float w0,
+                              float w1, float w2, float y0)
 {
     const float a0 = s->a[0], a1 = s->a[1], a2 = s->a[2];
-    const float e0 = d[0] - s->b[0] + a0 * C0[0], e1 = d[1] - s->b[1] + a1 * C0[1];
-    const float e2 = d[2] - s->b[2] + a2 * C0[2];
+    const float e0 = d0 - s->b[0] + a0 * C0[0], e1 = d1 - s->b[1] + a1 * C0[1];
+    const float e2 = d2 - s->b[2] + a2 * C0[2];
     float best = 3.0e38f, c, r0, r1, r2, u = y0 * INVH + 0.5f;
     const float *p;
     int32_t j0 = (int32_t)u, j, bj;
@@ -389,7 +390,7 @@ NOINLINE static float acquire(const @p@_state *s, const float d[3], const float 
         r0 = e0 - a0 * p[0];
         r1 = e1 - a1 * p[1];
         r2 = e2 - a2 * p[2];
-        c = w[0] * r0 * r0 + w[1] * r1 * r1 + w[2] * r2 * r2;
+        c = w0 * r0 * r0 + w1 * r1 * r1 + w2 * r2 * r2;
         if (c < best) {
             best = c;
             bj = j;
@@ -402,28 +403,19 @@ NOINLINE static float acquire(const @p@_state *s, const float d[3], const float 
  * on samples without the fits of the outlier test): 0 the sample's regressors, 1..6 one row of
  * the information H (upper triangle), 7..12 one column of its L D L^T, 13 L z = gr,
  * 14 D L^T x = z, 15 the bounded update. */
-NOINLINE static void measure(@p@_state *s, const float f[3], const float dg[3], const float r[3],
-                    const float J[3], const float w[3], float step, float den, float x)
-{
-    float fy, ry, u;
-    int i;
-    x = x < 1.0f ? x : 1.0f;
-    s->lam = 1.0f - x + 0.5f * x * x - x * x * x * (1.0f / 6.0f);
-    s->t = (float)CYCLE / den;
-    for (i = 0; i < 3; i++) {
-        fy = f[i] + dg[i] * step;
-        ry = r[i] - J[i] * step;
-        u = (float)CYCLE * w[i];
-        s->fy[i] = fy;
-        s->u[i] = u;
-        s->qv[2 * i] = w[i] * fy * J[i];
-        s->qv[2 * i + 1] = w[i] * J[i];
-        s->gr[2 * i] = u * fy * ry;
-        s->gr[2 * i + 1] = u * ry;
-        s->wm[i] = w[i];
-    }
-    s->pending = 1u;
-}
+/* the cycle's sample, channel i (in update: f, dg, r, J, w, step of the sample) */
+#define MEASURE(i, fi, gi, ri, Ji, wi)                                                         \
+    do {                                                                                   \
+        const float fy_ = (fi) + (gi) * step, ry_ = (ri) - (Ji) * step;                    \
+        const float u_ = (float)CYCLE * (wi);                                              \
+        s->fy[i] = fy_;                                                                    \
+        s->u[i] = u_;                                                                      \
+        s->qv[2 * (i)] = (wi) * fy_ * (Ji);                                                \
+        s->qv[2 * (i) + 1] = (wi) * (Ji);                                                  \
+        s->gr[2 * (i)] = u_ * fy_ * ry_;                                                   \
+        s->gr[2 * (i) + 1] = u_ * ry_;                                                     \
+        s->wm[i] = (wi);                                                                   \
+    } while (0)
 
 NOINLINE static void row(@p@_state *s, int p)
 {
@@ -562,89 +554,110 @@ uint8_t @p@_set_angle(@p@_state *s, int32_t revolutions, float angle)
     return 0u;
 }
 
+/* one of three values by a channel index (no local array is indexed: they stay in registers) */
+#define SEL(i, x0, x1, x2) ((i) == 0 ? (x0) : ((i) == 1 ? (x1) : (x2)))
+
 uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
 {
-    float d[3], w[3], f[3], dg[3], r[3], J[3], yp, y, step = 0.0f, chi = 0.0f, srr = 0.0f;
-    float num = 0.0f, den = 0.0f, best, best_step, cq, sq, e, travel, mf = 0.0f, cc, cmax;
-    float A01, A11, r1, Js0, Js1, Js2, det, tr[3], tn[3], td[3];
-    int i, q, active, blamed = -1, mark = -1, others, above = 0, stale, fin[3];
-    int acquired, fitted, loo = 0, u0, u1, u2;
+    float w0, w1, w2, f0 = 0.0f, f1 = 0.0f, f2 = 0.0f, g0 = 0.0f, g1 = 0.0f, g2 = 0.0f;
+    float r0 = 0.0f, r1 = 0.0f, r2 = 0.0f, J0 = 0.0f, J1 = 0.0f, J2 = 0.0f, tr0, tr1, tr2;
+    float tn0, tn1, tn2, td0, td1, td2, f[3], dg[3], yp, y, step = 0.0f, chi = 0.0f;
+    float srr = 0.0f, num = 0.0f, den = 0.0f, best, best_step, cq, sq, e, travel, mf = 0.0f;
+    float cc, cmax, A01, A11, rs, Js0, Js1, Js2, det, x;
+    int active, blamed = -1, mark = -1, others, above = 0, stale, acquired, fitted, loo = 0;
+    int fin0, fin1, fin2, u0, u1, u2, i;
     uint32_t slot, jw, ph;
     int8_t old;
-    fin[0] = FIN(d1);
-    fin[1] = FIN(d2);
-    fin[2] = FIN(d3);
-    d[0] = fin[0] ? d1 : 0.0f;
-    d[1] = fin[1] ? d2 : 0.0f;
-    d[2] = fin[2] ? d3 : 0.0f;
-    if (!(fin[0] && fin[1] && fin[2]) && s->excluded < 0) { /* a disconnected channel */
-        s->excluded = (int8_t)(!fin[0] ? 0 : (!fin[1] ? 1 : 2));
+    fin0 = FIN(d1);
+    fin1 = FIN(d2);
+    fin2 = FIN(d3);
+    d1 = fin0 ? d1 : 0.0f;
+    d2 = fin1 ? d2 : 0.0f;
+    d3 = fin2 ? d3 : 0.0f;
+    if (!(fin0 && fin1 && fin2) && s->excluded < 0) { /* a disconnected channel */
+        s->excluded = (int8_t)(!fin0 ? 0 : (!fin1 ? 1 : 2));
         s->blamed_out = 0u;
         s->clean = 0.0f;
     }
-    u0 = s->excluded != 0 && fin[0];
-    u1 = s->excluded != 1 && fin[1];
-    u2 = s->excluded != 2 && fin[2];
-    w[0] = W0[0] * (float)u0; /* 0 for a channel not in use */
-    w[1] = W0[1] * (float)u1;
-    w[2] = W0[2] * (float)u2;
+    u0 = s->excluded != 0 && fin0;
+    u1 = s->excluded != 1 && fin1;
+    u2 = s->excluded != 2 && fin2;
+    w0 = u0 ? W0[0] : 0.0f; /* 0 for a channel not in use */
+    w1 = u1 ? W0[1] : 0.0f;
+    w2 = u2 ? W0[2] : 0.0f;
     active = u0 + u1 + u2;
     yp = s->ang + s->v;
     y = yp;
     acquired = active >= 2 && s->acquire;
     fitted = active >= 2 && !acquired;
     if (acquired) {
-        y = acquire(s, d, w, yp);
+        y = acquire(s, d1, d2, d3, w0, w1, w2, yp);
         s->acquire = 0u;
     } else if (fitted) {
         table(yp, f, dg);
-        J[0] = s->a[0] * dg[0];
-        J[1] = s->a[1] * dg[1];
-        J[2] = s->a[2] * dg[2];
-        r[0] = d[0] - s->a[0] * f[0] - s->b[0];
-        r[1] = d[1] - s->a[1] * f[1] - s->b[1];
-        r[2] = d[2] - s->a[2] * f[2] - s->b[2];
+        f0 = f[0];
+        f1 = f[1];
+        f2 = f[2];
+        g0 = dg[0];
+        g1 = dg[1];
+        g2 = dg[2];
+        J0 = s->a[0] * g0;
+        J1 = s->a[1] * g1;
+        J2 = s->a[2] * g2;
+        r0 = d1 - s->a[0] * f0 - s->b[0];
+        r1 = d2 - s->a[1] * f1 - s->b[1];
+        r2 = d3 - s->a[2] * f2 - s->b[2];
         /* an unused channel has w = 0 and a finite r: it adds exact zeros */
-        tr[0] = w[0] * r[0] * r[0];
-        tr[1] = w[1] * r[1] * r[1];
-        tr[2] = w[2] * r[2] * r[2];
-        tn[0] = w[0] * J[0] * r[0];
-        tn[1] = w[1] * J[1] * r[1];
-        tn[2] = w[2] * J[2] * r[2];
-        td[0] = w[0] * J[0] * J[0];
-        td[1] = w[1] * J[1] * J[1];
-        td[2] = w[2] * J[2] * J[2];
-        srr = tr[0] + tr[1] + tr[2];
-        num = tn[0] + tn[1] + tn[2];
-        den = td[0] + td[1] + td[2];
+        tr0 = w0 * r0 * r0;
+        tr1 = w1 * r1 * r1;
+        tr2 = w2 * r2 * r2;
+        tn0 = w0 * J0 * r0;
+        tn1 = w1 * J1 * r1;
+        tn2 = w2 * J2 * r2;
+        td0 = w0 * J0 * J0;
+        td1 = w1 * J1 * J1;
+        td2 = w2 * J2 * J2;
+        srr = tr0 + tr1 + tr2;
+        num = tn0 + tn1 + tn2;
+        den = td0 + td1 + td2;
         step = gn(srr, num, den, &chi);
         if (active == 3 && chi > OUTLIER) {
             /* explained by a common gain of the field parts? else the fits without a channel */
-            Js0 = s->a[0] * f[0];
-            Js1 = s->a[1] * f[1];
-            Js2 = s->a[2] * f[2];
-            A01 = w[0] * J[0] * Js0 + w[1] * J[1] * Js1 + w[2] * J[2] * Js2;
-            A11 = w[0] * Js0 * Js0 + w[1] * Js1 * Js1 + w[2] * Js2 * Js2;
-            r1 = w[0] * Js0 * r[0] + w[1] * Js1 * r[1] + w[2] * Js2 * r[2];
+            Js0 = s->a[0] * f0;
+            Js1 = s->a[1] * f1;
+            Js2 = s->a[2] * f2;
+            A01 = w0 * J0 * Js0 + w1 * J1 * Js1 + w2 * J2 * Js2;
+            A11 = w0 * Js0 * Js0 + w1 * Js1 * Js1 + w2 * Js2 * Js2;
+            rs = w0 * Js0 * r0 + w1 * Js1 * r1 + w2 * Js2 * r2;
             det = den * A11 - A01 * A01;
-            if (!(det > 0.0f && srr * det - (A11 * num * num - 2.0f * A01 * num * r1
-                                             + den * r1 * r1) <= EXPLAINED * det)) {
+            if (!(det > 0.0f && srr * det - (A11 * num * num - 2.0f * A01 * num * rs
+                                             + den * rs * rs) <= EXPLAINED * det)) {
                 loo = 1;
                 best = 3.0e38f;
                 best_step = step;
-                for (q = 0; q < 3; q++) {
-                    sq = gn(srr - tr[q], num - tn[q], den - td[q], &cq);
-                    if (cq < best) {
-                        best = cq;
-                        best_step = sq;
-                        blamed = q;
-                    }
+                sq = gn(srr - tr0, num - tn0, den - td0, &cq);
+                if (cq < best) {
+                    best = cq;
+                    best_step = sq;
+                    blamed = 0;
+                }
+                sq = gn(srr - tr1, num - tn1, den - td1, &cq);
+                if (cq < best) {
+                    best = cq;
+                    best_step = sq;
+                    blamed = 1;
+                }
+                sq = gn(srr - tr2, num - tn2, den - td2, &cq);
+                if (cq < best) {
+                    best = cq;
+                    best_step = sq;
+                    blamed = 2;
                 }
                 if (!(best < EXPLAINED && best < 0.1f * chi)) {
                     blamed = -1;
                     mark = 3;
                 } else {
-                    e = r[blamed] - J[blamed] * best_step;
+                    e = SEL(blamed, r0, r1, r2) - SEL(blamed, J0, J1, J2) * best_step;
                     if (fabs_(e) < GROSS[blamed]) {
                         blamed = -1;
                     } else {
@@ -672,13 +685,17 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
             s->excluded = (int8_t)blamed;
             s->blamed_out = 1u;
             s->clean = 0.0f;
-            w[blamed] = 0.0f;
-            chi = 0.0f; /* the two channels' chi2 at the fitted angle (recomputed: the closed
-                         * form cancels in float) */
-            for (i = 0; i < 3; i++) {
-                e = r[i] - J[i] * step;
-                chi += w[i] * e * e;
-            }
+            w0 = blamed == 0 ? 0.0f : w0;
+            w1 = blamed == 1 ? 0.0f : w1;
+            w2 = blamed == 2 ? 0.0f : w2;
+            /* the two channels' chi2 at the fitted angle (recomputed: the closed form cancels
+             * in float) */
+            e = r0 - J0 * step;
+            chi = 0.0f + w0 * e * e;
+            e = r1 - J1 * step;
+            chi += w1 * e * e;
+            e = r2 - J2 * step;
+            chi += w2 * e * e;
             s->blame_from = s->k + 1u; /* the blame ring and the window start again */
             s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0;
             s->window_from = s->k;
@@ -689,8 +706,8 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         }
     }
     if (blamed < 0 && fitted) {
-        s->v += KV * step;
-        s->v = s->v > VMAX ? VMAX : (s->v < -VMAX ? -VMAX : s->v);
+        x = s->v + KV * step;
+        s->v = x > VMAX ? VMAX : (x < -VMAX ? -VMAX : x);
     }
     /* the angle within the revolution (|y - angle| < 2 pi: one wrap at most) */
     if (y >= TWOPI) {
@@ -725,7 +742,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     stale = above && s->bad >= STALE;
     if (!above) {
         s->suppress = 0u;
-    } else if (s->excluded >= 0 && s->blamed_out && fin[(int)s->excluded]) {
+    } else if (s->excluded >= 0 && s->blamed_out && SEL(s->excluded, fin0, fin1, fin2)) {
         s->excluded = -1;
         s->suppress = 1u;
     }
@@ -734,7 +751,14 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         ph = s->phase;
         if (ph == 0u) {
             if (fitted && !stale && blamed < 0) {
-                measure(s, f, dg, r, J, w, step, den, (float)CYCLE * travel * INVMEM);
+                x = (float)CYCLE * travel * INVMEM;
+                x = x < 1.0f ? x : 1.0f;
+                s->lam = 1.0f - x + 0.5f * x * x - x * x * x * (1.0f / 6.0f);
+                s->t = (float)CYCLE / den;
+                MEASURE(0, f0, g0, r0, J0, w0);
+                MEASURE(1, f1, g1, r1, J1, w1);
+                MEASURE(2, f2, g2, r2, J2, w2);
+                s->pending = 1u;
                 s->phase = 1u;
             }
         } else {
@@ -760,10 +784,10 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     /* readmission */
     if (fitted && s->excluded >= 0) {
         i = s->excluded;
-        if (!fin[i]) {
+        if (!SEL(i, fin0, fin1, fin2)) {
             s->clean = 0.0f;
         } else {
-            e = r[i] - J[i] * step;
+            e = SEL(i, r0, r1, r2) - SEL(i, J0, J1, J2) * step;
             s->clean = (W0[i] * e * e < 16.0f) ? s->clean + travel : 0.0f;
         }
         if (s->clean >= READMIT) {
@@ -775,18 +799,19 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     {
         uint32_t next = s->seq + 1u;
         @p@_reading *rd = &s->buf[next & 1u];
+        uint8_t st = active < 2 ? @P@_FAULT
+                     : (s->excluded >= 0 ? @P@_DEGRADED
+                     : (stale ? @P@_STALE : (above ? @P@_ADAPTING : @P@_OK)));
         rd->revolutions = s->rev;
         rd->angle = s->ang;
         rd->misfit = mf;
-        rd->state = active < 2 ? @P@_FAULT
-                    : (s->excluded >= 0 ? @P@_DEGRADED
-                    : (stale ? @P@_STALE : (above ? @P@_ADAPTING : @P@_OK)));
+        rd->state = st;
         rd->excluded = s->excluded;
-        rd->flags = (uint32_t)rd->state | ((uint32_t)(s->excluded + 1) << 8);
+        rd->flags = (uint32_t)st | ((uint32_t)(s->excluded + 1) << 8);
         rd->sample = s->k + 1u;
         s->seq = next;
         s->k++;
-        return rd->state;
+        return st;
     }
 }
 
