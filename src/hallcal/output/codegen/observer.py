@@ -188,11 +188,61 @@ def _texts(
             ", ".join(_f(x) for x in thr[i : i + 6]) for i in range(0, len(thr), 6)
         ),  # fmt: skip
     }
-    h, c = _HEADER, _SOURCE
+    parts, dispatch = _adapt_parts()
+    h, c = _HEADER, _SOURCE.replace("@PARTS@", parts).replace("@DISPATCH@", dispatch)
     for key, value in subst.items():
         h = h.replace(key, value)
         c = c.replace(key, value)
     return [(f"{prefix}.h", h), (f"{prefix}.c", c)]
+
+
+def _adapt_parts() -> tuple[str, str]:
+    """The adaptation's parts 1..14 as straight-line C (one function each: rows 0..5 of the
+    information H, columns 0..5 of its L D L^T, the two triangular solves) and the switch cases
+    that call them; no loop, so that each part's cycles are its own few dozen operations."""
+    fns: list[str] = []
+    calls: list[str] = []
+
+    def fn(name: str, body: list[str]) -> None:
+        fns.append(f"NOINLINE static void {name}(@p@_state *s)\n{{\n" + "\n".join(body) + "\n}\n")
+        calls.append(f"                case {len(calls) + 1}u:\n                    {name}(s);"
+                     "\n                    break;")  # fmt: skip
+
+    for p in range(6):
+        i = p >> 1
+        prior = f"(1.0f - lam) * PRIOR * W0[{i}]" + ("" if p & 1 else f" * AMP[{i}] * AMP[{i}]")
+        extra = f"s->u[{i}]" if p & 1 else f"s->u[{i}] * s->fy[{i}] * s->fy[{i}]"
+        body = [f"    const float lam = s->lam, v = s->t * s->qv[{p}];"]
+        body.append(
+            f"    s->H[{p}][{p}] = ((s->H[{p}][{p}] * lam + {prior}) + {extra}) - v * s->qv[{p}];"
+        )
+        for q in range(p + 1, 6):
+            add = f" + s->u[{i}] * s->fy[{i}]" if (q == p + 1 and not p & 1) else ""
+            body.append(f"    s->H[{p}][{q}] = (s->H[{p}][{q}] * lam{add}) - v * s->qv[{q}];")
+        fn(f"row{p}", body)
+    for j in range(6):
+        body = [f"    float t = s->H[{j}][{j}], rj;"]
+        body += [f"    const float m{k} = s->L[{j}][{k}] * s->P[{k}];" for k in range(j)]
+        body += [f"    t -= s->L[{j}][{k}] * m{k};" for k in range(j)]
+        body += ["    if (!(t > 0.0f)) {", "        s->pending = 0u;", "        return;", "    }",
+                 f"    s->P[{j}] = t;", "    rj = 1.0f / t;", f"    s->R[{j}] = rj;"]  # fmt: skip
+        for i in range(j + 1, 6):
+            terms = "".join(f" - s->L[{i}][{k}] * m{k}" for k in range(j))
+            body.append(f"    s->L[{i}][{j}] = (s->H[{j}][{i}]{terms}) * rj;")
+        fn(f"column{j}", body)
+    body = ["    const float z0 = s->gr[0];"]
+    for i in range(1, 6):
+        terms = "".join(f" - s->L[{i}][{k}] * z{k}" for k in range(i))
+        body.append(f"    const float z{i} = s->gr[{i}]{terms};")
+    body += [f"    s->z[{i}] = z{i};" for i in range(6)]
+    fn("forward", body)
+    body = ["    const float z5 = s->z[5] * s->R[5];"]
+    for i in range(4, -1, -1):
+        terms = "".join(f" - s->L[{k}][{i}] * z{k}" for k in range(i + 1, 6))
+        body.append(f"    const float z{i} = s->z[{i}] * s->R[{i}]{terms};")
+    body += [f"    s->z[{i}] = z{i};" for i in range(6)]
+    fn("backward", body)
+    return "\n".join(fns), "\n".join(calls)
 
 
 def _normal_quantile(p: float) -> float:
@@ -417,76 +467,7 @@ NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, 
         s->wm[i] = (wi);                                                                   \
     } while (0)
 
-NOINLINE static void row(@p@_state *s, int p)
-{
-    const int i = p >> 1;
-    const float lam = s->lam, v = s->t * s->qv[p];
-    float *h = s->H[p];
-    int q;
-    for (q = p; q < 6; q++) {
-        h[q] *= lam;
-    }
-    if (p & 1) {
-        h[p] = (h[p] + (1.0f - lam) * PRIOR * W0[i]) + s->u[i];
-    } else {
-        h[p] = (h[p] + (1.0f - lam) * PRIOR * W0[i] * AMP[i] * AMP[i]) + s->u[i] * s->fy[i]
-               * s->fy[i];
-        h[p + 1] += s->u[i] * s->fy[i];
-    }
-    for (q = p; q < 6; q++) {
-        h[q] -= v * s->qv[q];
-    }
-}
-
-NOINLINE static void column(@p@_state *s, int j)
-{
-    float t;
-    int i, k;
-    t = s->H[j][j];
-    for (k = 0; k < j; k++) {
-        t -= s->L[j][k] * s->L[j][k] * s->P[k];
-    }
-    if (!(t > 0.0f)) {
-        s->pending = 0u;
-        return;
-    }
-    s->P[j] = t;
-    s->R[j] = 1.0f / t;
-    for (i = j + 1; i < 6; i++) {
-        t = s->H[j][i];
-        for (k = 0; k < j; k++) {
-            t -= s->L[i][k] * s->L[j][k] * s->P[k];
-        }
-        s->L[i][j] = t * s->R[j];
-    }
-}
-
-NOINLINE static void forward(@p@_state *s)
-{
-    float t;
-    int i, k;
-    for (i = 0; i < 6; i++) {
-        t = s->gr[i];
-        for (k = 0; k < i; k++) {
-            t -= s->L[i][k] * s->z[k];
-        }
-        s->z[i] = t;
-    }
-}
-
-NOINLINE static void backward(@p@_state *s)
-{
-    float t;
-    int i, k;
-    for (i = 5; i >= 0; i--) {
-        t = s->z[i] * s->R[i];
-        for (k = i + 1; k < 6; k++) {
-            t -= s->L[k][i] * s->z[k];
-        }
-        s->z[i] = t;
-    }
-}
-
+@PARTS@
 NOINLINE static void apply(@p@_state *s)
 {
     float t, lim;
@@ -763,19 +744,14 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
             }
         } else {
             if (s->pending) {
-                if (ph <= 6u) {
-                    row(s, (int)ph - 1);
-                } else if (ph <= 12u) {
-                    column(s, (int)ph - 7);
-                } else if (ph == 13u) {
-                    forward(s);
-                } else if (ph == 14u) {
-                    backward(s);
-                } else {
+                switch (ph) {
+@DISPATCH@
+                default:
                     if (!stale) {
                         apply(s);
                     }
                     s->pending = 0u;
+                    break;
                 }
             }
             s->phase = (uint8_t)((ph + 1u) % (uint32_t)CYCLE);
