@@ -419,6 +419,21 @@ static float gn(float srr, float num, float den, float *chi)
     return step;
 }
 
+/* gn with the reciprocal of den given (the fits without one channel) */
+static float gnr(float srr, float num, float den, float rden, float *chi)
+{
+    float step, c;
+    if (den <= 0.0f) {
+        *chi = srr;
+        return 0.0f;
+    }
+    step = num * rden;
+    step = step > MAXSTEP ? MAXSTEP : (step < -MAXSTEP ? -MAXSTEP : step);
+    c = srr - step * (2.0f * num - step * den);
+    *chi = c > 0.0f ? c : 0.0f;
+    return step;
+}
+
 /* the start: the best of NA table nodes within half a pole pitch of y0 */
 NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, float w0,
                               float w1, float w2, float y0)
@@ -468,20 +483,22 @@ NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, 
     } while (0)
 
 @PARTS@
+/* the bounded update of the channels measured (straight-line, one block per channel) */
+#define APPLY(i)                                                                             \
+    if (s->wm[i] > 0.0f) {                                                                   \
+        float t_ = s->a[i] + s->z[2 * (i)];                                                  \
+        const float lo_ = C0[i] - BBOUND * AMP[i], hi_ = C0[i] + BBOUND * AMP[i];            \
+        s->a[i] = t_ < ALO ? ALO : (t_ > AHI ? AHI : t_);                                    \
+        t_ = s->b[i] + s->z[2 * (i) + 1];                                                    \
+        t_ = t_ < lo_ ? lo_ : t_;                                                            \
+        s->b[i] = t_ > hi_ ? hi_ : t_;                                                       \
+    }
+
 NOINLINE static void apply(@p@_state *s)
 {
-    float t, lim;
-    int i;
-    for (i = 0; i < 3; i++) {
-        if (s->wm[i] > 0.0f) {
-            t = s->a[i] + s->z[2 * i];
-            s->a[i] = t < ALO ? ALO : (t > AHI ? AHI : t);
-            lim = BBOUND * AMP[i];
-            t = s->b[i] + s->z[2 * i + 1];
-            t = t < C0[i] - lim ? C0[i] - lim : t;
-            s->b[i] = t > C0[i] + lim ? C0[i] + lim : t;
-        }
-    }
+    APPLY(0)
+    APPLY(1)
+    APPLY(2)
 }
 
 void @p@_init(@p@_state *s)
@@ -544,7 +561,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     float r0 = 0.0f, r1 = 0.0f, r2 = 0.0f, J0 = 0.0f, J1 = 0.0f, J2 = 0.0f, tr0, tr1, tr2;
     float tn0, tn1, tn2, td0, td1, td2, f[3], dg[3], yp, y, step = 0.0f, chi = 0.0f;
     float srr = 0.0f, num = 0.0f, den = 0.0f, best, best_step, cq, sq, e, travel, mf = 0.0f;
-    float cc, cmax, A01, A11, rs, Js0, Js1, Js2, det, x;
+    float cc, cmax, A01, A11, rs, Js0, Js1, Js2, det, x, e0, e1, e2, i0, i1, i2;
     int active, blamed = -1, mark = -1, others, above = 0, stale, acquired, fitted, loo = 0;
     int fin0, fin1, fin2, u0, u1, u2, i;
     uint32_t slot, jw, ph;
@@ -614,21 +631,30 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
             if (!(det > 0.0f && srr * det - (A11 * num * num - 2.0f * A01 * num * rs
                                              + den * rs * rs) <= EXPLAINED * det)) {
                 loo = 1;
-                best = 3.0e38f;
-                best_step = step;
-                sq = gn(srr - tr0, num - tn0, den - td0, &cq);
-                if (cq < best) {
-                    best = cq;
-                    best_step = sq;
-                    blamed = 0;
+                /* the three fits without one channel; their 1 / den from one division */
+                e0 = den - td0;
+                e1 = den - td1;
+                e2 = den - td2;
+                x = e0 * e1 * e2;
+                if (x > 1.0e-37f && x < 1.0e37f) {
+                    x = 1.0f / x;
+                    i0 = e1 * e2 * x;
+                    i1 = e0 * e2 * x;
+                    i2 = e0 * e1 * x;
+                } else { /* a den not positive (gnr: no step) or out of range */
+                    i0 = e0 > 0.0f ? 1.0f / e0 : 0.0f;
+                    i1 = e1 > 0.0f ? 1.0f / e1 : 0.0f;
+                    i2 = e2 > 0.0f ? 1.0f / e2 : 0.0f;
                 }
-                sq = gn(srr - tr1, num - tn1, den - td1, &cq);
+                best_step = gnr(srr - tr0, num - tn0, e0, i0, &best);
+                blamed = 0;
+                sq = gnr(srr - tr1, num - tn1, e1, i1, &cq);
                 if (cq < best) {
                     best = cq;
                     best_step = sq;
                     blamed = 1;
                 }
-                sq = gn(srr - tr2, num - tn2, den - td2, &cq);
+                sq = gnr(srr - tr2, num - tn2, e2, i2, &cq);
                 if (cq < best) {
                     best = cq;
                     best_step = sq;
