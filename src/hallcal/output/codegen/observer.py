@@ -180,7 +180,7 @@ def _texts(
         "@AMP@": ", ".join(_f(x) for x in model.amplitude),
         "@W0@": ", ".join(_f(x) for x in w0),
         "@GROSS@": ", ".join(_f(x) for x in gross),
-        "@T@": _rows(np.hstack([model.value, model.slope])),
+        "@T@": _rows(np.hstack([model.value - model.center, model.slope])),
         "@INV@": ",\n    ".join(
             ", ".join(_f(x) for x in inv[i : i + 6]) for i in range(0, len(inv), 6)
         ),  # fmt: skip
@@ -351,7 +351,7 @@ static const float INV[2 * W + 1] = { /* 1 / k */
 static const float THR[2 * W + 1] = {
     @THR@
 };
-static const float T[M][6] = { /* g_1..3 and dg_1..3/dy at y_j = j 2 pi / M */
+static const float T[M][6] = { /* g_1..3 - c_1..3 and dg_1..3/dy at y_j = j 2 pi / M */
 @T@
 };
 
@@ -374,7 +374,8 @@ static uint32_t bits_(float x)
 }
 #define FIN(x) ((bits_(x) & 0x7f800000u) != 0x7f800000u)
 
-/* cubic Hermite interpolation of g - c and dg/dy at y (any real y: wrap-around) */
+/* cubic Hermite interpolation of g - c and dg/dy at y (any real y: wrap-around); the
+ * table holds g - c */
 static void table(float y, float f[3], float dg[3])
 {
     float u = y * INVH;
@@ -396,9 +397,9 @@ static void table(float y, float f[3], float dg[3])
     d00 = (6.0f * t2 - 6.0f * t) * INVH;
     d10 = 3.0f * t2 - 4.0f * t + 1.0f;
     d11 = 3.0f * t2 - 2.0f * t;
-    f[0] = h00 * p[0] + h10 * p[3] + h01 * q[0] + h11 * q[3] - C0[0];
-    f[1] = h00 * p[1] + h10 * p[4] + h01 * q[1] + h11 * q[4] - C0[1];
-    f[2] = h00 * p[2] + h10 * p[5] + h01 * q[2] + h11 * q[5] - C0[2];
+    f[0] = h00 * p[0] + h10 * p[3] + h01 * q[0] + h11 * q[3];
+    f[1] = h00 * p[1] + h10 * p[4] + h01 * q[1] + h11 * q[4];
+    f[2] = h00 * p[2] + h10 * p[5] + h01 * q[2] + h11 * q[5];
     dg[0] = d00 * (p[0] - q[0]) + d10 * p[3] + d11 * q[3];
     dg[1] = d00 * (p[1] - q[1]) + d10 * p[4] + d11 * q[4];
     dg[2] = d00 * (p[2] - q[2]) + d10 * p[5] + d11 * q[5];
@@ -439,8 +440,7 @@ NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, 
                               float w1, float w2, float y0)
 {
     const float a0 = s->a[0], a1 = s->a[1], a2 = s->a[2];
-    const float e0 = d0 - s->b[0] + a0 * C0[0], e1 = d1 - s->b[1] + a1 * C0[1];
-    const float e2 = d2 - s->b[2] + a2 * C0[2];
+    const float e0 = d0 - s->b[0], e1 = d1 - s->b[1], e2 = d2 - s->b[2];
     float best = 3.0e38f, c, r0, r1, r2, u = y0 * INVH + 0.5f;
     const float *p;
     int32_t j0 = (int32_t)u, j, bj;
@@ -563,7 +563,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     float srr = 0.0f, num = 0.0f, den = 0.0f, best, best_step, cq, sq, e, travel, mf = 0.0f;
     float cc, cmax, A01, A11, rs, Js0, Js1, Js2, det, x, e0, e1, e2, i0, i1, i2;
     int active, blamed = -1, mark = -1, others, above = 0, stale, acquired, fitted, loo = 0;
-    int fin0, fin1, fin2, u0, u1, u2, i;
+    int fin0, fin1, fin2, u0, u1, u2, i, dof;
     uint32_t slot, jw, ph;
     int8_t old;
     fin0 = FIN(d1);
@@ -727,20 +727,19 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     s->ang = y;
     travel = NM * fabs_(s->v);
     /* misfit window */
-    cmax = CAP * (fitted && active >= 3 ? 2.0f : 1.0f);
+    /* a sample's cap: CAP per degree of freedom, CAP when a channel is blamed */
+    cmax = (fitted && active >= 3 && blamed < 0) ? 2.0f * CAP : CAP;
     cc = chi < cmax ? chi : cmax;
-    if (blamed >= 0 && cc > CAP) {
-        cc = CAP;
-    }
+    dof = fitted ? active - 1 : 0;
     jw = s->k % (uint32_t)W;
     if (s->k >= s->window_from + (uint32_t)W) {
         s->sum_chi -= s->ring_chi[jw];
         s->sum_dof -= (int32_t)s->ring_dof[jw];
     }
     s->sum_chi += cc;
-    s->sum_dof += fitted ? active - 1 : 0;
+    s->sum_dof += dof;
     s->ring_chi[jw] = cc;
-    s->ring_dof[jw] = (uint8_t)(fitted ? active - 1 : 0);
+    s->ring_dof[jw] = (uint8_t)dof;
     if (s->sum_dof > 0) {
         mf = s->sum_chi * INV[s->sum_dof];
         above = s->sum_chi > THR[s->sum_dof];
