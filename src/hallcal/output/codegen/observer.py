@@ -180,7 +180,7 @@ def _texts(
         "@AMP@": ", ".join(_f(x) for x in model.amplitude),
         "@W0@": ", ".join(_f(x) for x in w0),
         "@GROSS@": ", ".join(_f(x) for x in gross),
-        "@T@": _rows(np.hstack([model.value, model.slope])),
+        "@T@": _rows(np.hstack([model.value - model.center, model.slope])),
         "@INV@": ",\n    ".join(
             ", ".join(_f(x) for x in inv[i : i + 6]) for i in range(0, len(inv), 6)
         ),  # fmt: skip
@@ -188,11 +188,61 @@ def _texts(
             ", ".join(_f(x) for x in thr[i : i + 6]) for i in range(0, len(thr), 6)
         ),  # fmt: skip
     }
-    h, c = _HEADER, _SOURCE
+    parts, dispatch = _adapt_parts()
+    h, c = _HEADER, _SOURCE.replace("@PARTS@", parts).replace("@DISPATCH@", dispatch)
     for key, value in subst.items():
         h = h.replace(key, value)
         c = c.replace(key, value)
     return [(f"{prefix}.h", h), (f"{prefix}.c", c)]
+
+
+def _adapt_parts() -> tuple[str, str]:
+    """The adaptation's parts 1..14 as straight-line C (one function each: rows 0..5 of the
+    information H, columns 0..5 of its L D L^T, the two triangular solves) and the switch cases
+    that call them; no loop, so that each part's cycles are its own few dozen operations."""
+    fns: list[str] = []
+    calls: list[str] = []
+
+    def fn(name: str, body: list[str]) -> None:
+        fns.append(f"NOINLINE static void {name}(@p@_state *s)\n{{\n" + "\n".join(body) + "\n}\n")
+        calls.append(f"                case {len(calls) + 1}u:\n                    {name}(s);"
+                     "\n                    break;")  # fmt: skip
+
+    for p in range(6):
+        i = p >> 1
+        prior = f"(1.0f - lam) * PRIOR * W0[{i}]" + ("" if p & 1 else f" * AMP[{i}] * AMP[{i}]")
+        extra = f"s->u[{i}]" if p & 1 else f"s->u[{i}] * s->fy[{i}] * s->fy[{i}]"
+        body = [f"    const float lam = s->lam, v = s->t * s->qv[{p}];"]
+        body.append(
+            f"    s->H[{p}][{p}] = ((s->H[{p}][{p}] * lam + {prior}) + {extra}) - v * s->qv[{p}];"
+        )
+        for q in range(p + 1, 6):
+            add = f" + s->u[{i}] * s->fy[{i}]" if (q == p + 1 and not p & 1) else ""
+            body.append(f"    s->H[{p}][{q}] = (s->H[{p}][{q}] * lam{add}) - v * s->qv[{q}];")
+        fn(f"row{p}", body)
+    for j in range(6):
+        body = [f"    float t = s->H[{j}][{j}], rj;"]
+        body += [f"    const float m{k} = s->L[{j}][{k}] * s->P[{k}];" for k in range(j)]
+        body += [f"    t -= s->L[{j}][{k}] * m{k};" for k in range(j)]
+        body += ["    if (!(t > 0.0f)) {", "        s->pending = 0u;", "        return;", "    }",
+                 f"    s->P[{j}] = t;", "    rj = 1.0f / t;", f"    s->R[{j}] = rj;"]  # fmt: skip
+        for i in range(j + 1, 6):
+            terms = "".join(f" - s->L[{i}][{k}] * m{k}" for k in range(j))
+            body.append(f"    s->L[{i}][{j}] = (s->H[{j}][{i}]{terms}) * rj;")
+        fn(f"column{j}", body)
+    body = ["    const float z0 = s->gr[0];"]
+    for i in range(1, 6):
+        terms = "".join(f" - s->L[{i}][{k}] * z{k}" for k in range(i))
+        body.append(f"    const float z{i} = s->gr[{i}]{terms};")
+    body += [f"    s->z[{i}] = z{i};" for i in range(6)]
+    fn("forward", body)
+    body = ["    const float z5 = s->z[5] * s->R[5];"]
+    for i in range(4, -1, -1):
+        terms = "".join(f" - s->L[{k}][{i}] * z{k}" for k in range(i + 1, 6))
+        body.append(f"    const float z{i} = s->z[{i}] * s->R[{i}]{terms};")
+    body += [f"    s->z[{i}] = z{i};" for i in range(6)]
+    fn("backward", body)
+    return "\n".join(fns), "\n".join(calls)
 
 
 def _normal_quantile(p: float) -> float:
@@ -301,7 +351,7 @@ static const float INV[2 * W + 1] = { /* 1 / k */
 static const float THR[2 * W + 1] = {
     @THR@
 };
-static const float T[M][6] = { /* g_1..3 and dg_1..3/dy at y_j = j 2 pi / M */
+static const float T[M][6] = { /* g_1..3 - c_1..3 and dg_1..3/dy at y_j = j 2 pi / M */
 @T@
 };
 
@@ -324,7 +374,8 @@ static uint32_t bits_(float x)
 }
 #define FIN(x) ((bits_(x) & 0x7f800000u) != 0x7f800000u)
 
-/* cubic Hermite interpolation of g - c and dg/dy at y (any real y: wrap-around) */
+/* cubic Hermite interpolation of g - c and dg/dy at y (any real y: wrap-around); the
+ * table holds g - c */
 static void table(float y, float f[3], float dg[3])
 {
     float u = y * INVH;
@@ -346,9 +397,9 @@ static void table(float y, float f[3], float dg[3])
     d00 = (6.0f * t2 - 6.0f * t) * INVH;
     d10 = 3.0f * t2 - 4.0f * t + 1.0f;
     d11 = 3.0f * t2 - 2.0f * t;
-    f[0] = h00 * p[0] + h10 * p[3] + h01 * q[0] + h11 * q[3] - C0[0];
-    f[1] = h00 * p[1] + h10 * p[4] + h01 * q[1] + h11 * q[4] - C0[1];
-    f[2] = h00 * p[2] + h10 * p[5] + h01 * q[2] + h11 * q[5] - C0[2];
+    f[0] = h00 * p[0] + h10 * p[3] + h01 * q[0] + h11 * q[3];
+    f[1] = h00 * p[1] + h10 * p[4] + h01 * q[1] + h11 * q[4];
+    f[2] = h00 * p[2] + h10 * p[5] + h01 * q[2] + h11 * q[5];
     dg[0] = d00 * (p[0] - q[0]) + d10 * p[3] + d11 * q[3];
     dg[1] = d00 * (p[1] - q[1]) + d10 * p[4] + d11 * q[4];
     dg[2] = d00 * (p[2] - q[2]) + d10 * p[5] + d11 * q[5];
@@ -369,12 +420,27 @@ static float gn(float srr, float num, float den, float *chi)
     return step;
 }
 
+/* gn with the reciprocal of den given (the fits without one channel) */
+static float gnr(float srr, float num, float den, float rden, float *chi)
+{
+    float step, c;
+    if (den <= 0.0f) {
+        *chi = srr;
+        return 0.0f;
+    }
+    step = num * rden;
+    step = step > MAXSTEP ? MAXSTEP : (step < -MAXSTEP ? -MAXSTEP : step);
+    c = srr - step * (2.0f * num - step * den);
+    *chi = c > 0.0f ? c : 0.0f;
+    return step;
+}
+
 /* the start: the best of NA table nodes within half a pole pitch of y0 */
-NOINLINE static float acquire(const @p@_state *s, const float d[3], const float w[3], float y0)
+NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, float w0,
+                              float w1, float w2, float y0)
 {
     const float a0 = s->a[0], a1 = s->a[1], a2 = s->a[2];
-    const float e0 = d[0] - s->b[0] + a0 * C0[0], e1 = d[1] - s->b[1] + a1 * C0[1];
-    const float e2 = d[2] - s->b[2] + a2 * C0[2];
+    const float e0 = d0 - s->b[0], e1 = d1 - s->b[1], e2 = d2 - s->b[2];
     float best = 3.0e38f, c, r0, r1, r2, u = y0 * INVH + 0.5f;
     const float *p;
     int32_t j0 = (int32_t)u, j, bj;
@@ -389,7 +455,7 @@ NOINLINE static float acquire(const @p@_state *s, const float d[3], const float 
         r0 = e0 - a0 * p[0];
         r1 = e1 - a1 * p[1];
         r2 = e2 - a2 * p[2];
-        c = w[0] * r0 * r0 + w[1] * r1 * r1 + w[2] * r2 * r2;
+        c = w0 * r0 * r0 + w1 * r1 * r1 + w2 * r2 * r2;
         if (c < best) {
             best = c;
             bj = j;
@@ -402,113 +468,37 @@ NOINLINE static float acquire(const @p@_state *s, const float d[3], const float 
  * on samples without the fits of the outlier test): 0 the sample's regressors, 1..6 one row of
  * the information H (upper triangle), 7..12 one column of its L D L^T, 13 L z = gr,
  * 14 D L^T x = z, 15 the bounded update. */
-NOINLINE static void measure(@p@_state *s, const float f[3], const float dg[3], const float r[3],
-                    const float J[3], const float w[3], float step, float den, float x)
-{
-    float fy, ry, u;
-    int i;
-    x = x < 1.0f ? x : 1.0f;
-    s->lam = 1.0f - x + 0.5f * x * x - x * x * x * (1.0f / 6.0f);
-    s->t = (float)CYCLE / den;
-    for (i = 0; i < 3; i++) {
-        fy = f[i] + dg[i] * step;
-        ry = r[i] - J[i] * step;
-        u = (float)CYCLE * w[i];
-        s->fy[i] = fy;
-        s->u[i] = u;
-        s->qv[2 * i] = w[i] * fy * J[i];
-        s->qv[2 * i + 1] = w[i] * J[i];
-        s->gr[2 * i] = u * fy * ry;
-        s->gr[2 * i + 1] = u * ry;
-        s->wm[i] = w[i];
-    }
-    s->pending = 1u;
-}
+/* the cycle's sample, channel i (in update: f, dg, r, J, w, step of the sample) */
+#define MEASURE(i, fi, gi, ri, Ji, wi)                                                         \
+    do {                                                                                   \
+        const float fy_ = (fi) + (gi) * step, ry_ = (ri) - (Ji) * step;                    \
+        const float u_ = (float)CYCLE * (wi);                                              \
+        s->fy[i] = fy_;                                                                    \
+        s->u[i] = u_;                                                                      \
+        s->qv[2 * (i)] = (wi) * fy_ * (Ji);                                                \
+        s->qv[2 * (i) + 1] = (wi) * (Ji);                                                  \
+        s->gr[2 * (i)] = u_ * fy_ * ry_;                                                   \
+        s->gr[2 * (i) + 1] = u_ * ry_;                                                     \
+        s->wm[i] = (wi);                                                                   \
+    } while (0)
 
-NOINLINE static void row(@p@_state *s, int p)
-{
-    const int i = p >> 1;
-    const float lam = s->lam, v = s->t * s->qv[p];
-    float *h = s->H[p];
-    int q;
-    for (q = p; q < 6; q++) {
-        h[q] *= lam;
+@PARTS@
+/* the bounded update of the channels measured (straight-line, one block per channel) */
+#define APPLY(i)                                                                             \
+    if (s->wm[i] > 0.0f) {                                                                   \
+        float t_ = s->a[i] + s->z[2 * (i)];                                                  \
+        const float lo_ = C0[i] - BBOUND * AMP[i], hi_ = C0[i] + BBOUND * AMP[i];            \
+        s->a[i] = t_ < ALO ? ALO : (t_ > AHI ? AHI : t_);                                    \
+        t_ = s->b[i] + s->z[2 * (i) + 1];                                                    \
+        t_ = t_ < lo_ ? lo_ : t_;                                                            \
+        s->b[i] = t_ > hi_ ? hi_ : t_;                                                       \
     }
-    if (p & 1) {
-        h[p] = (h[p] + (1.0f - lam) * PRIOR * W0[i]) + s->u[i];
-    } else {
-        h[p] = (h[p] + (1.0f - lam) * PRIOR * W0[i] * AMP[i] * AMP[i]) + s->u[i] * s->fy[i]
-               * s->fy[i];
-        h[p + 1] += s->u[i] * s->fy[i];
-    }
-    for (q = p; q < 6; q++) {
-        h[q] -= v * s->qv[q];
-    }
-}
-
-NOINLINE static void column(@p@_state *s, int j)
-{
-    float t;
-    int i, k;
-    t = s->H[j][j];
-    for (k = 0; k < j; k++) {
-        t -= s->L[j][k] * s->L[j][k] * s->P[k];
-    }
-    if (!(t > 0.0f)) {
-        s->pending = 0u;
-        return;
-    }
-    s->P[j] = t;
-    s->R[j] = 1.0f / t;
-    for (i = j + 1; i < 6; i++) {
-        t = s->H[j][i];
-        for (k = 0; k < j; k++) {
-            t -= s->L[i][k] * s->L[j][k] * s->P[k];
-        }
-        s->L[i][j] = t * s->R[j];
-    }
-}
-
-NOINLINE static void forward(@p@_state *s)
-{
-    float t;
-    int i, k;
-    for (i = 0; i < 6; i++) {
-        t = s->gr[i];
-        for (k = 0; k < i; k++) {
-            t -= s->L[i][k] * s->z[k];
-        }
-        s->z[i] = t;
-    }
-}
-
-NOINLINE static void backward(@p@_state *s)
-{
-    float t;
-    int i, k;
-    for (i = 5; i >= 0; i--) {
-        t = s->z[i] * s->R[i];
-        for (k = i + 1; k < 6; k++) {
-            t -= s->L[k][i] * s->z[k];
-        }
-        s->z[i] = t;
-    }
-}
 
 NOINLINE static void apply(@p@_state *s)
 {
-    float t, lim;
-    int i;
-    for (i = 0; i < 3; i++) {
-        if (s->wm[i] > 0.0f) {
-            t = s->a[i] + s->z[2 * i];
-            s->a[i] = t < ALO ? ALO : (t > AHI ? AHI : t);
-            lim = BBOUND * AMP[i];
-            t = s->b[i] + s->z[2 * i + 1];
-            t = t < C0[i] - lim ? C0[i] - lim : t;
-            s->b[i] = t > C0[i] + lim ? C0[i] + lim : t;
-        }
-    }
+    APPLY(0)
+    APPLY(1)
+    APPLY(2)
 }
 
 void @p@_init(@p@_state *s)
@@ -562,89 +552,119 @@ uint8_t @p@_set_angle(@p@_state *s, int32_t revolutions, float angle)
     return 0u;
 }
 
+/* one of three values by a channel index (no local array is indexed: they stay in registers) */
+#define SEL(i, x0, x1, x2) ((i) == 0 ? (x0) : ((i) == 1 ? (x1) : (x2)))
+
 uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
 {
-    float d[3], w[3], f[3], dg[3], r[3], J[3], yp, y, step = 0.0f, chi = 0.0f, srr = 0.0f;
-    float num = 0.0f, den = 0.0f, best, best_step, cq, sq, e, travel, mf = 0.0f, cc, cmax;
-    float A01, A11, r1, Js0, Js1, Js2, det, tr[3], tn[3], td[3];
-    int i, q, active, blamed = -1, mark = -1, others, above = 0, stale, fin[3];
-    int acquired, fitted, loo = 0, u0, u1, u2;
+    float w0, w1, w2, f0 = 0.0f, f1 = 0.0f, f2 = 0.0f, g0 = 0.0f, g1 = 0.0f, g2 = 0.0f;
+    float r0 = 0.0f, r1 = 0.0f, r2 = 0.0f, J0 = 0.0f, J1 = 0.0f, J2 = 0.0f, tr0, tr1, tr2;
+    float tn0, tn1, tn2, td0, td1, td2, f[3], dg[3], yp, y, step = 0.0f, chi = 0.0f;
+    float srr = 0.0f, num = 0.0f, den = 0.0f, best, best_step, cq, sq, e, travel, mf = 0.0f;
+    float cc, cmax, A01, A11, rs, Js0, Js1, Js2, det, x, e0, e1, e2, i0, i1, i2;
+    int active, blamed = -1, mark = -1, others, above = 0, stale, acquired, fitted, loo = 0;
+    int fin0, fin1, fin2, u0, u1, u2, i, dof;
     uint32_t slot, jw, ph;
     int8_t old;
-    fin[0] = FIN(d1);
-    fin[1] = FIN(d2);
-    fin[2] = FIN(d3);
-    d[0] = fin[0] ? d1 : 0.0f;
-    d[1] = fin[1] ? d2 : 0.0f;
-    d[2] = fin[2] ? d3 : 0.0f;
-    if (!(fin[0] && fin[1] && fin[2]) && s->excluded < 0) { /* a disconnected channel */
-        s->excluded = (int8_t)(!fin[0] ? 0 : (!fin[1] ? 1 : 2));
+    fin0 = FIN(d1);
+    fin1 = FIN(d2);
+    fin2 = FIN(d3);
+    d1 = fin0 ? d1 : 0.0f;
+    d2 = fin1 ? d2 : 0.0f;
+    d3 = fin2 ? d3 : 0.0f;
+    if (!(fin0 && fin1 && fin2) && s->excluded < 0) { /* a disconnected channel */
+        s->excluded = (int8_t)(!fin0 ? 0 : (!fin1 ? 1 : 2));
         s->blamed_out = 0u;
         s->clean = 0.0f;
     }
-    u0 = s->excluded != 0 && fin[0];
-    u1 = s->excluded != 1 && fin[1];
-    u2 = s->excluded != 2 && fin[2];
-    w[0] = W0[0] * (float)u0; /* 0 for a channel not in use */
-    w[1] = W0[1] * (float)u1;
-    w[2] = W0[2] * (float)u2;
+    u0 = s->excluded != 0 && fin0;
+    u1 = s->excluded != 1 && fin1;
+    u2 = s->excluded != 2 && fin2;
+    w0 = u0 ? W0[0] : 0.0f; /* 0 for a channel not in use */
+    w1 = u1 ? W0[1] : 0.0f;
+    w2 = u2 ? W0[2] : 0.0f;
     active = u0 + u1 + u2;
     yp = s->ang + s->v;
     y = yp;
     acquired = active >= 2 && s->acquire;
     fitted = active >= 2 && !acquired;
     if (acquired) {
-        y = acquire(s, d, w, yp);
+        y = acquire(s, d1, d2, d3, w0, w1, w2, yp);
         s->acquire = 0u;
     } else if (fitted) {
         table(yp, f, dg);
-        J[0] = s->a[0] * dg[0];
-        J[1] = s->a[1] * dg[1];
-        J[2] = s->a[2] * dg[2];
-        r[0] = d[0] - s->a[0] * f[0] - s->b[0];
-        r[1] = d[1] - s->a[1] * f[1] - s->b[1];
-        r[2] = d[2] - s->a[2] * f[2] - s->b[2];
+        f0 = f[0];
+        f1 = f[1];
+        f2 = f[2];
+        g0 = dg[0];
+        g1 = dg[1];
+        g2 = dg[2];
+        J0 = s->a[0] * g0;
+        J1 = s->a[1] * g1;
+        J2 = s->a[2] * g2;
+        r0 = d1 - s->a[0] * f0 - s->b[0];
+        r1 = d2 - s->a[1] * f1 - s->b[1];
+        r2 = d3 - s->a[2] * f2 - s->b[2];
         /* an unused channel has w = 0 and a finite r: it adds exact zeros */
-        tr[0] = w[0] * r[0] * r[0];
-        tr[1] = w[1] * r[1] * r[1];
-        tr[2] = w[2] * r[2] * r[2];
-        tn[0] = w[0] * J[0] * r[0];
-        tn[1] = w[1] * J[1] * r[1];
-        tn[2] = w[2] * J[2] * r[2];
-        td[0] = w[0] * J[0] * J[0];
-        td[1] = w[1] * J[1] * J[1];
-        td[2] = w[2] * J[2] * J[2];
-        srr = tr[0] + tr[1] + tr[2];
-        num = tn[0] + tn[1] + tn[2];
-        den = td[0] + td[1] + td[2];
+        tr0 = w0 * r0 * r0;
+        tr1 = w1 * r1 * r1;
+        tr2 = w2 * r2 * r2;
+        tn0 = w0 * J0 * r0;
+        tn1 = w1 * J1 * r1;
+        tn2 = w2 * J2 * r2;
+        td0 = w0 * J0 * J0;
+        td1 = w1 * J1 * J1;
+        td2 = w2 * J2 * J2;
+        srr = tr0 + tr1 + tr2;
+        num = tn0 + tn1 + tn2;
+        den = td0 + td1 + td2;
         step = gn(srr, num, den, &chi);
         if (active == 3 && chi > OUTLIER) {
             /* explained by a common gain of the field parts? else the fits without a channel */
-            Js0 = s->a[0] * f[0];
-            Js1 = s->a[1] * f[1];
-            Js2 = s->a[2] * f[2];
-            A01 = w[0] * J[0] * Js0 + w[1] * J[1] * Js1 + w[2] * J[2] * Js2;
-            A11 = w[0] * Js0 * Js0 + w[1] * Js1 * Js1 + w[2] * Js2 * Js2;
-            r1 = w[0] * Js0 * r[0] + w[1] * Js1 * r[1] + w[2] * Js2 * r[2];
+            Js0 = s->a[0] * f0;
+            Js1 = s->a[1] * f1;
+            Js2 = s->a[2] * f2;
+            A01 = w0 * J0 * Js0 + w1 * J1 * Js1 + w2 * J2 * Js2;
+            A11 = w0 * Js0 * Js0 + w1 * Js1 * Js1 + w2 * Js2 * Js2;
+            rs = w0 * Js0 * r0 + w1 * Js1 * r1 + w2 * Js2 * r2;
             det = den * A11 - A01 * A01;
-            if (!(det > 0.0f && srr * det - (A11 * num * num - 2.0f * A01 * num * r1
-                                             + den * r1 * r1) <= EXPLAINED * det)) {
+            if (!(det > 0.0f && srr * det - (A11 * num * num - 2.0f * A01 * num * rs
+                                             + den * rs * rs) <= EXPLAINED * det)) {
                 loo = 1;
-                best = 3.0e38f;
-                best_step = step;
-                for (q = 0; q < 3; q++) {
-                    sq = gn(srr - tr[q], num - tn[q], den - td[q], &cq);
-                    if (cq < best) {
-                        best = cq;
-                        best_step = sq;
-                        blamed = q;
-                    }
+                /* the three fits without one channel; their 1 / den from one division */
+                e0 = den - td0;
+                e1 = den - td1;
+                e2 = den - td2;
+                x = e0 * e1 * e2;
+                if (x > 1.0e-37f && x < 1.0e37f) {
+                    x = 1.0f / x;
+                    i0 = e1 * e2 * x;
+                    i1 = e0 * e2 * x;
+                    i2 = e0 * e1 * x;
+                } else { /* a den not positive (gnr: no step) or out of range */
+                    i0 = e0 > 0.0f ? 1.0f / e0 : 0.0f;
+                    i1 = e1 > 0.0f ? 1.0f / e1 : 0.0f;
+                    i2 = e2 > 0.0f ? 1.0f / e2 : 0.0f;
+                }
+                best_step = gnr(srr - tr0, num - tn0, e0, i0, &best);
+                blamed = 0;
+                sq = gnr(srr - tr1, num - tn1, e1, i1, &cq);
+                if (cq < best) {
+                    best = cq;
+                    best_step = sq;
+                    blamed = 1;
+                }
+                sq = gnr(srr - tr2, num - tn2, e2, i2, &cq);
+                if (cq < best) {
+                    best = cq;
+                    best_step = sq;
+                    blamed = 2;
                 }
                 if (!(best < EXPLAINED && best < 0.1f * chi)) {
                     blamed = -1;
                     mark = 3;
                 } else {
-                    e = r[blamed] - J[blamed] * best_step;
+                    e = SEL(blamed, r0, r1, r2) - SEL(blamed, J0, J1, J2) * best_step;
                     if (fabs_(e) < GROSS[blamed]) {
                         blamed = -1;
                     } else {
@@ -672,13 +692,17 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
             s->excluded = (int8_t)blamed;
             s->blamed_out = 1u;
             s->clean = 0.0f;
-            w[blamed] = 0.0f;
-            chi = 0.0f; /* the two channels' chi2 at the fitted angle (recomputed: the closed
-                         * form cancels in float) */
-            for (i = 0; i < 3; i++) {
-                e = r[i] - J[i] * step;
-                chi += w[i] * e * e;
-            }
+            w0 = blamed == 0 ? 0.0f : w0;
+            w1 = blamed == 1 ? 0.0f : w1;
+            w2 = blamed == 2 ? 0.0f : w2;
+            /* the two channels' chi2 at the fitted angle (recomputed: the closed form cancels
+             * in float) */
+            e = r0 - J0 * step;
+            chi = 0.0f + w0 * e * e;
+            e = r1 - J1 * step;
+            chi += w1 * e * e;
+            e = r2 - J2 * step;
+            chi += w2 * e * e;
             s->blame_from = s->k + 1u; /* the blame ring and the window start again */
             s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0;
             s->window_from = s->k;
@@ -689,8 +713,8 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         }
     }
     if (blamed < 0 && fitted) {
-        s->v += KV * step;
-        s->v = s->v > VMAX ? VMAX : (s->v < -VMAX ? -VMAX : s->v);
+        x = s->v + KV * step;
+        s->v = x > VMAX ? VMAX : (x < -VMAX ? -VMAX : x);
     }
     /* the angle within the revolution (|y - angle| < 2 pi: one wrap at most) */
     if (y >= TWOPI) {
@@ -703,20 +727,19 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     s->ang = y;
     travel = NM * fabs_(s->v);
     /* misfit window */
-    cmax = CAP * (fitted && active >= 3 ? 2.0f : 1.0f);
+    /* a sample's cap: CAP per degree of freedom, CAP when a channel is blamed */
+    cmax = (fitted && active >= 3 && blamed < 0) ? 2.0f * CAP : CAP;
     cc = chi < cmax ? chi : cmax;
-    if (blamed >= 0 && cc > CAP) {
-        cc = CAP;
-    }
+    dof = fitted ? active - 1 : 0;
     jw = s->k % (uint32_t)W;
     if (s->k >= s->window_from + (uint32_t)W) {
         s->sum_chi -= s->ring_chi[jw];
         s->sum_dof -= (int32_t)s->ring_dof[jw];
     }
     s->sum_chi += cc;
-    s->sum_dof += fitted ? active - 1 : 0;
+    s->sum_dof += dof;
     s->ring_chi[jw] = cc;
-    s->ring_dof[jw] = (uint8_t)(fitted ? active - 1 : 0);
+    s->ring_dof[jw] = (uint8_t)dof;
     if (s->sum_dof > 0) {
         mf = s->sum_chi * INV[s->sum_dof];
         above = s->sum_chi > THR[s->sum_dof];
@@ -725,7 +748,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     stale = above && s->bad >= STALE;
     if (!above) {
         s->suppress = 0u;
-    } else if (s->excluded >= 0 && s->blamed_out && fin[(int)s->excluded]) {
+    } else if (s->excluded >= 0 && s->blamed_out && SEL(s->excluded, fin0, fin1, fin2)) {
         s->excluded = -1;
         s->suppress = 1u;
     }
@@ -734,24 +757,26 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         ph = s->phase;
         if (ph == 0u) {
             if (fitted && !stale && blamed < 0) {
-                measure(s, f, dg, r, J, w, step, den, (float)CYCLE * travel * INVMEM);
+                x = (float)CYCLE * travel * INVMEM;
+                x = x < 1.0f ? x : 1.0f;
+                s->lam = 1.0f - x + 0.5f * x * x - x * x * x * (1.0f / 6.0f);
+                s->t = (float)CYCLE / den;
+                MEASURE(0, f0, g0, r0, J0, w0);
+                MEASURE(1, f1, g1, r1, J1, w1);
+                MEASURE(2, f2, g2, r2, J2, w2);
+                s->pending = 1u;
                 s->phase = 1u;
             }
         } else {
             if (s->pending) {
-                if (ph <= 6u) {
-                    row(s, (int)ph - 1);
-                } else if (ph <= 12u) {
-                    column(s, (int)ph - 7);
-                } else if (ph == 13u) {
-                    forward(s);
-                } else if (ph == 14u) {
-                    backward(s);
-                } else {
+                switch (ph) {
+@DISPATCH@
+                default:
                     if (!stale) {
                         apply(s);
                     }
                     s->pending = 0u;
+                    break;
                 }
             }
             s->phase = (uint8_t)((ph + 1u) % (uint32_t)CYCLE);
@@ -760,10 +785,10 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     /* readmission */
     if (fitted && s->excluded >= 0) {
         i = s->excluded;
-        if (!fin[i]) {
+        if (!SEL(i, fin0, fin1, fin2)) {
             s->clean = 0.0f;
         } else {
-            e = r[i] - J[i] * step;
+            e = SEL(i, r0, r1, r2) - SEL(i, J0, J1, J2) * step;
             s->clean = (W0[i] * e * e < 16.0f) ? s->clean + travel : 0.0f;
         }
         if (s->clean >= READMIT) {
@@ -775,18 +800,19 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     {
         uint32_t next = s->seq + 1u;
         @p@_reading *rd = &s->buf[next & 1u];
+        uint8_t st = active < 2 ? @P@_FAULT
+                     : (s->excluded >= 0 ? @P@_DEGRADED
+                     : (stale ? @P@_STALE : (above ? @P@_ADAPTING : @P@_OK)));
         rd->revolutions = s->rev;
         rd->angle = s->ang;
         rd->misfit = mf;
-        rd->state = active < 2 ? @P@_FAULT
-                    : (s->excluded >= 0 ? @P@_DEGRADED
-                    : (stale ? @P@_STALE : (above ? @P@_ADAPTING : @P@_OK)));
+        rd->state = st;
         rd->excluded = s->excluded;
-        rd->flags = (uint32_t)rd->state | ((uint32_t)(s->excluded + 1) << 8);
+        rd->flags = (uint32_t)st | ((uint32_t)(s->excluded + 1) << 8);
         rd->sample = s->k + 1u;
         s->seq = next;
         s->k++;
-        return rd->state;
+        return st;
     }
 }
 
