@@ -361,7 +361,22 @@ class ObserverRun:
 def acquire_offsets(points: int, pole_pairs: int, count: int) -> NDArray[np.int64]:
     """Table-node offsets searched at the start: ``count`` nodes evenly spread over one pole
     pitch centred on the start (within half a pole pitch), in table steps (M / n_m per pitch).
-    The C export takes the same offsets."""
+    The C export takes the same offsets.
+
+    Parameters
+    ----------
+    points : int
+        M, table points per revolution.
+    pole_pairs : int
+        n_m.
+    count : int
+        Nodes searched.
+
+    Returns
+    -------
+    ndarray of int64, shape (count,)
+        Offsets in table steps.
+    """
     per_pitch = points / pole_pairs
     return np.array([round((q / count - 0.5) * per_pitch) for q in range(count)], dtype=np.int64)
 
