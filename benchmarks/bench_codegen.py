@@ -37,7 +37,6 @@ are):
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import platform
@@ -53,7 +52,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import arm_harness as ah  # noqa: E402
 import firmware_support as fs  # noqa: E402
-from bench_support import DEMO_ADC_SCALE, demo_case, finish_report, ringjig_case  # noqa: E402
+from bench_support import DEMO_ADC_SCALE, arm_args, demo_case, finish_report, ringjig_case  # noqa: E402
 
 from hallcal.output.codegen import CORDIC_STEPS, export_c  # noqa: E402
 from hallcal.sensor.flux import FluxModel, FourierBasis  # noqa: E402
@@ -256,13 +255,8 @@ def _weak_bench(wd: Path) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=None, help="also write the report here")
-    args = ap.parse_args(argv)
-    missing = ah.toolchain()
-    if missing is not None:
-        print(f"{missing} not found: install gcc-arm-none-eabi, libnewlib-arm-none-eabi and "
-              "qemu-system-arm", file=sys.stderr)  # fmt: skip
+    args = arm_args(argv, __doc__)
+    if args is None:
         return 2
     lines = [
         "hallcal.output.codegen benchmark (benchmarks/bench_codegen.py)",

@@ -34,7 +34,6 @@ Models (cycles from the executed instruction stream):
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import platform
@@ -50,7 +49,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import arm_harness as ah  # noqa: E402
 import firmware_support as fs  # noqa: E402
 import slip_trials as st  # noqa: E402
-from bench_support import DEMO_ADC_SCALE, demo_case, finish_report, ringjig_case  # noqa: E402
+from bench_support import DEMO_ADC_SCALE, arm_args, demo_case, finish_report, ringjig_case  # noqa: E402
 
 from hallcal.output.codegen import export_c  # noqa: E402
 from hallcal.sensor.flux import FluxModel, FourierBasis  # noqa: E402
@@ -167,13 +166,8 @@ def _case(wd: Path, title: str, art: dict, d: np.ndarray, scale: float, noise: f
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=None, help="also write the report here")
-    args = ap.parse_args(argv)
-    missing = ah.toolchain()
-    if missing is not None:
-        print(f"{missing} not found: install gcc-arm-none-eabi, libnewlib-arm-none-eabi and "
-              "qemu-system-arm", file=sys.stderr)  # fmt: skip
+    args = arm_args(argv, __doc__)
+    if args is None:
         return 2
     gcc = subprocess.run(["arm-none-eabi-gcc", "--version"], capture_output=True, text=True)
     qemu = subprocess.run(["qemu-system-arm", "--version"], capture_output=True, text=True)

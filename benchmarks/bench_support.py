@@ -3,7 +3,9 @@ of their report (the load average, printed and optionally written)."""
 
 from __future__ import annotations
 
+import argparse
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -51,3 +53,19 @@ def finish_report(lines: list[str], out: Path | None) -> int:
     if out is not None:
         out.write_text(report)
     return 0
+
+
+def arm_args(argv: list[str] | None, doc: str) -> argparse.Namespace | None:
+    """The ``--out`` option of an ARM benchmark; None (after one line on stderr) when the ARM
+    toolchain or QEMU is missing (``tests/arm_harness.py`` must be importable)."""
+    import arm_harness as ah
+
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=None, help="also write the report here")
+    args = ap.parse_args(argv)
+    missing = ah.toolchain()
+    if missing is not None:
+        print(f"{missing} not found: install gcc-arm-none-eabi, libnewlib-arm-none-eabi and "
+              "qemu-system-arm", file=sys.stderr)  # fmt: skip
+        return None
+    return args
