@@ -223,8 +223,8 @@ wrap(cl, "assess", "model adequacy")
 wrap(cl, "build_lut", "lookup table")
 wrap(cl, "power_up_analysis", "power-up identifiability of the pole pair")
 wrap(cl, "validate", "validation against y_ref")
-import hallcal.api as api
-wrap(api.Calibration, "save", "write the artifact")
+import hallcal.pipeline.calibration as pc  # api.Calibration saves through it
+wrap(pc.Calibration, "save", "write the artifact")
 sys.argv = ["hallcal", *sys.argv[1:]]
 try:
     main()
