@@ -79,15 +79,7 @@ def test_readme_steps_run_as_written(tmp_path):
     (tmp_path / "setup.toml").write_text(small_setup(readme_setup()), encoding="utf-8")
     results = {}
     for args in readme_commands():
-        res = subprocess.run(
-            [sys.executable, "-m", "hallcal.cli", *args[1:]],
-            cwd=tmp_path,
-            capture_output=True,
-            text=True,
-            timeout=900,
-        )
-        assert res.returncode == 0, (args, res.stdout, res.stderr)
-        assert "Traceback" not in res.stderr
+        res = _run(args, tmp_path)
         results.setdefault(args[1], []).append(res)
     # the BLA is the plant actually used, and the choice is said once and recorded
     cal = results["calibrate"][0]
