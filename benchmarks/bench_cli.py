@@ -204,23 +204,17 @@ import hallcal.api, hallcal.pipeline.closed_loop as cl, hallcal.fit.sem as sem
 mark("imports (numpy, scipy.linalg, numba, pyarrow, hallcal)", t)
 import numba
 from numba.core import dispatcher
-first = dispatcher.Dispatcher._compile_for_args
-def timed(self, *a, **k):
-    t = time.perf_counter()
-    try:
-        return first(self, *a, **k)
-    finally:
-        mark("numba: first call of each kernel (cache load, runtime start)", t)
-dispatcher.Dispatcher._compile_for_args = timed
-def wrap(mod, name, label):
-    f = getattr(mod, name)
+def wrap(owner, name, label):
+    f = getattr(owner, name)
     def g(*a, **k):
         t = time.perf_counter()
         try:
             return f(*a, **k)
         finally:
             mark(label, t)
-    setattr(mod, name, g)
+    setattr(owner, name, g)
+wrap(dispatcher.Dispatcher, "_compile_for_args",
+     "numba: first call of each kernel (cache load, runtime start)")
 import hallcal.io.dataset as ds
 wrap(hallcal.api, "read_dataset", "read the CSV")
 wrap(cl, "solve_sem", "SEM (all iterations, numba loads inside)")
@@ -231,15 +225,8 @@ wrap(cl.sensors, "examine", "sensor examination (rails, noise, drift in f_init's
 wrap(cl, "observer_check", "observer check (injectivity of the three-signal curve)")
 wrap(cl, "power_up_analysis", "power-up identifiability of the pole pair")
 wrap(cl, "validate", "validation against y_ref")
-import hallcal.api as api
-save = api.Calibration.save
-def timed_save(self, *a, **k):
-    t = time.perf_counter()
-    try:
-        return save(self, *a, **k)
-    finally:
-        mark("write the artifact", t)
-api.Calibration.save = timed_save
+import hallcal.pipeline.calibration as pc  # api.Calibration saves through it
+wrap(pc.Calibration, "save", "write the artifact")
 sys.argv = ["hallcal", *sys.argv[1:]]
 try:
     main()

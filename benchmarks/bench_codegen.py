@@ -37,7 +37,6 @@ are):
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import platform
@@ -53,14 +52,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import arm_harness as ah  # noqa: E402
 import firmware_support as fs  # noqa: E402
+from bench_support import DEMO_ADC_SCALE, arm_args, demo_case, finish_report, ringjig_case  # noqa: E402
 
-from hallcal.io import read_artifact, read_dataset  # noqa: E402
 from hallcal.output.codegen import CORDIC_STEPS, export_c  # noqa: E402
 from hallcal.sensor.flux import FluxModel, FourierBasis  # noqa: E402
 
 TWO_PI = 2.0 * math.pi
-DEMO_ADC_SCALE = 2.0**14
-RINGJIG = Path(__file__).resolve().parents[1] / "tests" / "data" / "ring-jig"  # shipped copies
 
 
 def _fast_spin(art: dict) -> np.ndarray:
@@ -71,29 +68,6 @@ def _fast_spin(art: dict) -> np.ndarray:
     k = np.arange(3000)
     y0 = 0.3 + np.cumsum(0.055 * TWO_PI / n * np.where(k < 1500, 1.0, -1.0))
     return flux(y0)
-
-
-def _demo(folder: Path) -> tuple[dict, np.ndarray]:
-    from hallcal.demo import run_demo
-
-    run_demo(folder, report=False)
-    return read_artifact(folder / "calibration.json"), read_dataset(folder / "validation.npz").d
-
-
-def _ringjig(folder: Path) -> tuple[dict, np.ndarray] | None:
-    import hallcal
-    from hallcal.fit.constant_speed import find_constant_speed
-
-    path = RINGJIG / "hall_calibration_one_rotation_1.txt"
-    if not path.exists():
-        return None
-    d = np.loadtxt(path, dtype=np.int64).astype(np.float64)
-    start, mid, _ = find_constant_speed(d, 25).split(2.0)
-    setup = {"pole_pairs": 25, "sample_time": 1.0,
-             "trajectory": {"kind": "constant-speed", "start": start, "stop": mid}}  # fmt: skip
-    cal = hallcal.calibrate({f"d{h + 1}": d[:, h] for h in range(3)}, setup)
-    cal.save(folder / "ringjig1.json")
-    return read_artifact(folder / "ringjig1.json"), d
 
 
 def _classes(tr: ah.Trace, calls: int) -> list[str]:
@@ -281,13 +255,8 @@ def _weak_bench(wd: Path) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=None, help="also write the report here")
-    args = ap.parse_args(argv)
-    missing = ah.toolchain()
-    if missing is not None:
-        print(f"{missing} not found: install gcc-arm-none-eabi, libnewlib-arm-none-eabi and "
-              "qemu-system-arm", file=sys.stderr)  # fmt: skip
+    args = arm_args(argv, __doc__)
+    if args is None:
         return 2
     lines = [
         "hallcal.output.codegen benchmark (benchmarks/bench_codegen.py)",
@@ -302,8 +271,8 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         wd = Path(tmp)
         cases = [("demo (n_m = 11, normalized signals; fixed point at 2^14 counts per unit)",
-                  *_demo(wd / "demo"), DEMO_ADC_SCALE)]  # fmt: skip
-        rj = _ringjig(wd)
+                  *demo_case(wd / "demo"), DEMO_ADC_SCALE)]  # fmt: skip
+        rj = ringjig_case(wd)
         if rj is not None:
             cases.append(("ring-jig 1 (n_m = 25, raw 16-bit counts)", *rj, 1.0))
         for title, art, d, scale in cases:
@@ -366,13 +335,7 @@ def main(argv: list[str] | None = None) -> int:
             lines.append("")
         lines += _weak_bench(wd)
         lines.append("")
-    load = os.getloadavg()
-    lines.append(f"load average at the end: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
-    report = "\n".join(lines) + "\n"
-    print(report, end="")
-    if args.out is not None:
-        args.out.write_text(report)
-    return 0
+    return finish_report(lines, args.out)
 
 
 if __name__ == "__main__":

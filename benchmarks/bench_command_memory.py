@@ -21,18 +21,16 @@ import tempfile
 import time
 from pathlib import Path
 
-from hallcal.limits import BYTES_PER_SAMPLE
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-SETUP = """pole_pairs = 11
-sample_time = 2.5e-4
-[controller]
-num = [2.94, -3.29, -2.10, 2.45]
-den = [1, -3.45, 4.52, -2.68, 0.61]
-[plant]
-num = [1.663e5]
-den = [1, 632.6, 2702, 0]
-delay = 1.2e-4
-[model]
+from cli_support import PAPER_LOOP_TOML  # noqa: E402
+
+from hallcal.limits import BYTES_PER_SAMPLE  # noqa: E402
+
+SETUP = (
+    "pole_pairs = 11\nsample_time = 2.5e-4\n"
+    + PAPER_LOOP_TOML
+    + """[model]
 harmonics = [1,2,3,4,5,6,7,8,9,10,11]
 max_iterations = 2
 [bench]
@@ -40,6 +38,7 @@ ramp_end = {end}
 duration = {duration}
 seed = 5
 """
+)
 
 
 def _run(args: list[str], cwd: Path) -> tuple[float, float]:

@@ -34,7 +34,6 @@ Models (cycles from the executed instruction stream):
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import platform
@@ -50,14 +49,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import arm_harness as ah  # noqa: E402
 import firmware_support as fs  # noqa: E402
 import slip_trials as st  # noqa: E402
+from bench_support import DEMO_ADC_SCALE, arm_args, demo_case, finish_report, ringjig_case  # noqa: E402
 
-from hallcal.io import read_artifact, read_dataset  # noqa: E402
 from hallcal.output.codegen import export_c  # noqa: E402
 from hallcal.sensor.flux import FluxModel, FourierBasis  # noqa: E402
 
 TWO_PI = 2.0 * math.pi
-DEMO_ADC_SCALE = 2.0**14
-RINGJIG = Path(__file__).resolve().parents[1] / "tests" / "data" / "ring-jig"  # shipped copies
 M4_MODELS = [ah.CycleModel("m4", p, 0) for p in (1, 2, 3)] + [ah.CycleModel("m4", 3, 1)]
 M0_MODELS = [ah.CycleModel("m0plus", muls=1), ah.CycleModel("m0plus", muls=32)]
 
@@ -169,13 +166,8 @@ def _case(wd: Path, title: str, art: dict, d: np.ndarray, scale: float, noise: f
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=None, help="also write the report here")
-    args = ap.parse_args(argv)
-    missing = ah.toolchain()
-    if missing is not None:
-        print(f"{missing} not found: install gcc-arm-none-eabi, libnewlib-arm-none-eabi and "
-              "qemu-system-arm", file=sys.stderr)  # fmt: skip
+    args = arm_args(argv, __doc__)
+    if args is None:
         return 2
     gcc = subprocess.run(["arm-none-eabi-gcc", "--version"], capture_output=True, text=True)
     qemu = subprocess.run(["qemu-system-arm", "--version"], capture_output=True, text=True)
@@ -189,41 +181,19 @@ def main(argv: list[str] | None = None) -> int:
         "'update + read': what a control loop pays per sample",
         "",
     ]
-    from hallcal.demo import run_demo
-
     with tempfile.TemporaryDirectory() as tmp:
         wd = Path(tmp)
-        run_demo(wd / "demo", report=False)
-        art = read_artifact(wd / "demo" / "calibration.json")
-        d = read_dataset(wd / "demo" / "validation.npz").d
+        art, d = demo_case(wd / "demo")
         lines += _case(wd, "demo (n_m = 11, normalized signals; fixed point at 2^14 counts per "
                        "unit)", art, d, DEMO_ADC_SCALE, math.sqrt(7.5e-6), True)  # fmt: skip
-        path = RINGJIG / "hall_calibration_one_rotation_1.txt"
-        if path.exists():
-            import hallcal
-            from hallcal.fit.constant_speed import find_constant_speed
-
-            d = np.loadtxt(path, dtype=np.int64).astype(np.float64)
-            start, mid, _ = find_constant_speed(d, 25).split(2.0)
-            setup = {
-                "pole_pairs": 25,
-                "sample_time": 1.0,
-                "trajectory": {"kind": "constant-speed", "start": start, "stop": mid},
-            }
-            cal = hallcal.calibrate({f"d{h + 1}": d[:, h] for h in range(3)}, setup)
-            cal.save(wd / "rj.json")
-            art = read_artifact(wd / "rj.json")
+        rj = ringjig_case(wd)
+        if rj is not None:
+            art, d = rj
             floor = art["diagnostics"]["noise_floor"]
             sigma = floor * 25 * 1000.0 / math.sqrt(2.0 / 3.0)  # counts: amplitude about 1000
             lines += _case(wd, "ring-jig 1 (n_m = 25, raw 16-bit counts)", art, d, 1.0, sigma,
                            False)  # fmt: skip
-    load = os.getloadavg()
-    lines.append(f"load average at the end: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
-    report = "\n".join(lines) + "\n"
-    print(report, end="")
-    if args.out is not None:
-        args.out.write_text(report)
-    return 0
+    return finish_report(lines, args.out)
 
 
 if __name__ == "__main__":

@@ -39,14 +39,18 @@ from pathlib import Path
 
 import numpy as np
 
-import hallcal
-from hallcal.errors import CalibrationRefused
-from hallcal.io import Dataset, default_setup
-from hallcal.pipeline import simulate
-from hallcal.sensor import absolute as ab
-from hallcal.sensor.misfit import model_misfit
-from hallcal.sim.bench import BenchConfig
-from hallcal.sim.loop import simulate_loop
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+from motor_support import remount_trials  # noqa: E402
+
+import hallcal  # noqa: E402
+from hallcal.errors import CalibrationRefused  # noqa: E402
+from hallcal.io import Dataset, default_setup  # noqa: E402
+from hallcal.pipeline import simulate  # noqa: E402
+from hallcal.sensor import absolute as ab  # noqa: E402
+from hallcal.sensor.misfit import model_misfit  # noqa: E402
+from hallcal.sim.bench import BenchConfig  # noqa: E402
+from hallcal.sim.loop import simulate_loop  # noqa: E402
 
 TWO_PI = 2.0 * math.pi
 
@@ -300,19 +304,9 @@ def remounted(captures) -> None:
         for di, (d, seg, _) in captures.items():
             if ci == di:
                 continue
-            rng = np.random.default_rng(100 * ci + di)
-            old = locked = refused = 0
-            at = []
-            for s in rng.integers(seg.start, seg.stop - W, 60):
-                window = d[s : s + W]
-                ident = dec.identify(window)
-                locked += ident.status is ab.PowerUpStatus.IDENTIFIED
-                if ident.status is ab.PowerUpStatus.MISMATCH:
-                    refused += 1
-                    at.append(ident.mismatch_sample + 1)
-                lam = np.cumsum(dec.sample_costs(window), axis=0)
-                lam -= lam.min(axis=1, keepdims=True)
-                old += bool(np.any(np.sum(np.exp(-0.5 * lam), axis=1) - 1.0 <= dec.lock_threshold))
+            old, locked, refused, at = remount_trials(
+                dec, d, seg.start, seg.stop, window=W, seed=100 * ci + di
+            )
             whole = model_misfit(dec, d[seg.start : seg.stop])
             total_old += old
             total_locked += locked

@@ -52,6 +52,22 @@ def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def _timed_sem(repeats: int, loop, run, basis, **options):
+    """The SEM of `run` solved `repeats` times: the last result and each solve's wall time [s]."""
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        res = solve_sem(loop, run.r, run.d, basis, y=run.y, **options)
+        times.append(time.perf_counter() - t0)
+    return res, times
+
+
+def _validation_errors(res, cfg, val) -> tuple[float, float]:
+    """RMS errors of f_init and f_star (the table of `res`'s flux) on the validation run."""
+    lut = build_lut(res.flux, cfg.pole_pairs)
+    return angle_error(lut.f_init(val.d), val.y0).rms, angle_error(lut.f_star(val.d), val.y0).rms
+
+
 def large(harmonics: int, threads: int, repeats: int) -> None:
     """One line: the Fourier SEM with harmonics 1..K on the 160 000-sample run (own process)."""
     cfg = BenchConfig(
@@ -63,14 +79,8 @@ def large(harmonics: int, threads: int, repeats: int) -> None:
     loop = cfg.loop()
     solve_sem(loop, run.r[:3000], run.d[:3000], basis, y=run.y[:3000], max_iterations=1)
     before = _rss_mb()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        res = solve_sem(loop, run.r, run.d, basis, y=run.y, threads=threads)
-        times.append(time.perf_counter() - t0)
-    lut = build_lut(res.flux, cfg.pole_pairs)
-    e_star = angle_error(lut.f_star(val.d), val.y0).rms
-    e_init = angle_error(lut.f_init(val.d), val.y0).rms
+    res, times = _timed_sem(repeats, loop, run, basis, threads=threads)
+    e_init, e_star = _validation_errors(res, cfg, val)
     print(
         f"  1..{harmonics:<3d} p = {3 * basis.size:>3d}  {threads} thread(s): "
         f"median {np.median(times):.2f} s (min {np.min(times):.2f}), {res.iterations} "
@@ -113,14 +123,8 @@ def main() -> None:
     }
     for label, theta0 in starts.items():
         print(f"\n=== start: {label}")
-        times = []
-        for _ in range(args.repeats):
-            t0 = time.perf_counter()
-            res = solve_sem(loop, run.r, run.d, basis, y=run.y, theta0=theta0)
-            times.append(time.perf_counter() - t0)
-        lut = build_lut(res.flux, cfg.pole_pairs)
-        e_init = angle_error(lut.f_init(val.d), val.y0).rms
-        e_star = angle_error(lut.f_star(val.d), val.y0).rms
+        res, times = _timed_sem(args.repeats, loop, run, basis, theta0=theta0)
+        e_init, e_star = _validation_errors(res, cfg, val)
         print("[hallcal] Levenberg-Marquardt, exact forward sensitivities")
         print(
             f"  wall time: median {np.median(times):.3f} s, min {np.min(times):.3f} s, "

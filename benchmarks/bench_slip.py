@@ -34,12 +34,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import firmware_support as fs  # noqa: E402
 import slip_trials as st  # noqa: E402
+from bench_support import DEMO_ADC_SCALE, demo_case, finish_report  # noqa: E402
 
-from hallcal.io import read_artifact  # noqa: E402
 from hallcal.output.codegen import export_c  # noqa: E402
 from hallcal.sensor.flux import FluxModel, FourierBasis  # noqa: E402
 
-DEMO_ADC_SCALE = 2.0**14
 NOISE = math.sqrt(7.5e-6)  # the paper's Hall noise (variance 7.5e-6 per channel)
 
 
@@ -51,7 +50,6 @@ def main(argv: list[str] | None = None) -> int:
     if fs.CC is None:
         print("no C compiler (cc, gcc or clang) on PATH", file=sys.stderr)
         return 2
-    from hallcal.demo import run_demo
 
     lines = [
         "hallcal.output.codegen: no slip without the fault flag (benchmarks/bench_slip.py)",
@@ -62,8 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     ]
     with tempfile.TemporaryDirectory() as tmp:
         wd = Path(tmp)
-        run_demo(wd / "demo", report=False)
-        art = read_artifact(wd / "demo" / "calibration.json")
+        art, _ = demo_case(wd / "demo")
         gen = wd / "fw"
         res = export_c(art, gen, source="calibration.json", adc_scale=DEMO_ADC_SCALE,
                        powerup=False)  # fmt: skip
@@ -104,13 +101,7 @@ def main(argv: list[str] | None = None) -> int:
         lines += ["", *notes, "",
                   f"half a pole pitch: {math.pi / n:.4f} rad; 'silent' = slips without the fault "
                   "flag (must be 0)"]  # fmt: skip
-    load = os.getloadavg()
-    lines.append(f"load average at the end: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
-    report = "\n".join(lines) + "\n"
-    print(report, end="")
-    if args.out is not None:
-        args.out.write_text(report)
-    return 0
+    return finish_report(lines, args.out)
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 import pytest
+from motor_support import true_offset
 
 from hallcal.sensor import absolute as ab
 from hallcal.sensor.lut import build_lut
@@ -24,9 +25,13 @@ from hallcal.sim.bench import BenchConfig, power_up_run, power_up_start, ramp_ru
 TWO_PI = 2.0 * math.pi
 
 
-def true_offset(y0_first: float, y_first: float, n: int) -> int:
-    """The offset j with y0 ~ y + 2 pi j / n at power-up (the calibration frame is the truth's)."""
-    return int(np.round((y0_first - y_first) * n / TWO_PI)) % n
+def _identifiability(cfg: BenchConfig) -> ab.IdentifiabilityReport:
+    """The identifiability report of `cfg`'s bench with its true flux as the model."""
+    truth = cfg.truth()
+    lut = build_lut(truth, cfg.pole_pairs)
+    return ab.assess_identifiability(
+        ab.build_decoder(truth, lut, noise_std=math.sqrt(cfg.noise_variance))
+    )
 
 
 @pytest.fixture(scope="module")
@@ -337,21 +342,13 @@ def test_verdicts_on_three_motors(paper):
     assert 0.1 < rep.separation_worst < 1.3  # and 0.2-1.3 at the worst positions
 
     # another magnet set with a weak spot: standstill there needs thousands of samples
-    cfg2 = BenchConfig(seed=2)
-    t2 = cfg2.truth()
-    rep2 = ab.assess_identifiability(
-        ab.build_decoder(t2, build_lut(t2, 11), noise_std=math.sqrt(cfg2.noise_variance))
-    )
+    rep2 = _identifiability(BenchConfig(seed=2))
     assert rep2.status is ab.Identifiability.NEEDS_MOTION
     assert rep2.reason is ab.IdentifiabilityReason.WEAK_POSITIONS
     assert rep2.standstill_samples_worst > 200 and rep2.revolution_samples_needed < 100
 
     # identical magnets: nothing tells the pole pairs apart
-    cfg3 = BenchConfig(magnet_variation=0.0)
-    t3 = cfg3.truth()
-    rep3 = ab.assess_identifiability(
-        ab.build_decoder(t3, build_lut(t3, 11), noise_std=math.sqrt(cfg3.noise_variance))
-    )
+    rep3 = _identifiability(BenchConfig(magnet_variation=0.0))
     assert rep3.status is ab.Identifiability.NOT_IDENTIFIABLE
     assert rep3.reason is ab.IdentifiabilityReason.TOO_UNIFORM
     assert not rep3.status.success

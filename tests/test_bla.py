@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 import scipy.signal as sig
+from motor_support import SMALL_LOOP
 from scipy import stats
 
 from hallcal.errors import HallcalInputError
@@ -413,10 +414,7 @@ def test_order_selection_on_a_motor_with_one_mechanical_pole() -> None:
 
 
 MOTOR_BLA = {
-    "pole_pairs": 4,
-    "sample_time": 1e-4,
-    "controller": {"num": [9.8472, -19.6285, 9.7814], "den": [1.0, -1.962998, 0.962998]},
-    "plant": {"num": [5000.0], "den": [1.0, 50.0, 0.0], "delay": 1.5e-4},
+    **SMALL_LOOP,
     "bla": {"period_samples": 4000, "periods": 3, "realizations": 4},
     "bench": {"seed": 3},
 }

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from motor_support import SMALL_LOOP
 
 from hallcal import pipeline
 from hallcal.errors import HallcalInputError
@@ -30,10 +31,7 @@ from hallcal.sim.lti import ContinuousTF, DiscreteTF
 RING = Path(__file__).resolve().parent / "data" / "ring-jig"
 
 MOTOR = {
-    "pole_pairs": 4,
-    "sample_time": 1e-4,
-    "controller": {"num": [9.8472, -19.6285, 9.7814], "den": [1.0, -1.962998, 0.962998]},
-    "plant": {"num": [5000.0], "den": [1.0, 50.0, 0.0], "delay": 1.5e-4},
+    **SMALL_LOOP,
     "model": {"harmonics": [1, 2, 3, 4]},
     "bench": {"ramp_end": 7.0, "duration": 8.0, "seed": 3},
 }

@@ -7,27 +7,12 @@ import subprocess
 
 import numpy as np
 import pytest
-from cli_support import PAPER_LOOP_TOML
+from cli_support import paper_setup
 from cli_support import run_cli as run
 
 from hallcal.io import read_dataset, write_dataset
 
-SETUP = (
-    """\
-pole_pairs = 11
-sample_time = 2.5e-4
-"""
-    + PAPER_LOOP_TOML
-    + """\
-[model]
-basis = "fourier"
-harmonics = [1,2,3,4,5,6,7,8,9,10,11]
-[bench]
-ramp_end = 7.0
-duration = 10.0
-seed = 5
-"""
-)
+SETUP = paper_setup(duration=10.0, seed=5)
 
 
 @pytest.fixture(scope="module")

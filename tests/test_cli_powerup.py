@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from cli_support import PAPER_LOOP_TOML
+from cli_support import calibrated_folder, paper_setup
 from cli_support import run_cli as run
 
 import hallcal
@@ -26,23 +26,7 @@ from hallcal.sim.bench import power_up_run
 
 TWO_PI = 2.0 * math.pi
 
-SETUP = (
-    """\
-pole_pairs = 11
-sample_time = 2.5e-4
-"""
-    + PAPER_LOOP_TOML
-    + """\
-[model]
-basis = "fourier"
-harmonics = [1,2,3,4,5,6,7,8,9,10,11]
-[bench]
-ramp_end = 7.0
-duration = 14.0
-seed = 0
-magnet_variation = {mv}
-"""
-)
+SETUP = paper_setup(duration=14.0, seed=0, bench_extra="magnet_variation = {mv}\n")
 
 
 def power_up_csv(path: Path, setup_path: Path, angle: float, *, speed: float, seed: int) -> None:
@@ -54,24 +38,12 @@ def power_up_csv(path: Path, setup_path: Path, angle: float, *, speed: float, se
 
 @pytest.fixture(scope="module")
 def paper(tmp_path_factory):
-    d = tmp_path_factory.mktemp("powerup")
-    (d / "s.toml").write_text(SETUP.format(mv=0.04))
-    res = run("simulate", "--setup", "s.toml", "--out", "cal.csv", cwd=d)
-    assert res.returncode == 0, res.stderr
-    res = run("calibrate", "cal.csv", "--setup", "s.toml", "--out", "cal.json", cwd=d)
-    assert res.returncode == 0, res.stderr
-    return d, res
+    return calibrated_folder(tmp_path_factory.mktemp("powerup"), SETUP.format(mv=0.04))
 
 
 @pytest.fixture(scope="module")
 def ideal(tmp_path_factory):
-    d = tmp_path_factory.mktemp("ideal")
-    (d / "s.toml").write_text(SETUP.format(mv=0.0))
-    res = run("simulate", "--setup", "s.toml", "--out", "cal.csv", cwd=d)
-    assert res.returncode == 0, res.stderr
-    res = run("calibrate", "cal.csv", "--setup", "s.toml", "--out", "cal.json", cwd=d)
-    assert res.returncode == 0, res.stderr
-    return d, res
+    return calibrated_folder(tmp_path_factory.mktemp("ideal"), SETUP.format(mv=0.0))
 
 
 def test_calibrate_reports_and_stores_identifiability(paper):

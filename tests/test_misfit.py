@@ -18,6 +18,7 @@ import subprocess
 import numpy as np
 import pytest
 from firmware_support import CC, bench_artifact, python_decoder
+from motor_support import true_offset
 
 from hallcal.io import Dataset
 from hallcal.output.codegen import export_c
@@ -28,10 +29,6 @@ from hallcal.sensor.misfit import MisfitStatus, MisfitTest, model_misfit
 from hallcal.sim.bench import BenchConfig, power_up_run
 
 TWO_PI = 2.0 * math.pi
-
-
-def true_offset(y0_first: float, y_first: float, n: int) -> int:
-    return int(np.round((y0_first - y_first) * n / TWO_PI)) % n
 
 
 @pytest.fixture(scope="module")

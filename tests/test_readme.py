@@ -84,15 +84,7 @@ def readme_run(tmp_path_factory) -> tuple[Path, dict[str, list[subprocess.Comple
     (d / "setup.toml").write_text(small_setup(readme_setup()), encoding="utf-8")
     results: dict[str, list[subprocess.CompletedProcess]] = {}
     for args in readme_commands():
-        res = subprocess.run(
-            [sys.executable, "-m", "hallcal.cli", *args[1:]],
-            cwd=d,
-            capture_output=True,
-            text=True,
-            timeout=900,
-        )
-        assert res.returncode == 0, (args, res.stdout, res.stderr)
-        assert "Traceback" not in res.stderr
+        res = _run(args, d)
         results.setdefault(args[1], []).append(res)
     return d, results
 

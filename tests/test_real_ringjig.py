@@ -77,6 +77,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from motor_support import remount_trials
 
 from hallcal.fit.constant_speed import (
     calibrate_constant_speed,
@@ -368,19 +369,9 @@ def test_ringjig_remounted_ring_is_refused(results):
                 continue
             d = r["d"]
             start, _, stop = r["split"]
-            rng = np.random.default_rng(100 * ci + di)
-            old = locked = refused = 0
-            at = []
-            for s in rng.integers(start, stop - W, 60):
-                window = d[s : s + W]
-                ident = dec.identify(window)
-                locked += ident.status is ab.PowerUpStatus.IDENTIFIED
-                if ident.status is ab.PowerUpStatus.MISMATCH:
-                    refused += 1
-                    at.append(ident.mismatch_sample + 1)
-                lam = np.cumsum(dec.sample_costs(window), axis=0)  # the lock rule alone
-                lam -= lam.min(axis=1, keepdims=True)
-                old += bool(np.any(np.sum(np.exp(-0.5 * lam), axis=1) - 1.0 <= dec.lock_threshold))
+            old, locked, refused, at = remount_trials(
+                dec, d, start, stop, window=W, seed=100 * ci + di
+            )
             print(f"{ci:3d} {di:5d} {old:12d}/60 {locked:10d}/60 {refused:8d}/60"
                   f" {np.median(at):10.0f}/{max(at)}")  # fmt: skip
             assert locked == 0, (ci, di)  # 0 of 60 confidently wrong

@@ -264,6 +264,24 @@ _units_option = click.option(
 )
 
 
+_FILE = click.Path(dir_okay=False)
+_FOLDER = click.Path(file_okay=False)
+#: The positional arguments of a recording and of a calibration artifact.
+_data_argument = click.argument("data", type=_FILE)
+_artifact_argument = click.argument("artifact", type=_FILE)
+
+
+def _setup_option(help: str, *, required: bool = False) -> Callable[..., Any]:
+    """The ``--setup`` option (a setup TOML file, parameter ``setup_path``)."""
+    return click.option("--setup", "setup_path", required=required, type=_FILE, help=help)
+
+
+def _out_option(help: str, *, folder: bool = False, **kwargs: Any) -> Callable[..., Any]:
+    """The ``--out`` option: a file (default) or a folder, required unless a default is given."""
+    kwargs.setdefault("required", "default" not in kwargs)
+    return click.option("--out", type=_FOLDER if folder else _FILE, help=help, **kwargs)
+
+
 def _notes(messages: tuple[Message, ...] | list[Message]) -> None:
     """Notes and warnings on stderr, once each, as :meth:`Message.line` renders them."""
     for line in dict.fromkeys(m.line() for m in messages):
@@ -304,20 +322,8 @@ def cli() -> None:
         "hallcal simulate --setup setup.toml --seed 2 --out run.csv   # a fresh validation run",
     )
 )
-@click.option(
-    "--setup",
-    "setup_path",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Setup TOML ([bench], [plant], [controller], [bla]); default: the paper's.",
-)
-@click.option(
-    "--out",
-    "out",
-    required=True,
-    type=click.Path(dir_okay=False),
-    help="Dataset to write (.csv, .parquet, .h5, .mat, .npz).",
-)
+@_setup_option("Setup TOML ([bench], [plant], [controller], [bla]); default: the paper's.")
+@_out_option("Dataset to write (.csv, .parquet, .h5, .mat, .npz).")
 @click.option(
     "--experiment",
     type=click.Choice(["ramp", "multisine"]),
@@ -378,13 +384,9 @@ def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int
         "hallcal inspect cal.csv --setup setup.toml",
     )
 )
-@click.argument("data", type=click.Path(dir_okay=False))
-@click.option(
-    "--setup",
-    "setup_path",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Setup TOML: its pole_pairs, sample_time and [trajectory] are checked against the data.",
+@_data_argument
+@_setup_option(
+    "Setup TOML: its pole_pairs, sample_time and [trajectory] are checked against the data."
 )
 @click.option(
     "--pole-pairs",
@@ -441,20 +443,11 @@ def _pole_list(poles: tuple[complex, ...]) -> str:
         "written for inspection)",
     )
 )
-@click.argument("data", type=click.Path(dir_okay=False))
-@click.option(
-    "--setup",
-    "setup_path",
-    required=True,
-    type=click.Path(dir_okay=False),
-    help="Setup TOML with [bla] (period, periods, model orders) and sample_time.",
+@_data_argument
+@_setup_option(
+    "Setup TOML with [bla] (period, periods, model orders) and sample_time.", required=True
 )
-@click.option(
-    "--out",
-    required=True,
-    type=click.Path(dir_okay=False),
-    help="BLA JSON to write; its Bode plot goes next to it with the suffix .png.",
-)
+@_out_option("BLA JSON to write; its Bode plot goes next to it with the suffix .png.")
 @_handle_errors
 def bla(data: str, setup_path: str, out: str) -> None:
     """Identify the closed-loop BLA of the plant from a multisine dataset.
@@ -526,21 +519,15 @@ def _write_bla_plot(res: Any, path: Path) -> None:
         "unless --force)",
     )
 )
-@click.argument("data", type=click.Path(dir_okay=False))
-@click.option(
-    "--setup",
-    "setup_path",
-    required=True,
-    type=click.Path(dir_okay=False),
-    help="Setup TOML (docs/setup-reference.md).",
-)
+@_data_argument
+@_setup_option("Setup TOML (docs/setup-reference.md).", required=True)
 @click.option(
     "--bla-data",
-    type=click.Path(dir_okay=False),
+    type=_FILE,
     default=None,
     help="Multisine experiment for the BLA of the plant; wins over the setup's [plant].",
 )
-@click.option("--out", required=True, type=click.Path(dir_okay=False), help="Artifact to write.")
+@_out_option("Artifact to write.")
 @click.option("--force", is_flag=True, help="Write the artifact even if the model is inadequate.")
 @_units_option
 @_handle_errors
@@ -627,14 +614,9 @@ def _print_validation(v, units: AngleUnit, n_m: int) -> None:
         "the observer only: use --observer)",
     )
 )
-@click.argument("artifact", type=click.Path(dir_okay=False))
-@click.argument("data", type=click.Path(dir_okay=False))
-@click.option(
-    "--out",
-    required=True,
-    type=click.Path(dir_okay=False),
-    help="Table to write: columns y_init and y_star [rad, mechanical], one row per sample.",
-)
+@_artifact_argument
+@_data_argument
+@_out_option("Table to write: columns y_init and y_star [rad, mechanical], one row per sample.")
 @click.option(
     "--absolute",
     is_flag=True,
@@ -711,7 +693,7 @@ def _print_observer(rec, units: AngleUnit, n_m: int) -> None:
         exits=_EXITS + ", 3 no candidate speed reaches the target",
     )
 )
-@click.argument("artifact", type=click.Path(dir_okay=False))
+@_artifact_argument
 @click.option(
     "--revolutions",
     type=float,
@@ -794,10 +776,8 @@ def _print_identification(ident, pole_pairs: int) -> None:
         "hallcal export-c cal.json --out firmware/ --adc-scale 4096 --no-fixed-point",
     ),
 )
-@click.argument("artifact", type=click.Path(dir_okay=False))
-@click.option(
-    "--out", required=True, type=click.Path(file_okay=False), help="Folder for the C files."
-)
+@_artifact_argument
+@_out_option("Folder for the C files.", folder=True)
 @click.option("--no-fixed-point", is_flag=True, help="Only the float variant.")
 @click.option(
     "--adc-scale",
@@ -926,18 +906,16 @@ def _echo(text: str, *, err: bool = False) -> None:
         "hallcal report cal.json ring.csv --out report/ --units electrical-deg",
     )
 )
-@click.argument("artifact", type=click.Path(dir_okay=False))
-@click.argument("data", type=click.Path(dir_okay=False))
+@_artifact_argument
+@_data_argument
 @click.option(
     "--validation",
     "validation",
-    type=click.Path(dir_okay=False),
+    type=_FILE,
     default=None,
     help="A fresh run with y_ref to validate on.",
 )
-@click.option(
-    "--out", required=True, type=click.Path(file_okay=False), help="Folder for the report."
-)
+@_out_option("Folder for the report.", folder=True)
 @_units_option
 @_handle_errors
 def report(artifact: str, data: str, validation: str | None, out: str, units: AngleUnit) -> None:
@@ -961,12 +939,11 @@ def report(artifact: str, data: str, validation: str | None, out: str, units: An
 
 
 @cli.command(epilog=_epilog("hallcal demo --out hallcal-demo", "hallcal demo --no-report"))
-@click.option(
-    "--out",
+@_out_option(
+    "Folder for data, artifact, figures and report.",
+    folder=True,
     default="hallcal-demo",
-    type=click.Path(file_okay=False),
     show_default=True,
-    help="Folder for data, artifact, figures and report.",
 )
 @click.option(
     "--seed", type=_SEED, default=1, show_default=True, help="Seed of the simulated motor."
@@ -993,12 +970,9 @@ def demo(out: str, seed: int, no_report: bool) -> None:
         "(see summary.csv); success is every motor ok or warning",
     )
 )
-@click.argument("manifest", type=click.Path(dir_okay=False))
-@click.option(
-    "--out",
-    required=True,
-    type=click.Path(file_okay=False),
-    help="Output folder: <motor_id>/ per motor, summary.csv, summary.parquet, fleet.html.",
+@click.argument("manifest", type=_FILE)
+@_out_option(
+    "Output folder: <motor_id>/ per motor, summary.csv, summary.parquet, fleet.html.", folder=True
 )
 @click.option(
     "--scheduler",

@@ -195,6 +195,27 @@ def _title(fig: Figure, title: str) -> None:
     fig.suptitle(title, fontsize="large")
 
 
+def _finish(ax, xlabel: str | None, ylabel: str, *, ncols: int) -> None:
+    """Axis labels, no margin along x, and the legend in a row above the axes."""
+    if xlabel is not None:
+        ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.margins(x=0)
+    _legend_above(ax, ncols=ncols)
+
+
+def _band(ax, x: ArrayLike, lo: ArrayLike, hi: ArrayLike, label: str) -> None:
+    """The shaded +-2 sigma band of an estimate, in the estimate's colour."""
+    ax.fill_between(x, lo, hi, color=STAR_COLOR, alpha=0.25, lw=0, label=label)
+
+
+def _level_lines(ax, level: float, k: int, *, lw: float, label: str) -> None:
+    """Dashed lines at +-k level (a noise band), with one legend entry."""
+    for sign in (-k, k):
+        ax.axhline(sign * level, color=TRUTH_COLOR, lw=lw, ls="--", zorder=5)
+    ax.plot([], [], color=TRUTH_COLOR, lw=lw, ls="--", label=label)
+
+
 # ------------------------------------------------------------------------------------------------
 # Paper figures
 # ------------------------------------------------------------------------------------------------
@@ -338,22 +359,14 @@ def plot_hall_model(
     fig, (ax1, ax2) = _figure(2, 5.6, sharex=False, ratios=(1.5, 1))
     ax1.plot(tt[sel], D[sel, h], color=INIT_COLOR, lw=0.8, label=f"measured d{sensor}")
     ax1.plot(tt[sel], M[sel, h], color=MODEL_COLOR, lw=1.4, ls="--", label=model_label)
-    ax1.set_xlabel(xlabel)
-    ax1.set_ylabel(f"Hall signal d{sensor} [as recorded]")
     _title(fig, f"Hall signal d{sensor} and identified flux model (cf. the paper's Figs. 4 and 6)")
-    _legend_above(ax1, ncols=2)
-    ax1.margins(x=0)
+    _finish(ax1, xlabel, f"Hall signal d{sensor} [as recorded]", ncols=2)
     ax2.plot(tt, res, color="#8fb8dc", lw=0.4, rasterized=True, label=f"residual (RMS {rms:.3g})")
     ax2.axvspan(window[0], window[1], color=_ACCENT, alpha=0.12, lw=0, label="window above")
     if noise_variance is not None and noise_variance > 0:
         s = math.sqrt(noise_variance)
-        for sign in (-2, 2):
-            ax2.axhline(sign * s, color=TRUTH_COLOR, lw=1.1, ls="--", zorder=5)
-        ax2.plot([], [], color=TRUTH_COLOR, lw=1.1, ls="--", label=f"±2σ Hall noise (σ = {s:.3g})")
-    ax2.set_xlabel(xlabel)
-    ax2.set_ylabel(f"residual d{sensor} − model")
-    ax2.margins(x=0)
-    _legend_above(ax2, ncols=3)
+        _level_lines(ax2, s, 2, lw=1.1, label=f"±2σ Hall noise (σ = {s:.3g})")
+    _finish(ax2, xlabel, f"residual d{sensor} − model", ncols=3)
     return fig
 
 
@@ -391,44 +404,18 @@ def plot_angle_error(
     yr, yi = _vec(y_ref, "y_ref"), _vec(y_init, "y_init")
     x = _deg(yr)
     fig, (ax,) = _figure(1, 4.2)
-    ei = _centred(yi - yr)
-    ax.plot(
-        x,
-        _mrad(ei),
-        color=INIT_COLOR,
-        lw=0.6,
-        rasterized=True,
-        label=f"f_init: RMS {1e3 * np.sqrt(np.mean(ei**2)):.3f} mrad, "
-        f"peak {1e3 * np.max(np.abs(ei)):.3f} mrad",
-    )
+    errors = [("f_init", INIT_COLOR, _centred(yi - yr))]
     if y_star is not None:
-        es = _centred(_vec(y_star, "y_star") - yr)
-        ax.plot(
-            x,
-            _mrad(es),
-            color=STAR_COLOR,
-            lw=0.6,
-            rasterized=True,
-            label=f"f_star: RMS {1e3 * np.sqrt(np.mean(es**2)):.3f} mrad, "
-            f"peak {1e3 * np.max(np.abs(es)):.3f} mrad",
-        )
+        errors.append(("f_star", STAR_COLOR, _centred(_vec(y_star, "y_star") - yr)))
+    for name, color, e in errors:
+        rms, peak = 1e3 * np.sqrt(np.mean(e**2)), 1e3 * np.max(np.abs(e))
+        label = f"{name}: RMS {rms:.3f} mrad, peak {peak:.3f} mrad"
+        ax.plot(x, _mrad(e), color=color, lw=0.6, rasterized=True, label=label)
     if noise_floor is not None and noise_floor > 0:
         nf = 1e3 * noise_floor
-        for sign in (-3, 3):
-            ax.axhline(sign * nf, color=TRUTH_COLOR, lw=1.0, ls="--", zorder=5)
-        ax.plot(
-            [],
-            [],
-            color=TRUTH_COLOR,
-            lw=1.0,
-            ls="--",
-            label=f"±3 × noise floor (floor {nf:.3f} mrad RMS)",
-        )
-    ax.set_xlabel(f"{reference_label} [deg] (mechanical)")
-    ax.set_ylabel("angle error − mean [mrad]")
+        _level_lines(ax, nf, 3, lw=1.0, label=f"±3 × noise floor (floor {nf:.3f} mrad RMS)")
     _title(fig, "Angle error before and after calibration (cf. the paper's Figs. 5 and 7)")
-    ax.margins(x=0)
-    _legend_above(ax, ncols=2)
+    _finish(ax, f"{reference_label} [deg] (mechanical)", "angle error − mean [mrad]", ncols=2)
     return fig
 
 
@@ -463,22 +450,9 @@ def plot_error_spectrum(
     si, ss = validation.spectrum_init, validation.spectrum_star
     fig, (ax,) = _figure(1, 4.2)
     unit = 1e6  # rad^2 -> mrad^2
-    ax.step(
-        si.frequency,
-        unit * si.cumulative,
-        where="post",
-        color=INIT_COLOR,
-        lw=1.4,
-        label=f"f_init (total {unit * si.cumulative[-1]:.3g} mrad²)",
-    )
-    ax.step(
-        ss.frequency,
-        unit * ss.cumulative,
-        where="post",
-        color=STAR_COLOR,
-        lw=1.4,
-        label=f"f_star (total {unit * ss.cumulative[-1]:.3g} mrad²)",
-    )
+    for name, color, sp in (("f_init", INIT_COLOR, si), ("f_star", STAR_COLOR, ss)):
+        label = f"{name} (total {unit * sp.cumulative[-1]:.3g} mrad²)"
+        ax.step(sp.frequency, unit * sp.cumulative, where="post", color=color, lw=1.4, label=label)
     fmax = float(max(si.frequency[-1], ss.frequency[-1]))
     fmin = float(min(si.frequency[0], ss.frequency[0]))
     for k in range(1, 6):
@@ -652,28 +626,20 @@ def _bla_magnitude_points(
     axm.semilogx(f, _db(G), "o", ms=3.5, color=INIT_COLOR, label="nonparametric BLA Ĝ")
     vt = np.asarray(npb.var_total, dtype=np.float64)
     vn = np.asarray(npb.var_noise, dtype=np.float64)
+    total = "std of Ĝ from realization to realization (total; the fit's weights)"
+    spreads = (
+        (vt, "s", {"ms": 3, "mfc": "none", "color": _ACCENT, "label": total}),
+        (
+            vn,
+            ".",
+            {"ms": 4, "color": NOISE_COLOR, "label": "std of Ĝ from period to period (noise)"},
+        ),
+    )
     with np.errstate(divide="ignore", invalid="ignore"):
-        if np.any(np.isfinite(vt)):
-            axm.semilogx(
-                f,
-                10 * np.log10(vt),
-                "s",
-                ms=3,
-                mfc="none",
-                color=_ACCENT,
-                label="std of Ĝ from realization to realization (total; the fit's weights)",
-            )
-            axm.semilogx(f, 10 * np.log10(_running_median(f, vt)), color=_ACCENT, lw=1.0)
-        if np.any(np.isfinite(vn)):
-            axm.semilogx(
-                f,
-                10 * np.log10(vn),
-                ".",
-                ms=4,
-                color=NOISE_COLOR,
-                label="std of Ĝ from period to period (noise)",
-            )
-            axm.semilogx(f, 10 * np.log10(_running_median(f, vn)), color=NOISE_COLOR, lw=1.0)
+        for v, marker, style in spreads:
+            if np.any(np.isfinite(v)):
+                axm.semilogx(f, 10 * np.log10(v), marker, **style)
+                axm.semilogx(f, 10 * np.log10(_running_median(f, v)), color=style["color"], lw=1.0)
     return vt
 
 
@@ -715,34 +681,20 @@ def _bla_models(
     par = bla.parametric
     hold = getattr(par, "hold", "none") == "zoh" and getattr(par, "sample_time", None)
     g_fit = par.frequency_response(fd, zoh=bool(hold))
-    axm.semilogx(fd, _db(g_fit), color=STAR_COLOR, lw=1.6, label="parametric fit")
-    axp.semilogx(
-        fd,
-        _phase_like(np.degrees(np.unwrap(np.angle(g_fit))), ref),
-        color=STAR_COLOR,
-        lw=1.6,
-        label="parametric fit",
-    )
-    curves = []
+    curves = [(g_fit, {"color": STAR_COLOR, "lw": 1.6, "label": "parametric fit"})]
     if corrected_plant is not None:
         label = "after gain correction" + (
             "" if gain_correction is None else f" (ĉ = {float(gain_correction):.4g})"
         )
-        curves.append((corrected_plant, _ACCENT, "-.", label))
+        curves.append((corrected_plant, {"color": _ACCENT, "ls": "-.", "label": label}))
     if true_plant is not None:
-        curves.append((true_plant, TRUTH_COLOR, "--", "true plant G"))
+        curves.append((true_plant, {"color": TRUTH_COLOR, "ls": "--", "label": "true plant G"}))
     ts = float(bla.nonparametric.sample_time)
-    for tf, color, ls, label in curves:
-        g = tf.frequency_response(fd) * _zoh(fd, ts)
-        axm.semilogx(fd, _db(g), color=color, lw=1.2, ls=ls, label=label)
-        axp.semilogx(
-            fd,
-            _phase_like(np.degrees(np.unwrap(np.angle(g))), ref),
-            color=color,
-            lw=1.2,
-            ls=ls,
-            label=label,
-        )
+    for model, style in curves:
+        if not isinstance(model, np.ndarray):  # a continuous model, seen through the hold
+            model, style = model.frequency_response(fd) * _zoh(fd, ts), {"lw": 1.2, **style}
+        axm.semilogx(fd, _db(model), **style)
+        axp.semilogx(fd, _phase_like(np.degrees(np.unwrap(np.angle(model))), ref), **style)
 
 
 def plot_sem_cost(sem: SEMResult, *, noise_variance: float | None = None) -> Figure:
@@ -846,15 +798,7 @@ def plot_lut(
     bij = "bijective" if lut.bijective else "NOT bijective"
     ax.plot(x, _mrad(eta), color=STAR_COLOR, lw=1.2, label="identified η")
     if sd is not None:
-        ax.fill_between(
-            x,
-            _mrad(eta - 2 * sd),
-            _mrad(eta + 2 * sd),
-            color=STAR_COLOR,
-            alpha=0.25,
-            lw=0,
-            label="±2σ from cov(θ)",
-        )
+        _band(ax, x, _mrad(eta - 2 * sd), _mrad(eta + 2 * sd), "±2σ from cov(θ)")
     if eta_true is not None:
         ax.plot(x, _mrad(eta_true), color=TRUTH_COLOR, lw=0.9, ls="--", label="true η")
     ax.set_ylabel("η [mrad]")
@@ -868,15 +812,7 @@ def plot_lut(
     if two:
         ax2 = axes[1]
         if sd is not None:
-            ax2.fill_between(
-                x,
-                -2e6 * sd,
-                2e6 * sd,
-                color=STAR_COLOR,
-                alpha=0.25,
-                lw=0,
-                label="±2σ band",
-            )
+            _band(ax2, x, -2e6 * sd, 2e6 * sd, "±2σ band")
         if eta_true is not None:
             diff = eta - eta_true
             offset = float(np.mean(diff))
@@ -890,9 +826,7 @@ def plot_lut(
                 f"mean {1e6 * offset:.3g} µrad = angle-origin offset)",
             )
         ax2.axhline(0.0, color=NOISE_COLOR, lw=0.6)
-        ax2.set_ylabel("uncertainty [µrad]")
-        ax2.margins(x=0)
-        _legend_above(ax2, ncols=2)
+        _finish(ax2, None, "uncertainty [µrad]", ncols=2)
     axes[-1].set_xlabel("mechanical angle y₀ [deg]")
     return fig
 
@@ -936,8 +870,7 @@ def plot_cogging(
         ax.plot(_deg(yy), t, color=STAR_COLOR, lw=1.0, label="identified T_c(y₀)")
         if has_band:
             sd = cogging.std(yy)
-            ax.fill_between(_deg(yy), t - 2 * sd, t + 2 * sd, color=STAR_COLOR, alpha=0.25,
-                            lw=0, label="±2σ from the covariance")  # fmt: skip
+            _band(ax, _deg(yy), t - 2 * sd, t + 2 * sd, "±2σ from the covariance")
         if true_cogging is not None:
             ax.plot(_deg(yy), true_cogging(yy), color=TRUTH_COLOR, lw=0.9, ls="--",
                     label="true T_c(y₀)")  # fmt: skip
@@ -951,17 +884,13 @@ def plot_cogging(
         ax3 = axes[2]
         if has_band:
             sd = cogging.std(y)
-            ax3.fill_between(_deg(y), -2 * sd, 2 * sd, color=STAR_COLOR, alpha=0.25, lw=0,
-                             label="±2σ band")  # fmt: skip
+            _band(ax3, _deg(y), -2 * sd, 2 * sd, "±2σ band")
         if true_cogging is not None:
             err = cogging(y) - true_cogging(y)
             ax3.plot(_deg(y), err, color=TRUTH_COLOR, lw=0.8,
                      label=f"identified − true (RMS {np.sqrt(np.mean(err**2)):.3g})")  # fmt: skip
         ax3.axhline(0.0, color=NOISE_COLOR, lw=0.6)
-        ax3.set_ylabel("uncertainty [plant input]")
-        ax3.set_xlabel("mechanical angle y₀ [deg]")
-        ax3.margins(x=0)
-        _legend_above(ax3, ncols=2)
+        _finish(ax3, "mechanical angle y₀ [deg]", "uncertainty [plant input]", ncols=2)
     terms = ", ".join(
         f"{k}/rev: {A:.3g} at {math.degrees(ph):.1f}°"
         for k, A, ph in zip(cogging.orders, cogging.amplitude, cogging.phase, strict=True)
@@ -1004,10 +933,7 @@ def plot_correction(
         label=f"f_star − f_init: RMS about mean "
         f"{1e3 * np.std(corr):.3f} mrad, peak {1e3 * np.max(np.abs(corr)):.3f} mrad",
     )
-    ax.set_xlabel("calibrated angle f_star [deg] (mechanical)")
-    ax.set_ylabel("correction [mrad]")
     extra = "" if pole_pairs is None else f", {pole_pairs} pole pairs"
     _title(fig, f"Correction applied along the recording (no encoder needed){extra}")
-    ax.margins(x=0)
-    _legend_above(ax, ncols=1)
+    _finish(ax, "calibrated angle f_star [deg] (mechanical)", "correction [mrad]", ncols=1)
     return fig

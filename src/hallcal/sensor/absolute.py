@@ -242,6 +242,37 @@ def _turns(psi: NDArray[np.float64]) -> NDArray[np.int64]:
     return np.cumsum(jumps).astype(np.int64)
 
 
+#: A float (the streaming identifier) or an array (the batch one).
+_Num = Any
+
+
+def _tangent_terms(dR: _Num, Rj: _Num, dZ: _Num, gram: tuple[_Num, ...]) -> tuple[_Num, _Num, _Num]:
+    """<t, u>, <t, nv> and <t, t> of the table curve's tangent t = dR u + Rj v + dZ nv in the
+    noise metric (step 5; `gram`: its terms guu, gvv, guv, gun, gvn, gnn at the sample's angle)."""
+    guu, gvv, guv, gun, gvn, gnn = gram
+    tu = dR * guu + Rj * guv + dZ * gun
+    tn = dR * gun + Rj * gvn + dZ * gnn
+    tt = (
+        dR * dR * guu
+        + Rj * Rj * gvv
+        + dZ * dZ * gnn
+        + 2.0 * dR * Rj * guv
+        + 2.0 * dR * dZ * gun
+        + 2.0 * Rj * dZ * gvn
+    )
+    return tu, tn, tt
+
+
+def _step5_cost(a: _Num, b: _Num, dR: _Num, Rj: _Num, dZ: _Num, gram: tuple[_Num, ...]) -> _Num:
+    """e_j of step 5: the squared noise-metric norm of the residual a u + b nv off the table
+    curve, less its part along the curve's tangent (`gram` as for :func:`_tangent_terms`)."""
+    guu, _, _, gun, _, gnn = gram
+    tu, tn, tt = _tangent_terms(dR, Rj, dZ, gram)
+    rr = a * a * guu + 2.0 * a * b * gun + b * b * gnn
+    tr = a * tu + b * tn
+    return rr - tr * tr / tt
+
+
 # ------------------------------------------------------------------------------------------------
 # The decoder
 # ------------------------------------------------------------------------------------------------
@@ -391,17 +422,7 @@ class PowerUpDecoder:
         gun, gvn, gnn = F["gun"][:, None], F["gvn"][:, None], self.gram_c
         a = F["rho"][:, None] - Rj
         b = F["zeta"][:, None] - Zj
-        rr = a * a * guu + 2.0 * a * b * gun + b * b * gnn
-        tr = a * (dR * guu + Rj * guv + dZ * gun) + b * (dR * gun + Rj * gvn + dZ * gnn)
-        tt = (
-            dR * dR * guu
-            + Rj * Rj * gvv
-            + dZ * dZ * gnn
-            + 2.0 * dR * Rj * guv
-            + 2.0 * dR * dZ * gun
-            + 2.0 * Rj * dZ * gvn
-        )
-        return rr - tr * tr / tt
+        return _step5_cost(a, b, dR, Rj, dZ, (guu, gvv, guv, gun, gvn, gnn))
 
     def sample_costs(self, d: ArrayLike) -> NDArray[np.float64]:
         """Per-sample costs e_j (K, n) of every hypothesis j (0 for samples without angle)."""
@@ -804,7 +825,7 @@ class PowerUpIdentifier:
         Guv = (A11 - A00) * c * s + A01 * (c * c - s * s)
         Gun = B0 * c + B1 * s
         Gvn = B1 * c - B0 * s
-        Gnn = self._C
+        gram = (Guu, Gvv, Guv, Gun, Gvn, self._C)
         # 5. every hypothesis
         n, L, M, R, Z = self._n, self._L, self._M, self._R, self._Z
         k = L / TWO_PI
@@ -819,19 +840,8 @@ class PowerUpIdentifier:
             Zj = Z[i] + f * (Z[i1] - Z[i])
             dR = (R[i1] - R[i]) * k
             dZ = (Z[i1] - Z[i]) * k
-            a = rho - Rj
-            b = zeta - Zj
-            rr = a * a * Guu + 2.0 * a * b * Gun + b * b * Gnn
-            tr = a * (dR * Guu + Rj * Guv + dZ * Gun) + b * (dR * Gun + Rj * Gvn + dZ * Gnn)
-            tt = (
-                dR * dR * Guu
-                + Rj * Rj * Gvv
-                + dZ * dZ * Gnn
-                + 2.0 * dR * Rj * Guv
-                + 2.0 * dR * dZ * Gun
-                + 2.0 * Rj * dZ * Gvn
-            )
-            self.lam[j] += min(rr - tr * tr / tt, self._cap)
+            e = _step5_cost(rho - Rj, zeta - Zj, dR, Rj, dZ, gram)
+            self.lam[j] += min(e, self._cap)
         # 6. best, renormalize; the misfit statistic
         lmin = min(self.lam)
         self.best = self.lam.index(lmin)
@@ -1255,16 +1265,7 @@ def separation_map(decoder: PowerUpDecoder) -> SeparationMap:
     # 2-D coordinates across the true curve: r = a u + b nv; remove the true tangent (S-metric)
     R0, Z0, dR0, dZ0 = dec._interp(q.astype(np.float64))
     guu, gvv, guv, gun, gvn = F["guu"], F["gvv"], F["guv"], F["gun"], F["gvn"]
-    tu = dR0 * guu + R0 * guv + dZ0 * gun  # <t, u>
-    tn = dR0 * gun + R0 * gvn + dZ0 * C  # <t, nv>
-    tt = (
-        dR0 * dR0 * guu
-        + R0 * R0 * gvv
-        + dZ0 * dZ0 * C
-        + 2 * dR0 * R0 * guv
-        + 2 * dR0 * dZ0 * gun
-        + 2 * R0 * dZ0 * gvn
-    )
+    tu, tn, tt = _tangent_terms(dR0, R0, dZ0, (guu, gvv, guv, gun, gvn, C))
     g11 = guu - tu * tu / tt
     g12 = gun - tu * tn / tt
     g22 = C - tn * tn / tt

@@ -99,10 +99,8 @@ class LUT:
 
         Parameters
         ----------
-        d : array_like, shape (N, 3)
-            Hall signals, one row per sample.
-        y_initial : float, keyword-only
-            f_init's estimate before the first sample [rad, mechanical].
+        d, y_initial
+            As for :meth:`f_init`.
 
         Returns
         -------
@@ -330,8 +328,8 @@ class StarReconstructor:
 
         Parameters
         ----------
-        d1, d2, d3 : float
-            The three Hall signals of the sample (sensor's unit).
+        d1, d2, d3
+            As for :meth:`InitReconstructor.update`.
 
         Returns
         -------

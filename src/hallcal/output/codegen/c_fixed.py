@@ -10,24 +10,15 @@ from __future__ import annotations
 import string
 from collections.abc import Sequence
 
+from hallcal.output.codegen import c_common
 from hallcal.output.codegen.numbers import CORDIC_STEPS, TWO_PI, _FixedNumbers
 from hallcal.output.codegen.sections import Section, _Context
 from hallcal.output.codegen.text import _U32, _c_list, _cu, _int_add, _int_sub, _speed_text
 from hallcal.sensor.firmware_tables import CorrectionTable
 
 _FIXED_H = string.Template(
-    r"""$banner
-#ifndef ${PFX}_Q_H
-#define ${PFX}_Q_H
-
-#include <stdint.h>
-
-#ifdef __cplusplus
-extern "C" {
-#endif
-
-#define ${PFX}_Q_POLE_PAIRS ${n}
-#define ${PFX}_Q_TABLE_POINTS ${m}
+    c_common.variant(c_common.HEADER_OPEN, fixed=True)
+    + r"""
 #define ${PFX}_Q_FAULT_AFTER ${fault_after} /* rejected samples: fault latched, re-acquired */
 /* Speed limit [rad per sample, mechanical]${speed_text}: up to it nothing slips (one glitch
  * sample included); from it to twice it a slip cannot happen without ${PFX}_Q_FAULT. */
@@ -60,14 +51,9 @@ typedef struct {
     int32_t turn;      /* f_init: electrical turn within the revolution, 0 .. n_m - 1 */
     uint32_t phase;    /* f_init: electrical angle within the turn, Q0.32 mechanical turns */
     uint32_t limit;    /* step limit for the next sample, Q0.32 mechanical turns */
-    uint32_t held;     /* rejected (or accepted after rejected) samples, less those accepted
-                        * right after an accepted one */
-    uint32_t rejected; /* rejected samples since init */
-    uint32_t fault;    /* ${PFX}_Q_FAULT once ${PFX}_Q_FAULT_AFTER samples in a row were rejected */
-    volatile uint32_t seq; /* readings published; the last one is pub[seq & 1] */
-    volatile struct {
-        int32_t revolutions;
-        uint32_t angle; /* Q0.32 turns */
+"""
+    + c_common.variant(c_common.STATE_COUNTERS, fixed=True)
+    + r"""        uint32_t angle; /* Q0.32 turns */
         uint32_t flags;
         uint32_t rejected;
     } pub[2];
@@ -91,17 +77,8 @@ uint32_t ${pfx}_q_update(${pfx}_q_state *s, int32_t d1, int32_t d2, int32_t d3);
 /* The last reading, consistent (revolutions and angle of the same sample) from any context:
  * the main loop while ${pfx}_q_update runs in an ISR, or an ISR that interrupts it.
  * Single core only (one writer). */
-void ${pfx}_q_read(const ${pfx}_q_state *s, ${pfx}_q_reading *r);
-
-/* Clear the latched fault flag (after the cause is removed and the angle re-referenced). */
-void ${pfx}_q_clear_fault(${pfx}_q_state *s);
-$section_decls
-#ifdef __cplusplus
-}
-#endif
-
-#endif /* ${PFX}_Q_H */
 """
+    + c_common.variant(c_common.HEADER_CLOSE, fixed=True)
 )
 
 _FIXED_C = string.Template(
@@ -116,17 +93,9 @@ static const uint32_t hc_turn[${n}] = {
 ${turn_base}
 };
 
-static int32_t hc_s32(uint32_t u) /* two's complement without implementation-defined casts */
-{
-    int32_t v;
-    if (u <= 0x7FFFFFFFu) {
-        v = (int32_t)u;
-    } else {
-        v = (int32_t)(u - 0x80000000u) - 0x7FFFFFFF - 1;
-    }
-    return v;
-}
-
+"""
+    + c_common.variant(c_common.HC_S32, fixed=True)
+    + r"""
 static uint32_t hc_abs(int32_t v) /* |v| for |v| < 2^31 */
 {
     return (v < 0) ? (0u - (uint32_t)v) : (uint32_t)v;
@@ -193,27 +162,14 @@ ${wrap_period}
     return p;
 }
 
-static void hc_publish(${pfx}_q_state *s, int32_t rev, uint32_t angle, uint32_t flags)
-{
-    const uint32_t q = s->seq + 1u;
-    s->pub[q & 1u].revolutions = rev;
-    s->pub[q & 1u].angle = angle;
-    s->pub[q & 1u].flags = flags;
-    s->pub[q & 1u].rejected = s->rejected;
-    s->seq = q;
-}
-
+"""
+    + c_common.variant(c_common.HC_PUBLISH, fixed=True, type="uint32_t", angle="angle")
+    + r"""
 void ${pfx}_q_init(${pfx}_q_state *s)
 {
-    s->rev = 0; /* f_init from y = 0 before the first sample, as the calibration run */
-    s->turn = 0;
-    s->phase = 0u;
-    s->limit = 0xFFFFFFFFu; /* the electrical angle is acquired from the first sample */
-    s->held = 0u;
-    s->rejected = 0u;
-    s->fault = 0u;
-    s->seq = 0u;
-    hc_publish(s, 0, 0u, ${PFX}_Q_NO_SAMPLE);
+"""
+    + c_common.variant(c_common.STATE_RESET, fixed=True)
+    + r"""    hc_publish(s, 0, 0u, ${PFX}_Q_NO_SAMPLE);
     hc_publish(s, 0, 0u, ${PFX}_Q_NO_SAMPLE);
 }
 
@@ -316,29 +272,9 @@ ${fixed_eta}
             }
         }
     }
-    if (flags > ${PFX}_Q_FAULT) { /* rejected: count it and hold the last reading */
-        const uint32_t last = s->seq & 1u;
-        if (s->rejected < 0xFFFFFFFFu) {
-            s->rejected = s->rejected + 1u;
-        }
-        if (s->held < ${PFX}_Q_FAULT_AFTER) {
-            s->held = s->held + 1u;
-        }
-        if (s->held >= ${PFX}_Q_FAULT_AFTER) {
-            /* longer could alias at up to twice the speed limit: fault, then re-acquire */
-            s->fault = ${PFX}_Q_FAULT;
-            s->limit = 0xFFFFFFFFu;
-        } else if (s->limit == ${step_limit}u) {
-            s->limit = ${step_first}u; /* room for a glitch accepted last, and w */
-        } else if (s->limit < 0x80000000u) {
-            s->limit = s->limit + ${step_growth}u;
-        } else {
-            /* not yet acquired after init */
-        }
-        flags = flags | ${PFX}_Q_HELD | s->fault | (s->pub[last].flags & ${PFX}_Q_NO_SAMPLE);
-        hc_publish(s, s->pub[last].revolutions, s->pub[last].angle, flags);
-    }
-    return flags;
+"""
+    + c_common.variant(c_common.HOLD_RULE, fixed=True, angle="angle")
+    + r"""    return flags;
 }
 
 void ${pfx}_q_read(const ${pfx}_q_state *s, ${pfx}_q_reading *r)

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from hallcal.output.codegen import c_common
 from hallcal.output.codegen.numbers import (
     _TAN_PI_8,
     RECIPROCAL_MAGIC,
@@ -35,18 +36,8 @@ from hallcal.output.codegen.text import (
 from hallcal.output.firmware import FirmwareDesign
 
 _FLOAT_H = string.Template(
-    r"""$banner
-#ifndef ${PFX}_H
-#define ${PFX}_H
-
-#include <stdint.h>
-
-#ifdef __cplusplus
-extern "C" {
-#endif
-
-#define ${PFX}_POLE_PAIRS ${n}
-#define ${PFX}_TABLE_POINTS ${m}
+    c_common.variant(c_common.HEADER_OPEN, fixed=False)
+    + r"""
 #define ${PFX}_FAULT_AFTER ${fault_after} /* rejected samples: fault latched, angle re-acquired */
 /* Speed limit [rad per sample, mechanical]${speed_text}: up to it nothing slips (one glitch
  * sample included); from it to twice it a slip cannot happen without ${PFX}_FAULT. */
@@ -80,14 +71,9 @@ typedef struct {
     int32_t turn;      /* f_init: electrical turn within the revolution, 0 .. n_m - 1 */
     uint32_t phase;    /* f_init: electrical angle within the turn, Q0.32 turns */
     uint32_t limit;    /* step limit for the next sample, Q0.32 electrical turns */
-    uint32_t held;     /* rejected (or accepted after rejected) samples, less those accepted
-                        * right after an accepted one */
-    uint32_t rejected; /* rejected samples since init */
-    uint32_t fault;    /* ${PFX}_FAULT once ${PFX}_FAULT_AFTER samples in a row were rejected */
-    volatile uint32_t seq; /* readings published; the last one is pub[seq & 1] */
-    volatile struct {
-        int32_t revolutions;
-        float turns; /* y_star within the revolution [turns] */
+"""
+    + c_common.variant(c_common.STATE_COUNTERS, fixed=False)
+    + r"""        float turns; /* y_star within the revolution [turns] */
         uint32_t flags;
         uint32_t rejected;
     } pub[2];
@@ -102,17 +88,8 @@ uint32_t ${pfx}_update(${pfx}_state *s, float d1, float d2, float d3);
 /* The last reading, consistent (revolutions and angle of the same sample) from any context:
  * the main loop while ${pfx}_update runs in an ISR, or an ISR that interrupts ${pfx}_update.
  * Single core only (one writer). */
-void ${pfx}_read(const ${pfx}_state *s, ${pfx}_reading *r);
-
-/* Clear the latched fault flag (after the cause is removed and the angle re-referenced). */
-void ${pfx}_clear_fault(${pfx}_state *s);
-$section_decls
-#ifdef __cplusplus
-}
-#endif
-
-#endif /* ${PFX}_H */
 """
+    + c_common.variant(c_common.HEADER_CLOSE, fixed=False)
 )
 
 _FLOAT_C = string.Template(
@@ -168,28 +145,13 @@ static float hc_float(uint32_t u)
     return c.f;
 }
 
-static int32_t hc_s32(uint32_t u) /* two's complement without implementation-defined casts */
-{
-    int32_t v;
-    if (u <= 0x7FFFFFFFu) {
-        v = (int32_t)u;
-    } else {
-        v = (int32_t)(u - 0x80000000u) - 0x7FFFFFFF - 1;
-    }
-    return v;
-}
-
+"""
+    + c_common.variant(c_common.HC_S32, fixed=False)
+    + r"""
 ${atan2_fn}
-static void hc_publish(${pfx}_state *s, int32_t rev, float turns, uint32_t flags)
-{
-    const uint32_t q = s->seq + 1u;
-    s->pub[q & 1u].revolutions = rev;
-    s->pub[q & 1u].turns = turns;
-    s->pub[q & 1u].flags = flags;
-    s->pub[q & 1u].rejected = s->rejected;
-    s->seq = q;
-}
-
+"""
+    + c_common.variant(c_common.HC_PUBLISH, fixed=False, type="float", angle="turns")
+    + r"""
 ${init_def}
 ${set_angle_def}
 ${before_update}${update_def}
@@ -271,15 +233,9 @@ ${newton_steps}
 _FLOAT_INIT = string.Template(
     r"""void ${pfx}_init(${pfx}_state *s)
 {
-    s->rev = 0; /* f_init from y = 0 before the first sample, as the calibration run */
-    s->turn = 0;
-    s->phase = 0u;
-    s->limit = 0xFFFFFFFFu; /* the electrical angle is acquired from the first sample */
-    s->held = 0u;
-    s->rejected = 0u;
-    s->fault = 0u;
-    s->seq = 0u;
-    hc_publish(s, 0, 0.0f, ${PFX}_NO_SAMPLE);
+"""
+    + c_common.variant(c_common.STATE_RESET, fixed=False)
+    + r"""    hc_publish(s, 0, 0.0f, ${PFX}_NO_SAMPLE);
     hc_publish(s, 0, 0.0f, ${PFX}_NO_SAMPLE);
 }
 """
@@ -426,29 +382,9 @@ ${index}
     } else {
         flags = ${PFX}_REJ_AMPLITUDE;
     }
-    if (flags > ${PFX}_FAULT) { /* rejected: count it and hold the last reading */
-        const uint32_t last = s->seq & 1u;
-        if (s->rejected < 0xFFFFFFFFu) {
-            s->rejected = s->rejected + 1u;
-        }
-        if (s->held < ${PFX}_FAULT_AFTER) {
-            s->held = s->held + 1u;
-        }
-        if (s->held >= ${PFX}_FAULT_AFTER) {
-            /* longer could alias at up to twice the speed limit: fault, then re-acquire */
-            s->fault = ${PFX}_FAULT;
-            s->limit = 0xFFFFFFFFu;
-        } else if (s->limit == ${step_limit}u) {
-            s->limit = ${step_first}u; /* room for a glitch accepted last, and w */
-        } else if (s->limit < 0x80000000u) {
-            s->limit = s->limit + ${step_growth}u;
-        } else {
-            /* not yet acquired after init */
-        }
-        flags = flags | ${PFX}_HELD | s->fault | (s->pub[last].flags & ${PFX}_NO_SAMPLE);
-        hc_publish(s, s->pub[last].revolutions, s->pub[last].turns, flags);
-    }
-    return flags;
+"""
+    + c_common.variant(c_common.HOLD_RULE, fixed=False, angle="turns")
+    + r"""    return flags;
 }
 """
 )
