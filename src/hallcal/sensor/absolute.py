@@ -246,9 +246,50 @@ def _turns(psi: NDArray[np.float64]) -> NDArray[np.int64]:
 _Num = Any
 
 
-def _tangent_terms(dR: _Num, Rj: _Num, dZ: _Num, gram: tuple[_Num, ...]) -> tuple[_Num, _Num, _Num]:
+def gram_at(A: NDArray, B: NDArray, c: _Num, s: _Num) -> dict[str, _Num]:
+    """The noise metric's terms in the frame (u, v, nv) at the angle with cosine ``c`` and sine
+    ``s`` (step 5): ``guu``, ``gvv``, ``guv`` from A (2 x 2) and ``gun``, ``gvn`` from B (2,).
+
+    Parameters
+    ----------
+    A : ndarray (2, 2)
+        The metric's alpha-beta block.
+    B : ndarray (2,)
+        Its alpha-beta / null-vector terms.
+    c, s : float or ndarray
+        Cosine and sine of the electrical angle.
+
+    Returns
+    -------
+    dict
+        ``guu``, ``gvv``, ``guv``, ``gun``, ``gvn``.
+    """
+    return {
+        "guu": A[0, 0] * c * c + 2 * A[0, 1] * c * s + A[1, 1] * s * s,
+        "gvv": A[0, 0] * s * s - 2 * A[0, 1] * c * s + A[1, 1] * c * c,
+        "guv": (A[1, 1] - A[0, 0]) * c * s + A[0, 1] * (c * c - s * s),
+        "gun": B[0] * c + B[1] * s,
+        "gvn": B[1] * c - B[0] * s,
+    }
+
+
+def tangent_terms(dR: _Num, Rj: _Num, dZ: _Num, gram: tuple[_Num, ...]) -> tuple[_Num, _Num, _Num]:
     """<t, u>, <t, nv> and <t, t> of the table curve's tangent t = dR u + Rj v + dZ nv in the
-    noise metric (step 5; `gram`: its terms guu, gvv, guv, gun, gvn, gnn at the sample's angle)."""
+    noise metric (step 5).
+
+    Parameters
+    ----------
+    dR, Rj, dZ : float or ndarray
+        The tangent's components along u (the radius' slope), v (the radius) and nv (the null
+        value's slope), per electrical rad.
+    gram : tuple
+        The metric's terms guu, gvv, guv, gun, gvn, gnn at the sample's angle (:func:`gram_at`).
+
+    Returns
+    -------
+    (tu, tn, tt)
+        <t, u>, <t, nv> and <t, t>.
+    """
     guu, gvv, guv, gun, gvn, gnn = gram
     tu = dR * guu + Rj * guv + dZ * gun
     tn = dR * gun + Rj * gvn + dZ * gnn
@@ -265,9 +306,9 @@ def _tangent_terms(dR: _Num, Rj: _Num, dZ: _Num, gram: tuple[_Num, ...]) -> tupl
 
 def _step5_cost(a: _Num, b: _Num, dR: _Num, Rj: _Num, dZ: _Num, gram: tuple[_Num, ...]) -> _Num:
     """e_j of step 5: the squared noise-metric norm of the residual a u + b nv off the table
-    curve, less its part along the curve's tangent (`gram` as for :func:`_tangent_terms`)."""
+    curve, less its part along the curve's tangent (`gram` as for :func:`tangent_terms`)."""
     guu, _, _, gun, _, gnn = gram
-    tu, tn, tt = _tangent_terms(dR, Rj, dZ, gram)
+    tu, tn, tt = tangent_terms(dR, Rj, dZ, gram)
     rr = a * a * guu + 2.0 * a * b * gun + b * b * gnn
     tr = a * tu + b * tn
     return rr - tr * tr / tt
@@ -369,11 +410,7 @@ class PowerUpDecoder:
             "zeta": zeta,
             "m": _turns(psi),
             "valid": valid,
-            "guu": A[0, 0] * c * c + 2 * A[0, 1] * c * s + A[1, 1] * s * s,
-            "gvv": A[0, 0] * s * s - 2 * A[0, 1] * c * s + A[1, 1] * c * c,
-            "guv": (A[1, 1] - A[0, 0]) * c * s + A[0, 1] * (c * c - s * s),
-            "gun": B[0] * c + B[1] * s,
-            "gvn": B[1] * c - B[0] * s,
+            **gram_at(A, B, c, s),
         }
 
     def _interp(self, pos: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]:
@@ -1253,11 +1290,7 @@ def separation_map(decoder: PowerUpDecoder) -> SeparationMap:
     F = {
         "rho": dec.radius,
         "zeta": dec.zero,
-        "guu": A[0, 0] * c * c + 2 * A[0, 1] * c * s + A[1, 1] * s * s,
-        "gvv": A[0, 0] * s * s - 2 * A[0, 1] * c * s + A[1, 1] * c * c,
-        "guv": (A[1, 1] - A[0, 0]) * c * s + A[0, 1] * (c * c - s * s),
-        "gun": B[0] * c + B[1] * s,
-        "gvn": B[1] * c - B[0] * s,
+        **gram_at(A, B, c, s),
     }
     j = np.arange(1, n)
     pos = np.mod(q[:, None] + L * j[None, :], M).astype(np.float64)
@@ -1265,7 +1298,7 @@ def separation_map(decoder: PowerUpDecoder) -> SeparationMap:
     # 2-D coordinates across the true curve: r = a u + b nv; remove the true tangent (S-metric)
     R0, Z0, dR0, dZ0 = dec._interp(q.astype(np.float64))
     guu, gvv, guv, gun, gvn = F["guu"], F["gvv"], F["guv"], F["gun"], F["gvn"]
-    tu, tn, tt = _tangent_terms(dR0, R0, dZ0, (guu, gvv, guv, gun, gvn, C))
+    tu, tn, tt = tangent_terms(dR0, R0, dZ0, (guu, gvv, guv, gun, gvn, C))
     g11 = guu - tu * tu / tt
     g12 = gun - tu * tn / tt
     g22 = C - tn * tn / tt

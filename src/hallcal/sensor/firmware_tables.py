@@ -27,7 +27,7 @@ import scipy.sparse as sparse
 import scipy.sparse.linalg as sparse_linalg
 from numpy.typing import NDArray
 
-from hallcal.sensor.absolute import PowerUpDecoder
+from hallcal.sensor.absolute import PowerUpDecoder, gram_at, tangent_terms
 from hallcal.sensor.lut import LUT
 
 __all__ = [
@@ -442,18 +442,6 @@ def tangent_range(dec: PowerUpDecoder, sigma: float, A, B, C) -> tuple[float, fl
     dR = (R[i1] - R[i]) * k
     dZ = (Z[i1] - Z[i]) * k
     psi = TWO_PI * pos / L
-    c, s = np.cos(psi), np.sin(psi)
-    guu = A[0, 0] * c * c + 2 * A[0, 1] * c * s + A[1, 1] * s * s
-    gvv = A[0, 0] * s * s - 2 * A[0, 1] * c * s + A[1, 1] * c * c
-    guv = (A[1, 1] - A[0, 0]) * c * s + A[0, 1] * (c * c - s * s)
-    gun = B[0] * c + B[1] * s
-    gvn = B[1] * c - B[0] * s
-    tt = (
-        dR * dR * guu
-        + Rj * Rj * gvv
-        + dZ * dZ * C
-        + 2.0 * dR * Rj * guv
-        + 2.0 * dR * dZ * gun
-        + 2.0 * Rj * dZ * gvn
-    )
+    g = gram_at(A, B, np.cos(psi), np.sin(psi))
+    _, _, tt = tangent_terms(dR, Rj, dZ, (g["guu"], g["gvv"], g["guv"], g["gun"], g["gvn"], C))
     return float(np.min(tt)), float(np.max(tt))
