@@ -6,9 +6,9 @@ Levenberg-Marquardt steps (More 1978; Nocedal & Wright 2006, ch. 10), which need
     J^T J,   J^T e,   e^T e,      J = d d_sim / d x  (3 N x p),  e = d - d_sim,
 
 never J itself. This module forms the three from the exact forward sensitivities of
-:mod:`hallcal.sim.loop` in O(chunk p + p^2) memory, so that large models (p in the hundreds, N in
-the hundreds of thousands: the dense J would take gigabytes) cost time and memory that grow
-gently with p.
+:mod:`hallcal.sim.loop_kernel` in O(chunk p + p^2) memory, so that large models (p in the
+hundreds, N in the hundreds of thousands: the dense J would take gigabytes) cost time and memory
+that grow gently with p.
 
 Parameters x (:class:`ParameterLayout`):
 
@@ -63,20 +63,22 @@ from threadpoolctl import threadpool_limits
 
 from hallcal.fit.layout import ParameterLayout
 from hallcal.limits import check_work_memory
-from hallcal.sim.loop import (
+from hallcal.sim.loop import ClosedLoop, LoopStatus, SensorADC
+from hallcal.sim.loop_kernel import (
     F64,
-    ClosedLoop,
     LoopArrays,
-    LoopStatus,
-    _advance,
-    _advance_sensitivity,
-    _alpha_beta,
-    _angle_and_sensitivity,
-    _diverged,
-    _flux_and_slope,
-    _kernel_array,
-    _output,
-    _unwrap,
+    ModelArrays,
+    angle_and_sensitivity,
+    cogging_torque,
+    diverged,
+    flux_basis,
+    kernel_array,
+    loop_step,
+    sensitivity_step,
+    sensor_step,
+    simulate,
+    trig_scratch,
+    trig_table,
 )
 
 __all__ = [
@@ -102,77 +104,6 @@ PassStatus = LoopStatus
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _trig_table(y0, hmax, cs, sn):
-    """cs[n] = cos(n y0), sn[n] = sin(n y0) for n = 0..hmax by the angle-addition recursion
-    (rounding error grows like n eps, 1e-14 at n = 100)."""
-    c1 = math.cos(y0)
-    s1 = math.sin(y0)
-    c = 1.0
-    s = 0.0
-    for n in range(hmax + 1):
-        cs[n] = c
-        sn[n] = s
-        c, s = c * c1 - s * s1, s * c1 + c * s1
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _gather_basis(harm, cs, sn, b, db):
-    """beta = [1, sin h_1 y0, cos h_1 y0, ...] and its derivative from the trigonometric table."""
-    b[0] = 1.0
-    db[0] = 0.0
-    for j in range(harm.size):
-        h = harm[j]
-        b[1 + 2 * j] = sn[h]
-        b[2 + 2 * j] = cs[h]
-        db[1 + 2 * j] = h * cs[h]
-        db[2 + 2 * j] = -h * sn[h]
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _cogging_torque(orders, coef, y0, creg, sreg):
-    """T_c(y0), dT_c/dy0 and the regressors cos(k y0), sin(k y0) per order."""
-    t = 0.0
-    dt = 0.0
-    for i in range(orders.size):
-        k = orders[i]
-        c = math.cos(k * y0)
-        s = math.sin(k * y0)
-        creg[i] = c
-        sreg[i] = s
-        t += coef[2 * i] * c + coef[2 * i + 1] * s
-        dt += k * (coef[2 * i + 1] * c - coef[2 * i] * s)
-    return t, dt
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _at_rails(gk, rlo, rhi, gf, live):
-    """What f_init sees of the model flux: gf = gk clipped to the ADC rails [rlo, rhi] (the
-    drive's f_init saw the clipped values), live_h = 1 where sensor h is within them, else 0
-    (the clipped value does not move with theta)."""
-    for h in range(3):
-        v = gk[h]
-        live[h] = 1.0
-        if v < rlo[h]:
-            v = rlo[h]
-            live[h] = 0.0
-        elif v > rhi[h]:
-            v = rhi[h]
-            live[h] = 0.0
-        gf[h] = v
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _drifted(drift, tau, gk, gp, sh):
-    """The drifting sensors' signals in place: ``g_h <- (1 + gamma_h tau) g_h + delta_h tau``,
-    ``g'_h <- (1 + gamma_h tau) g'_h`` and ``sh_h = 1 + gamma_h tau``."""
-    for h in range(3):
-        s = 1.0 + drift[2 * h] * tau
-        gk[h] = s * gk[h] + drift[2 * h + 1] * tau
-        gp[h] = s * gp[h]
-        sh[h] = s
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
 def _drift_cross(cross, sw, nk, sh, b, gfl, tau, m):
     """cross += the drift columns of ``E^T M E`` for one sample, ``M = S (I - n n^T) S``:
     rows 0..3m-1 the theta columns (sensor-major), rows 3m.. the drift columns."""
@@ -191,69 +122,10 @@ def _drift_cross(cross, sw, nk, sh, b, gfl, tau, m):
 
 
 @nb.njit(cache=True, nogil=True)
-def _simulate_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax, cog_k, cog_x,
-                     rlo, rhi, drift, r, y_init):  # fmt: skip
-    """Noise-free closed loop (eq. state_eq) with the flux on ``harm`` and the cogging torque."""
-    N = r.size
-    ng = Ag.shape[0]
-    nc = Ac.shape[0]
-    m = theta.shape[1]
-    xg = np.zeros(ng)
-    xc = np.zeros(nc)
-    xg2 = np.zeros(ng)
-    xc2 = np.zeros(nc)
-    cs = np.empty(hmax + 1)
-    sn = np.empty(hmax + 1)
-    b = np.empty(m)
-    db = np.empty(m)
-    creg = np.empty(cog_k.size)
-    sreg = np.empty(cog_k.size)
-    y0s = np.full(N, np.nan)
-    ys = np.full(N, np.nan)
-    us = np.full(N, np.nan)
-    ds = np.full((N, 3), np.nan)
-    gk = np.empty(3)
-    gp = np.empty(3)
-    gf = np.empty(3)
-    live = np.empty(3)
-    yprev = y_init
-    y0_last = 0.0
-    ok = True
-    for k in range(N):
-        y0 = 0.0
-        for i in range(ng):
-            y0 += Cg[i] * xg[i]
-        _trig_table(y0, hmax, cs, sn)
-        _gather_basis(harm, cs, sn, b, db)
-        _flux_and_slope(theta, b, db, gk, gp)
-        if drift.size:
-            _drifted(drift, k / max(N - 1, 1) - 0.5, gk, gp, live)
-        _at_rails(gk, rlo, rhi, gf, live)
-        al, be = _alpha_beta(P, off, gf)
-        y = _unwrap(math.atan2(be, al), yprev, n_m)
-        e = r[k] - y
-        u = _output(Cc, xc, Dc, e)
-        tc, _ = _cogging_torque(cog_k, cog_x, y0, creg, sreg)
-        _advance(Ac, Bc, xc, e, xc2)
-        _advance(Ag, Bg, xg, u + tc, xg2)
-        bad = _diverged(y0, y0_last, u, n_m)
-        y0_last = y0
-        if bad:
-            ok = False
-            break
-        y0s[k] = y0
-        ys[k] = y
-        us[k] = u
-        for h in range(3):
-            ds[k, h] = gk[h]
-        yprev = y
-    return y0s, ys, us, ds, ok
-
-
-@nb.njit(cache=True, nogil=True)
 def _sens_block(
-    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax, cog_k, cog_x, rlo, rhi, drift,
-    jgain, jcog, jdrift, r, d, wt, k0, k1, j0, j1, ustride, primary,
+    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, recursion, cog_k, cog_x, adc_lo, adc_hi,
+    adc_step, adc_origin, drift, jgain, jcog, n_cog_fit, jdrift, r, d, wt, k0, k1, j0, j1,
+    ustride, primary,
     xg, xc, st, Sg, Sc, Sg2, Sc2, U, grad, y0s, ds, nvec, cross,
 ):  # fmt: skip
     """Advance the sensitivities of the parameter columns j0..j1-1 over the samples k0..k1-1.
@@ -269,75 +141,46 @@ def _sens_block(
     ``W_k = diag(wt[k])`` (0 for a censored sample of a channel). With ``s = sqrt(wt[k])`` the
     rows of ``W^(1/2) J_k`` are ``(s o g') dy0^T + diag(s) E_k``, so u_k uses
     ``a = s o g'``, ``n_k = a / |a|`` and ``diag(s) E_k^T n_k`` (module docstring with g' -> a).
-    Rails (``rlo``, ``rhi``): f_init sees the model flux clipped to them (:func:`_at_rails`).
+    Rails (``adc_lo``, ``adc_hi``): f_init sees the model flux clipped to them
+    (:func:`hallcal.sim.loop_kernel.sensor_step`).
 
     Drift (``drift``: (gamma_h, delta_h) per sensor, empty for none; its columns from
     ``jdrift`` when fitted, -1 otherwise): the model signal is ``sh_h g_h + delta_h tau`` with
-    ``sh_h = 1 + gamma_h tau`` (:func:`_drifted`), so E_k holds ``sh_h beta`` on the theta
-    columns and ``(tau g_h, tau)`` on the drift columns of sensor h. The primary block adds the
-    drift rows and columns of ``E^T S (I - n n^T) S E`` into ``cross`` (3 m + 6, 6): their
-    trigonometric-moment shortcut does not apply (the theta block's does, with the weights
-    ``w sh^2``, :func:`_normal_part`).
+    ``sh_h = 1 + gamma_h tau`` (:func:`hallcal.sim.loop_kernel.sensor_step`), so E_k holds
+    ``sh_h beta`` on the theta columns and ``(tau g_h, tau)`` on the drift columns of sensor h.
+    The primary block adds the drift rows and columns of ``E^T S (I - n n^T) S E`` into
+    ``cross`` (3 m + 6, 6): their trigonometric-moment shortcut does not apply (the theta
+    block's does, with the weights ``w sh^2``, :func:`_normal_part`).
     """
-    ng = Ag.shape[0]
-    nc = Ac.shape[0]
     m = theta.shape[1]
     pb = j1 - j0
-    xg2 = np.empty(ng)
-    xc2 = np.empty(nc)
-    cs = np.empty(hmax + 1)
-    sn = np.empty(hmax + 1)
-    b = np.empty(m)
-    db = np.empty(m)
-    creg = np.empty(cog_k.size)
-    sreg = np.empty(cog_k.size)
-    dy0 = np.empty(pb)
-    dy = np.empty(pb)
-    dw = np.empty(pb)
-    gk = np.empty(3)
-    gp = np.empty(3)
-    ek = np.empty(3)
-    nk = np.empty(3)
-    ck = np.empty(3)
-    gf = np.empty(3)
-    live = np.empty(3)
-    sw = np.ones(3)
-    sh = np.ones(3)
-    gfl = np.empty(3)
+    xg2, xc2 = np.empty(Ag.shape[0]), np.empty(Ac.shape[0])
+    cs, sn = trig_scratch(harm)
+    b, db = np.empty(m), np.empty(m)
+    creg, sreg = np.empty(cog_k.size), np.empty(cog_k.size)
+    dy0, dy, dw = np.empty(pb), np.empty(pb), np.empty(pb)
+    gk, gp, ek, nk, ck, gf, live, gfl = np.empty((8, 3))
+    sw, sh = np.ones(3), np.ones(3)
+    none, no_td = np.zeros((0, 3)), np.zeros(0)
     has_w = wt.shape[0] > 0
     N = r.size
-    tau = 0.0
-    yprev = st[0]
-    y0_last = st[1]
+    cols = (j0, j1, jgain, jcog, n_cog_fit, jdrift)
+    yprev, y0_last = st[0], st[1]
     sse = 0.0
     ok = True
     swapped = False
     for k in range(k0, k1):
         # nominal flux, residual and f_init slope
-        y0 = _angle_and_sensitivity(Cg, xg, Sg, dy0)
-        _trig_table(y0, hmax, cs, sn)
-        _gather_basis(harm, cs, sn, b, db)
-        _flux_and_slope(theta, b, db, gk, gp)
-        if drift.size:
-            tau = k / max(N - 1, 1) - 0.5
-            gfl[:] = gk
-            _drifted(drift, tau, gk, gp, sh)
-        _at_rails(gk, rlo, rhi, gf, live)
+        y0 = angle_and_sensitivity(Cg, xg, Sg, dy0)
+        flux_basis(y0, harm, recursion, cs, sn, b, db)
+        tau = sensor_step(k, N, theta, b, db, none, drift, none, adc_lo, adc_hi, adc_step,
+                          adc_origin, gk, gp, gfl, sh, gf, live)  # fmt: skip
+        gnorm = 0.0
+        ge = 0.0
         for h in range(3):
             ek[h] = d[k, h] - gk[h]
             if has_w:
                 sw[h] = math.sqrt(wt[k, h])
-        al, be = _alpha_beta(P, off, gf)
-        rho2 = al * al + be * be
-        if not rho2 > 0.0:  # no angle at alpha = beta = 0 (or NaN): the model is degenerate
-            ok = False
-            break
-        for h in range(3):
-            ck[h] = (al * P[1, h] - be * P[0, h]) / (rho2 * n_m) * live[h]  # d y / d d_h
-        q = ck[0] * gp[0] + ck[1] * gp[1] + ck[2] * gp[2]
-        gnorm = 0.0
-        ge = 0.0
-        for h in range(3):
             gnorm += (sw[h] * gp[h]) ** 2
             ek[h] = wt[k, h] * ek[h] if has_w else ek[h]  # W e, and e^T W e below
         gnorm = math.sqrt(gnorm)
@@ -350,77 +193,26 @@ def _sens_block(
                 ds[k, h] = gk[h]
                 nvec[k, h] = nk[h]
                 sse += ek[h] * (d[k, h] - gk[h])
-        # gradient and dy: feedback term on every column, direct term I_3 kron beta on the
-        # theta columns of this block
-        for jl in range(pb):
-            grad[j0 + jl] += ge * dy0[jl]
-            dy[jl] = q * dy0[jl]
-        for h in range(3):
-            lo = max(j0, h * m)
-            hi = min(j1, (h + 1) * m)
-            for j in range(lo, hi):
-                grad[j] += ek[h] * sh[h] * b[j - h * m]
-                dy[j - j0] += ck[h] * sh[h] * b[j - h * m]
-        if jdrift >= 0:  # the drift columns' direct terms (tau g_h, tau) of sensor h
-            for h in range(3):
-                for c, v in ((jdrift + 2 * h, tau * gfl[h]), (jdrift + 2 * h + 1, tau)):
-                    if j0 <= c < j1:
-                        grad[c] += ek[h] * v
-                        dy[c - j0] += ck[h] * v
-        # the row u_k = |g'| dy0 + E^T n
+        _add_gradient(grad, ge, ek, sh, b, dy0, gfl, tau, m, j0, j1, jdrift)
         if ustride > 0 and k % ustride == 0:
             t = k // ustride - (k0 + ustride - 1) // ustride  # rank among multiples in [k0, k1)
-            for jl in range(pb):
-                U[t, j0 + jl] = gnorm * dy0[jl]
-            for h in range(3):
-                lo = max(j0, h * m)
-                hi = min(j1, (h + 1) * m)
-                for j in range(lo, hi):
-                    U[t, j] += sw[h] * nk[h] * sh[h] * b[j - h * m]
-            if jdrift >= 0:
-                for h in range(3):
-                    for c, v in ((jdrift + 2 * h, tau * gfl[h]), (jdrift + 2 * h + 1, tau)):
-                        if j0 <= c < j1:
-                            U[t, c] += sw[h] * nk[h] * v
+            _add_row(U[t], gnorm, sw, nk, sh, b, dy0, gfl, tau, m, j0, j1, jdrift)
         if primary and jdrift >= 0 and ustride > 0:  # every sample, whatever the stride
             _drift_cross(cross, sw, nk, sh, b, gfl, tau, m)
-        # controller and plant input w = u + T_c(y0)
-        y = _unwrap(math.atan2(be, al), yprev, n_m)
-        err = r[k] - y
-        u = _output(Cc, xc, Dc, err)
-        tc, dtc = _cogging_torque(cog_k, cog_x, y0, creg, sreg)
-        w = u + tc
-        for jl in range(pb):
-            dw[jl] = -Dc * dy[jl] + dtc * dy0[jl]
-        for i in range(nc):
-            ci = Cc[i]
-            if ci != 0.0:
-                for jl in range(pb):
-                    dw[jl] += ci * Sc[i, jl]
-        for i in range(cog_k.size):
-            ja = jcog + 2 * i
-            if j0 <= ja < j1:
-                dw[ja - j0] += creg[i]
-            if j0 <= ja + 1 < j1:
-                dw[ja + 1 - j0] += sreg[i]
-        for jl in range(pb):
-            dy[jl] = -dy[jl]  # de = -dy drives the controller
-        _advance_sensitivity(Ac, Bc, Sc, dy, Sc2)
-        _advance_sensitivity(Ag, Bg, Sg, dw, Sg2)
-        if j0 <= jgain < j1:  # x+ = A x + c B w with Bg = c B: d / d log c adds Bg w
-            for i in range(ng):
-                Sg2[i, jgain - j0] += Bg[i] * w
-        _advance(Ac, Bc, xc, err, xc2)
-        _advance(Ag, Bg, xg, w, xg2)
+        tc, dtc = cogging_torque(cog_k, cog_x, y0, creg, sreg)
+        al, be, y, u, w = loop_step(Ag, Bg, Ac, Bc, Cc, Dc, P, off, n_m, xg, xc, xg2, xc2, gf,
+                                    yprev, r[k], no_td, k, tc)  # fmt: skip
+        S = (Sg, Sc, Sg2, Sc2)
+        ok = sensitivity_step(Ag, Bg, Ac, Bc, Cc, Dc, P, n_m, al, be, tau, w, dtc, live, gp, sh,
+                              gfl, b, creg, sreg, cols, dy0, S, ck, dy, dw)  # fmt: skip
         Sc, Sc2 = Sc2, Sc
         Sg, Sg2 = Sg2, Sg
         swapped = not swapped
-        bad = _diverged(y0, y0_last, u, n_m)
-        y0_last = y0
-        yprev = y
-        if bad:
+        if not ok or diverged(y0, y0_last, u, n_m):
             ok = False
             break
+        y0_last = y0
+        yprev = y
     if swapped:  # the caller's Sg, Sc must hold the current sensitivities
         Sc2[:, :] = Sc
         Sg2[:, :] = Sg
@@ -429,9 +221,45 @@ def _sens_block(
     return ok, sse
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _add_gradient(grad, ge, ek, sh, b, dy0, gfl, tau, m, j0, j1, jdrift):
+    """grad[j0:j1] += the columns of J_k^T W e_k: the feedback term ``(g'^T W e) dy0`` on every
+    column, ``(W e)_h sh_h beta`` on the theta columns of sensor h and ``(W e)_h (tau g_h, tau)``
+    on its drift columns (``jdrift`` >= 0)."""
+    for jl in range(j1 - j0):
+        grad[j0 + jl] += ge * dy0[jl]
+    for h in range(3):
+        for j in range(max(j0, h * m), min(j1, (h + 1) * m)):
+            grad[j] += ek[h] * sh[h] * b[j - h * m]
+    if jdrift >= 0:
+        for h in range(3):
+            c = jdrift + 2 * h
+            if j0 <= c < j1:
+                grad[c] += ek[h] * (tau * gfl[h])
+            if j0 <= c + 1 < j1:
+                grad[c + 1] += ek[h] * tau
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _add_row(row, gnorm, sw, nk, sh, b, dy0, gfl, tau, m, j0, j1, jdrift):
+    """The columns j0..j1-1 of the row ``u_k = |a| dy0 + diag(s) E_k^T n_k`` into ``row``."""
+    for jl in range(j1 - j0):
+        row[j0 + jl] = gnorm * dy0[jl]
+    for h in range(3):
+        for j in range(max(j0, h * m), min(j1, (h + 1) * m)):
+            row[j] += sw[h] * nk[h] * sh[h] * b[j - h * m]
+    if jdrift >= 0:
+        for h in range(3):
+            c = jdrift + 2 * h
+            if j0 <= c < j1:
+                row[c] += sw[h] * nk[h] * (tau * gfl[h])
+            if j0 <= c + 1 < j1:
+                row[c + 1] += sw[h] * nk[h] * tau
+
+
 def _moments(y0: ArrayLike, W: ArrayLike, nmax: int) -> tuple[NDArray, NDArray]:
     """C[w, n] = sum_k W[k, w] cos(n y0_k), S[w, n] = sum_k W[k, w] sin(n y0_k), n = 0..nmax."""
-    return _moments_kernel(_kernel_array(y0), _kernel_array(W), int(nmax))
+    return _moments_kernel(kernel_array(y0), kernel_array(W), int(nmax))
 
 
 @nb.njit(cache=True, nogil=True)
@@ -444,7 +272,7 @@ def _moments_kernel(y0, W, nmax):
     cs = np.empty(nmax + 1)
     sn = np.empty(nmax + 1)
     for k in range(N):
-        _trig_table(y0[k], nmax, cs, sn)
+        trig_table(y0[k], nmax, cs, sn)
         for w in range(nw):
             wk = W[k, w]
             if wk != 0.0:
@@ -458,7 +286,7 @@ def _moments_threaded(y0: NDArray, W: NDArray, nmax: int, threads: int) -> tuple
     """:func:`_moments` over the two halves of the samples, summed: in two threads (nogil) or
     one after the other, with the same result to the bit."""
     N = y0.size
-    y0, W = _kernel_array(y0), _kernel_array(W)
+    y0, W = kernel_array(y0), kernel_array(W)
     if N < 4096:
         return _moments_kernel(y0, W, int(nmax))
     h = N // 2
@@ -542,7 +370,7 @@ def regression_normal_equations(
     sse : float
         ``d^T W d`` summed over the columns.
     """
-    yy = _kernel_array(y)
+    yy = kernel_array(y)
     dd = np.asarray(d, dtype=np.float64)
     dd = dd[:, None] if dd.ndim == 1 else dd
     h = np.asarray(harmonics, dtype=np.int64)
@@ -583,35 +411,27 @@ class SimulatedLoop:
     status: PassStatus = PassStatus.OK
 
 
-# the kernel arguments of a model: the loop's (LoopArrays), n_m, theta, harm, hmax, cog_k, cog_x,
-# rlo, rhi, drift
-ModelArrays = tuple[
-    F64, F64, F64, F64, F64, F64, float, F64, F64,
-    float, F64, NDArray[np.int64], int, F64, F64, F64, F64, F64,
-]  # fmt: skip
-
-
 def _model_arrays(loop: ClosedLoop, layout: ParameterLayout, x: ArrayLike) -> ModelArrays:
-    """Kernel arguments of a model: loop arrays (B_G scaled by c), theta, harmonics, cogging,
-    the loop's rails."""
+    """Kernel arguments of a model (:data:`hallcal.sim.loop_kernel.ModelArrays`): loop arrays
+    (B_G scaled by c), theta, harmonics (basis by the trigonometric recursion), cogging, the
+    loop's rails, the drift."""
     xx = np.asarray(x, dtype=np.float64).reshape(-1)
     if xx.size != layout.size:
         raise ValueError(f"x must have {layout.size} entries for this layout, got {xx.size}")
-    arrs: LoopArrays = loop._arrays()
+    arrs: LoopArrays = loop.kernel_arrays()
     if layout.fit_gain:
         arrs = (arrs[0], arrs[1] * math.exp(layout.log_gain(xx)), *arrs[2:])
     harm = np.asarray(layout.basis.harmonics, dtype=np.int64)
-    hmax = int(harm.max()) if harm.size else 0
-    theta = _kernel_array(layout.theta(xx))
+    theta = kernel_array(layout.theta(xx))
     # the fitted cogging orders first (their columns), then the loop's own, fixed cogging torque
     cog_k = np.asarray(layout.cogging_orders, dtype=np.float64)
-    cog_x = _kernel_array(xx[layout.cogging_start : layout.cogging_stop])
+    cog_x = kernel_array(xx[layout.cogging_start : layout.cogging_stop])
     if loop.cogging is not None and loop.cogging.size:
         cog_k = np.concatenate([cog_k, np.asarray(loop.cogging.orders, dtype=np.float64)])
         cog_x = np.concatenate([cog_x, loop.cogging.coefficients])
-    rlo, rhi = (_kernel_array(v) for v in loop.rails)
-    drift = _kernel_array(layout.drift(xx).ravel() if layout.fit_drift else np.zeros(0))
-    return (*arrs, float(loop.pole_pairs), theta, harm, hmax, cog_k, cog_x, rlo, rhi, drift)
+    adc = SensorADC().within(loop.rails).kernel_arrays()
+    drift = kernel_array(layout.drift(xx).ravel() if layout.fit_drift else np.zeros(0))
+    return (*arrs, float(loop.pole_pairs), theta, harm, True, cog_k, cog_x, *adc, drift)
 
 
 def simulate_model(
@@ -645,8 +465,11 @@ def simulate_model(
     SimulatedLoop
         y0, y, u, d and the pass status.
     """
-    r = _kernel_array(r)
-    y0, y, u, d, ok = _simulate_kernel(*_model_arrays(loop, layout, x), r, float(y_initial))
+    r = kernel_array(r)
+    none = np.zeros((0, 3))
+    y0, y, u, d, _, ok = simulate(
+        *_model_arrays(loop, layout, x), r, none, np.zeros(0), none, float(y_initial), 0.0, True
+    )
     return SimulatedLoop(y0, y, u, d, PassStatus.OK if ok else PassStatus.DIVERGED)
 
 
@@ -784,8 +607,8 @@ def gauss_newton_system(
     -------
     GaussNewtonSystem
     """
-    r = _kernel_array(r)
-    d = _kernel_array(d)
+    r = kernel_array(r)
+    d = kernel_array(d)
     N = r.size
     if d.shape != (N, 3):
         raise ValueError("d must have shape (N, 3)")
@@ -841,7 +664,7 @@ def checked_weights(weights: ArrayLike | None, n_samples: int) -> NDArray[np.flo
     """
     if weights is None:
         return np.zeros((0, 3))
-    w = _kernel_array(weights)
+    w = kernel_array(weights)
     if w.shape != (int(n_samples), 3) or not np.all(np.isfinite(w)) or (w < 0).any():
         raise ValueError("weights must be (N, 3), finite and >= 0")
     return w
@@ -849,7 +672,8 @@ def checked_weights(weights: ArrayLike | None, n_samples: int) -> NDArray[np.flo
 
 def _drift_weights(layout: ParameterLayout, x: ArrayLike, wt: NDArray, N: int) -> NDArray:
     """The weights of the theta block's moments: ``w sh^2`` with ``sh = 1 + gamma tau`` of the
-    drifting sensors (:func:`_drifted`); the given weights without the drift."""
+    drifting sensors (:func:`hallcal.sim.loop_kernel.sensor_step`); the given weights without
+    the drift."""
     if not layout.fit_drift:
         return wt
     tau = np.arange(N) / max(N - 1, 1) - 0.5
@@ -978,8 +802,8 @@ class _SensitivityPass:
         k0, k1 = self._bounds(i)
         ok, sse = _sens_block(
             *self.args, self.layout.gain_index, self.layout.cogging_start,
-            self.layout.drift_start, self.r, self.d, self.wt, k0, k1, blk.j0, blk.j1,
-            self.ustride, b == 0,
+            len(self.layout.cogging_orders), self.layout.drift_start, self.r, self.d, self.wt,
+            k0, k1, blk.j0, blk.j1, self.ustride, b == 0,
             blk.xg, blk.xc, blk.st, blk.Sg, blk.Sc, blk.Sg2, blk.Sc2,
             self.bufs[i % self.ring], self.batch_grad[i], self.y0s, self.ds, self.nvec,
             self.cross,

@@ -1,41 +1,17 @@
 """Closed-loop simulation of Fig. cl_scheme / eq. (state_eq) and its exact parameter sensitivities.
 
-Per sample k (zero initial conditions, y(t_{-1}) = y_initial):
-
-    y0[k]  = C_G x_G[k]                              plant output (true angle) [rad]
-    d[k]   = ADC(s_k g_theta(y0[k]) + v[k])           Hall signals (s_k: sensor gain, default 1;
-                                                     ADC: quantizer and rails, default none)
-    y[k]   = f_init(d[k]; y[k-1])                    eq. (fimp) [rad]
-    e[k]   = r[k] - y[k]
-    u[k]   = C_C x_C[k] + D_C e[k]                   torque command
-    x_C[k+1] = A_C x_C[k] + B_C e[k]
-    x_G[k+1] = A_G x_G[k] + B_G (u[k] + T_d[k] + T_c(y0[k]))     (T_c: cogging torque)
-
-The plant is the exact ZOH discretization of G(s) with its input delay (:mod:`hallcal.sim.lti`), so
-it has no direct feedthrough and the loop is explicit.
-
-Sensitivities (forward mode, exact). With ``g_h(y0) = beta(y0) theta_h`` and
-``y = Gamma(atan2(beta_ab, alpha_ab), n_m y_prev) / n_m`` the unwrapping adds an integer multiple of
-2 pi, so ``dy = (alpha d(beta_ab) - beta_ab d(alpha_ab)) / (n_m (alpha^2 + beta_ab^2))``. Writing
-``S_G = dx_G/dtheta`` and ``S_C = dx_C/dtheta``:
-
-    dy0   = C_G S_G
-    dd_h  = g_h'(y0) dy0 + e_h kron beta(y0)          (feedback term + direct term)
-    dy    = (P_alpha dd, P_beta dd) -> as above
-    du    = C_C S_C - D_C dy
-    dw    = du + T_c'(y0) dy0 (+ [cos k y0, sin k y0] for the cogging coefficients)
-    S_C+  = A_C S_C - B_C dy
-    S_G+  = A_G S_G + B_G dw (+ B_G w for log c, the plant input gain)
-
-The feedback term ``g'(y0) dy0`` is what makes simulation-error minimization converge
-(docs/design.md).
-The hot loops are compiled with numba; float64 throughout.
+The loop's equations and their forward sensitivities are written once, in
+:mod:`hallcal.sim.loop_kernel`; this module holds the loop's description (:class:`ClosedLoop`,
+:class:`SensorADC`), the bench simulation (:func:`simulate_loop`: sensor noise, torque
+disturbance, cogging, sensor gain, quantizer and rails) and the dense Jacobian
+(:func:`loop_jacobian`), the oracle of the structured Gauss-Newton pass of
+:mod:`hallcal.fit.gauss_newton`. The feedback term ``g'(y0) dy0`` of the sensitivities is what
+makes simulation-error minimization converge (docs/design.md).
 """
 
 from __future__ import annotations
 
 import enum
-import math
 from dataclasses import dataclass, field, replace
 
 import numba as nb
@@ -45,6 +21,20 @@ from numpy.typing import ArrayLike, NDArray
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.reconstruction import clarke_matrix
 from hallcal.sim.cogging import CoggingTorque
+from hallcal.sim.loop_kernel import (
+    F64,
+    LoopArrays,
+    angle_and_sensitivity,
+    cogging_torque,
+    diverged,
+    flux_basis,
+    kernel_array,
+    loop_step,
+    sensitivity_step,
+    sensor_step,
+    simulate,
+    trig_scratch,
+)
 from hallcal.sim.lti import ContinuousTF, DiscreteTF, StateSpace
 
 __all__ = [
@@ -56,21 +46,6 @@ __all__ = [
     "loop_jacobian",
     "simulate_loop",
 ]
-
-TWO_PI = 2.0 * math.pi
-
-F64 = NDArray[np.float64]
-LoopArrays = tuple[F64, F64, F64, F64, F64, F64, float, F64, F64]
-"""The kernel arguments of a loop: A_G, B_G, C_G, A_C, B_C, C_C, D_C, P, offset."""
-
-
-def _kernel_array(a: ArrayLike) -> NDArray[np.float64]:
-    """float64, C-contiguous and writeable: the one array type the numba kernels are compiled for.
-
-    A read-only array (a dataset's column, a frozen theta) would make numba compile and cache a
-    second specialization of every kernel it reaches; a copy of such an input is cheap.
-    """
-    return np.require(a, dtype=np.float64, requirements=("C", "W"))
 
 
 class LoopStatus(enum.StrEnum):
@@ -206,18 +181,19 @@ class ClosedLoop:
             raise ValueError("plant and controller must be discrete")
         return float(dt)
 
-    def _arrays(self) -> LoopArrays:
+    def kernel_arrays(self) -> LoopArrays:
+        """The kernel arguments of the loop (:data:`hallcal.sim.loop_kernel.LoopArrays`)."""
         p, c = self.plant, self.controller
         return (
-            _kernel_array(p.A),
-            _kernel_array(p.B),
-            _kernel_array(p.C),
-            _kernel_array(c.A),
-            _kernel_array(c.B),
-            _kernel_array(c.C),
+            kernel_array(p.A),
+            kernel_array(p.B),
+            kernel_array(p.C),
+            kernel_array(c.A),
+            kernel_array(c.B),
+            kernel_array(c.C),
             float(c.D),
-            _kernel_array(self.projection),
-            _kernel_array(self.offset),
+            kernel_array(self.projection),
+            kernel_array(self.offset),
         )
 
 
@@ -249,9 +225,10 @@ class SensorADC:
         r = np.asarray(rails, dtype=np.float64)
         return replace(self, low=np.maximum(self.low, r[0]), high=np.minimum(self.high, r[1]))
 
-    def _arrays(self) -> tuple[F64, F64, F64, F64]:
+    def kernel_arrays(self) -> tuple[F64, F64, F64, F64]:
+        """The kernel arguments of the converter: low, high, step, origin (3,) each."""
         lo, hi, step, origin = (
-            _kernel_array(np.broadcast_to(np.asarray(a, dtype=np.float64), (3,)))
+            kernel_array(np.broadcast_to(np.asarray(a, dtype=np.float64), (3,)))
             for a in (self.low, self.high, self.step, self.origin)
         )
         return lo, hi, step, origin
@@ -302,315 +279,68 @@ class LoopJacobian:
     status: LoopStatus = LoopStatus.OK
 
 
-@nb.njit(cache=True, fastmath=False)
-def _basis(y0, harm, out, dout):
-    m = out.size
-    out[0] = 1.0
-    dout[0] = 0.0
-    for j in range(harm.size):
-        h = harm[j]
-        s = math.sin(h * y0)
-        c = math.cos(h * y0)
-        out[1 + 2 * j] = s
-        out[2 + 2 * j] = c
-        dout[1 + 2 * j] = h * c
-        dout[2 + 2 * j] = -h * s
-    return m
-
-
-@nb.njit(cache=True, inline="always")
-def _unwrap(psi, yprev, n_m):
-    """f_init's unwrapping Gamma(psi, n_m y_prev) / n_m, eq. (fimp)."""
-    ref = n_m * yprev
-    x = psi - ref + math.pi
-    return (ref + x - TWO_PI * math.floor(x / TWO_PI) - math.pi) / n_m
-
-
-@nb.njit(cache=True, inline="always")
-def _alpha_beta(P, off, dk):
-    """f_init's projection (alpha, beta) = P (d - offset)."""
-    al = 0.0
-    be = 0.0
-    for h in range(3):
-        al += P[0, h] * (dk[h] - off[h])
-        be += P[1, h] * (dk[h] - off[h])
-    return al, be
-
-
-@nb.njit(cache=True, inline="always")
-def _advance(A, B, x, v, out):
-    """out = A x + B v (one state-space step), then x <- out."""
-    n = x.size
-    for i in range(n):
-        acc = B[i] * v
-        for j in range(n):
-            acc += A[i, j] * x[j]
-        out[i] = acc
-    x[:] = out
-
-
-@nb.njit(cache=True, inline="always")
-def _advance_sensitivity(A, B, S, dv, out):
-    """out = A S + B dv for a sensitivity matrix S (states x parameters), p innermost."""
-    n, p = S.shape
-    for i in range(n):
-        bi = B[i]
-        for j in range(p):
-            out[i, j] = bi * dv[j]
-        for l in range(n):
-            a = A[i, l]
-            if a != 0.0:
-                for j in range(p):
-                    out[i, j] += a * S[l, j]
-
-
-@nb.njit(cache=True, inline="always")
-def _diverged(y0, y0_last, u, n_m):
-    """The loop left a sane range, or the angle moved half an electrical period in one sample
-    (f_init aliases: the simulation no longer means anything)."""
-    return not (abs(y0) < 1e12 and abs(u) < 1e15 and n_m * abs(y0 - y0_last) < math.pi)
-
-
-@nb.njit(cache=True, inline="always")
-def _angle_and_sensitivity(Cg, xg, Sg, dy0):
-    """y0 = C_G x_G and, into dy0, its sensitivity C_G S_G (p innermost)."""
-    y0 = 0.0
-    for i in range(xg.size):
-        y0 += Cg[i] * xg[i]
-    dy0[:] = 0.0
-    for i in range(xg.size):
-        ci = Cg[i]
-        if ci != 0.0:
-            for j in range(dy0.size):
-                dy0[j] += ci * Sg[i, j]
-    return y0
-
-
-@nb.njit(cache=True, inline="always")
-def _flux_and_slope(theta, b, db, g, gp):
-    """g_h = theta_h . beta(y0) and g'_h = theta_h . beta'(y0) for the three sensors."""
-    for h in range(3):
-        acc = 0.0
-        dacc = 0.0
-        for j in range(b.size):
-            acc += theta[h, j] * b[j]
-            dacc += theta[h, j] * db[j]
-        g[h] = acc
-        gp[h] = dacc
-
-
-@nb.njit(cache=True, inline="always")
-def _output(C, x, D, e):
-    """C x + D e of a single-output state space."""
-    u = D * e
-    for i in range(x.size):
-        u += C[i] * x[i]
-    return u
-
-
-@nb.njit(cache=True, inline="always")
-def _cogging(orders, coef, y0):
-    """T_c(y0) and dT_c/dy0 for interleaved coefficients [a_1, b_1, ...] (direct sin/cos)."""
-    t = 0.0
-    dt = 0.0
-    for i in range(orders.size):
-        k = orders[i]
-        c = math.cos(k * y0)
-        s = math.sin(k * y0)
-        t += coef[2 * i] * c + coef[2 * i + 1] * s
-        dt += k * (coef[2 * i + 1] * c - coef[2 * i] * s)
-    return t, dt
-
-
-@nb.njit(cache=True, inline="always")
-def _convert(v, lo, hi, step, origin):
-    """The ADC of :class:`SensorADC`: quantize to the code grid, then clip to the rails."""
-    if step > 0.0:
-        v = origin + step * math.floor((v - origin) / step + 0.5)
-    if v < lo:
-        v = lo
-    elif v > hi:
-        v = hi
-    return v
-
-
 @nb.njit(cache=True)
-def _simulate_kernel(
-    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, noise, td, cog_k, cog_x, y_init,
-    y0_start, s_gain, adc_lo, adc_hi, adc_step, adc_origin,
-):  # fmt: skip
-    N = r.size
-    has_gain = s_gain.shape[0] > 0
-    ng = Ag.shape[0]
-    nc = Ac.shape[0]
+def _jacobian_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, recursion, cog_k, cog_x,
+                     adc_lo, adc_hi, adc_step, adc_origin, drift, r, y_init, jac, jgain, jcog,
+                     n_cog_fit):  # fmt: skip
+    """The noise-free loop and the dense rows ``J_k = g'(y0) dy0^T + I_3 kron beta(y0)`` of
+    every parameter column (theta, log c at ``jgain``, cogging from ``jcog``) into jac."""
+    N, p = r.size, jac.shape[2]
     m = theta.shape[1]
-    xg = np.zeros(ng)
-    xc = np.zeros(nc)
-    xg2 = np.zeros(ng)
-    xc2 = np.zeros(nc)
-    b = np.empty(m)
-    db = np.empty(m)
-    y0s = np.empty(N)
-    ys = np.empty(N)
-    us = np.empty(N)
-    ds = np.empty((N, 3))
-    ts = np.empty(N)
-    yprev = y_init
-    y0_last = y0_start
-    ok = True
-    dk = np.empty(3)
-    for k in range(N):
-        y0 = y0_start
-        for i in range(ng):
-            y0 += Cg[i] * xg[i]
-        _basis(y0, harm, b, db)
-        for h in range(3):
-            acc = 0.0
-            for j in range(m):
-                acc += theta[h, j] * b[j]
-            if has_gain:
-                acc *= s_gain[k, h]
-            dk[h] = _convert(acc + noise[k, h], adc_lo[h], adc_hi[h], adc_step[h], adc_origin[h])
-            ds[k, h] = dk[h]
-        al, be = _alpha_beta(P, off, dk)
-        y = _unwrap(math.atan2(be, al), yprev, n_m)
-        e = r[k] - y
-        u = _output(Cc, xc, Dc, e)
-        tq = u + td[k] + _cogging(cog_k, cog_x, y0)[0]
-        _advance(Ac, Bc, xc, e, xc2)
-        _advance(Ag, Bg, xg, tq, xg2)
-        y0s[k] = y0
-        ys[k] = y
-        us[k] = u
-        ts[k] = tq
-        yprev = y
-        bad = _diverged(y0, y0_last, u, n_m)
-        y0_last = y0
-        if bad:
-            ok = False
-            for kk in range(k + 1, N):
-                y0s[kk] = np.nan
-                ys[kk] = np.nan
-                us[kk] = np.nan
-                ts[kk] = np.nan
-                for h in range(3):
-                    ds[kk, h] = np.nan
-            break
-    return y0s, ys, us, ds, ts, ok
-
-
-@nb.njit(cache=True)
-def _jacobian_kernel(
-    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, y_init, jac, fit_gain, cog_k, cog_x,
-    n_cog_fit,
-):  # fmt: skip
-    N = r.size
-    ng = Ag.shape[0]
-    nc = Ac.shape[0]
-    m = theta.shape[1]
-    jg = 3 * m  # column d / d log(c), plant input gain (when fit_gain)
-    jc0 = 3 * m + (1 if fit_gain else 0)  # first cogging column (a_1, b_1, a_2, ...)
-    p = jc0 + 2 * n_cog_fit  # the first n_cog_fit cogging terms are fitted
-    xg = np.zeros(ng)
-    xc = np.zeros(nc)
-    xg2 = np.zeros(ng)
-    xc2 = np.zeros(nc)
-    Sg = np.zeros((ng, p))
-    Sc = np.zeros((nc, p))
-    Sg2 = np.zeros((ng, p))
-    Sc2 = np.zeros((nc, p))
-    dy0 = np.empty(p)
-    dy = np.empty(p)
-    du = np.empty(p)
-    b = np.empty(m)
-    db = np.empty(m)
-    y0s = np.full(N, np.nan)
-    ys = np.full(N, np.nan)
-    us = np.full(N, np.nan)
+    xg, xc = np.zeros(Ag.shape[0]), np.zeros(Ac.shape[0])
+    xg2, xc2 = np.zeros(Ag.shape[0]), np.zeros(Ac.shape[0])
+    Sg, Sg2 = np.zeros((Ag.shape[0], p)), np.zeros((Ag.shape[0], p))
+    Sc, Sc2 = np.zeros((Ac.shape[0], p)), np.zeros((Ac.shape[0], p))
+    dy0, dy, dw = np.empty(p), np.empty(p), np.empty(p)
+    cs, sn = trig_scratch(harm)
+    b, db = np.empty(m), np.empty(m)
+    creg, sreg = np.empty(cog_k.size), np.empty(cog_k.size)
+    g, gp, gfl, seen, live, ck = np.empty((6, 3))
+    sh = np.ones(3)
+    none, no_td = np.zeros((0, 3)), np.zeros(0)
+    y0s, ys, us = np.full(N, np.nan), np.full(N, np.nan), np.full(N, np.nan)
     ds = np.full((N, 3), np.nan)
-    gp = np.empty(3)
-    dk = np.empty(3)
+    cols = (0, p, jgain, jcog, n_cog_fit, -1)
     yprev = y_init
     y0_last = 0.0
     ok = True
     for k in range(N):
-        y0 = _angle_and_sensitivity(Cg, xg, Sg, dy0)
-        _basis(y0, harm, b, db)
-        _flux_and_slope(theta, b, db, dk, gp)
-        al, be = _alpha_beta(P, off, dk)
-        rho2 = al * al + be * be
-        if not rho2 > 0.0:  # no angle at alpha = beta = 0 (or NaN): the model is degenerate
-            ok = False
-            break
-        # d psi / d d_h
-        c0 = (al * P[1, 0] - be * P[0, 0]) / (rho2 * n_m)
-        c1 = (al * P[1, 1] - be * P[0, 1]) / (rho2 * n_m)
-        c2 = (al * P[1, 2] - be * P[0, 2]) / (rho2 * n_m)
-        q = c0 * gp[0] + c1 * gp[1] + c2 * gp[2]
-        # Jacobian rows of d and dy
-        for j in range(p):
-            fb = dy0[j]
-            jac[k, 0, j] = gp[0] * fb
-            jac[k, 1, j] = gp[1] * fb
-            jac[k, 2, j] = gp[2] * fb
-            dy[j] = q * fb
-        for j in range(m):
-            jac[k, 0, j] += b[j]
-            jac[k, 1, m + j] += b[j]
-            jac[k, 2, 2 * m + j] += b[j]
-            dy[j] += c0 * b[j]
-            dy[m + j] += c1 * b[j]
-            dy[2 * m + j] += c2 * b[j]
-        y = _unwrap(math.atan2(be, al), yprev, n_m)
-        e = r[k] - y
-        u = _output(Cc, xc, Dc, e)
-        tc, dtc = _cogging(cog_k, cog_x, y0)
-        w = u + tc  # plant input
-        # dw = du + T_c'(y0) dy0 (+ the cogging regressors in their own columns)
-        for j in range(p):
-            du[j] = -Dc * dy[j] + dtc * dy0[j]
-        for i in range(nc):
-            ci = Cc[i]
-            if ci != 0.0:
-                for j in range(p):
-                    du[j] += ci * Sc[i, j]
-        for i in range(n_cog_fit):
-            du[jc0 + 2 * i] += math.cos(cog_k[i] * y0)
-            du[jc0 + 2 * i + 1] += math.sin(cog_k[i] * y0)
-        # state and sensitivity updates
-        for j in range(p):
-            dy[j] = -dy[j]  # de = -dy drives the controller
-        _advance_sensitivity(Ac, Bc, Sc, dy, Sc2)
-        _advance_sensitivity(Ag, Bg, Sg, du, Sg2)
-        if fit_gain:
-            # x+ = A x + c B w with Bg = c B: d/d log c adds Bg w
-            for i in range(ng):
-                Sg2[i, jg] += Bg[i] * w
-        _advance(Ac, Bc, xc, e, xc2)
-        _advance(Ag, Bg, xg, w, xg2)
+        y0 = angle_and_sensitivity(Cg, xg, Sg, dy0)
+        flux_basis(y0, harm, recursion, cs, sn, b, db)
+        tau = sensor_step(k, N, theta, b, db, none, drift, none, adc_lo, adc_hi, adc_step,
+                          adc_origin, g, gp, gfl, sh, seen, live)  # fmt: skip
+        for h in range(3):  # feedback term, then the direct term on the theta columns
+            for j in range(p):
+                jac[k, h, j] = gp[h] * dy0[j]
+            for j in range(m):
+                jac[k, h, h * m + j] += b[j]
+        tc, dtc = cogging_torque(cog_k, cog_x, y0, creg, sreg)
+        al, be, y, u, w = loop_step(Ag, Bg, Ac, Bc, Cc, Dc, P, off, n_m, xg, xc, xg2, xc2, seen,
+                                    yprev, r[k], no_td, k, tc)  # fmt: skip
+        S = (Sg, Sc, Sg2, Sc2)
+        ok = sensitivity_step(Ag, Bg, Ac, Bc, Cc, Dc, P, n_m, al, be, tau, w, dtc, live, gp, sh,
+                              gfl, b, creg, sreg, cols, dy0, S, ck, dy, dw)  # fmt: skip
         Sc, Sc2 = Sc2, Sc
         Sg, Sg2 = Sg2, Sg
-        bad = _diverged(y0, y0_last, u, n_m)
-        y0_last = y0
-        if bad:
+        if not ok or diverged(y0, y0_last, u, n_m):
             ok = False
             break
-        y0s[k] = y0
-        ys[k] = y
-        us[k] = u
-        for h in range(3):
-            ds[k, h] = dk[h]
+        y0_last = y0
+        y0s[k], ys[k], us[k] = y0, y, u
+        ds[k, :] = g
         yprev = y
     if not ok:  # never hand out uninitialised rows
-        for kk in range(k, N):
-            for h in range(3):
-                for j in range(p):
-                    jac[kk, h, j] = np.nan
+        jac[k:] = np.nan
     return y0s, ys, us, ds, ok
 
 
-def _harmonics_of(flux: FluxModel) -> NDArray[np.float64]:
-    return _kernel_array(flux.basis.harmonic_array)
+def _model_arrays(loop: ClosedLoop, flux: FluxModel, cog_k: F64, cog_x: F64, adc: SensorADC):
+    """The kernel arguments of the model (:data:`hallcal.sim.loop_kernel.ModelArrays`): the
+    basis by direct sines and cosines, no drift."""
+    harm = np.asarray(flux.basis.harmonics, dtype=np.int64)
+    theta = kernel_array(flux.theta)
+    return (*loop.kernel_arrays(), float(loop.pole_pairs), theta, harm, False, cog_k, cog_x,
+            *adc.kernel_arrays(), np.zeros(0))  # fmt: skip
 
 
 def _cogging_arrays(*torques: CoggingTorque | None) -> tuple[NDArray, NDArray]:
@@ -669,27 +399,18 @@ def simulate_loop(
     -------
     LoopResult
     """
-    r = _kernel_array(r)
+    r = kernel_array(r)
     N = r.size
-    v = np.zeros((N, 3)) if noise is None else _kernel_array(noise)
-    td = np.zeros(N) if torque_disturbance is None else _kernel_array(torque_disturbance)
-    sg = np.zeros((0, 3)) if sensor_gain is None else _kernel_array(sensor_gain)
+    v = np.zeros((N, 3)) if noise is None else kernel_array(noise)
+    td = np.zeros(N) if torque_disturbance is None else kernel_array(torque_disturbance)
+    sg = np.zeros((0, 3)) if sensor_gain is None else kernel_array(sensor_gain)
     if v.shape != (N, 3) or td.shape != (N,) or sg.shape not in ((N, 3), (0, 3)):
         raise ValueError("noise and sensor_gain must be (N, 3) and torque_disturbance (N,)")
-    y0, y, u, d, tq, ok = _simulate_kernel(
-        *loop._arrays(),
-        float(loop.pole_pairs),
-        _harmonics_of(flux),
-        _kernel_array(flux.theta),
-        r,
-        v,
-        td,
-        *_cogging_arrays(loop.cogging, cogging),
-        float(y_initial),
-        float(initial_angle),
-        sg,
-        *(adc or SensorADC()).within(loop.rails)._arrays(),
-    )
+    y0, y, u, d, tq, ok = simulate(
+        *_model_arrays(loop, flux, *_cogging_arrays(loop.cogging, cogging),
+                       (adc or SensorADC()).within(loop.rails)),
+        r, v, td, sg, float(y_initial), float(initial_angle), False,
+    )  # fmt: skip
     return LoopResult(y0, y, u, d, tq, LoopStatus.OK if ok else LoopStatus.DIVERGED)
 
 
@@ -738,7 +459,7 @@ def loop_jacobian(
         then log c (``fit_gain``), then the cogging coefficients. After a divergence the
         remaining samples and Jacobian rows are NaN and the status is DIVERGED.
     """
-    r = _kernel_array(r)
+    r = kernel_array(r)
     N = r.size
     n_fit = len(cogging.orders) if (fit_cogging and cogging is not None) else 0
     # the fitted orders first (their columns), then the loop's own, fixed cogging torque
@@ -747,17 +468,10 @@ def loop_jacobian(
     jac = np.empty((N, 3, p)) if out is None else out
     if jac.shape != (N, 3, p):
         raise ValueError(f"out must have shape {(N, 3, p)}")
+    m = flux.theta.shape[1]
     y0, y, u, d, ok = _jacobian_kernel(
-        *loop._arrays(),
-        float(loop.pole_pairs),
-        _harmonics_of(flux),
-        _kernel_array(flux.theta),
-        r,
-        float(y_initial),
-        jac,
-        bool(fit_gain),
-        cog_k,
-        cog_x,
+        *_model_arrays(loop, flux, cog_k, cog_x, SensorADC().within(loop.rails)),
+        r, float(y_initial), jac, 3 * m if fit_gain else -1, 3 * m + (1 if fit_gain else 0),
         n_fit,
-    )
+    )  # fmt: skip
     return LoopJacobian(d, y0, y, u, jac, LoopStatus.OK if ok else LoopStatus.DIVERGED)
