@@ -68,16 +68,11 @@ from hallcal.sim.loop_kernel import (
     F64,
     LoopArrays,
     ModelArrays,
-    angle_and_sensitivity,
-    cogging_torque,
     diverged,
-    flux_basis,
     kernel_array,
-    loop_step,
+    sensitivity_scratch,
     sensitivity_step,
-    sensor_step,
     simulate,
-    trig_scratch,
     trig_table,
 )
 
@@ -123,13 +118,13 @@ def _drift_cross(cross, sw, nk, sh, b, gfl, tau, m):
 
 @nb.njit(cache=True, nogil=True)
 def _sens_block(
-    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, recursion, cog_k, cog_x, adc_lo, adc_hi,
-    adc_step, adc_origin, drift, jgain, jcog, n_cog_fit, jdrift, r, d, wt, k0, k1, j0, j1,
-    ustride, primary,
+    model, cols, r, d, wt, k0, k1, ustride, primary,
     xg, xc, st, Sg, Sc, Sg2, Sc2, U, grad, y0s, ds, nvec, cross,
 ):  # fmt: skip
     """Advance the sensitivities of the parameter columns j0..j1-1 over the samples k0..k1-1.
 
+    ``model``: :data:`hallcal.sim.loop_kernel.ModelArrays`; ``cols = (j0, j1, jgain, jcog,
+    n_cog_fit, jdrift)``: the block's columns (:func:`hallcal.sim.loop_kernel.sensitivity_step`).
     The nominal loop state (xg, xc, st = [y_prev, y0_last]) and the block's sensitivities
     (Sg, Sc: states x (j1 - j0)) are carried between chunks in the arrays. Writes the columns
     j0..j1-1 of the rows u_k of the samples k that are multiples of ``ustride`` into consecutive
@@ -152,29 +147,21 @@ def _sens_block(
     ``cross`` (3 m + 6, 6): their trigonometric-moment shortcut does not apply (the theta
     block's does, with the weights ``w sh^2``, :func:`_normal_part`).
     """
-    m = theta.shape[1]
-    pb = j1 - j0
-    xg2, xc2 = np.empty(Ag.shape[0]), np.empty(Ac.shape[0])
-    cs, sn = trig_scratch(harm)
-    b, db = np.empty(m), np.empty(m)
-    creg, sreg = np.empty(cog_k.size), np.empty(cog_k.size)
-    dy0, dy, dw = np.empty(pb), np.empty(pb), np.empty(pb)
-    gk, gp, ek, nk, ck, gf, live, gfl = np.empty((8, 3))
-    sw, sh = np.ones(3), np.ones(3)
-    none, no_td = np.zeros((0, 3)), np.zeros(0)
+    j0, j1, jdrift = cols[0], cols[1], cols[5]
+    state = (xg, xc, np.empty(xg.size), np.empty(xc.size), Sg, Sc, Sg2, Sc2)
+    scratch = sensitivity_scratch(model, j1 - j0)
+    b, v3, dy0 = scratch[2], scratch[6], scratch[7]
+    gk, gp, gfl, sh = v3[0], v3[1], v3[2], v3[3]
+    m = b.size
+    ek, nk, sw = np.empty(3), np.empty(3), np.ones(3)
     has_w = wt.shape[0] > 0
-    N = r.size
-    cols = (j0, j1, jgain, jcog, n_cog_fit, jdrift)
     yprev, y0_last = st[0], st[1]
     sse = 0.0
-    ok = True
-    swapped = False
+    flip = False
     for k in range(k0, k1):
-        # nominal flux, residual and f_init slope
-        y0 = angle_and_sensitivity(Cg, xg, Sg, dy0)
-        flux_basis(y0, harm, recursion, cs, sn, b, db)
-        tau = sensor_step(k, N, theta, b, db, none, drift, none, adc_lo, adc_hi, adc_step,
-                          adc_origin, gk, gp, gfl, sh, gf, live)  # fmt: skip
+        ok, y0, y, u, tau = sensitivity_step(model, k, r, yprev, flip, state, scratch, cols)
+        flip = not flip
+        # residual, the tangent n_k of the (weighted) flux curve and the rows of this block
         gnorm = 0.0
         ge = 0.0
         for h in range(3):
@@ -199,23 +186,14 @@ def _sens_block(
             _add_row(U[t], gnorm, sw, nk, sh, b, dy0, gfl, tau, m, j0, j1, jdrift)
         if primary and jdrift >= 0 and ustride > 0:  # every sample, whatever the stride
             _drift_cross(cross, sw, nk, sh, b, gfl, tau, m)
-        tc, dtc = cogging_torque(cog_k, cog_x, y0, creg, sreg)
-        al, be, y, u, w = loop_step(Ag, Bg, Ac, Bc, Cc, Dc, P, off, n_m, xg, xc, xg2, xc2, gf,
-                                    yprev, r[k], no_td, k, tc)  # fmt: skip
-        S = (Sg, Sc, Sg2, Sc2)
-        ok = sensitivity_step(Ag, Bg, Ac, Bc, Cc, Dc, P, n_m, al, be, tau, w, dtc, live, gp, sh,
-                              gfl, b, creg, sreg, cols, dy0, S, ck, dy, dw)  # fmt: skip
-        Sc, Sc2 = Sc2, Sc
-        Sg, Sg2 = Sg2, Sg
-        swapped = not swapped
-        if not ok or diverged(y0, y0_last, u, n_m):
+        if not ok or diverged(y0, y0_last, u, model[9]):
             ok = False
             break
         y0_last = y0
         yprev = y
-    if swapped:  # the caller's Sg, Sc must hold the current sensitivities
-        Sc2[:, :] = Sc
-        Sg2[:, :] = Sg
+    if flip:  # the caller's Sg, Sc must hold the current sensitivities
+        Sc[:, :] = Sc2
+        Sg[:, :] = Sg2
     st[0] = yprev
     st[1] = y0_last
     return ok, sse
@@ -468,7 +446,7 @@ def simulate_model(
     r = kernel_array(r)
     none = np.zeros((0, 3))
     y0, y, u, d, _, ok = simulate(
-        *_model_arrays(loop, layout, x), r, none, np.zeros(0), none, float(y_initial), 0.0, True
+        _model_arrays(loop, layout, x), r, none, np.zeros(0), none, float(y_initial), 0.0, True
     )
     return SimulatedLoop(y0, y, u, d, PassStatus.OK if ok else PassStatus.DIVERGED)
 
@@ -800,10 +778,11 @@ class _SensitivityPass:
     def _sensitivities(self, b: int, i: int) -> bool:
         blk = self.blocks[b]
         k0, k1 = self._bounds(i)
+        lay = self.layout
+        cols = (blk.j0, blk.j1, lay.gain_index, lay.cogging_start, len(lay.cogging_orders),
+                lay.drift_start)  # fmt: skip
         ok, sse = _sens_block(
-            *self.args, self.layout.gain_index, self.layout.cogging_start,
-            len(self.layout.cogging_orders), self.layout.drift_start, self.r, self.d, self.wt,
-            k0, k1, blk.j0, blk.j1, self.ustride, b == 0,
+            self.args, cols, self.r, self.d, self.wt, k0, k1, self.ustride, b == 0,
             blk.xg, blk.xc, blk.st, blk.Sg, blk.Sc, blk.Sg2, blk.Sc2,
             self.bufs[i % self.ring], self.batch_grad[i], self.y0s, self.ds, self.nvec,
             self.cross,

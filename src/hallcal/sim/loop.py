@@ -14,7 +14,6 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass, field, replace
 
-import numba as nb
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -24,16 +23,10 @@ from hallcal.sim.cogging import CoggingTorque
 from hallcal.sim.loop_kernel import (
     F64,
     LoopArrays,
-    angle_and_sensitivity,
-    cogging_torque,
-    diverged,
-    flux_basis,
+    ModelArrays,
+    dense_jacobian,
     kernel_array,
-    loop_step,
-    sensitivity_step,
-    sensor_step,
     simulate,
-    trig_scratch,
 )
 from hallcal.sim.lti import ContinuousTF, DiscreteTF, StateSpace
 
@@ -279,62 +272,9 @@ class LoopJacobian:
     status: LoopStatus = LoopStatus.OK
 
 
-@nb.njit(cache=True)
-def _jacobian_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, recursion, cog_k, cog_x,
-                     adc_lo, adc_hi, adc_step, adc_origin, drift, r, y_init, jac, jgain, jcog,
-                     n_cog_fit):  # fmt: skip
-    """The noise-free loop and the dense rows ``J_k = g'(y0) dy0^T + I_3 kron beta(y0)`` of
-    every parameter column (theta, log c at ``jgain``, cogging from ``jcog``) into jac."""
-    N, p = r.size, jac.shape[2]
-    m = theta.shape[1]
-    xg, xc = np.zeros(Ag.shape[0]), np.zeros(Ac.shape[0])
-    xg2, xc2 = np.zeros(Ag.shape[0]), np.zeros(Ac.shape[0])
-    Sg, Sg2 = np.zeros((Ag.shape[0], p)), np.zeros((Ag.shape[0], p))
-    Sc, Sc2 = np.zeros((Ac.shape[0], p)), np.zeros((Ac.shape[0], p))
-    dy0, dy, dw = np.empty(p), np.empty(p), np.empty(p)
-    cs, sn = trig_scratch(harm)
-    b, db = np.empty(m), np.empty(m)
-    creg, sreg = np.empty(cog_k.size), np.empty(cog_k.size)
-    g, gp, gfl, seen, live, ck = np.empty((6, 3))
-    sh = np.ones(3)
-    none, no_td = np.zeros((0, 3)), np.zeros(0)
-    y0s, ys, us = np.full(N, np.nan), np.full(N, np.nan), np.full(N, np.nan)
-    ds = np.full((N, 3), np.nan)
-    cols = (0, p, jgain, jcog, n_cog_fit, -1)
-    yprev = y_init
-    y0_last = 0.0
-    ok = True
-    for k in range(N):
-        y0 = angle_and_sensitivity(Cg, xg, Sg, dy0)
-        flux_basis(y0, harm, recursion, cs, sn, b, db)
-        tau = sensor_step(k, N, theta, b, db, none, drift, none, adc_lo, adc_hi, adc_step,
-                          adc_origin, g, gp, gfl, sh, seen, live)  # fmt: skip
-        for h in range(3):  # feedback term, then the direct term on the theta columns
-            for j in range(p):
-                jac[k, h, j] = gp[h] * dy0[j]
-            for j in range(m):
-                jac[k, h, h * m + j] += b[j]
-        tc, dtc = cogging_torque(cog_k, cog_x, y0, creg, sreg)
-        al, be, y, u, w = loop_step(Ag, Bg, Ac, Bc, Cc, Dc, P, off, n_m, xg, xc, xg2, xc2, seen,
-                                    yprev, r[k], no_td, k, tc)  # fmt: skip
-        S = (Sg, Sc, Sg2, Sc2)
-        ok = sensitivity_step(Ag, Bg, Ac, Bc, Cc, Dc, P, n_m, al, be, tau, w, dtc, live, gp, sh,
-                              gfl, b, creg, sreg, cols, dy0, S, ck, dy, dw)  # fmt: skip
-        Sc, Sc2 = Sc2, Sc
-        Sg, Sg2 = Sg2, Sg
-        if not ok or diverged(y0, y0_last, u, n_m):
-            ok = False
-            break
-        y0_last = y0
-        y0s[k], ys[k], us[k] = y0, y, u
-        ds[k, :] = g
-        yprev = y
-    if not ok:  # never hand out uninitialised rows
-        jac[k:] = np.nan
-    return y0s, ys, us, ds, ok
-
-
-def _model_arrays(loop: ClosedLoop, flux: FluxModel, cog_k: F64, cog_x: F64, adc: SensorADC):
+def _model_arrays(
+    loop: ClosedLoop, flux: FluxModel, cog_k: F64, cog_x: F64, adc: SensorADC
+) -> ModelArrays:
     """The kernel arguments of the model (:data:`hallcal.sim.loop_kernel.ModelArrays`): the
     basis by direct sines and cosines, no drift."""
     harm = np.asarray(flux.basis.harmonics, dtype=np.int64)
@@ -406,11 +346,12 @@ def simulate_loop(
     sg = np.zeros((0, 3)) if sensor_gain is None else kernel_array(sensor_gain)
     if v.shape != (N, 3) or td.shape != (N,) or sg.shape not in ((N, 3), (0, 3)):
         raise ValueError("noise and sensor_gain must be (N, 3) and torque_disturbance (N,)")
+    model = _model_arrays(
+        loop, flux, *_cogging_arrays(loop.cogging, cogging), (adc or SensorADC()).within(loop.rails)
+    )
     y0, y, u, d, tq, ok = simulate(
-        *_model_arrays(loop, flux, *_cogging_arrays(loop.cogging, cogging),
-                       (adc or SensorADC()).within(loop.rails)),
-        r, v, td, sg, float(y_initial), float(initial_angle), False,
-    )  # fmt: skip
+        model, r, v, td, sg, float(y_initial), float(initial_angle), False
+    )
     return LoopResult(y0, y, u, d, tq, LoopStatus.OK if ok else LoopStatus.DIVERGED)
 
 
@@ -469,8 +410,8 @@ def loop_jacobian(
     if jac.shape != (N, 3, p):
         raise ValueError(f"out must have shape {(N, 3, p)}")
     m = flux.theta.shape[1]
-    y0, y, u, d, ok = _jacobian_kernel(
-        *_model_arrays(loop, flux, cog_k, cog_x, SensorADC().within(loop.rails)),
+    y0, y, u, d, ok = dense_jacobian(
+        _model_arrays(loop, flux, cog_k, cog_x, SensorADC().within(loop.rails)),
         r, float(y_initial), jac, 3 * m if fit_gain else -1, 3 * m + (1 if fit_gain else 0),
         n_fit,
     )  # fmt: skip

@@ -54,6 +54,7 @@ __all__ = [
     "ModelArrays",
     "angle_and_sensitivity",
     "cogging_torque",
+    "dense_jacobian",
     "diverged",
     "flux_and_slope",
     "flux_basis",
@@ -61,6 +62,7 @@ __all__ = [
     "loop_step",
     "sensitivity_step",
     "sensor_step",
+    "sensitivity_scratch",
     "simulate",
     "trig_scratch",
     "trig_table",
@@ -307,10 +309,10 @@ def loop_step(Ag, Bg, Ac, Bc, Cc, Dc, P, off, n_m, xg, xc, xg2, xc2, seen, yprev
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def sensitivity_step(Ag, Bg, Ac, Bc, Cc, Dc, P, n_m, al, be, tau, w, dtc, live, gp, sh, gfl, b,
-                     creg, sreg, cols, dy0, S, ck, dy, dw):  # fmt: skip
+def _column_step(Ag, Bg, Ac, Bc, Cc, Dc, P, n_m, al, be, tau, w, dtc, live, gp, sh, gfl, b,
+                 creg, sreg, cols, dy0, S, ck, dy, dw):  # fmt: skip
     """Advance the sensitivities of the parameter columns j0..j1-1 by one sample (module
-    docstring): ``S = (Sg, Sc, Sg2, Sc2)``, into Sg2, Sc2 the next Sg, Sc (the caller swaps).
+    docstring): ``S = (Sg, Sc, Sg2, Sc2)``, into Sg2, Sc2 the next Sg, Sc.
 
     ``cols = (j0, j1, jgain, jcog, n_cog_fit, jdrift)``: the block's columns; theta (3 m,
     sensor-major) from 0, log c at ``jgain``, the fitted cogging coefficients from ``jcog`` (the
@@ -364,21 +366,67 @@ def sensitivity_step(Ag, Bg, Ac, Bc, Cc, Dc, P, n_m, al, be, tau, w, dtc, live, 
     return True
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def sensitivity_scratch(model, p):
+    """The scratch of :func:`sensitivity_step` for a model and a block of p columns: (cs, sn,
+    b, db, creg, sreg, v3, dy0, dy, dw, none, no_td); the rows of v3 (7, 3) are g, g', the flux
+    before the drift, sh (1), what f_init sees, live and d y / d d."""
+    theta, harm, cog_k = model[10], model[11], model[13]
+    cs, sn = trig_scratch(harm)
+    m = theta.shape[1]
+    v3 = np.empty((7, 3))
+    v3[3] = 1.0
+    return (cs, sn, np.empty(m), np.empty(m), np.empty(cog_k.size), np.empty(cog_k.size), v3,
+            np.empty(p), np.empty(p), np.empty(p), np.zeros((0, 3)), np.zeros(0))  # fmt: skip
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def sensitivity_step(model, k, r, yprev, flip, state, scratch, cols):
+    """Sample k of the noise-free loop of ``model`` (:data:`ModelArrays`) with the
+    sensitivities of the columns ``cols = (j0, j1, jgain, jcog, n_cog_fit, jdrift)``
+    (:func:`_column_step`).
+
+    ``state = (xg, xc, xg2, xc2, Sg, Sc, Sg2, Sc2)``: the states advance in place; the
+    sensitivities alternate between the two pairs (``flip``: the current ones are Sg2, Sc2; the
+    caller toggles it after each sample). ``scratch`` of :func:`sensitivity_scratch` holds the
+    sample's beta (b), g, g', sh, tau's flux and dy0 for the caller's rows.
+    Returns (ok, y0, y, u, tau); ok is False when f_init has no angle."""
+    (Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, recursion, cog_k, cog_x,
+     adc_lo, adc_hi, adc_step, adc_origin, drift) = model  # fmt: skip
+    xg, xc, xg2, xc2, Sga, Sca, Sgb, Scb = state
+    cs, sn, b, db, creg, sreg, v3, dy0, dy, dw, none, no_td = scratch
+    if flip:
+        Sg, Sc, Sg2, Sc2 = Sgb, Scb, Sga, Sca
+    else:
+        Sg, Sc, Sg2, Sc2 = Sga, Sca, Sgb, Scb
+    g, gp, gfl, sh, seen, live, ck = v3[0], v3[1], v3[2], v3[3], v3[4], v3[5], v3[6]
+    y0 = angle_and_sensitivity(Cg, xg, Sg, dy0)
+    flux_basis(y0, harm, recursion, cs, sn, b, db)
+    tau = sensor_step(k, r.size, theta, b, db, none, drift, none, adc_lo, adc_hi, adc_step,
+                      adc_origin, g, gp, gfl, sh, seen, live)  # fmt: skip
+    tc, dtc = cogging_torque(cog_k, cog_x, y0, creg, sreg)
+    al, be, y, u, w = loop_step(Ag, Bg, Ac, Bc, Cc, Dc, P, off, n_m, xg, xc, xg2, xc2, seen,
+                                yprev, r[k], no_td, k, tc)  # fmt: skip
+    ok = _column_step(Ag, Bg, Ac, Bc, Cc, Dc, P, n_m, al, be, tau, w, dtc, live, gp, sh, gfl, b,
+                      creg, sreg, cols, dy0, (Sg, Sc, Sg2, Sc2), ck, dy, dw)  # fmt: skip
+    return ok, y0, y, u, tau
+
+
 # ------------------------------------------------------------------------------------------------
 # The simulation
 # ------------------------------------------------------------------------------------------------
 
 
 @nb.njit(cache=True, nogil=True)
-def simulate(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, recursion, cog_k, cog_x,
-             adc_lo, adc_hi, adc_step, adc_origin, drift, r, noise, td, s_gain, y_init, y0_start,
-             as_model):  # fmt: skip
+def simulate(model, r, noise, td, s_gain, y_init, y0_start, as_model):
     """The closed loop over the N samples of r (module docstring); NaN after a divergence.
 
     noise (N, 3), td (N,), s_gain (N, 3): empty for none. ``as_model``: the solver's model
     (d = the model signal before the ADC, the d_sim of the residual, and the diverging sample
     NaN), else the bench (d = what f_init saw; the diverging sample kept).
     Returns (y0, y, u, d, plant input, ok)."""
+    (Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, recursion, cog_k, cog_x,
+     adc_lo, adc_hi, adc_step, adc_origin, drift) = model  # fmt: skip
     N = r.size
     m = theta.shape[1]
     xg, xc = np.zeros(Ag.shape[0]), np.zeros(Ac.shape[0])
@@ -414,3 +462,38 @@ def simulate(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, recursion, co
             break
         y0_last = y0
     return y0s, ys, us, ds, ts, ok
+
+
+@nb.njit(cache=True, nogil=True)
+def dense_jacobian(model, r, y_init, jac, jgain, jcog, n_cog_fit):
+    """The noise-free loop of ``model`` (:data:`hallcal.sim.loop_kernel.ModelArrays`) and the
+    dense rows ``J_k = g'(y0) dy0^T + I_3 kron beta(y0)`` of every parameter column (theta,
+    log c at ``jgain``, cogging from ``jcog``) into jac (N, 3, p): the oracle of the structured
+    pass of :mod:`hallcal.fit.gauss_newton`. Returns (y0, y, u, d, ok); after a divergence the
+    remaining samples and rows are NaN."""
+    N, p = r.size, jac.shape[2]
+    ng, nc = model[0].shape[0], model[3].shape[0]
+    x0, s0 = (np.zeros(ng), np.zeros(nc)), (np.zeros((ng, p)), np.zeros((nc, p)))
+    state = (*x0, np.zeros(ng), np.zeros(nc), *s0, np.zeros((ng, p)), np.zeros((nc, p)))
+    scratch = sensitivity_scratch(model, p)
+    b, v3, dy0 = scratch[2], scratch[6], scratch[7]
+    cols = (0, p, jgain, jcog, n_cog_fit, -1)
+    y0s, ys, us = np.full(N, np.nan), np.full(N, np.nan), np.full(N, np.nan)
+    ds = np.full((N, 3), np.nan)
+    yprev, y0_last, flip = y_init, 0.0, False
+    for k in range(N):
+        ok, y0, y, u, _ = sensitivity_step(model, k, r, yprev, flip, state, scratch, cols)
+        flip = not flip
+        for h in range(3):  # feedback term, then the direct term on the theta columns
+            for j in range(p):
+                jac[k, h, j] = v3[1, h] * dy0[j]
+            for j in range(b.size):
+                jac[k, h, h * b.size + j] += b[j]
+        if not ok or diverged(y0, y0_last, u, model[9]):
+            jac[k:] = np.nan  # never hand out uninitialised rows
+            return y0s, ys, us, ds, False
+        yprev = y
+        y0s[k], ys[k], us[k] = y0, y, u
+        ds[k, :] = v3[0]
+        y0_last = y0
+    return y0s, ys, us, ds, True
