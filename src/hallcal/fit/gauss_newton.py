@@ -70,7 +70,7 @@ from hallcal.sim.loop_kernel import (
     ModelArrays,
     diverged,
     kernel_array,
-    sensitivity_scratch,
+    loop_scratch,
     sensitivity_step,
     simulate,
     trig_table,
@@ -149,7 +149,7 @@ def _sens_block(
     """
     j0, j1, jdrift = cols[0], cols[1], cols[5]
     state = (xg, xc, np.empty(xg.size), np.empty(xc.size), Sg, Sc, Sg2, Sc2)
-    scratch = sensitivity_scratch(model, j1 - j0)
+    scratch = loop_scratch(model, j1 - j0)
     b, v3, dy0 = scratch[2], scratch[6], scratch[7]
     gk, gp, gfl, sh = v3[0], v3[1], v3[2], v3[3]
     m = b.size

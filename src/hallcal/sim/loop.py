@@ -375,7 +375,9 @@ def loop_jacobian(
     Parameters
     ----------
     loop : ClosedLoop
-        Plant, controller and f_init of the loop (eq. (state_eq)).
+        Plant, controller and f_init of the loop (eq. (state_eq)); with its rails, f_init sees
+        the flux clipped to them (as in the model of :mod:`hallcal.fit.gauss_newton`; d stays
+        the flux).
     flux : FluxModel
         g_theta with a Fourier basis; the derivatives are taken with respect to its theta.
     r : array_like (N,)

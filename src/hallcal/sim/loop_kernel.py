@@ -59,10 +59,11 @@ __all__ = [
     "flux_and_slope",
     "flux_basis",
     "kernel_array",
+    "loop_sample",
+    "loop_scratch",
     "loop_step",
     "sensitivity_step",
     "sensor_step",
-    "sensitivity_scratch",
     "simulate",
     "trig_scratch",
     "trig_table",
@@ -367,10 +368,11 @@ def _column_step(Ag, Bg, Ac, Bc, Cc, Dc, P, n_m, al, be, tau, w, dtc, live, gp, 
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def sensitivity_scratch(model, p):
-    """The scratch of :func:`sensitivity_step` for a model and a block of p columns: (cs, sn,
-    b, db, creg, sreg, v3, dy0, dy, dw, none, no_td); the rows of v3 (7, 3) are g, g', the flux
-    before the drift, sh (1), what f_init sees, live and d y / d d."""
+def loop_scratch(model, p):
+    """The scratch of :func:`loop_sample` and :func:`sensitivity_step` for a model and a block
+    of p sensitivity columns (0 for the simulation): (cs, sn, b, db, creg, sreg, v3, dy0, dy,
+    dw, none, no_td); the rows of v3 (7, 3) are g, g', the flux before the drift, sh (1), what
+    f_init sees, live and d y / d d; none, no_td: an empty (0, 3) and (0,) array."""
     theta, harm, cog_k = model[10], model[11], model[13]
     cs, sn = trig_scratch(harm)
     m = theta.shape[1]
@@ -381,6 +383,26 @@ def sensitivity_scratch(model, p):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
+def loop_sample(model, k, r, y0, yprev, xs, scratch, noise, td, s_gain):
+    """Sample k of the loop of ``model`` (:data:`ModelArrays`) at the true angle y0: the flux
+    basis, the Hall signals (:func:`sensor_step`), the cogging torque and :func:`loop_step`.
+
+    ``xs = (xg, xc, xg2, xc2)`` advance in place; ``scratch`` of :func:`loop_scratch` receives
+    beta, the signals and the cogging regressors; noise, td, s_gain as in :func:`simulate`.
+    Returns (tau, dT_c/dy0, alpha, beta, y, u, w)."""
+    (Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, recursion, cog_k, cog_x,
+     adc_lo, adc_hi, adc_step, adc_origin, drift) = model  # fmt: skip
+    cs, sn, b, db, creg, sreg, v3 = scratch[:7]
+    flux_basis(y0, harm, recursion, cs, sn, b, db)
+    tau = sensor_step(k, r.size, theta, b, db, s_gain, drift, noise, adc_lo, adc_hi, adc_step,
+                      adc_origin, v3[0], v3[1], v3[2], v3[3], v3[4], v3[5])  # fmt: skip
+    tc, dtc = cogging_torque(cog_k, cog_x, y0, creg, sreg)
+    al, be, y, u, w = loop_step(Ag, Bg, Ac, Bc, Cc, Dc, P, off, n_m, xs[0], xs[1], xs[2], xs[3],
+                                v3[4], yprev, r[k], td, k, tc)  # fmt: skip
+    return tau, dtc, al, be, y, u, w
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
 def sensitivity_step(model, k, r, yprev, flip, state, scratch, cols):
     """Sample k of the noise-free loop of ``model`` (:data:`ModelArrays`) with the
     sensitivities of the columns ``cols = (j0, j1, jgain, jcog, n_cog_fit, jdrift)``
@@ -388,25 +410,20 @@ def sensitivity_step(model, k, r, yprev, flip, state, scratch, cols):
 
     ``state = (xg, xc, xg2, xc2, Sg, Sc, Sg2, Sc2)``: the states advance in place; the
     sensitivities alternate between the two pairs (``flip``: the current ones are Sg2, Sc2; the
-    caller toggles it after each sample). ``scratch`` of :func:`sensitivity_scratch` holds the
+    caller toggles it after each sample). ``scratch`` of :func:`loop_scratch` holds the
     sample's beta (b), g, g', sh, tau's flux and dy0 for the caller's rows.
     Returns (ok, y0, y, u, tau); ok is False when f_init has no angle."""
-    (Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, recursion, cog_k, cog_x,
-     adc_lo, adc_hi, adc_step, adc_origin, drift) = model  # fmt: skip
+    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, n_m = model[:8] + (model[9],)
     xg, xc, xg2, xc2, Sga, Sca, Sgb, Scb = state
-    cs, sn, b, db, creg, sreg, v3, dy0, dy, dw, none, no_td = scratch
+    b, creg, sreg, v3, dy0, dy, dw, none, no_td = scratch[2], *scratch[4:]
     if flip:
         Sg, Sc, Sg2, Sc2 = Sgb, Scb, Sga, Sca
     else:
         Sg, Sc, Sg2, Sc2 = Sga, Sca, Sgb, Scb
-    g, gp, gfl, sh, seen, live, ck = v3[0], v3[1], v3[2], v3[3], v3[4], v3[5], v3[6]
     y0 = angle_and_sensitivity(Cg, xg, Sg, dy0)
-    flux_basis(y0, harm, recursion, cs, sn, b, db)
-    tau = sensor_step(k, r.size, theta, b, db, none, drift, none, adc_lo, adc_hi, adc_step,
-                      adc_origin, g, gp, gfl, sh, seen, live)  # fmt: skip
-    tc, dtc = cogging_torque(cog_k, cog_x, y0, creg, sreg)
-    al, be, y, u, w = loop_step(Ag, Bg, Ac, Bc, Cc, Dc, P, off, n_m, xg, xc, xg2, xc2, seen,
-                                yprev, r[k], no_td, k, tc)  # fmt: skip
+    tau, dtc, al, be, y, u, w = loop_sample(model, k, r, y0, yprev, (xg, xc, xg2, xc2), scratch,
+                                            none, no_td, none)  # fmt: skip
+    gp, gfl, sh, live, ck = v3[1], v3[2], v3[3], v3[5], v3[6]
     ok = _column_step(Ag, Bg, Ac, Bc, Cc, Dc, P, n_m, al, be, tau, w, dtc, live, gp, sh, gfl, b,
                       creg, sreg, cols, dy0, (Sg, Sc, Sg2, Sc2), ck, dy, dw)  # fmt: skip
     return ok, y0, y, u, tau
@@ -425,16 +442,12 @@ def simulate(model, r, noise, td, s_gain, y_init, y0_start, as_model):
     (d = the model signal before the ADC, the d_sim of the residual, and the diverging sample
     NaN), else the bench (d = what f_init saw; the diverging sample kept).
     Returns (y0, y, u, d, plant input, ok)."""
-    (Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, recursion, cog_k, cog_x,
-     adc_lo, adc_hi, adc_step, adc_origin, drift) = model  # fmt: skip
+    Cg, n_m = model[2], model[9]
     N = r.size
-    m = theta.shape[1]
-    xg, xc = np.zeros(Ag.shape[0]), np.zeros(Ac.shape[0])
-    xg2, xc2 = np.zeros(Ag.shape[0]), np.zeros(Ac.shape[0])
-    cs, sn = trig_scratch(harm)
-    b, db = np.empty(m), np.empty(m)
-    creg, sreg = np.empty(cog_k.size), np.empty(cog_k.size)
-    g, gp, gfl, sh, seen, live = np.empty((6, 3))
+    xs = (np.zeros(model[0].shape[0]), np.zeros(model[3].shape[0]),
+          np.zeros(model[0].shape[0]), np.zeros(model[3].shape[0]))  # fmt: skip
+    scratch = loop_scratch(model, 0)
+    g, seen = scratch[6][0], scratch[6][4]
     y0s, ys, us, ts = np.full((4, N), np.nan)
     ds = np.full((N, 3), np.nan)
     yprev = y_init
@@ -443,13 +456,8 @@ def simulate(model, r, noise, td, s_gain, y_init, y0_start, as_model):
     for k in range(N):
         y0 = y0_start
         for i in range(Cg.size):
-            y0 += Cg[i] * xg[i]
-        flux_basis(y0, harm, recursion, cs, sn, b, db)
-        sensor_step(k, N, theta, b, db, s_gain, drift, noise, adc_lo, adc_hi, adc_step,
-                    adc_origin, g, gp, gfl, sh, seen, live)  # fmt: skip
-        tc, _ = cogging_torque(cog_k, cog_x, y0, creg, sreg)
-        _, _, y, u, w = loop_step(Ag, Bg, Ac, Bc, Cc, Dc, P, off, n_m, xg, xc, xg2, xc2, seen,
-                                  yprev, r[k], td, k, tc)  # fmt: skip
+            y0 += Cg[i] * xs[0][i]
+        _, _, _, _, y, u, w = loop_sample(model, k, r, y0, yprev, xs, scratch, noise, td, s_gain)
         y0s[k], ys[k], us[k], ts[k] = y0, y, u, w
         for h in range(3):
             ds[k, h] = g[h] if as_model else seen[h]
@@ -475,7 +483,7 @@ def dense_jacobian(model, r, y_init, jac, jgain, jcog, n_cog_fit):
     ng, nc = model[0].shape[0], model[3].shape[0]
     x0, s0 = (np.zeros(ng), np.zeros(nc)), (np.zeros((ng, p)), np.zeros((nc, p)))
     state = (*x0, np.zeros(ng), np.zeros(nc), *s0, np.zeros((ng, p)), np.zeros((nc, p)))
-    scratch = sensitivity_scratch(model, p)
+    scratch = loop_scratch(model, p)
     b, v3, dy0 = scratch[2], scratch[6], scratch[7]
     cols = (0, p, jgain, jcog, n_cog_fit, -1)
     y0s, ys, us = np.full(N, np.nan), np.full(N, np.nan), np.full(N, np.nan)
