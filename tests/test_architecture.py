@@ -287,10 +287,13 @@ NUMERIC_CORE = ("sensor", "sim", "identify", "fit")
 #: function whose name says the step of the method.
 MAX_FUNCTION_LINES = 80
 
-#: The numba kernels allowed to be longer (none since the closed loop's per-sample steps live in
-#: :mod:`hallcal.sim.loop_kernel`): an entry needs a per-sample loop that a further split would
-#: only make pass its dozen scratch arrays through every call of the hot loop.
-LONG_NUMBA_KERNELS: set[str] = set()
+#: The numba kernels allowed to be longer: each is one per-sample loop over the closed loop and
+#: its sensitivities, already built from named ``@njit`` steps; what remains is the loop's state
+#: in a dozen scratch arrays, which a further split would pass through every call of the hot loop.
+LONG_NUMBA_KERNELS = {
+    "hallcal.fit.gauss_newton._sens_block",
+    "hallcal.sim.loop._jacobian_kernel",
+}
 
 
 def _functions(root: Path) -> dict[str, tuple[int, bool]]:

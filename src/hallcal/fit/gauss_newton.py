@@ -6,9 +6,9 @@ Levenberg-Marquardt steps (More 1978; Nocedal & Wright 2006, ch. 10), which need
     J^T J,   J^T e,   e^T e,      J = d d_sim / d x  (3 N x p),  e = d - d_sim,
 
 never J itself. This module forms the three from the exact forward sensitivities of
-:mod:`hallcal.sim.loop_kernel` in O(chunk p + p^2) memory, so that large models (p in the
-hundreds, N in the hundreds of thousands: the dense J would take gigabytes) cost time and memory
-that grow gently with p.
+:mod:`hallcal.sim.loop` in O(chunk p + p^2) memory, so that large models (p in the hundreds, N in
+the hundreds of thousands: the dense J would take gigabytes) cost time and memory that grow
+gently with p.
 
 Parameters x (:class:`ParameterLayout`):
 
@@ -63,17 +63,24 @@ from threadpoolctl import threadpool_limits
 
 from hallcal.fit.layout import ParameterLayout
 from hallcal.limits import check_work_memory
-from hallcal.sim.loop import ClosedLoop, LoopStatus, SensorADC
+from hallcal.sim.loop import ClosedLoop, LoopStatus
 from hallcal.sim.loop_kernel import (
     F64,
     LoopArrays,
-    ModelArrays,
+    advance,
+    advance_sensitivity,
+    alpha_beta,
+    angle_and_sensitivity,
+    at_rails,
+    cogging_torque,
     diverged,
+    drifted,
+    flux_and_slope,
+    gather_basis,
     kernel_array,
-    loop_scratch,
-    sensitivity_step,
-    simulate,
+    output,
     trig_table,
+    unwrap,
 )
 
 __all__ = [
@@ -117,14 +124,73 @@ def _drift_cross(cross, sw, nk, sh, b, gfl, tau, m):
 
 
 @nb.njit(cache=True, nogil=True)
+def _simulate_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax, cog_k, cog_x,
+                     rlo, rhi, drift, r, y_init):  # fmt: skip
+    """Noise-free closed loop (eq. state_eq) with the flux on ``harm`` and the cogging torque."""
+    N = r.size
+    ng = Ag.shape[0]
+    nc = Ac.shape[0]
+    m = theta.shape[1]
+    xg = np.zeros(ng)
+    xc = np.zeros(nc)
+    xg2 = np.zeros(ng)
+    xc2 = np.zeros(nc)
+    cs = np.empty(hmax + 1)
+    sn = np.empty(hmax + 1)
+    b = np.empty(m)
+    db = np.empty(m)
+    creg = np.empty(cog_k.size)
+    sreg = np.empty(cog_k.size)
+    y0s = np.full(N, np.nan)
+    ys = np.full(N, np.nan)
+    us = np.full(N, np.nan)
+    ds = np.full((N, 3), np.nan)
+    gk = np.empty(3)
+    gp = np.empty(3)
+    gf = np.empty(3)
+    live = np.empty(3)
+    yprev = y_init
+    y0_last = 0.0
+    ok = True
+    for k in range(N):
+        y0 = 0.0
+        for i in range(ng):
+            y0 += Cg[i] * xg[i]
+        trig_table(y0, hmax, cs, sn)
+        gather_basis(harm, cs, sn, b, db)
+        flux_and_slope(theta, b, db, gk, gp)
+        if drift.size:
+            drifted(drift, k / max(N - 1, 1) - 0.5, gk, gp, live)
+        at_rails(gk, rlo, rhi, gf, live)
+        al, be = alpha_beta(P, off, gf)
+        y = unwrap(math.atan2(be, al), yprev, n_m)
+        e = r[k] - y
+        u = output(Cc, xc, Dc, e)
+        tc, _ = cogging_torque(cog_k, cog_x, y0, creg, sreg)
+        advance(Ac, Bc, xc, e, xc2)
+        advance(Ag, Bg, xg, u + tc, xg2)
+        bad = diverged(y0, y0_last, u, n_m)
+        y0_last = y0
+        if bad:
+            ok = False
+            break
+        y0s[k] = y0
+        ys[k] = y
+        us[k] = u
+        for h in range(3):
+            ds[k, h] = gk[h]
+        yprev = y
+    return y0s, ys, us, ds, ok
+
+
+@nb.njit(cache=True, nogil=True)
 def _sens_block(
-    model, cols, r, d, wt, k0, k1, ustride, primary,
+    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax, cog_k, cog_x, rlo, rhi, drift,
+    jgain, jcog, n_cog_fit, jdrift, r, d, wt, k0, k1, j0, j1, ustride, primary,
     xg, xc, st, Sg, Sc, Sg2, Sc2, U, grad, y0s, ds, nvec, cross,
 ):  # fmt: skip
     """Advance the sensitivities of the parameter columns j0..j1-1 over the samples k0..k1-1.
 
-    ``model``: :data:`hallcal.sim.loop_kernel.ModelArrays`; ``cols = (j0, j1, jgain, jcog,
-    n_cog_fit, jdrift)``: the block's columns (:func:`hallcal.sim.loop_kernel.sensitivity_step`).
     The nominal loop state (xg, xc, st = [y_prev, y0_last]) and the block's sensitivities
     (Sg, Sc: states x (j1 - j0)) are carried between chunks in the arrays. Writes the columns
     j0..j1-1 of the rows u_k of the samples k that are multiples of ``ustride`` into consecutive
@@ -136,38 +202,75 @@ def _sens_block(
     ``W_k = diag(wt[k])`` (0 for a censored sample of a channel). With ``s = sqrt(wt[k])`` the
     rows of ``W^(1/2) J_k`` are ``(s o g') dy0^T + diag(s) E_k``, so u_k uses
     ``a = s o g'``, ``n_k = a / |a|`` and ``diag(s) E_k^T n_k`` (module docstring with g' -> a).
-    Rails (``adc_lo``, ``adc_hi``): f_init sees the model flux clipped to them
-    (:func:`hallcal.sim.loop_kernel.sensor_step`).
+    Rails (``rlo``, ``rhi``): f_init sees the model flux clipped to them (:func:`_at_rails`).
 
     Drift (``drift``: (gamma_h, delta_h) per sensor, empty for none; its columns from
     ``jdrift`` when fitted, -1 otherwise): the model signal is ``sh_h g_h + delta_h tau`` with
-    ``sh_h = 1 + gamma_h tau`` (:func:`hallcal.sim.loop_kernel.sensor_step`), so E_k holds
-    ``sh_h beta`` on the theta columns and ``(tau g_h, tau)`` on the drift columns of sensor h.
-    The primary block adds the drift rows and columns of ``E^T S (I - n n^T) S E`` into
-    ``cross`` (3 m + 6, 6): their trigonometric-moment shortcut does not apply (the theta
-    block's does, with the weights ``w sh^2``, :func:`_normal_part`).
+    ``sh_h = 1 + gamma_h tau`` (:func:`_drifted`), so E_k holds ``sh_h beta`` on the theta
+    columns and ``(tau g_h, tau)`` on the drift columns of sensor h. The primary block adds the
+    drift rows and columns of ``E^T S (I - n n^T) S E`` into ``cross`` (3 m + 6, 6): their
+    trigonometric-moment shortcut does not apply (the theta block's does, with the weights
+    ``w sh^2``, :func:`_normal_part`).
     """
-    j0, j1, jdrift = cols[0], cols[1], cols[5]
-    state = (xg, xc, np.empty(xg.size), np.empty(xc.size), Sg, Sc, Sg2, Sc2)
-    scratch = loop_scratch(model, j1 - j0)
-    b, v3, dy0 = scratch[2], scratch[6], scratch[7]
-    gk, gp, gfl, sh = v3[0], v3[1], v3[2], v3[3]
-    m = b.size
-    ek, nk, sw = np.empty(3), np.empty(3), np.ones(3)
+    ng = Ag.shape[0]
+    nc = Ac.shape[0]
+    m = theta.shape[1]
+    pb = j1 - j0
+    xg2 = np.empty(ng)
+    xc2 = np.empty(nc)
+    cs = np.empty(hmax + 1)
+    sn = np.empty(hmax + 1)
+    b = np.empty(m)
+    db = np.empty(m)
+    creg = np.empty(cog_k.size)
+    sreg = np.empty(cog_k.size)
+    dy0 = np.empty(pb)
+    dy = np.empty(pb)
+    dw = np.empty(pb)
+    gk = np.empty(3)
+    gp = np.empty(3)
+    ek = np.empty(3)
+    nk = np.empty(3)
+    ck = np.empty(3)
+    gf = np.empty(3)
+    live = np.empty(3)
+    sw = np.ones(3)
+    sh = np.ones(3)
+    gfl = np.empty(3)
     has_w = wt.shape[0] > 0
-    yprev, y0_last = st[0], st[1]
+    N = r.size
+    tau = 0.0
+    yprev = st[0]
+    y0_last = st[1]
     sse = 0.0
-    flip = False
+    ok = True
+    swapped = False
     for k in range(k0, k1):
-        ok, y0, y, u, tau = sensitivity_step(model, k, r, yprev, flip, state, scratch, cols)
-        flip = not flip
-        # residual, the tangent n_k of the (weighted) flux curve and the rows of this block
-        gnorm = 0.0
-        ge = 0.0
+        # nominal flux, residual and f_init slope
+        y0 = angle_and_sensitivity(Cg, xg, Sg, dy0)
+        trig_table(y0, hmax, cs, sn)
+        gather_basis(harm, cs, sn, b, db)
+        flux_and_slope(theta, b, db, gk, gp)
+        if drift.size:
+            tau = k / max(N - 1, 1) - 0.5
+            gfl[:] = gk
+            drifted(drift, tau, gk, gp, sh)
+        at_rails(gk, rlo, rhi, gf, live)
         for h in range(3):
             ek[h] = d[k, h] - gk[h]
             if has_w:
                 sw[h] = math.sqrt(wt[k, h])
+        al, be = alpha_beta(P, off, gf)
+        rho2 = al * al + be * be
+        if not rho2 > 0.0:  # no angle at alpha = beta = 0 (or NaN): the model is degenerate
+            ok = False
+            break
+        for h in range(3):
+            ck[h] = (al * P[1, h] - be * P[0, h]) / (rho2 * n_m) * live[h]  # d y / d d_h
+        q = ck[0] * gp[0] + ck[1] * gp[1] + ck[2] * gp[2]
+        gnorm = 0.0
+        ge = 0.0
+        for h in range(3):
             gnorm += (sw[h] * gp[h]) ** 2
             ek[h] = wt[k, h] * ek[h] if has_w else ek[h]  # W e, and e^T W e below
         gnorm = math.sqrt(gnorm)
@@ -180,59 +283,83 @@ def _sens_block(
                 ds[k, h] = gk[h]
                 nvec[k, h] = nk[h]
                 sse += ek[h] * (d[k, h] - gk[h])
-        _add_gradient(grad, ge, ek, sh, b, dy0, gfl, tau, m, j0, j1, jdrift)
+        # gradient and dy: feedback term on every column, direct term I_3 kron beta on the
+        # theta columns of this block
+        for jl in range(pb):
+            grad[j0 + jl] += ge * dy0[jl]
+            dy[jl] = q * dy0[jl]
+        for h in range(3):
+            lo = max(j0, h * m)
+            hi = min(j1, (h + 1) * m)
+            for j in range(lo, hi):
+                grad[j] += ek[h] * sh[h] * b[j - h * m]
+                dy[j - j0] += ck[h] * sh[h] * b[j - h * m]
+        if jdrift >= 0:  # the drift columns' direct terms (tau g_h, tau) of sensor h
+            for h in range(3):
+                for c, v in ((jdrift + 2 * h, tau * gfl[h]), (jdrift + 2 * h + 1, tau)):
+                    if j0 <= c < j1:
+                        grad[c] += ek[h] * v
+                        dy[c - j0] += ck[h] * v
+        # the row u_k = |g'| dy0 + E^T n
         if ustride > 0 and k % ustride == 0:
             t = k // ustride - (k0 + ustride - 1) // ustride  # rank among multiples in [k0, k1)
-            _add_row(U[t], gnorm, sw, nk, sh, b, dy0, gfl, tau, m, j0, j1, jdrift)
+            for jl in range(pb):
+                U[t, j0 + jl] = gnorm * dy0[jl]
+            for h in range(3):
+                lo = max(j0, h * m)
+                hi = min(j1, (h + 1) * m)
+                for j in range(lo, hi):
+                    U[t, j] += sw[h] * nk[h] * sh[h] * b[j - h * m]
+            if jdrift >= 0:
+                for h in range(3):
+                    for c, v in ((jdrift + 2 * h, tau * gfl[h]), (jdrift + 2 * h + 1, tau)):
+                        if j0 <= c < j1:
+                            U[t, c] += sw[h] * nk[h] * v
         if primary and jdrift >= 0 and ustride > 0:  # every sample, whatever the stride
             _drift_cross(cross, sw, nk, sh, b, gfl, tau, m)
-        if not ok or diverged(y0, y0_last, u, model[9]):
-            ok = False
-            break
+        # controller and plant input w = u + T_c(y0)
+        y = unwrap(math.atan2(be, al), yprev, n_m)
+        err = r[k] - y
+        u = output(Cc, xc, Dc, err)
+        tc, dtc = cogging_torque(cog_k, cog_x, y0, creg, sreg)
+        w = u + tc
+        for jl in range(pb):
+            dw[jl] = -Dc * dy[jl] + dtc * dy0[jl]
+        for i in range(nc):
+            ci = Cc[i]
+            if ci != 0.0:
+                for jl in range(pb):
+                    dw[jl] += ci * Sc[i, jl]
+        for i in range(n_cog_fit):  # the fitted orders only (the loop's own follow them)
+            ja = jcog + 2 * i
+            if j0 <= ja < j1:
+                dw[ja - j0] += creg[i]
+            if j0 <= ja + 1 < j1:
+                dw[ja + 1 - j0] += sreg[i]
+        for jl in range(pb):
+            dy[jl] = -dy[jl]  # de = -dy drives the controller
+        advance_sensitivity(Ac, Bc, Sc, dy, Sc2)
+        advance_sensitivity(Ag, Bg, Sg, dw, Sg2)
+        if j0 <= jgain < j1:  # x+ = A x + c B w with Bg = c B: d / d log c adds Bg w
+            for i in range(ng):
+                Sg2[i, jgain - j0] += Bg[i] * w
+        advance(Ac, Bc, xc, err, xc2)
+        advance(Ag, Bg, xg, w, xg2)
+        Sc, Sc2 = Sc2, Sc
+        Sg, Sg2 = Sg2, Sg
+        swapped = not swapped
+        bad = diverged(y0, y0_last, u, n_m)
         y0_last = y0
         yprev = y
-    if flip:  # the caller's Sg, Sc must hold the current sensitivities
-        Sc[:, :] = Sc2
-        Sg[:, :] = Sg2
+        if bad:
+            ok = False
+            break
+    if swapped:  # the caller's Sg, Sc must hold the current sensitivities
+        Sc2[:, :] = Sc
+        Sg2[:, :] = Sg
     st[0] = yprev
     st[1] = y0_last
     return ok, sse
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _add_gradient(grad, ge, ek, sh, b, dy0, gfl, tau, m, j0, j1, jdrift):
-    """grad[j0:j1] += the columns of J_k^T W e_k: the feedback term ``(g'^T W e) dy0`` on every
-    column, ``(W e)_h sh_h beta`` on the theta columns of sensor h and ``(W e)_h (tau g_h, tau)``
-    on its drift columns (``jdrift`` >= 0)."""
-    for jl in range(j1 - j0):
-        grad[j0 + jl] += ge * dy0[jl]
-    for h in range(3):
-        for j in range(max(j0, h * m), min(j1, (h + 1) * m)):
-            grad[j] += ek[h] * sh[h] * b[j - h * m]
-    if jdrift >= 0:
-        for h in range(3):
-            c = jdrift + 2 * h
-            if j0 <= c < j1:
-                grad[c] += ek[h] * (tau * gfl[h])
-            if j0 <= c + 1 < j1:
-                grad[c + 1] += ek[h] * tau
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _add_row(row, gnorm, sw, nk, sh, b, dy0, gfl, tau, m, j0, j1, jdrift):
-    """The columns j0..j1-1 of the row ``u_k = |a| dy0 + diag(s) E_k^T n_k`` into ``row``."""
-    for jl in range(j1 - j0):
-        row[j0 + jl] = gnorm * dy0[jl]
-    for h in range(3):
-        for j in range(max(j0, h * m), min(j1, (h + 1) * m)):
-            row[j] += sw[h] * nk[h] * sh[h] * b[j - h * m]
-    if jdrift >= 0:
-        for h in range(3):
-            c = jdrift + 2 * h
-            if j0 <= c < j1:
-                row[c] += sw[h] * nk[h] * (tau * gfl[h])
-            if j0 <= c + 1 < j1:
-                row[c + 1] += sw[h] * nk[h] * tau
 
 
 def _moments(y0: ArrayLike, W: ArrayLike, nmax: int) -> tuple[NDArray, NDArray]:
@@ -389,10 +516,17 @@ class SimulatedLoop:
     status: PassStatus = PassStatus.OK
 
 
+# the kernel arguments of a model: the loop's (LoopArrays), n_m, theta, harm, hmax, cog_k, cog_x,
+# rlo, rhi, drift
+ModelArrays = tuple[
+    F64, F64, F64, F64, F64, F64, float, F64, F64,
+    float, F64, NDArray[np.int64], int, F64, F64, F64, F64, F64,
+]  # fmt: skip
+
+
 def _model_arrays(loop: ClosedLoop, layout: ParameterLayout, x: ArrayLike) -> ModelArrays:
-    """Kernel arguments of a model (:data:`hallcal.sim.loop_kernel.ModelArrays`): loop arrays
-    (B_G scaled by c), theta, harmonics (basis by the trigonometric recursion), cogging, the
-    loop's rails, the drift."""
+    """Kernel arguments of a model: loop arrays (B_G scaled by c), theta, harmonics, cogging,
+    the loop's rails."""
     xx = np.asarray(x, dtype=np.float64).reshape(-1)
     if xx.size != layout.size:
         raise ValueError(f"x must have {layout.size} entries for this layout, got {xx.size}")
@@ -400,6 +534,7 @@ def _model_arrays(loop: ClosedLoop, layout: ParameterLayout, x: ArrayLike) -> Mo
     if layout.fit_gain:
         arrs = (arrs[0], arrs[1] * math.exp(layout.log_gain(xx)), *arrs[2:])
     harm = np.asarray(layout.basis.harmonics, dtype=np.int64)
+    hmax = int(harm.max()) if harm.size else 0
     theta = kernel_array(layout.theta(xx))
     # the fitted cogging orders first (their columns), then the loop's own, fixed cogging torque
     cog_k = np.asarray(layout.cogging_orders, dtype=np.float64)
@@ -407,9 +542,9 @@ def _model_arrays(loop: ClosedLoop, layout: ParameterLayout, x: ArrayLike) -> Mo
     if loop.cogging is not None and loop.cogging.size:
         cog_k = np.concatenate([cog_k, np.asarray(loop.cogging.orders, dtype=np.float64)])
         cog_x = np.concatenate([cog_x, loop.cogging.coefficients])
-    adc = SensorADC().within(loop.rails).kernel_arrays()
+    rlo, rhi = (kernel_array(v) for v in loop.rails)
     drift = kernel_array(layout.drift(xx).ravel() if layout.fit_drift else np.zeros(0))
-    return (*arrs, float(loop.pole_pairs), theta, harm, True, cog_k, cog_x, *adc, drift)
+    return (*arrs, float(loop.pole_pairs), theta, harm, hmax, cog_k, cog_x, rlo, rhi, drift)
 
 
 def simulate_model(
@@ -444,10 +579,7 @@ def simulate_model(
         y0, y, u, d and the pass status.
     """
     r = kernel_array(r)
-    none = np.zeros((0, 3))
-    y0, y, u, d, _, ok = simulate(
-        _model_arrays(loop, layout, x), r, none, np.zeros(0), none, float(y_initial), 0.0, True
-    )
+    y0, y, u, d, ok = _simulate_kernel(*_model_arrays(loop, layout, x), r, float(y_initial))
     return SimulatedLoop(y0, y, u, d, PassStatus.OK if ok else PassStatus.DIVERGED)
 
 
@@ -650,8 +782,7 @@ def checked_weights(weights: ArrayLike | None, n_samples: int) -> NDArray[np.flo
 
 def _drift_weights(layout: ParameterLayout, x: ArrayLike, wt: NDArray, N: int) -> NDArray:
     """The weights of the theta block's moments: ``w sh^2`` with ``sh = 1 + gamma tau`` of the
-    drifting sensors (:func:`hallcal.sim.loop_kernel.sensor_step`); the given weights without
-    the drift."""
+    drifting sensors (:func:`_drifted`); the given weights without the drift."""
     if not layout.fit_drift:
         return wt
     tau = np.arange(N) / max(N - 1, 1) - 0.5
@@ -778,11 +909,10 @@ class _SensitivityPass:
     def _sensitivities(self, b: int, i: int) -> bool:
         blk = self.blocks[b]
         k0, k1 = self._bounds(i)
-        lay = self.layout
-        cols = (blk.j0, blk.j1, lay.gain_index, lay.cogging_start, len(lay.cogging_orders),
-                lay.drift_start)  # fmt: skip
         ok, sse = _sens_block(
-            self.args, cols, self.r, self.d, self.wt, k0, k1, self.ustride, b == 0,
+            *self.args, self.layout.gain_index, self.layout.cogging_start,
+            len(self.layout.cogging_orders), self.layout.drift_start, self.r, self.d, self.wt,
+            k0, k1, blk.j0, blk.j1, self.ustride, b == 0,
             blk.xg, blk.xc, blk.st, blk.Sg, blk.Sc, blk.Sg2, blk.Sc2,
             self.bufs[i % self.ring], self.batch_grad[i], self.y0s, self.ds, self.nvec,
             self.cross,

@@ -1,19 +1,44 @@
 """Closed-loop simulation of Fig. cl_scheme / eq. (state_eq) and its exact parameter sensitivities.
 
-The loop's equations and their forward sensitivities are written once, in
-:mod:`hallcal.sim.loop_kernel`; this module holds the loop's description (:class:`ClosedLoop`,
-:class:`SensorADC`), the bench simulation (:func:`simulate_loop`: sensor noise, torque
-disturbance, cogging, sensor gain, quantizer and rails) and the dense Jacobian
-(:func:`loop_jacobian`), the oracle of the structured Gauss-Newton pass of
-:mod:`hallcal.fit.gauss_newton`. The feedback term ``g'(y0) dy0`` of the sensitivities is what
-makes simulation-error minimization converge (docs/design.md).
+Per sample k (zero initial conditions, y(t_{-1}) = y_initial):
+
+    y0[k]  = C_G x_G[k]                              plant output (true angle) [rad]
+    d[k]   = ADC(s_k g_theta(y0[k]) + v[k])           Hall signals (s_k: sensor gain, default 1;
+                                                     ADC: quantizer and rails, default none)
+    y[k]   = f_init(d[k]; y[k-1])                    eq. (fimp) [rad]
+    e[k]   = r[k] - y[k]
+    u[k]   = C_C x_C[k] + D_C e[k]                   torque command
+    x_C[k+1] = A_C x_C[k] + B_C e[k]
+    x_G[k+1] = A_G x_G[k] + B_G (u[k] + T_d[k] + T_c(y0[k]))     (T_c: cogging torque)
+
+The plant is the exact ZOH discretization of G(s) with its input delay (:mod:`hallcal.sim.lti`), so
+it has no direct feedthrough and the loop is explicit.
+
+Sensitivities (forward mode, exact). With ``g_h(y0) = beta(y0) theta_h`` and
+``y = Gamma(atan2(beta_ab, alpha_ab), n_m y_prev) / n_m`` the unwrapping adds an integer multiple of
+2 pi, so ``dy = (alpha d(beta_ab) - beta_ab d(alpha_ab)) / (n_m (alpha^2 + beta_ab^2))``. Writing
+``S_G = dx_G/dtheta`` and ``S_C = dx_C/dtheta``:
+
+    dy0   = C_G S_G
+    dd_h  = g_h'(y0) dy0 + e_h kron beta(y0)          (feedback term + direct term)
+    dy    = (P_alpha dd, P_beta dd) -> as above
+    du    = C_C S_C - D_C dy
+    dw    = du + T_c'(y0) dy0 (+ [cos k y0, sin k y0] for the cogging coefficients)
+    S_C+  = A_C S_C - B_C dy
+    S_G+  = A_G S_G + B_G dw (+ B_G w for log c, the plant input gain)
+
+The feedback term ``g'(y0) dy0`` is what makes simulation-error minimization converge
+(docs/design.md).
+The hot loops are compiled with numba; float64 throughout.
 """
 
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, field, replace
 
+import numba as nb
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -23,10 +48,18 @@ from hallcal.sim.cogging import CoggingTorque
 from hallcal.sim.loop_kernel import (
     F64,
     LoopArrays,
-    ModelArrays,
-    dense_jacobian,
+    advance,
+    advance_sensitivity,
+    alpha_beta,
+    angle_and_sensitivity,
+    cogging_torque,
+    convert,
+    direct_basis,
+    diverged,
+    flux_and_slope,
     kernel_array,
-    simulate,
+    output,
+    unwrap,
 )
 from hallcal.sim.lti import ContinuousTF, DiscreteTF, StateSpace
 
@@ -218,8 +251,7 @@ class SensorADC:
         r = np.asarray(rails, dtype=np.float64)
         return replace(self, low=np.maximum(self.low, r[0]), high=np.minimum(self.high, r[1]))
 
-    def kernel_arrays(self) -> tuple[F64, F64, F64, F64]:
-        """The kernel arguments of the converter: low, high, step, origin (3,) each."""
+    def _arrays(self) -> tuple[F64, F64, F64, F64]:
         lo, hi, step, origin = (
             kernel_array(np.broadcast_to(np.asarray(a, dtype=np.float64), (3,)))
             for a in (self.low, self.high, self.step, self.origin)
@@ -272,15 +304,187 @@ class LoopJacobian:
     status: LoopStatus = LoopStatus.OK
 
 
-def _model_arrays(
-    loop: ClosedLoop, flux: FluxModel, cog_k: F64, cog_x: F64, adc: SensorADC
-) -> ModelArrays:
-    """The kernel arguments of the model (:data:`hallcal.sim.loop_kernel.ModelArrays`): the
-    basis by direct sines and cosines, no drift."""
-    harm = np.asarray(flux.basis.harmonics, dtype=np.int64)
-    theta = kernel_array(flux.theta)
-    return (*loop.kernel_arrays(), float(loop.pole_pairs), theta, harm, False, cog_k, cog_x,
-            *adc.kernel_arrays(), np.zeros(0))  # fmt: skip
+@nb.njit(cache=True)
+def _simulate_kernel(
+    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, noise, td, cog_k, cog_x, y_init,
+    y0_start, s_gain, adc_lo, adc_hi, adc_step, adc_origin,
+):  # fmt: skip
+    N = r.size
+    has_gain = s_gain.shape[0] > 0
+    ng = Ag.shape[0]
+    nc = Ac.shape[0]
+    m = theta.shape[1]
+    xg = np.zeros(ng)
+    xc = np.zeros(nc)
+    xg2 = np.zeros(ng)
+    xc2 = np.zeros(nc)
+    b = np.empty(m)
+    db = np.empty(m)
+    creg = np.empty(cog_k.size)
+    sreg = np.empty(cog_k.size)
+    y0s = np.empty(N)
+    ys = np.empty(N)
+    us = np.empty(N)
+    ds = np.empty((N, 3))
+    ts = np.empty(N)
+    yprev = y_init
+    y0_last = y0_start
+    ok = True
+    dk = np.empty(3)
+    for k in range(N):
+        y0 = y0_start
+        for i in range(ng):
+            y0 += Cg[i] * xg[i]
+        direct_basis(y0, harm, b, db)
+        for h in range(3):
+            acc = 0.0
+            for j in range(m):
+                acc += theta[h, j] * b[j]
+            if has_gain:
+                acc *= s_gain[k, h]
+            dk[h] = convert(acc + noise[k, h], adc_lo[h], adc_hi[h], adc_step[h], adc_origin[h])
+            ds[k, h] = dk[h]
+        al, be = alpha_beta(P, off, dk)
+        y = unwrap(math.atan2(be, al), yprev, n_m)
+        e = r[k] - y
+        u = output(Cc, xc, Dc, e)
+        tq = u + td[k] + cogging_torque(cog_k, cog_x, y0, creg, sreg)[0]
+        advance(Ac, Bc, xc, e, xc2)
+        advance(Ag, Bg, xg, tq, xg2)
+        y0s[k] = y0
+        ys[k] = y
+        us[k] = u
+        ts[k] = tq
+        yprev = y
+        bad = diverged(y0, y0_last, u, n_m)
+        y0_last = y0
+        if bad:
+            ok = False
+            for kk in range(k + 1, N):
+                y0s[kk] = np.nan
+                ys[kk] = np.nan
+                us[kk] = np.nan
+                ts[kk] = np.nan
+                for h in range(3):
+                    ds[kk, h] = np.nan
+            break
+    return y0s, ys, us, ds, ts, ok
+
+
+@nb.njit(cache=True)
+def _jacobian_kernel(
+    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, y_init, jac, fit_gain, cog_k, cog_x,
+    n_cog_fit,
+):  # fmt: skip
+    N = r.size
+    ng = Ag.shape[0]
+    nc = Ac.shape[0]
+    m = theta.shape[1]
+    jg = 3 * m  # column d / d log(c), plant input gain (when fit_gain)
+    jc0 = 3 * m + (1 if fit_gain else 0)  # first cogging column (a_1, b_1, a_2, ...)
+    p = jc0 + 2 * n_cog_fit  # the first n_cog_fit cogging terms are fitted
+    xg = np.zeros(ng)
+    xc = np.zeros(nc)
+    xg2 = np.zeros(ng)
+    xc2 = np.zeros(nc)
+    Sg = np.zeros((ng, p))
+    Sc = np.zeros((nc, p))
+    Sg2 = np.zeros((ng, p))
+    Sc2 = np.zeros((nc, p))
+    dy0 = np.empty(p)
+    dy = np.empty(p)
+    du = np.empty(p)
+    b = np.empty(m)
+    db = np.empty(m)
+    creg = np.empty(cog_k.size)
+    sreg = np.empty(cog_k.size)
+    y0s = np.full(N, np.nan)
+    ys = np.full(N, np.nan)
+    us = np.full(N, np.nan)
+    ds = np.full((N, 3), np.nan)
+    gp = np.empty(3)
+    dk = np.empty(3)
+    yprev = y_init
+    y0_last = 0.0
+    ok = True
+    for k in range(N):
+        y0 = angle_and_sensitivity(Cg, xg, Sg, dy0)
+        direct_basis(y0, harm, b, db)
+        flux_and_slope(theta, b, db, dk, gp)
+        al, be = alpha_beta(P, off, dk)
+        rho2 = al * al + be * be
+        if not rho2 > 0.0:  # no angle at alpha = beta = 0 (or NaN): the model is degenerate
+            ok = False
+            break
+        # d psi / d d_h
+        c0 = (al * P[1, 0] - be * P[0, 0]) / (rho2 * n_m)
+        c1 = (al * P[1, 1] - be * P[0, 1]) / (rho2 * n_m)
+        c2 = (al * P[1, 2] - be * P[0, 2]) / (rho2 * n_m)
+        q = c0 * gp[0] + c1 * gp[1] + c2 * gp[2]
+        # Jacobian rows of d and dy
+        for j in range(p):
+            fb = dy0[j]
+            jac[k, 0, j] = gp[0] * fb
+            jac[k, 1, j] = gp[1] * fb
+            jac[k, 2, j] = gp[2] * fb
+            dy[j] = q * fb
+        for j in range(m):
+            jac[k, 0, j] += b[j]
+            jac[k, 1, m + j] += b[j]
+            jac[k, 2, 2 * m + j] += b[j]
+            dy[j] += c0 * b[j]
+            dy[m + j] += c1 * b[j]
+            dy[2 * m + j] += c2 * b[j]
+        y = unwrap(math.atan2(be, al), yprev, n_m)
+        e = r[k] - y
+        u = output(Cc, xc, Dc, e)
+        tc, dtc = cogging_torque(cog_k, cog_x, y0, creg, sreg)
+        w = u + tc  # plant input
+        # dw = du + T_c'(y0) dy0 (+ the cogging regressors in their own columns)
+        for j in range(p):
+            du[j] = -Dc * dy[j] + dtc * dy0[j]
+        for i in range(nc):
+            ci = Cc[i]
+            if ci != 0.0:
+                for j in range(p):
+                    du[j] += ci * Sc[i, j]
+        for i in range(n_cog_fit):
+            du[jc0 + 2 * i] += creg[i]
+            du[jc0 + 2 * i + 1] += sreg[i]
+        # state and sensitivity updates
+        for j in range(p):
+            dy[j] = -dy[j]  # de = -dy drives the controller
+        advance_sensitivity(Ac, Bc, Sc, dy, Sc2)
+        advance_sensitivity(Ag, Bg, Sg, du, Sg2)
+        if fit_gain:
+            # x+ = A x + c B w with Bg = c B: d/d log c adds Bg w
+            for i in range(ng):
+                Sg2[i, jg] += Bg[i] * w
+        advance(Ac, Bc, xc, e, xc2)
+        advance(Ag, Bg, xg, w, xg2)
+        Sc, Sc2 = Sc2, Sc
+        Sg, Sg2 = Sg2, Sg
+        bad = diverged(y0, y0_last, u, n_m)
+        y0_last = y0
+        if bad:
+            ok = False
+            break
+        y0s[k] = y0
+        ys[k] = y
+        us[k] = u
+        for h in range(3):
+            ds[k, h] = dk[h]
+        yprev = y
+    if not ok:  # never hand out uninitialised rows
+        for kk in range(k, N):
+            for h in range(3):
+                for j in range(p):
+                    jac[kk, h, j] = np.nan
+    return y0s, ys, us, ds, ok
+
+
+def _harmonics_of(flux: FluxModel) -> NDArray[np.float64]:
+    return kernel_array(flux.basis.harmonic_array)
 
 
 def _cogging_arrays(*torques: CoggingTorque | None) -> tuple[NDArray, NDArray]:
@@ -346,11 +550,19 @@ def simulate_loop(
     sg = np.zeros((0, 3)) if sensor_gain is None else kernel_array(sensor_gain)
     if v.shape != (N, 3) or td.shape != (N,) or sg.shape not in ((N, 3), (0, 3)):
         raise ValueError("noise and sensor_gain must be (N, 3) and torque_disturbance (N,)")
-    model = _model_arrays(
-        loop, flux, *_cogging_arrays(loop.cogging, cogging), (adc or SensorADC()).within(loop.rails)
-    )
-    y0, y, u, d, tq, ok = simulate(
-        model, r, v, td, sg, float(y_initial), float(initial_angle), False
+    y0, y, u, d, tq, ok = _simulate_kernel(
+        *loop.kernel_arrays(),
+        float(loop.pole_pairs),
+        _harmonics_of(flux),
+        kernel_array(flux.theta),
+        r,
+        v,
+        td,
+        *_cogging_arrays(loop.cogging, cogging),
+        float(y_initial),
+        float(initial_angle),
+        sg,
+        *(adc or SensorADC()).within(loop.rails)._arrays(),
     )
     return LoopResult(y0, y, u, d, tq, LoopStatus.OK if ok else LoopStatus.DIVERGED)
 
@@ -375,9 +587,7 @@ def loop_jacobian(
     Parameters
     ----------
     loop : ClosedLoop
-        Plant, controller and f_init of the loop (eq. (state_eq)); with its rails, f_init sees
-        the flux clipped to them (as in the model of :mod:`hallcal.fit.gauss_newton`; d stays
-        the flux).
+        Plant, controller and f_init of the loop (eq. (state_eq)).
     flux : FluxModel
         g_theta with a Fourier basis; the derivatives are taken with respect to its theta.
     r : array_like (N,)
@@ -411,10 +621,17 @@ def loop_jacobian(
     jac = np.empty((N, 3, p)) if out is None else out
     if jac.shape != (N, 3, p):
         raise ValueError(f"out must have shape {(N, 3, p)}")
-    m = flux.theta.shape[1]
-    y0, y, u, d, ok = dense_jacobian(
-        _model_arrays(loop, flux, cog_k, cog_x, SensorADC().within(loop.rails)),
-        r, float(y_initial), jac, 3 * m if fit_gain else -1, 3 * m + (1 if fit_gain else 0),
+    y0, y, u, d, ok = _jacobian_kernel(
+        *loop.kernel_arrays(),
+        float(loop.pole_pairs),
+        _harmonics_of(flux),
+        kernel_array(flux.theta),
+        r,
+        float(y_initial),
+        jac,
+        bool(fit_gain),
+        cog_k,
+        cog_x,
         n_fit,
-    )  # fmt: skip
+    )
     return LoopJacobian(d, y0, y, u, jac, LoopStatus.OK if ok else LoopStatus.DIVERGED)
