@@ -79,6 +79,7 @@ from hallcal.sim.loop_kernel import (
     gather_basis,
     kernel_array,
     output,
+    simulate,
     trig_table,
     unwrap,
 )
@@ -121,66 +122,6 @@ def _drift_cross(cross, sw, nk, sh, b, gfl, tau, m):
                 for c2 in range(2 * h, 2 * h + 2):
                     v2 = tau * gfl[h] if c2 % 2 == 0 else tau
                     cross[3 * m + c2, c] += v2 * coef
-
-
-@nb.njit(cache=True, nogil=True)
-def _simulate_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax, cog_k, cog_x,
-                     rlo, rhi, drift, r, y_init):  # fmt: skip
-    """Noise-free closed loop (eq. state_eq) with the flux on ``harm`` and the cogging torque."""
-    N = r.size
-    ng = Ag.shape[0]
-    nc = Ac.shape[0]
-    m = theta.shape[1]
-    xg = np.zeros(ng)
-    xc = np.zeros(nc)
-    xg2 = np.zeros(ng)
-    xc2 = np.zeros(nc)
-    cs = np.empty(hmax + 1)
-    sn = np.empty(hmax + 1)
-    b = np.empty(m)
-    db = np.empty(m)
-    creg = np.empty(cog_k.size)
-    sreg = np.empty(cog_k.size)
-    y0s = np.full(N, np.nan)
-    ys = np.full(N, np.nan)
-    us = np.full(N, np.nan)
-    ds = np.full((N, 3), np.nan)
-    gk = np.empty(3)
-    gp = np.empty(3)
-    gf = np.empty(3)
-    live = np.empty(3)
-    yprev = y_init
-    y0_last = 0.0
-    ok = True
-    for k in range(N):
-        y0 = 0.0
-        for i in range(ng):
-            y0 += Cg[i] * xg[i]
-        trig_table(y0, hmax, cs, sn)
-        gather_basis(harm, cs, sn, b, db)
-        flux_and_slope(theta, b, db, gk, gp)
-        if drift.size:
-            drifted(drift, k / max(N - 1, 1) - 0.5, gk, gp, live)
-        at_rails(gk, rlo, rhi, gf, live)
-        al, be = alpha_beta(P, off, gf)
-        y = unwrap(math.atan2(be, al), yprev, n_m)
-        e = r[k] - y
-        u = output(Cc, xc, Dc, e)
-        tc, _ = cogging_torque(cog_k, cog_x, y0, creg, sreg)
-        advance(Ac, Bc, xc, e, xc2)
-        advance(Ag, Bg, xg, u + tc, xg2)
-        bad = diverged(y0, y0_last, u, n_m)
-        y0_last = y0
-        if bad:
-            ok = False
-            break
-        y0s[k] = y0
-        ys[k] = y
-        us[k] = u
-        for h in range(3):
-            ds[k, h] = gk[h]
-        yprev = y
-    return y0s, ys, us, ds, ok
 
 
 @nb.njit(cache=True, nogil=True)
@@ -579,7 +520,12 @@ def simulate_model(
         y0, y, u, d and the pass status.
     """
     r = kernel_array(r)
-    y0, y, u, d, ok = _simulate_kernel(*_model_arrays(loop, layout, x), r, float(y_initial))
+    args = _model_arrays(loop, layout, x)
+    none = np.zeros((0, 3))
+    y0, y, u, d, _, ok = simulate(
+        *args[:12], True, *args[13:17], np.zeros(3), np.zeros(3), args[17], r, none, np.zeros(0),
+        none, float(y_initial), 0.0, True,
+    )  # fmt: skip
     return SimulatedLoop(y0, y, u, d, PassStatus.OK if ok else PassStatus.DIVERGED)
 
 

@@ -53,12 +53,12 @@ from hallcal.sim.loop_kernel import (
     alpha_beta,
     angle_and_sensitivity,
     cogging_torque,
-    convert,
     direct_basis,
     diverged,
     flux_and_slope,
     kernel_array,
     output,
+    simulate,
     unwrap,
 )
 from hallcal.sim.lti import ContinuousTF, DiscreteTF, StateSpace
@@ -305,73 +305,6 @@ class LoopJacobian:
 
 
 @nb.njit(cache=True)
-def _simulate_kernel(
-    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, noise, td, cog_k, cog_x, y_init,
-    y0_start, s_gain, adc_lo, adc_hi, adc_step, adc_origin,
-):  # fmt: skip
-    N = r.size
-    has_gain = s_gain.shape[0] > 0
-    ng = Ag.shape[0]
-    nc = Ac.shape[0]
-    m = theta.shape[1]
-    xg = np.zeros(ng)
-    xc = np.zeros(nc)
-    xg2 = np.zeros(ng)
-    xc2 = np.zeros(nc)
-    b = np.empty(m)
-    db = np.empty(m)
-    creg = np.empty(cog_k.size)
-    sreg = np.empty(cog_k.size)
-    y0s = np.empty(N)
-    ys = np.empty(N)
-    us = np.empty(N)
-    ds = np.empty((N, 3))
-    ts = np.empty(N)
-    yprev = y_init
-    y0_last = y0_start
-    ok = True
-    dk = np.empty(3)
-    for k in range(N):
-        y0 = y0_start
-        for i in range(ng):
-            y0 += Cg[i] * xg[i]
-        direct_basis(y0, harm, b, db)
-        for h in range(3):
-            acc = 0.0
-            for j in range(m):
-                acc += theta[h, j] * b[j]
-            if has_gain:
-                acc *= s_gain[k, h]
-            dk[h] = convert(acc + noise[k, h], adc_lo[h], adc_hi[h], adc_step[h], adc_origin[h])
-            ds[k, h] = dk[h]
-        al, be = alpha_beta(P, off, dk)
-        y = unwrap(math.atan2(be, al), yprev, n_m)
-        e = r[k] - y
-        u = output(Cc, xc, Dc, e)
-        tq = u + td[k] + cogging_torque(cog_k, cog_x, y0, creg, sreg)[0]
-        advance(Ac, Bc, xc, e, xc2)
-        advance(Ag, Bg, xg, tq, xg2)
-        y0s[k] = y0
-        ys[k] = y
-        us[k] = u
-        ts[k] = tq
-        yprev = y
-        bad = diverged(y0, y0_last, u, n_m)
-        y0_last = y0
-        if bad:
-            ok = False
-            for kk in range(k + 1, N):
-                y0s[kk] = np.nan
-                ys[kk] = np.nan
-                us[kk] = np.nan
-                ts[kk] = np.nan
-                for h in range(3):
-                    ds[kk, h] = np.nan
-            break
-    return y0s, ys, us, ds, ts, ok
-
-
-@nb.njit(cache=True)
 def _jacobian_kernel(
     Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, y_init, jac, fit_gain, cog_k, cog_x,
     n_cog_fit,
@@ -550,19 +483,22 @@ def simulate_loop(
     sg = np.zeros((0, 3)) if sensor_gain is None else kernel_array(sensor_gain)
     if v.shape != (N, 3) or td.shape != (N,) or sg.shape not in ((N, 3), (0, 3)):
         raise ValueError("noise and sensor_gain must be (N, 3) and torque_disturbance (N,)")
-    y0, y, u, d, tq, ok = _simulate_kernel(
+    y0, y, u, d, tq, ok = simulate(
         *loop.kernel_arrays(),
         float(loop.pole_pairs),
-        _harmonics_of(flux),
         kernel_array(flux.theta),
+        np.asarray(flux.basis.harmonics, dtype=np.int64),
+        False,
+        *_cogging_arrays(loop.cogging, cogging),
+        *(adc or SensorADC()).within(loop.rails)._arrays(),
+        np.zeros(0),
         r,
         v,
         td,
-        *_cogging_arrays(loop.cogging, cogging),
+        sg,
         float(y_initial),
         float(initial_angle),
-        sg,
-        *(adc or SensorADC()).within(loop.rails)._arrays(),
+        False,
     )
     return LoopResult(y0, y, u, d, tq, LoopStatus.OK if ok else LoopStatus.DIVERGED)
 

@@ -42,6 +42,7 @@ __all__ = [
     "gather_basis",
     "kernel_array",
     "output",
+    "simulate",
     "trig_table",
     "unwrap",
 ]
@@ -249,3 +250,91 @@ def drifted(drift, tau, gk, gp, sh):
         gk[h] = s * gk[h] + drift[2 * h + 1] * tau
         gp[h] = s * gp[h]
         sh[h] = s
+
+
+@nb.njit(cache=True, nogil=True)
+def simulate(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, recursion, cog_k, cog_x,
+             adc_lo, adc_hi, adc_step, adc_origin, drift, r, noise, td, s_gain, y_init, y0_start,
+             as_model):  # fmt: skip
+    """The closed loop of eq. (state_eq) over the N samples of r; NaN after a divergence.
+
+    The one simulation of the bench (:func:`hallcal.sim.loop.simulate_loop`) and of the
+    solver's model (:func:`hallcal.fit.gauss_newton.simulate_model`). harm: int64 harmonics;
+    recursion: the basis by :func:`trig_table` (the solver's) or by direct sines (the bench's);
+    the ADC (adc_*: per sensor; step 0 = no quantizer); drift (6,) or empty; noise (N, 3),
+    td (N,), s_gain (N, 3): empty for none; y0_start: the true angle at rest [rad].
+    ``as_model``: d is the model signal before the ADC (the d_sim of the residual) and the
+    diverging sample is NaN; else d is what f_init saw and the diverging sample is kept.
+    Returns (y0, y, u, d, plant input, ok)."""
+    N = r.size
+    ng = Ag.shape[0]
+    nc = Ac.shape[0]
+    m = theta.shape[1]
+    hmax = 0
+    for j in range(harm.size):
+        hmax = max(hmax, harm[j])
+    xg = np.zeros(ng)
+    xc = np.zeros(nc)
+    xg2 = np.zeros(ng)
+    xc2 = np.zeros(nc)
+    cs = np.empty(hmax + 1)
+    sn = np.empty(hmax + 1)
+    b = np.empty(m)
+    db = np.empty(m)
+    creg = np.empty(cog_k.size)
+    sreg = np.empty(cog_k.size)
+    y0s = np.full(N, np.nan)
+    ys = np.full(N, np.nan)
+    us = np.full(N, np.nan)
+    ts = np.full(N, np.nan)
+    ds = np.full((N, 3), np.nan)
+    gk = np.empty(3)
+    gp = np.empty(3)
+    gf = np.empty(3)
+    sh = np.empty(3)
+    has_noise = noise.shape[0] > 0
+    has_gain = s_gain.shape[0] > 0
+    has_td = td.size > 0
+    yprev = y_init
+    y0_last = y0_start
+    ok = True
+    for k in range(N):
+        y0 = y0_start
+        for i in range(ng):
+            y0 += Cg[i] * xg[i]
+        if recursion:
+            trig_table(y0, hmax, cs, sn)
+            gather_basis(harm, cs, sn, b, db)
+        else:
+            direct_basis(y0, harm, b, db)
+        flux_and_slope(theta, b, db, gk, gp)
+        if has_gain:
+            for h in range(3):
+                gk[h] *= s_gain[k, h]
+        if drift.size:
+            drifted(drift, k / max(N - 1, 1) - 0.5, gk, gp, sh)
+        for h in range(3):
+            v = gk[h] + noise[k, h] if has_noise else gk[h]
+            gf[h] = convert(v, adc_lo[h], adc_hi[h], adc_step[h], adc_origin[h])
+        al, be = alpha_beta(P, off, gf)
+        y = unwrap(math.atan2(be, al), yprev, n_m)
+        e = r[k] - y
+        u = output(Cc, xc, Dc, e)
+        tc = cogging_torque(cog_k, cog_x, y0, creg, sreg)[0]
+        tq = u + td[k] + tc if has_td else u + tc
+        advance(Ac, Bc, xc, e, xc2)
+        advance(Ag, Bg, xg, tq, xg2)
+        y0s[k], ys[k], us[k], ts[k] = y0, y, u, tq
+        for h in range(3):
+            ds[k, h] = gk[h] if as_model else gf[h]
+        yprev = y
+        bad = diverged(y0, y0_last, u, n_m)
+        y0_last = y0
+        if bad:
+            ok = False
+            if as_model:
+                y0s[k], ys[k], us[k], ts[k] = np.nan, np.nan, np.nan, np.nan
+                for h in range(3):
+                    ds[k, h] = np.nan
+            break
+    return y0s, ys, us, ds, ts, ok
