@@ -72,6 +72,7 @@ from hallcal.sim.loop_kernel import (
     alpha_beta,
     angle_and_sensitivity,
     at_rails,
+    basis_scratch,
     cogging_torque,
     diverged,
     drifted,
@@ -159,12 +160,7 @@ def _sens_block(
     pb = j1 - j0
     xg2 = np.empty(ng)
     xc2 = np.empty(nc)
-    cs = np.empty(hmax + 1)
-    sn = np.empty(hmax + 1)
-    b = np.empty(m)
-    db = np.empty(m)
-    creg = np.empty(cog_k.size)
-    sreg = np.empty(cog_k.size)
+    cs, sn, b, db, creg, sreg = basis_scratch(harm, m, cog_k.size)
     dy0 = np.empty(pb)
     dy = np.empty(pb)
     dw = np.empty(pb)

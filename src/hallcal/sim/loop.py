@@ -52,11 +52,13 @@ from hallcal.sim.loop_kernel import (
     advance_sensitivity,
     alpha_beta,
     angle_and_sensitivity,
+    basis_scratch,
     cogging_torque,
     direct_basis,
     diverged,
     flux_and_slope,
     kernel_array,
+    nan_signals,
     output,
     simulate,
     unwrap,
@@ -327,14 +329,8 @@ def _jacobian_kernel(
     dy0 = np.empty(p)
     dy = np.empty(p)
     du = np.empty(p)
-    b = np.empty(m)
-    db = np.empty(m)
-    creg = np.empty(cog_k.size)
-    sreg = np.empty(cog_k.size)
-    y0s = np.full(N, np.nan)
-    ys = np.full(N, np.nan)
-    us = np.full(N, np.nan)
-    ds = np.full((N, 3), np.nan)
+    _, _, b, db, creg, sreg = basis_scratch(harm, m, cog_k.size)
+    y0s, ys, us, ds = nan_signals(N)
     gp = np.empty(3)
     dk = np.empty(3)
     yprev = y_init
@@ -416,8 +412,8 @@ def _jacobian_kernel(
     return y0s, ys, us, ds, ok
 
 
-def _harmonics_of(flux: FluxModel) -> NDArray[np.float64]:
-    return kernel_array(flux.basis.harmonic_array)
+def _harmonics_of(flux: FluxModel) -> NDArray[np.int64]:
+    return np.asarray(flux.basis.harmonics, dtype=np.int64)
 
 
 def _cogging_arrays(*torques: CoggingTorque | None) -> tuple[NDArray, NDArray]:
@@ -487,7 +483,7 @@ def simulate_loop(
         *loop.kernel_arrays(),
         float(loop.pole_pairs),
         kernel_array(flux.theta),
-        np.asarray(flux.basis.harmonics, dtype=np.int64),
+        _harmonics_of(flux),
         False,
         *_cogging_arrays(loop.cogging, cogging),
         *(adc or SensorADC()).within(loop.rails)._arrays(),

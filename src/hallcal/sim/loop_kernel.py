@@ -31,6 +31,7 @@ __all__ = [
     "advance",
     "advance_sensitivity",
     "alpha_beta",
+    "basis_scratch",
     "angle_and_sensitivity",
     "at_rails",
     "cogging_torque",
@@ -41,6 +42,7 @@ __all__ = [
     "flux_and_slope",
     "gather_basis",
     "kernel_array",
+    "nan_signals",
     "output",
     "simulate",
     "trig_table",
@@ -253,6 +255,25 @@ def drifted(drift, tau, gk, gp, sh):
 
 
 @nb.njit(cache=True, nogil=True)
+def basis_scratch(harm, m, n_cog):
+    """The scratch of one sample's basis and cogging torque, allocated once per kernel: cs, sn
+    (max(harm) + 1, the trigonometric table), b, db (m, beta and its derivative), creg, sreg
+    (n_cog, the cogging regressors)."""
+    hmax = 0
+    for j in range(harm.size):
+        hmax = max(hmax, harm[j])
+    return (np.empty(hmax + 1), np.empty(hmax + 1), np.empty(m), np.empty(m), np.empty(n_cog),
+            np.empty(n_cog))  # fmt: skip
+
+
+@nb.njit(cache=True, nogil=True)
+def nan_signals(N):
+    """y0, y, u (N,) and d (N, 3) of a simulation, NaN until written (NaN stays after a
+    divergence)."""
+    return np.full(N, np.nan), np.full(N, np.nan), np.full(N, np.nan), np.full((N, 3), np.nan)
+
+
+@nb.njit(cache=True, nogil=True)
 def simulate(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, recursion, cog_k, cog_x,
              adc_lo, adc_hi, adc_step, adc_origin, drift, r, noise, td, s_gain, y_init, y0_start,
              as_model):  # fmt: skip
@@ -270,24 +291,14 @@ def simulate(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, recursion, co
     ng = Ag.shape[0]
     nc = Ac.shape[0]
     m = theta.shape[1]
-    hmax = 0
-    for j in range(harm.size):
-        hmax = max(hmax, harm[j])
     xg = np.zeros(ng)
     xc = np.zeros(nc)
     xg2 = np.zeros(ng)
     xc2 = np.zeros(nc)
-    cs = np.empty(hmax + 1)
-    sn = np.empty(hmax + 1)
-    b = np.empty(m)
-    db = np.empty(m)
-    creg = np.empty(cog_k.size)
-    sreg = np.empty(cog_k.size)
-    y0s = np.full(N, np.nan)
-    ys = np.full(N, np.nan)
-    us = np.full(N, np.nan)
+    cs, sn, b, db, creg, sreg = basis_scratch(harm, m, cog_k.size)
+    hmax = cs.size - 1
+    y0s, ys, us, ds = nan_signals(N)
     ts = np.full(N, np.nan)
-    ds = np.full((N, 3), np.nan)
     gk = np.empty(3)
     gp = np.empty(3)
     gf = np.empty(3)
