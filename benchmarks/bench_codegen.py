@@ -56,7 +56,6 @@ import firmware_support as fs  # noqa: E402
 
 from hallcal.io import read_artifact, read_dataset  # noqa: E402
 from hallcal.output.codegen import CORDIC_STEPS, export_c  # noqa: E402
-from hallcal.pipeline.calibration import lut_from_artifact  # noqa: E402
 from hallcal.sensor.flux import FluxModel, FourierBasis  # noqa: E402
 
 TWO_PI = 2.0 * math.pi
@@ -311,7 +310,7 @@ def main(argv: list[str] | None = None) -> int:
             gen = wd / f"gen{len(lines)}"
             lean = {k: v for k, v in art.items() if k != "identifiability"}
             res = export_c(lean, gen, source="calibration.json", adc_scale=scale)
-            lut = lut_from_artifact(art)
+            lut = art.lut()
             t = res.design.table
             lines += [
                 title,

@@ -27,6 +27,7 @@ _MARKERS = {
     "test_hostile.py": ("hostile", "slow"),
     "test_fuzz_setups.py": ("hostile", "slow"),
     "test_codegen_arm.py": ("arm", "slow"),
+    "test_codegen_observer_arm.py": ("arm", "slow"),
     "test_fleet.py": ("slow",),
     "test_readme.py": ("slow",),
     "test_real_ringjig.py": ("slow",),
@@ -57,10 +58,55 @@ def weak_bench() -> tuple[Any, Any, Any, Any]:
     return cfg, run, sem, build_lut(sem.flux, 7)
 
 
+@pytest.fixture(scope="session")
+def demo_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Any, Any]:
+    """The demo's study (``run_demo(..., report=False)``: BLA, calibration and validation runs,
+    Algorithm 1; about 15 s) once per session for test_plots_report.py and test_codegen_arm.py.
+    Read-only: a module writes its own outputs into a folder of its own.
+
+    Returns
+    -------
+    tuple
+        ``(folder, DemoResult)``: the folder holds calibration.json, validation.npz and the
+        other files of the demo.
+    """
+    from hallcal.demo import run_demo
+
+    out = tmp_path_factory.mktemp("demo")
+    return out, run_demo(out, report=False)
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
         for name in _MARKERS.get(item.path.name, ()):
             item.add_marker(getattr(pytest.mark, name))
+
+
+def _background_modules(session: pytest.Session) -> list[Any]:
+    """The test modules of this session that run their work in the background: those that
+    define ``start_in_background`` and ``stop_background`` (tests/test_hostile.py,
+    tests/test_fuzz_setups.py)."""
+    modules: list[Any] = []
+    for item in session.items:
+        module = getattr(item, "module", None)
+        if hasattr(module, "start_in_background") and module not in modules:
+            modules.append(module)
+    return modules
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """The hostile cases and the setup fuzz start in the background as soon as the tests are
+    known: their processes use the core the one-at-a-time suite leaves idle; their tests wait
+    for them and check what they found."""
+    if session.config.option.collectonly:
+        return
+    for module in _background_modules(session):
+        module.start_in_background(session)
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    for module in _background_modules(session):
+        module.stop_background(session)
 
 
 @pytest.hookimpl(hookwrapper=True)

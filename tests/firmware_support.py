@@ -617,13 +617,13 @@ def _bench_setup(n: int, sample_time: float) -> dict:
 
 def python_decoder(artifact: dict):
     """``(decoder, lut)`` as ``hallcal reconstruct --absolute`` builds them from an artifact."""
-    from hallcal.pipeline.calibration import lut_from_artifact
+    from hallcal.io import validate_artifact
     from hallcal.pipeline.powerup import decoder_for, identifiability_from_artifact
 
     flux = FluxModel(
         FourierBasis(tuple(artifact["model"]["harmonics"])), np.array(artifact["model"]["theta"])
     )
-    lut = lut_from_artifact(artifact)
+    lut = validate_artifact(artifact).lut()
     return decoder_for(flux, lut, identifiability_from_artifact(artifact)), lut
 
 
@@ -724,3 +724,37 @@ def misra_check(d: Path, prefix: str = "hallcal") -> None:
     if (d / f"{prefix}_q.c").exists():
         code_q = _code((d / f"{prefix}_q.c").read_text())
         assert not re.search(r"\b(float|double|int64_t|uint64_t)\b|\s/\s", code_q)
+
+
+def observer_adversarial(d: np.ndarray, center: np.ndarray, seed: int = 5) -> np.ndarray:
+    """Hostile inputs for the observer's C (float32), from ``d`` (a healthy run of at least
+    6000 samples, amplitude about 1) and the channels' zero-field levels ``center``: healthy
+    samples, glitches of 0.05 .. 3 on every channel at every phase of the adaptation's cycle,
+    each channel stuck, at a rail, clipped, and non-finite every third sample (each followed by
+    healthy samples: readmission), random readings (every sample an outlier), swapped wires
+    (the model no longer fits: stale) and a healthy return with NaN sprinkled over it."""
+    rng = np.random.default_rng(seed)
+    parts = [d[:1000].copy()]
+    g = d[1000:2000].copy()  # glitches: sizes 0.05 .. 3, every channel, every phase of 4
+    for j, k in enumerate(range(0, 1000, 7)):
+        g[k, j % 3] += (-1) ** j * [0.05, 0.1, 0.3, 1.0, 3.0][j % 5]
+    parts.append(g)
+    for kind in ("stuck", "rail", "clipped", "nan", "inf"):  # one channel failing, then healthy
+        for ch in range(3):
+            x = d[2000:2300].copy()
+            if kind == "stuck":
+                x[:, ch] = center[ch]
+            elif kind == "rail":
+                x[:, ch] = 1.4
+            elif kind == "clipped":
+                x[:, ch] = np.clip(x[:, ch], -0.75, 0.75)
+            else:
+                x[::3, ch] = np.nan if kind == "nan" else np.inf
+            parts.append(x)
+            parts.append(d[2300:2400])
+    parts.append(rng.uniform(-2.0, 2.0, size=(600, 3)))  # random readings: all outliers
+    parts.append(np.roll(d[3000:5000], 3, axis=1))  # wires swapped: the model no longer fits
+    parts.append(d[5000:6000])  # healthy again
+    out = np.concatenate(parts).astype(np.float32)
+    out[-900::13, 1] = np.nan  # non-finite samples sprinkled over the healthy return
+    return out

@@ -80,3 +80,25 @@ def test_artifact_round_trip_reconstructs_identically(study, tmp_path):
     np.testing.assert_allclose(rec.y_star, result.lut.f_star(ds["val"].d), atol=1e-13)
     assert art["plant"]["source"] == "bla"
     assert art["diagnostics"]["gain_correction"]["c_refined"] > 0
+
+
+def test_the_calibration_run_refines_the_blas_plant(study):
+    """With a plant from the BLA the run itself refines G(s) within the BLA's uncertainty
+    (pipeline/plant_refine.py): the steady lag, and so the table's offset, rests on the velocity
+    gain, which ends closer to the truth than the BLA's own fit; the predicted error adds what
+    remains uncertain, says so in a note, and stays honest against the fresh run."""
+    _, ds, result, _ = study
+    K = lambda tf: tf.num[-1] / tf.den[-2]  # noqa: E731  velocity gain of k / (s (s^2 + ...))
+    bla_error = abs(K(result.bla.plant) / K(PAPER_PLANT) - 1.0)
+    refined_error = abs(K(result.plant) / K(PAPER_PLANT) - 1.0)
+    print(f"velocity gain: BLA {bla_error:.2%} off, refined {refined_error:.2%} off")
+    assert refined_error < bla_error
+    notes = [m for m in result.messages if "plant was refined by the calibration run" in m.text]
+    assert len(notes) == 1 and notes[0].severity == "note" and notes[0].code == "plant_refined"
+    assert result.predicted_error > result.adequacy.predicted_error
+    star = pipeline.validate(result.lut, ds["val"]).star.rms
+    print(f"f_star / predicted {star / result.predicted_error:.3f}")
+    assert 1 / 1.5 <= star / result.predicted_error <= 1.5
+    # the verdict promises the floor only where the prediction is within 1.15x of it
+    if result.status == "ok":
+        assert result.predicted_error <= 1.15 * result.noise_floor

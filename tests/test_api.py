@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import re
 import subprocess
@@ -72,6 +73,13 @@ def test_save_load_reconstruct_matches_the_cli_to_1e_12(paper_files, tmp_path):
     cal.save(tmp_path / "api.json")
     loaded = hallcal.load(tmp_path / "api.json")
     assert loaded.status == cal.status and loaded.pole_pairs == cal.pole_pairs
+    # it wraps the pipeline's result (fields read through, frozen, copyable), and the
+    # diagnostics are the artifact's whichever way the calibration was made
+    assert isinstance(loaded.result, pipeline.Calibration) and loaded.lut is loaded.result.lut
+    assert copy.deepcopy(loaded).status == loaded.status
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        loaded.status = cal.status
+    assert loaded.diagnostics["noise_variance"] == cal.diagnostics["noise_variance"]
     api = loaded.reconstruct(folder / "run.csv")
     cli = subprocess.run(
         [sys.executable, "-m", "hallcal.cli", "reconstruct", str(tmp_path / "api.json"),

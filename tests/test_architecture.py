@@ -23,6 +23,8 @@ LAYERS: dict[str, int] = {
     "errors": 0,
     "formatting": 0,
     "limits": 0,
+    "messages": 0,
+    "settings": 0,
     "sensor": 1,
     "sim": 2,
     "identify": 3,

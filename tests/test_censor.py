@@ -16,6 +16,7 @@ from hallcal.fit.censor import (
     quantization_step,
 )
 from hallcal.io import Dataset, ModelSpec, Setup
+from hallcal.messages import MessageCode
 from hallcal.sensor.metrics import angle_error
 from hallcal.sim.bench import BenchConfig, ramp_run
 
@@ -100,7 +101,7 @@ def test_a_clipping_motor_reaches_its_floor_from_the_rest_of_its_samples(clipped
     setup = Setup(pole_pairs=4, sample_time=cfg.sample_time, controller=cfg.controller,
                   plant=cfg.plant, model=model)  # fmt: skip
     cal = pipeline.calibrate(Dataset.from_columns(run.columns(with_encoder=False)), setup)
-    note = next(m for m in cal.messages if m.startswith("censored samples"))
+    note = next(m.text for m in cal.messages if m.code is MessageCode.CENSORED_SAMPLES)
     c = detect_censoring(run.d)
     assert f"sensor 2: {c.counts[1]} " in note and f"sensor 3: {c.counts[2]} " in note
     assert cal.to_artifact()["diagnostics"]["sensors"]["censoring"]["censored_samples"] == (

@@ -80,7 +80,7 @@ def test_calibrate_reports_and_stores_identifiability(paper):
     assert len(lines) == 1 and "identifiable at power-up" in lines[0], res.stdout
     art = json.loads((d / "cal.json").read_text())
     ident = art["identifiability"]
-    assert ident["status"] in ("identifiable", "needs-motion")
+    assert ident["status"] in ("identifiable", "needs_motion")
     assert ident["pole_pairs"] == 11 and ident["grid"] >= 32
     # sigma is the calibration's own estimate across the curve: the bench's 2.74e-3 within 5 %
     # (56 000 samples give 0.3 %; the rest is room for the model's error)
@@ -121,7 +121,7 @@ def test_ideal_sensors_are_not_identifiable_and_absolute_refuses(ideal):
     lines = [ln for ln in res.stdout.splitlines() if "pole pair" in ln]
     assert len(lines) == 1 and "NOT identifiable" in lines[0], res.stdout
     art = json.loads((d / "cal.json").read_text())
-    assert art["identifiability"]["status"] == "not-identifiable"
+    assert art["identifiability"]["status"] == "not_identifiable"
     power_up_csv(d / "pu.csv", d / "s.toml", 1.0, speed=0.0, seed=1)
     res = run("reconstruct", "cal.json", "pu.csv", "--absolute", "--out", "abs.csv", cwd=d)
     assert res.returncode == 3, (res.returncode, res.stdout, res.stderr)

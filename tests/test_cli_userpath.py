@@ -444,8 +444,8 @@ def test_report_wording(motor, tmp_path):
 
     bla = dict(read_dataset(motor / "bla.csv", required=()).columns)  # in memory, as the demo
     cal = calibrate(motor / "cal.csv", motor / "setup.toml", bla_data=bla)
-    assert not any("<dataset>" in m for m in cal.messages)
-    assert any("the BLA identified from the multisine experiment" in m for m in cal.messages)
+    assert not any("<dataset>" in m.text for m in cal.messages)
+    assert any("the BLA identified from the multisine experiment" in m.text for m in cal.messages)
 
 
 def test_plan_says_when_the_slowest_speed_meets_the_target(motor):

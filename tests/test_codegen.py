@@ -705,7 +705,8 @@ def test_anticogging_section_matches_the_map(tmp_path, cal):
     """With "cogging" in the artifact the float variant gets hallcal_anticogging(angle):
     within 1e-6 of the map relative to its largest value, at any angle (reduced to one
     revolution); the fixed variant and an artifact without the key get nothing."""
-    from hallcal.output.firmware import cogging_map, cogging_table
+    from hallcal.output.firmware import cogging_table
+    from hallcal.sim.cogging import CoggingTorque
 
     art = copy.deepcopy(cal.artifact)
     art["cogging"] = COGGING
@@ -731,7 +732,7 @@ def test_anticogging_section_matches_the_map(tmp_path, cal):
                         TWO_PI * np.arange(4096) / 4096]).astype(np.float32)  # fmt: skip
     out = subprocess.run([str(exe)], input=y.tobytes(), capture_output=True, check=True).stdout
     got = np.frombuffer(out, dtype=np.float32).astype(np.float64)
-    ref = cogging_map(COGGING["orders"], COGGING["a"], COGGING["b"], y.astype(np.float64))
+    ref = CoggingTorque(COGGING["orders"], COGGING["a"], COGGING["b"])(y.astype(np.float64))
     scale = float(np.max(np.abs(ref)))
     tab = cogging_table(COGGING)
     # the table itself: within 1e-6 of the map (relative to its largest value), exactly

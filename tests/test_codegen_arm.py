@@ -38,7 +38,6 @@ import pytest
 
 from hallcal.io import read_artifact, read_dataset
 from hallcal.output.codegen import export_c
-from hallcal.pipeline.calibration import lut_from_artifact
 from hallcal.sensor.metrics import angle_error
 
 TWO_PI = 2.0 * math.pi
@@ -60,17 +59,16 @@ RINGJIG = [_ringjig_dir() / f"hall_calibration_one_rotation_{i}.txt" for i in (1
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory):
-    """The demo's calibration and validation run, exported (float and fixed point)."""
-    from hallcal.demo import run_demo
-
-    out = tmp_path_factory.mktemp("demo")
-    run_demo(out, report=False)
+def demo(demo_run, tmp_path_factory):
+    """The demo's calibration and validation run (conftest: one run_demo per session),
+    exported (float and fixed point) into this module's own folder."""
+    out, _ = demo_run
     art = read_artifact(out / "calibration.json")
-    gen = out / "fw"
+    work = tmp_path_factory.mktemp("demo_arm")
+    gen = work / "fw"
     res = export_c(_lean(art), gen, source="calibration.json", adc_scale=DEMO_ADC_SCALE)
     val = read_dataset(out / "validation.npz")
-    return {"art": art, "gen": gen, "res": res, "d": val.d, "y_ref": val["y_ref"], "dir": out}
+    return {"art": art, "gen": gen, "res": res, "d": val.d, "y_ref": val["y_ref"], "dir": work}
 
 
 def _lean(art: dict) -> dict:
@@ -117,7 +115,7 @@ def test_demo_on_arm_matches_python(demo, demo_builds, variant, tmp_path):
     raw = ah.run(b, x)
     assert not np.any(raw[:, 2])  # nothing rejected on the validation run
     y = ah.angles(b, raw)
-    lut = lut_from_artifact(demo["art"])
+    lut = demo["art"].lut()
     y_py = lut.f_star(x / DEMO_ADC_SCALE if fixed else x.astype(np.float64))
     err = float(np.max(np.abs(y - y_py)))
     bound = res.fixed_bound if fixed else res.float_bound
@@ -160,7 +158,7 @@ def test_ringjig_on_arm_matches_python(tmp_path, i):
     cal.save(art_path)
     art = read_artifact(art_path)
     res = export_c(_lean(art), tmp_path / "fw", source="cal.json")
-    lut = lut_from_artifact(art)
+    lut = art.lut()
     y_py = lut.f_star(d)
     k = np.arange(mid, stop)
     deg_py = math.degrees(_rms(_line_residual(y_py[mid:stop], k))) * 25
@@ -313,7 +311,7 @@ def demo_pu(demo):
     decoder, built for the M4F, and power-ups on the demo's bench motor (seed 1)."""
     from hallcal.sim.bench import BenchConfig
 
-    assert demo["art"]["identifiability"]["status"] != "not-identifiable"
+    assert demo["art"]["identifiability"]["status"] != "not_identifiable"
     gen = demo["dir"] / "fw_pu"
     res = export_c(demo["art"], gen, source="calibration.json", adc_scale=DEMO_ADC_SCALE,
                    fixed_point=False)  # fmt: skip

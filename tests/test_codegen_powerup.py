@@ -280,7 +280,7 @@ def test_ideal_sensors_emit_no_decoder(tmp_path):
     (init with revolutions and angle), says why in the header and in its messages, and the
     code runs as the lean variant always did."""
     art = bench_artifact(BenchConfig(magnet_variation=0.0))
-    assert art["identifiability"]["status"] == "not-identifiable"
+    assert art["identifiability"]["status"] == "not_identifiable"
     res = export_c(art, tmp_path, source="ideal.json", adc_scale=ADC_SCALE)
     assert not res.identifies_pole_pair and "powerup" not in res.sections
     assert any("no power-up identification" in m and "NOT identifiable" in m

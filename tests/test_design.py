@@ -19,6 +19,7 @@ import pytest
 from hallcal import pipeline
 from hallcal.fit.design import PlanStatus, predict_ramp_error
 from hallcal.io import Dataset, ModelSpec, Setup
+from hallcal.messages import MessageCode
 from hallcal.pipeline.design import plan_next_ramp
 from hallcal.pipeline.plant import closed_loop
 from hallcal.sensor.metrics import angle_error
@@ -100,7 +101,7 @@ def test_calibrate_names_a_faster_ramp_and_that_ramp_delivers(motor, slow):
     on a fresh validation run, and no worse than its prediction (the covariance prediction is
     conservative on this bench: 1.1-1.3x actual against 1.8-2.4x predicted)."""
     cal, star_slow = slow
-    advice = [m for m in cal.messages if m.startswith("ramp speed")]
+    advice = [m.text for m in cal.messages if m.code is MessageCode.RAMP_ADVICE]
     assert len(advice) == 1 and "rad/s" in advice[0]
     assert star_slow > 2.0  # the premise: the slow ramp leaves the table poorly determined
     plan = plan_next_ramp(cal, revolutions=REVOLUTIONS, target=1.1)
@@ -115,7 +116,7 @@ def test_no_advice_when_the_run_determines_the_table(motor):
     cal, star = _calibrate(motor, 16.0)
     assert star < 1.2
     # the advice comes exactly when the covariance predicts more than 1.5x the floor
-    advised = any(m.startswith("ramp speed") for m in cal.messages)
+    advised = any(m.code is MessageCode.RAMP_ADVICE for m in cal.messages)
     assert advised == (cal.predicted_error > 1.5 * cal.noise_floor)
 
 

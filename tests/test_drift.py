@@ -13,6 +13,7 @@ from hallcal import pipeline
 from hallcal.fit.drift import detect_drift, undrifted
 from hallcal.fit.sem import solve_sem
 from hallcal.io import Dataset, ModelSpec, Setup
+from hallcal.messages import MessageCode
 from hallcal.sensor.flux import FourierBasis
 from hallcal.sensor.lut import build_lut
 from hallcal.sensor.metrics import angle_error
@@ -80,7 +81,7 @@ def test_calibrate_names_and_identifies_the_drift(drifting_run):
                   plant=SMALL.plant, model=model)  # fmt: skip
     cal = pipeline.calibrate(Dataset.from_columns(run.columns(with_encoder=False)), setup)
     assert str(cal.status) == "warning"
-    line = next(m for m in cal.messages if "drift" in m)
+    line = next(m.text for m in cal.messages if m.code is MessageCode.SENSOR_DRIFT)
     assert "sensor 1: gain +2" in line and "run's middle" in line
     info = cal.to_artifact()["diagnostics"]["sensors"]["drift"]
     assert info["identified"] and info["gain_change"][0] == pytest.approx(0.02, abs=5e-4)

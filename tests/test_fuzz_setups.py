@@ -11,13 +11,23 @@ hallcal's RuntimeWarnings are errors here (pyproject), so a numeric warning fail
 Downstream commands get the outputs of the upstream ones when those succeeded, else fixed inputs
 (a short run of the paper's bench and its artifact with the drawn setup in it), so that every
 command sees every drawn setup.
+
+How it runs: the property runs in a child process (``python tests/test_fuzz_setups.py DIR``)
+started as soon as the session's tests are collected (:func:`start_in_background`, from
+conftest.py), on the core the one-at-a-time suite leaves idle; the collected test waits for it
+and fails with the child's output (Hypothesis's falsifying example and the broken contract).
+The child applies the suite's warning filter (a hallcal RuntimeWarning is an error).
 """
 
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import subprocess
+import sys
 import tempfile
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -154,10 +164,8 @@ def setups(draw: st.DrawFn) -> dict[str, Any]:
     return setup
 
 
-@pytest.fixture(scope="module")
-def fixed_inputs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """A short run of the paper's bench (1.5 s: 1.1 revolutions) and its artifact."""
-    d = tmp_path_factory.mktemp("fuzz-fixed")
+def make_fixed_inputs(d: Path) -> dict[str, Path]:
+    """A short run of the paper's bench (1.5 s: 1.1 revolutions) and its artifact, in `d`."""
     setup = {
         "pole_pairs": 11,
         "sample_time": 2.5e-4,
@@ -245,3 +253,86 @@ def test_random_setups_keep_the_contract_in_every_subcommand(
         )
         _run(["report", str(artifact), str(data), "--out", str(w / "rep")], [w / "rep"], w)
         shutil.rmtree(w / "rep", ignore_errors=True)
+
+
+# The property is run by a child process; pytest collects the test below, which waits for it.
+test_random_setups_keep_the_contract_in_every_subcommand.__test__ = False  # type: ignore[attr-defined]
+
+HERE = Path(__file__).resolve().parent
+#: The child process running the property (:func:`start_in_background`) and its folder.
+_CHILD = pytest.StashKey[tuple[Path, subprocess.Popen]]()
+#: Commands each drawn setup runs at least (simulate, calibrate, reconstruct, export-c, report).
+COMMANDS_PER_SETUP = 5
+
+
+def _selected(session: pytest.Session) -> bool:
+    return any(
+        item.path.name == "test_fuzz_setups.py"
+        and item.name == "test_every_subcommand_keeps_the_contract_on_random_setups"
+        for item in session.items
+    )
+
+
+def start_in_background(session: pytest.Session) -> None:
+    """Start the property in a child process when this session runs its test (called by
+    conftest.py once the tests are collected, and by the test itself)."""
+    if not _selected(session) or _CHILD in session.config.stash:
+        return
+    d = Path(tempfile.mkdtemp(prefix="hallcal-fuzz-"))
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(HERE.parent / "src"), env.get("PYTHONPATH", "")])
+    env.setdefault("MPLBACKEND", "Agg")
+    log = open(d / "child.log", "w", encoding="utf-8")  # noqa: SIM115 (the child's output)
+    proc = subprocess.Popen(
+        [sys.executable, str(Path(__file__).resolve()), str(d)],
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
+    log.close()
+    session.config.stash[_CHILD] = (d, proc)
+
+
+def stop_background(session: pytest.Session) -> None:
+    """At the session's end: a child still running is ended and its folder removed."""
+    started = session.config.stash.get(_CHILD, None)
+    if started is None:
+        return
+    d, proc = started
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait()
+    shutil.rmtree(d, ignore_errors=True)
+
+
+def test_every_subcommand_keeps_the_contract_on_random_setups(request: pytest.FixtureRequest):
+    """:func:`test_random_setups_keep_the_contract_in_every_subcommand` on its derandomized
+    examples, in the child process; every command it ran kept the contract."""
+    start_in_background(request.session)  # started at collection already: nothing to do
+    d, proc = request.config.stash[_CHILD]
+    proc.wait()
+    log = (d / "child.log").read_text(encoding="utf-8", errors="replace")
+    assert proc.returncode == 0, f"the fuzz failed in its child process:\n{log[-8000:]}"
+    ran = int(log.rsplit("fuzz: commands run: ", 1)[1].split()[0])
+    assert ran >= COMMANDS_PER_SETUP * EXAMPLES, log[-2000:]  # the examples did run
+
+
+def _child(d: Path) -> None:
+    """The child: the property on its examples, with the suite's warning filter (pyproject:
+    ``error::RuntimeWarning:hallcal.*``); prints how many commands it ran."""
+    global _run
+    warnings.filterwarnings("error", category=RuntimeWarning, module="hallcal.*")
+    count = [0]
+    run_one = _run
+
+    def counted(args: list[str], outputs: list[Path], folder: Path) -> int:
+        count[0] += 1
+        return run_one(args, outputs, folder)
+
+    _run = counted
+    test_random_setups_keep_the_contract_in_every_subcommand(fixed_inputs=make_fixed_inputs(d))
+    print(f"fuzz: commands run: {count[0]}")
+
+
+if __name__ == "__main__":  # the child of start_in_background
+    _child(Path(sys.argv[1]))

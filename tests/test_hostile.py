@@ -12,16 +12,19 @@ asserted (timings belong in ``benchmarks/``).
 
 How they run: interpreter start-up costs about a second per command, so the cases run in two
 worker processes (:mod:`hostile_worker`) that call the command line in-process, one case after
-the other. The workers run under an address-space limit (``RLIMIT_AS`` = 2 GiB: a case that
-allocates more fails with MemoryError) and a watchdog ends a worker whose case hangs (over
-120 s, far above any case's run time even on a loaded machine: the case fails as a hang; the
-worker restarts with the next one). A sample of cases per
+the other. They start as soon as the session's tests are collected (a driver process, see
+:func:`start_in_background`): the suite runs its other tests one at a time, and the workers use
+the core that leaves idle. The workers run under an address-space limit (``RLIMIT_AS`` =
+2 GiB: a case that allocates more fails with MemoryError) and a watchdog ends a worker whose
+case hangs (over 120 s, far above any case's run time even on a loaded machine: the case fails
+as a hang; the worker restarts with the next one). A sample of cases per
 subcommand also runs as a real ``python -m hallcal.cli`` subprocess under the same limits. With
 ``-k``, only the selected cases are built and run.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import re
@@ -29,7 +32,7 @@ import resource
 import shutil
 import subprocess
 import sys
-from collections.abc import Iterator
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -110,11 +113,17 @@ def _build_base(d: Path) -> Base:
         finally:
             os.chdir(cwd)
         assert outcome.exit_code == 0, (args, outcome.stderr, outcome.exception)
+    return _load_base(d)
+
+
+def _load_base(d: Path) -> Base:
+    """The valid inputs :func:`_build_base` wrote into `d`, read back."""
     columns = {k: np.array(v) for k, v in read_dataset(d / "cal.npz").columns.items()}
     ms = read_dataset(d / "ms.npz", required=("r", "u", "y", "realization"))
     multisine = {k: np.array(v) for k, v in ms.columns.items()}
     artifact = json.loads((d / "a.json").read_text())
-    return Base(d, setup_text, bla_text, columns, multisine, artifact)
+    return Base(d, (d / "s.toml").read_text(), (d / "b.toml").read_text(), columns, multisine,
+                artifact)  # fmt: skip
 
 
 def _run_workers(cases: list[dict[str, Any]], d: Path) -> dict[str, dict[str, Any]]:
@@ -168,8 +177,13 @@ def _run_workers(cases: list[dict[str, Any]], d: Path) -> dict[str, dict[str, An
     return results
 
 
-def _macros(path: Path | None) -> set[str]:
-    """Names of the macros defined at the end of preprocessing `path` (None: stdint.h alone)."""
+@functools.cache
+def _macros(path: Path | None) -> frozenset[str]:
+    """Names of the macros defined at the end of preprocessing `path` (None: stdint.h alone).
+
+    Cached: the compiler's and <stdint.h>'s own macros (``path`` None) are the same for every
+    generated file; each case's files have paths of their own, so those are preprocessed once.
+    """
     source = ["-x", "c", str(path)] if path is not None else ["-x", "c", "-"]
     res = subprocess.run(
         [CC, "-std=c99", "-dM", "-E", *source],
@@ -178,7 +192,9 @@ def _macros(path: Path | None) -> set[str]:
         text=True,
         timeout=60,
     )
-    return {ln.split()[1].split("(")[0] for ln in res.stdout.splitlines() if ln.startswith("#")}
+    return frozenset(
+        ln.split()[1].split("(")[0] for ln in res.stdout.splitlines() if ln.startswith("#")
+    )
 
 
 def _c_symbols(path: Path) -> tuple[bool, str, set[str], set[str]]:
@@ -214,31 +230,31 @@ def _c_api(folder: Path) -> tuple[set[str], set[str]]:
     return symbols, macros
 
 
-def _selected(request: pytest.FixtureRequest) -> list[Case]:
+def _selected(items: list[pytest.Item]) -> list[Case]:
     """The cases this session runs (``-k`` selects some: only those are built and run)."""
     chosen = {
         item.callspec.params.get("case").id
-        for item in request.session.items
+        for item in items
         if hasattr(item, "callspec") and isinstance(item.callspec.params.get("case"), Case)
     }
     chosen |= {
         item.callspec.params["case_id"]
-        for item in request.session.items
+        for item in items
         if hasattr(item, "callspec") and "case_id" in item.callspec.params
     }
     return [c for c in CASES if c.id in chosen]
 
 
-@pytest.fixture(scope="module")
-def hostile(
-    tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest
-) -> Iterator[dict[str, Any]]:
-    """Build every case's inputs, run them all, and keep the results by case id."""
-    d = tmp_path_factory.mktemp("hostile")
+def run_cases(d: Path, ids: list[str]) -> None:
+    """Build the base and the cases ``ids`` in `d`, run them in the workers, and write the
+    results and the manifest to ``d/results.json``: the work of the ``hostile`` fixture, done by
+    a driver process (``python tests/test_hostile.py DIR IDS.json``) that
+    :func:`start_in_background` starts when the session's tests are known."""
     base = _build_base(d)
-    api = _c_api(d / "fw") if CC else (set(), set())
+    by_id = {c.id: c for c in CASES}
     manifest = []
-    for case in _selected(request):
+    for case_id in ids:
+        case = by_id[case_id]
         folder = d / "cases" / re.sub(r"[^A-Za-z0-9_.-]", "_", case.id)
         folder.mkdir(parents=True)
         args = case.build(folder, base)
@@ -246,17 +262,72 @@ def hostile(
             {"id": case.id, "args": args, "cwd": str(folder), "watch": ["."], "fault": case.fault}
         )
     results = _run_workers(manifest, d)
-    if os.environ.get("HOSTILE_KEEP"):  # for debugging: keep the folders and say where
-        print(f"hostile: {len(manifest)} cases; results kept in {d}")
-    yield {
-        "results": results,
-        "folders": {m["id"]: Path(m["cwd"]) for m in manifest},
-        "args": {m["id"]: m["args"] for m in manifest},
-        "base": base,
-        "api": api,
-    }
+    (d / "results.json").write_text(json.dumps({"results": results, "manifest": manifest}))
+
+
+#: The driver process of this session's cases and its folder (:func:`start_in_background`).
+_DRIVER = pytest.StashKey[tuple[Path, subprocess.Popen]]()
+
+
+def start_in_background(session: pytest.Session) -> None:
+    """Start this session's hostile cases in a driver process (called by conftest.py once the
+    tests are collected).
+
+    The suite runs its tests one at a time, on one of the machine's two cores; the cases' two
+    workers run beside them from the start instead of after the modules before this one (the
+    same cases, limits and checks: only when they run changes). The ``hostile`` fixture waits
+    for the driver and reads its results.
+    """
+    ids = [c.id for c in _selected(session.items)]
+    if not ids or _DRIVER in session.config.stash:
+        return
+    d = Path(tempfile.mkdtemp(prefix="hallcal-hostile-"))
+    (d / "ids.json").write_text(json.dumps(ids))
+    log = open(d / "driver.log", "w", encoding="utf-8")  # noqa: SIM115 (the driver's stderr)
+    proc = subprocess.Popen(
+        [sys.executable, str(Path(__file__).resolve()), str(d), str(d / "ids.json")],
+        env=_env(),
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
+    log.close()
+    session.config.stash[_DRIVER] = (d, proc)
+
+
+def stop_background(session: pytest.Session) -> None:
+    """At the session's end: a driver still running (its tests deselected by a failure with
+    ``-x``, or interrupted) is ended, and its folder removed unless ``HOSTILE_KEEP``."""
+    started = session.config.stash.get(_DRIVER, None)
+    if started is None:
+        return
+    d, proc = started
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait()
     if not os.environ.get("HOSTILE_KEEP"):
         remove(d)
+
+
+@pytest.fixture(scope="module")
+def hostile(request: pytest.FixtureRequest) -> dict[str, Any]:
+    """Every selected case's inputs built and run (by the driver started at collection), and
+    the results by case id."""
+    start_in_background(request.session)  # started at collection already: nothing to do
+    d, proc = request.config.stash[_DRIVER]
+    proc.wait()
+    log = (d / "driver.log").read_text(errors="replace")
+    assert proc.returncode == 0, f"the hostile driver failed ({proc.returncode}): {log[-3000:]}"
+    done = json.loads((d / "results.json").read_text())
+    manifest = done["manifest"]
+    if os.environ.get("HOSTILE_KEEP"):  # for debugging: keep the folders and say where
+        print(f"hostile: {len(manifest)} cases; results kept in {d}")
+    return {
+        "results": done["results"],
+        "folders": {m["id"]: Path(m["cwd"]) for m in manifest},
+        "args": {m["id"]: m["args"] for m in manifest},
+        "base": _load_base(d),
+        "api": _c_api(d / "fw") if CC else (set(), set()),
+    }
 
 
 def _param(case: Case) -> Any:
@@ -408,3 +479,7 @@ def test_the_suite_covers_every_class_and_subcommand() -> None:
         "safety-locked-fleet",
     ):
         assert cls in ids, cls
+
+
+if __name__ == "__main__":  # the driver of start_in_background
+    run_cases(Path(sys.argv[1]), json.loads(Path(sys.argv[2]).read_text()))

@@ -24,7 +24,7 @@ from hallcal.io import (
     ARTIFACT_FORMAT,
     ArtifactData,
     default_setup,
-    load_artifact,
+    read_artifact,
     read_dataset,
     read_json,
     setup_from_dict,
@@ -256,8 +256,11 @@ def test_validate_artifact_returns_the_typed_view(tmp_path: Path) -> None:
     assert lut.bijective and lut.points == 256
     # the same view from the file, and the same hash
     write_artifact(tmp_path / "cal.json", art)
-    again = load_artifact(tmp_path / "cal.json")
+    again = read_artifact(tmp_path / "cal.json")
     assert again.pole_pairs == 11 and len(again.sha256) == 64
+    # the one reader's view is also the artifact's JSON, key by key (read-only)
+    assert dict(again) == json.loads((tmp_path / "cal.json").read_text())
+    assert again["lut"]["points"] == 256 and again.get("no such key") is None
     # read from a file, the digest is the file's (what sha256sum prints, what export-c embeds)
     raw = (tmp_path / "cal.json").read_bytes()
     assert again.sha256 == hashlib.sha256(raw).hexdigest()

@@ -26,6 +26,7 @@ from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import build_lut
 from hallcal.sensor.metrics import angle_error
 from hallcal.sensor.observer import (
+    ObserverSettings,
     ObserverState,
     chi_square_quantile,
     observer_model,
@@ -58,10 +59,13 @@ def test_tables_interpolate_the_flux_model_to_far_below_the_noise():
     flux = BENCH.truth()
     y = np.linspace(0.0, 2 * math.pi, 997)
     g, dg = flux.value_and_derivative(y)
-    # the kernel's Hermite interpolation, evaluated through one step of the tracker on
-    # noise-free data: y_obs must return y itself
-    run = run_observer(m, g)
-    assert np.max(np.abs(run.y_obs[1:] - y[1:])) < 1e-7  # far below sigma / |g'| ~ 1e-3 rad
+    # the kernel's Hermite interpolation, evaluated through one Gauss-Newton step per sample on
+    # noise-free data: y_obs must return y itself once the speed is tracked (the step's error
+    # is second order in the prediction's, which decays by 0.95 per sample from the start at a
+    # table node); the adaptation held at the model (a prior of 1e12 samples), so that its
+    # start-up transient (2.6e-6 rad here, decaying) does not hide the interpolation's error
+    run = run_observer(m, g, settings=ObserverSettings(prior_samples=1e12))
+    assert np.max(np.abs(run.y_obs[300:] - y[300:])) < 1e-7  # far below sigma / |g'| ~ 1e-3 rad
     assert m.points >= 256 and dg.shape == (997, 3)
 
 
@@ -217,7 +221,7 @@ def test_calibrate_keeps_a_folding_maps_model_for_the_observer(folding_dir):
     assert res.returncode == 0, res.stderr
     assert "use 'hallcal reconstruct --observer'" in res.stderr  # the notes go to stderr
     art = json.loads((d / "cal.json").read_text())
-    assert art["diagnostics"]["status"] == "not-bijective"
+    assert art["diagnostics"]["status"] == "not_bijective"
     assert art["observer"]["injective"] is True
 
 
@@ -309,7 +313,7 @@ void run(int n, const float *d, double *y, float *misfit, unsigned char *st)
     static hallcal_obs_state s;
     hallcal_obs_reading r;
     int k;
-    hallcal_obs_init(&s, 0, 0.0f);
+    hallcal_obs_init(&s);
     for (k = 0; k < n; k++) {
         st[k] = hallcal_obs_update(&s, d[3 * k], d[3 * k + 1], d[3 * k + 2]);
         hallcal_obs_read(&s, &r);

@@ -20,6 +20,7 @@ from hallcal.fit.adequacy import estimate_noise_variance
 from hallcal.fit.order import nested_bands, select_harmonics
 from hallcal.fit.sem import solve_sem
 from hallcal.fit.warp import band_edge, unwarp
+from hallcal.messages import Severity
 from hallcal.sensor.flux import FourierBasis
 from hallcal.sensor.lut import build_lut
 from hallcal.sensor.metrics import angle_error
@@ -155,7 +156,9 @@ def test_the_search_stops_on_its_work_budget_and_says_so():
     fits = [c for c in sel.candidates if c.stage != "static"]
     assert len(fits) == 1 and fits[0].iterations == 1  # the first fit always runs, one step
     assert sel.status == "work_budget" and sel.status.budget_hit
-    assert "Gauss-Newton work" in sel.budget_message and "work_budget" in sel.budget_message
+    budget = sel.budget_message
+    assert budget is not None and budget.severity is Severity.WARNING
+    assert "Gauss-Newton work" in budget.text and "work_budget" in budget.text
     d = sel.to_dict(timings=False)
     assert d["budget_hit"] and d["fits"] == 1 and "elapsed" not in d
     assert all("solve_time" not in c for c in d["candidates"])

@@ -63,7 +63,7 @@ def test_auto_with_the_bla_refines_the_gain_and_reaches_the_floor(from_bla):
     k = cal.plant.num[-1] / cal.plant.den[-2]
     assert k / true_k == pytest.approx(1.0, abs=0.02)  # the acceptance bound on the gain
     assert _error_vs_floor(cal, s) <= 1.15
-    assert any("BLA" in m for m in cal.messages)  # the user is told which plant is used
+    assert any("BLA" in m.text for m in cal.messages)  # the user is told which plant is used
 
 
 def test_max_iterations_is_honoured_with_auto():

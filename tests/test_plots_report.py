@@ -1,7 +1,7 @@
 """Figures and the HTML report: the paper's figure kinds, a self-contained report that
 headless Chromium renders with every figure loaded, and ``hallcal report`` on the command line.
 
-The demo's objects are computed once per module (``run_demo(..., report=False)``, about 15 s);
+The demo's objects are computed once per session (conftest ``demo_run``, about 15 s);
 every test then only plots or writes.
 """
 
@@ -17,24 +17,26 @@ import numpy as np
 import pytest
 from matplotlib.figure import Figure
 
-from hallcal.demo import run_demo
 from hallcal.errors import HallcalInputError
-from hallcal.io import Dataset, read_dataset, write_dataset
+from hallcal.io import Dataset, read_dataset, validate_artifact, write_dataset
 from hallcal.output import plots
 from hallcal.output.report import (
-    content_from_calibration,
+    ReportExtras,
+    calibration_artifact,
+    report_content,
     write_demo_report,
     write_report,
     write_report_from_files,
 )
+from hallcal.pipeline import CalibrationStatus
 
 CHROMIUM = "/usr/bin/chromium"
 DEMO_FIGURES = ("ripple", "hall_model", "angle_error", "spectrum", "bla", "sem_cost", "lut")
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory):
-    return run_demo(tmp_path_factory.mktemp("demo"), report=False)
+def demo(demo_run):
+    return demo_run[1]  # conftest: one run_demo per session
 
 
 @pytest.fixture(scope="module")
@@ -273,16 +275,25 @@ def test_report_degrades_without_sem_or_a_bijective_table(demo, tmp_path):
     data = Dataset.from_columns(demo.runs["calibration"].columns())
     # e.g. a constant-speed calibration: no SEM, no BLA, no plant
     bare = dataclasses.replace(cal, sem=None, bla=None, gain=None, plant=None, adequacy=None)
-    text = write_report(content_from_calibration(bare, data), tmp_path / "bare").read_text()
+    content = report_content(calibration_artifact(bare), data, extras=ReportExtras.of(bare))
+    text = write_report(content, tmp_path / "bare").read_text()
     for key in ("ripple", "hall_model", "angle_error", "spectrum", "lut"):
         assert f'id="fig-{key}"' in text, key
     for key in ("bla", "sem_cost"):
         assert f'id="fig-{key}"' not in text, key
     assert "calibration recording" in text  # validated in-sample on its y_ref, and says so
-    # a table that is not bijective: f_star is undefined, f_init is still shown
-    lut = dataclasses.replace(cal.lut, bijective=False)
-    broken = dataclasses.replace(cal, lut=lut, status="not-bijective")
-    text = write_report(content_from_calibration(broken, data), tmp_path / "broken").read_text()
+    # a table that is not bijective (1 + d eta / d y_hat = 1 + 10 cos < 0 in places: the map
+    # y0 -> y_hat folds): f_star is undefined, f_init is still shown
+    art = cal.to_artifact()
+    y_hat = np.asarray(art["lut"]["y_hat"])
+    lut = {"y_hat": y_hat.tolist(), "eta": (0.5 * np.sin(20.0 * y_hat)).tolist()}
+    diag = {**art["diagnostics"], "status": CalibrationStatus.NOT_BIJECTIVE.value}
+    folded = validate_artifact({**art, "lut": lut, "diagnostics": diag}, bijective=False)
+    assert not folded.lut().bijective
+    with pytest.raises(HallcalInputError, match="not bijective"):  # never by default
+        validate_artifact({**art, "lut": lut})
+    content = report_content(folded, data, extras=ReportExtras.of(cal))
+    text = write_report(content, tmp_path / "broken").read_text()
     assert "bijective: <b>NO</b>" in text and "status-bad" in text
     assert 'id="fig-angle_error"' in text and 'id="fig-spectrum"' not in text
     assert "f_star is undefined" in text

@@ -75,13 +75,18 @@ def test_the_readme_block_is_what_this_test_runs():
     assert "run.csv" in made[: made.index("angles.csv")]
 
 
-def test_readme_steps_run_as_written(tmp_path):
-    (tmp_path / "setup.toml").write_text(small_setup(readme_setup()), encoding="utf-8")
-    results = {}
+@pytest.fixture(scope="module")
+def readme_run(tmp_path_factory) -> tuple[Path, dict[str, list[subprocess.CompletedProcess]]]:
+    """The README's "Your own motor" block run once, in order, in a fresh folder: its folder
+    and each command's results (by subcommand). The other examples run in the same folder
+    (``motor_dir``) after this module's first test has checked it."""
+    d = tmp_path_factory.mktemp("readme-motor")
+    (d / "setup.toml").write_text(small_setup(readme_setup()), encoding="utf-8")
+    results: dict[str, list[subprocess.CompletedProcess]] = {}
     for args in readme_commands():
         res = subprocess.run(
             [sys.executable, "-m", "hallcal.cli", *args[1:]],
-            cwd=tmp_path,
+            cwd=d,
             capture_output=True,
             text=True,
             timeout=900,
@@ -89,6 +94,11 @@ def test_readme_steps_run_as_written(tmp_path):
         assert res.returncode == 0, (args, res.stdout, res.stderr)
         assert "Traceback" not in res.stderr
         results.setdefault(args[1], []).append(res)
+    return d, results
+
+
+def test_readme_steps_run_as_written(readme_run):
+    tmp_path, results = readme_run
     # the BLA is the plant actually used, and the choice is said once and recorded
     cal = results["calibrate"][0]
     assert cal.stderr.count("wins over the setup's [plant]") == 1, cal.stderr
@@ -97,8 +107,9 @@ def test_readme_steps_run_as_written(tmp_path):
     assert any("wins over the setup's [plant]" in m for m in art["diagnostics"]["messages"])
     bla = json.loads((tmp_path / "bla.json").read_text())
     assert bla["status"] == "ok"
-    # the plant used is the BLA (gain-corrected), not [plant]: its denominator is the BLA's
-    assert art["plant"]["den"] == pytest.approx(bla["plant"]["den"])
+    # the plant used is the BLA (refined by the run within the BLA's uncertainty, a few per cent),
+    # not [plant]
+    assert art["plant"]["den"] == pytest.approx(bla["plant"]["den"], rel=0.05)
     assert art["plant"]["den"] != [1.0, 50.0, 0.0]
     # the model order was chosen from the data: one pole besides the integrator (s^2 + a s)
     assert len(bla["plant"]["den"]) == 3
@@ -180,13 +191,10 @@ def _run(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
 
 
 @pytest.fixture(scope="module")
-def motor_dir(tmp_path_factory) -> Path:
-    """The README's motor (small sizes), after the README's own steps up to calibrate."""
-    d = tmp_path_factory.mktemp("readme-motor")
-    (d / "setup.toml").write_text(small_setup(readme_setup()), encoding="utf-8")
-    for args in readme_commands():
-        if args[1] in ("simulate", "calibrate"):
-            _run(args, d)
+def motor_dir(readme_run) -> Path:
+    """The README's motor (small sizes), after the README's own steps (``readme_run``: the
+    same commands are not run twice)."""
+    d, _ = readme_run
     (d / "manifest.csv").write_text("motor_id,data,setup\nm1,cal.csv,setup.toml\n")
     return d
 

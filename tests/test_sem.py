@@ -134,3 +134,9 @@ def test_table_resolution_is_far_below_noise_floor():
     y = np.linspace(0, 2 * np.pi, 100_003)
     diff = lut.correction(y) - fine.correction(y)
     assert np.max(np.abs(diff)) < 0.01 * cfg.noise_floor
+
+
+def test_covariance_source_is_checked():
+    """A misspelled source of the covariance is an error, not a silent default."""
+    with pytest.raises(ValueError, match="covariance must be one of"):
+        solve_sem(None, np.zeros(4), np.zeros((4, 3)), FourierBasis((1,)), covariance="exactly")

@@ -11,6 +11,7 @@ import pytest
 
 from hallcal import pipeline
 from hallcal.io import Dataset, ModelSpec, Setup
+from hallcal.messages import MessageCode
 from hallcal.pipeline import sensors
 from hallcal.sensor.metrics import angle_error
 from hallcal.sim.bench import BenchConfig, ramp_run
@@ -29,7 +30,7 @@ def test_skewed_sensors_are_named_and_calibrated(misalignment):
     setup = Setup(pole_pairs=4, sample_time=cfg.sample_time, controller=cfg.controller,
                   plant=cfg.plant, model=ModelSpec(harmonics="auto", cogging="none"))  # fmt: skip
     cal = pipeline.calibrate(Dataset.from_columns(run.columns(with_encoder=False)), setup)
-    skew = [m for m in cal.messages if m.startswith("skewed sensors")]
+    skew = [m.text for m in cal.messages if m.code is MessageCode.SKEWED_SENSORS]
     assert len(skew) == (1 if any(misalignment) else 0)
     if skew:
         assert "0/100/230 electrical degrees" in skew[0]

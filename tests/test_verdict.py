@@ -21,8 +21,9 @@ from hypothesis import strategies as st
 
 from hallcal import pipeline
 from hallcal.io import Dataset, ModelSpec, Setup, write_dataset
+from hallcal.messages import MessageCode
 from hallcal.pipeline.calibration import CalibrationStatus
-from hallcal.pipeline.verdict import OK_RATIO, WORSE_FRACTION, decide
+from hallcal.pipeline.verdict import OK_RATIO, OK_UPPER_RATIO, WORSE_FRACTION, decide
 from hallcal.sensor.metrics import angle_error
 from hallcal.sim.bench import BenchConfig, ramp_run
 from hallcal.sim.oracle import oracle_floor
@@ -72,7 +73,7 @@ def test_a_constant_load_torque_is_found_as_order_0_and_its_offset_carried():
     assert auto.cogging is not None and auto.cogging.orders == (0,)
     # the load found within 1 % (measured 0.0030006 +- 1.2e-5 on a longer run)
     assert auto.cogging.a[0] == pytest.approx(LOAD, rel=0.01)
-    assert any("constant load" in m for m in auto.messages)
+    assert any("constant load" in m.text for m in auto.messages)
     e_none = angle_error(none.lut.f_star(val.d), val.y0)
     e_auto = angle_error(auto.lut.f_star(val.d), val.y0)
     # without the load in the model the table carries an offset of the order of the floor
@@ -135,7 +136,8 @@ def test_ok_only_within_1_15x_the_floor_and_never_predicted_worse_than_f_init(
 def test_no_predicted_error_is_not_ok():
     v = decide(bijective=True, predicted=math.nan, floor=1e-4, correction_rms=1e-3)
     assert v.status is CalibrationStatus.WARNING
-    assert v.leading[0].startswith("warning: no predicted error")
+    assert v.leading[0].code is MessageCode.NO_PREDICTION and v.leading[0].is_warning
+    assert v.leading[0].line().startswith("warning: no predicted error")
 
 
 @functools.cache
@@ -173,8 +175,96 @@ def test_a_table_predicted_worse_than_f_init_is_refused_exit_3(tmp_path):
 def test_the_anticogging_table_carries_a_constant_load():
     """The C feed-forward's table of T_c(y0): order 0 is the constant a_0 (the DC bin of the
     inverse FFT holds n a_0, not n a_0 / 2)."""
-    from hallcal.output.firmware import _uniform, cogging_map
+    from hallcal.sim.cogging import CoggingTorque, tabulate
 
-    k, a, b = np.array([0, 3]), np.array([0.5, 0.1]), np.array([0.0, 0.2])
-    y0 = 2 * np.pi * np.arange(64) / 64
-    np.testing.assert_allclose(_uniform(k, a, b, 64), cogging_map(k, a, b, y0), atol=1e-12)
+    torque = CoggingTorque((0, 3), [0.5, 0.1], [0.0, 0.2])
+    tab = tabulate(torque)
+    y0 = 2 * np.pi * np.arange(tab.points) / tab.points
+    # the table's nodes are the map rounded to float32 (relative 2^-24 of values of order 0.7)
+    np.testing.assert_allclose(tab.values, torque(y0), atol=1e-7)
+
+
+@given(
+    predicted=st.floats(1e-6, 1.0),
+    upper=st.floats(1e-6, 2.0),
+    floor=st.floats(1e-6, 1.0),
+    correction=st.floats(0.0, 1.0),
+)
+def test_ok_only_when_one_runs_upper_quantile_is_within_1_3x_the_floor(
+    predicted, upper, floor, correction
+):
+    v = decide(bijective=True, predicted=predicted, floor=floor, correction_rms=correction,
+               predicted_upper=upper)  # fmt: skip
+    if v.status is CalibrationStatus.OK:
+        assert upper <= OK_UPPER_RATIO * floor and predicted <= OK_RATIO * floor
+    elif v.status is CalibrationStatus.WARNING and upper > OK_UPPER_RATIO * floor:
+        assert len(v.leading) == 1  # one reason, one line
+    # one run's table may reach half the correction it applies: refused, not written
+    own_up = math.sqrt(max(max(upper, predicted) ** 2 - floor**2, 0.0))
+    # without the quantile (NaN: e.g. the constant-speed route) the rule is the expectation's
+    old = decide(bijective=True, predicted=predicted, floor=floor, correction_rms=correction)
+    if own_up >= WORSE_FRACTION * correction and own_up > 0.5 * floor:
+        assert v.status is CalibrationStatus.INADEQUATE and "worse than f_init" in v.refusal
+    elif upper <= OK_UPPER_RATIO * floor:
+        assert v.status is old.status
+
+
+def test_error_spread_is_the_chi_square_quantile_of_the_directions_that_carry_the_error():
+    """Satterthwaite + Wilson-Hilferty against scipy's chi-square and a Monte Carlo draw."""
+    from scipy.stats import chi2
+
+    from hallcal.fit.adequacy import error_spread
+
+    rng = np.random.default_rng(7)
+    G = rng.normal(size=(256, 12))
+    # one direction (the table's offset alone): chi-square(1), quantile 3.84 x the mean;
+    # Wilson-Hilferty is within 3 % at one degree of freedom
+    u = np.zeros(12)
+    u[0] = 1.0
+    mean, upper = error_spread(G, np.outer(u, u))
+    assert upper / mean == pytest.approx(chi2.isf(0.05, 1), rel=0.03)
+    # twelve equal directions in G's coordinates: close to the mean (chi-square(nu) / nu)
+    L = np.linalg.cholesky(np.linalg.inv(G.T @ G / G.shape[0]))
+    C = L @ L.T
+    mean, upper = error_spread(G, C)
+    assert mean == pytest.approx(12.0, rel=1e-9)
+    assert upper / mean == pytest.approx(chi2.isf(0.05, 12) / 12, rel=0.01)
+    # a mixture: the Monte Carlo 95 % quantile of |G dtheta|^2 / M (20 000 draws: its own
+    # spread is about 2 %; Satterthwaite's approximation adds a few %, hence 8 %)
+    C = np.diag(np.r_[10.0, 1.0, 1.0, 0.1 * np.ones(9)])
+    mean, upper = error_spread(G, C)
+    x = rng.multivariate_normal(np.zeros(12), C, size=20_000) @ G.T
+    ms = np.mean(x**2, axis=1)
+    assert mean == pytest.approx(np.mean(ms), rel=0.03)  # 20 000 draws: about 1 %
+    assert upper == pytest.approx(np.quantile(ms, 0.95), rel=0.08)
+
+
+def test_the_load_bench_stays_ok_and_its_upper_quantile_is_reported():
+    """The rule does not demote a calibration whose error is spread over many directions."""
+    cfg, run, _ = load_bench()
+    cal = pipeline.calibrate(Dataset.from_columns(run.columns()), _setup(cfg))
+    upper = cal.adequacy.predicted_upper
+    assert cal.predicted_error < upper <= OK_UPPER_RATIO * cal.noise_floor
+    assert cal.status is CalibrationStatus.OK
+
+
+def test_error_sources_name_the_offset_and_the_harmonics_that_carry_the_variance():
+    from hallcal.fit.adequacy import error_sources
+
+    rng = np.random.default_rng(3)
+    harmonics = (1, 2, 3)
+    m = 1 + 2 * len(harmonics)
+    G = rng.normal(size=(512, 3 * m))
+    # all of cov(theta) on the constant column of sensor 0 plus a common shift of every point:
+    # the offset carries it; variance on harmonic 3's columns alone: harmonic 3 carries all
+    G[:, 0] += 5.0
+    C = np.zeros((3 * m, 3 * m))
+    C[0, 0] = 1.0
+    assert "constant offset carries" in error_sources(G, C, harmonics)
+    C = np.zeros((3 * m, 3 * m))
+    for s in range(3):
+        for c in (5, 6):  # sine and cosine of harmonic 3 in sensor s
+            C[s * m + c, s * m + c] = 1.0
+    G = rng.normal(size=(512, 3 * m))  # zero-mean columns: no offset
+    assert error_sources(G, C, harmonics) == "harmonic 3 carries 100 %"
+    assert error_sources(G, np.zeros_like(C), harmonics) == ""

@@ -83,3 +83,32 @@ def test_edge_at_the_bound_is_reported():
     flux, y0, y, d, sigma = _data(3)
     edge = band_edge(y, d, pole_pairs=3, noise_variance=sigma**2, max_edge=7)
     assert edge.edge == 7 and edge.status is BandEdgeStatus.AT_BOUND
+
+
+def test_the_lagged_system_equals_the_explicit_products():
+    """unwarp's Gauss-Newton system from one transform of g' (shifted transforms, prefix sums
+    of lagged products) is the one of the explicit Jacobian: the same warp and residual."""
+    flux, y0, y, d, sigma = _data(5)
+    view = f_init_view(y, d, harmonics=60, noise_variance=sigma**2)
+    for E in (8, 9, 20):
+        fast = unwarp(view, E, warp_harmonics=30)
+        ref = unwarp(view, E, warp_harmonics=30, reference=True)
+        # the two systems differ by rounding (1e-14 relative), far below the 1e-9 ridge of
+        # the step; the Gauss-Newton iterates then agree to rounding amplified by the solve
+        np.testing.assert_allclose(fast.warp, ref.warp, rtol=0, atol=1e-9)
+        assert fast.iterations == ref.iterations
+        assert abs(fast.residual - ref.residual) <= 1e-8 * ref.residual
+
+
+def test_the_narrower_view_is_the_leading_block_of_the_wider_one():
+    """band_edge's view on 1..L from the probe's normal equations on 1..L0 > L is the view
+    fitted on 1..L (the same moments: bit for bit)."""
+    from hallcal.fit.gauss_newton import regression_normal_equations
+    from hallcal.fit.warp import _view_from_normal_equations
+
+    flux, y0, y, d, sigma = _data(2)
+    M, rhs, _ = regression_normal_equations(y, d, np.arange(1, 61))
+    narrow = _view_from_normal_equations(M[:41, :41], rhs[:41], sigma**2)
+    direct = f_init_view(y, d, harmonics=20, noise_variance=sigma**2)
+    np.testing.assert_array_equal(narrow.theta, direct.theta)
+    assert narrow.coefficient_variance == direct.coefficient_variance

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from hallcal.errors import HallcalInputError
-from hallcal.io.artifact import load_artifact
+from hallcal.io.artifact import read_artifact
 from hallcal.io.dataset import Dataset, read_dataset
 from hallcal.io.setup import Setup, read_setup, setup_from_dict
 from hallcal.pipeline import calibrate as _calibrate
@@ -103,15 +103,37 @@ def as_setup(setup: SetupLike) -> Setup:
     )
 
 
-@dataclasses.dataclass(frozen=True)
-class Calibration(_Result):
-    """A calibration (see :class:`hallcal.pipeline.Calibration` for its fields) with the verbs a
-    notebook user needs: :meth:`save`, :meth:`reconstruct`, :meth:`report`, :meth:`export_c`.
+class Calibration:
+    """A calibration with the verbs a notebook user needs: :meth:`save`, :meth:`reconstruct`,
+    :meth:`report`, :meth:`export_c`.
+
+    It wraps the pipeline's result (:attr:`result`, a :class:`hallcal.pipeline.Calibration`,
+    computed here or rebuilt from an artifact) and reads its fields through: ``cal.status``,
+    ``cal.lut``, ``cal.predicted_error``, ``cal.to_artifact()``, ... (see that class).
     """
 
-    @classmethod
-    def _from_result(cls, result: _Result) -> Calibration:
-        return cls(**{f.name: getattr(result, f.name) for f in dataclasses.fields(_Result)})
+    __slots__ = ("result",)
+    result: _Result
+
+    def __init__(self, result: _Result) -> None:
+        object.__setattr__(self, "result", result)
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "result":  # not set yet (copying, unpickling): no recursion
+            raise AttributeError(name)
+        return getattr(self.result, name)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise dataclasses.FrozenInstanceError(f"cannot assign to field {name!r}")
+
+    def __dir__(self) -> list[str]:
+        return sorted(set(super().__dir__()) | set(dir(self.result)))
+
+    def __repr__(self) -> str:
+        return f"hallcal.{self.result!r}"
+
+    def __reduce__(self) -> tuple[Any, ...]:  # copy.copy / deepcopy
+        return (Calibration, (self.result,))
 
     def reconstruct(
         self,
@@ -151,7 +173,9 @@ class Calibration(_Result):
             ds, pole_pairs=self.pole_pairs, sample_time=None, angles=("y_ref",)
         )
         raise_if_failed(checks, ds.source)
-        return super().reconstruct(ds, y_initial=y_initial, absolute=absolute, observer=observer)
+        return self.result.reconstruct(
+            ds, y_initial=y_initial, absolute=absolute, observer=observer
+        )
 
     def report(
         self,
@@ -181,7 +205,7 @@ class Calibration(_Result):
         if data is None:  # the report is drawn from the recording: it cannot be written without
             raise HallcalInputError("report needs data=, the calibration recording")
         return write_calibration_report(
-            self,
+            self.result,
             as_dataset(data),
             out_dir,
             validation=None if validation is None else as_dataset(validation, required=("y_ref",)),
@@ -330,7 +354,7 @@ def calibrate(
     bla_ds = None
     if bla_data is not None:
         bla_ds = as_dataset(bla_data, required=("r", "u", "y", "realization"))
-    return Calibration._from_result(_calibrate(ds, s, bla_dataset=bla_ds, progress=progress))
+    return Calibration(_calibrate(ds, s, bla_dataset=bla_ds, progress=progress))
 
 
 def load(path: str | os.PathLike[str]) -> Calibration:
@@ -351,4 +375,4 @@ def load(path: str | os.PathLike[str]) -> Calibration:
     HallcalInputError
         Missing file or an invalid artifact (the message names the key).
     """
-    return Calibration._from_result(calibration_from_artifact(load_artifact(path)))
+    return Calibration(calibration_from_artifact(read_artifact(path)))

@@ -27,6 +27,7 @@ import click
 from hallcal.errors import CalibrationRefused, HallcalError, HallcalInputError
 from hallcal.formatting import AngleUnit, one_line, ranges, tf_text
 from hallcal.limits import MAX_POLE_PAIRS
+from hallcal.messages import Message, MessageCode
 
 EXIT_INPUT = HallcalInputError.exit_status
 EXIT_REFUSED = CalibrationRefused.exit_status
@@ -263,13 +264,10 @@ _units_option = click.option(
 )
 
 
-def _notes(messages: tuple[str, ...] | list[str]) -> None:
-    """Notes and warnings on stderr, once each."""
-    seen: set[str] = set()
-    for m in messages:
-        if m not in seen:
-            seen.add(m)
-            _err.print(m if m.startswith(("warning", "note", "plant")) else f"note: {m}")
+def _notes(messages: tuple[Message, ...] | list[Message]) -> None:
+    """Notes and warnings on stderr, once each, as :meth:`Message.line` renders them."""
+    for line in dict.fromkeys(m.line() for m in messages):
+        _err.print(line)
 
 
 @click.group(
@@ -349,7 +347,8 @@ def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int
     prog = _Progress()
     kind = experiment or setup.bench.experiment
     if setup.controller is None:
-        _err.print("note: the setup has no [controller]: the virtual bench uses the paper's C(q)")
+        default = "the setup has no [controller]: the virtual bench uses the paper's C(q)"
+        _err.print(Message.note(MessageCode.DEFAULT_USED, default).line())
     prog(f"simulating the {kind} experiment")
     run = pipeline.simulate(setup, experiment=experiment, seed=seed)
     if run.status != "ok":
@@ -414,7 +413,7 @@ def inspect(data: str, setup_path: str | None, pole_pairs: int | None) -> None:
         raise HallcalInputError(f"{data}: {exc}") from None
     found = inspect_recording(ds, setup=setup, pole_pairs=pole_pairs)
     for line in found.lines():
-        (_err if line.startswith(("warning", "note")) else _out).print(line)
+        (_err if isinstance(line, Message) else _out).print(str(line))
     toml = found.trajectory_toml()
     if toml is not None and "r" not in ds:
         _out.print("setup lines for a constant-speed calibration:")
@@ -675,8 +674,8 @@ def reconstruct(
     rec = cal.reconstruct(data, absolute=absolute, observer=observer)
     if rec.signals is not None:
         rec.signals.raise_if_failed()  # exit 3: the signals do not fit this calibration
-        if rec.signals.warning:
-            _err.print(rec.signals.warning)
+        if rec.signals.warning is not None:
+            _err.print(rec.signals.warning.line())
     write_dataset(out, rec.columns)
     _out.print(f"wrote {out} ({len(rec)} samples)")
     _notes(rec.messages)
@@ -754,7 +753,7 @@ def plan(artifact: str, revolutions: float, speeds: str | None, target: float) -
                 f"--speeds: expected comma-separated numbers [rad/s], got {speeds!r}"
             ) from None
     cal = load(artifact)
-    result = plan_next_ramp(cal, revolutions=revolutions, speeds=grid, target=target)
+    result = plan_next_ramp(cal.result, revolutions=revolutions, speeds=grid, target=target)
     floor = result.predictions[0].floor if result.predictions else math.nan
     _out.print(f"noise floor {AngleUnit.MRAD.text(floor)}; ramp over {revolutions:g} revolutions")
     _out.print(f"{'speed [rad/s]':>14} {'samples':>9} {'f_star [mrad]':>14} {'x floor':>8}")
@@ -779,11 +778,13 @@ def _print_identification(ident, pole_pairs: int) -> None:
             f"(posterior {ident.posterior:.6f}, margin {ident.margin:.1f} sigma)"
         )
     else:
-        _err.print(
-            f"warning: {where} is the most likely one but not certain after all "
+        warning = Message.warning(
+            MessageCode.POWERUP,
+            f"{where} is the most likely one but not certain after all "
             f"{ident.samples} samples (posterior {ident.posterior:.3f}); the rotor stood at a "
-            "weak position: move it, or record longer"
+            "weak position: move it, or record longer",
         )
+        _err.print(warning.line())
 
 
 @cli.command(
@@ -865,14 +866,14 @@ def export_c(
     The API, the plausibility checks and the error bounds: docs/firmware.md.
     """
     from hallcal.api import export_c as _export
-    from hallcal.io import load_artifact
+    from hallcal.io import read_artifact
     from hallcal.pipeline.calibration import require_table
 
     if observer:
         from hallcal.output.codegen.observer import export_observer_c
 
         _guard([Path(out) / f"{prefix}_obs.{x}" for x in ("h", "c")], [artifact])
-        art = load_artifact(artifact)
+        art = read_artifact(artifact)
         res_obs = export_observer_c(art, _output_dir(out), prefix=f"{prefix}_obs", source=artifact)
         for p in res_obs.paths:
             _echo(f"wrote {p}")
@@ -882,7 +883,7 @@ def export_c(
     names = [f"{prefix}.h", f"{prefix}.c"]
     names += [] if no_fixed_point else [f"{prefix}_q.h", f"{prefix}_q.c"]
     _guard([Path(out) / n for n in names], [artifact])
-    art = load_artifact(artifact)  # its sha256 is the file's, as sha256sum prints it
+    art = read_artifact(artifact)  # its sha256 is the file's, as sha256sum prints it
     require_table(art, artifact)
     out_dir = _output_dir(out)
     res = _export(
@@ -899,7 +900,7 @@ def export_c(
         powerup=not no_powerup,
     )
     for m in res.messages:
-        _echo(f"note: {m}", err=True)
+        _echo(Message.note(MessageCode.C_EXPORT, m).line(), err=True)
     for p in res.paths:
         _echo(f"wrote {p}")
     bounds = f"float {res.float_bound:.2g} rad"

@@ -58,7 +58,7 @@ class GeometryStatus(enum.StrEnum):
     """How well the three signals determine the sensor geometry (:class:`SensorGeometry`)."""
 
     OK = "ok"
-    PARTIAL_COVERAGE = "partial-coverage"  # not every electrical angle seen: extrapolated
+    PARTIAL_COVERAGE = "partial_coverage"  # not every electrical angle seen: extrapolated
     DEGENERATE = "degenerate"  # no ellipse: noise only, or no rotation
 
     @property
@@ -70,7 +70,7 @@ class SegmentStatus(enum.StrEnum):
     """Whether :func:`find_constant_speed` found a constant-speed part."""
 
     OK = "ok"
-    NOT_FOUND = "not-found"
+    NOT_FOUND = "not_found"
 
     @property
     def success(self) -> bool:
@@ -82,7 +82,7 @@ class ConstantSpeedStatus(enum.StrEnum):
 
     OK = "ok"
     WARNING = "warning"  # see ConstantSpeedResult.warnings
-    NOT_CONVERGED = "not-converged"  # the speed estimate did not meet its tolerance
+    NOT_CONVERGED = "not_converged"  # the speed estimate did not meet its tolerance
 
     @property
     def success(self) -> bool:
@@ -126,7 +126,7 @@ class SensorGeometry:
         RMS of the residual of the three signals about the fitted ellipse, relative to the mean
         amplitude (harmonic distortion and noise; about 0.01-0.05 on real sensors).
     status : GeometryStatus
-        ``"ok"``, ``"partial-coverage"`` (the data does not sweep all electrical angles, so the
+        ``"ok"``, ``"partial_coverage"`` (the data does not sweep all electrical angles, so the
         ellipse is extrapolated) or ``"degenerate"`` (the signals do not span a plane or do not
         trace an ellipse; the phases are then the nominal ones and meaningless).
     message : str
@@ -425,7 +425,7 @@ class SpeedSegment:
     revolutions : float
         Mechanical revolutions in the segment.
     status : SegmentStatus
-        ``"ok"`` or ``"not-found"``.
+        ``"ok"`` or ``"not_found"``.
     """
 
     start: int
@@ -629,7 +629,7 @@ class ConstantSpeedResult:
     converged : bool
         Whether the last Gauss-Newton run met ``tol``.
     status : ConstantSpeedStatus
-        ``"ok"``, ``"warning"`` (see ``warnings``) or ``"not-converged"``.
+        ``"ok"``, ``"warning"`` (see ``warnings``) or ``"not_converged"``.
     warnings : tuple of str
         E.g. fewer than one revolution, non-bijective table, geometry status.
     """

@@ -63,7 +63,7 @@ class PlanStatus(enum.StrEnum):
     #: A speed on the grid reaches the target; ``recommended`` is the slowest such speed.
     OK = "ok"
     #: No speed reaches the target; ``recommended`` is the one with the smallest prediction.
-    TARGET_NOT_REACHED = "target-not-reached"
+    TARGET_NOT_REACHED = "target_not_reached"
     #: The closed loop diverged (or the information was singular) at every speed.
     FAILED = "failed"
 

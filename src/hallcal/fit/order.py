@@ -85,6 +85,7 @@ from hallcal.fit.evidence import HarmonicRelevance, harmonic_relevance
 from hallcal.fit.gauss_newton import ParameterLayout, simulate_model
 from hallcal.fit.sem import SEMResult, SEMStatus, least_squares_start, solve_sem
 from hallcal.fit.warp import BandEdge, band_edge, unwarp
+from hallcal.messages import Message, MessageCode
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sim.loop import ClosedLoop
 
@@ -242,7 +243,7 @@ class HarmonicSelection:
         return sum(1 for c in self.candidates if c.stage != "static")
 
     @property
-    def budget_message(self) -> str | None:
+    def budget_message(self) -> Message | None:
         """One line when the work budget stopped the search, else None."""
         if not self.status.budget_hit:
             return None
@@ -251,9 +252,10 @@ class HarmonicSelection:
             SelectionStatus.MAX_ROUNDS: "its extension rounds",
             SelectionStatus.WORK_BUDGET: "its budget of Gauss-Newton work",
         }[self.status]
-        return (
-            f"warning: the harmonic search used up {what} before it was done "
-            f"(status {self.status}); harmonics up to {max(self.harmonics)} kept"
+        return Message.warning(
+            MessageCode.SEARCH_BUDGET,
+            f"the harmonic search used up {what} before it was done "
+            f"(status {self.status}); harmonics up to {max(self.harmonics)} kept",
         )
 
     @property

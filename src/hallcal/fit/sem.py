@@ -50,6 +50,7 @@ __all__ = [
     "SEMStatus",
     "least_squares_start",
     "default_chunk",
+    "angle_error_gradient",
     "predicted_angle_error",
     "solve_sem",
 ]
@@ -290,6 +291,7 @@ class _Iterate:
     history: list[float]
     iterations: int
     status: SEMStatus
+    exact: bool = False  # the system is formed from every sample (stride 1)
 
 
 def _normal_matrix(problem: _Problem, system: GaussNewtonSystem, x: NDArray):
@@ -334,11 +336,17 @@ def _damped_step(problem: _Problem, A: NDArray, g: NDArray, x: NDArray, F: float
 _DECREMENT_SIGMAS = 2.0
 #: ... or two accepted steps in a row each lowered the cost by less than this many sigma^2.
 _STALL_SIGMAS = 0.1
+#: Contraction of the decrement assumed over a solve's first step when predicting whether the
+#: next iterate passes the test (later steps use the last measured ratio). Measured on 24-28
+#: pole-pair zoo motors: 63 -> 0.0 sigma^2 over a first step; 2.2e7, 3.8e6, 3.3e4, 2305, 1.3
+#: over four steps of a first fit (ratios 0.17, 0.009, 0.07, 6e-4).
+_FIRST_CONTRACTION = 0.02
 
 
 def _levenberg_marquardt(
-    problem: _Problem, x0: NDArray, *, max_iterations: int, tol: float, damping: float
-) -> _Iterate:
+    problem: _Problem, x0: NDArray, *, max_iterations: int, tol: float, damping: float,
+    exact_next: bool = True,
+) -> _Iterate:  # fmt: skip
     """Levenberg-Marquardt iterations from x0 until the decrement test passes.
 
     Stops when the full Gauss-Newton step predicts a relative decrease below tol (Dennis &
@@ -349,9 +357,17 @@ def _levenberg_marquardt(
     ``0.1 sigma^2``. The second rule matters with the strided J^T J of large models, whose
     decrement overstates what the exact cost can still give: measured on a 16 kHz, 200 000
     sample run with 465 parameters, 22 of 30 iterations lowered F by 0.01-0.03 sigma^2 each.
+
+    With a stride and ``exact_next``, the system after a step whose next decrement is predicted
+    to pass the test (the decrement times its last contraction ratio, or times
+    ``_FIRST_CONTRACTION`` after the first step, below ``2 sigma^2``) is the exact one (stride
+    1): where the test then passes it is the system of the covariance too
+    (:func:`_uncertainty`), one pass over the samples saved; where it does not, the iterations
+    go on with the exact Hessian.
     """
     x = np.array(x0, dtype=np.float64)
     system = problem.system(x)
+    exact = problem.stride == 1
     if not system.status.success:
         return _Iterate(x, system, [math.inf], 0, SEMStatus.DIVERGED)
     F = problem.objective(system, x)
@@ -360,23 +376,32 @@ def _levenberg_marquardt(
     iterations = 0
     dof = max(problem.observations - problem.layout.size, 1)
     small_steps = 0
+    contraction = _FIRST_CONTRACTION
+    previous = math.inf
     with threadpool_limits(limits=1, user_api="blas"):
         while True:
             A, g = _normal_matrix(problem, system, x)
             sigma2 = F / dof
-            if _decrement(A, g) <= max(tol * F, _DECREMENT_SIGMAS * sigma2) or small_steps >= 2:
-                return _Iterate(x, system, history, iterations, SEMStatus.CONVERGED)
+            decrement = _decrement(A, g)
+            if decrement <= max(tol * F, _DECREMENT_SIGMAS * sigma2) or small_steps >= 2:
+                return _Iterate(x, system, history, iterations, SEMStatus.CONVERGED, exact)
             if iterations >= max_iterations:
-                return _Iterate(x, system, history, iterations, SEMStatus.MAX_ITERATIONS)
+                return _Iterate(x, system, history, iterations, SEMStatus.MAX_ITERATIONS, exact)
             step, F_new, lam = _damped_step(problem, A, g, x, F, lam)
             if step is None:
-                return _Iterate(x, system, history, iterations, SEMStatus.STALLED)
+                return _Iterate(x, system, history, iterations, SEMStatus.STALLED, exact)
             small_steps = small_steps + 1 if F - F_new < _STALL_SIGMAS * sigma2 else 0
             x = x + step
             iterations += 1
             history.append(F_new)
             lam = max(lam / 5.0, 1e-12)
-            system = problem.system(x)
+            if math.isfinite(previous) and previous > 0:
+                contraction = decrement / previous
+            previous = decrement
+            exact = problem.stride == 1 or (
+                exact_next and contraction * decrement <= _DECREMENT_SIGMAS * sigma2
+            )
+            system = problem.system(x, exact=exact)
             F = problem.objective(system, x)
 
 
@@ -440,6 +465,7 @@ def solve_sem(
     weights: ArrayLike | None = None,
     fit_drift: bool = False,
     drift0: ArrayLike | None = None,
+    covariance: str = "exact",
 ) -> SEMResult:
     """Solve problem (problem) by Levenberg-Marquardt on exact sensitivities.
 
@@ -494,11 +520,23 @@ def solve_sem(
         sensors at the run's middle.
     drift0 : array_like (3, 2), optional
         Start of the drift (default zero).
+    covariance : {"exact", "moved", "iterations"}
+        The system the covariances come from when the iterations use a stride (p > 128):
+        "exact" (default) forms it again from every sample at the solution; "iterations" takes
+        the iterations' last one (its Hessian within about stride / N, the gradient exact:
+        for a caller that uses the parameters only, e.g. a drift estimate); "moved" is
+        "exact" once a step was taken and "iterations" when the start already passed the
+        convergence test (a joint fit whose added parameters stay at their start, e.g. a
+        cogging torque of zero, whose test statistic is then zero whatever the covariance).
+        Each saves one pass over the samples with the full rank-one products (the largest
+        part of a system at p in the hundreds).
 
     Returns
     -------
     SEMResult
     """
+    if covariance not in _COVARIANCE_SOURCES:
+        raise ValueError(f"covariance must be one of {_COVARIANCE_SOURCES}, not {covariance!r}")
     t_start = time.perf_counter()
     r, d = _checked_record(r, d)
     cog0: CoggingTorque | None = None
@@ -513,8 +551,10 @@ def solve_sem(
                        chunk=default_chunk(r.size) if chunk is None else chunk,
                        weights=w)  # fmt: skip
     x0 = layout.pack(theta_start, math.log(gain0) if fit_gain else 0.0, cog0, drift0)
-    it = _levenberg_marquardt(problem, x0, max_iterations=max_iterations, tol=tol, damping=damping)
-    unc = _uncertainty(problem, it)
+    it = _levenberg_marquardt(problem, x0, max_iterations=max_iterations, tol=tol, damping=damping,
+                              exact_next=covariance != "iterations")  # fmt: skip
+    exact = covariance == "exact" or (covariance == "moved" and it.iterations > 0)
+    unc = _uncertainty(problem, it, exact=exact)
     return SEMResult(
         flux=FluxModel(basis, layout.theta(it.x)),
         theta0=theta_start,
@@ -545,6 +585,9 @@ def _drift_std(layout: ParameterLayout, cov: NDArray) -> NDArray[np.float64]:
     j = layout.drift_start
     return np.sqrt(np.maximum(np.diag(cov)[j : j + 6], 0.0)).reshape(3, 2)
 
+
+#: Where :func:`solve_sem` takes its covariances from (its ``covariance`` argument).
+_COVARIANCE_SOURCES = ("exact", "moved", "iterations")
 
 #: Batches of the batch-means (long-run) covariance the default chunk aims at: its variance of a
 #: linear functional of theta has B - 1 degrees of freedom (B = 24: within a factor 0.7-1.5 at
@@ -626,12 +669,13 @@ class _Uncertainty:
     gain_std: float
 
 
-def _uncertainty(problem: _Problem, it: _Iterate) -> _Uncertainty:
+def _uncertainty(problem: _Problem, it: _Iterate, *, exact: bool = True) -> _Uncertainty:
     """Parameter covariance ``sigma^2 (J^T J + R)^-1`` (Ljung 1999, sec. 9.3) from the exact
-    system (every sample, whatever the iterations' stride), and the batch-means covariance."""
+    system (every sample, whatever the iterations' stride; with ``exact=False`` the iterations'
+    last system), and the batch-means covariance."""
     layout = problem.layout
     system = it.system
-    if problem.stride != 1 and system.status.success:
+    if exact and not it.exact and system.status.success:
         system = problem.system(it.x, exact=True)  # the exact system for the covariance
     sigma2 = it.history[-1] / max(problem.observations - layout.size, 1)
     cov_all = _covariance(system, problem.ridge, sigma2)
@@ -700,6 +744,45 @@ def predicted_angle_error(
     ndarray (points,)
         std of eta on a uniform grid of y0 over one revolution.
     """
+    G = angle_error_gradient(flux, pole_pairs, projection=projection, offset=offset,
+                             points=points)  # fmt: skip
+    if about_mean:
+        G -= G.mean(axis=0)
+    C = np.asarray(covariance, float)
+    var = np.einsum("ij,jk,ik->i", G, C, G)
+    return np.sqrt(np.maximum(var, 0.0))
+
+
+def angle_error_gradient(
+    flux: FluxModel,
+    pole_pairs: int,
+    *,
+    projection: ArrayLike,
+    offset: ArrayLike,
+    points: int = 512,
+) -> NDArray[np.float64]:
+    """d eta(y0) / d theta on a uniform grid of y0 over one revolution [rad per unit of theta].
+
+    ``eta = y0 - f_init(g_theta(y0))`` (eq. recon_biject), so ``d eta / d theta = -(1/n_m)
+    d psi/d d . (I_3 kron beta(y0))``; the rows of :func:`predicted_angle_error`.
+
+    Parameters
+    ----------
+    flux : FluxModel
+        g_theta.
+    pole_pairs : int
+        n_m.
+    projection : array_like (2, 3), keyword-only
+        Clarke's projection of f_init.
+    offset : array_like (3,), keyword-only
+        Sensor offsets removed before it.
+    points : int, keyword-only
+        Grid points over the revolution.
+
+    Returns
+    -------
+    ndarray (points, 3 m)
+    """
     y0 = TWO_PI * np.arange(points) / points
     B = flux.basis.evaluate(y0)  # (M, m)
     g = flux(y0) - np.asarray(offset, float)
@@ -707,9 +790,4 @@ def predicted_angle_error(
     ab = g @ P.T
     rho2 = ab[:, 0] ** 2 + ab[:, 1] ** 2
     dpsi = (ab[:, [0]] * P[1] - ab[:, [1]] * P[0]) / rho2[:, None]  # (M, 3)
-    G = -(dpsi[:, :, None] * B[:, None, :]).reshape(points, -1) / pole_pairs  # (M, 3m)
-    if about_mean:
-        G -= G.mean(axis=0)
-    C = np.asarray(covariance, float)
-    var = np.einsum("ij,jk,ik->i", G, C, G)
-    return np.sqrt(np.maximum(var, 0.0))
+    return -(dpsi[:, :, None] * B[:, None, :]).reshape(points, -1) / pole_pairs  # (M, 3m)

@@ -44,7 +44,7 @@ SUMMARY_SCHEMA = pa.schema(
 SUMMARY_COLUMNS: tuple[str, ...] = tuple(SUMMARY_SCHEMA.names)
 
 
-class MotorStatus(enum.Enum):
+class MotorStatus(enum.StrEnum):
     """Outcome of one motor (the ``status`` column).
 
     ``ok`` and ``warning`` wrote an artifact; ``refused`` and ``failed`` did not.

@@ -19,6 +19,7 @@ from hallcal.errors import HallcalInputError
 from hallcal.fleet.manifest import MotorSpec
 from hallcal.fleet.summary import ARTIFACT_NAME, C_DIR, SUMMARY_COLUMNS, MotorStatus
 from hallcal.formatting import finite, one_line, ranges
+from hallcal.messages import Message, MessageCode
 
 if TYPE_CHECKING:
     from hallcal.api import Calibration
@@ -167,8 +168,9 @@ def _run_motor(task: _Task) -> _Result:
 
 def _calibrate_into(task: _Task, result: _Result) -> None:
     from hallcal.api import export_c  # the export defaults every entry point shares
-    from hallcal.io import load_artifact, read_dataset
+    from hallcal.io import read_artifact, read_dataset
     from hallcal.pipeline.calibration import CalibrationStatus
+    from hallcal.pipeline.verdict import refusal
 
     row = result.row
     cal = _calibrate(task.data, task.setup, task.bla_data)
@@ -176,15 +178,18 @@ def _calibrate_into(task: _Task, result: _Result) -> None:
     row["model"] = _model_text(cal.model_info)
     force = bool(cal.setup.model.force)  # as `hallcal calibrate` honours [model] force = true
     notes = list(cal.messages)
-    if cal.status is CalibrationStatus.NOT_BIJECTIVE or (cal.status.refused and not force):
-        reason = cal.refusal or (notes[0] if notes else str(cal.status))
-        row.update(status=MotorStatus.REFUSED.value, message=one_line(reason))
+    refused = refusal(
+        cal.status, cal.refusal or (notes[0].record() if notes else None), force=force
+    )
+    if refused is not None:
+        row.update(status=MotorStatus.REFUSED.value, message=one_line(refused.text))
         return
     status = MotorStatus.OK if cal.status is CalibrationStatus.OK else MotorStatus.WARNING
     if cal.status.refused:
-        notes.insert(0, f"model inadequate, written because [model] force = true: {cal.refusal}")
+        forced = f"model inadequate, written because [model] force = true: {cal.refusal}"
+        notes.insert(0, Message.note(MessageCode.FORCED, forced))
     elif cal.status is CalibrationStatus.WARNING and not notes:
-        notes.append("warning: see the artifact's diagnostics")
+        notes.append(Message.warning(MessageCode.SEE_DIAGNOSTICS, "see the artifact's diagnostics"))
     with tempfile.TemporaryDirectory(prefix="hallcal-fleet-") as tmp:
         cal.save(Path(tmp) / ARTIFACT_NAME, force=force)
         result.files[ARTIFACT_NAME] = (Path(tmp) / ARTIFACT_NAME).read_bytes()
@@ -192,13 +197,16 @@ def _calibrate_into(task: _Task, result: _Result) -> None:
             cdir = Path(tmp) / C_DIR
             try:
                 # from the saved file: the banner's sha256 is the artifact file's
-                art = load_artifact(Path(tmp) / ARTIFACT_NAME)
+                art = read_artifact(Path(tmp) / ARTIFACT_NAME)
                 res = export_c(art, cdir, adc_scale=task.adc_scale)
             except HallcalInputError as exc:  # the artifact stands; its C sources do not
                 status = MotorStatus.WARNING
-                notes.insert(0, f"warning: no C export: {exc}")
+                notes.insert(0, Message.warning(MessageCode.C_EXPORT, f"no C export: {exc}"))
             else:
-                notes += [f"C export: {m}" for m in getattr(res, "messages", [])]
+                notes += [
+                    Message.note(MessageCode.C_EXPORT, f"C export: {m}")
+                    for m in getattr(res, "messages", [])
+                ]
                 for p in sorted(cdir.iterdir()):
                     result.files[f"{C_DIR}/{p.name}"] = p.read_bytes()
     if task.validation is not None:
@@ -207,24 +215,26 @@ def _calibrate_into(task: _Task, result: _Result) -> None:
             rec = cal.reconstruct(ds)
             v = rec.validation
             if v is None:  # y_ref cannot be scored (a standstill run): the calibration stands
-                raise HallcalInputError(
-                    rec.messages[0].removeprefix("warning: validation skipped: ")
-                )
+                raise HallcalInputError(rec.messages[0].text.removeprefix("validation skipped: "))
             row["f_init_rms"] = finite(v.init.rms)
             row["f_star_rms"] = finite(v.star.rms)
             if v.star.rms > v.init.rms:
                 status = MotorStatus.WARNING
                 notes.insert(
                     0,
-                    f"warning: on the validation run f_star ({1e3 * v.star.rms:.3f} mrad RMS) is "
-                    f"worse than f_init ({1e3 * v.init.rms:.3f} mrad)",
+                    Message.warning(
+                        MessageCode.VALIDATION_WORSE,
+                        f"on the validation run f_star ({1e3 * v.star.rms:.3f} mrad RMS) is "
+                        f"worse than f_init ({1e3 * v.init.rms:.3f} mrad)",
+                    ),
                 )
         except HallcalInputError as exc:
             status = MotorStatus.WARNING
-            notes.insert(0, f"warning: validation run unusable: {exc}")
+            warning = f"validation run unusable: {exc}"
+            notes.insert(0, Message.warning(MessageCode.VALIDATION_SKIPPED, warning))
     row["status"] = status.value
     row["artifact"] = f"{task.motor_id}/{ARTIFACT_NAME}"
-    row["message"] = one_line(notes[0]) if notes else ""
+    row["message"] = one_line(notes[0].record()) if notes else ""
 
 
 def _failed_result(motor_id: str, message: str, *, retry: bool) -> _Result:

@@ -15,6 +15,7 @@ are in :mod:`hallcal.identify.parametric`.
 
 from __future__ import annotations
 
+import enum
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -33,6 +34,7 @@ from hallcal.identify._serial import (
 )
 
 __all__ = [
+    "BLAExperimentStatus",
     "NonparametricBLA",
     "nonparametric_bla",
 ]
@@ -42,6 +44,15 @@ _POWER_THRESHOLD = 1e-8  # excited line: reference power above this fraction of 
 
 # --------------------------------------------------------------------------------------------------
 # nonparametric BLA
+
+
+class BLAExperimentStatus(enum.StrEnum):
+    """What a multisine experiment cannot estimate (Pintelon & Schoukens 2012, sec. 3.8)."""
+
+    OK = "ok"
+    SINGLE_REALIZATION = "single_realization"  # M = 1: no nonlinear-distortion estimate
+    SINGLE_PERIOD = "single_period"  # P = 1: no noise estimate
+    SINGLE_REALIZATION_AND_PERIOD = "single_realization_and_period"  # both
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,9 +89,8 @@ class NonparametricBLA:
         Period N in samples.
     sample_time : float
         Sample time Ts [s].
-    status : str
-        ``"ok"``; ``"single-realization"`` (M = 1: no nonlinear-distortion estimate);
-        ``"single-period"`` (P = 1: no noise estimate); or both joined by ``"+"``.
+    status : BLAExperimentStatus
+        What the experiment cannot estimate (``ok``: nothing missing).
     """
 
     freq: np.ndarray
@@ -95,7 +105,10 @@ class NonparametricBLA:
     periods: int
     period_samples: int
     sample_time: float
-    status: str = "ok"
+    status: BLAExperimentStatus = BLAExperimentStatus.OK
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "status", BLAExperimentStatus(self.status))
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary: floats, lists of floats, complex values as ``[re, im]`` pairs.
@@ -142,7 +155,7 @@ class NonparametricBLA:
             periods=int(_get(data, "periods")),
             period_samples=int(_get(data, "period_samples")),
             sample_time=float(_get(data, "sample_time")),
-            status=str(data.get("status", "ok")),
+            status=BLAExperimentStatus(str(data.get("status", "ok"))),
         )
 
 
@@ -489,14 +502,14 @@ def _frf_variances(spec: _PeriodSpectra, frf: _IndirectFRF) -> _FRFVariances:
     return _FRFVariances(var_noise, var_total, var_nonlinear)
 
 
-def _bla_status(realizations: int, periods: int) -> str:
-    """``"ok"``, or what cannot be estimated: ``"single-realization"``, ``"single-period"``."""
-    status = []
-    if realizations < 2:
-        status.append("single-realization")
-    if periods < 2:
-        status.append("single-period")
-    return "+".join(status) if status else "ok"
+def _bla_status(realizations: int, periods: int) -> BLAExperimentStatus:
+    """``ok``, or what cannot be estimated (one realization, one period or both)."""
+    return {
+        (False, False): BLAExperimentStatus.OK,
+        (True, False): BLAExperimentStatus.SINGLE_REALIZATION,
+        (False, True): BLAExperimentStatus.SINGLE_PERIOD,
+        (True, True): BLAExperimentStatus.SINGLE_REALIZATION_AND_PERIOD,
+    }[(realizations < 2, periods < 2)]
 
 
 def _ratio_variance(

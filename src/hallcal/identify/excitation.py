@@ -13,6 +13,7 @@ lines for nonlinear distortions).
 
 from __future__ import annotations
 
+import enum
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
@@ -22,6 +23,7 @@ import numpy as np
 from hallcal.errors import HallcalInputError
 
 __all__ = [
+    "ExcitationStatus",
     "Multisine",
     "MultisineExperiment",
     "multisine",
@@ -30,6 +32,12 @@ __all__ = [
 ]
 
 LineSpec = Literal["full", "odd", "random-odd"]
+
+
+class ExcitationStatus(enum.StrEnum):
+    """Status of a designed excitation signal."""
+
+    OK = "ok"
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,8 +65,8 @@ class Multisine:
         Sample time ``Ts`` [s].
     rms : float
         RMS value of the signal over one period (equal to the requested value).
-    status : str
-        ``"ok"``.
+    status : ExcitationStatus
+        ``ok`` (a designed signal has nothing to report).
     """
 
     signal: np.ndarray
@@ -69,7 +77,7 @@ class Multisine:
     period_samples: int
     sample_time: float
     rms: float
-    status: str = "ok"
+    status: ExcitationStatus = ExcitationStatus.OK
 
 
 @dataclass(frozen=True, eq=False)
@@ -112,8 +120,8 @@ class MultisineExperiment:
         RMS of the multisine part.
     drift : float
         Slope of the ramp [rad/s].
-    status : str
-        ``"ok"``.
+    status : ExcitationStatus
+        ``ok`` (a designed signal has nothing to report).
     """
 
     r: np.ndarray
@@ -131,7 +139,7 @@ class MultisineExperiment:
     sample_time: float
     rms: float
     drift: float
-    status: str = "ok"
+    status: ExcitationStatus = ExcitationStatus.OK
 
 
 def ramp(n_samples: int, *, start: float = 0.0, stop: float) -> np.ndarray:

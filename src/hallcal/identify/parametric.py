@@ -12,6 +12,7 @@ elsewhere (:meth:`ParametricBLA.scaled`).
 
 from __future__ import annotations
 
+import enum
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -32,6 +33,7 @@ from hallcal.identify._serial import (
 from hallcal.identify.bla import NonparametricBLA
 
 __all__ = [
+    "FitStatus",
     "OrderCandidate",
     "OrderSelection",
     "ParametricBLA",
@@ -39,6 +41,13 @@ __all__ = [
     "model_poles",
     "select_order",
 ]
+
+
+class FitStatus(enum.StrEnum):
+    """Outcome of the parametric fit of G(s)."""
+
+    OK = "ok"
+    NOT_CONVERGED = "not_converged"  # the evaluation budget ran out
 
 
 @dataclass(frozen=True, eq=False)
@@ -75,8 +84,15 @@ class ParametricBLA:
         Model evaluations of the nonlinear least-squares refinement.
     gain_scale : float
         Product of the factors applied by :meth:`scaled` since the fit (1 for a fresh fit).
-    status : str
-        ``"ok"`` or ``"not-converged"`` (evaluation budget exhausted).
+    status : FitStatus
+        ``ok`` or ``not_converged`` (evaluation budget exhausted).
+    deviations : tuple of (num, den, delay)
+        The model moved by one standard deviation along each principal direction of the
+        parameters' covariance (``sigma_i v_i`` for the eigenpairs of
+        ``max(1, cost / (2 F - p)) (J^T J)^-1`` at the optimum, Pintelon & Schoukens 2012,
+        sec. 9.11): what the data of the BLA leave undetermined, as whole models that a
+        calibration can propagate (:func:`hallcal.pipeline.closed_loop` uses them for the table's
+        bias). Empty when the Jacobian is singular.
     """
 
     num: np.ndarray
@@ -91,7 +107,11 @@ class ParametricBLA:
     stable: bool = True
     nfev: int = 0
     gain_scale: float = 1.0
-    status: str = "ok"
+    status: FitStatus = FitStatus.OK
+    deviations: tuple[tuple[np.ndarray, np.ndarray, float], ...] = field(default=(), repr=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "status", FitStatus(self.status))
 
     def frequency_response(self, freq_hz: np.ndarray | float, *, zoh: bool = False) -> np.ndarray:
         """``G(j 2 pi f) = exp(-j 2 pi f delay) num / den`` at the frequencies ``freq_hz`` [Hz].
@@ -124,7 +144,12 @@ class ParametricBLA:
         c = float(c)
         if not np.isfinite(c) or c == 0.0:
             raise ValueError(f"scale factor must be finite and nonzero, got {c!r}")
-        return replace(self, num=np.asarray(self.num) * c, gain_scale=self.gain_scale * c)
+        return replace(
+            self,
+            num=np.asarray(self.num) * c,
+            gain_scale=self.gain_scale * c,
+            deviations=tuple((np.asarray(n) * c, dd, t) for n, dd, t in self.deviations),
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary (floats and lists of floats).
@@ -184,7 +209,7 @@ class ParametricBLA:
             stable=bool(data.get("stable", True)),
             nfev=int(data.get("nfev", 0)),
             gain_scale=float(data.get("gain_scale", 1.0)),
-            status=str(data.get("status", "ok")),
+            status=FitStatus(str(data.get("status", "ok"))),
         )
 
 
@@ -282,7 +307,8 @@ def fit_parametric(
         weights=weights,
         stable=stable,
         nfev=fit.nfev,
-        status="ok" if fit.converged else "not-converged",
+        status=FitStatus.OK if fit.converged else FitStatus.NOT_CONVERGED,
+        deviations=_deviations(sc, fit),
     )
 
 
@@ -470,6 +496,7 @@ class _RefinedFit:
     cost: float
     nfev: int
     converged: bool
+    covariance: np.ndarray | None = None  # of (b, a, tau) (scaled), None when J^T J is singular
 
 
 def _output_error_refinement(sc: _ScaledProblem, start: _StartValues) -> _RefinedFit:
@@ -504,9 +531,43 @@ def _output_error_refinement(sc: _ScaledProblem, start: _StartValues) -> _Refine
     cost = float(np.sum(oe.residual(theta) ** 2))
     start_cost = float(np.sum(oe.residual(theta0) ** 2))
     if start_cost < cost:  # never worse than the linear start
+        theta = theta0
         b, a, tau = oe.unpack(theta0)
         cost = start_cost
-    return _RefinedFit(b, a, tau, cost, int(sol.nfev), sol.status > 0)
+    return _RefinedFit(b, a, tau, cost, int(sol.nfev), sol.status > 0,
+                       _covariance(oe.jacobian(theta), cost))  # fmt: skip
+
+
+def _covariance(jac: np.ndarray, cost: float) -> np.ndarray | None:
+    """Covariance of the weighted least-squares estimate, ``s^2 (J^T J)^-1`` with
+    ``s^2 = max(1, cost / (rows - p))``: the variances of the data as given, or the fit's own
+    residual level when the model does not reach them (structure error; Pintelon & Schoukens
+    2012, sec. 9.11). None when ``J^T J`` is singular."""
+    rows, p = jac.shape
+    jtj = jac.T @ jac
+    if rows <= p or not np.all(np.isfinite(jtj)) or np.linalg.cond(jtj) > 1e14:
+        return None
+    return np.linalg.inv(jtj) * max(1.0, cost / (rows - p))
+
+
+def _deviations(
+    sc: _ScaledProblem, fit: _RefinedFit
+) -> tuple[tuple[np.ndarray, np.ndarray, float], ...]:
+    """The model moved by one standard deviation along each principal direction of its
+    covariance (``num``, ``den``, delay [s] each); the delay kept >= 0."""
+    if fit.covariance is None:
+        return ()
+    lam, vec = np.linalg.eigh(0.5 * (fit.covariance + fit.covariance.T))
+    theta = np.concatenate([fit.b, fit.a, [fit.tau] if sc.order.fit_delay else []])
+    nb, na = sc.order.nb, sc.order.na
+    out = []
+    for k in range(theta.size):
+        th = theta + math.sqrt(max(float(lam[k]), 0.0)) * vec[:, k]
+        tau = max(float(th[-1]), 0.0) if sc.order.fit_delay else fit.tau
+        moved = replace(fit, b=th[: nb + 1], a=th[nb + 1 : nb + 1 + na], tau=tau)
+        num, den, _ = _unscaled_model(sc, moved)
+        out.append((num, den, tau / sc.w0))
+    return tuple(out)
 
 
 def _unscaled_model(sc: _ScaledProblem, fit: _RefinedFit) -> tuple[np.ndarray, np.ndarray, bool]:

@@ -2,8 +2,10 @@
 one validator, one typed view, reading and writing.
 
 :func:`validate_artifact` is the only place that decides whether an artifact may be used; it
-returns an :class:`ArtifactData` (read-only arrays, the parsed :class:`Setup`) that every consumer
-(``reconstruct``, ``report``, ``export-c``, :func:`hallcal.load`) works from. It checks the format
+returns an :class:`ArtifactData` (read-only arrays, the parsed :class:`Setup`, and read-only
+mapping access to every key) that every consumer (``reconstruct``, ``report``, ``export-c``,
+``fleet``, :func:`hallcal.load`) works from; :func:`read_artifact` is the one reader and
+:func:`write_artifact` the one writer. It checks the format
 and version, the numbers (finite, within :mod:`hallcal.limits`), f_init's projection (rank 2, a
 sane condition number, a plausible scale), the lookup table (node count, monotone nodes, bijective
 map, corrections below pi), the flux model's shape, the setup and the optional plant.
@@ -15,7 +17,7 @@ import hashlib
 import json
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
@@ -31,7 +33,6 @@ from hallcal.io.files import (
     _dump_json,
     _read_json_raw,
     atomic_write,
-    read_json,
     to_jsonable,
 )
 from hallcal.io.setup import Setup, _is_int, _is_number, _parse_setup, _show
@@ -53,13 +54,16 @@ from hallcal.limits import (
 )
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT
+from hallcal.sim.cogging import CoggingTorque
+from hallcal.sim.lti import ContinuousTF
 
 __all__ = [
     "ARTIFACT_FORMAT",
     "ARTIFACT_STATUSES",
+    "RENAMED_VALUES",
     "ArtifactData",
     "TIMING_KEYS",
-    "load_artifact",
+    "migrate_values",
     "read_artifact",
     "validate_artifact",
     "without_timings",
@@ -103,7 +107,59 @@ ARTIFACT_FORMAT = "hallcal-calibration/1"
 
 #: Values of ``diagnostics.status``: those of :class:`hallcal.pipeline.CalibrationStatus`, which
 #: lives above this layer (tests/test_limits.py checks that the two agree).
-ARTIFACT_STATUSES = ("ok", "warning", "inadequate", "not-bijective")
+ARTIFACT_STATUSES = ("ok", "warning", "inadequate", "not_bijective")
+
+#: Status values renamed to the one spelling (snake_case) after 0.1.0, old -> new: a file
+#: written before (artifact or ``hallcal-bla/1``) is read with the new values
+#: (:func:`migrate_values`; CHANGELOG.md states the migration).
+RENAMED_VALUES: Mapping[str, str] = {
+    "not-bijective": "not_bijective",
+    "needs-motion": "needs_motion",
+    "not-identifiable": "not_identifiable",
+    "weak-positions": "weak_positions",
+    "too-uniform": "too_uniform",
+    "below-model-uncertainty": "below_model_uncertainty",
+    "partial-coverage": "partial_coverage",
+    "not-found": "not_found",
+    "not-converged": "not_converged",
+    "single-realization": "single_realization",
+    "single-period": "single_period",
+    "single-realization+single-period": "single_realization_and_period",
+}
+
+#: Keys whose values :data:`RENAMED_VALUES` renames, at any depth.
+_RENAMED_KEYS = ("status", "reason")
+
+
+def migrate_values(data: Any) -> Any:
+    """Rename the old status values of a parsed file in place (:data:`RENAMED_VALUES`).
+
+    Every ``"status"`` and ``"reason"`` key at any depth of nested objects; other values are
+    left as they are.
+
+    Parameters
+    ----------
+    data : object
+        Parsed JSON (an artifact or a ``hallcal-bla/1`` document).
+
+    Returns
+    -------
+    object
+        `data`, renamed in place.
+    """
+    stack = [data]  # no recursion: a hostile file's nesting cannot exhaust the stack
+    while stack:
+        node = stack.pop()
+        if isinstance(node, dict):
+            for key, value in node.items():
+                if key in _RENAMED_KEYS and isinstance(value, str):
+                    node[key] = RENAMED_VALUES.get(value, value)
+                elif isinstance(value, dict | list):
+                    stack.append(value)
+        elif node and isinstance(node[0], dict | list):  # lists of numbers are left alone
+            stack.extend(node)
+    return data
+
 
 TWO_PI = 2.0 * math.pi
 
@@ -118,8 +174,11 @@ def _readonly(a: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 @dataclass(frozen=True, eq=False)
-class ArtifactData:
+class ArtifactData(Mapping[str, Any]):
     """A calibration artifact that passed :func:`validate_artifact`: typed, read-only.
+
+    Also a read-only mapping of the artifact's JSON keys (``art["lut"]["eta"]``,
+    ``art.get("plant")``, ``dict(art)``), so that code reading one key needs no second form.
 
     Attributes
     ----------
@@ -150,7 +209,10 @@ class ArtifactData:
     source : str
         Where it came from (the file), for messages.
     file_sha256 : str or None
-        SHA-256 of the file's bytes when read from a file (:func:`load_artifact`).
+        SHA-256 of the file's bytes when read from a file (:func:`read_artifact`).
+    bijective_checked : bool
+        False when validated with ``bijective=False`` (an in-memory refused calibration's
+        report): checked again, not passed through, where a usable table is required.
     """
 
     format: str
@@ -167,6 +229,16 @@ class ArtifactData:
     data: Mapping[str, Any] = field(repr=False)
     source: str = "<artifact>"
     file_sha256: str | None = None
+    bijective_checked: bool = field(default=True, repr=False)
+
+    def __getitem__(self, key: str) -> Any:
+        return self.data[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.data)
+
+    def __len__(self) -> int:
+        return len(self.data)
 
     @property
     def points(self) -> int:
@@ -180,7 +252,7 @@ class ArtifactData:
 
     @cached_property
     def sha256(self) -> str:
-        """SHA-256 of the artifact file as read (:func:`load_artifact`: what ``sha256sum``
+        """SHA-256 of the artifact file as read (:func:`read_artifact`: what ``sha256sum``
         prints for it), else of the artifact's canonical JSON (sorted keys, no spaces)."""
         if self.file_sha256 is not None:
             return self.file_sha256
@@ -190,6 +262,32 @@ class ArtifactData:
     def lut(self) -> LUT:
         """The lookup table and the f_init it corrects (:class:`hallcal.sensor.lut.LUT`)."""
         return LUT.from_arrays(self.pole_pairs, self.projection, self.offset, self.y_hat, self.eta)
+
+    def plant_model(self) -> ContinuousTF | None:
+        """The plant G(s) the calibration used (``plant``: gain correction applied), or None
+        when the artifact has none (open-loop runs, older artifacts)."""
+        p = self.plant
+        if p is None:
+            return None
+        num, den = (tuple(float(v) for v in p[k]) for k in ("num", "den"))
+        return ContinuousTF(num, den, float(p["delay"]))
+
+    def cogging_torque(self) -> CoggingTorque | None:
+        """The cogging torque identified with the flux (``cogging``), or None.
+
+        Raises
+        ------
+        HallcalInputError
+            When the model refuses the checked coefficients (the message names the key).
+        """
+        if self.data.get("cogging") is None:
+            return None
+        try:
+            return CoggingTorque.from_dict(self.data["cogging"])
+        except ValueError as exc:
+            raise HallcalInputError(
+                f"{self.source}: key 'cogging': {exc}", source=self.source, key="cogging"
+            ) from None
 
     def flux(self) -> FluxModel:
         """The flux model as a Fourier series (a kernel model stores its harmonics and
@@ -505,11 +603,14 @@ def _check_plant(c: _Checker, plant: Mapping[str, Any], setup: Setup) -> None:
         c.text(plant["source"], "plant.source", optional=True)
 
 
-def validate_artifact(artifact: Mapping[str, Any], source: str = "<artifact>") -> ArtifactData:
+def validate_artifact(
+    artifact: Mapping[str, Any], source: str = "<artifact>", *, bijective: bool = True
+) -> ArtifactData:
     """Check a calibration artifact and return its typed view: the one validator.
 
-    Accepts the parsed JSON (:func:`read_json`) or the in-memory artifact of a calibration
-    (NumPy arrays, a :class:`Setup`), which is converted to plain JSON data first.
+    Accepts the parsed JSON (:func:`~hallcal.io.read_json`) or the in-memory artifact of a
+    calibration (NumPy arrays, a :class:`Setup`), which is converted to plain JSON data first;
+    an :class:`ArtifactData` (already checked) is returned as it is.
 
     Checks, each with a one-line message naming `source` and the key:
 
@@ -536,6 +637,10 @@ def validate_artifact(artifact: Mapping[str, Any], source: str = "<artifact>") -
         The artifact.
     source : str
         Its name for messages (normally the file).
+    bijective : bool, keyword-only
+        False also accepts a table that is not bijective: the in-memory artifact of a
+        calibration refused as not bijective, for its report (such an artifact is never
+        written: :func:`write_artifact` keeps the default).
 
     Returns
     -------
@@ -546,6 +651,8 @@ def validate_artifact(artifact: Mapping[str, Any], source: str = "<artifact>") -
     HallcalInputError
         The first problem found.
     """
+    if isinstance(artifact, ArtifactData) and (artifact.bijective_checked or not bijective):
+        return artifact
     c = _Checker(source)
     if not isinstance(artifact, Mapping):
         c.bad("not a hallcal calibration artifact (not a JSON object)")
@@ -554,6 +661,7 @@ def validate_artifact(artifact: Mapping[str, Any], source: str = "<artifact>") -
     except (ValueError, TypeError) as exc:
         c.bad(str(exc))
     _check_parsed(source, data)
+    migrate_values(data)
     if "format" not in data:
         c.bad("not a hallcal calibration artifact (format key missing)")
     if data["format"] != ARTIFACT_FORMAT:
@@ -573,11 +681,10 @@ def validate_artifact(artifact: Mapping[str, Any], source: str = "<artifact>") -
     for key in ("reconstruction", "lut", "model", "diagnostics"):
         c.mapping(data[key], key)
     projection, offset = _check_projection(c, data["reconstruction"])
-    folding = False
+    folding = not bijective
     if data.get("observer") is not None:
-        folding = _check_observer(c, data["observer"]) and (
-            data["diagnostics"].get("status") == "not-bijective"
-        )
+        injective = _check_observer(c, data["observer"])
+        folding |= injective and data["diagnostics"].get("status") == "not_bijective"
     y_hat, eta = _check_lut(c, data["lut"], int(n), folding=folding)
     _check_model(c, data["model"])
     if data.get("cogging") is not None:
@@ -611,12 +718,13 @@ def validate_artifact(artifact: Mapping[str, Any], source: str = "<artifact>") -
         plant=plant,
         data=data,
         source=source,
+        bijective_checked=bijective,
     )
 
 
 def _check_observer(c: _Checker, entry: Any) -> bool:
     """The ``observer`` entry (:mod:`hallcal.pipeline.observe`); True when it says the
-    three-signal curve is injective, which lets a folding map's table (status "not-bijective")
+    three-signal curve is injective, which lets a folding map's table (status "not_bijective")
     be stored for the observer."""
     entry = c.mapping(entry, "observer")
     nv = c.array(c.need(entry, "noise_variance", "observer.noise_variance"),
@@ -696,8 +804,8 @@ def write_artifact(path: str | os.PathLike[str], artifact: Mapping[str, Any]) ->
         f.write(text)
 
 
-def load_artifact(path: str | os.PathLike[str]) -> ArtifactData:
-    """Read a calibration artifact and return its checked, typed view.
+def read_artifact(path: str | os.PathLike[str]) -> ArtifactData:
+    """Read a calibration artifact and return its checked, typed view: the one reader.
 
     Parameters
     ----------
@@ -708,41 +816,16 @@ def load_artifact(path: str | os.PathLike[str]) -> ArtifactData:
     -------
     ArtifactData
         The validated content: pole pairs, f_init's projection and offsets and the table
-        nodes as arrays, the setup as a :class:`Setup`, the rest as read-only mappings.
-
-    Raises
-    ------
-    HallcalInputError
-        Missing file, invalid JSON or anything :func:`validate_artifact` refuses.
-    """
-    data, raw = _read_json_raw(path)
-    art = validate_artifact(data, str(Path(path)))
-    return replace(art, file_sha256=hashlib.sha256(raw).hexdigest())
-
-
-def read_artifact(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Read and check a calibration artifact; return it as parsed JSON.
-
-    The checks are those of :func:`validate_artifact` (use :func:`load_artifact` for the typed
-    view).
-
-    Parameters
-    ----------
-    path : path-like
-        The artifact (JSON).
-
-    Returns
-    -------
-    dict
-        The artifact as parsed JSON (lists, not arrays). ``setup_from_dict(a["setup"])`` gives
-        the :class:`Setup`.
+        nodes as arrays, the setup as a :class:`Setup`, every key as a read-only mapping
+        (``art["plant"]``), and the SHA-256 of the file's bytes.
 
     Raises
     ------
     HallcalInputError
         Missing file, invalid JSON, not an artifact, unsupported format, or a missing, malformed
-        or implausible key (named in the message).
+        or implausible key (named in the message): anything :func:`validate_artifact` refuses.
     """
-    data = read_json(path)
-    validate_artifact(data, str(Path(path)))
-    return data
+    data, raw = _read_json_raw(path)
+    data = migrate_values(data)
+    art = validate_artifact(data, str(Path(path)))
+    return replace(art, file_sha256=hashlib.sha256(raw).hexdigest())

@@ -666,6 +666,8 @@ def to_jsonable(obj: Any, *, where: str = "") -> Any:
             out[key] = to_jsonable(value, where=f"{where}.{key}" if where else key)
         return out
     if isinstance(obj, list | tuple):
+        if all(type(v) is float for v in obj) and all(map(math.isfinite, obj)):
+            return list(obj)  # a table's worth of plain finite floats: nothing to convert
         return [to_jsonable(v, where=f"{where}[{i}]") for i, v in enumerate(obj)]
     to_dict = getattr(obj, "to_dict", None)
     if callable(to_dict):

@@ -11,8 +11,9 @@ import dataclasses
 import json
 import math
 import os
+import re
 import tomllib
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, NoReturn
 
@@ -31,7 +32,6 @@ from hallcal.io.files import (
     atomic_write,
 )
 from hallcal.limits import (
-    MAX_ABS_VALUE,
     MAX_BENCH_ELECTRICAL_HARMONICS,
     MAX_COGGING_ORDERS,
     MAX_DELAY_SAMPLES,
@@ -49,6 +49,8 @@ from hallcal.limits import (
     MIN_LENGTHSCALE,
     MIN_LUT_POINTS,
 )
+from hallcal.settings import REQUIRED, Setting, render_table, setting, settings_of, toml_value
+from hallcal.sim.bench_spec import BenchSpec
 from hallcal.sim.lti import ContinuousTF, DiscreteTF
 
 __all__ = [
@@ -57,54 +59,98 @@ __all__ = [
     "ModelSpec",
     "Setup",
     "TrajectorySpec",
+    "SETUP_SCHEMA",
     "default_setup",
     "read_setup",
+    "render_setup_reference",
     "setup_from_dict",
     "setup_to_toml",
     "write_setup",
 ]
 
 
-def _tuple_of_floats(values: Iterable[Any]) -> tuple[float, ...]:
-    return tuple(float(v) for v in values)
-
-
 @dataclass(frozen=True)
 class ModelSpec:
     """Flux model and solver options (``[model]``; paper, section on the flux model g_theta).
 
-    Attributes
-    ----------
-    basis : {"fourier", "kernel"}
-        Fourier series in the mechanical angle, or the periodic kernel basis.
-    harmonics : tuple of int or "auto"
-        Fourier basis: mechanical harmonics (the constant term is always included); ``"auto"``
-        leaves the choice to the calibration.
-    points : int
-        Kernel basis: number of kernel centres on [0, 2 pi).
-    lengthscale : float or "auto"
-        Kernel basis: length scale l of the kernel.
-    lut_points : int
-        Number M of grid points of the lookup table.
-    max_iterations : int
-        Iteration limit of the simulation-error minimization.
-    force : bool
-        Write the artifact even when the adequacy check fails.
-    cogging : tuple of int, "auto" or "none"
-        Cogging torque ``sum_k a_k cos(k y0) + b_k sin(k y0)`` at the plant input, identified
-        jointly with the flux: its orders k (periods per revolution), chosen from the data
-        (``"auto"``: nothing is added when the data show no cogging), or none. Identified with
-        the Fourier basis; the kernel basis accepts "auto" and "none" and models no cogging.
+    Every attribute is a setup key, declared on its field with its type, accepted values,
+    default and meaning (:func:`hallcal.settings.settings_of`; ``docs/setup-reference.md``).
+    ``harmonics`` and ``cogging`` are tuples of int, or a string (``"auto"``, ``"none"``).
     """
 
-    basis: Literal["fourier", "kernel"] = "fourier"
-    harmonics: tuple[int, ...] | Literal["auto"] = "auto"
-    points: int = 400
-    lengthscale: float | Literal["auto"] = "auto"
-    lut_points: int = 4096
-    max_iterations: int = 50
-    force: bool = False
-    cogging: tuple[int, ...] | Literal["auto", "none"] = "auto"
+    basis: Literal["fourier", "kernel"] = setting(
+        "fourier",
+        kind="choice",
+        choices=("fourier", "kernel"),
+        doc="Fourier series in the mechanical angle, or the paper's periodic kernel basis "
+        "(closed loop only).",
+    )
+    harmonics: tuple[int, ...] | Literal["auto"] = setting(
+        "auto",
+        kind="custom",
+        only=("basis", "fourier"),
+        limit=MAX_HARMONIC,
+        max_length=MAX_HARMONICS,
+        type_text="list of integers or string",
+        accepts='distinct integers ≥ 1, or `"auto"`',
+        doc="Mechanical harmonics of the flux model (the constant term is always included). "
+        '`"auto"`: chosen from the data with an adequacy check, then narrowed to the narrowest '
+        "band 1..E whose dropped harmonics the run does not need (Wald test on the wide fit), "
+        "within a budget of work (SEM fits, Gauss-Newton iterations), never of time (closed "
+        "loop); every harmonic 1 .. 3 n_m (constant speed). A search stopped by its budget says "
+        "so in a warning and in the artifact's `diagnostics.model_selection`.",
+    )
+    points: int = setting(
+        400,
+        kind="integer",
+        minimum=8,
+        limit=MAX_KERNEL_POINTS,
+        only=("basis", "kernel"),
+        doc="Number m of kernel centres on one revolution.",
+    )
+    lengthscale: float | Literal["auto"] = setting(
+        "auto",
+        kind="custom",
+        only=("basis", "kernel"),
+        unit="rad",
+        type_text="number or string",
+        accepts=f'{MIN_LENGTHSCALE:g} .. {MAX_LENGTHSCALE:g} or `"auto"`',
+        doc='Length scale of the kernel; `"auto"` chooses it by the evidence.',
+    )
+    lut_points: int = setting(
+        4096,
+        kind="integer",
+        minimum=MIN_LUT_POINTS,
+        limit=MAX_LUT_POINTS,
+        doc="Grid points M of the lookup table over one revolution.",
+    )
+    max_iterations: int = setting(
+        50,
+        kind="integer",
+        minimum=1,
+        limit=MAX_ITERATIONS,
+        doc="Iteration limit of the simulation-error minimization (and of the constant-speed fit).",
+    )
+    force: bool = setting(
+        False,
+        kind="boolean",
+        doc="Write the artifact even when the model is judged inadequate (as `--force`). A "
+        "table that is not bijective is never written.",
+    )
+    cogging: tuple[int, ...] | Literal["auto", "none"] = setting(
+        "auto",
+        kind="custom",
+        limit=MAX_HARMONIC,
+        max_length=MAX_COGGING_ORDERS,
+        type_text="list of integers or string",
+        accepts=f"at most {MAX_COGGING_ORDERS} distinct integers 0 .. {MAX_HARMONIC} (periods "
+        'per revolution; 0 a constant load torque), `"auto"` or `"none"`; orders only with '
+        '`basis = "fourier"`',
+        doc="Cogging torque at the plant input, Σ a_k cos(k y0) + b_k sin(k y0) [unit of u], "
+        'identified jointly with the flux; order 0 is a constant load torque a_0. `"auto"` '
+        "adds the orders the data show (nothing when they show no cogging) and a constant load "
+        'torque when it is significant; `"none"` models none. Closed loop only.',
+    )
 
     def __post_init__(self) -> None:
         if self.harmonics != "auto":
@@ -117,141 +163,135 @@ class ModelSpec:
 class TrajectorySpec:
     """How the true angle moved during the calibration run (``[trajectory]``).
 
-    Attributes
-    ----------
-    kind : {"closed-loop", "constant-speed"}
-        Closed-loop ramp tracking (the paper), or an open-loop spin at constant speed.
-    start, stop : int, int or None
-        Constant speed: sample indices of the constant-speed part, ``stop`` exclusive
-        (``None``: end of the data).
+    Every attribute is a setup key declared on its field (:func:`hallcal.settings.settings_of`);
+    ``stop`` is None for the end of the data.
     """
 
-    kind: Literal["closed-loop", "constant-speed"] = "closed-loop"
-    start: int = 0
-    stop: int | None = None
+    kind: Literal["closed-loop", "constant-speed"] = setting(
+        "closed-loop",
+        kind="choice",
+        choices=("closed-loop", "constant-speed"),
+        doc="Closed-loop ramp tracking with f_init feedback (the paper), or an open-loop spin at "
+        "constant speed.",
+    )
+    start: int = setting(
+        0,
+        kind="integer",
+        minimum=0,
+        limit=MAX_SAMPLES,
+        unit="samples",
+        only=("kind", "constant-speed"),
+        doc="First sample of the constant-speed part used for calibration. `hallcal inspect` "
+        "suggests it.",
+    )
+    stop: int | None = setting(
+        None,
+        kind="integer",
+        minimum=1,
+        limit=MAX_SAMPLES,
+        unit="samples",
+        only=("kind", "constant-speed"),
+        default_text="end of the data",
+        accepts="> `start`",
+        doc="End (exclusive) of that part. Keep some constant-speed revolutions after it to "
+        "check the result (the report's straight-line check uses them).",
+    )
 
 
 @dataclass(frozen=True)
 class BLASpec:
     """Multisine experiment for the Best Linear Approximation (``[bla]``; Pintelon & Schoukens).
 
-    Attributes
-    ----------
-    period_samples : int
-        Samples per multisine period (>= 8).
-    periods : int
-        Periods per realization, including the transient ones (>= 2).
-    transient_periods : int
-        Leading periods discarded in each realization (< periods).
-    realizations : int
-        Number of random-phase realizations.
-    band : tuple of float
-        ``(f_lo, f_hi)`` excited frequency band in Hz.
-    rms : float
-        RMS of the multisine in rad.
-    lines : {"full", "odd", "random-odd"}
-        Which frequency lines in the band are excited.
-    drift : float
-        Speed in rad/s of the slow ramp the multisine rides on.
-    numerator_order : int
-        Order of the numerator of the parametric model fitted to the BLA.
-    denominator_order : int or "auto"
-        Order of its denominator, the integrator pole excluded (the paper's G(s) is numerator
-        0, denominator 2, integrator; a motor with one mechanical pole is denominator 1);
-        ``"auto"`` chooses 0..3 from the data (stable fits only, minimum description length).
-    integrator : bool
-        Whether the parametric model has a pole at s = 0.
-    fit_delay : bool
-        Whether the parametric model has an input delay estimated from the data.
+    Every attribute is a setup key declared on its field (:func:`hallcal.settings.settings_of`).
+    ``denominator_order`` counts the poles without the integrator (the paper's G(s) is numerator
+    0, denominator 2, integrator; a motor with one mechanical pole is denominator 1).
     """
 
-    period_samples: int
-    periods: int
-    transient_periods: int = 1
-    realizations: int = 8
-    band: tuple[float, float] = (1.0, 400.0)
-    rms: float = 0.05
-    lines: Literal["full", "odd", "random-odd"] = "random-odd"
-    drift: float = 1.0
-    numerator_order: int = 0
-    denominator_order: int | Literal["auto"] = "auto"
-    integrator: bool = True
-    fit_delay: bool = True
+    period_samples: int = setting(
+        kind="integer",
+        minimum=8,
+        limit=MAX_SAMPLES,
+        unit="samples",
+        doc="Period N of the multisine: the frequency resolution is 1 / (N Ts).",
+    )
+    periods: int = setting(
+        kind="integer",
+        minimum=2,
+        limit=MAX_SAMPLES,
+        doc="Periods per realization, transient periods included.",
+    )
+    transient_periods: int = setting(
+        1,
+        kind="integer",
+        minimum=0,
+        accepts="≥ 0 and < `periods`",
+        doc="Leading periods of each realization dropped (the loop's transient after the "
+        "switch). At least 2 steady-state periods are needed for the noise estimate.",
+    )
+    realizations: int = setting(
+        8,
+        kind="integer",
+        minimum=1,
+        limit=MAX_REALIZATIONS,
+        doc="Random-phase realizations M (the total variance needs M ≥ 2).",
+    )
+    band: tuple[float, float] = setting(
+        (1.0, 400.0),
+        kind="numbers",
+        length=2,
+        unit="Hz",
+        accepts="0 ≤ f_lo < f_hi ≤ Nyquist, holding at least one line",
+        doc="Excited frequency band.",
+    )
+    rms: float = setting(
+        0.05, kind="number", positive=True, unit="rad", doc="RMS of the multisine reference."
+    )
+    lines: Literal["full", "odd", "random-odd"] = setting(
+        "random-odd",
+        kind="choice",
+        choices=("full", "odd", "random-odd"),
+        doc="Excited lines in the band (random-odd leaves detection lines for nonlinear "
+        "distortion).",
+    )
+    drift: float = setting(
+        1.0,
+        kind="number",
+        unit="rad/s",
+        doc="Speed of the slow ramp under the multisine, so that the rotor turns through many "
+        "positions.",
+    )
+    numerator_order: int = setting(
+        0,
+        kind="integer",
+        minimum=0,
+        limit=MAX_TF_ORDER,
+        accepts="≥ 0, ≤ `denominator_order` when that is an integer",
+        doc="Order of the numerator B(s) of the fitted G(s) = exp(-s τ) B(s) / (s A(s)).",
+    )
+    denominator_order: int | Literal["auto"] = setting(
+        "auto",
+        kind="custom",
+        limit=MAX_TF_ORDER,
+        type_text="integer or string",
+        accepts='≥ 0 or `"auto"`',
+        doc="Order of A(s), the integrator not counted: 1 for a motor with one mechanical pole "
+        '(K / (s (s + a))), 2 for the paper\'s plant. `"auto"` fits 0..3 and keeps the stable '
+        "order with the smallest description length; an order that gives an unstable fit is "
+        "refused with the order to use named.",
+    )
+    integrator: bool = setting(
+        True,
+        kind="boolean",
+        doc="Whether G(s) has a pole at s = 0 (a position plant has).",
+    )
+    fit_delay: bool = setting(
+        True,
+        kind="boolean",
+        doc="Estimate the input delay τ from the BLA's phase (else τ = 0).",
+    )
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "band", _tuple_of_floats(self.band))
-
-
-@dataclass(frozen=True)
-class BenchSpec:
-    """Virtual bench used by ``hallcal simulate`` (``[bench]``); defaults are the paper's.
-
-    Attributes
-    ----------
-    experiment : {"ramp", "multisine"}
-        Calibration ramp, or the BLA multisine experiment of ``[bla]``.
-    seed : int
-        Seed of the random generator (noise, flux variations, multisine phases).
-    noise_variance : float
-        Variance of the white noise on each Hall channel.
-    ramp_end : float
-        Final value of the ramp reference in rad.
-    duration : float
-        Duration of the ramp experiment in s.
-    amplitude : float
-        Amplitude A of the Hall signals.
-    magnet_variation : float
-        Relative size of the per-magnet flux variations (mechanical harmonics
-        1 .. pole_pairs - 1).
-    pole_modulation : float
-        Relative size of per-pole amplitude differences (amplitude modulation by mechanical
-        harmonics 1..3: sidebands k pole_pairs +- j).
-    shape_variation : float
-        Per-magnet shape variation s: every pole pair's flux waveform gets its own smooth random
-        deformation of RMS s times the amplitude (mechanical harmonics 1 .. shape_harmonics *
-        pole_pairs, every sideband; :func:`hallcal.sim.bench.shape_deformation`). 0 = none.
-    shape_harmonics : int
-        Electrical bandwidth of that deformation (highest electrical harmonic).
-    misalignment_deg : tuple of 3 float
-        Electrical degrees added to each sensor's nominal 0/120/240 degrees.
-    gain_mismatch : tuple of 3 float
-        Relative gain error of each sensor (gain ``1 + g``).
-    offset : tuple of 3 float
-        Offset of each sensor.
-    electrical_harmonics : tuple of (int, float)
-        ``(harmonic >= 2, relative amplitude)`` pairs of electrical harmonics of the flux.
-    torque_disturbance : float
-        Standard deviation of a random low-frequency torque at the plant input.
-    cogging : float
-        Amplitude of a cogging torque at the plant input.
-    cogging_periods : int
-        Cogging periods per revolution; 0 means ``6 * pole_pairs`` (the bench's
-        :class:`~hallcal.sim.bench.BenchConfig` resolves it).
-    """
-
-    experiment: Literal["ramp", "multisine"] = "ramp"
-    seed: int = 0
-    noise_variance: float = 7.5e-6
-    ramp_end: float = 13.0
-    duration: float = 26.0
-    amplitude: float = 1.0
-    magnet_variation: float = 0.04
-    pole_modulation: float = 0.0
-    shape_variation: float = 0.0
-    shape_harmonics: int = 5
-    misalignment_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    gain_mismatch: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    electrical_harmonics: tuple[tuple[int, float], ...] = ()
-    torque_disturbance: float = 0.0
-    cogging: float = 0.0
-    cogging_periods: int = 0
-
-    def __post_init__(self) -> None:
-        for name in ("misalignment_deg", "gain_mismatch", "offset"):
-            object.__setattr__(self, name, _tuple_of_floats(getattr(self, name)))
-        pairs = tuple((int(h), float(a)) for h, a in self.electrical_harmonics)
-        object.__setattr__(self, "electrical_harmonics", pairs)
+        object.__setattr__(self, "band", tuple(float(v) for v in self.band))
 
 
 @dataclass(frozen=True)
@@ -357,31 +397,129 @@ def default_setup() -> Setup:
     )
 
 
-# ---- Setup parsing -----------------------------------------------------------------------------
+# ---- The schema ---------------------------------------------------------------------------------
+
+
+def _tf_settings(what: str, variable: str, proper: str) -> tuple[Setting, ...]:
+    """``num``/``den`` of a transfer function (limits.MAX_TF_ORDER: the loop's cost grows with
+    the square of its states) and nothing else."""
+    longest = MAX_TF_ORDER + 1
+    return (
+        Setting(
+            "num",
+            "numbers",
+            max_length=longest,
+            accepts=f"not all zero, at most as long as `den` ({proper})",
+            doc=f"Numerator of {what}, descending powers of {variable}.",
+        ),
+        Setting(
+            "den",
+            "numbers",
+            max_length=longest,
+            accepts="leading coefficient ≠ 0",
+            doc=f"Denominator of {what}, descending powers of {variable}"
+            + (" (a trailing 0 is the integrator)." if variable == "s" else "."),
+        ),
+    )
+
+
+_TOP_LEVEL: tuple[Setting, ...] = (
+    Setting(
+        "pole_pairs",
+        "integer",
+        minimum=1,
+        limit=MAX_POLE_PAIRS,
+        doc="Pole pairs n_m of the rotor: electrical cycles per mechanical revolution. "
+        "`hallcal inspect` and `hallcal calibrate` check it against the data and suggest the "
+        "right count.",
+    ),
+    Setting(
+        "sample_time",
+        "number",
+        positive=True,
+        unit="s",
+        doc='Sample time Ts of every recording. `1.0` means "time in samples" (open-loop '
+        "recordings without a known rate).",
+    ),
+    Setting(
+        "controller",
+        "table",
+        None,
+        default_text="required for `closed-loop`",
+        doc="The drive's position controller C(q).",
+    ),
+    Setting(
+        "plant",
+        "table",
+        None,
+        default_text="none",
+        doc="The plant G(s), when known. A BLA experiment (`--bla-data`) wins over it; "
+        "`hallcal simulate` needs it (it is the virtual motor).",
+    ),
+    Setting(
+        "model",
+        "table",
+        None,
+        default_text="all defaults",
+        doc="The flux model and the solver.",
+    ),
+    Setting(
+        "trajectory",
+        "table",
+        None,
+        default_text="`closed-loop`",
+        doc="How the rotor moved during the calibration run.",
+    ),
+    Setting(
+        "bla",
+        "table",
+        None,
+        default_text="none",
+        doc="The multisine experiment for the BLA of the plant (needed by `hallcal bla`, "
+        "`--bla-data` and `hallcal simulate --experiment multisine`).",
+    ),
+    Setting(
+        "bench",
+        "table",
+        None,
+        default_text="all defaults",
+        doc="The virtual bench of `hallcal simulate` and `hallcal demo`; ignored by calibration.",
+    ),
+)
+
+#: Every table of the setup file (``""``: the top level) with its keys, in the reference's order.
+SETUP_SCHEMA: dict[str, tuple[Setting, ...]] = {
+    "": _TOP_LEVEL,
+    "controller": _tf_settings("C(q)", "q", "causal"),
+    "plant": (
+        *_tf_settings("G(s)", "s", "proper"),
+        Setting(
+            "delay",
+            "number",
+            0.0,
+            minimum=0.0,
+            unit="s",
+            doc="Input delay (computation and PWM), discretized exactly, any fraction of Ts.",
+        ),
+    ),
+    "model": settings_of(ModelSpec),
+    "trajectory": settings_of(TrajectorySpec),
+    "bla": settings_of(BLASpec),
+    "bench": settings_of(BenchSpec),
+}
 
 _SETUP_KEYS: dict[str, tuple[str, ...]] = {
-    "": ("pole_pairs", "sample_time", "controller", "plant", "model", "trajectory", "bla", "bench"),
-    "controller": ("num", "den"),
-    "plant": ("num", "den", "delay"),
-    "model": (
-        "basis",
-        "harmonics",
-        "points",
-        "lengthscale",
-        "lut_points",
-        "max_iterations",
-        "force",
-        "cogging",
-    ),
-    "trajectory": ("kind", "start", "stop"),
-    "bla": tuple(f.name for f in dataclasses.fields(BLASpec)),
-    "bench": tuple(f.name for f in dataclasses.fields(BenchSpec)),
+    table: tuple(s.name for s in settings) for table, settings in SETUP_SCHEMA.items()
 }
 _ALL_SETUP_KEYS: tuple[str, ...] = tuple(
     f"{table}.{key}" if table else key for table, keys in _SETUP_KEYS.items() for key in keys
 )
+_SCHEMA_BY_NAME: dict[str, dict[str, Setting]] = {
+    table: {s.name: s for s in settings} for table, settings in SETUP_SCHEMA.items()
+}
 
-_REQUIRED: Any = object()
+
+# ---- Setup parsing -----------------------------------------------------------------------------
 
 
 def _show(value: Any) -> str:
@@ -452,10 +590,46 @@ class _Table:
     def has(self, name: str) -> bool:
         return name in self.data
 
+    def setting(self, name: str) -> Setting:
+        """The schema's declaration of key `name` of this table."""
+        return _SCHEMA_BY_NAME[self.table][name]
+
+    def default(self, name: str) -> Any:
+        """The declared default of key `name`."""
+        return self.setting(name).default
+
+    def get(self, name: str) -> Any:
+        """Key `name`, read and checked as the schema declares it (kind, range, limit)."""
+        s = self.setting(name)
+        if s.kind == "integer":
+            low = None if s.minimum is None else int(s.minimum)
+            high = None if s.limit is None else int(s.limit)
+            return self.integer(name, default=s.default, minimum=low, maximum=high)
+        if s.kind == "number":
+            return self.number(
+                name, default=s.default, minimum=s.minimum, positive=s.positive, maximum=s.limit
+            )
+        if s.kind == "boolean":
+            return self.boolean(name, default=s.default)
+        if s.kind == "choice":
+            return self.choice(name, s.choices, default=s.default)
+        if s.kind == "numbers":
+            return self.numbers(
+                name, default=s.default, length=s.length, max_length=s.max_length, maximum=s.limit
+            )
+        raise TypeError(f"key {self.key(name)} ({s.kind}) is read by its table's parser")
+
+    def check_only(self, **values: str) -> None:
+        """Refuse a key given where it does not apply (its ``only`` condition is not met)."""
+        for s in SETUP_SCHEMA[self.table]:
+            if s.only is not None and s.only[0] in values and values[s.only[0]] != s.only[1]:
+                if self.has(s.name):
+                    self.error(f"key '{self.key(s.name)}' applies only to {s.only_text()}")
+
     def _get(self, name: str, default: Any, what: str) -> Any:
         if name in self.data:
             return self.data[name]
-        if default is _REQUIRED:
+        if default is REQUIRED:
             self.error(f"key '{self.key(name)}' is missing (it must be {what})")
         return default
 
@@ -463,7 +637,7 @@ class _Table:
         self,
         name: str,
         *,
-        default: Any = _REQUIRED,
+        default: Any = REQUIRED,
         minimum: int | None = None,
         maximum: int | None = None,
     ) -> Any:
@@ -488,7 +662,7 @@ class _Table:
         self,
         name: str,
         *,
-        default: Any = _REQUIRED,
+        default: Any = REQUIRED,
         minimum: float | None = None,
         positive: bool = False,
         maximum: float | None = None,
@@ -509,13 +683,13 @@ class _Table:
             self.above(name, maximum)
         return float(value)
 
-    def boolean(self, name: str, *, default: Any = _REQUIRED) -> Any:
+    def boolean(self, name: str, *, default: Any = REQUIRED) -> Any:
         value = self._get(name, default, "true or false")
         if not isinstance(value, bool):
             self.fail(name, "true or false")
         return value
 
-    def choice(self, name: str, options: Sequence[str], *, default: Any = _REQUIRED) -> Any:
+    def choice(self, name: str, options: Sequence[str], *, default: Any = REQUIRED) -> Any:
         what = "one of " + ", ".join(f'"{o}"' for o in options)
         value = self._get(name, default, what)
         if not isinstance(value, str) or value not in options:
@@ -526,7 +700,7 @@ class _Table:
         self,
         name: str,
         *,
-        default: Any = _REQUIRED,
+        default: Any = REQUIRED,
         length: int | None = None,
         max_length: int | None = None,
         maximum: float | None = None,
@@ -562,9 +736,8 @@ class _Table:
 
 
 def _parse_tf(t: _Table, *, continuous: bool) -> tuple[tuple[float, ...], tuple[float, ...]]:
-    # limits.MAX_TF_ORDER: the loop's cost grows with the square of its states
-    num = t.numbers("num", max_length=MAX_TF_ORDER + 1)
-    den = t.numbers("den", max_length=MAX_TF_ORDER + 1)
+    num = t.get("num")
+    den = t.get("den")
     if den[0] == 0.0:
         t.error(f"key '{t.key('den')}' must have a nonzero leading coefficient, got {_show(den)}")
     stripped = num
@@ -581,23 +754,17 @@ def _parse_tf(t: _Table, *, continuous: bool) -> tuple[tuple[float, ...], tuple[
     return num, den
 
 
-def _only_for(t: _Table, names: Sequence[str], condition: str) -> None:
-    for name in names:
-        if t.has(name):
-            t.error(f"key '{t.key(name)}' applies only to {condition}")
-
-
 def _parse_model(t: _Table | None) -> ModelSpec:
     if t is None:
         return ModelSpec()
     t.check_keys()
-    basis = t.choice("basis", ("fourier", "kernel"), default="fourier")
-    harmonics: tuple[int, ...] | str = "auto"
-    points = 400
-    lengthscale: float | str = "auto"
+    basis = t.get("basis")
+    t.check_only(basis=basis)
+    harmonics: tuple[int, ...] | str = t.default("harmonics")
+    points = t.default("points")
+    lengthscale: float | str = t.default("lengthscale")
     if basis == "fourier":
-        _only_for(t, ("points", "lengthscale"), 'basis = "kernel"')
-        value = t.data.get("harmonics", "auto")
+        value = t.data.get("harmonics", harmonics)
         what = 'a list of distinct integers >= 1 or "auto"'
         if not (isinstance(value, str) and value == "auto"):
             if (
@@ -614,9 +781,8 @@ def _parse_model(t: _Table | None) -> ModelSpec:
                 t.error(f"key '{t.key('harmonics')}' lists a harmonic twice: {_show(value)}")
             harmonics = tuple(int(h) for h in value)
     else:
-        _only_for(t, ("harmonics",), 'basis = "fourier"')
-        points = t.integer("points", default=400, minimum=8, maximum=MAX_KERNEL_POINTS)
-        value = t.data.get("lengthscale", "auto")
+        points = t.get("points")
+        value = t.data.get("lengthscale", lengthscale)
         if not (isinstance(value, str) and value == "auto"):
             if not _is_number(value) or not math.isfinite(value) or value <= 0:
                 t.fail("lengthscale", 'a number > 0 or "auto"')
@@ -631,11 +797,9 @@ def _parse_model(t: _Table | None) -> ModelSpec:
         harmonics=harmonics,  # type: ignore[arg-type]
         points=points,
         lengthscale=lengthscale,  # type: ignore[arg-type]
-        lut_points=t.integer(
-            "lut_points", default=4096, minimum=MIN_LUT_POINTS, maximum=MAX_LUT_POINTS
-        ),
-        max_iterations=t.integer("max_iterations", default=50, minimum=1, maximum=MAX_ITERATIONS),
-        force=t.boolean("force", default=False),
+        lut_points=t.get("lut_points"),
+        max_iterations=t.get("max_iterations"),
+        force=t.get("force"),
         cogging=_parse_cogging(t, basis),  # type: ignore[arg-type]
     )
 
@@ -643,7 +807,7 @@ def _parse_model(t: _Table | None) -> ModelSpec:
 def _parse_cogging(t: _Table, basis: str) -> tuple[int, ...] | str:
     """``cogging = "auto" | "none" | [orders]`` (distinct integers >= 0, 0 a constant load
     torque; Fourier basis)."""
-    value = t.data.get("cogging", "auto")
+    value = t.data.get("cogging", t.default("cogging"))
     if isinstance(value, str) and value in ("auto", "none"):
         return value
     if basis != "fourier":
@@ -668,12 +832,12 @@ def _parse_trajectory(t: _Table | None) -> TrajectorySpec:
     if t is None:
         return TrajectorySpec()
     t.check_keys()
-    kind = t.choice("kind", ("closed-loop", "constant-speed"), default="closed-loop")
+    kind = t.get("kind")
+    t.check_only(kind=kind)
     if kind == "closed-loop":
-        _only_for(t, ("start", "stop"), 'kind = "constant-speed"')
         return TrajectorySpec(kind=kind)
-    start = t.integer("start", default=0, minimum=0, maximum=MAX_SAMPLES)
-    stop = t.integer("stop", default=None, minimum=1, maximum=MAX_SAMPLES)
+    start = t.get("start")
+    stop = t.get("stop")
     if stop is not None and stop <= start:
         t.error(
             f"key '{t.key('stop')}' must be greater than '{t.key('start')}' ({start}), got {stop}"
@@ -685,15 +849,15 @@ def _parse_bla(t: _Table | None, sample_time: float) -> BLASpec | None:
     if t is None:
         return None
     t.check_keys()
-    period_samples = t.integer("period_samples", minimum=8, maximum=MAX_SAMPLES)
-    periods = t.integer("periods", minimum=2, maximum=MAX_SAMPLES)
-    transient = t.integer("transient_periods", default=1, minimum=0)
+    period_samples = t.get("period_samples")
+    periods = t.get("periods")
+    transient = t.get("transient_periods")
     if transient >= periods:
         t.error(
             f"key '{t.key('transient_periods')}' must be less than '{t.key('periods')}' "
             f"({periods}), got {transient}"
         )
-    band = t.numbers("band", default=(1.0, 400.0), length=2)
+    band = t.get("band")
     nyquist = 0.5 / sample_time
     if not 0.0 <= band[0] < band[1]:
         t.fail("band", "[f_lo, f_hi] with 0 <= f_lo < f_hi")
@@ -709,7 +873,7 @@ def _parse_bla(t: _Table | None, sample_time: float) -> BLASpec | None:
             f"key '{t.key('band')}' holds no frequency line (lines are multiples of "
             f"1/(period_samples*sample_time) = {f0:g} Hz), got {_show(list(band))}"
         )
-    realizations = t.integer("realizations", default=8, minimum=1, maximum=MAX_REALIZATIONS)
+    realizations = t.get("realizations")
     total = period_samples * periods * realizations
     if total > MAX_SAMPLES:
         t.error(
@@ -717,9 +881,9 @@ def _parse_bla(t: _Table | None, sample_time: float) -> BLASpec | None:
             f"'{t.key('realizations')}' = {total} samples, above the limit of {MAX_SAMPLES} "
             "samples of one experiment"
         )
-    numerator_order = t.integer("numerator_order", default=0, minimum=0, maximum=MAX_TF_ORDER)
-    denominator_order: int | str = "auto"
-    value = t.data.get("denominator_order", "auto")
+    numerator_order = t.get("numerator_order")
+    denominator_order: int | str = t.default("denominator_order")
+    value = t.data.get("denominator_order", denominator_order)
     if not (isinstance(value, str) and value == "auto"):
         if not _is_int(value) or value < 0:
             t.fail("denominator_order", 'an integer >= 0 or "auto"')
@@ -737,13 +901,13 @@ def _parse_bla(t: _Table | None, sample_time: float) -> BLASpec | None:
         transient_periods=transient,
         realizations=realizations,
         band=band,
-        rms=t.number("rms", default=0.05, positive=True),
-        lines=t.choice("lines", ("full", "odd", "random-odd"), default="random-odd"),
-        drift=t.number("drift", default=1.0),
+        rms=t.get("rms"),
+        lines=t.get("lines"),
+        drift=t.get("drift"),
         numerator_order=numerator_order,
         denominator_order=denominator_order,  # type: ignore[arg-type]
-        integrator=t.boolean("integrator", default=True),
-        fit_delay=t.boolean("fit_delay", default=True),
+        integrator=t.get("integrator"),
+        fit_delay=t.get("fit_delay"),
     )
 
 
@@ -751,11 +915,11 @@ def _parse_bench(t: _Table | None, pole_pairs: int) -> BenchSpec:
     if t is None:
         return BenchSpec()
     t.check_keys()
-    gain = t.numbers("gain_mismatch", default=(0.0, 0.0, 0.0), length=3)
+    gain = t.get("gain_mismatch")
     if any(g <= -1.0 for g in gain):
         t.fail("gain_mismatch", "a list of 3 numbers > -1")
     pairs: list[tuple[int, float]] = []
-    value = t.data.get("electrical_harmonics", [])
+    value = t.data.get("electrical_harmonics", t.default("electrical_harmonics"))
     what = "a list of [harmonic >= 2, relative amplitude] pairs"
     if not isinstance(value, list | tuple):
         t.fail("electrical_harmonics", what)
@@ -780,25 +944,12 @@ def _parse_bench(t: _Table | None, pole_pairs: int) -> BenchSpec:
             f"key '{t.key('electrical_harmonics')}' has the electrical harmonic {highest}, "
             f"mechanical harmonic {highest * pole_pairs}, above the limit of {MAX_HARMONIC}"
         )
-    return BenchSpec(
-        experiment=t.choice("experiment", ("ramp", "multisine"), default="ramp"),
-        seed=t.integer("seed", default=0, minimum=0),
-        noise_variance=t.number("noise_variance", default=7.5e-6, minimum=0.0),
-        ramp_end=t.number("ramp_end", default=13.0),
-        duration=t.number("duration", default=26.0, positive=True),
-        amplitude=t.number("amplitude", default=1.0, positive=True, maximum=MAX_ABS_VALUE),
-        magnet_variation=t.number("magnet_variation", default=0.04, minimum=0.0),
-        pole_modulation=t.number("pole_modulation", default=0.0, minimum=0.0),
-        shape_variation=t.number("shape_variation", default=0.0, minimum=0.0),
-        shape_harmonics=t.integer("shape_harmonics", default=5, minimum=1),
-        misalignment_deg=t.numbers("misalignment_deg", default=(0.0, 0.0, 0.0), length=3),
-        gain_mismatch=gain,
-        offset=t.numbers("offset", default=(0.0, 0.0, 0.0), length=3, maximum=MAX_ABS_VALUE),
-        electrical_harmonics=tuple(pairs),
-        torque_disturbance=t.number("torque_disturbance", default=0.0, minimum=0.0),
-        cogging=t.number("cogging", default=0.0, minimum=0.0),
-        cogging_periods=t.integer("cogging_periods", default=0, minimum=0),
-    )
+    custom = {"gain_mismatch": gain, "electrical_harmonics": tuple(pairs)}
+    # the other keys in the table's order (the order their errors are reported in)
+    values = {
+        s.name: custom[s.name] if s.name in custom else t.get(s.name) for s in SETUP_SCHEMA["bench"]
+    }
+    return BenchSpec(**values)
 
 
 def _parse_setup(data: Mapping[str, Any], source: str, prefix: str = "") -> Setup:
@@ -807,8 +958,8 @@ def _parse_setup(data: Mapping[str, Any], source: str, prefix: str = "") -> Setu
         raise HallcalInputError(f"{source}: {what} must be a table")
     top = _Table(data, source, "", prefix)
     top.check_keys()
-    pole_pairs = top.integer("pole_pairs", minimum=1, maximum=MAX_POLE_PAIRS)
-    sample_time = top.number("sample_time", positive=True)
+    pole_pairs = top.get("pole_pairs")
+    sample_time = top.get("sample_time")
     controller_t = top.table_at("controller")
     plant_t = top.table_at("plant")
     model_t = top.table_at("model")
@@ -833,7 +984,7 @@ def _parse_setup(data: Mapping[str, Any], source: str, prefix: str = "") -> Setu
     if plant_t is not None:
         plant_t.check_keys()
         num, den = _parse_tf(plant_t, continuous=True)
-        delay = plant_t.number("delay", default=0.0, minimum=0.0)
+        delay = plant_t.get("delay")
         if delay / sample_time > MAX_DELAY_SAMPLES:
             plant_t.error(
                 f"key '{plant_t.key('delay')}' is {delay / sample_time:.4g} samples "
@@ -913,20 +1064,6 @@ def read_setup(path: str | os.PathLike[str]) -> Setup:
     return _parse_setup(data, str(p))
 
 
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        return repr(value)
-    if isinstance(value, str):
-        return json.dumps(value)
-    if isinstance(value, list | tuple):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    raise TypeError(f"cannot write {type(value).__name__} to TOML")
-
-
 def setup_to_toml(setup: Setup) -> str:
     """Return the text of a setup file that :func:`read_setup` reads back as `setup`.
 
@@ -941,12 +1078,12 @@ def setup_to_toml(setup: Setup) -> str:
         TOML text: top-level keys first, then one table per section.
     """
     data = setup.to_dict()
-    lines = [f"{k} = {_toml_value(v)}" for k, v in data.items() if not isinstance(v, dict)]
+    lines = [f"{k} = {toml_value(v)}" for k, v in data.items() if not isinstance(v, dict)]
     for name, table in data.items():
         if isinstance(table, dict):
             lines.append("")
             lines.append(f"[{name}]")
-            lines.extend(f"{k} = {_toml_value(v)}" for k, v in table.items())
+            lines.extend(f"{k} = {toml_value(v)}" for k, v in table.items())
     return "\n".join(lines) + "\n"
 
 
@@ -963,3 +1100,32 @@ def write_setup(path: str | os.PathLike[str], setup: Setup) -> None:
     text = setup_to_toml(setup)
     with atomic_write(path, "w") as f:
         f.write(text)
+
+
+_GENERATED = re.compile(
+    r"(<!-- generated from the schema: \[(\w*)\] -->\n).*?(\n<!-- end of generated table -->)",
+    re.S,
+)
+
+
+def render_setup_reference(text: str) -> str:
+    """`text` (``docs/setup-reference.md``) with its key tables rendered from the schema.
+
+    Each table sits between ``<!-- generated from the schema: [model] -->`` (``[]``: the top
+    level) and ``<!-- end of generated table -->``; the prose around them is kept. The committed
+    reference equals its rendering (``tests/test_docs.py``), so the tables cannot drift from the
+    parser.
+
+    Parameters
+    ----------
+    text : str
+        The reference as committed.
+
+    Returns
+    -------
+    str
+        The same text with every generated table rendered from :data:`SETUP_SCHEMA`.
+    """
+    return _GENERATED.sub(
+        lambda m: m.group(1) + render_table(SETUP_SCHEMA[m.group(2)]) + m.group(3), text
+    )

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
+from hallcal.messages import Message, MessageCode
 from hallcal.pipeline.calibration import (
     Calibration,
     CalibrationStatus,
@@ -27,7 +28,6 @@ from hallcal.pipeline.calibration import (
     Validation,
     artifact_from_calibration,
     calibration_from_artifact,
-    lut_from_artifact,
     reconstruct,
     validate,
 )
@@ -84,7 +84,6 @@ __all__ = [
     "calibration_from_artifact",
     "estimate_gain",
     "identify_bla",
-    "lut_from_artifact",
     "plant_model",
     "reconstruct",
     "simulate",
@@ -139,9 +138,10 @@ def calibrate(
         if setup.trajectory.kind == "constant-speed":
             cal = calibrate_open_loop(dataset, setup, progress=progress)
             if bla_dataset is not None or bla is not None:
-                note = (
-                    "warning: the BLA experiment is not used: a constant-speed calibration "
-                    '(trajectory.kind = "constant-speed") needs no plant model'
+                note = Message.warning(
+                    MessageCode.UNUSED_INPUT,
+                    "the BLA experiment is not used: a constant-speed calibration "
+                    '(trajectory.kind = "constant-speed") needs no plant model',
                 )
                 status = cal.status
                 if status is CalibrationStatus.OK:

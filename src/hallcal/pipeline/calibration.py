@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
-import enum
 import math
 import os
 from collections.abc import Mapping
@@ -26,6 +25,7 @@ from hallcal.io.artifact import ARTIFACT_FORMAT, ArtifactData, validate_artifact
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.limits import check_command_samples
+from hallcal.messages import Message, MessageCode
 from hallcal.pipeline.powerup import (
     SignalCheck,
     SignalStatus,
@@ -35,12 +35,13 @@ from hallcal.pipeline.powerup import (
     identification_check,
     same_revolution,
 )
+from hallcal.pipeline.verdict import CalibrationStatus, refusal
 from hallcal.sensor.absolute import (
     IdentifiabilityReport,
     PowerUpIdentification,
     absolute_reconstruction,
 )
-from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT
 from hallcal.sensor.metrics import AngleError, SpatialSpectrum, angle_error, spatial_spectrum
 from hallcal.sim.cogging import CoggingTorque
@@ -63,35 +64,10 @@ __all__ = [
     "Validation",
     "artifact_from_calibration",
     "calibration_from_artifact",
-    "lut_from_artifact",
     "reconstruct",
     "require_table",
     "validate",
 ]
-
-
-class CalibrationStatus(enum.StrEnum):
-    """Outcome of a calibration; the string values are the artifact's ``diagnostics.status``.
-
-    ``OK`` and ``WARNING`` give a usable table (a warning says what to look at);
-    ``INADEQUATE`` (the model does not explain the data) and ``NOT_BIJECTIVE`` (no table can
-    invert the sensor map, the paper's bijectivity condition) are refusals.
-    """
-
-    OK = "ok"
-    WARNING = "warning"
-    INADEQUATE = "inadequate"
-    NOT_BIJECTIVE = "not-bijective"
-
-    @property
-    def success(self) -> bool:
-        """True when the table may be used."""
-        return self in (CalibrationStatus.OK, CalibrationStatus.WARNING)
-
-    @property
-    def refused(self) -> bool:
-        """True when the table must not be used."""
-        return not self.success
 
 
 @dataclass(frozen=True)
@@ -214,7 +190,7 @@ class Reconstruction:
         y_obs against the recording's ``y_ref``, when it has one.
 
     ``y_star`` is None when the calibration has no table (a folding map, observer only).
-    messages : tuple of str
+    messages : tuple of Message
         Warnings: a ``y_ref`` that cannot be scored (a recording at standstill) leaves
         ``validation`` None and says so here; the angles stand.
     """
@@ -226,7 +202,7 @@ class Reconstruction:
     observer: ObserverRun | None = field(default=None, repr=False)
     observer_error: AngleError | None = None
     signals: SignalCheck | None = None
-    messages: tuple[str, ...] = ()
+    messages: tuple[Message, ...] = ()
 
     @property
     def status(self) -> SignalStatus:
@@ -268,7 +244,7 @@ class Calibration:
     status : CalibrationStatus
     refusal : str or None
         Why the table must not be used (``status.refused``), else None.
-    messages : tuple of str
+    messages : tuple of Message
         Warnings and notes for the user, most important first.
     predicted_error : float
         Predicted RMS angle error of f_star [rad]: the noise floor and the table's uncertainty
@@ -323,7 +299,7 @@ class Calibration:
     predicted_error: float
     noise_floor: float
     refusal: str | None = None
-    messages: tuple[str, ...] = ()
+    messages: tuple[Message, ...] = ()
     plant: ContinuousTF | None = None
     plant_source: str | None = None
     gain: GainCorrection | None = None
@@ -358,6 +334,14 @@ class Calibration:
             and self.observer.get("injective") is True
         )
 
+    @property
+    def diagnostics(self) -> Mapping[str, Any]:
+        """The artifact's ``diagnostics`` (status, costs, noise variance, ...): as loaded, or as
+        :meth:`save` writes them; the same keys whichever way this calibration was made."""
+        if self.artifact is not None:
+            return self.artifact["diagnostics"]
+        return _diagnostics(self)
+
     def to_artifact(self) -> dict[str, Any]:
         """The JSON artifact (a plain dict; see :func:`artifact_from_calibration`); for a
         calibration loaded from an artifact, that artifact."""
@@ -386,13 +370,14 @@ class Calibration:
         if self.observer_only:
             write_artifact(path, self.to_artifact())
             return
-        if self.status is CalibrationStatus.NOT_BIJECTIVE or (self.status.refused and not force):
+        refused = refusal(self.status, self.refusal, force=force)
+        if refused is not None:
             hint = (
                 ""
-                if self.status is CalibrationStatus.NOT_BIJECTIVE
+                if refused.code is MessageCode.NOT_BIJECTIVE
                 else " (use --force, or force=True, to write it anyway)"
             )
-            raise CalibrationRefused(f"{self.refusal}; no artifact written{hint}")
+            raise CalibrationRefused(f"{refused.text}; no artifact written{hint}")
         write_artifact(path, self.to_artifact())
 
     def reconstruct(
@@ -447,7 +432,7 @@ def _diagnostics(cal: Calibration) -> dict[str, Any]:
     diag: dict[str, Any] = {
         "status": cal.status.value,
         "refusal": cal.refusal,
-        "messages": list(cal.messages),
+        "messages": [m.record() for m in cal.messages],
         "bijective": bool(cal.lut.bijective),
         "min_slope": cal.lut.min_slope,
         "predicted_angle_error_rms": cal.predicted_error,
@@ -541,41 +526,12 @@ def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
     return art
 
 
-def _checked(artifact: ArtifactData | Mapping[str, Any]) -> ArtifactData:
-    """The typed view of an artifact: as given, or from the one validator."""
-    if isinstance(artifact, ArtifactData):
-        return artifact
-    return validate_artifact(artifact, "artifact")
-
-
-def lut_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> LUT:
-    """Rebuild the table (and its f_init) from an artifact (checked by
-    :func:`~hallcal.io.validate_artifact` unless it is an :class:`~hallcal.io.ArtifactData`).
-
-    Parameters
-    ----------
-    artifact : ArtifactData or mapping
-        A loaded artifact, or its parsed JSON.
-
-    Returns
-    -------
-    LUT
-        The table of eq. (f_final) with f_init's projection and offsets.
-
-    Raises
-    ------
-    HallcalInputError
-        The artifact does not pass :func:`~hallcal.io.validate_artifact`.
-    """
-    return _checked(artifact).lut()
-
-
 def _float_or_nan(value: Any) -> float:
     return float(value) if isinstance(value, int | float) else math.nan
 
 
 def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Calibration:
-    """Rebuild a :class:`Calibration` from an artifact (:func:`~hallcal.io.load_artifact`'s, or
+    """Rebuild a :class:`Calibration` from an artifact (:func:`~hallcal.io.read_artifact`'s, or
     a mapping, which is checked by :func:`~hallcal.io.validate_artifact` first).
 
     The flux model, table, setup, status, messages, predicted error and plant come back; the
@@ -596,13 +552,8 @@ def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Cal
         The artifact does not pass the validator, or its ``diagnostics.status`` is not one of
         :class:`CalibrationStatus`.
     """
-    art = _checked(artifact)
-    setup = art.setup
-    model = art.model
+    art = validate_artifact(artifact, "artifact")
     diag = art.diagnostics
-    lut = art.lut()
-    harmonics = tuple(int(h) for h in model["harmonics"])
-    flux = FluxModel(FourierBasis(harmonics), np.asarray(model["theta"], dtype=np.float64))
     try:
         status = CalibrationStatus(diag.get("status", "ok"))
     except ValueError:
@@ -619,37 +570,23 @@ def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Cal
         raise HallcalInputError(
             f"{art.source}: {text}", source=art.source, key=exc.key or "identifiability"
         ) from None
-    plant = None
-    plant_source = None
-    if art.plant is not None:
-        p = art.plant
-        plant = ContinuousTF(tuple(p["num"]), tuple(p["den"]), float(p["delay"]))
-        plant_source = p.get("source")
-    cogging = None
-    if art.data.get("cogging") is not None:
-        try:
-            cogging = CoggingTorque.from_dict(art.data["cogging"])
-        except ValueError as exc:  # the validator checked the shapes; the model may still refuse
-            raise HallcalInputError(
-                f"{art.source}: key 'cogging': {exc}", source=art.source, key="cogging"
-            ) from None
     return Calibration(
-        setup=setup,
-        flux=flux,
-        lut=lut,
+        setup=art.setup,
+        flux=art.flux(),
+        lut=art.lut(),
         status=status,
         predicted_error=_float_or_nan(diag.get("predicted_angle_error_rms")),
         noise_floor=_float_or_nan(diag.get("noise_floor")),
         refusal=diag.get("refusal"),
-        messages=tuple(diag.get("messages", ())),
-        plant=plant,
-        plant_source=plant_source,
+        messages=tuple(Message.from_record(m) for m in diag.get("messages", ())),
+        plant=art.plant_model(),
+        plant_source=None if art.plant is None else art.plant.get("source"),
         timings=dict(diag.get("timings", {})),
-        model_info=dict(model),
+        model_info=dict(art.model),
         identifiability=identifiability,
         observer=art.data.get("observer"),
         artifact=art.data,
-        cogging=cogging,
+        cogging=art.cogging_torque(),
     )
 
 
@@ -668,7 +605,7 @@ def require_table(artifact: ArtifactData | Mapping[str, Any], source: str = "art
     CalibrationRefused
         When the artifact's table is not bijective (a folding map written for the observer).
     """
-    if not _checked(artifact).lut().bijective:
+    if not validate_artifact(artifact, "artifact").lut().bijective:
         raise CalibrationRefused(
             f"{source}: no lookup table can exist for this motor (the sensor map folds); the "
             "calibration is for the model-based observer ('reconstruct --observer')"
@@ -689,18 +626,33 @@ def reconstruct_with(lut: LUT, dataset: Dataset, *, y_initial: float = 0.0) -> R
     _within_budget(dataset, "reconstruct" if "y_ref" in dataset else "reconstruct without y_ref")
     yi, ys = lut.reconstruct(dataset["d1"], dataset["d2"], dataset["d3"], y_initial=y_initial)
     val: Validation | None = None
-    notes: tuple[str, ...] = ()
+    notes: tuple[Message, ...] = ()
     if "y_ref" in dataset:
         val, notes = _scored(lambda: validate(lut, dataset, angles=(yi, ys)))
     return Reconstruction(yi, ys, val, messages=notes)
 
 
-def _scored(score: Any) -> tuple[Validation | None, tuple[str, ...]]:
+def validation_skipped(exc: Exception) -> Message:
+    """The warning when ``y_ref`` cannot be scored (a standstill run): the result stands.
+
+    Parameters
+    ----------
+    exc : Exception
+        Why it cannot be scored.
+
+    Returns
+    -------
+    Message
+    """
+    return Message.warning(MessageCode.VALIDATION_SKIPPED, f"validation skipped: {exc}")
+
+
+def _scored(score: Any) -> tuple[Validation | None, tuple[Message, ...]]:
     """The validation, or None and a warning when ``y_ref`` cannot be scored."""
     try:
         return score(), ()
     except HallcalInputError as exc:
-        return None, (f"warning: validation skipped: {exc}",)
+        return None, (validation_skipped(exc),)
 
 
 def _within_budget(dataset: Dataset, command: str) -> None:
@@ -742,7 +694,7 @@ def _reconstruct_absolute(cal: Calibration, dataset: Dataset) -> Reconstruction:
     decoder = decoder_for(cal.flux, cal.lut, cal.identifiability)
     out = absolute_reconstruction(decoder, cal.lut, dataset.d)
     validation: Validation | None = None
-    notes: tuple[str, ...] = ()
+    notes: tuple[Message, ...] = ()
     if "y_ref" in dataset:
         ref = same_revolution(out.y_star, dataset["y_ref"])
         moved = dataclasses.replace(dataset, columns={**dataset.columns, "y_ref": ref})

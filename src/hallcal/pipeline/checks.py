@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
 from hallcal.io.dataset import Dataset
+from hallcal.messages import Message, MessageCode, Severity
 from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.lti import ContinuousTF, DiscreteTF
 
@@ -151,10 +152,19 @@ class Check:
     key: str | None = None
 
     @property
+    def body(self) -> str:
+        """Message and fix as one line."""
+        return self.message if not self.fix else f"{self.message}; {self.fix}"
+
+    @property
     def text(self) -> str:
-        """Message and fix as one line, prefixed by ``warning:`` for warnings."""
-        body = self.message if not self.fix else f"{self.message}; {self.fix}"
-        return f"warning: {body}" if self.status is CheckStatus.WARNING else body
+        """Message and fix as one line, labelled ``warning:`` for warnings."""
+        return self.to_message().line() if self.status is CheckStatus.WARNING else self.body
+
+    def to_message(self, code: MessageCode = MessageCode.PREFLIGHT_CHECK) -> Message:
+        """The check for the user: a warning when it warned, else a note."""
+        severity = Severity.WARNING if self.status is CheckStatus.WARNING else Severity.NOTE
+        return Message(severity, code, self.body)
 
     def raise_if_failed(self, source: str | None = None) -> None:
         """Raise :class:`HallcalInputError` (with ``source`` first) when the check failed."""

@@ -28,6 +28,7 @@ from hallcal.fit.design import plan_ramp, speed_limits
 from hallcal.fit.sem import SEMResult, SEMStatus, solve_sem
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
+from hallcal.messages import Message, MessageCode, has_warning
 from hallcal.pipeline import sensors
 from hallcal.pipeline.boundary import numeric_errors
 from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
@@ -41,6 +42,7 @@ from hallcal.pipeline.checks import (
 )
 from hallcal.pipeline.observe import FOLDING_NOTE, observer_check, observer_section
 from hallcal.pipeline.plant import BLAIdentification, PlantModel, closed_loop, plant_model
+from hallcal.pipeline.plant_refine import PlantRefinement, refine_plant
 from hallcal.pipeline.powerup import power_up_analysis
 from hallcal.pipeline.progress import Progress, say
 from hallcal.pipeline.verdict import decide
@@ -66,7 +68,7 @@ class _Signals:
     r: NDArray[np.float64]
     d: NDArray[np.float64]
     y: NDArray[np.float64]
-    messages: tuple[str, ...]
+    messages: tuple[Message, ...]
 
 
 def _signals(dataset: Dataset, pole_pairs: int) -> _Signals:
@@ -92,14 +94,17 @@ def _signals(dataset: Dataset, pole_pairs: int) -> _Signals:
             f"{dataset.source}: the recording covers {span / TWO_PI:.2f} revolutions; the flux "
             "model is periodic over one revolution and needs at least one full revolution"
         )
-    messages: tuple[str, ...] = ()
+    messages: tuple[Message, ...] = ()
     if "y" in dataset:
         y = np.ascontiguousarray(dataset["y"])
         mismatch = float(np.max(np.abs(y - y_clarke)))
         if mismatch > 1e-6 * max(1.0, float(np.max(np.abs(y)))) + 1e-9:
             messages = (
-                f"warning: column 'y' differs from the Clarke/atan2 f_init of d by up to "
-                f"{mismatch:.3g} rad; the loop is simulated with the paper's f_init",
+                Message.warning(
+                    MessageCode.Y_COLUMN_MISMATCH,
+                    f"column 'y' differs from the Clarke/atan2 f_init of d by up to "
+                    f"{mismatch:.3g} rad; the loop is simulated with the paper's f_init",
+                ),
             )
     else:
         y = y_clarke
@@ -401,7 +406,7 @@ def _ramp_advice(
 
 def _motion_bias(
     loop: ClosedLoop, s: _Signals, setup: Setup, fit: _ModelFit, lut: LUT
-) -> tuple[float, str | None]:
+) -> tuple[float, Message | None]:
     """How far unmodelled cogging may have moved the table, when cogging is not modelled.
 
     A position-periodic motion error that the model lacks is partly absorbed by flux harmonics
@@ -420,26 +425,35 @@ def _motion_bias(
         return 0.0, None
     alt = build_lut(diag.sem.flux, setup.pole_pairs, points=setup.model.lut_points,
                     projection=loop.projection, offset=loop.offset)  # fmt: skip
-    y = TWO_PI * np.arange(4096) / 4096
-    delta = lut.correction(y) - alt.correction(y)
-    bias = float(np.sqrt(np.mean(delta**2)))
+    bias = _table_shift(lut, alt)
     orders = ", ".join(str(k) for k in diag.orders)
-    return bias, (
-        f"warning: the residual shows a cogging torque at {orders}/rev that is not modelled "
+    return bias, Message.warning(
+        MessageCode.UNMODELLED_COGGING,
+        f"the residual shows a cogging torque at {orders}/rev that is not modelled "
         f'(cogging = "none"); modelled, it moves the table by {1e3 * bias:.3g} mrad RMS, '
-        'which the predicted error includes: set cogging = "auto"'
+        'which the predicted error includes: set cogging = "auto"',
     )
 
 
-def _refined_plant(pm: PlantModel, fit: _ModelFit) -> PlantModel:
-    """Apply the gain refined jointly with theta to a BLA plant (no-op for a given plant)."""
+def _table_shift(lut: LUT, other: LUT) -> float:
+    """RMS difference of two tables over the revolution [rad], about zero (their offset
+    included, as in the predicted error)."""
+    y = TWO_PI * np.arange(4096) / 4096
+    return float(np.sqrt(np.mean((lut.correction(y) - other.correction(y)) ** 2)))
+
+
+def _refined_plant(
+    pm: PlantModel, fit: _ModelFit, refinement: PlantRefinement | None = None
+) -> PlantModel:
+    """Apply the gain refined jointly with theta to a BLA plant (no-op for a given plant); with
+    a refinement of the BLA's shape (:mod:`hallcal.pipeline.plant_refine`), to that shape."""
     if pm.gain is None or pm.bla is None:
         return pm
-    c_refined = pm.gain.c * fit.gain_factor
-    gain = dataclasses.replace(
-        pm.gain, c_refined=c_refined, c_refined_std=pm.gain.c * fit.gain_factor_std
-    )
-    return dataclasses.replace(pm, plant=pm.bla.plant.scaled(c_refined), gain=gain)
+    c, shape = (pm.gain.c, pm.bla.plant) if refinement is None else (
+        refinement.gain, refinement.shape)  # fmt: skip
+    c_refined = c * fit.gain_factor
+    gain = dataclasses.replace(pm.gain, c_refined=c_refined, c_refined_std=c * fit.gain_factor_std)
+    return dataclasses.replace(pm, plant=shape.scaled(c_refined), gain=gain)
 
 
 def _folding_ok(adequacy: AdequacyReport, observer: Injectivity | None) -> bool:
@@ -516,12 +530,17 @@ def calibrate_closed_loop(
     loop_check = check_loop(setup.controller, pm.plant, setup.sample_time, plant_name=pm.name)
     loop_check.raise_if_failed("setup")
     loop = closed_loop(setup, pm.plant)
-    messages = list(s.messages) + [pm.note] + list(found.notes)
+    messages = [*s.messages, Message.info(MessageCode.PLANT, pm.note), *found.notes]
     if pm.bla is not None:
         messages += list(pm.bla.messages)
-    messages += [c.text for c in preflight if c.status is CheckStatus.WARNING]
+    messages += [c.to_message() for c in preflight if c.status is CheckStatus.WARNING]
     if pm.gain is not None and pm.gain.status != "ok":
-        messages.append(f"warning: gain correction c = {pm.gain.c:.3g} hit its search bound")
+        messages.append(
+            Message.warning(
+                MessageCode.GAIN_AT_BOUND,
+                f"gain correction c = {pm.gain.c:.3g} hit its search bound",
+            )
+        )
 
     if cold:  # compile the fit's kernels on a small copy, out of the SEM's solve time
         t0 = time.perf_counter()
@@ -552,13 +571,28 @@ def calibrate_closed_loop(
             messages.append(fit.selection.budget_message)
     if fit.kernel is not None and not fit.kernel.settled:
         messages.append(  # a note: the fit is judged by the adequacy test as always
-            f"note: the kernel's learned spectrum was still moving after its budget of "
-            f"{fit.kernel.ard_rounds} SEM solves"
+            Message.note(
+                MessageCode.KERNEL_UNSETTLED,
+                f"the kernel's learned spectrum was still moving after its budget of "
+                f"{fit.kernel.ard_rounds} SEM solves",
+            )
         )
-    pm = _refined_plant(pm, fit)
+    refinement = None
+    if pm.source == "bla" and setup.model.basis == "fourier":
+        say(progress, "refining the BLA's plant with the calibration run (within its uncertainty)")
+        with numeric_errors("setup", "model"):
+            refinement = refine_plant(setup, pm, s.r, s.d, fit.sem, found)
+        if refinement is not None and refinement.refined:
+            sem = refinement.sem
+            fit = dataclasses.replace(
+                fit, sem=sem, flux=sem.flux, model_info=_fourier_info(sem.flux),
+                gain_factor=sem.gain, gain_factor_std=sem.gain_std, adequacy=None,
+                cogging=refinement.cogging or fit.cogging,
+            )  # fmt: skip
+    pm = _refined_plant(pm, fit, refinement if refinement and refinement.refined else None)
     cogging = fit.cogging.cogging if fit.cogging is not None else None
     if fit.cogging is not None and fit.cogging.status is not CoggingStatus.NONE:
-        messages.append(fit.cogging.message)
+        messages.append(Message.note(MessageCode.COGGING, fit.cogging.message))
     loop = closed_loop(setup, pm.plant).with_cogging(cogging).with_rails(*found.censoring.rails)
 
     with numeric_errors("setup", "model"):
@@ -577,23 +611,33 @@ def calibrate_closed_loop(
             projection=loop.projection,
             offset=loop.offset,
         )
-    predicted = adequacy.predicted_error
+    predicted, upper = adequacy.predicted_error, adequacy.predicted_upper
+    if refinement is not None:
+        # the plant's remaining uncertainty moves the table mostly along one direction (its
+        # offset): its 95 % quantile for one run is 1.96 times its standard deviation
+        predicted = math.hypot(predicted, refinement.bias)
+        upper = math.hypot(upper, 1.96 * refinement.bias)
+        messages.append(refinement.message)
     if lut.bijective and adequacy.verdict == "warning":
         bias, note = _motion_bias(loop, s, setup, fit, lut)
-        predicted = math.hypot(predicted, bias)
+        predicted, upper = math.hypot(predicted, bias), math.hypot(upper, bias)
         if note is not None:
             messages.append(note)
+    limit = adequacy.error_sources
+    if cogging is not None and 0 in cogging.orders and "offset" in limit:
+        limit += ", which trades off with the constant load torque in the model (cogging 0)"
     verdict = decide(
         bijective=lut.bijective, predicted=predicted, floor=adequacy.noise_floor,
         correction_rms=adequacy.correction_rms, adequacy=str(adequacy.verdict),
-        adequacy_message=adequacy.message, min_slope=lut.min_slope,
-        checks_passed=not any(m.startswith("warning") for m in messages),
+        adequacy_message=adequacy.message, min_slope=lut.min_slope, predicted_upper=upper,
+        limit=limit, checks_passed=not has_warning(messages),
     )  # fmt: skip
     first = (verdict.status, verdict.refusal, verdict.leading)
     with numeric_errors("setup", "model"):
         observer = observer_check(fit.flux, setup.pole_pairs, fit.sem.noise_variance)
     if not lut.bijective and observer is not None and _folding_ok(adequacy, observer):
-        first = (verdict.status, verdict.refusal, (FOLDING_NOTE.format(sep=observer.separation),))
+        folding = Message.note(MessageCode.FOLDING, FOLDING_NOTE.format(sep=observer.separation))
+        first = (verdict.status, verdict.refusal, (folding,))
     # a refused table keeps the model for the observer only when the verdict said so
     observer_entry = (
         observer_section(observer, fit.sem.noise_variance)
@@ -611,7 +655,7 @@ def calibrate_closed_loop(
         advice = _ramp_advice(plan_loop, setup, s, fit, predicted / adequacy.noise_floor)
         timings["ramp_plan"] = time.perf_counter() - t0
         if advice is not None:
-            messages.append(advice)
+            messages.append(Message.note(MessageCode.RAMP_ADVICE, advice))
     say(progress, "power-up identifiability of the pole pair")
     t0 = time.perf_counter()
     identifiability = power_up_analysis(fit.flux, lut, s.d)

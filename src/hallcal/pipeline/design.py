@@ -102,12 +102,8 @@ def plan_next_ramp(
 
 
 def _noise_variance(cal: Calibration) -> float:
-    """sigma^2 of the calibration run (its SEM's, or the artifact's diagnostics)."""
-    if cal.sem is not None:
-        value = cal.sem.noise_variance
-    else:
-        diag = (cal.artifact or {}).get("diagnostics", {})
-        value = diag.get("noise_variance", math.nan) if isinstance(diag, dict) else math.nan
+    """sigma^2 of the calibration run (its SEM's: the artifact's diagnostics)."""
+    value = cal.diagnostics.get("noise_variance", math.nan)
     try:
         value = float(value)
     except (TypeError, ValueError):

@@ -25,6 +25,7 @@ from hallcal.fit.constant_speed import (
 )
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
+from hallcal.messages import Message, MessageCode
 from hallcal.pipeline.checks import (
     Check,
     CheckStatus,
@@ -83,8 +84,8 @@ class Inspection:
         Suggested ``[trajectory] start, stop`` for a constant-speed calibration.
     held_out : tuple of (int, int) or None
         The rest of the window, for checking the calibration on unseen samples.
-    messages : tuple of str
-        Warnings (``warning: ...``) and notes.
+    messages : tuple of Message
+        Warnings and notes.
     reference : tuple of float or None
         First and last value of the reference ``r`` [rad] (closed-loop recordings).
     motion : Check or None
@@ -110,7 +111,7 @@ class Inspection:
     segment: SpeedSegment | None
     trajectory: tuple[int, int] | None
     held_out: tuple[int, int] | None
-    messages: tuple[str, ...] = ()
+    messages: tuple[Message, ...] = ()
     reference: tuple[float, float] | None = None
     motion: Check | None = None
     counted_with: int | None = None
@@ -134,9 +135,12 @@ class Inspection:
         start, stop = self.trajectory
         return f'[trajectory]\nkind = "constant-speed"\nstart = {start}\nstop = {stop}'
 
-    def lines(self) -> list[str]:
-        """The report of ``hallcal inspect``, one line per item."""
-        out = [f"{self.source}: {self.samples} samples, columns {', '.join(self.columns)}"]
+    def lines(self) -> list[str | Message]:
+        """The report of ``hallcal inspect``, one line per item: a finding (str) or a
+        warning or note for the user (:class:`~hallcal.messages.Message`)."""
+        out: list[str | Message] = [
+            f"{self.source}: {self.samples} samples, columns {', '.join(self.columns)}"
+        ]
         if self.sample_time is not None:
             out.append(
                 f"sample time {self.sample_time:.6g} s ({1.0 / self.sample_time:.6g} Hz), "
@@ -181,8 +185,11 @@ class Inspection:
             else "against the sensor order (d3 -> d2 -> d1)"
         )
         out.append(f"rotation: {turn}, {sense}")
-        if self.direction.status is not CheckStatus.SKIPPED:
-            out.append(self.direction.text)
+        direction = self.direction
+        if direction.status is CheckStatus.WARNING:
+            out.append(direction.to_message())
+        elif direction.status is not CheckStatus.SKIPPED:
+            out.append(direction.text)
         g = self.geometry
         spacing = ", ".join(f"{v:.0f}" for v in g.spacing_deg)
         out.append(
@@ -260,7 +267,7 @@ def _suggest_pole_pairs(dataset: Dataset) -> int | None:
     return pole_pairs_from_signature(np.asarray(dataset.d)).best
 
 
-def _clipping(dataset: Dataset) -> list[str]:
+def _clipping(dataset: Dataset) -> list[Message]:
     out = []
     for h in (1, 2, 3):
         x = np.asarray(dataset[f"d{h}"], dtype=np.float64)
@@ -268,8 +275,11 @@ def _clipping(dataset: Dataset) -> list[str]:
             share = float(np.mean(x == value))
             if share > CLIP_FRACTION:
                 out.append(
-                    f"warning: d{h} sits at its {which} {value:.6g} in {100 * share:.1f} % of the "
-                    "samples: the ADC or the sensor clips; lower the gain or move the sensor"
+                    Message.warning(
+                        MessageCode.CLIPPING,
+                        f"d{h} sits at its {which} {value:.6g} in {100 * share:.1f} % of the "
+                        "samples: the ADC or the sensor clips; lower the gain or move the sensor",
+                    )
                 )
     return out
 
@@ -347,7 +357,9 @@ def inspect_recording(
     messages = _clipping(dataset)
     geometry = estimate_sensor_geometry(d, n)
     if geometry.message:
-        messages.append(f"note: sensor geometry: {geometry.message}")
+        messages.append(
+            Message.note(MessageCode.SENSOR_GEOMETRY, f"sensor geometry: {geometry.message}")
+        )
     psi = unwrapped_electrical_angle(dataset)
     cycles = float(psi[-1] - psi[0]) / TWO_PI
     segment = trajectory = held_out = None
@@ -361,22 +373,31 @@ def inspect_recording(
                 trajectory = (segment.start, segment.stop)
             if segment.samples_per_cycle < MIN_SAMPLES_PER_CYCLE:
                 messages.append(
-                    f"warning: {segment.samples_per_cycle} samples per electrical cycle in the "
-                    f"constant-speed window; aim for {MIN_SAMPLES_PER_CYCLE}-60 (turn slower or "
-                    "sample faster; docs/recording-guide.md)"
+                    Message.warning(
+                        MessageCode.TRAJECTORY_WINDOW,
+                        f"{segment.samples_per_cycle} samples per electrical cycle in the "
+                        f"constant-speed window; aim for {MIN_SAMPLES_PER_CYCLE}-60 (turn slower "
+                        "or sample faster; docs/recording-guide.md)",
+                    )
                 )
             if segment.revolutions < CAL_REVOLUTIONS:
                 messages.append(
-                    f"warning: the constant-speed window holds {segment.revolutions:.2f} "
-                    f"revolutions; an open-loop calibration needs at least {CAL_REVOLUTIONS:g}"
+                    Message.warning(
+                        MessageCode.TRAJECTORY_WINDOW,
+                        f"the constant-speed window holds {segment.revolutions:.2f} revolutions; "
+                        f"an open-loop calibration needs at least {CAL_REVOLUTIONS:g}",
+                    )
                 )
     if setup is not None and setup.trajectory.kind == "constant-speed" and segment is not None:
         t = setup.trajectory
         stop = dataset.n_samples if t.stop is None else t.stop
         if segment.ok and (t.start < segment.start or stop > segment.stop):
             messages.append(
-                f"warning: the setup's trajectory.start..stop = {t.start}..{stop} reaches outside "
-                f"the constant-speed window {segment.start}..{segment.stop}"
+                Message.warning(
+                    MessageCode.TRAJECTORY_WINDOW,
+                    f"the setup's trajectory.start..stop = {t.start}..{stop} reaches outside "
+                    f"the constant-speed window {segment.start}..{segment.stop}",
+                )
             )
     return Inspection(
         source=dataset.source,

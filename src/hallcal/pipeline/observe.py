@@ -137,14 +137,10 @@ def calibrated_noise(
 def _noise_variance(cal: Calibration) -> NDArray[np.float64]:
     """sigma_i^2: the calibration's observer entry, else the SEM's, else from the noise floor
     (sigma sqrt(2/3) / (A n_m) with A the fundamental's amplitude, docs/design.md)."""
-    art = cal.artifact or {}
     entry = cal.observer
     if isinstance(entry, Mapping) and "noise_variance" in entry:
         return np.asarray(entry["noise_variance"], dtype=np.float64)
-    if cal.sem is not None:
-        return np.full(3, float(cal.sem.noise_variance))
-    diag = art.get("diagnostics", {}) if isinstance(art, Mapping) else {}
-    nv = diag.get("noise_variance")
+    nv = cal.diagnostics.get("noise_variance")  # the SEM's
     if isinstance(nv, int | float) and nv > 0:
         return np.full(3, float(nv))
     n = cal.pole_pairs

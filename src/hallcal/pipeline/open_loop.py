@@ -22,6 +22,7 @@ from hallcal.fit.constant_speed import (
 )
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
+from hallcal.messages import Message, MessageCode
 from hallcal.pipeline.calibration import Calibration, validate
 from hallcal.pipeline.checks import CheckStatus, check_pole_pairs, check_recording, raise_if_failed
 from hallcal.pipeline.observe import FOLDING_NOTE, calibrated_noise, observer_section
@@ -67,16 +68,17 @@ def _harmonics(setup: Setup) -> tuple[int, ...]:
     return harmonics
 
 
-def _speed_warning(d: np.ndarray, start: int, stop: int, pole_pairs: int) -> str | None:
+def _speed_warning(d: np.ndarray, start: int, stop: int, pole_pairs: int) -> Message | None:
     """A warning when f_init's speed is not constant over the chosen samples."""
     deviation = speed_deviation(d[start:stop], pole_pairs)
     if deviation <= 0.1:
         return None
     seg = find_constant_speed(d, pole_pairs)
     hint = f"; the constant-speed part looks like {seg.start}..{seg.stop}" if seg.ok else ""
-    return (
-        f"warning: f_init's speed varies by {100 * deviation:.0f}% within trajectory.start.."
-        f"stop = {start}..{stop} (averaged over electrical cycles){hint}"
+    return Message.warning(
+        MessageCode.SPEED_VARIES,
+        f"f_init's speed varies by {100 * deviation:.0f}% within trajectory.start.."
+        f"stop = {start}..{stop} (averaged over electrical cycles){hint}",
     )
 
 
@@ -121,16 +123,19 @@ def calibrate_open_loop(
     pole_pairs = check_pole_pairs(dataset, n)
     pole_pairs.raise_if_failed(dataset.source)
     warning = _speed_warning(d, start, stop, n)
-    messages: list[str] = [] if warning is None else [warning]
+    messages: list[Message] = [] if warning is None else [warning]
     if pole_pairs.status is CheckStatus.WARNING:
-        messages.append(pole_pairs.text)
+        messages.append(pole_pairs.to_message())
     unused = [f"[{t}]" for t in ("controller", "plant") if getattr(setup, t) is not None]
     if setup.model.cogging not in ("auto", "none"):
         unused.append("[model] cogging")
     if unused:
         messages.append(
-            f"note: {' and '.join(unused)} {'is' if len(unused) == 1 else 'are'} not used by a "
-            'constant-speed calibration (trajectory.kind = "constant-speed")'
+            Message.note(
+                MessageCode.UNUSED_INPUT,
+                f"{' and '.join(unused)} {'is' if len(unused) == 1 else 'are'} not used by a "
+                'constant-speed calibration (trajectory.kind = "constant-speed")',
+            )
         )
     if progress is not None:
         progress(
@@ -150,13 +155,16 @@ def calibrate_open_loop(
     except ValueError as exc:
         raise HallcalInputError(f"{dataset.source}: {exc}") from None
     timings = {"constant_speed": time.perf_counter() - t0}
-    messages.extend(f"warning: {w}" for w in res.warnings)
+    messages.extend(Message.warning(MessageCode.SPEED_FIT, w) for w in res.warnings)
     if res.status is ConstantSpeedStatus.NOT_CONVERGED:
-        messages.append("warning: the speed estimate did not converge")
+        messages.append(
+            Message.warning(MessageCode.SPEED_FIT, "the speed estimate did not converge")
+        )
     var = calibrated_noise(res.model, n, d, max(res.noise_std, 1e-300) ** 2, start=start, stop=stop)
     injectivity = observer_model(res.model, n, var).injectivity
     if not res.lut.bijective and injectivity.injective:
-        messages.insert(0, FOLDING_NOTE.format(sep=injectivity.separation))
+        folding = FOLDING_NOTE.format(sep=injectivity.separation)
+        messages.insert(0, Message.note(MessageCode.FOLDING, folding))
     # the prediction is the noise floor (the constant-speed fit gives no covariance of the table)
     verdict = decide(
         bijective=res.lut.bijective, predicted=res.angle_noise_floor,

@@ -20,6 +20,7 @@ from hallcal.errors import CalibrationRefused, HallcalInputError
 from hallcal.fit.sem import least_squares_start
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
+from hallcal.messages import Message, MessageCode, has_warning
 from hallcal.pipeline.boundary import numeric_errors
 from hallcal.pipeline.checks import (
     BLAFitCheck,
@@ -83,7 +84,7 @@ class BLAIdentification:
         The fitted G(s) with its delay (before the gain correction).
     status : BLAStatus
         A plain string is accepted and converted (``"ok"``; anything else is a warning).
-    messages : tuple of str
+    messages : tuple of Message
         What was chosen (the model order) and what to look at, one line each.
     refusal : str or None
         Why the model must not be used (``status`` refused), with the fix.
@@ -98,7 +99,7 @@ class BLAIdentification:
     parametric: _par.ParametricBLA = field(repr=False)
     plant: ContinuousTF
     status: BLAStatus = BLAStatus.OK
-    messages: tuple[str, ...] = ()
+    messages: tuple[Message, ...] = ()
     refusal: str | None = None
     selection: _par.OrderSelection | None = field(default=None, repr=False)
     check: BLAFitCheck | None = field(default=None, repr=False)
@@ -120,7 +121,7 @@ class BLAIdentification:
             },
             "status": self.status.value,
             "refusal": self.refusal,
-            "messages": list(self.messages),
+            "messages": [m.record() for m in self.messages],
             "nonparametric": self.nonparametric.to_dict(),
             "parametric": self.parametric.to_dict(),
         }
@@ -133,24 +134,27 @@ class BLAIdentification:
 
 def _fit_with_order(
     npb: _bla.NonparametricBLA, setup: Setup
-) -> tuple[_par.ParametricBLA, int, _par.OrderSelection | None, list[str]]:
+) -> tuple[_par.ParametricBLA, int, _par.OrderSelection | None, list[Message]]:
     """The parametric fit with the setup's order, or with the order chosen from the data."""
     from hallcal.identify import parametric as _par
 
     spec = setup.bla
     assert spec is not None
     integrator, fit_delay = spec.integrator, spec.fit_delay
-    messages: list[str] = []
+    messages: list[Message] = []
     if spec.denominator_order == "auto":
         selection = _par.select_order(
             npb, numerator_order=spec.numerator_order, integrator=integrator, fit_delay=fit_delay
         )
         chosen = selection.chosen or min(selection.candidates, key=lambda c: c.criterion)
         messages.append(
-            f"plant model: denominator order {chosen.denominator_order} chosen from the data "
-            '([bla] denominator_order = "auto": of the orders 0..3 the stable one with the '
-            f"smallest description length; weighted cost {chosen.cost:.4g} for "
-            f"{selection.lines} lines)"
+            Message.info(
+                MessageCode.PLANT,
+                f"plant model: denominator order {chosen.denominator_order} chosen from the "
+                'data ([bla] denominator_order = "auto": of the orders 0..3 the stable one with '
+                f"the smallest description length; weighted cost {chosen.cost:.4g} for "
+                f"{selection.lines} lines)",
+            )
         )
         return chosen.fit, chosen.denominator_order, selection, messages
     order = int(spec.denominator_order)
@@ -236,25 +240,33 @@ def identify_bla(dataset: Dataset, setup: Setup, *, progress: Progress = None) -
         )
     if npb.status != "ok":
         messages.append(
-            f"warning: BLA experiment: {npb.status} ({npb.realizations} realizations x "
-            f"{npb.periods} steady-state periods); the variances are incomplete"
+            Message.warning(
+                MessageCode.BLA_EXPERIMENT,
+                f"BLA experiment: {npb.status} ({npb.realizations} realizations x "
+                f"{npb.periods} steady-state periods); the variances are incomplete",
+            )
         )
     if par.status != "ok":
-        messages.append("warning: the parametric fit of G(s) did not converge")
+        messages.append(
+            Message.warning(MessageCode.PLANT_FIT, "the parametric fit of G(s) did not converge")
+        )
     lines = int(np.size(par.freq))
     if lines >= 10 and par.cost > COST_PER_LINE_WARNING * lines:
         messages.append(
-            f"warning: the plant model leaves {par.cost / lines:.3g} times the BLA's variance per "
-            "line (about 1 for a model that explains it): look at the Bode plot; raise [bla] "
-            'denominator_order or use "auto"'
+            Message.warning(
+                MessageCode.PLANT_MISFIT,
+                f"the plant model leaves {par.cost / lines:.3g} times the BLA's variance per "
+                "line (about 1 for a model that explains it): look at the Bode plot; raise "
+                '[bla] denominator_order or use "auto"',
+            )
         )
     refusal = None
     if check.status is CheckStatus.FAILED:
         status, refusal = BLAStatus.REFUSED, check.text
     else:
         if check.status is CheckStatus.WARNING:
-            messages.append(check.text)
-        warned = any(m.startswith("warning") for m in messages)
+            messages.append(check.to_message(MessageCode.PLANT_FIT))
+        warned = has_warning(messages)
         status = BLAStatus.WARNING if warned else BLAStatus.OK
     return BLAIdentification(
         npb,
@@ -448,6 +460,17 @@ class PlantModel:
     bla: BLAIdentification | None = None
     gain: GainCorrection | None = None
     where: str = "[plant]"
+
+    def deviations(self) -> tuple[ContinuousTF, ...]:
+        """The plant moved by one standard deviation of its BLA fit along each principal
+        direction of the fit's covariance (:attr:`ParametricBLA.deviations`), with the same gain
+        correction; empty for a given ``[plant]``."""
+        if self.bla is None or self.gain is None:
+            return ()
+        return tuple(
+            ContinuousTF(tuple(num), tuple(den), max(float(delay), 0.0)).scaled(self.gain.value)
+            for num, den, delay in self.bla.parametric.deviations
+        )
 
     @property
     def name(self) -> str:

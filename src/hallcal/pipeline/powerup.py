@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike
 
 from hallcal.errors import CalibrationRefused, HallcalInputError
 from hallcal.io.dataset import Dataset
+from hallcal.messages import Message, MessageCode
 from hallcal.pipeline.checks import CheckStatus, check_direction
 from hallcal.sensor.absolute import (
     AbsoluteAngles,
@@ -224,11 +225,11 @@ class SignalCheck:
         }
 
     @property
-    def warning(self) -> str | None:
+    def warning(self) -> Message | None:
         """A line worth printing although the signals fit: their amplitude far from the
         calibration's (another unit or ADC scale?), else None."""
         if self.status.success and _far(self.scale):
-            return f"warning: {self.message}"
+            return Message.warning(MessageCode.POWERUP, self.message)
         return None
 
     def raise_if_failed(self) -> None:

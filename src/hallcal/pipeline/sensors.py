@@ -42,6 +42,7 @@ from hallcal.fit.censor import (
 from hallcal.fit.constant_speed import SensorGeometry, estimate_sensor_geometry
 from hallcal.fit.drift import DriftReport, detect_drift, drift_in_f_init_view, undrifted
 from hallcal.fit.sem import SEMResult, solve_sem
+from hallcal.messages import Message, MessageCode
 from hallcal.pipeline.progress import Progress, say
 from hallcal.sensor.flux import FourierBasis
 from hallcal.sensor.reconstruction import f_init
@@ -86,7 +87,7 @@ class SensorFindings:
     geometry : SensorGeometry or None
         The sensors' electrical phases when they are skewed (more than :data:`SKEW_DEG` from
         0/120/240 degrees), else None.
-    notes : tuple of str
+    notes : tuple of Message
         Messages for the user.
     """
 
@@ -94,7 +95,7 @@ class SensorFindings:
     sigma: NDArray[np.float64] = field(repr=False)
     drift: DriftReport | None
     geometry: SensorGeometry | None = None
-    notes: tuple[str, ...] = ()
+    notes: tuple[Message, ...] = ()
 
     @property
     def weights(self) -> NDArray[np.float64] | None:
@@ -129,8 +130,11 @@ def examine(d: NDArray, y: NDArray, *, pole_pairs: int, basis: str) -> SensorFin
     notes = []
     if censoring.any:
         notes.append(
-            f"censored samples (ADC rail) left out of the fit: {censoring.describe()} "
-            "(the loop's f_init saw them clipped, and so does the model's)"
+            Message.note(
+                MessageCode.CENSORED_SAMPLES,
+                f"censored samples (ADC rail) left out of the fit: {censoring.describe()} "
+                "(the loop's f_init saw them clipped, and so does the model's)",
+            )
         )
     drift = None
     if basis == "fourier":
@@ -150,11 +154,14 @@ def examine(d: NDArray, y: NDArray, *, pole_pairs: int, basis: str) -> SensorFin
     )
     if geometry is not None and geometry.ok and dev.max() > SKEW_DEG:
         notes.append(
-            "skewed sensors: at "
-            + "/".join(f"{v:.0f}" for v in geometry.phases_deg)
-            + " electrical degrees (nominal 0/120/240), f_init's own angle error is large and "
-            "its view of the flux rich in harmonics; the model choice looks through the "
-            "sensors' estimated spacing instead"
+            Message.note(
+                MessageCode.SKEWED_SENSORS,
+                "skewed sensors: at "
+                + "/".join(f"{v:.0f}" for v in geometry.phases_deg)
+                + " electrical degrees (nominal 0/120/240), f_init's own angle error is large "
+                "and its view of the flux rich in harmonics; the model choice looks through the "
+                "sensors' estimated spacing instead",
+            )
         )
     else:
         geometry = None
@@ -214,9 +221,10 @@ def for_choice(
     assert found.drift is not None
     say(progress, "the sensors' drift (SEM on 1..3 n_m)")
     K = max(pole_pairs, min(3 * pole_pairs, MAX_IMPUTATION_HARMONICS))
+    # only its drift is used: no exact system for a covariance
     sem = solve_sem(loop, r, d, FourierBasis(tuple(range(1, K + 1))), y=y,
                     weights=found.weights, fit_drift=True, drift0=_drift0(found.drift),
-                    max_iterations=5)  # fmt: skip
+                    max_iterations=5, covariance="iterations")  # fmt: skip
     report = found.drift
     if sem.drift is not None and np.all(np.isfinite(sem.drift)):
         report = replace(report, gain=sem.drift[:, 0], offset=sem.drift[:, 1])
@@ -336,7 +344,7 @@ def at_mid_run(sem: SEMResult, d: NDArray) -> tuple[SEMResult, NDArray]:
     return replace(sem, d_sim=undrifted(sem.d_sim, report)), undrifted(d, report)
 
 
-Verdict = tuple[Any, str | None, tuple[str, ...]]
+Verdict = tuple[Any, str | None, tuple[Message, ...]]
 
 
 def verdict(
@@ -388,14 +396,15 @@ def verdict(
             f" %, offset {sem.drift[h, 1]:+.2g} +- {sem.drift_std[h, 1]:.2g}"
             for h in range(3)
         ]
-        line = (
-            "warning: the sensors drift during the run (gain and offset changes over the run, "
+        identified = Message.warning(
+            MessageCode.SENSOR_DRIFT,
+            "the sensors drift during the run (gain and offset changes over the run, "
             f"identified with the flux: {'; '.join(parts)}); the table is the one of the run's "
-            "middle: at other temperatures it is off by about as much"
+            "middle: at other temperatures it is off by about as much",
         )
         if status == ok:
             status = warning
-        return (status, refusal, (line, *leading)), out
+        return (status, refusal, (identified, *leading)), out
     drift = detect_drift(d, sem.d_sim, found.sigma, weights=found.weights)
     if not drift.any:
         return verdict, out
@@ -409,4 +418,5 @@ def verdict(
         return (status, f"{line}; {refusal.split(': use ')[0]}", leading), out
     if status == ok:
         status = warning
-    return (status, refusal, (f"warning: {line}", *leading)), out
+    warning_line = Message.warning(MessageCode.SENSOR_DRIFT, line)
+    return (status, refusal, (warning_line, *leading)), out

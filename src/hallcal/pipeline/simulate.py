@@ -47,25 +47,12 @@ def bench_config(setup: Setup) -> BenchConfig:
             source="setup",
             key="plant",
         )
-    return BenchConfig(
+    return BenchConfig.from_spec(
+        b,
         pole_pairs=setup.pole_pairs,
         sample_time=setup.sample_time,
         plant=setup.plant,
         controller=setup.controller or PAPER_CONTROLLER,
-        amplitude=b.amplitude,
-        noise_variance=b.noise_variance,
-        magnet_variation=b.magnet_variation,
-        pole_modulation=b.pole_modulation,
-        shape_variation=b.shape_variation,
-        shape_harmonics=b.shape_harmonics,
-        misalignment_deg=b.misalignment_deg,
-        gain_mismatch=b.gain_mismatch,
-        offset=b.offset,
-        electrical_harmonics=b.electrical_harmonics,
-        torque_disturbance=b.torque_disturbance,
-        cogging=b.cogging,
-        cogging_periods=b.cogging_periods,
-        seed=b.seed,
     )
 
 

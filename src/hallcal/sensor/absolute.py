@@ -985,8 +985,8 @@ class Identifiability(enum.StrEnum):
     """Verdict of :func:`assess_identifiability`."""
 
     IDENTIFIABLE = "identifiable"  # at standstill, everywhere, within the standstill budget
-    NEEDS_MOTION = "needs-motion"  # standstill is not enough everywhere; motion is
-    NOT_IDENTIFIABLE = "not-identifiable"  # magnets too alike: homing stays necessary
+    NEEDS_MOTION = "needs_motion"  # standstill is not enough everywhere; motion is
+    NOT_IDENTIFIABLE = "not_identifiable"  # magnets too alike: homing stays necessary
 
     @property
     def success(self) -> bool:
@@ -998,9 +998,9 @@ class IdentifiabilityReason(enum.StrEnum):
     """Why the verdict is what it is."""
 
     STANDSTILL = "standstill"  # every position within the standstill budget
-    WEAK_POSITIONS = "weak-positions"  # some positions need more than the standstill budget
-    TOO_UNIFORM = "too-uniform"  # even one electrical revolution needs more than the motion budget
-    BELOW_MODEL_UNCERTAINTY = "below-model-uncertainty"  # signature within the fit's own noise
+    WEAK_POSITIONS = "weak_positions"  # some positions need more than the standstill budget
+    TOO_UNIFORM = "too_uniform"  # even one electrical revolution needs more than the motion budget
+    BELOW_MODEL_UNCERTAINTY = "below_model_uncertainty"  # signature within the fit's own noise
 
 
 @dataclass(frozen=True)

@@ -7,8 +7,13 @@ angle that best explains the three signals,
 
     y_obs = argmin_y  sum_i (d_i - m_i(y))^2 / sigma_i^2,   m_i(y) = a_i (g_i(y) - c_i) + b_i,
 
-by Gauss-Newton steps from the predicted angle (previous angle plus speed), with g and dg/dy0
-tabulated over one revolution (cubic Hermite interpolation of values and slopes). ``c_i`` is
+by one Gauss-Newton step per sample from the predicted angle (previous angle plus speed), with
+g and dg/dy0 tabulated over one revolution (cubic Hermite interpolation of values and slopes) and
+looked up once per sample, at the prediction: the chi-square after the step, the fits without
+one channel and the adaptation's regressors all use the model linearized there (the step's own
+error is second order in the prediction error, far below the noise once the speed is tracked).
+The first sample is found by a search of table nodes within half a pole pitch of the start.
+Work per sample is bounded and small (a Cortex-M4F: benchmarks/bench_observer_c.txt). ``c_i`` is
 the model's constant term; the gain ``a_i`` and level ``b_i`` (initially 1 and c_i) are adapted
 online. Only the three-signal curve g(y) must be injective (checked with a margin by
 :func:`observer_model`), so a folding map (Clarke's angle not monotone, no table on f_init) is
@@ -26,13 +31,17 @@ Around it:
   adaptation freezes.
 * **online adaptation**: per sensor, (a_i, b_i) by exponentially weighted least squares of d_i
   on [g_i(y_obs) - c_i, 1] (forgetting per electrical radian of travel, a weak prior on the
-  calibrated values, bounded); this absorbs the temperature drift of NdFeB remanence (common
-  gain), Hall sensitivity (per-sensor gain) and offsets.
+  calibrated values, bounded; the regressors projected off the angle's direction in the
+  joint 6x6 information; one sample in each cycle of ``ADAPT_CYCLE`` samples without an
+  unexplained outlier is measured, its update applied at the cycle's end, so that firmware
+  spreads the 6x6 work over the cycle); this absorbs the temperature drift of NdFeB
+  remanence (common gain), Hall sensitivity (per-sensor gain) and offsets.
 * **one-sensor fallback**: a sample whose chi-square is an outlier and that one channel alone
   explains (the fit without it is within the noise) is reconstructed from the other two; a
   channel so blamed ``fault_count`` times within ``fault_window`` samples (or non-finite) is
-  excluded: state ``degraded``, y_obs from the two others (the two-sensor ML angle), re-acquired
-  by a search within half a pole pitch of the prediction, so it never slips a pole pitch. It is
+  excluded: state ``degraded``, y_obs from the two others (the two-sensor ML angle, tracked on
+  from the fit without the channel, never more than a bounded step per sample from the
+  prediction), so it never slips a pole pitch. It is
   readmitted after ``readmit_travel`` electrical radians of consistent readings.
 
 Units: angles in rad (mechanical), d and sigma in the sensor's unit.
@@ -52,11 +61,13 @@ from numpy.typing import ArrayLike, NDArray
 from hallcal.sensor.flux import FluxModel
 
 __all__ = [
+    "ADAPT_CYCLE",
     "Injectivity",
     "ObserverModel",
     "ObserverRun",
     "ObserverSettings",
     "ObserverState",
+    "acquire_offsets",
     "chi_square_quantile",
     "observer_model",
     "run_observer",
@@ -93,8 +104,9 @@ class ObserverSettings:
 
     Attributes
     ----------
-    iterations : int
-        Gauss-Newton steps per sample from the predicted angle.
+    acquire_points : int
+        Table nodes searched (within half a pole pitch of the given angle) for the first sample;
+        the next samples' Gauss-Newton steps refine the best.
     speed_gain : float
         Gain of the speed update v += speed_gain (y_obs - y_pred) [-].
     window : int
@@ -134,7 +146,7 @@ class ObserverSettings:
         [electrical rad].
     """
 
-    iterations: int = 2
+    acquire_points: int = 8
     speed_gain: float = 0.05
     window: int = 256
     false_alarm: float = 1e-9
@@ -152,8 +164,8 @@ class ObserverSettings:
     readmit_travel: float = 4.0 * math.pi
 
     def __post_init__(self) -> None:
-        if not (self.iterations >= 1 and self.window >= 8 and 0 < self.false_alarm < 0.5):
-            raise ValueError("iterations >= 1, window >= 8 and 0 < false_alarm < 0.5 required")
+        if not (self.acquire_points >= 2 and self.window >= 8 and 0 < self.false_alarm < 0.5):
+            raise ValueError("acquire_points >= 2, window >= 8 and 0 < false_alarm < 0.5 required")
         if not (1 <= self.fault_count <= self.fault_window):
             raise ValueError("1 <= fault_count <= fault_window required")
         lo, hi = self.gain_bounds
@@ -346,6 +358,14 @@ class ObserverRun:
         return int(self.y_obs.size)
 
 
+def acquire_offsets(points: int, pole_pairs: int, count: int) -> NDArray[np.int64]:
+    """Table-node offsets searched at the start: ``count`` nodes evenly spread over one pole
+    pitch centred on the start (within half a pole pitch), in table steps (M / n_m per pitch).
+    The C export takes the same offsets."""
+    per_pitch = points / pole_pairs
+    return np.array([round((q / count - 0.5) * per_pitch) for q in range(count)], dtype=np.int64)
+
+
 def run_observer(
     model: ObserverModel,
     d: ArrayLike,
@@ -384,7 +404,7 @@ def run_observer(
     z = -statistics.NormalDist().inv_cdf(s.false_alarm)
     cfg = np.array(
         [
-            s.iterations, s.speed_gain, s.window, z, s.sample_cap, s.outlier, s.explained,
+            0.0, s.speed_gain, s.window, z, s.sample_cap, s.outlier, s.explained,
             s.fault_window, s.fault_count, s.adapt_memory, s.prior_samples, s.gain_bounds[0],
             s.gain_bounds[1], s.offset_bound, s.stale_travel, s.readmit_travel, s.gross,
             model.pole_pairs,
@@ -401,6 +421,7 @@ def run_observer(
         float(model.pole_pairs),
         float(y_initial),
         cfg,
+        acquire_offsets(model.points, model.pole_pairs, s.acquire_points),
         gain,
         level,
         y_obs,
@@ -475,171 +496,210 @@ def _table(G, dG, h, y, g, dg):
 
 
 @nb.njit(cache=True)
-def _fit(G, dG, h, dk, c, a, b, w, y, iterations, max_step, g, dg):
-    """Gauss-Newton on sum_i w_i (d_i - a_i (g_i(y) - c_i) - b_i)^2 from y; returns (y, chi2)."""
-    for _ in range(iterations):
-        _table(G, dG, h, y, g, dg)
-        num = 0.0
-        den = 0.0
-        for i in range(3):
-            if w[i] > 0.0:
-                r = dk[i] - a[i] * (g[i] - c[i]) - b[i]
-                J = a[i] * dg[i]
-                num += w[i] * J * r
-                den += w[i] * J * J
-        if den <= 0.0:
-            break
-        step = num / den
-        if step > max_step:
-            step = max_step
-        elif step < -max_step:
-            step = -max_step
-        y += step
-    _table(G, dG, h, y, g, dg)
-    chi = 0.0
+def _linearize(G, dG, h, dk, c, a, b, w, yp, f, dg, r):
+    """The model at the predicted angle yp (one table look-up per sample): field parts
+    f_i = g_i(yp) - c_i, slopes dg_i/dy0 and residuals r_i = d_i - a_i f_i - b_i of all three
+    channels, and the weighted sums over the channels in use: (sum w r^2, sum w J r, sum w J^2)
+    with J_i = a_i dg_i/dy0."""
+    _table(G, dG, h, yp, f, dg)
+    srr = 0.0
+    num = 0.0
+    den = 0.0
     for i in range(3):
+        f[i] -= c[i]
+        r[i] = dk[i] - a[i] * f[i] - b[i]
         if w[i] > 0.0:
-            r = dk[i] - a[i] * (g[i] - c[i]) - b[i]
-            chi += w[i] * r * r
-    return y, chi
+            J = a[i] * dg[i]
+            srr += w[i] * r[i] * r[i]
+            num += w[i] * J * r[i]
+            den += w[i] * J * J
+    return srr, num, den
+
+
+@nb.njit(cache=True, inline="always")
+def _step(srr, num, den, max_step):
+    """One Gauss-Newton step of the angle on the model linearized at the prediction, bounded by
+    max_step, and the chi-square of the linearized model after it: (step, chi2)."""
+    if den <= 0.0:
+        return 0.0, srr
+    step = num / den
+    if step > max_step:
+        step = max_step
+    elif step < -max_step:
+        step = -max_step
+    chi = srr - step * (2.0 * num - step * den)
+    return step, chi if chi > 0.0 else 0.0
 
 
 @nb.njit(cache=True)
-def _fit_scaled(G, dG, h, dk, c, a, b, w, y, iterations, max_step, g, dg):
-    """Chi-square of the best angle and common gain s of the channels' field parts,
-    sum_i w_i (d_i - s a_i (g_i(y) - c_i) - b_i)^2 (Gauss-Newton on (y, s) from (y, 1)): small
-    when a sample is off the model only by a common scaling (remanence, air gap)."""
-    sc = 1.0
-    for _ in range(iterations + 1):
-        _table(G, dG, h, y, g, dg)
-        A00 = 0.0
-        A01 = 0.0
-        A11 = 0.0
-        r0 = 0.0
-        r1 = 0.0
-        for i in range(3):
-            if w[i] > 0.0:
-                f = a[i] * (g[i] - c[i])
-                r = dk[i] - sc * f - b[i]
-                Jy = sc * a[i] * dg[i]
-                A00 += w[i] * Jy * Jy
-                A01 += w[i] * Jy * f
-                A11 += w[i] * f * f
-                r0 += w[i] * Jy * r
-                r1 += w[i] * f * r
-        det = A00 * A11 - A01 * A01
-        if det <= 0.0:
-            break
-        step = (A11 * r0 - A01 * r1) / det
-        step = min(max(step, -max_step), max_step)
-        y += step
-        sc += (A00 * r1 - A01 * r0) / det
-    _table(G, dG, h, y, g, dg)
-    chi = 0.0
+def _robust(f, dg, r, a, w, srr, num, den, chi, max_step, explained, gross):
+    """An outlier sample (three channels, chi2 above ``outlier``), on the linearized model: is it
+    explained by a common gain s of the field parts (remanence, air gap; the (y, s) least
+    squares)? If not, the fits without each channel. Returns (step, chi2, blamed channel or -1,
+    mark: blamed, 3 unexplained outlier, -1; outlier: True when no common gain explains it)."""
+    A01 = 0.0
+    A11 = 0.0
+    r1 = 0.0
     for i in range(3):
-        if w[i] > 0.0:
-            r = dk[i] - sc * a[i] * (g[i] - c[i]) - b[i]
-            chi += w[i] * r * r
-    return chi
-
-
-@nb.njit(cache=True)
-def _acquire(G, dG, h, dk, c, a, b, w, y0, pitch, iterations, g, dg):
-    """The best of 64 starts within half a pole pitch of y0, refined: (y, chi2)."""
-    best_y = y0
+        Js = a[i] * f[i]
+        A01 += w[i] * (a[i] * dg[i]) * Js
+        A11 += w[i] * Js * Js
+        r1 += w[i] * Js * r[i]
+    det = den * A11 - A01 * A01
+    if det > 0.0:
+        chi_s = srr - (A11 * num * num - 2.0 * A01 * num * r1 + den * r1 * r1) / det
+        if chi_s <= explained:
+            return _step(srr, num, den, max_step)[0], chi, -1, -1, False
     best = math.inf
-    for q in range(64):
-        y = y0 + pitch * (q / 64.0 - 0.5)
-        _table(G, dG, h, y, g, dg)
+    best_step = 0.0
+    blamed = -1
+    for q in range(3):
+        Jq = a[q] * dg[q]
+        sq, cq = _step(srr - w[q] * r[q] * r[q], num - w[q] * Jq * r[q], den - w[q] * Jq * Jq,
+                       max_step)  # fmt: skip
+        if cq < best:
+            best = cq
+            best_step = sq
+            blamed = q
+    step = _step(srr, num, den, max_step)[0]
+    if not (best < explained and best < 0.1 * chi):
+        return step, chi, -1, 3, True
+    e = r[blamed] - a[blamed] * dg[blamed] * best_step
+    if abs(e) < gross[blamed]:
+        return step, chi, -1, -1, True  # small enough to be drift, not a channel fault
+    return best_step, chi, blamed, blamed, True
+
+
+@nb.njit(cache=True)
+def _acquire(G, dk, c, a, b, w, yp, h, offsets):
+    """The start: the best of the table nodes ``offsets`` (within half a pole pitch) around the
+    node nearest yp, by chi2 at the nodes themselves (no interpolation): its angle [rad]."""
+    M = G.shape[0]
+    j0 = int(math.floor(yp / h + 0.5))
+    e = np.empty(3)
+    for i in range(3):
+        e[i] = dk[i] - b[i] + a[i] * c[i]
+    best = math.inf
+    bj = j0
+    for q in range(offsets.size):
+        j = j0 + offsets[q]
+        jm = j % M
         chi = 0.0
         for i in range(3):
             if w[i] > 0.0:
-                r = dk[i] - a[i] * (g[i] - c[i]) - b[i]
-                chi += w[i] * r * r
+                rr = e[i] - a[i] * G[jm, i]
+                chi += w[i] * rr * rr
         if chi < best:
             best = chi
-            best_y = y
-    return _fit(G, dG, h, dk, c, a, b, w, best_y, iterations + 2, pitch / 64.0, g, dg)
+            bj = j
+    return bj * h
+
+
+#: The adaptation runs in cycles of this many samples: the first sample's information and
+#: gradient (weighted by the cycle's length) enter the 6x6 information matrix, the solve and the
+#: update follow on the cycle's last sample (firmware spreads the factorization over the samples
+#: in between, so that no sample carries the whole 6x6 update).
+ADAPT_CYCLE = 16
 
 
 @nb.njit(cache=True)
-def _adapt(G, dG, h, dk, c, amp, w, w0, y, a, b, p0, H, Hs, forget, prior, a_lo, a_hi, b_bound,
-           g, dg):  # fmt: skip
-    """One recursive least-squares step of the gains a_i and levels b_i at the fitted angle y.
+def _adapt_measure(f, dg, r, step, den, amp, w, w0, a, H, gr, lam, prior, weight):
+    """The information and gradient of one sample for the gains a_i and levels b_i, at the
+    fitted angle y = yp + step (the model linearized at yp), weighted by ``weight`` samples.
 
     Model m_i = a_i (g_i(y) - c_i) + b_i; the regressors J_p (d m_i / d a_i = g_i - c_i,
     d m_i / d b_i = 1) are projected off the angle's direction J_y (d m_i / d y = a_i g_i'),
-    since y is re-fitted at every sample: H <- lam H + J_p^T W J_p - q q^T / s (q = J_p^T W J_y,
-    s = J_y^T W J_y) + (1 - lam) Q, and p <- p + H^-1 J_p^T W r (the residual r is already
-    W-orthogonal to J_y at the fitted angle). lam = exp(-travel / memory); the prior Q keeps H
-    positive definite. Bounded: a_i in [a_lo, a_hi], |b_i - b_i^0| <= b_bound * amplitude_i.
-    """
-    _table(G, dG, h, y, g, dg)
-    lam = math.exp(-forget)
-    sJ = 0.0
-    for i in range(3):
-        if w[i] > 0.0:
-            sJ += w[i] * (a[i] * dg[i]) ** 2
-    if sJ <= 0.0:
-        return
+    since y is re-fitted at every sample: H <- lam H + weight (J_p^T W J_p - q q^T / s)
+    + (1 - lam) Q (q = J_p^T W J_y, s = J_y^T W J_y), gr = weight J_p^T W r (the residual r is
+    W-orthogonal to J_y at the fitted angle). lam = exp(-travel / memory) (its Taylor
+    polynomial, passed in); the prior Q keeps H positive definite. Returns False when nothing
+    is measured (no slope)."""
+    if den <= 0.0:
+        return False
     for p in range(6):
         for q in range(6):
             H[p, q] *= lam
+    qv = np.zeros(6)
     for i in range(3):
         H[2 * i, 2 * i] += (1.0 - lam) * prior * w0[i] * amp[i] * amp[i]
         H[2 * i + 1, 2 * i + 1] += (1.0 - lam) * prior * w0[i]
-    qv = np.zeros(6)
-    gr = np.zeros(6)
-    for i in range(3):
+        gr[2 * i] = 0.0
+        gr[2 * i + 1] = 0.0
         if w[i] > 0.0:
-            f = g[i] - c[i]
+            fy = f[i] + dg[i] * step
             Jy = a[i] * dg[i]
-            r = dk[i] - a[i] * f - b[i]
-            H[2 * i, 2 * i] += w[i] * f * f
-            H[2 * i, 2 * i + 1] += w[i] * f
-            H[2 * i + 1, 2 * i] += w[i] * f
-            H[2 * i + 1, 2 * i + 1] += w[i]
-            qv[2 * i] = w[i] * f * Jy
+            ry = r[i] - Jy * step
+            u = weight * w[i]
+            H[2 * i, 2 * i] += u * fy * fy
+            H[2 * i, 2 * i + 1] += u * fy
+            H[2 * i + 1, 2 * i] += u * fy
+            H[2 * i + 1, 2 * i + 1] += u
+            qv[2 * i] = w[i] * fy * Jy
             qv[2 * i + 1] = w[i] * Jy
-            gr[2 * i] = w[i] * f * r
-            gr[2 * i + 1] = w[i] * r
+            gr[2 * i] = u * fy * ry
+            gr[2 * i + 1] = u * ry
+    t = weight / den
     for p in range(6):
         for q in range(6):
-            H[p, q] -= qv[p] * qv[q] / sJ
-    # solve H x = gr by Cholesky (H is symmetric positive definite: prior + projected Gram)
-    for p in range(6):
-        for q in range(6):
-            Hs[p, q] = H[p, q]
-        Hs[p, 6] = gr[p]
+            H[p, q] -= t * qv[p] * qv[q]
+    return True
+
+
+@nb.njit(cache=True)
+def _adapt_solve(H, gr, wm, amp, a, b, p0, a_lo, a_hi, b_bound, L, P):
+    """Solve H x = gr (L D L^T: H is symmetric positive definite, prior + projected Gram) and
+    update the gains and levels of the channels measured (``wm``), bounded: a_i in
+    [a_lo, a_hi], |b_i - b_i^0| <= b_bound * amplitude_i."""
     for j in range(6):
-        dsum = Hs[j, j]
+        t = H[j, j]
         for k in range(j):
-            dsum -= Hs[j, k] * Hs[j, k]
-        if dsum <= 0.0:
+            t -= L[j, k] * L[j, k] * P[k]
+        if not t > 0.0:
             return
-        Ljj = math.sqrt(dsum)
-        Hs[j, j] = Ljj
+        P[j] = t
         for i in range(j + 1, 6):
-            t = Hs[i, j]
+            t = H[i, j]
             for k in range(j):
-                t -= Hs[i, k] * Hs[j, k]
-            Hs[i, j] = t / Ljj
-    x = np.empty(6)
-    for i in range(6):  # forward: L z = gr
-        t = Hs[i, 6]
+                t -= L[i, k] * L[j, k] * P[k]
+            L[i, j] = t / P[j]
+    z = np.empty(6)
+    for i in range(6):  # L z = gr
+        t = gr[i]
         for k in range(i):
-            t -= Hs[i, k] * x[k]
-        x[i] = t / Hs[i, i]
-    for i in range(5, -1, -1):  # backward: L^T x = z
-        t = x[i]
+            t -= L[i, k] * z[k]
+        z[i] = t
+    for i in range(5, -1, -1):  # D L^T x = z
+        t = z[i] / P[i]
         for k in range(i + 1, 6):
-            t -= Hs[k, i] * x[k]
-        x[i] = t / Hs[i, i]
+            t -= L[k, i] * z[k]
+        z[i] = t
     for i in range(3):
-        if w[i] > 0.0:
-            a[i] = min(max(a[i] + x[2 * i], a_lo), a_hi)
+        if wm[i] > 0.0:
+            a[i] = min(max(a[i] + z[2 * i], a_lo), a_hi)
             lim = b_bound * amp[i]
-            b[i] = min(max(b[i] + x[2 * i + 1], p0[i, 1] - lim), p0[i, 1] + lim)
+            b[i] = min(max(b[i] + z[2 * i + 1], p0[i, 1] - lim), p0[i, 1] + lim)
+
+
+@nb.njit(cache=True)
+def _adapt_cycle(phase, pending, eligible, stale, travel, f, dg, r, step, den, amp, w, w0, a, b,
+                 p0, H, gr, wm, L, P, cfg):  # fmt: skip
+    """One sample of the adaptation's cycle of ``ADAPT_CYCLE`` samples: on its first (an
+    eligible sample: fitted, not stale, no channel blamed) the measurement, on its last the
+    solve and the update (not while stale). Returns (pending, next phase)."""
+    if phase == 0:
+        if eligible:
+            x = min(ADAPT_CYCLE * travel / cfg[9], 1.0)  # the cycle's forgetting
+            lam = 1.0 - x + 0.5 * x * x - x * x * x / 6.0  # exp(-x), 1.6e-4 up to x = 1/4
+            pending = _adapt_measure(f, dg, r, step, den, amp, w, w0, a, H, gr, lam, cfg[10],
+                                     float(ADAPT_CYCLE))  # fmt: skip
+            wm[:] = w
+            return pending, 1
+        return pending, 0
+    if phase == ADAPT_CYCLE - 1 and pending:
+        if not stale:
+            _adapt_solve(H, gr, wm, amp, a, b, p0, cfg[11], cfg[12], cfg[13], L, P)
+        pending = False
+    return pending, (phase + 1) % ADAPT_CYCLE
 
 
 #: Indices of the tracker's float state: angle, speed [rad/sample], the misfit window's sums,
@@ -663,46 +723,12 @@ def _read(d, k, dk, w, w0, S, I):
                 if I[_FIRST] < 0:
                     I[_FIRST] = k
                 S[_CLEAN] = 0.0
-                I[_ACQUIRE] = 1
     active = 0
     for i in range(3):
         w[i] = 0.0 if (i == I[_EXCL] or not math.isfinite(d[k, i])) else w0[i]
         if w[i] > 0.0:
             active += 1
     return active
-
-
-@nb.njit(cache=True)
-def _robust(G, dG, h, dk, c, a, b, w, wk, yp, cfg, gross, g, dg):
-    """The three-channel fit; for an outlier that no common scaling explains, the fits without
-    each channel: (y, chi2, blamed channel or -1, mark: blamed, 3 unexplained outlier, -1)."""
-    iterations = int(cfg[0])
-    outlier = cfg[5]
-    explained = cfg[6]
-    max_step = h * G.shape[0] / (8.0 * cfg[17])
-    y_new, chi = _fit(G, dG, h, dk, c, a, b, w, yp, iterations, max_step, g, dg)
-    if chi <= outlier or _fit_scaled(G, dG, h, dk, c, a, b, w, y_new, iterations, max_step, g,
-                                     dg) <= explained:  # fmt: skip
-        return y_new, chi, -1, -1
-    best = math.inf
-    best_y = y_new
-    blamed = -1
-    for q in range(3):
-        for i in range(3):
-            wk[i] = w[i]
-        wk[q] = 0.0
-        yq, cq = _fit(G, dG, h, dk, c, a, b, wk, yp, iterations, max_step, g, dg)
-        if cq < best:
-            best = cq
-            best_y = yq
-            blamed = q
-    if not (best < explained and best < 0.1 * chi):
-        return y_new, chi, -1, 3
-    _table(G, dG, h, best_y, g, dg)
-    e = dk[blamed] - a[blamed] * (g[blamed] - c[blamed]) - b[blamed]
-    if abs(e) < gross[blamed]:
-        return y_new, chi, -1, -1  # small enough to be drift: adaptation material
-    return best_y, chi, blamed, blamed
 
 
 @nb.njit(cache=True)
@@ -744,16 +770,16 @@ def _window(k, chi, dof, blamed, ring_chi, ring_dof, cap, z, S):
 
 
 @nb.njit(cache=True)
-def _readmit(G, dG, h, d, k, c, a, b, w0, travel, readmit_travel, g, dg, S, I):
-    """Readmit an excluded channel after ``readmit_travel`` of readings within 4 sigma."""
+def _readmit(d, k, r, a, dg, step, w0, travel, readmit_travel, S, I):
+    """Readmit an excluded channel after ``readmit_travel`` of readings within 4 sigma of the
+    model at the fitted angle (linearized at the prediction)."""
     x = I[_EXCL]
     if x < 0:
         return
     if not math.isfinite(d[k, x]):
         S[_CLEAN] = 0.0
         return
-    _table(G, dG, h, S[_Y], g, dg)
-    e = d[k, x] - a[x] * (g[x] - c[x]) - b[x]
+    e = r[x] - a[x] * dg[x] * step
     S[_CLEAN] = S[_CLEAN] + travel if w0[x] * e * e < 16.0 else 0.0
     if S[_CLEAN] >= readmit_travel:
         I[_EXCL] = -1
@@ -761,56 +787,70 @@ def _readmit(G, dG, h, d, k, c, a, b, w0, travel, readmit_travel, g, dg, S, I):
 
 
 @nb.njit(cache=True)
-def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, a, b, y_out, misfit, code, info):
-    """The observer over a recording: per sample read, fit (robustly), isolate faults, update
-    the misfit window, adapt gain and level, readmit, and write y_obs, misfit and state."""
+def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, offsets, a, b, y_out, misfit, code, info):
+    """The observer over a recording: per sample read, one look-up of the model at the
+    predicted angle, one Gauss-Newton step (robustly: the fits without each channel on an
+    outlier), isolate faults, update the misfit window, adapt gain and level, readmit, and write
+    y_obs, misfit and state. The first sample (and only it) is
+    acquired by a search of the table nodes ``offsets`` within half a pole pitch."""
     h = 2.0 * math.pi / G.shape[0]
     pitch = 2.0 * math.pi / n_m
-    iterations = int(cfg[0])
+    max_step = pitch / 8.0
+    v_max = pitch / 4.0
     gross = np.empty(3)
     for i in range(3):
         gross[i] = max(cfg[16] * math.sqrt(2.0) * amp[i], 8.0 / math.sqrt(w0[i]))
-    g, dg, dk, w, wk = np.empty(3), np.empty(3), np.empty(3), w0.copy(), np.empty(3)
+    f, dg, r, dk, w = np.empty(3), np.empty(3), np.empty(3), np.empty(3), w0.copy()
     ring_chi, ring_dof = np.zeros(int(cfg[2])), np.zeros(int(cfg[2]))
     ring_blame = -np.ones(int(cfg[7]), dtype=np.int64)
     blame = np.zeros(4, dtype=np.int64)
     # adaptation: information matrix of (a_0, b_0, a_1, b_1, a_2, b_2), starting at the prior
-    p0, H, Hs = np.empty((3, 2)), np.zeros((6, 6)), np.empty((6, 7))
+    p0, H, L = np.empty((3, 2)), np.zeros((6, 6)), np.zeros((6, 6))
+    gr, P, wm = np.zeros(6), np.zeros(6), np.zeros(3)
     for i in range(3):
         p0[i, 0] = a[i]
         p0[i, 1] = b[i]
         H[2 * i, 2 * i] = cfg[10] * w0[i] * amp[i] * amp[i]
         H[2 * i + 1, 2 * i + 1] = cfg[10] * w0[i]
+    pending, phase = False, 0
     S = np.zeros(6)
     S[_Y] = y_initial
     I = np.array([-1, -1, 0, 0, 1], dtype=np.int64)
     for k in range(d.shape[0]):
         active = _read(d, k, dk, w, w0, S, I)
         yp = S[_Y] + S[_V]
-        blamed, mark, chi, y_new = -1, -1, 0.0, yp
-        if active >= 2 and I[_ACQUIRE] != 0:
-            y_new, chi = _acquire(G, dG, h, dk, c, a, b, w, yp, pitch, iterations, g, dg)
+        blamed, mark, chi, step, y_new, outlier = -1, -1, 0.0, 0.0, yp, False
+        acquired = active >= 2 and I[_ACQUIRE] != 0
+        fitted = active >= 2 and not acquired
+        if acquired:
+            y_new = _acquire(G, dk, c, a, b, w, yp, h, offsets)
             I[_ACQUIRE] = 0
-        elif active == 3:
-            y_new, chi, blamed, mark = _robust(G, dG, h, dk, c, a, b, w, wk, yp, cfg, gross, g,
-                                               dg)  # fmt: skip
-        elif active == 2:
-            y_new, chi = _fit(G, dG, h, dk, c, a, b, w, yp, iterations, pitch / 8.0, g, dg)
+        elif fitted:
+            srr, num, den = _linearize(G, dG, h, dk, c, a, b, w, yp, f, dg, r)
+            step, chi = _step(srr, num, den, max_step)
+            if active == 3 and chi > cfg[5]:
+                step, chi, blamed, mark, outlier = _robust(f, dg, r, a, w, srr, num, den, chi,
+                                                           max_step, cfg[6], gross)  # fmt: skip
+            y_new = yp + step
         if _isolate(k, blamed, mark, ring_blame, blame, int(cfg[8]), I):
             I[_EXCL], I[_BLAMED_OUT] = blamed, 1
             I[_FIRST] = k if I[_FIRST] < 0 else I[_FIRST]
             S[_CLEAN] = 0.0
             w[blamed] = 0.0
-            y_new, chi = _acquire(G, dG, h, dk, c, a, b, w, yp, pitch, iterations, g, dg)
+            chi = 0.0  # the two channels' chi2 at the fitted angle
+            for i in range(3):
+                if w[i] > 0.0:
+                    e = r[i] - a[i] * dg[i] * step
+                    chi += w[i] * e * e
             ring_blame[:], blame[:] = -1, 0
             ring_chi[:], ring_dof[:] = 0.0, 0.0  # the window starts again on two channels
             S[_SUM_CHI], S[_SUM_DOF] = 0.0, 0.0
             blamed, active = -1, 2
-        if blamed < 0 and active >= 2:  # speed held on samples explained without a channel
-            S[_V] += cfg[1] * (y_new - yp)
+        if blamed < 0 and fitted:  # speed held on samples explained without a channel
+            S[_V] = min(max(S[_V] + cfg[1] * step, -v_max), v_max)
         S[_Y] = y_new
         travel = n_m * abs(S[_V])
-        dof = float(active - 1) if active >= 2 else 0.0
+        dof = float(active - 1) if fitted else 0.0
         mf, above = _window(k, chi, dof, blamed, ring_chi, ring_dof, cfg[4], cfg[3], S)
         S[_BAD] = S[_BAD] + travel if above else 0.0
         stale = above and S[_BAD] >= cfg[14]
@@ -820,10 +860,14 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, a, b, y_out, misfit, code,
             # the two channels left do not fit either: not a channel fault but a model that no
             # longer fits (remount): readmit the channel and let the misfit monitor speak
             I[_EXCL], I[_SUPPRESS] = -1, 1
-        if not stale and blamed < 0 and active >= 2:
-            _adapt(G, dG, h, dk, c, amp, w, w0, S[_Y], a, b, p0, H, Hs, travel / cfg[9], cfg[10],
-                   cfg[11], cfg[12], cfg[13], g, dg)  # fmt: skip
-        _readmit(G, dG, h, d, k, c, a, b, w0, travel, cfg[15], g, dg, S, I)
+        if not outlier:  # the adaptation's cycle advances on samples without the fits of _robust
+            eligible = fitted and not stale and blamed < 0
+            pending, phase = _adapt_cycle(
+                phase, pending, eligible, stale, travel, f, dg, r, step, den, amp, w, w0, a, b,
+                p0, H, gr, wm, L, P, cfg,
+            )  # fmt: skip
+        if fitted:
+            _readmit(d, k, r, a, dg, step, w0, travel, cfg[15], S, I)
         y_out[k], misfit[k] = S[_Y], mf
         code[k] = 4 if active < 2 else 3 if I[_EXCL] >= 0 else 2 if stale else 1 if above else 0
     info[0], info[1] = I[_EXCL], I[_FIRST]

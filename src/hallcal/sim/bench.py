@@ -41,15 +41,16 @@ loop's ``y = f_init(d)`` is computed from the very values recorded as ``d``:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 import scipy.signal
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sim.bench_spec import BenchSpec
 from hallcal.sim.cogging import CoggingTorque
-from hallcal.sim.loop import ClosedLoop, SensorADC, simulate_loop
+from hallcal.sim.loop import ClosedLoop, LoopStatus, SensorADC, simulate_loop
 from hallcal.sim.lti import ContinuousTF, DiscreteTF
 
 __all__ = [
@@ -133,8 +134,12 @@ def noise_floor(noise_variance: float, pole_pairs: int, amplitude: float = 1.0) 
 
 
 @dataclass(frozen=True)
-class BenchConfig:
+class BenchConfig(BenchSpec):
     """Knobs of the virtual bench (defaults: the paper's simulation setup).
+
+    The setup's ``[bench]`` keys (amplitude, noise, magnet and sensor imperfections, cogging,
+    seed, the ramp) are the inherited fields of :class:`~hallcal.sim.bench_spec.BenchSpec`,
+    declared there once with their units and meanings. Added here:
 
     Attributes
     ----------
@@ -146,36 +151,11 @@ class BenchConfig:
         G(s) from torque to angle, with input delay.
     controller : DiscreteTF
         C(q).
-    amplitude : float
-        Fundamental Hall amplitude A.
-    noise_variance : float
-        Variance of the white noise on each Hall channel.
-    magnet_variation : float
-        RMS (relative to A) of the additive mechanical harmonics 1..n_m-1 per channel.
-    pole_modulation : float
-        RMS (relative) of the amplitude modulation by mechanical harmonics 1..3.
-    misalignment_deg : tuple of 3 float
-        Extra electrical phase of each sensor [deg].
-    gain_mismatch, offset : tuple of 3 float
-        Relative gain error and additive offset of each sensor.
-    electrical_harmonics : tuple of (int, float)
-        Higher harmonics k >= 2 of the electrical angle and their amplitude relative to A.
-    torque_disturbance : float
-        Standard deviation of a random torque (white noise through a 5 Hz first-order low-pass),
-        in plant input units.
-    cogging, cogging_periods : float, int
-        Cogging torque amplitude (plant input units) and periods per revolution
-        (0 = 6 n_m, the sixth electrical harmonic of a three-phase machine): a term
-        ``cogging sin(cogging_periods y0)``.
     cogging_terms : tuple of (int, float, float)
         Further cogging terms ``(k, A, phase_deg)``, each ``A cos(k y0 - phase)`` (plant input
-        units): real cogging has several orders (multiples of the slot/pole pattern) with phases.
-    shape_variation : float
-        Per-magnet shape variation s: RMS, relative to A, of the random deformation of each pole
-        pair's flux waveform (:func:`shape_deformation`; 0 = none, the default).
-    shape_harmonics : int
-        Electrical bandwidth K of that deformation: the truth gains mechanical harmonics
-        1..K n_m.
+        units), besides ``cogging sin(cogging_periods y0)`` (``cogging_periods`` 0 = 6 n_m, the
+        sixth electrical harmonic of a three-phase machine): real cogging has several orders
+        (multiples of the slot/pole pattern) with phases.
     adc_low, adc_high : tuple of 3 float
         Rails of each sensor's ADC [Hall signal unit]: values below/above are recorded (and
         seen by f_init in the loop) as the rail (a clipping sensor); default -inf/+inf, none.
@@ -200,28 +180,18 @@ class BenchConfig:
         Probability per sample and channel of an impulsive outlier, in [0, 1]; default 0.
     spike_size : float
         Size of each outlier [Hall signal unit], random sign (before the ADC).
-    seed : int
-        Seed of the truth (magnet variations) and, unless given per run, of the noise.
+
+    Notes
+    -----
+    ``seed`` seeds the truth (magnet variations) and, unless given per run, the noise;
+    ``ramp_end`` and ``duration`` are the defaults of :func:`ramp_run`.
     """
 
     pole_pairs: int = 11
     sample_time: float = 2.5e-4
     plant: ContinuousTF = PAPER_PLANT
     controller: DiscreteTF = PAPER_CONTROLLER
-    amplitude: float = 1.0
-    noise_variance: float = 7.5e-6
-    magnet_variation: float = 0.04
-    pole_modulation: float = 0.0
-    misalignment_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    gain_mismatch: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    electrical_harmonics: tuple[tuple[int, float], ...] = ()
-    torque_disturbance: float = 0.0
-    cogging: float = 0.0
-    cogging_periods: int = 0
     cogging_terms: tuple[tuple[int, float, float], ...] = ()
-    shape_variation: float = 0.0
-    shape_harmonics: int = 5
     adc_low: tuple[float, float, float] = (-math.inf, -math.inf, -math.inf)
     adc_high: tuple[float, float, float] = (math.inf, math.inf, math.inf)
     adc_step: float = 0.0
@@ -231,9 +201,9 @@ class BenchConfig:
     drift_reference_time: float = 0.0
     spike_rate: float = 0.0
     spike_size: float = 0.0
-    seed: int = 0
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if self.pole_pairs < 1:
             raise ValueError("pole_pairs must be >= 1")
         if not self.sample_time > 0:
@@ -262,6 +232,45 @@ class BenchConfig:
             or not math.isfinite(self.spike_size)
         ):
             raise ValueError("gain_drift and offset_drift must be 3 finite values each")
+
+    @classmethod
+    def from_spec(
+        cls,
+        spec: BenchSpec,
+        *,
+        pole_pairs: int,
+        sample_time: float,
+        plant: ContinuousTF,
+        controller: DiscreteTF,
+    ) -> BenchConfig:
+        """The bench of a setup: its ``[bench]`` knobs `spec` in the given loop.
+
+        Parameters
+        ----------
+        spec : BenchSpec
+            The setup's ``[bench]`` table (every one of its keys is carried over).
+        pole_pairs : int
+            n_m.
+        sample_time : float
+            Ts [s].
+        plant : ContinuousTF
+            The true G(s).
+        controller : DiscreteTF
+            C(q).
+
+        Returns
+        -------
+        BenchConfig
+            The other knobs (ADC, drifts, spikes, further cogging terms) at their defaults.
+        """
+        knobs = {f.name: getattr(spec, f.name) for f in fields(BenchSpec)}
+        return cls(
+            pole_pairs=pole_pairs,
+            sample_time=sample_time,
+            plant=plant,
+            controller=controller,
+            **knobs,
+        )
 
     @property
     def noise_floor(self) -> float:
@@ -463,7 +472,7 @@ class BenchRun:
     truth: FluxModel = field(repr=False)
     config: BenchConfig
     realization: NDArray[np.float64] | None = field(default=None, repr=False)
-    status: str = "ok"
+    status: LoopStatus = LoopStatus.OK
 
     @property
     def n_samples(self) -> int:
@@ -602,23 +611,23 @@ def simulate_run(
 def ramp_run(
     config: BenchConfig,
     *,
-    ramp_end: float = 13.0,
-    duration: float = 26.0,
+    ramp_end: float | None = None,
+    duration: float | None = None,
     seed: int | None = None,
 ) -> BenchRun:
     """The calibration experiment: a ramp reference 0 -> ``ramp_end`` [rad] in ``duration`` [s].
 
-    Step 1 of Algorithm 1 on the virtual bench; the defaults are the paper's simulation
-    (section "Simulation results": 0 -> 13 rad in 26 s).
+    Step 1 of Algorithm 1 on the virtual bench; the defaults are the bench's ``ramp_end`` and
+    ``duration`` (the paper's simulation, section "Simulation results": 0 -> 13 rad in 26 s).
 
     Parameters
     ----------
     config : BenchConfig
         The bench.
-    ramp_end : float, keyword-only
-        Final reference [rad, mechanical].
-    duration : float, keyword-only
-        Length of the run [s]; ``round(duration / T_s)`` samples.
+    ramp_end : float, keyword-only, optional
+        Final reference [rad, mechanical]; default ``config.ramp_end``.
+    duration : float, keyword-only, optional
+        Length of the run [s], ``round(duration / T_s)`` samples; default ``config.duration``.
     seed : int, keyword-only, optional
         Seed of the noise and disturbance; default ``config.seed``.
 
@@ -627,8 +636,9 @@ def ramp_run(
     BenchRun
         The calibration recording with its true angle y0.
     """
-    N = int(round(duration / config.sample_time))
-    r = np.linspace(0.0, ramp_end, N, endpoint=False)
+    end = config.ramp_end if ramp_end is None else ramp_end
+    N = int(round((config.duration if duration is None else duration) / config.sample_time))
+    r = np.linspace(0.0, end, N, endpoint=False)
     return simulate_run(config, r, seed=seed)
 
 

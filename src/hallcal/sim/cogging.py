@@ -17,7 +17,8 @@ is cancelled) it shifts the rotor by a constant angle, which a flux model alone 
 constant offset of the sensors' angle: the table then carries that offset (DESIGN.md, "Numerical
 facts": 0.6-1.1x the noise floor on its own).
 
-The artifact stores it under the key ``"cogging"`` (:meth:`CoggingTorque.to_dict`).
+The artifact stores it under the key ``"cogging"`` (:meth:`CoggingTorque.to_dict`). The firmware's
+anticogging feed-forward tabulates it (:func:`tabulate`, :class:`CoggingTable`).
 """
 
 from __future__ import annotations
@@ -28,7 +29,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["CoggingTorque"]
+__all__ = ["COGGING_RELATIVE_ERROR", "MAX_COGGING_POINTS", "CoggingTable", "CoggingTorque"]
+
+TWO_PI = 2.0 * math.pi
 
 
 @dataclass(frozen=True)
@@ -205,3 +208,121 @@ class CoggingTorque:
             if np.all(np.isfinite(v)):
                 cov = np.diag(v**2)
         return cls(orders, a, b, cov)
+
+
+#: Relative accuracy of the anticogging table against the Fourier map.
+COGGING_RELATIVE_ERROR = 1e-6
+#: Largest anticogging table (float values).
+MAX_COGGING_POINTS = 65536
+
+
+@dataclass(frozen=True)
+class CoggingTable:
+    """The anticogging feed-forward T_c(y0) as a uniform float table, cubic interpolation.
+
+    The map (:class:`CoggingTorque`, artifact key ``"cogging"``, y0 the mechanical angle) is
+    tabulated at ``y0 = 2 pi i / N`` and interpolated by the cubic through the four nearest
+    values (periodic).
+
+    Attributes
+    ----------
+    torque : CoggingTorque
+        The Fourier map.
+    values : ndarray of float32, shape (N,)
+        The table.
+    error : float
+        Largest |table - map| over the revolution (dense evaluation with the table's float32
+        values, in double), in the map's unit.
+    scale : float
+        Largest |T_c| over the revolution.
+    """
+
+    torque: CoggingTorque
+    values: NDArray[np.float32]
+    error: float
+    scale: float
+
+    @property
+    def points(self) -> int:
+        return int(self.values.size)
+
+    @property
+    def slope(self) -> float:
+        """Largest |d T_c / d y0| over the revolution (bound: sum of k sqrt(a_k^2 + b_k^2))."""
+        return float(np.sum(np.asarray(self.torque.orders) * self.torque.amplitude))
+
+    def interpolate(self, y0: ArrayLike) -> NDArray[np.float64]:
+        """The table's value at y0 [rad] as the firmware computes it (in double)."""
+        n = self.points
+        pos = np.mod(np.atleast_1d(np.asarray(y0, dtype=np.float64)), TWO_PI) * (n / TWO_PI)
+        return _cubic_at(self.values.astype(np.float64), pos)
+
+
+def _uniform(torque: CoggingTorque, n: int) -> NDArray[np.float64]:
+    """T_c on y0 = 2 pi i / n, i = 0 .. n - 1 (inverse real FFT; n > 2 max order)."""
+    spec = np.zeros(n // 2 + 1, dtype=np.complex128)
+    k = np.asarray(torque.orders, dtype=np.int64)
+    scale = np.where(k == 0, float(n), n / 2.0)  # order 0 (a constant load torque): the DC bin
+    np.add.at(spec, k, (torque.a - 1j * torque.b) * scale)
+    return np.fft.irfft(spec, n)
+
+
+def _cubic_at(values: NDArray[np.float64], pos: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Cubic (Lagrange) through the 4 nearest of the periodic values, at positions in [0, N)."""
+    n = values.size
+    i = np.minimum(np.floor(pos).astype(np.int64), n - 1)
+    t = pos - i
+    p0, p1, p2, p3 = (values[(i + k) % n] for k in (-1, 0, 1, 2))
+    return (
+        -t * (t - 1) * (t - 2) / 6 * p0
+        + (t + 1) * (t - 1) * (t - 2) / 2 * p1
+        - (t + 1) * t * (t - 2) / 2 * p2
+        + (t + 1) * t * (t - 1) / 6 * p3
+    )
+
+
+def tabulate(torque: CoggingTorque) -> CoggingTable:
+    """Tabulate T_c within :data:`COGGING_RELATIVE_ERROR` of its largest value.
+
+    The table has the fewest points (a power of two, 64..65536, more than twice the largest
+    order) whose cubic interpolation of the float32 values stays within half of
+    :data:`COGGING_RELATIVE_ERROR` of the largest |T_c| (the other half is for the firmware's
+    single-precision arithmetic) at 16 points per interval (dense enough for a cubic's error
+    curve); the map on uniform grids comes from an inverse FFT.
+
+    Parameters
+    ----------
+    torque : CoggingTorque
+        The map T_c(y0).
+
+    Returns
+    -------
+    CoggingTable
+
+    Raises
+    ------
+    ValueError
+        No orders, or no table up to :data:`MAX_COGGING_POINTS` points reaches the accuracy
+        (the message names the cause), or a map that is zero everywhere.
+    """
+    if not torque.size:
+        raise ValueError("is empty: no map to tabulate")
+    kmax = max(torque.orders)
+    scale = 0.0
+    m = 64
+    while True:
+        if 2 * kmax < m:
+            sub = 16  # 16 points per interval: dense enough for a cubic's error curve
+            ref = _uniform(torque, sub * m)
+            scale = max(scale, float(np.max(np.abs(ref))))
+            vals = ref[::sub].astype(np.float32)
+            pos = np.arange(sub * m) / sub
+            err = float(np.max(np.abs(_cubic_at(vals.astype(np.float64), pos) - ref)))
+            if err <= 0.5 * COGGING_RELATIVE_ERROR * scale:  # half for float32 arithmetic
+                break
+        if m >= MAX_COGGING_POINTS:
+            raise ValueError(f"needs more than {MAX_COGGING_POINTS} table points for 1e-6")
+        m *= 2
+    if not scale > 0.0:
+        raise ValueError("is zero everywhere")
+    return CoggingTable(torque, vals, err, scale)

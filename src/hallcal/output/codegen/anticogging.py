@@ -63,10 +63,10 @@ def _anticogging_section(ctx: _Context) -> Section | None:
     m = tab.points
     vals = list(tab.values)
     ext = [vals[-1], *vals, vals[0], vals[1]]
-    orders = ", ".join(str(int(k)) for k in tab.orders[:12]) + (
-        ", ..." if tab.orders.size > 12 else ""
-    )
-    unit = comment_text(tab.unit or "artifact unit", limit=40)
+    k = tab.torque.orders
+    orders = ", ".join(str(v) for v in k[:12]) + (", ..." if len(k) > 12 else "")
+    unit = ctx.artifact["cogging"].get("unit", "")
+    unit = comment_text((unit if isinstance(unit, str) else "") or "artifact unit", limit=40)
     source = _ANTICOGGING_C.substitute(
         unit=unit,
         orders=orders,

@@ -506,7 +506,7 @@ def export_c(
     """
     _check_options(prefix, adc_scale)
     src = _source_name(source)
-    art = artifact if isinstance(artifact, ArtifactData) else validate_artifact(artifact, src)
+    art = validate_artifact(artifact, src)
     nums = _choose_numbers(art, src, adc_scale if fixed_point else None, table_points,
                            tolerance=tolerance, max_speed=max_speed,
                            fault_after=fault_after)  # fmt: skip

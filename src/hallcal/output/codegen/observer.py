@@ -4,18 +4,19 @@
 per-sample algorithm as :func:`hallcal.sensor.observer.run_observer` (tracking
 maximum-likelihood angle by Gauss-Newton on cubic Hermite tables of g and dg/dy, the misfit
 window, the gain/offset adaptation, the one-sensor fallback), in ``float``, with the API style
-of the lean export: ``_init`` (revolutions and angle before the first sample), ``_update`` (one
-sample), ``_read`` (one consistent snapshot: revolutions, angle, misfit, state, excluded
-channel). It includes only ``<stdint.h>``, uses no library function (the square roots and the
-chi-square thresholds are tabulated here; the adaptation's 6x6 system is solved by an LDL^T
-factorization, which needs no square root; exp(-x) of the forgetting is 1 - x + x^2/2 - x^3/6,
-within 5e-6 for the x below 0.06 it takes up to a quarter electrical turn per sample), no
-dynamic memory, and divisions only in the Gauss-Newton steps and the 6x6 solve.
+of the lean export: ``_init``, ``_set_angle`` (revolutions and angle before the next
+sample), ``_update`` (one sample), ``_read`` (one consistent snapshot: revolutions, angle,
+misfit, state, excluded channel). It includes only ``<stdint.h>``, uses no library function
+(the chi-square thresholds and the reciprocals of the window's degrees of freedom are
+tabulated; the adaptation's 6x6 system is solved by an L D L^T factorization, which needs no
+square root; exp(-x) of the forgetting is its cubic Taylor polynomial), no dynamic memory.
 
 The angle is kept as a revolution count and a float angle within the revolution, so that its
-resolution does not degrade over a long run. Worst-case work per sample is bounded (no loop
-depends on the data): 2 Gauss-Newton steps, on an outlier sample 1 scaled fit and 3 fits
-without one channel, the adaptation; a 64-point search at start and after an exclusion.
+resolution does not degrade over a long run. Work per sample is bounded (no loop depends on
+the data): one table look-up and one Gauss-Newton step; on an outlier sample the common-gain
+test and the three fits without one channel (closed form on the linearized model); one part
+of the adaptation's 16-sample cycle (a row or a column of the 6x6, a triangular solve); an
+8-node search on the first sample after init/set_angle. Cycles: benchmarks/bench_observer_c.txt.
 """
 
 from __future__ import annotations
@@ -35,8 +36,10 @@ from hallcal.output.codegen.export import _write_files
 from hallcal.output.codegen.text import comment_text
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.observer import (
+    ADAPT_CYCLE,
     ObserverModel,
     ObserverSettings,
+    acquire_offsets,
     chi_square_quantile,
     observer_model,
 )
@@ -57,7 +60,8 @@ class ObserverExport:
     table_points : int
         M, table points per revolution.
     table_bytes : int
-        Bytes of the g and dg/dy tables (float) plus the threshold table.
+        Bytes of the g and dg/dy tables (float) plus the threshold and reciprocal tables and
+        the start's search offsets.
     """
 
     paths: tuple[Path, ...]
@@ -118,14 +122,15 @@ def export_observer_c(
     """
     if not prefix.isidentifier() or not prefix.isascii():
         raise HallcalInputError(f"--prefix '{prefix}' is not a C identifier")
-    art = artifact if isinstance(artifact, ArtifactData) else validate_artifact(artifact, source)
+    art = validate_artifact(artifact, source)
     flux = art.flux()
     n = art.pole_pairs
     model = observer_model(flux, n, _noise(art.data, flux, n))
     texts = _texts(model, ObserverSettings(), prefix, comment_text(Path(source).name))
     paths = _write_files(out_dir, texts)  # one set, write errors as one line (hallcal.io)
-    W = ObserverSettings().window
-    nbytes = model.points * 3 * 2 * 4 + (2 * W + 1) * 4
+    s = ObserverSettings()
+    # g and dg/dy (float), the thresholds and the reciprocals (float), the search offsets (int16)
+    nbytes = model.points * 3 * 2 * 4 + 2 * (2 * s.window + 1) * 4 + s.acquire_points * 2
     return ObserverExport(paths, model.points, nbytes)
 
 
@@ -137,6 +142,7 @@ def _texts(
     W = s.window
     z = -_normal_quantile(s.false_alarm)
     thr = [0.0] + [chi_square_quantile(float(k), z) for k in range(1, 2 * W + 1)]
+    inv = [0.0] + [1.0 / k for k in range(1, 2 * W + 1)]
     w0 = 1.0 / model.sigma**2
     gross = [max(s.gross * math.sqrt(2.0) * model.amplitude[i], 8.0 * model.sigma[i])
              for i in range(3)]  # fmt: skip
@@ -148,12 +154,16 @@ def _texts(
         "@W@": str(W),
         "@FW@": str(s.fault_window),
         "@FC@": str(s.fault_count),
-        "@ITER@": str(s.iterations),
+        "@NA@": str(s.acquire_points),
+        "@CYCLE@": str(ADAPT_CYCLE),
+        "@OFF@": ", ".join(
+            str(int(o)) for o in acquire_offsets(model.points, model.pole_pairs, s.acquire_points)
+        ),
         "@NM@": _f(model.pole_pairs),
         "@H@": _f(TWO_PI / model.points),
         "@INVH@": _f(model.points / TWO_PI),
         "@TWO_PI@": _f(TWO_PI),
-        "@PITCH@": _f(TWO_PI / model.pole_pairs),
+        "@VMAX@": _f(TWO_PI / model.pole_pairs / 4.0),
         "@MAXSTEP@": _f(TWO_PI / model.pole_pairs / 8.0),
         "@KV@": _f(s.speed_gain),
         "@CAP@": _f(s.sample_cap),
@@ -170,8 +180,10 @@ def _texts(
         "@AMP@": ", ".join(_f(x) for x in model.amplitude),
         "@W0@": ", ".join(_f(x) for x in w0),
         "@GROSS@": ", ".join(_f(x) for x in gross),
-        "@G@": _rows(model.value),
-        "@DG@": _rows(model.slope),
+        "@T@": _rows(np.hstack([model.value, model.slope])),
+        "@INV@": ",\n    ".join(
+            ", ".join(_f(x) for x in inv[i : i + 6]) for i in range(0, len(inv), 6)
+        ),  # fmt: skip
         "@THR@": ",\n    ".join(
             ", ".join(_f(x) for x in thr[i : i + 6]) for i in range(0, len(thr), 6)
         ),  # fmt: skip
@@ -222,8 +234,12 @@ typedef struct {
 typedef struct {
     int32_t rev;
     float ang, v, clean, bad, sum_chi;
-    float a[3], b[3], b0[3];
-    float H[6][6];
+    float a[3], b[3];
+    float H[6][6];                  /* the adaptation's information (upper triangle) */
+    float L[6][6], P[6], R[6];      /* its L D L^T (R = 1 / P), built over a cycle */
+    float gr[6], z[6], wm[3];       /* the cycle's gradient, solution, channels measured */
+    float qv[6], fy[3], u[3], lam, t; /* the cycle's sample: projection, regressors, weights */
+    uint8_t pending, phase;         /* a cycle's update is under way; its part next */
     float ring_chi[@P@_WINDOW];
     uint8_t ring_dof[@P@_WINDOW];
     int8_t ring_blame[@P@_FAULT_WINDOW];
@@ -237,7 +253,9 @@ typedef struct {
     @p@_reading buf[2];
 } @p@_state;
 
-void @p@_init(@p@_state *s, int32_t revolutions, float angle);
+void @p@_init(@p@_state *s); /* angle 0 of revolution 0 */
+/* the angle before the next sample (0 <= angle < 2 pi); 1: refused (out of range) */
+uint8_t @p@_set_angle(@p@_state *s, int32_t revolutions, float angle);
 uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3);
 void @p@_read(const @p@_state *s, @p@_reading *r);
 
@@ -252,14 +270,15 @@ _SOURCE = """\
 #define W @W@
 #define FW @FW@
 #define FC @FC@
-#define ITER @ITER@
+#define NA @NA@
+#define CYCLE @CYCLE@
 
 static const float NM = @NM@;
 static const float HSTEP = @H@;
 static const float INVH = @INVH@;
 static const float TWOPI = @TWO_PI@;
-static const float PITCH = @PITCH@;
 static const float MAXSTEP = @MAXSTEP@;
+static const float VMAX = @VMAX@;
 static const float KV = @KV@;
 static const float CAP = @CAP@;
 static const float OUTLIER = @OUTLIER@;
@@ -275,33 +294,49 @@ static const float C0[3] = {@C@};
 static const float AMP[3] = {@AMP@};
 static const float W0[3] = {@W0@};
 static const float GROSS[3] = {@GROSS@};
+static const int16_t OFF[NA] = {@OFF@};
+static const float INV[2 * W + 1] = { /* 1 / k */
+    @INV@
+};
 static const float THR[2 * W + 1] = {
     @THR@
 };
-static const float G[M][3] = {
-@G@
+static const float T[M][6] = { /* g_1..3 and dg_1..3/dy at y_j = j 2 pi / M */
+@T@
 };
-static const float DG[M][3] = {
-@DG@
-};
+
+#if defined(__GNUC__)
+#define NOINLINE __attribute__((noinline)) /* the rare parts out of the common path */
+#else
+#define NOINLINE
+#endif
 
 static float fabs_(float x) { return x < 0.0f ? -x : x; }
-static int finite_(float x) { return x >= -3.4e38f && x <= 3.4e38f; }
+/* finite: the exponent bits not all ones (IEEE 754 single) */
+static uint32_t bits_(float x)
+{
+    union {
+        float f;
+        uint32_t u;
+    } v;
+    v.f = x;
+    return v.u;
+}
+#define FIN(x) ((bits_(x) & 0x7f800000u) != 0x7f800000u)
 
-/* cubic Hermite interpolation of g and dg/dy at y (any real y: wrap-around) */
-static void table(float y, float g[3], float dg[3])
+/* cubic Hermite interpolation of g - c and dg/dy at y (any real y: wrap-around) */
+static void table(float y, float f[3], float dg[3])
 {
     float u = y * INVH;
     int32_t j = (int32_t)u;
     float t, t2, t3, h00, h10, h01, h11, d00, d10, d11;
-    uint32_t i0, i1;
-    int i;
+    const float *p, *q;
     if ((float)j > u) {
         j -= 1;
     }
     t = u - (float)j;
-    i0 = (uint32_t)j & (uint32_t)(M - 1);
-    i1 = (i0 + 1u) & (uint32_t)(M - 1);
+    p = T[(uint32_t)j & (uint32_t)(M - 1)];
+    q = T[((uint32_t)j + 1u) & (uint32_t)(M - 1)];
     t2 = t * t;
     t3 = t2 * t;
     h00 = 2.0f * t3 - 3.0f * t2 + 1.0f;
@@ -311,224 +346,191 @@ static void table(float y, float g[3], float dg[3])
     d00 = (6.0f * t2 - 6.0f * t) * INVH;
     d10 = 3.0f * t2 - 4.0f * t + 1.0f;
     d11 = 3.0f * t2 - 2.0f * t;
-    for (i = 0; i < 3; i++) {
-        g[i] = h00 * G[i0][i] + h10 * DG[i0][i] + h01 * G[i1][i] + h11 * DG[i1][i];
-        dg[i] = d00 * (G[i0][i] - G[i1][i]) + d10 * DG[i0][i] + d11 * DG[i1][i];
-    }
+    f[0] = h00 * p[0] + h10 * p[3] + h01 * q[0] + h11 * q[3] - C0[0];
+    f[1] = h00 * p[1] + h10 * p[4] + h01 * q[1] + h11 * q[4] - C0[1];
+    f[2] = h00 * p[2] + h10 * p[5] + h01 * q[2] + h11 * q[5] - C0[2];
+    dg[0] = d00 * (p[0] - q[0]) + d10 * p[3] + d11 * q[3];
+    dg[1] = d00 * (p[1] - q[1]) + d10 * p[4] + d11 * q[4];
+    dg[2] = d00 * (p[2] - q[2]) + d10 * p[5] + d11 * q[5];
 }
 
-static float chi2(const @p@_state *s, const float d[3], const float w[3], float y)
+/* one Gauss-Newton step on the linearized model, bounded; the chi2 after it in *chi */
+static float gn(float srr, float num, float den, float *chi)
 {
-    float g[3], dg[3], chi = 0.0f, r;
-    int i;
-    table(y, g, dg);
-    for (i = 0; i < 3; i++) {
-        if (w[i] > 0.0f) {
-            r = d[i] - s->a[i] * (g[i] - C0[i]) - s->b[i];
-            chi += w[i] * r * r;
-        }
+    float step, c;
+    if (den <= 0.0f) {
+        *chi = srr;
+        return 0.0f;
     }
-    return chi;
+    step = num / den;
+    step = step > MAXSTEP ? MAXSTEP : (step < -MAXSTEP ? -MAXSTEP : step);
+    c = srr - step * (2.0f * num - step * den);
+    *chi = c > 0.0f ? c : 0.0f;
+    return step;
 }
 
-/* Gauss-Newton from y; returns y, chi2 in *chi */
-static float fit(const @p@_state *s, const float d[3], const float w[3], float y, int iters,
-                 float max_step, float *chi)
+/* the start: the best of NA table nodes within half a pole pitch of y0 */
+NOINLINE static float acquire(const @p@_state *s, const float d[3], const float w[3], float y0)
 {
-    float g[3], dg[3], num, den, r, J, step;
-    int it, i;
-    for (it = 0; it < iters; it++) {
-        table(y, g, dg);
-        num = 0.0f;
-        den = 0.0f;
-        for (i = 0; i < 3; i++) {
-            if (w[i] > 0.0f) {
-                r = d[i] - s->a[i] * (g[i] - C0[i]) - s->b[i];
-                J = s->a[i] * dg[i];
-                num += w[i] * J * r;
-                den += w[i] * J * J;
-            }
-        }
-        if (den <= 0.0f) {
-            break;
-        }
-        step = num / den;
-        if (step > max_step) {
-            step = max_step;
-        } else if (step < -max_step) {
-            step = -max_step;
-        }
-        y += step;
-    }
-    *chi = chi2(s, d, w, y);
-    return y;
-}
-
-/* chi2 of the best angle and common gain of the field parts */
-static float fit_scaled(const @p@_state *s, const float d[3], const float w[3], float y)
-{
-    float g[3], dg[3], sc = 1.0f, A00, A01, A11, r0, r1, f, r, Jy, det, step, chi = 0.0f;
-    int it, i;
-    for (it = 0; it < ITER + 1; it++) {
-        table(y, g, dg);
-        A00 = A01 = A11 = r0 = r1 = 0.0f;
-        for (i = 0; i < 3; i++) {
-            if (w[i] > 0.0f) {
-                f = s->a[i] * (g[i] - C0[i]);
-                r = d[i] - sc * f - s->b[i];
-                Jy = sc * s->a[i] * dg[i];
-                A00 += w[i] * Jy * Jy;
-                A01 += w[i] * Jy * f;
-                A11 += w[i] * f * f;
-                r0 += w[i] * Jy * r;
-                r1 += w[i] * f * r;
-            }
-        }
-        det = A00 * A11 - A01 * A01;
-        if (det <= 0.0f) {
-            break;
-        }
-        step = (A11 * r0 - A01 * r1) / det;
-        step = step > MAXSTEP ? MAXSTEP : (step < -MAXSTEP ? -MAXSTEP : step);
-        y += step;
-        sc += (A00 * r1 - A01 * r0) / det;
-    }
-    table(y, g, dg);
-    for (i = 0; i < 3; i++) {
-        if (w[i] > 0.0f) {
-            r = d[i] - sc * s->a[i] * (g[i] - C0[i]) - s->b[i];
-            chi += w[i] * r * r;
-        }
-    }
-    return chi;
-}
-
-static float acquire(const @p@_state *s, const float d[3], const float w[3], float y0,
-                     float *chi)
-{
-    float best = 3.0e38f, best_y = y0, y, c;
+    const float a0 = s->a[0], a1 = s->a[1], a2 = s->a[2];
+    const float e0 = d[0] - s->b[0] + a0 * C0[0], e1 = d[1] - s->b[1] + a1 * C0[1];
+    const float e2 = d[2] - s->b[2] + a2 * C0[2];
+    float best = 3.0e38f, c, r0, r1, r2, u = y0 * INVH + 0.5f;
+    const float *p;
+    int32_t j0 = (int32_t)u, j, bj;
     int q;
-    for (q = 0; q < 64; q++) {
-        y = y0 + PITCH * ((float)q * (1.0f / 64.0f) - 0.5f);
-        c = chi2(s, d, w, y);
+    if ((float)j0 > u) {
+        j0 -= 1;
+    }
+    bj = j0;
+    for (q = 0; q < NA; q++) {
+        j = j0 + OFF[q];
+        p = T[(uint32_t)j & (uint32_t)(M - 1)];
+        r0 = e0 - a0 * p[0];
+        r1 = e1 - a1 * p[1];
+        r2 = e2 - a2 * p[2];
+        c = w[0] * r0 * r0 + w[1] * r1 * r1 + w[2] * r2 * r2;
         if (c < best) {
             best = c;
-            best_y = y;
+            bj = j;
         }
     }
-    return fit(s, d, w, best_y, ITER + 2, PITCH * (1.0f / 64.0f), chi);
+    return (float)bj * HSTEP;
 }
 
-/* recursive least squares of the gains and levels, regressors projected off the angle */
-static void adapt(@p@_state *s, const float d[3], const float w[3], float y, float x)
+/* The adaptation, one small part per sample of its cycle of CYCLE samples (the cycle advances
+ * on samples without the fits of the outlier test): 0 the sample's regressors, 1..6 one row of
+ * the information H (upper triangle), 7..12 one column of its L D L^T, 13 L z = gr,
+ * 14 D L^T x = z, 15 the bounded update. */
+NOINLINE static void measure(@p@_state *s, const float f[3], const float dg[3], const float r[3],
+                    const float J[3], const float w[3], float step, float den, float x)
 {
-    float g[3], dg[3], q[6], gr[6], L[6][6], P[6], R[6], z[6], lam, sJ = 0.0f, f, Jy, r, t, lim;
-    int i, j, k;
-    table(y, g, dg);
-    lam = 1.0f - x + 0.5f * x * x - x * x * x * (1.0f / 6.0f);
+    float fy, ry, u;
+    int i;
+    x = x < 1.0f ? x : 1.0f;
+    s->lam = 1.0f - x + 0.5f * x * x - x * x * x * (1.0f / 6.0f);
+    s->t = (float)CYCLE / den;
     for (i = 0; i < 3; i++) {
-        if (w[i] > 0.0f) {
-            sJ += w[i] * (s->a[i] * dg[i]) * (s->a[i] * dg[i]);
-        }
+        fy = f[i] + dg[i] * step;
+        ry = r[i] - J[i] * step;
+        u = (float)CYCLE * w[i];
+        s->fy[i] = fy;
+        s->u[i] = u;
+        s->qv[2 * i] = w[i] * fy * J[i];
+        s->qv[2 * i + 1] = w[i] * J[i];
+        s->gr[2 * i] = u * fy * ry;
+        s->gr[2 * i + 1] = u * ry;
+        s->wm[i] = w[i];
     }
-    if (sJ <= 0.0f) {
+    s->pending = 1u;
+}
+
+NOINLINE static void row(@p@_state *s, int p)
+{
+    const int i = p >> 1;
+    const float lam = s->lam, v = s->t * s->qv[p];
+    float *h = s->H[p];
+    int q;
+    for (q = p; q < 6; q++) {
+        h[q] *= lam;
+    }
+    if (p & 1) {
+        h[p] = (h[p] + (1.0f - lam) * PRIOR * W0[i]) + s->u[i];
+    } else {
+        h[p] = (h[p] + (1.0f - lam) * PRIOR * W0[i] * AMP[i] * AMP[i]) + s->u[i] * s->fy[i]
+               * s->fy[i];
+        h[p + 1] += s->u[i] * s->fy[i];
+    }
+    for (q = p; q < 6; q++) {
+        h[q] -= v * s->qv[q];
+    }
+}
+
+NOINLINE static void column(@p@_state *s, int j)
+{
+    float t;
+    int i, k;
+    t = s->H[j][j];
+    for (k = 0; k < j; k++) {
+        t -= s->L[j][k] * s->L[j][k] * s->P[k];
+    }
+    if (!(t > 0.0f)) {
+        s->pending = 0u;
         return;
     }
-    for (i = 0; i < 6; i++) {
-        for (j = 0; j < 6; j++) {
-            s->H[i][j] *= lam;
-        }
-        q[i] = 0.0f;
-        gr[i] = 0.0f;
-    }
-    for (i = 0; i < 3; i++) {
-        s->H[2 * i][2 * i] += (1.0f - lam) * PRIOR * W0[i] * AMP[i] * AMP[i];
-        s->H[2 * i + 1][2 * i + 1] += (1.0f - lam) * PRIOR * W0[i];
-        if (w[i] > 0.0f) {
-            f = g[i] - C0[i];
-            Jy = s->a[i] * dg[i];
-            r = d[i] - s->a[i] * f - s->b[i];
-            s->H[2 * i][2 * i] += w[i] * f * f;
-            s->H[2 * i][2 * i + 1] += w[i] * f;
-            s->H[2 * i + 1][2 * i] += w[i] * f;
-            s->H[2 * i + 1][2 * i + 1] += w[i];
-            q[2 * i] = w[i] * f * Jy;
-            q[2 * i + 1] = w[i] * Jy;
-            gr[2 * i] = w[i] * f * r;
-            gr[2 * i + 1] = w[i] * r;
-        }
-    }
-    sJ = 1.0f / sJ;
-    for (i = 0; i < 6; i++) {
-        t = q[i] * sJ;
-        for (j = 0; j < 6; j++) {
-            s->H[i][j] -= t * q[j];
-        }
-    }
-    /* L D L^T of H (pivots P, their reciprocals R), then H z = gr */
-    for (j = 0; j < 6; j++) {
-        t = s->H[j][j];
+    s->P[j] = t;
+    s->R[j] = 1.0f / t;
+    for (i = j + 1; i < 6; i++) {
+        t = s->H[j][i];
         for (k = 0; k < j; k++) {
-            t -= L[j][k] * L[j][k] * P[k];
+            t -= s->L[i][k] * s->L[j][k] * s->P[k];
         }
-        if (!(t > 0.0f)) {
-            return;
-        }
-        P[j] = t;
-        R[j] = 1.0f / t;
-        for (i = j + 1; i < 6; i++) {
-            t = s->H[i][j];
-            for (k = 0; k < j; k++) {
-                t -= L[i][k] * L[j][k] * P[k];
-            }
-            L[i][j] = t * R[j];
-        }
+        s->L[i][j] = t * s->R[j];
     }
+}
+
+NOINLINE static void forward(@p@_state *s)
+{
+    float t;
+    int i, k;
     for (i = 0; i < 6; i++) {
-        t = gr[i];
+        t = s->gr[i];
         for (k = 0; k < i; k++) {
-            t -= L[i][k] * z[k];
+            t -= s->L[i][k] * s->z[k];
         }
-        z[i] = t;
+        s->z[i] = t;
     }
+}
+
+NOINLINE static void backward(@p@_state *s)
+{
+    float t;
+    int i, k;
     for (i = 5; i >= 0; i--) {
-        t = z[i] * R[i];
+        t = s->z[i] * s->R[i];
         for (k = i + 1; k < 6; k++) {
-            t -= L[k][i] * z[k];
+            t -= s->L[k][i] * s->z[k];
         }
-        z[i] = t;
+        s->z[i] = t;
     }
+}
+
+NOINLINE static void apply(@p@_state *s)
+{
+    float t, lim;
+    int i;
     for (i = 0; i < 3; i++) {
-        if (w[i] > 0.0f) {
-            t = s->a[i] + z[2 * i];
+        if (s->wm[i] > 0.0f) {
+            t = s->a[i] + s->z[2 * i];
             s->a[i] = t < ALO ? ALO : (t > AHI ? AHI : t);
             lim = BBOUND * AMP[i];
-            t = s->b[i] + z[2 * i + 1];
-            t = t < s->b0[i] - lim ? s->b0[i] - lim : t;
-            s->b[i] = t > s->b0[i] + lim ? s->b0[i] + lim : t;
+            t = s->b[i] + s->z[2 * i + 1];
+            t = t < C0[i] - lim ? C0[i] - lim : t;
+            s->b[i] = t > C0[i] + lim ? C0[i] + lim : t;
         }
     }
 }
 
-void @p@_init(@p@_state *s, int32_t revolutions, float angle)
+void @p@_init(@p@_state *s)
 {
     int i, j;
     float t;
-    s->rev = revolutions;
-    s->ang = angle;
+    s->rev = 0;
+    s->ang = 0.0f;
     s->v = s->clean = s->bad = s->sum_chi = 0.0f;
     s->sum_dof = 0;
     for (i = 0; i < 3; i++) {
         s->a[i] = 1.0f;
         s->b[i] = C0[i];
-        s->b0[i] = C0[i];
     }
-    for (i = 0; i < 6; i++) {
+    for (i = 0; i < 6; i++) { /* L is written column by column before it is read */
         for (j = 0; j < 6; j++) {
             t = PRIOR * W0[i >> 1] * ((i & 1) ? 1.0f : AMP[i >> 1] * AMP[i >> 1]);
             s->H[i][j] = (i != j) ? 0.0f : t;
         }
     }
+    s->pending = 0u;
+    s->phase = 0u;
     s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0;
     s->window_from = 0u;
     s->blame_from = 0u;
@@ -538,8 +540,8 @@ void @p@_init(@p@_state *s, int32_t revolutions, float angle)
     s->acquire = 1u;
     s->k = 0u;
     s->seq = 0u;
-    s->buf[0].revolutions = revolutions;
-    s->buf[0].angle = angle;
+    s->buf[0].revolutions = 0;
+    s->buf[0].angle = 0.0f;
     s->buf[0].misfit = 0.0f;
     s->buf[0].state = @P@_OK;
     s->buf[0].excluded = -1;
@@ -548,72 +550,111 @@ void @p@_init(@p@_state *s, int32_t revolutions, float angle)
     s->buf[1] = s->buf[0];
 }
 
+uint8_t @p@_set_angle(@p@_state *s, int32_t revolutions, float angle)
+{
+    if (!(angle >= 0.0f && angle < TWOPI)) { /* NaN, infinite or outside the revolution */
+        return 1u;
+    }
+    s->rev = revolutions;
+    s->ang = angle;
+    s->v = 0.0f;
+    s->acquire = 1u; /* the next sample searches within half a pole pitch of it */
+    return 0u;
+}
+
 uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
 {
-    float d[3], w[3], wk[3], g[3], dg[3], yp, y, chi = 0.0f, best, best_y, cq, yq, e, travel;
-    float mf = 0.0f, cc, cmax;
-    int i, q, active = 0, blamed = -1, mark = -1, others, above = 0, stale, fin[3];
-    uint32_t slot, jw;
+    float d[3], w[3], f[3], dg[3], r[3], J[3], yp, y, step = 0.0f, chi = 0.0f, srr = 0.0f;
+    float num = 0.0f, den = 0.0f, best, best_step, cq, sq, e, travel, mf = 0.0f, cc, cmax;
+    float A01, A11, r1, Js0, Js1, Js2, det, tr[3], tn[3], td[3];
+    int i, q, active, blamed = -1, mark = -1, others, above = 0, stale, fin[3];
+    int acquired, fitted, loo = 0, u0, u1, u2;
+    uint32_t slot, jw, ph;
     int8_t old;
-    d[0] = d1;
-    d[1] = d2;
-    d[2] = d3;
-    for (i = 0; i < 3; i++) {
-        fin[i] = finite_(d[i]);
-        if (!fin[i]) {
-            d[i] = 0.0f;
-            if (s->excluded < 0) {
-                s->excluded = (int8_t)i;
-                s->blamed_out = 0u;
-                s->clean = 0.0f;
-                s->acquire = 1u;
-            }
-        }
+    fin[0] = FIN(d1);
+    fin[1] = FIN(d2);
+    fin[2] = FIN(d3);
+    d[0] = fin[0] ? d1 : 0.0f;
+    d[1] = fin[1] ? d2 : 0.0f;
+    d[2] = fin[2] ? d3 : 0.0f;
+    if (!(fin[0] && fin[1] && fin[2]) && s->excluded < 0) { /* a disconnected channel */
+        s->excluded = (int8_t)(!fin[0] ? 0 : (!fin[1] ? 1 : 2));
+        s->blamed_out = 0u;
+        s->clean = 0.0f;
     }
-    for (i = 0; i < 3; i++) {
-        w[i] = (i == s->excluded || !fin[i]) ? 0.0f : W0[i];
-        if (w[i] > 0.0f) {
-            active++;
-        }
-    }
+    u0 = s->excluded != 0 && fin[0];
+    u1 = s->excluded != 1 && fin[1];
+    u2 = s->excluded != 2 && fin[2];
+    w[0] = W0[0] * (float)u0; /* 0 for a channel not in use */
+    w[1] = W0[1] * (float)u1;
+    w[2] = W0[2] * (float)u2;
+    active = u0 + u1 + u2;
     yp = s->ang + s->v;
     y = yp;
-    if (active >= 2 && s->acquire) {
-        y = acquire(s, d, w, yp, &chi);
+    acquired = active >= 2 && s->acquire;
+    fitted = active >= 2 && !acquired;
+    if (acquired) {
+        y = acquire(s, d, w, yp);
         s->acquire = 0u;
-    } else if (active == 3) {
-        y = fit(s, d, w, yp, ITER, MAXSTEP, &chi);
-        if (chi > OUTLIER && fit_scaled(s, d, w, y) > EXPLAINED) {
-            best = 3.0e38f;
-            best_y = y;
-            for (q = 0; q < 3; q++) {
-                for (i = 0; i < 3; i++) {
-                    wk[i] = w[i];
+    } else if (fitted) {
+        table(yp, f, dg);
+        J[0] = s->a[0] * dg[0];
+        J[1] = s->a[1] * dg[1];
+        J[2] = s->a[2] * dg[2];
+        r[0] = d[0] - s->a[0] * f[0] - s->b[0];
+        r[1] = d[1] - s->a[1] * f[1] - s->b[1];
+        r[2] = d[2] - s->a[2] * f[2] - s->b[2];
+        /* an unused channel has w = 0 and a finite r: it adds exact zeros */
+        tr[0] = w[0] * r[0] * r[0];
+        tr[1] = w[1] * r[1] * r[1];
+        tr[2] = w[2] * r[2] * r[2];
+        tn[0] = w[0] * J[0] * r[0];
+        tn[1] = w[1] * J[1] * r[1];
+        tn[2] = w[2] * J[2] * r[2];
+        td[0] = w[0] * J[0] * J[0];
+        td[1] = w[1] * J[1] * J[1];
+        td[2] = w[2] * J[2] * J[2];
+        srr = tr[0] + tr[1] + tr[2];
+        num = tn[0] + tn[1] + tn[2];
+        den = td[0] + td[1] + td[2];
+        step = gn(srr, num, den, &chi);
+        if (active == 3 && chi > OUTLIER) {
+            /* explained by a common gain of the field parts? else the fits without a channel */
+            Js0 = s->a[0] * f[0];
+            Js1 = s->a[1] * f[1];
+            Js2 = s->a[2] * f[2];
+            A01 = w[0] * J[0] * Js0 + w[1] * J[1] * Js1 + w[2] * J[2] * Js2;
+            A11 = w[0] * Js0 * Js0 + w[1] * Js1 * Js1 + w[2] * Js2 * Js2;
+            r1 = w[0] * Js0 * r[0] + w[1] * Js1 * r[1] + w[2] * Js2 * r[2];
+            det = den * A11 - A01 * A01;
+            if (!(det > 0.0f && srr * det - (A11 * num * num - 2.0f * A01 * num * r1
+                                             + den * r1 * r1) <= EXPLAINED * det)) {
+                loo = 1;
+                best = 3.0e38f;
+                best_step = step;
+                for (q = 0; q < 3; q++) {
+                    sq = gn(srr - tr[q], num - tn[q], den - td[q], &cq);
+                    if (cq < best) {
+                        best = cq;
+                        best_step = sq;
+                        blamed = q;
+                    }
                 }
-                wk[q] = 0.0f;
-                yq = fit(s, d, wk, yp, ITER, MAXSTEP, &cq);
-                if (cq < best) {
-                    best = cq;
-                    best_y = yq;
-                    blamed = q;
-                }
-            }
-            if (!(best < EXPLAINED && best < 0.1f * chi)) {
-                blamed = -1;
-                mark = 3;
-            } else {
-                table(best_y, g, dg);
-                e = d[blamed] - s->a[blamed] * (g[blamed] - C0[blamed]) - s->b[blamed];
-                if (fabs_(e) < GROSS[blamed]) {
+                if (!(best < EXPLAINED && best < 0.1f * chi)) {
                     blamed = -1;
+                    mark = 3;
                 } else {
-                    y = best_y;
-                    mark = blamed;
+                    e = r[blamed] - J[blamed] * best_step;
+                    if (fabs_(e) < GROSS[blamed]) {
+                        blamed = -1;
+                    } else {
+                        step = best_step;
+                        mark = blamed;
+                    }
                 }
             }
         }
-    } else if (active == 2) {
-        y = fit(s, d, w, yp, ITER, MAXSTEP, &chi);
+        y = yp + step;
     }
     /* fault isolation */
     slot = s->k % (uint32_t)FW;
@@ -626,18 +667,18 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         s->blame[mark]++;
     }
     if (blamed >= 0 && s->excluded < 0 && !s->suppress) {
-        others = 0;
-        for (q = 0; q < 4; q++) {
-            if (q != blamed) {
-                others += s->blame[q];
-            }
-        }
+        others = s->blame[0] + s->blame[1] + s->blame[2] + s->blame[3] - s->blame[blamed];
         if (s->blame[blamed] >= FC && 4 * others <= s->blame[blamed]) {
             s->excluded = (int8_t)blamed;
             s->blamed_out = 1u;
             s->clean = 0.0f;
             w[blamed] = 0.0f;
-            y = acquire(s, d, w, yp, &chi);
+            chi = 0.0f; /* the two channels' chi2 at the fitted angle (recomputed: the closed
+                         * form cancels in float) */
+            for (i = 0; i < 3; i++) {
+                e = r[i] - J[i] * step;
+                chi += w[i] * e * e;
+            }
             s->blame_from = s->k + 1u; /* the blame ring and the window start again */
             s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0;
             s->window_from = s->k;
@@ -647,22 +688,22 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
             active = 2;
         }
     }
-    if (blamed < 0 && active >= 2) {
-        s->v += KV * (y - yp);
+    if (blamed < 0 && fitted) {
+        s->v += KV * step;
+        s->v = s->v > VMAX ? VMAX : (s->v < -VMAX ? -VMAX : s->v);
     }
-    /* the angle within the revolution */
-    while (y >= TWOPI) {
+    /* the angle within the revolution (|y - angle| < 2 pi: one wrap at most) */
+    if (y >= TWOPI) {
         y -= TWOPI;
         s->rev++;
-    }
-    while (y < 0.0f) {
+    } else if (y < 0.0f) {
         y += TWOPI;
         s->rev--;
     }
     s->ang = y;
     travel = NM * fabs_(s->v);
     /* misfit window */
-    cmax = CAP * (active >= 3 ? 2.0f : 1.0f);
+    cmax = CAP * (fitted && active >= 3 ? 2.0f : 1.0f);
     cc = chi < cmax ? chi : cmax;
     if (blamed >= 0 && cc > CAP) {
         cc = CAP;
@@ -673,11 +714,11 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         s->sum_dof -= (int32_t)s->ring_dof[jw];
     }
     s->sum_chi += cc;
-    s->sum_dof += active >= 2 ? active - 1 : 0;
+    s->sum_dof += fitted ? active - 1 : 0;
     s->ring_chi[jw] = cc;
-    s->ring_dof[jw] = (uint8_t)(active >= 2 ? active - 1 : 0);
+    s->ring_dof[jw] = (uint8_t)(fitted ? active - 1 : 0);
     if (s->sum_dof > 0) {
-        mf = s->sum_chi / (float)s->sum_dof;
+        mf = s->sum_chi * INV[s->sum_dof];
         above = s->sum_chi > THR[s->sum_dof];
     }
     s->bad = above ? s->bad + travel : 0.0f;
@@ -688,17 +729,41 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         s->excluded = -1;
         s->suppress = 1u;
     }
-    if (!stale && blamed < 0 && active >= 2) {
-        adapt(s, d, w, y, travel * INVMEM);
+    /* adaptation: one part per sample of its cycle */
+    if (!loo) {
+        ph = s->phase;
+        if (ph == 0u) {
+            if (fitted && !stale && blamed < 0) {
+                measure(s, f, dg, r, J, w, step, den, (float)CYCLE * travel * INVMEM);
+                s->phase = 1u;
+            }
+        } else {
+            if (s->pending) {
+                if (ph <= 6u) {
+                    row(s, (int)ph - 1);
+                } else if (ph <= 12u) {
+                    column(s, (int)ph - 7);
+                } else if (ph == 13u) {
+                    forward(s);
+                } else if (ph == 14u) {
+                    backward(s);
+                } else {
+                    if (!stale) {
+                        apply(s);
+                    }
+                    s->pending = 0u;
+                }
+            }
+            s->phase = (uint8_t)((ph + 1u) % (uint32_t)CYCLE);
+        }
     }
     /* readmission */
-    if (s->excluded >= 0) {
+    if (fitted && s->excluded >= 0) {
         i = s->excluded;
         if (!fin[i]) {
             s->clean = 0.0f;
         } else {
-            table(y, g, dg);
-            e = d[i] - s->a[i] * (g[i] - C0[i]) - s->b[i];
+            e = r[i] - J[i] * step;
             s->clean = (W0[i] * e * e < 16.0f) ? s->clean + travel : 0.0f;
         }
         if (s->clean >= READMIT) {
@@ -709,19 +774,19 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     /* publish */
     {
         uint32_t next = s->seq + 1u;
-        @p@_reading *r = &s->buf[next & 1u];
-        r->revolutions = s->rev;
-        r->angle = s->ang;
-        r->misfit = mf;
-        r->state = active < 2 ? @P@_FAULT
-                   : (s->excluded >= 0 ? @P@_DEGRADED
-                   : (stale ? @P@_STALE : (above ? @P@_ADAPTING : @P@_OK)));
-        r->excluded = s->excluded;
-        r->flags = (uint32_t)r->state | ((uint32_t)(s->excluded + 1) << 8);
-        r->sample = s->k + 1u;
+        @p@_reading *rd = &s->buf[next & 1u];
+        rd->revolutions = s->rev;
+        rd->angle = s->ang;
+        rd->misfit = mf;
+        rd->state = active < 2 ? @P@_FAULT
+                    : (s->excluded >= 0 ? @P@_DEGRADED
+                    : (stale ? @P@_STALE : (above ? @P@_ADAPTING : @P@_OK)));
+        rd->excluded = s->excluded;
+        rd->flags = (uint32_t)rd->state | ((uint32_t)(s->excluded + 1) << 8);
+        rd->sample = s->k + 1u;
         s->seq = next;
         s->k++;
-        return r->state;
+        return rd->state;
     }
 }
 

@@ -1,8 +1,8 @@
 """The calibration report: figures and a self-contained HTML page (``hallcal report``, ``demo``).
 
-Compute first, plot separately: :func:`content_from_calibration` (in memory, after
-:func:`hallcal.pipeline.calibrate`) and :func:`content_from_artifact` (from a JSON artifact and
-the calibration recording) gather everything the report shows into a :class:`ReportContent`;
+Compute first, plot separately: :func:`report_content` (from the calibration artifact and its
+recording, plus what an in-memory calibration has: :class:`ReportExtras`) gathers everything the
+report shows into a :class:`ReportContent`;
 :func:`make_figures` turns it into figures with :mod:`hallcal.output.plots`; :func:`write_report`
 writes the PNG files and one HTML file with the figures embedded as base64 PNG, inline CSS, no
 scripts and no external references, so it opens in a browser without network access.
@@ -18,21 +18,20 @@ on the constant-speed samples the calibration did not use. Angle errors are in m
 another :class:`hallcal.formatting.AngleUnit` (``angle_units="electrical-deg"``: electrical
 degrees).
 
-The modules: :mod:`~hallcal.output.report.content` (:class:`ReportContent`, from an in-memory
-calibration), :mod:`~hallcal.output.report.from_artifact` (from an artifact and its recording),
+The modules: :mod:`~hallcal.output.report.content` (:class:`ReportContent` and its builder),
 :mod:`~hallcal.output.report.figures`, :mod:`~hallcal.output.report.page` (the HTML) and
 :mod:`~hallcal.output.report.write` (the files, the CLI's and the demo's entry points).
 """
 
 from __future__ import annotations
 
-from hallcal.output.report.content import ReportContent, content_from_calibration
+from hallcal.output.report.content import ReportContent, ReportExtras, report_content
 from hallcal.output.report.figures import ReportFigure, make_figures
-from hallcal.output.report.from_artifact import content_from_artifact
 from hallcal.output.report.page import render_html
 from hallcal.output.report.write import (
     FIGURE_DIR,
     REPORT_NAME,
+    calibration_artifact,
     write_calibration_report,
     write_demo_report,
     write_report,
@@ -43,11 +42,12 @@ __all__ = [
     "FIGURE_DIR",
     "REPORT_NAME",
     "ReportContent",
+    "ReportExtras",
     "ReportFigure",
-    "content_from_artifact",
-    "content_from_calibration",
+    "calibration_artifact",
     "make_figures",
     "render_html",
+    "report_content",
     "write_calibration_report",
     "write_demo_report",
     "write_report",

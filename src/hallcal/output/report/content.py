@@ -1,5 +1,6 @@
-"""What a report shows (:class:`ReportContent`) and how it is gathered from an in-memory
-calibration (:func:`content_from_calibration`); the steps both sources share."""
+"""What a report shows (:class:`ReportContent`) and the one place it is gathered
+(:func:`report_content`): from the calibration artifact and its recording, plus what a
+calibration computed in this process has in memory (:class:`ReportExtras`)."""
 
 from __future__ import annotations
 
@@ -13,10 +14,7 @@ from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
 from hallcal.formatting import AngleUnit
-from hallcal.io import (
-    Dataset,
-    Setup,
-)
+from hallcal.io import ArtifactData, Dataset, Setup, validate_artifact
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sim.lti import ContinuousTF
@@ -318,37 +316,6 @@ def _no_encoder_note(constant_speed: bool = False) -> str:
     )
 
 
-def _gain_value(gain: Any) -> float | None:
-    if gain is None:
-        return None
-    return float(getattr(gain, "value", gain.c))
-
-
-def _gain_details(gain: Any) -> dict[str, Any] | None:
-    if gain is None:
-        return None
-    if hasattr(gain, "to_dict"):
-        return dict(gain.to_dict())
-    return {"c": float(gain.c)}
-
-
-def _adequacy_dict(adequacy: Any) -> dict[str, Any] | None:
-    if adequacy is None:
-        return None
-    if isinstance(adequacy, Mapping):
-        return dict(adequacy)
-    out: dict[str, Any] = {}
-    if hasattr(adequacy, "to_dict"):
-        try:
-            out.update(adequacy.to_dict())
-        except Exception:  # noqa: BLE001 - a report must not fail on a diagnostic's serializer
-            pass
-    for key in ("verdict", "message"):
-        if hasattr(adequacy, key):
-            out[key] = getattr(adequacy, key)
-    return out or None
-
-
 _NOT_BIJECTIVE_NOTE = (
     "The lookup table is not bijective (the paper's bijectivity condition fails): "
     "f_star is undefined, so only f_init is shown."
@@ -373,6 +340,7 @@ def _validation_parts(
     Returns ``(validation, validation_traces, validation_source)``.
     """
     from hallcal.pipeline import validate
+    from hallcal.pipeline.calibration import validation_skipped
 
     val_traces: Traces | None = None
     val_source: str | None = None
@@ -383,7 +351,7 @@ def _validation_parts(
             if validation is None and lut.bijective:
                 validation = validate(lut, validation_data, noise_floor=noise_floor)
         except HallcalInputError as exc:  # a standstill run: the calibration's report stands
-            notes.insert(0, f"warning: validation skipped: {exc}")
+            notes.insert(0, validation_skipped(exc).record())
             return None, None, None
         val_traces = _traces(lut, validation_data)
     elif cal_traces.y_ref is not None:
@@ -415,7 +383,11 @@ def _recording_parts(
     t = np.asarray(data["t"], dtype=np.float64) if "t" in data else None
     if t is None:
         # sample_time = 1.0 means time in samples (docs/design.md): plot over the sample index
-        t = None if setup.sample_time == 1.0 else setup.sample_time * np.arange(d.shape[0])
+        t = (
+            None
+            if setup.sample_time == 1.0
+            else np.arange(d.shape[0], dtype=np.float64) * float(setup.sample_time)
+        )
     cs_summary, cs_noise, straight = _constant_speed_parts(constant_speed, lut, data, cal_traces)
     return dict(
         t=t,
@@ -430,100 +402,278 @@ def _recording_parts(
     )
 
 
-def content_from_calibration(
-    cal: Any,
-    data: Dataset,
-    *,
-    validation_data: Dataset | None = None,
-    validation: Any = None,
-    noise_floor: float | None = None,
-    true_flux: FluxModel | None = None,
-    true_plant: ContinuousTF | None = None,
-    true_noise_variance: float | None = None,
-    sources: Mapping[str, str] | None = None,
-    title: str = "hallcal calibration report",
-    noise_floor_source: str = "given",
-    true_cogging: Any = None,
-) -> ReportContent:
-    """Gather a report's content from an in-memory :class:`~hallcal.pipeline.Calibration`.
+@dataclass(frozen=True)
+class ReportExtras:
+    """What a report can show beyond the artifact and its recording (all optional).
+
+    Attributes
+    ----------
+    sem : SEMResult or None
+        The SEM solve of a calibration computed in this process: its d_sim and cov(theta) are
+        shown as they are. Without it the closed loop is replayed from the artifact
+        (:func:`hallcal.fit.replay.replay_closed_loop`).
+    bla : BLAIdentification or None
+        The BLA (in memory, or read from ``hallcal bla``'s file).
+    validation : Validation or None
+        Errors already computed on the report's ``validation_data`` (recomputed when None).
+    noise_floor : float or None
+        RMS angle error of Hall noise alone [rad]; default: the artifact's.
+    noise_floor_source : str
+        Where a given ``noise_floor`` comes from, for the summary table.
+    true_flux, true_plant, true_noise_variance, true_cogging : optional
+        The virtual bench's truth, drawn for comparison.
+    """
+
+    sem: Any = None
+    bla: Any = None
+    validation: Any = None
+    noise_floor: float | None = None
+    noise_floor_source: str = "given"
+    true_flux: FluxModel | None = None
+    true_plant: ContinuousTF | None = None
+    true_noise_variance: float | None = None
+    true_cogging: Any = None
+
+    @classmethod
+    def of(cls, cal: Any, **extras: Any) -> ReportExtras:
+        """What a :class:`~hallcal.pipeline.Calibration` has beyond its artifact.
+
+        Parameters
+        ----------
+        cal : Calibration
+            Computed in this process: its SEM solve and BLA are added; loaded from an artifact:
+            nothing (its report is the one ``hallcal report`` writes).
+        **extras
+            Further fields (``validation``, ``noise_floor``, the truth).
+
+        Returns
+        -------
+        ReportExtras
+        """
+        if cal.artifact is not None:
+            return cls(**extras)
+        return cls(sem=cal.sem, bla=cal.bla, **extras)
+
+
+def calibration_artifact(cal: Any) -> ArtifactData:
+    """The typed artifact of a calibration, for its report.
 
     Parameters
     ----------
     cal : Calibration
-        Result of :func:`hallcal.pipeline.calibrate`.
+        Loaded from an artifact (that artifact) or computed in this process (its own).
+
+    Returns
+    -------
+    ArtifactData
+        Checked by :func:`~hallcal.io.validate_artifact`, a table that is not bijective
+        accepted so that a calibration refused as such can still be reported
+        (:meth:`~hallcal.pipeline.Calibration.save` never writes it).
+    """
+    return validate_artifact(cal.to_artifact(), "in memory", bijective=False)
+
+
+def _artifact_floor(diag: Mapping[str, Any], flux: FluxModel, n_m: int) -> tuple[float | None, str]:
+    """The artifact's noise floor (the calibration's own), or for artifacts written before it
+    was stored, the estimate from the SEM's noise variance."""
+    stored = diag.get("noise_floor")
+    if isinstance(stored, int | float) and math.isfinite(stored):
+        return float(stored), _ESTIMATED_FLOOR
+    return (
+        _estimated_floor(diag.get("noise_variance"), flux, n_m),
+        "estimated from the SEM residual",
+    )
+
+
+def _replayed_sem(
+    art: ArtifactData,
+    flux: FluxModel,
+    plant: ContinuousTF | None,
+    data: Dataset,
+    lut: LUT,
+    cogging: Any,
+    *,
+    progress: Progress,
+    notes: list[str],
+) -> Any:
+    """The SEM result of an artifact: cost history as stored, d_sim, y0_sim and cov(theta)
+    from the loop replayed on the recording (:func:`hallcal.fit.replay.replay_closed_loop`)."""
+    from hallcal.fit.sem import SEMResult, SEMStatus
+
+    diag = art.diagnostics
+    status = diag.get("sem_status", "unknown")
+    if status not in SEMStatus._value2member_map_:
+        known = ", ".join(f'"{v.value}"' for v in SEMStatus)
+        raise HallcalInputError(
+            f"{art.source}: key 'diagnostics.sem_status' must be one of {known}, got "
+            f"{str(status)[:40]!r}",
+            source=art.source,
+            key="diagnostics.sem_status",
+        )
+    history = np.asarray(diag.get("cost_history", []), dtype=np.float64)
+    if history.size == 0:
+        return None
+    s2 = diag.get("noise_variance")
+    s2 = math.nan if s2 is None else float(s2)
+    setup = art.setup
+    d_sim = y0_sim = cov = None
+    closed = setup.trajectory.kind == "closed-loop"
+    if not (closed and plant is not None and setup.controller is not None and "r" in data):
+        notes.append(
+            "The model fit is shown at the calibrated angle f_star: re-simulating the closed loop "
+            "needs a closed-loop trajectory, the plant, the controller and the column 'r'."
+        )
+    else:
+        from hallcal.fit.replay import replay_closed_loop
+
+        _say(progress, "re-simulating the closed loop with the identified model")
+        fourier = art.model.get("basis", "fourier") == "fourier"
+        if fourier:
+            _say(progress, "parameter covariance (one sensitivity pass) for the LUT band")
+        run = replay_closed_loop(
+            flux, lut, plant, setup.controller, setup.sample_time, data["r"], data.d,
+            cogging=cogging, noise_variance=s2, covariance=fourier,
+        )  # fmt: skip
+        if not run.status.success:
+            notes.append("Re-simulating the closed loop with the identified model diverged.")
+        else:
+            d_sim, y0_sim, cov, s2 = run.d_sim, run.y0_sim, run.covariance, run.noise_variance
+            stored = float(diag.get("cost", run.sse))
+            if not math.isclose(run.sse, stored, rel_tol=1e-3):
+                notes.append(
+                    f"The data's simulation cost ({run.sse:.6g}) differs from the artifact's "
+                    f"({stored:.6g}): the data may not be the calibration recording."
+                )
+            if not fourier:
+                notes.append(
+                    "No uncertainty band for the lookup table: the covariance of a kernel "
+                    "model is only available in the calibrating process."
+                )
+    return SEMResult(
+        flux=flux,
+        theta0=np.full_like(flux.theta, np.nan),
+        cost_history=history,
+        iterations=int(diag.get("iterations", history.size - 1)),
+        status=SEMStatus(status),
+        solve_time=float(diag.get("solve_time", math.nan)),
+        noise_variance=s2,
+        covariance=np.full((flux.theta.size,) * 2, np.nan) if cov is None else cov,
+        n_samples=int(diag.get("n_samples", data.n_samples)),
+        # not re-simulated: NaN signals, which the plots read as "no model trace"
+        d_sim=np.full(data.d.shape, np.nan) if d_sim is None else d_sim,
+        y0_sim=np.full(data.n_samples, np.nan) if y0_sim is None else y0_sim,
+        cogging=cogging,
+    )
+
+
+def report_content(
+    artifact: ArtifactData | Mapping[str, Any],
+    data: Dataset,
+    *,
+    extras: ReportExtras | None = None,
+    validation_data: Dataset | None = None,
+    sources: Mapping[str, str] | None = None,
+    progress: Progress = None,
+    title: str = "hallcal calibration report",
+) -> ReportContent:
+    """Gather a report's content: the one builder (``hallcal report``, ``demo``,
+    :meth:`hallcal.Calibration.report`).
+
+    The lookup table, the flux model, the plant and the diagnostics come from the artifact.
+    The model fit (Fig. 4) and the table's uncertainty band need the SEM's simulated signals
+    and cov(theta): from ``extras.sem`` when the calibration was computed in this process,
+    else the closed loop is replayed with the stored plant and controller. The noise floor is
+    the calibration's own (``diagnostics.noise_floor``) unless ``extras`` gives one.
+
+    Parameters
+    ----------
+    artifact : ArtifactData or mapping
+        As returned by :func:`hallcal.io.read_artifact`, or a mapping (checked by
+        :func:`hallcal.io.validate_artifact`).
     data : Dataset
-        The calibration recording (for the model fit; its ``y_ref``, if any, validates when no
+        The calibration recording (d1..d3; r for the replay; y_ref validates when no
         ``validation_data`` is given).
-    validation_data : Dataset, optional
-        A fresh recording with ``y_ref`` to validate on.
-    validation : Validation, optional
-        Already computed errors on ``validation_data`` (recomputed when None).
-    noise_floor : float, optional
-        RMS angle error of Hall noise alone [rad]; default: estimated from the SEM residual.
-    true_flux, true_plant, true_noise_variance, true_cogging : optional
-        The virtual bench's truth, drawn for comparison.
-    sources : mapping, optional
+    extras : ReportExtras, keyword-only, optional
+        What the caller has in memory beyond the artifact.
+    validation_data : Dataset, keyword-only, optional
+        A fresh recording with ``y_ref``.
+    sources : mapping, keyword-only, optional
         Input names by role, listed in the report.
-    title : str
-    noise_floor_source : str
-        Where a given ``noise_floor`` comes from, for the summary table.
+    progress : callable, keyword-only, optional
+    title : str, keyword-only
 
     Returns
     -------
     ReportContent
     """
-    lut: LUT = cal.lut
-    cal_traces = _traces(lut, data)
+    x = extras or ReportExtras()
+    source = (sources or {}).get("artifact", "artifact")
+    art = validate_artifact(artifact, source)
+    setup, lut, flux, diag = art.setup, art.lut(), art.flux(), art.diagnostics
+    cogging = art.cogging_torque()
+    plant = art.plant_model() or setup.plant  # the calibration's (a BLA's), else the setup's
     notes: list[str] = []
+    cal_traces = _traces(lut, data)
+    sem = x.sem
+    if sem is None:
+        sem = _replayed_sem(art, flux, plant, data, lut, cogging, progress=progress, notes=notes)
+    noise_floor, floor_source = x.noise_floor, x.noise_floor_source
+    if noise_floor is None:
+        noise_floor, floor_source = _artifact_floor(diag, flux, art.pole_pairs)
+    constant_speed = diag.get("constant_speed")
+    if not isinstance(constant_speed, Mapping):
+        constant_speed = None
     validation, val_traces, val_source = _validation_parts(
-        lut, data, cal_traces, validation_data=validation_data, validation=validation,
-        sources=sources, noise_floor=noise_floor, constant_speed=cal.constant_speed is not None,
+        lut, data, cal_traces, validation_data=validation_data, validation=x.validation,
+        sources=sources, noise_floor=noise_floor, constant_speed=constant_speed is not None,
         notes=notes,
     )  # fmt: skip
-    floor_source = noise_floor_source
-    if noise_floor is None and math.isfinite(cal.noise_floor):
-        noise_floor = cal.noise_floor
-        floor_source = _ESTIMATED_FLOOR
     true_lut = None
-    if true_flux is not None:
+    if x.true_flux is not None:
         true_lut = build_lut(
-            true_flux, cal.setup.pole_pairs, points=lut.points, projection=lut.projection,
+            x.true_flux, setup.pole_pairs, points=lut.points, projection=lut.projection,
             offset=lut.offset,
         )  # fmt: skip
     return ReportContent(
         title=title,
+        bla=x.bla,
+        plant=plant,
         noise_floor=noise_floor,
         noise_floor_source=floor_source,
         validation=validation,
         validation_traces=val_traces,
         validation_source=val_source,
         true_lut=true_lut,
-        true_plant=true_plant,
-        true_noise_variance=true_noise_variance,
+        true_plant=x.true_plant,
+        true_noise_variance=x.true_noise_variance,
+        true_cogging=x.true_cogging,
         sources=dict(sources or {}),
         notes=notes,
-        true_cogging=true_cogging,
-        **_calibration_fields(cal),
-        **_recording_parts(data, cal.setup, lut, cal.flux, cal.sem, cal_traces, cal.constant_speed),
+        cogging=cogging,
+        **_artifact_fields(art, lut, flux, sem),
+        **_recording_parts(data, setup, lut, flux, sem, cal_traces, constant_speed),
     )
 
 
-def _calibration_fields(cal: Any) -> dict[str, Any]:
-    """What an in-memory calibration says of itself (:class:`ReportContent` fields)."""
+def _artifact_fields(art: ArtifactData, lut: LUT, flux: FluxModel, sem: Any) -> dict[str, Any]:
+    """What an artifact says of its calibration (:class:`ReportContent` fields)."""
+    diag = art.diagnostics
+    gain = (art.plant or {}).get("gain_correction")
+    gain_details = diag.get("gain_correction")
+    predicted = diag.get("predicted_angle_error_rms")
+    adequacy = diag.get("adequacy")
+    timings = dict(diag["timings"]) if isinstance(diag.get("timings"), Mapping) else {}
     return dict(
-        setup=cal.setup,
-        lut=cal.lut,
-        flux=cal.flux,
-        sem=cal.sem,
-        bla=cal.bla,
-        plant=cal.plant,
-        gain_correction=_gain_value(cal.gain),
-        gain_details=_gain_details(cal.gain),
-        predicted_error=float(cal.predicted_error),
-        status=str(cal.status),
-        messages=list(cal.messages),
-        adequacy=_adequacy_dict(cal.adequacy),
-        timings=dict(cal.timings),
-        model_info={k: v for k, v in cal.model_info.items() if k not in ("theta", "weights")},
-        cogging=cal.cogging,
+        setup=art.setup,
+        lut=lut,
+        flux=flux,
+        sem=sem,
+        gain_correction=None if gain is None else float(gain),
+        gain_details=dict(gain_details) if isinstance(gain_details, Mapping) else None,
+        predicted_error=None if predicted is None else float(predicted),
+        status=str(diag.get("status", "unknown")),
+        messages=[str(m) for m in diag.get("messages", [])],
+        adequacy=dict(adequacy) if isinstance(adequacy, Mapping) else None,
+        timings={str(k): float(v) for k, v in timings.items()},
+        model_info={k: v for k, v in art.model.items() if k not in ("theta", "weights")},
     )

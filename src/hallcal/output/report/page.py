@@ -67,7 +67,7 @@ def _status_class(status: str) -> str:
         return "status-ok"
     if status in ("warning",):
         return "status-warning"
-    if status in ("not-bijective", "inadequate"):
+    if status in ("not_bijective", "inadequate"):
         return "status-bad"
     return "status-unknown"
 
@@ -260,6 +260,22 @@ def _model_rows(c: ReportContent) -> list[tuple[str, str]]:
     return out
 
 
+#: Which firmware path to use (docs/firmware.md, "Which path"; numbers from the benchmarks:
+#: bench_cycles.txt, bench_observer.txt, bench_observer_c.txt; Cortex-M4F, taken branch 1 + 2).
+_WHICH_PATH = (
+    "<p><b>Lean table</b> (<code>hallcal export-c</code>): at most 275-312 Cortex-M4F cycles "
+    "per sample (update + read), 2-4 kB of tables; at the noise floor while temperature, "
+    "mounting and sensors stay as calibrated (4.2x the floor 60 K warmer), no detection of a "
+    "failed sensor or a remount beyond range checks. <b>Observer</b> (<code>hallcal export-c "
+    "--observer</code>, <code>reconstruct --observer</code>): at most 984 cycles "
+    "(median 811 on healthy samples), about 28 kB of tables for 11 pole pairs; at the floor "
+    "as calibrated and again 2 s after a 60 K change, a failed channel excluded within 15 "
+    "samples without a slip, a remount flagged <i>stale</i> within 0.12 revolution, and the only "
+    "path on a folding map. Use the table when the budget is tight and the motor stays as "
+    "calibrated; the observer when it does not or when a wrong angle must be detected.</p>"
+)
+
+
 def render_html(content: ReportContent, images: list[tuple[ReportFigure, bytes]]) -> str:
     """The report as one self-contained HTML page (figures as base64 PNG, no scripts, no URLs).
 
@@ -311,6 +327,8 @@ def render_html(content: ReportContent, images: list[tuple[ReportFigure, bytes]]
             f"<figcaption><b>Figure {i}. {esc(fig.title)}.</b> {esc(fig.caption)}"
             "</figcaption></figure>"
         )
+    out.append("<h2>Firmware: which path</h2>")
+    out.append(_WHICH_PATH)
     out.append("<h2>Setup</h2>")
     out.append(f"<pre>{esc(setup_to_toml(c.setup))}</pre>")
     out.append(

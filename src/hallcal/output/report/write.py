@@ -18,18 +18,22 @@ from hallcal.io import (
     output_set,
     read_artifact,
     read_dataset,
+    read_json,
 )
+from hallcal.io.artifact import migrate_values
 from hallcal.output.plots import figure_png
 from hallcal.output.report.content import (
     Progress,
     ReportContent,
+    ReportExtras,
     _say,
-    content_from_calibration,
+    calibration_artifact,
+    report_content,
 )
 from hallcal.output.report.figures import make_figures
-from hallcal.output.report.from_artifact import _read_bla, content_from_artifact
 from hallcal.output.report.page import _DPI, render_html
 from hallcal.pipeline.calibration import Calibration
+from hallcal.sim.lti import ContinuousTF
 
 REPORT_NAME = "report.html"
 FIGURE_DIR = "figures"
@@ -79,6 +83,30 @@ def write_report(
 # ------------------------------------------------------------------------------------------------
 # Entry points of the CLI and the demo
 # ------------------------------------------------------------------------------------------------
+
+
+def _read_bla(path: Path) -> Any:
+    """The BLA of ``hallcal bla``'s file (format ``hallcal-bla/1``), to plot."""
+    from hallcal.identify.bla import NonparametricBLA
+    from hallcal.identify.parametric import ParametricBLA
+    from hallcal.pipeline import BLAIdentification
+    from hallcal.pipeline.plant import BLAStatus
+
+    data = migrate_values(read_json(path))
+    if not isinstance(data, Mapping) or data.get("format") != "hallcal-bla/1":
+        raise HallcalInputError(f"{path}: not a hallcal BLA file (format 'hallcal-bla/1')")
+    try:
+        npb = NonparametricBLA.from_dict(data["nonparametric"])
+        par = ParametricBLA.from_dict(data["parametric"])
+        p = data["plant"]
+        plant = ContinuousTF(tuple(p["num"]), tuple(p["den"]), float(p.get("delay", 0.0)))
+    except HallcalInputError as exc:
+        raise HallcalInputError(f"{path}: {exc}") from None
+    except (KeyError, TypeError, ValueError) as exc:
+        raise HallcalInputError(f"{path}: malformed BLA file ({exc})") from None
+    status = str(data.get("status", "ok"))
+    known = status in BLAStatus._value2member_map_  # an unknown one: usable, look at messages
+    return BLAIdentification(npb, par, plant, BLAStatus(status) if known else BLAStatus.WARNING)
 
 
 def write_report_from_files(
@@ -143,8 +171,13 @@ def write_report_from_files(
     elif bla is not None:
         bla_obj = _read_bla(Path(bla))
         sources["bla"] = str(bla)
-    content = content_from_artifact(
-        art, data, validation_data=val, bla=bla_obj, sources=sources, progress=progress
+    content = report_content(
+        art,
+        data,
+        extras=ReportExtras(bla=bla_obj),
+        validation_data=val,
+        sources=sources,
+        progress=progress,
     )
     content = dataclasses.replace(content, angle_units=unit)
     return write_report(content, out_dir, progress=progress)
@@ -180,22 +213,26 @@ def write_demo_report(
         The HTML file.
     """
     cal_run, val_run = runs["calibration"], runs["validation"]
-    content = content_from_calibration(
+    extras = ReportExtras.of(
         cal,
-        Dataset.from_columns(cal_run.columns(), path="calibration.npz"),
-        validation_data=Dataset.from_columns(val_run.columns(), path="validation.npz"),
         validation=val,
         noise_floor=noise_floor,
+        noise_floor_source="virtual bench: σ·√(2/3)/(A·n_m) with the true σ and A",
         true_flux=cal_run.truth,
         true_plant=cal_run.config.plant,
         true_noise_variance=cal_run.config.noise_variance,
+    )
+    content = report_content(
+        calibration_artifact(cal),
+        Dataset.from_columns(cal_run.columns(), path="calibration.npz"),
+        extras=extras,
+        validation_data=Dataset.from_columns(val_run.columns(), path="validation.npz"),
         sources={
             "calibration": "calibration.npz",
             "validation": "validation.npz (fresh run, true angle)",
             "BLA experiment": "bla.npz",
         },
         title="hallcal demo: the paper's simulation study",
-        noise_floor_source="virtual bench: σ·√(2/3)/(A·n_m) with the true σ and A",
     )
     return write_report(content, out_dir, progress=progress)
 
@@ -211,8 +248,9 @@ def write_calibration_report(
 ) -> Path:
     """The report of a calibration object (``Calibration.report``), computed or loaded.
 
-    A calibration computed in this process reports its in-memory results; one loaded from an
-    artifact (:attr:`Calibration.artifact`) is reported as ``hallcal report`` does it.
+    Drawn from the calibration's artifact (:func:`report_content`); a calibration computed in
+    this process adds its SEM solve and BLA from memory, one loaded from an artifact
+    (:attr:`Calibration.artifact`) is reported as ``hallcal report`` does it.
 
     Parameters
     ----------
@@ -233,11 +271,12 @@ def write_calibration_report(
         The HTML file.
     """
     unit = AngleUnit.parse(units)  # before the work
-    if cal.artifact is not None:
-        content = content_from_artifact(
-            cal.artifact, data, validation_data=validation, progress=progress
-        )
-    else:
-        content = content_from_calibration(cal, data, validation_data=validation)
+    content = report_content(
+        calibration_artifact(cal),
+        data,
+        extras=ReportExtras.of(cal),
+        validation_data=validation,
+        progress=progress,
+    )
     content = dataclasses.replace(content, angle_units=unit)
     return write_report(content, out_dir, progress=progress)

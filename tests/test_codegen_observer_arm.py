@@ -1,0 +1,93 @@
+"""The observer's C (``hallcal export-c --observer``) on a Cortex-M4F under QEMU, against Python.
+
+Skipped only when the ARM toolchain is absent (``.ci/run`` installs it, and sets
+``HALLCAL_REQUIRE_TOOLS`` so that a skip fails there). A small bench (4 pole pairs, the bench's
+truth harmonics) calibrated through the API, its observer exported and compiled with the strict
+flags for the M4F (``tests/arm_harness.py``), then run bare metal:
+
+* on a validation run with a channel stuck at its zero-field level half way: y_obs within
+  1e-5 rad of :func:`hallcal.sensor.observer.run_observer` on the same float32 inputs, the
+  same state at every sample (the acceptance of issue 26);
+* on the adversarial set of ``firmware_support.observer_adversarial`` (glitches at every phase
+  of the adaptation's cycle, stuck, rail, clipped and non-finite channels, random readings,
+  swapped wires, the start's node search): the worst Cortex-M4 cycles of ``update`` + ``read``
+  per sample, counted from QEMU's instruction trace with the harness's M4 timing table (a taken
+  branch 1 + 2 cycles, no wait states): deterministic, no wall clock.
+"""
+
+from __future__ import annotations
+
+import tomllib
+
+import arm_harness as ah
+import numpy as np
+import pytest
+from cli_support import PAPER_LOOP_TOML
+from firmware_support import observer_adversarial
+
+from hallcal.output.codegen.observer import export_observer_c
+from hallcal.pipeline.observe import run_on
+from hallcal.sim.bench import BenchConfig, simulate_run
+
+MISSING = ah.toolchain()
+pytestmark = pytest.mark.skipif(
+    MISSING is not None, reason=f"ARM toolchain incomplete ({MISSING} not found)"
+)
+
+BENCH = BenchConfig(pole_pairs=4, seed=3)
+SETUP = (
+    """\
+pole_pairs = 4
+sample_time = 2.5e-4
+"""
+    + PAPER_LOOP_TOML
+    + """\
+[model]
+basis = "fourier"
+harmonics = [1, 2, 3, 4]
+"""
+)
+
+
+@pytest.fixture(scope="module")
+def observer_m4f(tmp_path_factory):
+    """The calibration, its observer built for the Cortex-M4F, and a validation run."""
+    import hallcal
+
+    n = 24000
+    cal = hallcal.calibrate(
+        simulate_run(BENCH, 8.0 * np.arange(n) / n, seed=21).columns(), tomllib.loads(SETUP)
+    )
+    out = tmp_path_factory.mktemp("obs_arm")
+    res = export_observer_c(cal.to_artifact(), out / "gen")
+    b = ah.build(out / "gen", out / "work", target="m4f", fixed=False, prefix="hallcal_obs")
+    val = simulate_run(BENCH, 5.0 * np.arange(n) / n, seed=22)
+    return cal, res, b, val
+
+
+def test_m4f_observer_agrees_with_python_within_1e_5_rad(observer_m4f):
+    cal, _, b, val = observer_m4f
+    d = val.d[:8000].astype(np.float32)
+    d[4000:, 1] = np.float32(cal.flux.theta[1, 0])  # stuck at its zero-field level
+    raw = ah.run(b, d)
+    py = run_on(cal, d.astype(np.float64))
+    # the acceptance bound; float32 against float64 (measured below 1e-6)
+    assert np.max(np.abs(ah.angles(b, raw) - py.y_obs)) < 1e-5
+    assert np.array_equal(raw[:, 2] & 0xFF, py.state_code)
+    assert py.state[-1] == "degraded" and py.excluded == 1
+
+
+def test_m4f_observer_worst_case_cycles_update_and_read(observer_m4f):
+    """Worst case over the adversarial set, ``update`` + ``read``: at most 1000 Cortex-M4
+    cycles (984 on the paper bench, benchmarks/bench_observer_c.txt, at an exclusion; 4282 per
+    normal sample and 28112 at an exclusion before the linearized step and the spread
+    adaptation). The issue's budget of 600 is not met: the per-sample path without the
+    adaptation's part costs about 600, the adaptation's part up to about 250, an outlier's tests
+    about 300 more (docs/firmware.md)."""
+    cal, res, b, val = observer_m4f
+    adv = observer_adversarial(val.d[:6000], cal.flux.theta[:, 0])
+    cyc = ah.model_cycles(ah.trace_calls(b, adv, read=True), ah.CycleModel())
+    assert len(cyc) == len(adv)  # every call traced
+    assert cyc.max() <= 1000
+    assert ah.undefined_symbols(b.obj) == []  # no library function, no libgcc helper
+    assert res.table_bytes == res.table_points * 6 * 4 + 2 * (2 * 256 + 1) * 4 + 8 * 2
