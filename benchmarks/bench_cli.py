@@ -54,7 +54,8 @@ RECONSTRUCT_SAMPLES = 10_000_000
 def python_closed_loop(r, loop, theta, harmonics, pole_pairs):
     """The closed loop of :mod:`hallcal.sim.loop` in plain Python, one sample at a time.
 
-    Line by line the recursion of the compiled kernel ``_simulate_kernel`` (without noise):
+    Line by line the recursion of the compiled kernel ``hallcal.sim.loop_kernel.simulate``
+    (without noise):
     plant angle y0 = C_G x_G; Hall signals d_h = theta_h . [1, sin(h y0), cos(h y0), ...];
     f_init (projection, atan2, unwrapping around n_m y[k-1]); e = r - y; controller output
     u = C_C x_C + D_C e; both state updates. Returns the f_init output y of every sample.

@@ -63,20 +63,26 @@ from threadpoolctl import threadpool_limits
 
 from hallcal.fit.layout import ParameterLayout
 from hallcal.limits import check_work_memory
-from hallcal.sim.loop import (
+from hallcal.sim.loop import ClosedLoop, LoopStatus
+from hallcal.sim.loop_kernel import (
     F64,
-    ClosedLoop,
     LoopArrays,
-    LoopStatus,
-    _advance,
-    _advance_sensitivity,
-    _alpha_beta,
-    _angle_and_sensitivity,
-    _diverged,
-    _flux_and_slope,
-    _kernel_array,
-    _output,
-    _unwrap,
+    advance,
+    advance_sensitivity,
+    alpha_beta,
+    angle_and_sensitivity,
+    at_rails,
+    basis_scratch,
+    cogging_torque,
+    diverged,
+    drifted,
+    flux_and_slope,
+    gather_basis,
+    kernel_array,
+    output,
+    simulate,
+    trig_table,
+    unwrap,
 )
 
 __all__ = [
@@ -102,77 +108,6 @@ PassStatus = LoopStatus
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _trig_table(y0, hmax, cs, sn):
-    """cs[n] = cos(n y0), sn[n] = sin(n y0) for n = 0..hmax by the angle-addition recursion
-    (rounding error grows like n eps, 1e-14 at n = 100)."""
-    c1 = math.cos(y0)
-    s1 = math.sin(y0)
-    c = 1.0
-    s = 0.0
-    for n in range(hmax + 1):
-        cs[n] = c
-        sn[n] = s
-        c, s = c * c1 - s * s1, s * c1 + c * s1
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _gather_basis(harm, cs, sn, b, db):
-    """beta = [1, sin h_1 y0, cos h_1 y0, ...] and its derivative from the trigonometric table."""
-    b[0] = 1.0
-    db[0] = 0.0
-    for j in range(harm.size):
-        h = harm[j]
-        b[1 + 2 * j] = sn[h]
-        b[2 + 2 * j] = cs[h]
-        db[1 + 2 * j] = h * cs[h]
-        db[2 + 2 * j] = -h * sn[h]
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _cogging_torque(orders, coef, y0, creg, sreg):
-    """T_c(y0), dT_c/dy0 and the regressors cos(k y0), sin(k y0) per order."""
-    t = 0.0
-    dt = 0.0
-    for i in range(orders.size):
-        k = orders[i]
-        c = math.cos(k * y0)
-        s = math.sin(k * y0)
-        creg[i] = c
-        sreg[i] = s
-        t += coef[2 * i] * c + coef[2 * i + 1] * s
-        dt += k * (coef[2 * i + 1] * c - coef[2 * i] * s)
-    return t, dt
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _at_rails(gk, rlo, rhi, gf, live):
-    """What f_init sees of the model flux: gf = gk clipped to the ADC rails [rlo, rhi] (the
-    drive's f_init saw the clipped values), live_h = 1 where sensor h is within them, else 0
-    (the clipped value does not move with theta)."""
-    for h in range(3):
-        v = gk[h]
-        live[h] = 1.0
-        if v < rlo[h]:
-            v = rlo[h]
-            live[h] = 0.0
-        elif v > rhi[h]:
-            v = rhi[h]
-            live[h] = 0.0
-        gf[h] = v
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _drifted(drift, tau, gk, gp, sh):
-    """The drifting sensors' signals in place: ``g_h <- (1 + gamma_h tau) g_h + delta_h tau``,
-    ``g'_h <- (1 + gamma_h tau) g'_h`` and ``sh_h = 1 + gamma_h tau``."""
-    for h in range(3):
-        s = 1.0 + drift[2 * h] * tau
-        gk[h] = s * gk[h] + drift[2 * h + 1] * tau
-        gp[h] = s * gp[h]
-        sh[h] = s
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
 def _drift_cross(cross, sw, nk, sh, b, gfl, tau, m):
     """cross += the drift columns of ``E^T M E`` for one sample, ``M = S (I - n n^T) S``:
     rows 0..3m-1 the theta columns (sensor-major), rows 3m.. the drift columns."""
@@ -191,69 +126,9 @@ def _drift_cross(cross, sw, nk, sh, b, gfl, tau, m):
 
 
 @nb.njit(cache=True, nogil=True)
-def _simulate_kernel(Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax, cog_k, cog_x,
-                     rlo, rhi, drift, r, y_init):  # fmt: skip
-    """Noise-free closed loop (eq. state_eq) with the flux on ``harm`` and the cogging torque."""
-    N = r.size
-    ng = Ag.shape[0]
-    nc = Ac.shape[0]
-    m = theta.shape[1]
-    xg = np.zeros(ng)
-    xc = np.zeros(nc)
-    xg2 = np.zeros(ng)
-    xc2 = np.zeros(nc)
-    cs = np.empty(hmax + 1)
-    sn = np.empty(hmax + 1)
-    b = np.empty(m)
-    db = np.empty(m)
-    creg = np.empty(cog_k.size)
-    sreg = np.empty(cog_k.size)
-    y0s = np.full(N, np.nan)
-    ys = np.full(N, np.nan)
-    us = np.full(N, np.nan)
-    ds = np.full((N, 3), np.nan)
-    gk = np.empty(3)
-    gp = np.empty(3)
-    gf = np.empty(3)
-    live = np.empty(3)
-    yprev = y_init
-    y0_last = 0.0
-    ok = True
-    for k in range(N):
-        y0 = 0.0
-        for i in range(ng):
-            y0 += Cg[i] * xg[i]
-        _trig_table(y0, hmax, cs, sn)
-        _gather_basis(harm, cs, sn, b, db)
-        _flux_and_slope(theta, b, db, gk, gp)
-        if drift.size:
-            _drifted(drift, k / max(N - 1, 1) - 0.5, gk, gp, live)
-        _at_rails(gk, rlo, rhi, gf, live)
-        al, be = _alpha_beta(P, off, gf)
-        y = _unwrap(math.atan2(be, al), yprev, n_m)
-        e = r[k] - y
-        u = _output(Cc, xc, Dc, e)
-        tc, _ = _cogging_torque(cog_k, cog_x, y0, creg, sreg)
-        _advance(Ac, Bc, xc, e, xc2)
-        _advance(Ag, Bg, xg, u + tc, xg2)
-        bad = _diverged(y0, y0_last, u, n_m)
-        y0_last = y0
-        if bad:
-            ok = False
-            break
-        y0s[k] = y0
-        ys[k] = y
-        us[k] = u
-        for h in range(3):
-            ds[k, h] = gk[h]
-        yprev = y
-    return y0s, ys, us, ds, ok
-
-
-@nb.njit(cache=True, nogil=True)
 def _sens_block(
     Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, theta, harm, hmax, cog_k, cog_x, rlo, rhi, drift,
-    jgain, jcog, jdrift, r, d, wt, k0, k1, j0, j1, ustride, primary,
+    jgain, jcog, n_cog_fit, jdrift, r, d, wt, k0, k1, j0, j1, ustride, primary,
     xg, xc, st, Sg, Sc, Sg2, Sc2, U, grad, y0s, ds, nvec, cross,
 ):  # fmt: skip
     """Advance the sensitivities of the parameter columns j0..j1-1 over the samples k0..k1-1.
@@ -285,12 +160,7 @@ def _sens_block(
     pb = j1 - j0
     xg2 = np.empty(ng)
     xc2 = np.empty(nc)
-    cs = np.empty(hmax + 1)
-    sn = np.empty(hmax + 1)
-    b = np.empty(m)
-    db = np.empty(m)
-    creg = np.empty(cog_k.size)
-    sreg = np.empty(cog_k.size)
+    cs, sn, b, db, creg, sreg = basis_scratch(harm, m, cog_k.size)
     dy0 = np.empty(pb)
     dy = np.empty(pb)
     dw = np.empty(pb)
@@ -314,20 +184,20 @@ def _sens_block(
     swapped = False
     for k in range(k0, k1):
         # nominal flux, residual and f_init slope
-        y0 = _angle_and_sensitivity(Cg, xg, Sg, dy0)
-        _trig_table(y0, hmax, cs, sn)
-        _gather_basis(harm, cs, sn, b, db)
-        _flux_and_slope(theta, b, db, gk, gp)
+        y0 = angle_and_sensitivity(Cg, xg, Sg, dy0)
+        trig_table(y0, hmax, cs, sn)
+        gather_basis(harm, cs, sn, b, db)
+        flux_and_slope(theta, b, db, gk, gp)
         if drift.size:
             tau = k / max(N - 1, 1) - 0.5
             gfl[:] = gk
-            _drifted(drift, tau, gk, gp, sh)
-        _at_rails(gk, rlo, rhi, gf, live)
+            drifted(drift, tau, gk, gp, sh)
+        at_rails(gk, rlo, rhi, gf, live)
         for h in range(3):
             ek[h] = d[k, h] - gk[h]
             if has_w:
                 sw[h] = math.sqrt(wt[k, h])
-        al, be = _alpha_beta(P, off, gf)
+        al, be = alpha_beta(P, off, gf)
         rho2 = al * al + be * be
         if not rho2 > 0.0:  # no angle at alpha = beta = 0 (or NaN): the model is degenerate
             ok = False
@@ -385,10 +255,10 @@ def _sens_block(
         if primary and jdrift >= 0 and ustride > 0:  # every sample, whatever the stride
             _drift_cross(cross, sw, nk, sh, b, gfl, tau, m)
         # controller and plant input w = u + T_c(y0)
-        y = _unwrap(math.atan2(be, al), yprev, n_m)
+        y = unwrap(math.atan2(be, al), yprev, n_m)
         err = r[k] - y
-        u = _output(Cc, xc, Dc, err)
-        tc, dtc = _cogging_torque(cog_k, cog_x, y0, creg, sreg)
+        u = output(Cc, xc, Dc, err)
+        tc, dtc = cogging_torque(cog_k, cog_x, y0, creg, sreg)
         w = u + tc
         for jl in range(pb):
             dw[jl] = -Dc * dy[jl] + dtc * dy0[jl]
@@ -397,7 +267,7 @@ def _sens_block(
             if ci != 0.0:
                 for jl in range(pb):
                     dw[jl] += ci * Sc[i, jl]
-        for i in range(cog_k.size):
+        for i in range(n_cog_fit):  # the fitted orders only (the loop's own follow them)
             ja = jcog + 2 * i
             if j0 <= ja < j1:
                 dw[ja - j0] += creg[i]
@@ -405,17 +275,17 @@ def _sens_block(
                 dw[ja + 1 - j0] += sreg[i]
         for jl in range(pb):
             dy[jl] = -dy[jl]  # de = -dy drives the controller
-        _advance_sensitivity(Ac, Bc, Sc, dy, Sc2)
-        _advance_sensitivity(Ag, Bg, Sg, dw, Sg2)
+        advance_sensitivity(Ac, Bc, Sc, dy, Sc2)
+        advance_sensitivity(Ag, Bg, Sg, dw, Sg2)
         if j0 <= jgain < j1:  # x+ = A x + c B w with Bg = c B: d / d log c adds Bg w
             for i in range(ng):
                 Sg2[i, jgain - j0] += Bg[i] * w
-        _advance(Ac, Bc, xc, err, xc2)
-        _advance(Ag, Bg, xg, w, xg2)
+        advance(Ac, Bc, xc, err, xc2)
+        advance(Ag, Bg, xg, w, xg2)
         Sc, Sc2 = Sc2, Sc
         Sg, Sg2 = Sg2, Sg
         swapped = not swapped
-        bad = _diverged(y0, y0_last, u, n_m)
+        bad = diverged(y0, y0_last, u, n_m)
         y0_last = y0
         yprev = y
         if bad:
@@ -431,7 +301,7 @@ def _sens_block(
 
 def _moments(y0: ArrayLike, W: ArrayLike, nmax: int) -> tuple[NDArray, NDArray]:
     """C[w, n] = sum_k W[k, w] cos(n y0_k), S[w, n] = sum_k W[k, w] sin(n y0_k), n = 0..nmax."""
-    return _moments_kernel(_kernel_array(y0), _kernel_array(W), int(nmax))
+    return _moments_kernel(kernel_array(y0), kernel_array(W), int(nmax))
 
 
 @nb.njit(cache=True, nogil=True)
@@ -444,7 +314,7 @@ def _moments_kernel(y0, W, nmax):
     cs = np.empty(nmax + 1)
     sn = np.empty(nmax + 1)
     for k in range(N):
-        _trig_table(y0[k], nmax, cs, sn)
+        trig_table(y0[k], nmax, cs, sn)
         for w in range(nw):
             wk = W[k, w]
             if wk != 0.0:
@@ -458,7 +328,7 @@ def _moments_threaded(y0: NDArray, W: NDArray, nmax: int, threads: int) -> tuple
     """:func:`_moments` over the two halves of the samples, summed: in two threads (nogil) or
     one after the other, with the same result to the bit."""
     N = y0.size
-    y0, W = _kernel_array(y0), _kernel_array(W)
+    y0, W = kernel_array(y0), kernel_array(W)
     if N < 4096:
         return _moments_kernel(y0, W, int(nmax))
     h = N // 2
@@ -542,7 +412,7 @@ def regression_normal_equations(
     sse : float
         ``d^T W d`` summed over the columns.
     """
-    yy = _kernel_array(y)
+    yy = kernel_array(y)
     dd = np.asarray(d, dtype=np.float64)
     dd = dd[:, None] if dd.ndim == 1 else dd
     h = np.asarray(harmonics, dtype=np.int64)
@@ -597,20 +467,20 @@ def _model_arrays(loop: ClosedLoop, layout: ParameterLayout, x: ArrayLike) -> Mo
     xx = np.asarray(x, dtype=np.float64).reshape(-1)
     if xx.size != layout.size:
         raise ValueError(f"x must have {layout.size} entries for this layout, got {xx.size}")
-    arrs: LoopArrays = loop._arrays()
+    arrs: LoopArrays = loop.kernel_arrays()
     if layout.fit_gain:
         arrs = (arrs[0], arrs[1] * math.exp(layout.log_gain(xx)), *arrs[2:])
     harm = np.asarray(layout.basis.harmonics, dtype=np.int64)
     hmax = int(harm.max()) if harm.size else 0
-    theta = _kernel_array(layout.theta(xx))
+    theta = kernel_array(layout.theta(xx))
     # the fitted cogging orders first (their columns), then the loop's own, fixed cogging torque
     cog_k = np.asarray(layout.cogging_orders, dtype=np.float64)
-    cog_x = _kernel_array(xx[layout.cogging_start : layout.cogging_stop])
+    cog_x = kernel_array(xx[layout.cogging_start : layout.cogging_stop])
     if loop.cogging is not None and loop.cogging.size:
         cog_k = np.concatenate([cog_k, np.asarray(loop.cogging.orders, dtype=np.float64)])
         cog_x = np.concatenate([cog_x, loop.cogging.coefficients])
-    rlo, rhi = (_kernel_array(v) for v in loop.rails)
-    drift = _kernel_array(layout.drift(xx).ravel() if layout.fit_drift else np.zeros(0))
+    rlo, rhi = (kernel_array(v) for v in loop.rails)
+    drift = kernel_array(layout.drift(xx).ravel() if layout.fit_drift else np.zeros(0))
     return (*arrs, float(loop.pole_pairs), theta, harm, hmax, cog_k, cog_x, rlo, rhi, drift)
 
 
@@ -645,8 +515,13 @@ def simulate_model(
     SimulatedLoop
         y0, y, u, d and the pass status.
     """
-    r = _kernel_array(r)
-    y0, y, u, d, ok = _simulate_kernel(*_model_arrays(loop, layout, x), r, float(y_initial))
+    r = kernel_array(r)
+    args = _model_arrays(loop, layout, x)
+    none = np.zeros((0, 3))
+    y0, y, u, d, _, ok = simulate(
+        *args[:12], True, *args[13:17], np.zeros(3), np.zeros(3), args[17], r, none, np.zeros(0),
+        none, float(y_initial), 0.0, True,
+    )  # fmt: skip
     return SimulatedLoop(y0, y, u, d, PassStatus.OK if ok else PassStatus.DIVERGED)
 
 
@@ -784,8 +659,8 @@ def gauss_newton_system(
     -------
     GaussNewtonSystem
     """
-    r = _kernel_array(r)
-    d = _kernel_array(d)
+    r = kernel_array(r)
+    d = kernel_array(d)
     N = r.size
     if d.shape != (N, 3):
         raise ValueError("d must have shape (N, 3)")
@@ -841,7 +716,7 @@ def checked_weights(weights: ArrayLike | None, n_samples: int) -> NDArray[np.flo
     """
     if weights is None:
         return np.zeros((0, 3))
-    w = _kernel_array(weights)
+    w = kernel_array(weights)
     if w.shape != (int(n_samples), 3) or not np.all(np.isfinite(w)) or (w < 0).any():
         raise ValueError("weights must be (N, 3), finite and >= 0")
     return w
@@ -978,8 +853,8 @@ class _SensitivityPass:
         k0, k1 = self._bounds(i)
         ok, sse = _sens_block(
             *self.args, self.layout.gain_index, self.layout.cogging_start,
-            self.layout.drift_start, self.r, self.d, self.wt, k0, k1, blk.j0, blk.j1,
-            self.ustride, b == 0,
+            len(self.layout.cogging_orders), self.layout.drift_start, self.r, self.d, self.wt,
+            k0, k1, blk.j0, blk.j1, self.ustride, b == 0,
             blk.xg, blk.xc, blk.st, blk.Sg, blk.Sc, blk.Sg2, blk.Sc2,
             self.bufs[i % self.ring], self.batch_grad[i], self.y0s, self.ds, self.nvec,
             self.cross,

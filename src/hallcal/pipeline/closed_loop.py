@@ -118,9 +118,9 @@ WARM_SAMPLES = 4000
 
 def _kernels_cached() -> bool:
     """Whether numba's on-disk cache holds the loop kernels (else this run compiles them)."""
-    from hallcal.sim import loop as loop_module
+    from hallcal.sim import loop_kernel
 
-    kernel = loop_module._simulate_kernel
+    kernel = loop_kernel.simulate
     try:
         index = kernel._cache._cache_file._index_path  # type: ignore[attr-defined]  # numba private
     except AttributeError:  # another numba: cannot tell, so say nothing

@@ -45,6 +45,24 @@ from numpy.typing import ArrayLike, NDArray
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.reconstruction import clarke_matrix
 from hallcal.sim.cogging import CoggingTorque
+from hallcal.sim.loop_kernel import (
+    F64,
+    LoopArrays,
+    advance,
+    advance_sensitivity,
+    alpha_beta,
+    angle_and_sensitivity,
+    basis_scratch,
+    cogging_torque,
+    direct_basis,
+    diverged,
+    flux_and_slope,
+    kernel_array,
+    nan_signals,
+    output,
+    simulate,
+    unwrap,
+)
 from hallcal.sim.lti import ContinuousTF, DiscreteTF, StateSpace
 
 __all__ = [
@@ -56,21 +74,6 @@ __all__ = [
     "loop_jacobian",
     "simulate_loop",
 ]
-
-TWO_PI = 2.0 * math.pi
-
-F64 = NDArray[np.float64]
-LoopArrays = tuple[F64, F64, F64, F64, F64, F64, float, F64, F64]
-"""The kernel arguments of a loop: A_G, B_G, C_G, A_C, B_C, C_C, D_C, P, offset."""
-
-
-def _kernel_array(a: ArrayLike) -> NDArray[np.float64]:
-    """float64, C-contiguous and writeable: the one array type the numba kernels are compiled for.
-
-    A read-only array (a dataset's column, a frozen theta) would make numba compile and cache a
-    second specialization of every kernel it reaches; a copy of such an input is cheap.
-    """
-    return np.require(a, dtype=np.float64, requirements=("C", "W"))
 
 
 class LoopStatus(enum.StrEnum):
@@ -206,18 +209,19 @@ class ClosedLoop:
             raise ValueError("plant and controller must be discrete")
         return float(dt)
 
-    def _arrays(self) -> LoopArrays:
+    def kernel_arrays(self) -> LoopArrays:
+        """The kernel arguments of the loop (:data:`hallcal.sim.loop_kernel.LoopArrays`)."""
         p, c = self.plant, self.controller
         return (
-            _kernel_array(p.A),
-            _kernel_array(p.B),
-            _kernel_array(p.C),
-            _kernel_array(c.A),
-            _kernel_array(c.B),
-            _kernel_array(c.C),
+            kernel_array(p.A),
+            kernel_array(p.B),
+            kernel_array(p.C),
+            kernel_array(c.A),
+            kernel_array(c.B),
+            kernel_array(c.C),
             float(c.D),
-            _kernel_array(self.projection),
-            _kernel_array(self.offset),
+            kernel_array(self.projection),
+            kernel_array(self.offset),
         )
 
 
@@ -251,7 +255,7 @@ class SensorADC:
 
     def _arrays(self) -> tuple[F64, F64, F64, F64]:
         lo, hi, step, origin = (
-            _kernel_array(np.broadcast_to(np.asarray(a, dtype=np.float64), (3,)))
+            kernel_array(np.broadcast_to(np.asarray(a, dtype=np.float64), (3,)))
             for a in (self.low, self.high, self.step, self.origin)
         )
         return lo, hi, step, origin
@@ -302,203 +306,6 @@ class LoopJacobian:
     status: LoopStatus = LoopStatus.OK
 
 
-@nb.njit(cache=True, fastmath=False)
-def _basis(y0, harm, out, dout):
-    m = out.size
-    out[0] = 1.0
-    dout[0] = 0.0
-    for j in range(harm.size):
-        h = harm[j]
-        s = math.sin(h * y0)
-        c = math.cos(h * y0)
-        out[1 + 2 * j] = s
-        out[2 + 2 * j] = c
-        dout[1 + 2 * j] = h * c
-        dout[2 + 2 * j] = -h * s
-    return m
-
-
-@nb.njit(cache=True, inline="always")
-def _unwrap(psi, yprev, n_m):
-    """f_init's unwrapping Gamma(psi, n_m y_prev) / n_m, eq. (fimp)."""
-    ref = n_m * yprev
-    x = psi - ref + math.pi
-    return (ref + x - TWO_PI * math.floor(x / TWO_PI) - math.pi) / n_m
-
-
-@nb.njit(cache=True, inline="always")
-def _alpha_beta(P, off, dk):
-    """f_init's projection (alpha, beta) = P (d - offset)."""
-    al = 0.0
-    be = 0.0
-    for h in range(3):
-        al += P[0, h] * (dk[h] - off[h])
-        be += P[1, h] * (dk[h] - off[h])
-    return al, be
-
-
-@nb.njit(cache=True, inline="always")
-def _advance(A, B, x, v, out):
-    """out = A x + B v (one state-space step), then x <- out."""
-    n = x.size
-    for i in range(n):
-        acc = B[i] * v
-        for j in range(n):
-            acc += A[i, j] * x[j]
-        out[i] = acc
-    x[:] = out
-
-
-@nb.njit(cache=True, inline="always")
-def _advance_sensitivity(A, B, S, dv, out):
-    """out = A S + B dv for a sensitivity matrix S (states x parameters), p innermost."""
-    n, p = S.shape
-    for i in range(n):
-        bi = B[i]
-        for j in range(p):
-            out[i, j] = bi * dv[j]
-        for l in range(n):
-            a = A[i, l]
-            if a != 0.0:
-                for j in range(p):
-                    out[i, j] += a * S[l, j]
-
-
-@nb.njit(cache=True, inline="always")
-def _diverged(y0, y0_last, u, n_m):
-    """The loop left a sane range, or the angle moved half an electrical period in one sample
-    (f_init aliases: the simulation no longer means anything)."""
-    return not (abs(y0) < 1e12 and abs(u) < 1e15 and n_m * abs(y0 - y0_last) < math.pi)
-
-
-@nb.njit(cache=True, inline="always")
-def _angle_and_sensitivity(Cg, xg, Sg, dy0):
-    """y0 = C_G x_G and, into dy0, its sensitivity C_G S_G (p innermost)."""
-    y0 = 0.0
-    for i in range(xg.size):
-        y0 += Cg[i] * xg[i]
-    dy0[:] = 0.0
-    for i in range(xg.size):
-        ci = Cg[i]
-        if ci != 0.0:
-            for j in range(dy0.size):
-                dy0[j] += ci * Sg[i, j]
-    return y0
-
-
-@nb.njit(cache=True, inline="always")
-def _flux_and_slope(theta, b, db, g, gp):
-    """g_h = theta_h . beta(y0) and g'_h = theta_h . beta'(y0) for the three sensors."""
-    for h in range(3):
-        acc = 0.0
-        dacc = 0.0
-        for j in range(b.size):
-            acc += theta[h, j] * b[j]
-            dacc += theta[h, j] * db[j]
-        g[h] = acc
-        gp[h] = dacc
-
-
-@nb.njit(cache=True, inline="always")
-def _output(C, x, D, e):
-    """C x + D e of a single-output state space."""
-    u = D * e
-    for i in range(x.size):
-        u += C[i] * x[i]
-    return u
-
-
-@nb.njit(cache=True, inline="always")
-def _cogging(orders, coef, y0):
-    """T_c(y0) and dT_c/dy0 for interleaved coefficients [a_1, b_1, ...] (direct sin/cos)."""
-    t = 0.0
-    dt = 0.0
-    for i in range(orders.size):
-        k = orders[i]
-        c = math.cos(k * y0)
-        s = math.sin(k * y0)
-        t += coef[2 * i] * c + coef[2 * i + 1] * s
-        dt += k * (coef[2 * i + 1] * c - coef[2 * i] * s)
-    return t, dt
-
-
-@nb.njit(cache=True, inline="always")
-def _convert(v, lo, hi, step, origin):
-    """The ADC of :class:`SensorADC`: quantize to the code grid, then clip to the rails."""
-    if step > 0.0:
-        v = origin + step * math.floor((v - origin) / step + 0.5)
-    if v < lo:
-        v = lo
-    elif v > hi:
-        v = hi
-    return v
-
-
-@nb.njit(cache=True)
-def _simulate_kernel(
-    Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, noise, td, cog_k, cog_x, y_init,
-    y0_start, s_gain, adc_lo, adc_hi, adc_step, adc_origin,
-):  # fmt: skip
-    N = r.size
-    has_gain = s_gain.shape[0] > 0
-    ng = Ag.shape[0]
-    nc = Ac.shape[0]
-    m = theta.shape[1]
-    xg = np.zeros(ng)
-    xc = np.zeros(nc)
-    xg2 = np.zeros(ng)
-    xc2 = np.zeros(nc)
-    b = np.empty(m)
-    db = np.empty(m)
-    y0s = np.empty(N)
-    ys = np.empty(N)
-    us = np.empty(N)
-    ds = np.empty((N, 3))
-    ts = np.empty(N)
-    yprev = y_init
-    y0_last = y0_start
-    ok = True
-    dk = np.empty(3)
-    for k in range(N):
-        y0 = y0_start
-        for i in range(ng):
-            y0 += Cg[i] * xg[i]
-        _basis(y0, harm, b, db)
-        for h in range(3):
-            acc = 0.0
-            for j in range(m):
-                acc += theta[h, j] * b[j]
-            if has_gain:
-                acc *= s_gain[k, h]
-            dk[h] = _convert(acc + noise[k, h], adc_lo[h], adc_hi[h], adc_step[h], adc_origin[h])
-            ds[k, h] = dk[h]
-        al, be = _alpha_beta(P, off, dk)
-        y = _unwrap(math.atan2(be, al), yprev, n_m)
-        e = r[k] - y
-        u = _output(Cc, xc, Dc, e)
-        tq = u + td[k] + _cogging(cog_k, cog_x, y0)[0]
-        _advance(Ac, Bc, xc, e, xc2)
-        _advance(Ag, Bg, xg, tq, xg2)
-        y0s[k] = y0
-        ys[k] = y
-        us[k] = u
-        ts[k] = tq
-        yprev = y
-        bad = _diverged(y0, y0_last, u, n_m)
-        y0_last = y0
-        if bad:
-            ok = False
-            for kk in range(k + 1, N):
-                y0s[kk] = np.nan
-                ys[kk] = np.nan
-                us[kk] = np.nan
-                ts[kk] = np.nan
-                for h in range(3):
-                    ds[kk, h] = np.nan
-            break
-    return y0s, ys, us, ds, ts, ok
-
-
 @nb.njit(cache=True)
 def _jacobian_kernel(
     Ag, Bg, Cg, Ac, Bc, Cc, Dc, P, off, n_m, harm, theta, r, y_init, jac, fit_gain, cog_k, cog_x,
@@ -522,22 +329,18 @@ def _jacobian_kernel(
     dy0 = np.empty(p)
     dy = np.empty(p)
     du = np.empty(p)
-    b = np.empty(m)
-    db = np.empty(m)
-    y0s = np.full(N, np.nan)
-    ys = np.full(N, np.nan)
-    us = np.full(N, np.nan)
-    ds = np.full((N, 3), np.nan)
+    _, _, b, db, creg, sreg = basis_scratch(harm, m, cog_k.size)
+    y0s, ys, us, ds = nan_signals(N)
     gp = np.empty(3)
     dk = np.empty(3)
     yprev = y_init
     y0_last = 0.0
     ok = True
     for k in range(N):
-        y0 = _angle_and_sensitivity(Cg, xg, Sg, dy0)
-        _basis(y0, harm, b, db)
-        _flux_and_slope(theta, b, db, dk, gp)
-        al, be = _alpha_beta(P, off, dk)
+        y0 = angle_and_sensitivity(Cg, xg, Sg, dy0)
+        direct_basis(y0, harm, b, db)
+        flux_and_slope(theta, b, db, dk, gp)
+        al, be = alpha_beta(P, off, dk)
         rho2 = al * al + be * be
         if not rho2 > 0.0:  # no angle at alpha = beta = 0 (or NaN): the model is degenerate
             ok = False
@@ -561,10 +364,10 @@ def _jacobian_kernel(
             dy[j] += c0 * b[j]
             dy[m + j] += c1 * b[j]
             dy[2 * m + j] += c2 * b[j]
-        y = _unwrap(math.atan2(be, al), yprev, n_m)
+        y = unwrap(math.atan2(be, al), yprev, n_m)
         e = r[k] - y
-        u = _output(Cc, xc, Dc, e)
-        tc, dtc = _cogging(cog_k, cog_x, y0)
+        u = output(Cc, xc, Dc, e)
+        tc, dtc = cogging_torque(cog_k, cog_x, y0, creg, sreg)
         w = u + tc  # plant input
         # dw = du + T_c'(y0) dy0 (+ the cogging regressors in their own columns)
         for j in range(p):
@@ -575,22 +378,22 @@ def _jacobian_kernel(
                 for j in range(p):
                     du[j] += ci * Sc[i, j]
         for i in range(n_cog_fit):
-            du[jc0 + 2 * i] += math.cos(cog_k[i] * y0)
-            du[jc0 + 2 * i + 1] += math.sin(cog_k[i] * y0)
+            du[jc0 + 2 * i] += creg[i]
+            du[jc0 + 2 * i + 1] += sreg[i]
         # state and sensitivity updates
         for j in range(p):
             dy[j] = -dy[j]  # de = -dy drives the controller
-        _advance_sensitivity(Ac, Bc, Sc, dy, Sc2)
-        _advance_sensitivity(Ag, Bg, Sg, du, Sg2)
+        advance_sensitivity(Ac, Bc, Sc, dy, Sc2)
+        advance_sensitivity(Ag, Bg, Sg, du, Sg2)
         if fit_gain:
             # x+ = A x + c B w with Bg = c B: d/d log c adds Bg w
             for i in range(ng):
                 Sg2[i, jg] += Bg[i] * w
-        _advance(Ac, Bc, xc, e, xc2)
-        _advance(Ag, Bg, xg, w, xg2)
+        advance(Ac, Bc, xc, e, xc2)
+        advance(Ag, Bg, xg, w, xg2)
         Sc, Sc2 = Sc2, Sc
         Sg, Sg2 = Sg2, Sg
-        bad = _diverged(y0, y0_last, u, n_m)
+        bad = diverged(y0, y0_last, u, n_m)
         y0_last = y0
         if bad:
             ok = False
@@ -609,8 +412,8 @@ def _jacobian_kernel(
     return y0s, ys, us, ds, ok
 
 
-def _harmonics_of(flux: FluxModel) -> NDArray[np.float64]:
-    return _kernel_array(flux.basis.harmonic_array)
+def _harmonics_of(flux: FluxModel) -> NDArray[np.int64]:
+    return np.asarray(flux.basis.harmonics, dtype=np.int64)
 
 
 def _cogging_arrays(*torques: CoggingTorque | None) -> tuple[NDArray, NDArray]:
@@ -669,26 +472,29 @@ def simulate_loop(
     -------
     LoopResult
     """
-    r = _kernel_array(r)
+    r = kernel_array(r)
     N = r.size
-    v = np.zeros((N, 3)) if noise is None else _kernel_array(noise)
-    td = np.zeros(N) if torque_disturbance is None else _kernel_array(torque_disturbance)
-    sg = np.zeros((0, 3)) if sensor_gain is None else _kernel_array(sensor_gain)
+    v = np.zeros((N, 3)) if noise is None else kernel_array(noise)
+    td = np.zeros(N) if torque_disturbance is None else kernel_array(torque_disturbance)
+    sg = np.zeros((0, 3)) if sensor_gain is None else kernel_array(sensor_gain)
     if v.shape != (N, 3) or td.shape != (N,) or sg.shape not in ((N, 3), (0, 3)):
         raise ValueError("noise and sensor_gain must be (N, 3) and torque_disturbance (N,)")
-    y0, y, u, d, tq, ok = _simulate_kernel(
-        *loop._arrays(),
+    y0, y, u, d, tq, ok = simulate(
+        *loop.kernel_arrays(),
         float(loop.pole_pairs),
+        kernel_array(flux.theta),
         _harmonics_of(flux),
-        _kernel_array(flux.theta),
+        False,
+        *_cogging_arrays(loop.cogging, cogging),
+        *(adc or SensorADC()).within(loop.rails)._arrays(),
+        np.zeros(0),
         r,
         v,
         td,
-        *_cogging_arrays(loop.cogging, cogging),
+        sg,
         float(y_initial),
         float(initial_angle),
-        sg,
-        *(adc or SensorADC()).within(loop.rails)._arrays(),
+        False,
     )
     return LoopResult(y0, y, u, d, tq, LoopStatus.OK if ok else LoopStatus.DIVERGED)
 
@@ -738,7 +544,7 @@ def loop_jacobian(
         then log c (``fit_gain``), then the cogging coefficients. After a divergence the
         remaining samples and Jacobian rows are NaN and the status is DIVERGED.
     """
-    r = _kernel_array(r)
+    r = kernel_array(r)
     N = r.size
     n_fit = len(cogging.orders) if (fit_cogging and cogging is not None) else 0
     # the fitted orders first (their columns), then the loop's own, fixed cogging torque
@@ -748,10 +554,10 @@ def loop_jacobian(
     if jac.shape != (N, 3, p):
         raise ValueError(f"out must have shape {(N, 3, p)}")
     y0, y, u, d, ok = _jacobian_kernel(
-        *loop._arrays(),
+        *loop.kernel_arrays(),
         float(loop.pole_pairs),
         _harmonics_of(flux),
-        _kernel_array(flux.theta),
+        kernel_array(flux.theta),
         r,
         float(y_initial),
         jac,
