@@ -70,7 +70,7 @@ class Counters:
 
         sem_module.gauss_newton_system = counted_system
         warp.unwarp = counted_unwarp
-        import hallcal.fit.cogging as cogging
+        import hallcal.fit.cogging_search as cogging
         import hallcal.fit.order as order
         import hallcal.pipeline.closed_loop as closed_loop
         import hallcal.pipeline.sensors as sensors

@@ -1,7 +1,8 @@
 """The observer's C export (``hallcal export-c --observer``) on a Cortex-M4F under QEMU.
 
 Paper bench (11 pole pairs), calibrated as in bench_observer.py; the C of
-:mod:`hallcal.output.codegen.observer` cross-compiled for the Cortex-M4F (``tests/arm_harness.py``:
+:mod:`hallcal.output.codegen.c_observer` cross-compiled for the Cortex-M4F
+(``tests/arm_harness.py``:
 strict flags, ``-O2``, bare metal on ``mps2-an386``) and run on
 
 * 3000 samples of a validation run with a channel stuck at its zero-field level from sample
@@ -37,7 +38,7 @@ from bench_observer import ramp, setup_for  # noqa: E402
 from firmware_support import observer_adversarial as adversarial  # noqa: E402
 
 import hallcal  # noqa: E402
-from hallcal.output.codegen.observer import export_observer_c  # noqa: E402
+from hallcal.output.codegen.c_observer import export_observer_c  # noqa: E402
 from hallcal.pipeline.observe import run_on  # noqa: E402
 from hallcal.sim.bench import BenchConfig  # noqa: E402
 

@@ -136,6 +136,52 @@ def test_no_import_circle_among_modules():
     assert _cycles(graph) == []
 
 
+def test_module_names_are_unique():
+    """One name, one module: a file name (other than ``__init__.py``) is used once in the
+    package, so that "``cogging.py``" or a traceback's file name says which one (docs/design.md,
+    "Names")."""
+    seen: dict[str, list[str]] = {}
+    for path in SRC.rglob("*.py"):
+        if path.name != "__init__.py":
+            seen.setdefault(path.name, []).append(str(path.relative_to(SRC)))
+    assert {k: v for k, v in seen.items() if len(v) > 1} == {}
+
+
+def _private_imports(path: Path) -> list[tuple[str, str]]:
+    """(module, name) of every ``from hallcal.x import _name`` in ``path``."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            if node.module.split(".")[0] == "hallcal":
+                found += [(node.module, a.name) for a in node.names
+                          if a.name.startswith("_") and not a.name.startswith("__")]  # fmt: skip
+    return found
+
+
+def _package(module: str) -> str:
+    """The subpackage a module belongs to (``hallcal.fit.sem`` -> ``hallcal.fit``)."""
+    return ".".join(module.split(".")[:2])
+
+
+def test_underscore_names_stay_inside_their_package():
+    """An underscore name is private to its package (``hallcal.fit``, ``hallcal.output``, ...):
+    modules of the package share it, no other package imports it; what another package needs
+    is public (docs/design.md, "Names")."""
+    crossing = [
+        f"{_module_name(p)} imports {name} from {module}"
+        for p in SRC.rglob("*.py")
+        for module, name in _private_imports(p)
+        if _package(module) != _package(_module_name(p)) and name != "_version"
+    ]
+    assert crossing == []
+
+
+def test_the_private_name_check_sees_a_planted_import(tmp_path):
+    planted = tmp_path / "planted.py"
+    planted.write_text("from hallcal.sim.loop import _secret, public\n", encoding="utf-8")
+    assert _private_imports(planted) == [("hallcal.sim.loop", "_secret")]
+
+
 def test_the_cycle_finder_finds_a_planted_circle():
     """The check can fail: a two-module circle and a three-module circle are reported."""
     assert _cycles({"a": {"b"}, "b": {"a"}}) == [["a", "b", "a"]]

@@ -25,7 +25,7 @@ import pytest
 from cli_support import PAPER_LOOP_TOML
 from firmware_support import observer_adversarial
 
-from hallcal.output.codegen.observer import export_observer_c
+from hallcal.output.codegen.c_observer import export_observer_c
 from hallcal.pipeline.observe import run_on
 from hallcal.sim.bench import BenchConfig, simulate_run
 

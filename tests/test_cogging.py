@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 import hallcal
 from hallcal.errors import HallcalInputError
-from hallcal.fit.cogging import CoggingStatus, select_cogging, shift_spectrum
+from hallcal.fit.cogging_search import CoggingStatus, select_cogging, shift_spectrum
 from hallcal.fit.sem import solve_sem
 from hallcal.io import Dataset, read_artifact, setup_from_dict
 from hallcal.io.setup import default_setup
@@ -312,7 +312,7 @@ def test_f2_quantile_matches_scipy(alpha, dof):
     relative there (deeper in the tail it is the less accurate of the two)."""
     import scipy.stats
 
-    from hallcal.fit.cogging import f2_isf
+    from hallcal.fit.cogging_search import f2_isf
 
     assert f2_isf(alpha, dof) == pytest.approx(float(scipy.stats.f.isf(alpha, 2, dof)), rel=1e-7)
 
@@ -323,7 +323,7 @@ def test_auto_finds_an_order_the_first_fits_flux_absorbed():
     12 (its shift line 4.5x the local level, the 1e-3 test at 16x); only 24 stands out. The
     orders related to a found one (its divisors that are multiples of 2 n_m) are then fitted
     and tested: 12 and the load are found (the zoo's table went from 9.2x to 1.7x the floor)."""
-    from hallcal.fit.cogging import plausible_orders, related_orders
+    from hallcal.fit.cogging_search import plausible_orders, related_orders
     from hallcal.sim.bench import position_controller, simulate_run
     from hallcal.sim.lti import ContinuousTF
 

@@ -1,4 +1,5 @@
-"""Experiment design: how fast to ramp (hallcal.fit.design, hallcal.pipeline.design, hallcal plan).
+"""Experiment design: how fast to ramp (hallcal.fit.ramp_design, hallcal.pipeline.plan,
+hallcal plan).
 
 The bench is a small motor on a fast position loop (crossover 40 Hz at 4 kHz, four times the
 paper's), magnets that differ in strength and shape, 1.5 revolutions: a slow ramp leaves the
@@ -17,10 +18,10 @@ import numpy as np
 import pytest
 
 from hallcal import pipeline
-from hallcal.fit.design import PlanStatus, predict_ramp_error
+from hallcal.fit.ramp_design import PlanStatus, predict_ramp_error
 from hallcal.io import Dataset, ModelSpec, Setup
 from hallcal.messages import MessageCode
-from hallcal.pipeline.design import plan_next_ramp
+from hallcal.pipeline.plan import plan_next_ramp
 from hallcal.pipeline.plant import closed_loop
 from hallcal.sensor.metrics import angle_error
 from hallcal.sim.bench import BenchConfig, position_controller, simulate_run

@@ -19,7 +19,7 @@ import math
 import numpy as np
 
 from hallcal.fit.adequacy import assess, estimate_noise_variance
-from hallcal.fit.cogging import plausible_orders, select_cogging, shift_spectrum
+from hallcal.fit.cogging_search import plausible_orders, select_cogging, shift_spectrum
 from hallcal.fit.order import restrict_theta, select_harmonics
 from hallcal.fit.sem import solve_sem
 from hallcal.fit.warp import band_edge

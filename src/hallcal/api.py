@@ -234,7 +234,7 @@ class Calibration:
         **options
             The other options of :func:`hallcal.output.codegen.export_c` (``prefix``,
             ``table_points``, ``max_speed``, ...); ``observer=True`` writes the model-based
-            observer instead (:func:`hallcal.output.codegen.observer.export_observer_c`,
+            observer instead (:func:`hallcal.output.codegen.c_observer.export_observer_c`,
             option ``prefix``).
 
         Returns
@@ -245,7 +245,7 @@ class Calibration:
         """
         artifact = self.to_artifact()
         if options.pop("observer", False):
-            from hallcal.output.codegen.observer import export_observer_c
+            from hallcal.output.codegen.c_observer import export_observer_c
 
             return export_observer_c(artifact, out_dir, **options)
         return export_c(artifact, out_dir, adc_scale=adc_scale, fixed_point=fixed_point, **options)

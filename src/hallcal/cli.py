@@ -724,7 +724,7 @@ def plan(artifact: str, revolutions: float, speeds: str | None, target: float) -
     integral action hides it; the same revolutions at a higher speed determine the table.
     """
     from hallcal.api import load
-    from hallcal.pipeline.design import plan_next_ramp
+    from hallcal.pipeline.plan import plan_next_ramp
 
     grid = None
     if speeds is not None:
@@ -850,7 +850,7 @@ def export_c(
     from hallcal.pipeline.calibration import require_table
 
     if observer:
-        from hallcal.output.codegen.observer import export_observer_c
+        from hallcal.output.codegen.c_observer import export_observer_c
 
         _guard([Path(out) / f"{prefix}_obs.{x}" for x in ("h", "c")], [artifact])
         art = read_artifact(artifact)

@@ -60,7 +60,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
-from hallcal.fit.design import angle_noise_floor
+from hallcal.fit.ramp_design import angle_noise_floor
 from hallcal.fit.sem import SEMResult, angle_error_gradient
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT, build_lut

@@ -49,7 +49,7 @@ from hallcal.sim.lti import ContinuousTF
 
 if TYPE_CHECKING:  # result types of the steps, for annotations only (keeps the import light)
     from hallcal.fit.adequacy import AdequacyReport
-    from hallcal.fit.cogging import CoggingSelection
+    from hallcal.fit.cogging_search import CoggingSelection
     from hallcal.fit.constant_speed import ConstantSpeedResult
     from hallcal.fit.kernel import KernelSEMResult
     from hallcal.fit.order import HarmonicSelection

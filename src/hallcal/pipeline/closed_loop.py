@@ -23,8 +23,8 @@ from numpy.typing import NDArray
 
 from hallcal.errors import HallcalError, HallcalInputError
 from hallcal.fit.adequacy import AdequacyReport, assess
-from hallcal.fit.cogging import CoggingSelection, CoggingStatus, select_cogging
-from hallcal.fit.design import plan_ramp, speed_limits
+from hallcal.fit.cogging_search import CoggingSelection, CoggingStatus, select_cogging
+from hallcal.fit.ramp_design import plan_ramp, speed_limits
 from hallcal.fit.sem import SEMResult, SEMStatus, solve_sem
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
@@ -260,7 +260,7 @@ def _with_cogging(
 
     ``[model] cogging``: "none" keeps the fit; given orders are fitted jointly; "auto" looks for
     cogging in the fit's residual and keeps only orders whose coefficients are significant
-    (:func:`hallcal.fit.cogging.select_cogging`). When cogging is found and the harmonics
+    (:func:`hallcal.fit.cogging_search.select_cogging`). When cogging is found and the harmonics
     chosen from the data went beyond the band of the first fit (harmonics added from the residual
     or a widened band), they are chosen again with the identified torque in the loop (so that no
     flux harmonic is picked to absorb the cogging motion), warm from the joint fit, and the final
@@ -358,7 +358,7 @@ RAMP_ADVICE = 1.5
 def _ramp_advice(
     loop: ClosedLoop, setup: Setup, s: _Signals, fit: _ModelFit, ratio: float
 ) -> str | None:
-    """One line on the ramp speed that would determine the table (:mod:`hallcal.fit.design`).
+    """One line on the ramp speed that would determine the table (:mod:`hallcal.fit.ramp_design`).
 
     A slow ramp on a fast loop leaves angle warps at low spatial frequency to the loop's
     sensitivity S, which is tiny there; the same revolutions at a higher speed inform them. The

@@ -52,7 +52,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from hallcal.fit.cogging import CoggingSelection, select_cogging
+from hallcal.fit.cogging_search import CoggingSelection, select_cogging
 from hallcal.fit.sem import SEMResult, solve_sem
 from hallcal.io.setup import Setup
 from hallcal.messages import Message, MessageCode

@@ -43,24 +43,24 @@ Every export has the same API (``init`` without an angle, ``set_angle`` for a ho
 Generated files contain only numbers and comment text that is sanitized so that it cannot end the
 comment (:func:`comment_text`: hallcal's own text keeps its punctuation); file names and other
 names from outside are reduced to their base name and to the characters ``A-Za-z0-9 ._-+=,:()[]``
-(:func:`~hallcal.output.codegen.text.name_text`).
+(:func:`~hallcal.output.codegen.c_text.name_text`).
 Optional parts are separate :class:`Section` objects added to a variant (see
 :data:`~hallcal.output.codegen.export._SECTIONS`):
 the anticogging feed-forward when the artifact has ``"cogging"``, and the power-up
 identification of the pole pair when its ``"identifiability"`` verdict allows it (float variant:
 the decoder of :mod:`hallcal.sensor.absolute` started by ``init``, the identification in the
 reading; it fills the variant's insertion points, :data:`FLOAT_HOOKS`, and keeps the lean
-path's code; see :func:`~hallcal.output.codegen.powerup._powerup_section`). Without it the
+path's code; see :func:`~hallcal.output.codegen.c_powerup._powerup_section`). Without it the
 angle comes from ``set_angle`` (homing) and the header says why.
 
 The modules, in the order the export uses them:
 
-* :mod:`~hallcal.output.codegen.text`: sanitized comment text, C literals, banners;
+* :mod:`~hallcal.output.codegen.c_text`: sanitized comment text, C literals, banners;
 * :mod:`~hallcal.output.codegen.numbers`: the constants of each variant and their stated bounds;
 * :mod:`~hallcal.output.codegen.sections`: the context a builder gets, the optional sections;
 * :mod:`~hallcal.output.codegen.c_float`, :mod:`~hallcal.output.codegen.c_fixed`: the templates
   of each variant and what fills them;
-* :mod:`~hallcal.output.codegen.anticogging`, :mod:`~hallcal.output.codegen.powerup`: the
+* :mod:`~hallcal.output.codegen.anticogging`, :mod:`~hallcal.output.codegen.c_powerup`: the
   optional sections;
 * :mod:`~hallcal.output.codegen.export`: :func:`export_c`, :class:`ExportResult`.
 """
@@ -69,11 +69,11 @@ from __future__ import annotations
 
 from hallcal.io import ARTIFACT_FORMAT
 from hallcal.output.codegen.c_float import FLOAT_HOOKS
+from hallcal.output.codegen.c_powerup import POWERUP_ATAN2_POLY, POWERUP_TERM_ERROR
+from hallcal.output.codegen.c_text import comment_text
 from hallcal.output.codegen.export import ExportResult, export_c
 from hallcal.output.codegen.numbers import CORDIC_STEPS, MAX_TOTAL_ERROR
-from hallcal.output.codegen.powerup import POWERUP_ATAN2_POLY, POWERUP_TERM_ERROR
 from hallcal.output.codegen.sections import Section
-from hallcal.output.codegen.text import comment_text
 
 __all__ = [
     "ARTIFACT_FORMAT",

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import string
 
+from hallcal.output.codegen.c_text import _c_list, _cf, comment_text
 from hallcal.output.codegen.numbers import TWO_PI
 from hallcal.output.codegen.sections import Section, _Context
-from hallcal.output.codegen.text import _c_list, _cf, comment_text
 from hallcal.output.firmware import cogging_table
 
 _ANTICOGGING_C = string.Template(

@@ -11,9 +11,9 @@ import string
 from collections.abc import Sequence
 
 from hallcal.output.codegen import c_common
+from hallcal.output.codegen.c_text import _U32, _c_list, _cu, _int_add, _int_sub, _speed_text
 from hallcal.output.codegen.numbers import CORDIC_STEPS, TWO_PI, _FixedNumbers
 from hallcal.output.codegen.sections import Section, _Context
-from hallcal.output.codegen.text import _U32, _c_list, _cu, _int_add, _int_sub, _speed_text
 from hallcal.sensor.firmware_tables import CorrectionTable
 
 _FIXED_H = string.Template(

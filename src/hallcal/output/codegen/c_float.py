@@ -16,15 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hallcal.output.codegen import c_common
-from hallcal.output.codegen.numbers import (
-    _TAN_PI_8,
-    RECIPROCAL_MAGIC,
-    TWO_PI,
-    _FloatNumbers,
-    _table_fraction_bits,
-)
-from hallcal.output.codegen.sections import Section, _Context
-from hallcal.output.codegen.text import (
+from hallcal.output.codegen.c_text import (
     _bits,
     _c_list,
     _cf,
@@ -33,6 +25,14 @@ from hallcal.output.codegen.text import (
     _f32_up,
     _speed_text,
 )
+from hallcal.output.codegen.numbers import (
+    _TAN_PI_8,
+    RECIPROCAL_MAGIC,
+    TWO_PI,
+    _FloatNumbers,
+    _table_fraction_bits,
+)
+from hallcal.output.codegen.sections import Section, _Context
 from hallcal.output.firmware import FirmwareDesign
 
 _FLOAT_H = string.Template(

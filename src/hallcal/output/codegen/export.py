@@ -21,6 +21,8 @@ from hallcal.io import ArtifactData, atomic_write, make_folder, output_set, vali
 from hallcal.output.codegen.anticogging import _anticogging_section
 from hallcal.output.codegen.c_fixed import _fixed_header, _fixed_source
 from hallcal.output.codegen.c_float import _float_header, _float_source, _float_subs
+from hallcal.output.codegen.c_powerup import _homing_note, _powerup_section
+from hallcal.output.codegen.c_text import _banner, _source_name, _version
 from hallcal.output.codegen.numbers import (
     MAX_TOTAL_ERROR,
     TWO_PI,
@@ -29,9 +31,7 @@ from hallcal.output.codegen.numbers import (
     _float_numbers,
     _FloatNumbers,
 )
-from hallcal.output.codegen.powerup import _homing_note, _powerup_section
 from hallcal.output.codegen.sections import Section, _Context
-from hallcal.output.codegen.text import _banner, _source_name, _version
 from hallcal.output.firmware import (
     DEFAULT_FAULT_AFTER,
     DEFAULT_TOLERANCE,
@@ -457,7 +457,7 @@ def export_c(
     power-up identification (the artifact's identifiability verdict allows it; float variant
     only) ``init`` also starts the identification of the pole pair and the reading has
     ``identified`` and ``pole_pair`` (see
-    :func:`~hallcal.output.codegen.powerup._powerup_section`); ``set_angle`` (a homed axis)
+    :func:`~hallcal.output.codegen.c_powerup._powerup_section`); ``set_angle`` (a homed axis)
     ends it.
 
     Parameters
@@ -490,7 +490,7 @@ def export_c(
     powerup : bool, keyword-only
         Put the power-up identification of the pole pair into the float variant when the
         artifact's identifiability verdict allows it (then ``<prefix>_init(s)`` takes no angle;
-        see :data:`~hallcal.output.codegen.powerup._PU_C`); False keeps the homing API (and
+        see :data:`~hallcal.output.codegen.c_powerup._PU_C`); False keeps the homing API (and
         saves the decoder's tables).
 
     Returns

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
-from hallcal.output.codegen.text import _U32
+from hallcal.output.codegen.c_text import _U32
 from hallcal.output.firmware import FirmwareDesign, Plausibility
 from hallcal.sensor.firmware_tables import reciprocal_seed
 

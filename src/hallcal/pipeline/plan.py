@@ -1,6 +1,6 @@
 """How fast to ramp the next calibration run, from a calibration of the same motor type.
 
-The numeric part is :mod:`hallcal.fit.design` (Fisher information of the SEM problem against
+The numeric part is :mod:`hallcal.fit.ramp_design` (Fisher information of the SEM problem against
 ramp speed); this module builds its loop and model from a :class:`Calibration` (or an artifact)
 and is what ``hallcal plan`` and the calibrate warning call.
 """
@@ -14,8 +14,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from hallcal.errors import HallcalInputError
-from hallcal.fit.design import RampPlan, candidate_speeds, plan_ramp, ramp_samples
 from hallcal.fit.gauss_newton import ParameterLayout
+from hallcal.fit.ramp_design import RampPlan, candidate_speeds, plan_ramp, ramp_samples
 from hallcal.limits import MAX_PLAN_SAMPLES, MAX_PLAN_SPEEDS
 from hallcal.pipeline.calibration import Calibration
 from hallcal.pipeline.plant import closed_loop
@@ -45,7 +45,7 @@ def plan_next_ramp(
     revolutions : float, keyword-only
         Length of the planned ramp [mechanical revolutions].
     speeds : array_like, optional, keyword-only
-        Candidate speeds [rad/s] (default: see :func:`hallcal.fit.design.plan_ramp`).
+        Candidate speeds [rad/s] (default: see :func:`hallcal.fit.ramp_design.plan_ramp`).
     target : float, keyword-only
         Acceptable predicted / noise floor.
     noise_variance : float, optional, keyword-only

@@ -32,8 +32,8 @@ import numpy as np
 
 from hallcal.errors import HallcalInputError
 from hallcal.io import ArtifactData, validate_artifact
+from hallcal.output.codegen.c_text import comment_text
 from hallcal.output.codegen.export import _write_files
-from hallcal.output.codegen.text import comment_text
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.observer import (
     ADAPT_CYCLE,
