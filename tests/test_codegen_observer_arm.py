@@ -92,4 +92,4 @@ def test_m4f_observer_worst_case_cycles_update_and_read(observer_m4f):
     assert len(cyc) == len(adv)  # every call traced
     assert cyc.max() <= 880  # measured 831: margin for GCC's block layout
     assert ah.undefined_symbols(b.obj) == []  # no library function, no libgcc helper
-    assert res.table_bytes == res.table_points * 6 * 4 + 2 * (2 * 256 + 1) * 4 + 8 * 2
+    assert res.table_bytes == res.table_points * 12 * 4 + 2 * (2 * 256 + 1) * 4 + 8 * 2

@@ -60,7 +60,7 @@ class ObserverExport:
     table_points : int
         M, table points per revolution.
     table_bytes : int
-        Bytes of the g and dg/dy tables (float) plus the threshold and reciprocal tables and
+        Bytes of the table of cubics (4 floats per channel and node) plus the threshold and reciprocal tables and
         the start's search offsets.
     """
 
@@ -129,8 +129,9 @@ def export_observer_c(
     texts = _texts(model, ObserverSettings(), prefix, comment_text(Path(source).name))
     paths = _write_files(out_dir, texts)  # one set, write errors as one line (hallcal.io)
     s = ObserverSettings()
-    # g and dg/dy (float), the thresholds and the reciprocals (float), the search offsets (int16)
-    nbytes = model.points * 3 * 2 * 4 + 2 * (2 * s.window + 1) * 4 + s.acquire_points * 2
+    # the cubics (4 floats per channel and node), the thresholds and the reciprocals (float),
+    # the search offsets (int16)
+    nbytes = model.points * 3 * 4 * 4 + 2 * (2 * s.window + 1) * 4 + s.acquire_points * 2
     return ObserverExport(paths, model.points, nbytes)
 
 
@@ -180,7 +181,7 @@ def _texts(
         "@AMP@": ", ".join(_f(x) for x in model.amplitude),
         "@W0@": ", ".join(_f(x) for x in w0),
         "@GROSS@": ", ".join(_f(x) for x in gross),
-        "@T@": _rows(np.hstack([model.value - model.center, model.slope])),
+        "@T@": _rows(_cubics(model)),
         "@INV@": ",\n    ".join(
             ", ".join(_f(x) for x in inv[i : i + 6]) for i in range(0, len(inv), 6)
         ),  # fmt: skip
@@ -194,6 +195,20 @@ def _texts(
         h = h.replace(key, value)
         c = c.replace(key, value)
     return [(f"{prefix}.h", h), (f"{prefix}.c", c)]
+
+
+def _cubics(model: ObserverModel) -> np.ndarray:
+    """Per node j and channel i the power-basis coefficients (c0, c1, c2, c3) of the cubic
+    Hermite interpolant of g_i - c_i on [y_j, y_j+1] in t = y / h - j (values p0, p1 and
+    scaled slopes m0 = h g'_j, m1 = h g'_j+1): c0 = p0, c1 = m0, c2 = 3 (p1 - p0) - 2 m0 - m1,
+    c3 = 2 (p0 - p1) + m0 + m1; shape (M, 12), computed in float64."""
+    h = TWO_PI / model.points
+    p0 = model.value - model.center
+    p1 = np.roll(p0, -1, axis=0)
+    m0 = h * model.slope
+    m1 = np.roll(m0, -1, axis=0)
+    c = np.stack([p0, m0, 3.0 * (p1 - p0) - 2.0 * m0 - m1, 2.0 * (p0 - p1) + m0 + m1], axis=2)
+    return c.reshape(model.points, 12)
 
 
 def _adapt_parts() -> tuple[str, str]:
@@ -351,7 +366,9 @@ static const float INV[2 * W + 1] = { /* 1 / k */
 static const float THR[2 * W + 1] = {
     @THR@
 };
-static const float T[M][6] = { /* g_1..3 - c_1..3 and dg_1..3/dy at y_j = j 2 pi / M */
+static const float T[M][12] = { /* per channel i: the cubic of g_i - c_i on [y_j, y_j+1] in
+                                  * t = y / h - j (y_j = j 2 pi / M, h = 2 pi / M): constant,
+                                  * t, t^2, t^3 coefficients */
 @T@
 };
 
@@ -361,7 +378,11 @@ static const float T[M][6] = { /* g_1..3 - c_1..3 and dg_1..3/dy at y_j = j 2 pi
 #define NOINLINE
 #endif
 
+#if defined(__GNUC__)
+#define fabs_(x) __builtin_fabsf(x) /* VABS.F32: no library call */
+#else
 static float fabs_(float x) { return x < 0.0f ? -x : x; }
+#endif
 /* finite: the exponent bits not all ones (IEEE 754 single) */
 static uint32_t bits_(float x)
 {
@@ -374,35 +395,26 @@ static uint32_t bits_(float x)
 }
 #define FIN(x) ((bits_(x) & 0x7f800000u) != 0x7f800000u)
 
-/* cubic Hermite interpolation of g - c and dg/dy at y (any real y: wrap-around); the
- * table holds g - c */
+/* cubic Hermite interpolation of g - c and dg/dy at y (any real y: wrap-around); the table
+ * holds, per node and channel, the interval's cubic in t = y / h - j (its power-basis
+ * coefficients: the same polynomial as the Hermite form of values and slopes) */
 static void table(float y, float f[3], float dg[3])
 {
-    float u = y * INVH;
+    float u = y * INVH, t, t3;
     int32_t j = (int32_t)u;
-    float t, t2, t3, h00, h10, h01, h11, d00, d10, d11;
-    const float *p, *q;
+    const float *p;
     if ((float)j > u) {
         j -= 1;
     }
     t = u - (float)j;
+    t3 = 3.0f * t;
     p = T[(uint32_t)j & (uint32_t)(M - 1)];
-    q = T[((uint32_t)j + 1u) & (uint32_t)(M - 1)];
-    t2 = t * t;
-    t3 = t2 * t;
-    h00 = 2.0f * t3 - 3.0f * t2 + 1.0f;
-    h10 = (t3 - 2.0f * t2 + t) * HSTEP;
-    h01 = -2.0f * t3 + 3.0f * t2;
-    h11 = (t3 - t2) * HSTEP;
-    d00 = (6.0f * t2 - 6.0f * t) * INVH;
-    d10 = 3.0f * t2 - 4.0f * t + 1.0f;
-    d11 = 3.0f * t2 - 2.0f * t;
-    f[0] = h00 * p[0] + h10 * p[3] + h01 * q[0] + h11 * q[3];
-    f[1] = h00 * p[1] + h10 * p[4] + h01 * q[1] + h11 * q[4];
-    f[2] = h00 * p[2] + h10 * p[5] + h01 * q[2] + h11 * q[5];
-    dg[0] = d00 * (p[0] - q[0]) + d10 * p[3] + d11 * q[3];
-    dg[1] = d00 * (p[1] - q[1]) + d10 * p[4] + d11 * q[4];
-    dg[2] = d00 * (p[2] - q[2]) + d10 * p[5] + d11 * q[5];
+    f[0] = ((p[3] * t + p[2]) * t + p[1]) * t + p[0];
+    dg[0] = ((p[3] * t3 + (p[2] + p[2])) * t + p[1]) * INVH;
+    f[1] = ((p[7] * t + p[6]) * t + p[5]) * t + p[4];
+    dg[1] = ((p[7] * t3 + (p[6] + p[6])) * t + p[5]) * INVH;
+    f[2] = ((p[11] * t + p[10]) * t + p[9]) * t + p[8];
+    dg[2] = ((p[11] * t3 + (p[10] + p[10])) * t + p[9]) * INVH;
 }
 
 /* one Gauss-Newton step on the linearized model, bounded; the chi2 after it in *chi */
@@ -414,7 +426,9 @@ static float gn(float srr, float num, float den, float *chi)
         return 0.0f;
     }
     step = num / den;
-    step = step > MAXSTEP ? MAXSTEP : (step < -MAXSTEP ? -MAXSTEP : step);
+    if (fabs_(step) > MAXSTEP) { /* rare: one comparison on the common path */
+        step = step > 0.0f ? MAXSTEP : -MAXSTEP;
+    }
     c = srr - step * (2.0f * num - step * den);
     *chi = c > 0.0f ? c : 0.0f;
     return step;
@@ -429,7 +443,9 @@ static float gnr(float srr, float num, float den, float rden, float *chi)
         return 0.0f;
     }
     step = num * rden;
-    step = step > MAXSTEP ? MAXSTEP : (step < -MAXSTEP ? -MAXSTEP : step);
+    if (fabs_(step) > MAXSTEP) { /* rare: one comparison on the common path */
+        step = step > 0.0f ? MAXSTEP : -MAXSTEP;
+    }
     c = srr - step * (2.0f * num - step * den);
     *chi = c > 0.0f ? c : 0.0f;
     return step;
@@ -453,8 +469,8 @@ NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, 
         j = j0 + OFF[q];
         p = T[(uint32_t)j & (uint32_t)(M - 1)];
         r0 = e0 - a0 * p[0];
-        r1 = e1 - a1 * p[1];
-        r2 = e2 - a2 * p[2];
+        r1 = e1 - a1 * p[4];
+        r2 = e2 - a2 * p[8];
         c = w0 * r0 * r0 + w1 * r1 * r1 + w2 * r2 * r2;
         if (c < best) {
             best = c;
@@ -714,7 +730,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     }
     if (blamed < 0 && fitted) {
         x = s->v + KV * step;
-        s->v = x > VMAX ? VMAX : (x < -VMAX ? -VMAX : x);
+        s->v = fabs_(x) > VMAX ? (x > 0.0f ? VMAX : -VMAX) : x;
     }
     /* the angle within the revolution (|y - angle| < 2 pi: one wrap at most) */
     if (y >= TWOPI) {
