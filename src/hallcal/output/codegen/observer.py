@@ -171,14 +171,19 @@ def _texts(
         "@OUTLIER@": _f(s.outlier),
         "@EXPLAINED@": _f(s.explained),
         "@INVMEM@": _f(1.0 / s.adapt_memory),
-        "@PRIOR@": _f(s.prior_samples),
+        "@Q@": ", ".join(
+            _f(s.prior_samples * w0[p >> 1] * (1.0 if p & 1 else model.amplitude[p >> 1] ** 2))
+            for p in range(6)
+        ),
         "@ALO@": _f(s.gain_bounds[0]),
         "@AHI@": _f(s.gain_bounds[1]),
-        "@BBOUND@": _f(s.offset_bound),
+        "@BLO@": ", ".join(_f(model.center[i] - s.offset_bound * model.amplitude[i])
+                           for i in range(3)),
+        "@BHI@": ", ".join(_f(model.center[i] + s.offset_bound * model.amplitude[i])
+                           for i in range(3)),
         "@STALE@": _f(s.stale_travel),
         "@READMIT@": _f(s.readmit_travel),
         "@C@": ", ".join(_f(x) for x in model.center),
-        "@AMP@": ", ".join(_f(x) for x in model.amplitude),
         "@W0@": ", ".join(_f(x) for x in w0),
         "@GROSS@": ", ".join(_f(x) for x in gross),
         "@T@": _rows(_cubics(model)),
@@ -225,7 +230,7 @@ def _adapt_parts() -> tuple[str, str]:
 
     for p in range(6):
         i = p >> 1
-        prior = f"(1.0f - lam) * PRIOR * W0[{i}]" + ("" if p & 1 else f" * AMP[{i}] * AMP[{i}]")
+        prior = f"(1.0f - lam) * Q[{p}]"
         extra = f"s->u[{i}]" if p & 1 else f"s->u[{i}] * s->fy[{i}] * s->fy[{i}]"
         body = [f"    const float lam = s->lam, v = s->t * s->qv[{p}];"]
         body.append(
@@ -349,14 +354,14 @@ static const float CAP = @CAP@;
 static const float OUTLIER = @OUTLIER@;
 static const float EXPLAINED = @EXPLAINED@;
 static const float INVMEM = @INVMEM@;
-static const float PRIOR = @PRIOR@;
+static const float Q[6] = {@Q@}; /* the prior's information: prior_samples w0_i (amplitude_i^2, 1) */
 static const float ALO = @ALO@;
 static const float AHI = @AHI@;
-static const float BBOUND = @BBOUND@;
+static const float BLO[3] = {@BLO@}; /* the levels' bounds: c_i -+ offset_bound amplitude_i */
+static const float BHI[3] = {@BHI@};
 static const float STALE = @STALE@;
 static const float READMIT = @READMIT@;
 static const float C0[3] = {@C@};
-static const float AMP[3] = {@AMP@};
 static const float W0[3] = {@W0@};
 static const float GROSS[3] = {@GROSS@};
 static const int16_t OFF[NA] = {@OFF@};
@@ -503,11 +508,11 @@ NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, 
 #define APPLY(i)                                                                             \
     if (s->wm[i] > 0.0f) {                                                                   \
         float t_ = s->a[i] + s->z[2 * (i)];                                                  \
-        const float lo_ = C0[i] - BBOUND * AMP[i], hi_ = C0[i] + BBOUND * AMP[i];            \
-        s->a[i] = t_ < ALO ? ALO : (t_ > AHI ? AHI : t_);                                    \
+        t_ = t_ < ALO ? ALO : t_;                                                            \
+        s->a[i] = t_ > AHI ? AHI : t_;                                                       \
         t_ = s->b[i] + s->z[2 * (i) + 1];                                                    \
-        t_ = t_ < lo_ ? lo_ : t_;                                                            \
-        s->b[i] = t_ > hi_ ? hi_ : t_;                                                       \
+        t_ = t_ < BLO[i] ? BLO[i] : t_;                                                      \
+        s->b[i] = t_ > BHI[i] ? BHI[i] : t_;                                                 \
     }
 
 NOINLINE static void apply(@p@_state *s)
@@ -520,7 +525,6 @@ NOINLINE static void apply(@p@_state *s)
 void @p@_init(@p@_state *s)
 {
     int i, j;
-    float t;
     s->rev = 0;
     s->ang = 0.0f;
     s->v = s->clean = s->bad = s->sum_chi = 0.0f;
@@ -531,8 +535,7 @@ void @p@_init(@p@_state *s)
     }
     for (i = 0; i < 6; i++) { /* L is written column by column before it is read */
         for (j = 0; j < 6; j++) {
-            t = PRIOR * W0[i >> 1] * ((i & 1) ? 1.0f : AMP[i >> 1] * AMP[i >> 1]);
-            s->H[i][j] = (i != j) ? 0.0f : t;
+            s->H[i][j] = (i != j) ? 0.0f : Q[i];
         }
     }
     s->pending = 0u;
