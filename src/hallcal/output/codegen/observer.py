@@ -439,14 +439,11 @@ static float gn(float srr, float num, float den, float *chi)
     return step;
 }
 
-/* gn with the reciprocal of den given (the fits without one channel) */
+/* gn with the reciprocal of den given (the fits without one channel); rden = 0 where den is 0
+ * (den >= 0 here: a sum of the others' w J^2) gives gn's no step and chi = srr (>= 0) */
 static float gnr(float srr, float num, float den, float rden, float *chi)
 {
     float step, c;
-    if (den <= 0.0f) {
-        *chi = srr;
-        return 0.0f;
-    }
     step = num * rden;
     if (fabs_(step) > MAXSTEP) { /* rare: one comparison on the common path */
         step = step > 0.0f ? MAXSTEP : -MAXSTEP;
