@@ -2,8 +2,10 @@
 
 ``export_observer_c(artifact, out_dir)`` writes ``<prefix>.h`` / ``<prefix>.c``: the same
 per-sample algorithm as :func:`hallcal.sensor.observer.run_observer` (tracking
-maximum-likelihood angle by Gauss-Newton on cubic Hermite tables of g and dg/dy, the misfit
-window, the gain/offset adaptation, the one-sensor fallback), in ``float``, with the API style
+maximum-likelihood angle by Gauss-Newton on the cubic Hermite interpolant of g, tabulated as
+each interval's power-basis coefficients so that one Horner evaluation per channel gives g and
+dg/dy; the misfit window, the gain/offset adaptation, the one-sensor fallback), in ``float``,
+with the API style
 of the lean export: ``_init``, ``_set_angle`` (revolutions and angle before the next
 sample), ``_update`` (one sample), ``_read`` (one consistent snapshot: revolutions, angle,
 misfit, state, excluded channel). It includes only ``<stdint.h>``, uses no library function
@@ -16,7 +18,8 @@ resolution does not degrade over a long run. Work per sample is bounded (no loop
 the data): one table look-up and one Gauss-Newton step; on an outlier sample the common-gain
 test and the three fits without one channel (closed form on the linearized model); one part
 of the adaptation's 16-sample cycle (a row or a column of the 6x6, a triangular solve); an
-8-node search on the first sample after init/set_angle. Cycles: benchmarks/bench_observer_c.txt.
+8-node search on the first sample after init/set_angle; an exclusion's resets on the sample after
+the one that decides it. Cycles: benchmarks/bench_observer_c.txt.
 """
 
 from __future__ import annotations
@@ -316,7 +319,7 @@ typedef struct {
     int16_t blame[4];
     int32_t sum_dof;
     uint32_t window_from, blame_from; /* ring entries written before these samples count as empty */
-    int8_t excluded;
+    int8_t excluded, next;          /* the channel excluded; the one excluded at the next sample */
     uint8_t blamed_out, suppress, acquire;
     uint32_t k;
     volatile uint32_t seq;
@@ -519,6 +522,20 @@ NOINLINE static void apply(@p@_state *s)
     APPLY(2)
 }
 
+/* the exclusion of channel s->next (decided on the previous sample) */
+NOINLINE static void exclude(@p@_state *s)
+{
+    s->excluded = s->next;
+    s->next = -1;
+    s->blamed_out = 1u;
+    s->clean = 0.0f;
+    s->blame_from = s->k; /* the blame ring and the window start again */
+    s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0;
+    s->window_from = s->k;
+    s->sum_chi = 0.0f;
+    s->sum_dof = 0;
+}
+
 void @p@_init(@p@_state *s)
 {
     int i, j;
@@ -541,6 +558,7 @@ void @p@_init(@p@_state *s)
     s->window_from = 0u;
     s->blame_from = 0u;
     s->excluded = -1;
+    s->next = -1;
     s->blamed_out = 0u;
     s->suppress = 0u;
     s->acquire = 1u;
@@ -582,6 +600,9 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     int fin0, fin1, fin2, u0, u1, u2, i, dof;
     uint32_t slot, jw, ph;
     int8_t old;
+    if (s->next >= 0) { /* the exclusion decided on the previous sample */
+        exclude(s);
+    }
     fin0 = FIN(d1);
     fin1 = FIN(d2);
     fin2 = FIN(d3);
@@ -705,27 +726,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     if (blamed >= 0 && s->excluded < 0 && !s->suppress) {
         others = s->blame[0] + s->blame[1] + s->blame[2] + s->blame[3] - s->blame[blamed];
         if (s->blame[blamed] >= FC && 4 * others <= s->blame[blamed]) {
-            s->excluded = (int8_t)blamed;
-            s->blamed_out = 1u;
-            s->clean = 0.0f;
-            w0 = blamed == 0 ? 0.0f : w0;
-            w1 = blamed == 1 ? 0.0f : w1;
-            w2 = blamed == 2 ? 0.0f : w2;
-            /* the two channels' chi2 at the fitted angle (recomputed: the closed form cancels
-             * in float) */
-            e = r0 - J0 * step;
-            chi = 0.0f + w0 * e * e;
-            e = r1 - J1 * step;
-            chi += w1 * e * e;
-            e = r2 - J2 * step;
-            chi += w2 * e * e;
-            s->blame_from = s->k + 1u; /* the blame ring and the window start again */
-            s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0;
-            s->window_from = s->k;
-            s->sum_chi = 0.0f;
-            s->sum_dof = 0;
-            blamed = -1;
-            active = 2;
+            s->next = (int8_t)blamed; /* excluded from the next sample on */
         }
     }
     if (blamed < 0 && fitted) {
