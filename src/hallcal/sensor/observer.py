@@ -40,10 +40,10 @@ Around it:
   explains (the fit without it is within the noise) is reconstructed from the other two; a
   channel so blamed ``fault_count`` times within ``fault_window`` samples is excluded from the
   next sample on (so that firmware does not add the exclusion's work to the outlier sample's),
-  a non-finite one at once: state ``degraded``, y_obs from the two others (the two-sensor ML angle, tracked on
-  from the fit without the channel, never more than a bounded step per sample from the
-  prediction), so it never slips a pole pitch. It is
-  readmitted after ``readmit_travel`` electrical radians of consistent readings.
+  a non-finite one at once: state ``degraded``, y_obs from the two others (the two-sensor ML
+  angle, tracked on from the fit without the channel, never more than a bounded step per sample
+  from the prediction), so it never slips a pole pitch. It is readmitted after
+  ``readmit_travel`` electrical radians of consistent readings.
 
 Units: angles in rad (mechanical), d and sigma in the sensor's unit.
 """

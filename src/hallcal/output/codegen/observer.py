@@ -63,8 +63,8 @@ class ObserverExport:
     table_points : int
         M, table points per revolution.
     table_bytes : int
-        Bytes of the table of cubics (4 floats per channel and node) plus the threshold and reciprocal tables and
-        the start's search offsets.
+        Bytes of the table of cubics (4 floats per channel and node) plus the threshold and
+        reciprocal tables and the start's search offsets.
     """
 
     paths: tuple[Path, ...]
@@ -180,10 +180,12 @@ def _texts(
         ),
         "@ALO@": _f(s.gain_bounds[0]),
         "@AHI@": _f(s.gain_bounds[1]),
-        "@BLO@": ", ".join(_f(model.center[i] - s.offset_bound * model.amplitude[i])
-                           for i in range(3)),
-        "@BHI@": ", ".join(_f(model.center[i] + s.offset_bound * model.amplitude[i])
-                           for i in range(3)),
+        "@BLO@": ", ".join(
+            _f(model.center[i] - s.offset_bound * model.amplitude[i]) for i in range(3)
+        ),
+        "@BHI@": ", ".join(
+            _f(model.center[i] + s.offset_bound * model.amplitude[i]) for i in range(3)
+        ),
         "@STALE@": _f(s.stale_travel),
         "@READMIT@": _f(s.readmit_travel),
         "@C@": ", ".join(_f(x) for x in model.center),
@@ -357,7 +359,8 @@ static const float CAP = @CAP@;
 static const float OUTLIER = @OUTLIER@;
 static const float EXPLAINED = @EXPLAINED@;
 static const float INVMEM = @INVMEM@;
-static const float Q[6] = {@Q@}; /* the prior's information: prior_samples w0_i (amplitude_i^2, 1) */
+/* the prior's information: prior_samples w0_i (amplitude_i^2, 1) */
+static const float Q[6] = {@Q@};
 static const float ALO = @ALO@;
 static const float AHI = @AHI@;
 static const float BLO[3] = {@BLO@}; /* the levels' bounds: c_i -+ offset_bound amplitude_i */
