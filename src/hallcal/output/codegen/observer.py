@@ -325,7 +325,7 @@ typedef struct {
     uint8_t blamed_out, suppress, acquire;
     uint32_t k;
     volatile uint32_t seq;
-    @p@_reading buf[2];
+    volatile @p@_reading buf[2]; /* volatile: the copies stay between the reads of seq */
 } @p@_state;
 
 void @p@_init(@p@_state *s); /* angle 0 of revolution 0 */
@@ -819,7 +819,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     /* publish */
     {
         uint32_t next = s->seq + 1u;
-        @p@_reading *rd = &s->buf[next & 1u];
+        volatile @p@_reading *rd = &s->buf[next & 1u];
         uint8_t st = active < 2 ? @P@_FAULT
                      : (s->excluded >= 0 ? @P@_DEGRADED
                      : (stale ? @P@_STALE : (above ? @P@_ADAPTING : @P@_OK)));
