@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import time
 from pathlib import Path
 
@@ -304,9 +305,12 @@ def cost() -> None:
     dt = (time.perf_counter() - t0) / (3 * val.n_samples)
     print(f"   Python (numba): {1e6 * dt:.2f} us per sample (healthy run, shared 2-core machine)")
     print(
-        f"   float C tables: {model.points} points x 3 channels x (g, dg/dy) x 4 bytes = "
-        f"{model.points * 3 * 2 * 4} bytes (11 pole pairs, harmonics up to 44)"
+        f"   float C table: {model.points} intervals x 3 channels x 4 cubic coefficients x 4 "
+        f"bytes = {model.points * 3 * 4 * 4} bytes (11 pole pairs, harmonics up to 44; "
+        "bench_observer_c.txt)"
     )
+    print(f"   (run at load average {os.getloadavg()[0]:.1f} on 2 shared cores: the timings "
+          "above depend on it, the figures do not)")  # fmt: skip
 
 
 if __name__ == "__main__":

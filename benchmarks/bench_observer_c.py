@@ -24,6 +24,7 @@ output committed beside it (bench_observer_c.txt).
 
 from __future__ import annotations
 
+import os
 import sys
 import tempfile
 from pathlib import Path
@@ -97,9 +98,13 @@ def main() -> None:
         sz = ah.sizes(b.obj)
         print(
             f"object: text {sz['text']} bytes (tables {res.table_bytes} bytes: "
-            f"{res.table_points} points x 3 x (g, dg/dy) floats, the thresholds and the search "
-            f"offsets), data {sz['data']}, bss {sz['bss']}; nm -u: {ah.undefined_symbols(b.obj)}"
+            f"{res.table_points} intervals x 3 channels x 4 cubic coefficients, floats; the "
+            f"thresholds and the search offsets), data {sz['data']}, bss {sz['bss']}; "
+            f"nm -u: {ah.undefined_symbols(b.obj)}"
         )
+        print(f"(run at load average {os.getloadavg()[0]:.1f} on 2 shared cores; the cycles are "
+              "counted from the instruction trace under the M4 timing model, not timed, so the "
+              "load does not change them)")  # fmt: skip
 
 
 if __name__ == "__main__":

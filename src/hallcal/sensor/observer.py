@@ -38,11 +38,12 @@ Around it:
   remanence (common gain), Hall sensitivity (per-sensor gain) and offsets.
 * **one-sensor fallback**: a sample whose chi-square is an outlier and that one channel alone
   explains (the fit without it is within the noise) is reconstructed from the other two; a
-  channel so blamed ``fault_count`` times within ``fault_window`` samples (or non-finite) is
-  excluded: state ``degraded``, y_obs from the two others (the two-sensor ML angle, tracked on
-  from the fit without the channel, never more than a bounded step per sample from the
-  prediction), so it never slips a pole pitch. It is
-  readmitted after ``readmit_travel`` electrical radians of consistent readings.
+  channel so blamed ``fault_count`` times within ``fault_window`` samples is excluded from the
+  next sample on (so that firmware does not add the exclusion's work to the outlier sample's),
+  a non-finite one at once: state ``degraded``, y_obs from the two others (the two-sensor ML
+  angle, tracked on from the fit without the channel, never more than a bounded step per sample
+  from the prediction), so it never slips a pole pitch. It is readmitted after
+  ``readmit_travel`` electrical radians of consistent readings.
 
 Units: angles in rad (mechanical), d and sigma in the sensor's unit.
 """
@@ -721,8 +722,9 @@ def _adapt_cycle(phase, pending, eligible, stale, travel, f, dg, r, step, den, a
 #: the consistent travel of an excluded channel and the travel with the misfit above threshold.
 _Y, _V, _SUM_CHI, _SUM_DOF, _CLEAN, _BAD = 0, 1, 2, 3, 4, 5
 #: Indices of its integer state: excluded channel (-1 none), first exclusion (sample, -1),
-#: exclusion from the residual (not a non-finite reading), exclusions suppressed, acquire.
-_EXCL, _FIRST, _BLAMED_OUT, _SUPPRESS, _ACQUIRE = 0, 1, 2, 3, 4
+#: exclusion from the residual (not a non-finite reading), exclusions suppressed, acquire,
+#: the channel whose exclusion takes effect at the next sample (-1 none).
+_EXCL, _FIRST, _BLAMED_OUT, _SUPPRESS, _ACQUIRE, _NEXT = 0, 1, 2, 3, 4, 5
 
 
 @nb.njit(cache=True)
@@ -830,8 +832,15 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, offsets, a, b, y_out, misf
     pending, phase = False, 0
     S = np.zeros(6)
     S[_Y] = y_initial
-    I = np.array([-1, -1, 0, 0, 1], dtype=np.int64)
+    I = np.array([-1, -1, 0, 0, 1, -1], dtype=np.int64)
     for k in range(d.shape[0]):
+        if I[_NEXT] >= 0:  # the exclusion decided on the previous sample
+            I[_EXCL], I[_BLAMED_OUT], I[_NEXT] = I[_NEXT], 1, -1
+            I[_FIRST] = k if I[_FIRST] < 0 else I[_FIRST]
+            S[_CLEAN] = 0.0
+            ring_blame[:], blame[:] = -1, 0
+            ring_chi[:], ring_dof[:] = 0.0, 0.0  # the window starts again on two channels
+            S[_SUM_CHI], S[_SUM_DOF] = 0.0, 0.0
         active = _read(d, k, dk, w, w0, S, I)
         yp = S[_Y] + S[_V]
         blamed, mark, chi, step, y_new, outlier = -1, -1, 0.0, 0.0, yp, False
@@ -848,19 +857,7 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, offsets, a, b, y_out, misf
                                                            max_step, cfg[6], gross)  # fmt: skip
             y_new = yp + step
         if _isolate(k, blamed, mark, ring_blame, blame, int(cfg[8]), I):
-            I[_EXCL], I[_BLAMED_OUT] = blamed, 1
-            I[_FIRST] = k if I[_FIRST] < 0 else I[_FIRST]
-            S[_CLEAN] = 0.0
-            w[blamed] = 0.0
-            chi = 0.0  # the two channels' chi2 at the fitted angle
-            for i in range(3):
-                if w[i] > 0.0:
-                    e = r[i] - a[i] * dg[i] * step
-                    chi += w[i] * e * e
-            ring_blame[:], blame[:] = -1, 0
-            ring_chi[:], ring_dof[:] = 0.0, 0.0  # the window starts again on two channels
-            S[_SUM_CHI], S[_SUM_DOF] = 0.0, 0.0
-            blamed, active = -1, 2
+            I[_NEXT] = blamed  # excluded from the next sample on (firmware: not on this one's time)
         if blamed < 0 and fitted:  # speed held on samples explained without a channel
             S[_V] = min(max(S[_V] + cfg[1] * step, -v_max), v_max)
         S[_Y] = y_new

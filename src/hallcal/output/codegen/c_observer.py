@@ -2,8 +2,10 @@
 
 ``export_observer_c(artifact, out_dir)`` writes ``<prefix>.h`` / ``<prefix>.c``: the same
 per-sample algorithm as :func:`hallcal.sensor.observer.run_observer` (tracking
-maximum-likelihood angle by Gauss-Newton on cubic Hermite tables of g and dg/dy, the misfit
-window, the gain/offset adaptation, the one-sensor fallback), in ``float``, with the API style
+maximum-likelihood angle by Gauss-Newton on the cubic Hermite interpolant of g, tabulated as
+each interval's power-basis coefficients so that one Horner evaluation per channel gives g and
+dg/dy; the misfit window, the gain/offset adaptation, the one-sensor fallback), in ``float``,
+with the API style
 of the lean export: ``_init``, ``_set_angle`` (revolutions and angle before the next
 sample), ``_update`` (one sample), ``_read`` (one consistent snapshot: revolutions, angle,
 misfit, state, excluded channel). It includes only ``<stdint.h>``, uses no library function
@@ -16,7 +18,8 @@ resolution does not degrade over a long run. Work per sample is bounded (no loop
 the data): one table look-up and one Gauss-Newton step; on an outlier sample the common-gain
 test and the three fits without one channel (closed form on the linearized model); one part
 of the adaptation's 16-sample cycle (a row or a column of the 6x6, a triangular solve); an
-8-node search on the first sample after init/set_angle. Cycles: benchmarks/bench_observer_c.txt.
+8-node search on the first sample after init/set_angle; an exclusion's resets on the sample after
+the one that decides it. Cycles: benchmarks/bench_observer_c.txt.
 """
 
 from __future__ import annotations
@@ -60,8 +63,8 @@ class ObserverExport:
     table_points : int
         M, table points per revolution.
     table_bytes : int
-        Bytes of the g and dg/dy tables (float) plus the threshold and reciprocal tables and
-        the start's search offsets.
+        Bytes of the table of cubics (4 floats per channel and node) plus the threshold and
+        reciprocal tables and the start's search offsets.
     """
 
     paths: tuple[Path, ...]
@@ -129,8 +132,9 @@ def export_observer_c(
     texts = _texts(model, ObserverSettings(), prefix, comment_text(Path(source).name))
     paths = _write_files(out_dir, texts)  # one set, write errors as one line (hallcal.io)
     s = ObserverSettings()
-    # g and dg/dy (float), the thresholds and the reciprocals (float), the search offsets (int16)
-    nbytes = model.points * 3 * 2 * 4 + 2 * (2 * s.window + 1) * 4 + s.acquire_points * 2
+    # the cubics (4 floats per channel and node), the thresholds and the reciprocals (float),
+    # the search offsets (int16)
+    nbytes = model.points * 3 * 4 * 4 + 2 * (2 * s.window + 1) * 4 + s.acquire_points * 2
     return ObserverExport(paths, model.points, nbytes)
 
 
@@ -170,17 +174,24 @@ def _texts(
         "@OUTLIER@": _f(s.outlier),
         "@EXPLAINED@": _f(s.explained),
         "@INVMEM@": _f(1.0 / s.adapt_memory),
-        "@PRIOR@": _f(s.prior_samples),
+        "@Q@": ", ".join(
+            _f(s.prior_samples * w0[p >> 1] * (1.0 if p & 1 else model.amplitude[p >> 1] ** 2))
+            for p in range(6)
+        ),
         "@ALO@": _f(s.gain_bounds[0]),
         "@AHI@": _f(s.gain_bounds[1]),
-        "@BBOUND@": _f(s.offset_bound),
+        "@BLO@": ", ".join(
+            _f(model.center[i] - s.offset_bound * model.amplitude[i]) for i in range(3)
+        ),
+        "@BHI@": ", ".join(
+            _f(model.center[i] + s.offset_bound * model.amplitude[i]) for i in range(3)
+        ),
         "@STALE@": _f(s.stale_travel),
         "@READMIT@": _f(s.readmit_travel),
         "@C@": ", ".join(_f(x) for x in model.center),
-        "@AMP@": ", ".join(_f(x) for x in model.amplitude),
         "@W0@": ", ".join(_f(x) for x in w0),
         "@GROSS@": ", ".join(_f(x) for x in gross),
-        "@T@": _rows(np.hstack([model.value - model.center, model.slope])),
+        "@T@": _rows(_cubics(model)),
         "@INV@": ",\n    ".join(
             ", ".join(_f(x) for x in inv[i : i + 6]) for i in range(0, len(inv), 6)
         ),  # fmt: skip
@@ -194,6 +205,20 @@ def _texts(
         h = h.replace(key, value)
         c = c.replace(key, value)
     return [(f"{prefix}.h", h), (f"{prefix}.c", c)]
+
+
+def _cubics(model: ObserverModel) -> np.ndarray:
+    """Per node j and channel i the power-basis coefficients (c0, c1, c2, c3) of the cubic
+    Hermite interpolant of g_i - c_i on [y_j, y_j+1] in t = y / h - j (values p0, p1 and
+    scaled slopes m0 = h g'_j, m1 = h g'_j+1): c0 = p0, c1 = m0, c2 = 3 (p1 - p0) - 2 m0 - m1,
+    c3 = 2 (p0 - p1) + m0 + m1; shape (M, 12), computed in float64."""
+    h = TWO_PI / model.points
+    p0 = model.value - model.center
+    p1 = np.roll(p0, -1, axis=0)
+    m0 = h * model.slope
+    m1 = np.roll(m0, -1, axis=0)
+    c = np.stack([p0, m0, 3.0 * (p1 - p0) - 2.0 * m0 - m1, 2.0 * (p0 - p1) + m0 + m1], axis=2)
+    return c.reshape(model.points, 12)
 
 
 def _adapt_parts() -> tuple[str, str]:
@@ -210,7 +235,7 @@ def _adapt_parts() -> tuple[str, str]:
 
     for p in range(6):
         i = p >> 1
-        prior = f"(1.0f - lam) * PRIOR * W0[{i}]" + ("" if p & 1 else f" * AMP[{i}] * AMP[{i}]")
+        prior = f"(1.0f - lam) * Q[{p}]"
         extra = f"s->u[{i}]" if p & 1 else f"s->u[{i}] * s->fy[{i}] * s->fy[{i}]"
         body = [f"    const float lam = s->lam, v = s->t * s->qv[{p}];"]
         body.append(
@@ -296,11 +321,11 @@ typedef struct {
     int16_t blame[4];
     int32_t sum_dof;
     uint32_t window_from, blame_from; /* ring entries written before these samples count as empty */
-    int8_t excluded;
+    int8_t excluded, next;          /* the channel excluded; the one excluded at the next sample */
     uint8_t blamed_out, suppress, acquire;
     uint32_t k;
     volatile uint32_t seq;
-    @p@_reading buf[2];
+    volatile @p@_reading buf[2]; /* volatile: the copies stay between the reads of seq */
 } @p@_state;
 
 void @p@_init(@p@_state *s); /* angle 0 of revolution 0 */
@@ -334,14 +359,15 @@ static const float CAP = @CAP@;
 static const float OUTLIER = @OUTLIER@;
 static const float EXPLAINED = @EXPLAINED@;
 static const float INVMEM = @INVMEM@;
-static const float PRIOR = @PRIOR@;
+/* the prior's information: prior_samples w0_i (amplitude_i^2, 1) */
+static const float Q[6] = {@Q@};
 static const float ALO = @ALO@;
 static const float AHI = @AHI@;
-static const float BBOUND = @BBOUND@;
+static const float BLO[3] = {@BLO@}; /* the levels' bounds: c_i -+ offset_bound amplitude_i */
+static const float BHI[3] = {@BHI@};
 static const float STALE = @STALE@;
 static const float READMIT = @READMIT@;
 static const float C0[3] = {@C@};
-static const float AMP[3] = {@AMP@};
 static const float W0[3] = {@W0@};
 static const float GROSS[3] = {@GROSS@};
 static const int16_t OFF[NA] = {@OFF@};
@@ -351,7 +377,9 @@ static const float INV[2 * W + 1] = { /* 1 / k */
 static const float THR[2 * W + 1] = {
     @THR@
 };
-static const float T[M][6] = { /* g_1..3 - c_1..3 and dg_1..3/dy at y_j = j 2 pi / M */
+static const float T[M][12] = { /* per channel i: the cubic of g_i - c_i on [y_j, y_j+1] in
+                                  * t = y / h - j (y_j = j 2 pi / M, h = 2 pi / M): constant,
+                                  * t, t^2, t^3 coefficients */
 @T@
 };
 
@@ -361,7 +389,11 @@ static const float T[M][6] = { /* g_1..3 - c_1..3 and dg_1..3/dy at y_j = j 2 pi
 #define NOINLINE
 #endif
 
+#if defined(__GNUC__)
+#define fabs_(x) __builtin_fabsf(x) /* VABS.F32: no library call */
+#else
 static float fabs_(float x) { return x < 0.0f ? -x : x; }
+#endif
 /* finite: the exponent bits not all ones (IEEE 754 single) */
 static uint32_t bits_(float x)
 {
@@ -374,35 +406,26 @@ static uint32_t bits_(float x)
 }
 #define FIN(x) ((bits_(x) & 0x7f800000u) != 0x7f800000u)
 
-/* cubic Hermite interpolation of g - c and dg/dy at y (any real y: wrap-around); the
- * table holds g - c */
+/* cubic Hermite interpolation of g - c and dg/dy at y (any real y: wrap-around); the table
+ * holds, per node and channel, the interval's cubic in t = y / h - j (its power-basis
+ * coefficients: the same polynomial as the Hermite form of values and slopes) */
 static void table(float y, float f[3], float dg[3])
 {
-    float u = y * INVH;
+    float u = y * INVH, t, t3;
     int32_t j = (int32_t)u;
-    float t, t2, t3, h00, h10, h01, h11, d00, d10, d11;
-    const float *p, *q;
+    const float *p;
     if ((float)j > u) {
         j -= 1;
     }
     t = u - (float)j;
+    t3 = 3.0f * t;
     p = T[(uint32_t)j & (uint32_t)(M - 1)];
-    q = T[((uint32_t)j + 1u) & (uint32_t)(M - 1)];
-    t2 = t * t;
-    t3 = t2 * t;
-    h00 = 2.0f * t3 - 3.0f * t2 + 1.0f;
-    h10 = (t3 - 2.0f * t2 + t) * HSTEP;
-    h01 = -2.0f * t3 + 3.0f * t2;
-    h11 = (t3 - t2) * HSTEP;
-    d00 = (6.0f * t2 - 6.0f * t) * INVH;
-    d10 = 3.0f * t2 - 4.0f * t + 1.0f;
-    d11 = 3.0f * t2 - 2.0f * t;
-    f[0] = h00 * p[0] + h10 * p[3] + h01 * q[0] + h11 * q[3];
-    f[1] = h00 * p[1] + h10 * p[4] + h01 * q[1] + h11 * q[4];
-    f[2] = h00 * p[2] + h10 * p[5] + h01 * q[2] + h11 * q[5];
-    dg[0] = d00 * (p[0] - q[0]) + d10 * p[3] + d11 * q[3];
-    dg[1] = d00 * (p[1] - q[1]) + d10 * p[4] + d11 * q[4];
-    dg[2] = d00 * (p[2] - q[2]) + d10 * p[5] + d11 * q[5];
+    f[0] = ((p[3] * t + p[2]) * t + p[1]) * t + p[0];
+    dg[0] = ((p[3] * t3 + (p[2] + p[2])) * t + p[1]) * INVH;
+    f[1] = ((p[7] * t + p[6]) * t + p[5]) * t + p[4];
+    dg[1] = ((p[7] * t3 + (p[6] + p[6])) * t + p[5]) * INVH;
+    f[2] = ((p[11] * t + p[10]) * t + p[9]) * t + p[8];
+    dg[2] = ((p[11] * t3 + (p[10] + p[10])) * t + p[9]) * INVH;
 }
 
 /* one Gauss-Newton step on the linearized model, bounded; the chi2 after it in *chi */
@@ -414,22 +437,23 @@ static float gn(float srr, float num, float den, float *chi)
         return 0.0f;
     }
     step = num / den;
-    step = step > MAXSTEP ? MAXSTEP : (step < -MAXSTEP ? -MAXSTEP : step);
+    if (fabs_(step) > MAXSTEP) { /* rare: one comparison on the common path */
+        step = step > 0.0f ? MAXSTEP : -MAXSTEP;
+    }
     c = srr - step * (2.0f * num - step * den);
     *chi = c > 0.0f ? c : 0.0f;
     return step;
 }
 
-/* gn with the reciprocal of den given (the fits without one channel) */
+/* gn with the reciprocal of den given (the fits without one channel); rden = 0 where den is 0
+ * (den >= 0 here: a sum of the others' w J^2) gives gn's no step and chi = srr (>= 0) */
 static float gnr(float srr, float num, float den, float rden, float *chi)
 {
     float step, c;
-    if (den <= 0.0f) {
-        *chi = srr;
-        return 0.0f;
-    }
     step = num * rden;
-    step = step > MAXSTEP ? MAXSTEP : (step < -MAXSTEP ? -MAXSTEP : step);
+    if (fabs_(step) > MAXSTEP) { /* rare: one comparison on the common path */
+        step = step > 0.0f ? MAXSTEP : -MAXSTEP;
+    }
     c = srr - step * (2.0f * num - step * den);
     *chi = c > 0.0f ? c : 0.0f;
     return step;
@@ -453,8 +477,8 @@ NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, 
         j = j0 + OFF[q];
         p = T[(uint32_t)j & (uint32_t)(M - 1)];
         r0 = e0 - a0 * p[0];
-        r1 = e1 - a1 * p[1];
-        r2 = e2 - a2 * p[2];
+        r1 = e1 - a1 * p[4];
+        r2 = e2 - a2 * p[8];
         c = w0 * r0 * r0 + w1 * r1 * r1 + w2 * r2 * r2;
         if (c < best) {
             best = c;
@@ -487,11 +511,11 @@ NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, 
 #define APPLY(i)                                                                             \
     if (s->wm[i] > 0.0f) {                                                                   \
         float t_ = s->a[i] + s->z[2 * (i)];                                                  \
-        const float lo_ = C0[i] - BBOUND * AMP[i], hi_ = C0[i] + BBOUND * AMP[i];            \
-        s->a[i] = t_ < ALO ? ALO : (t_ > AHI ? AHI : t_);                                    \
+        t_ = t_ < ALO ? ALO : t_;                                                            \
+        s->a[i] = t_ > AHI ? AHI : t_;                                                       \
         t_ = s->b[i] + s->z[2 * (i) + 1];                                                    \
-        t_ = t_ < lo_ ? lo_ : t_;                                                            \
-        s->b[i] = t_ > hi_ ? hi_ : t_;                                                       \
+        t_ = t_ < BLO[i] ? BLO[i] : t_;                                                      \
+        s->b[i] = t_ > BHI[i] ? BHI[i] : t_;                                                 \
     }
 
 NOINLINE static void apply(@p@_state *s)
@@ -501,10 +525,23 @@ NOINLINE static void apply(@p@_state *s)
     APPLY(2)
 }
 
+/* the exclusion of channel s->next (decided on the previous sample) */
+NOINLINE static void exclude(@p@_state *s)
+{
+    s->excluded = s->next;
+    s->next = -1;
+    s->blamed_out = 1u;
+    s->clean = 0.0f;
+    s->blame_from = s->k; /* the blame ring and the window start again */
+    s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0;
+    s->window_from = s->k;
+    s->sum_chi = 0.0f;
+    s->sum_dof = 0;
+}
+
 void @p@_init(@p@_state *s)
 {
     int i, j;
-    float t;
     s->rev = 0;
     s->ang = 0.0f;
     s->v = s->clean = s->bad = s->sum_chi = 0.0f;
@@ -515,8 +552,7 @@ void @p@_init(@p@_state *s)
     }
     for (i = 0; i < 6; i++) { /* L is written column by column before it is read */
         for (j = 0; j < 6; j++) {
-            t = PRIOR * W0[i >> 1] * ((i & 1) ? 1.0f : AMP[i >> 1] * AMP[i >> 1]);
-            s->H[i][j] = (i != j) ? 0.0f : t;
+            s->H[i][j] = (i != j) ? 0.0f : Q[i];
         }
     }
     s->pending = 0u;
@@ -525,6 +561,7 @@ void @p@_init(@p@_state *s)
     s->window_from = 0u;
     s->blame_from = 0u;
     s->excluded = -1;
+    s->next = -1;
     s->blamed_out = 0u;
     s->suppress = 0u;
     s->acquire = 1u;
@@ -566,6 +603,9 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     int fin0, fin1, fin2, u0, u1, u2, i, dof;
     uint32_t slot, jw, ph;
     int8_t old;
+    if (s->next >= 0) { /* the exclusion decided on the previous sample */
+        exclude(s);
+    }
     fin0 = FIN(d1);
     fin1 = FIN(d2);
     fin2 = FIN(d3);
@@ -689,32 +729,12 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     if (blamed >= 0 && s->excluded < 0 && !s->suppress) {
         others = s->blame[0] + s->blame[1] + s->blame[2] + s->blame[3] - s->blame[blamed];
         if (s->blame[blamed] >= FC && 4 * others <= s->blame[blamed]) {
-            s->excluded = (int8_t)blamed;
-            s->blamed_out = 1u;
-            s->clean = 0.0f;
-            w0 = blamed == 0 ? 0.0f : w0;
-            w1 = blamed == 1 ? 0.0f : w1;
-            w2 = blamed == 2 ? 0.0f : w2;
-            /* the two channels' chi2 at the fitted angle (recomputed: the closed form cancels
-             * in float) */
-            e = r0 - J0 * step;
-            chi = 0.0f + w0 * e * e;
-            e = r1 - J1 * step;
-            chi += w1 * e * e;
-            e = r2 - J2 * step;
-            chi += w2 * e * e;
-            s->blame_from = s->k + 1u; /* the blame ring and the window start again */
-            s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0;
-            s->window_from = s->k;
-            s->sum_chi = 0.0f;
-            s->sum_dof = 0;
-            blamed = -1;
-            active = 2;
+            s->next = (int8_t)blamed; /* excluded from the next sample on */
         }
     }
     if (blamed < 0 && fitted) {
         x = s->v + KV * step;
-        s->v = x > VMAX ? VMAX : (x < -VMAX ? -VMAX : x);
+        s->v = fabs_(x) > VMAX ? (x > 0.0f ? VMAX : -VMAX) : x;
     }
     /* the angle within the revolution (|y - angle| < 2 pi: one wrap at most) */
     if (y >= TWOPI) {
@@ -799,7 +819,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     /* publish */
     {
         uint32_t next = s->seq + 1u;
-        @p@_reading *rd = &s->buf[next & 1u];
+        volatile @p@_reading *rd = &s->buf[next & 1u];
         uint8_t st = active < 2 ? @P@_FAULT
                      : (s->excluded >= 0 ? @P@_DEGRADED
                      : (stale ? @P@_STALE : (above ? @P@_ADAPTING : @P@_OK)));
