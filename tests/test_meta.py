@@ -66,10 +66,11 @@ def _setup_keys() -> list[tuple[str, str]]:
 
 def _read_outside_the_parser(table: str, key: str, sources: dict[Path, str]) -> bool:
     """Whether some module other than the setup parser reads attribute ``.key`` of the spec of
-    ``[table]``: the file reads ``.key`` and refers to the table (``setup.model``, ``.bench``...).
+    ``[table]``: the file reads ``.key`` and refers to the table (``setup.model``, ``.bench``...)
+    or to its class (``BenchConfig`` reads the ``[bench]`` keys it inherits from ``BenchSpec``).
     """
     attribute = re.compile(rf"\.{re.escape(key)}\b")
-    spec = re.compile(rf"\.{re.escape(table)}\b")
+    spec = re.compile(rf"\.{re.escape(table)}\b|\b{re.escape(table.capitalize())}Config\b")
     return any(
         attribute.search(text) and spec.search(text)
         for path, text in sources.items()

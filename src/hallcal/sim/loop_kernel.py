@@ -61,6 +61,16 @@ def kernel_array(a: ArrayLike) -> NDArray[np.float64]:
 
     A read-only array (a dataset's column, a frozen theta) would make numba compile and cache a
     second specialization of every kernel it reaches; a copy of such an input is cheap.
+
+    Parameters
+    ----------
+    a : array_like
+        Any numeric array.
+
+    Returns
+    -------
+    ndarray of float64
+        ``a`` itself when it already is one, else a copy.
     """
     return np.require(a, dtype=np.float64, requirements=("C", "W"))
 
