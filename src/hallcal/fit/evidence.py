@@ -767,6 +767,8 @@ def _log_evidence(
     mu[post.ia] = post.mean
     a_act = alpha[pr.grp][post.ia]
     quad = _residual(pr.G, pr.g0, sse, mu - pr.th) / s2 + float(np.sum(a_act * post.mean**2))
+    if np.any(a_act <= 0.0):  # an improper (flat) prior: no finite evidence
+        return -math.inf
     # log p(z) = -1/2 [n log 2 pi s2 + log|H| - sum log alpha + z^T C^-1 z]
     return -0.5 * (
         n * math.log(2.0 * math.pi * s2) + post.logdet_h - float(np.sum(np.log(a_act))) + quad
