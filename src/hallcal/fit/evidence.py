@@ -473,7 +473,10 @@ def group_evidence(
     2. the group test of Tipping & Faul 2003 (sec. 3, generalized to blocks): for every group,
        the others fixed, the evidence as a function of its precision (:func:`_block_gain`);
        groups in the model whose best precision is infinite leave; with ``add``, groups outside
-       whose best precision gains more than ``add_threshold`` nats enter;
+       whose best precision gains more than ``add_threshold`` nats enter; the moves are kept
+       only when the log evidence at the new fixed point is not lower, else only the leaving
+       group with the smallest share of the fit is tried, else nothing moves
+       (:func:`_accepted_moves`);
 
     until no group leaves or enters.
 
