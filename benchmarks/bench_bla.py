@@ -51,9 +51,9 @@ def _score(cfg: BenchConfig, cal, val_run, plant: ContinuousTF) -> dict:
     table = oracle_table(cfg)
     floor = oracle_error(val_run, table=table).rms_raw if table.bijective else cfg.noise_floor
     row = {"status": str(cal.status), "pred": cal.predicted_error / floor}
-    row["refined"] = next(("disagrees" if "disagrees with the BLA" in m else "refined"
-                           for m in cal.messages if "the BLA" in m and "plant" in m
-                           and ("refined" in m or "disagrees" in m)), "-")  # fmt: skip
+    codes = {str(m.code) for m in cal.messages}
+    row["refined"] = ("disagrees" if "plant_disagrees" in codes
+                      else "refined" if "plant_refined" in codes else "-")  # fmt: skip
     row["star"] = row["off"] = math.nan
     if cal.lut.bijective:
         e = angle_error(cal.lut.f_star(val_run.d), val_run.y0)
