@@ -40,6 +40,7 @@ import enum
 import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Any
 
 import numba as nb
 import numpy as np
@@ -518,7 +519,8 @@ def group_evidence(
     pr = _group_problem(gram, gradient, theta, groups, precision, keep)
     alpha, s2 = pr.precision, float(noise_variance)
     status, gain, it = GroupEvidenceStatus.MAX_ITERATIONS, np.zeros(pr.ng), 0
-    opts = {"sse": sse, "n": n, "update_noise": update_noise, "prune": prune, "tol": tol}
+    opts: dict[str, Any] = {"sse": sse, "n": n, "update_noise": update_noise, "prune": prune,
+                            "tol": tol}  # fmt: skip
     with threadpool_limits(limits=1, user_api="blas"):
         while it < int(max_iterations):
             settled = _settle(pr, alpha, s2, budget=int(max_iterations) - it, **opts)
@@ -581,7 +583,8 @@ def _accepted_moves(
     order is by that share, then by group index.
     """
     here = _evidence_value(pr, alpha, s2, sse=sse, n=n)
-    opts = {"sse": sse, "n": n, "update_noise": update_noise, "prune": prune, "tol": tol}
+    opts: dict[str, Any] = {"sse": sse, "n": n, "update_noise": update_noise, "prune": prune,
+                            "tol": tol}  # fmt: skip
     trials = [moves.leave]
     if np.count_nonzero(moves.leave) > 1 or moves.enter.any():
         post = _posterior(pr.G, pr.b, alpha[pr.grp], s2)

@@ -69,6 +69,7 @@ from __future__ import annotations
 import enum
 import math
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -767,7 +768,7 @@ def _group_centre(active: tuple[int, ...] | list[int], n: int) -> set[int]:
     return set(range(top + 1, centre + 1))  # the band reaches the centre: its sidebands too
 
 
-def fill_gaps(harmonics: tuple[int, ...] | list[int], n: int) -> tuple[int, ...]:
+def fill_gaps(harmonics: Iterable[int], n: int) -> tuple[int, ...]:
     """The harmonics with every short gap below their top filled (a contiguous band).
 
     A magnet's own shape puts flux at every mechanical harmonic up to several n_m (DESIGN.md,

@@ -681,7 +681,9 @@ def _bla_models(
     par = bla.parametric
     hold = getattr(par, "hold", "none") == "zoh" and getattr(par, "sample_time", None)
     g_fit = par.frequency_response(fd, zoh=bool(hold))
-    curves = [(g_fit, {"color": STAR_COLOR, "lw": 1.6, "label": "parametric fit"})]
+    curves: list[tuple[Any, dict[str, object]]] = [
+        (g_fit, {"color": STAR_COLOR, "lw": 1.6, "label": "parametric fit"})
+    ]
     if corrected_plant is not None:
         label = "after gain correction" + (
             "" if gain_correction is None else f" (ĉ = {float(gain_correction):.4g})"

@@ -407,6 +407,7 @@ def _powerup_source(ctx: _Context, pu: PowerUpFirmware) -> str:
     for cf in exp2[-2::-1]:
         poly = f"({_cf(cf, 'exp2')} + (f * {poly}))"
     gram_decls, gram_calc, tangent_calc, gram_note = _powerup_metric(pu)
+    assert pu.decoder is not None and pu.report is not None  # an emitted decoder has both
     mis = pu.decoder.misfit
     source = _PU_C.substitute(
         pfx=ctx.pfx,
@@ -462,6 +463,7 @@ def _powerup_source(ctx: _Context, pu: PowerUpFirmware) -> str:
 def _powerup_hooks(ctx: _Context, pu: PowerUpFirmware) -> dict[str, str]:
     """What the decoder puts into the float variant's insertion points (:data:`FLOAT_HOOKS`)."""
     pfx, PFX, n = ctx.pfx, ctx.PFX, ctx.design.pole_pairs
+    assert pu.report is not None  # an emitted decoder has its analysis
     return {
         "api_macros": (
             f"/* This code identifies the pole pair at power-up by itself after {pfx}_init:\n"
