@@ -53,6 +53,7 @@ from __future__ import annotations
 import enum
 import math
 import statistics
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numba as nb
@@ -70,6 +71,7 @@ __all__ = [
     "AdequacyReport",
     "AdequacyStatus",
     "ContentStatus",
+    "CurveProjection",
     "HarmonicContent",
     "NoiseEstimate",
     "NoiseStatus",
@@ -81,6 +83,7 @@ __all__ = [
     "dominant_harmonics",
     "estimate_noise_variance",
     "harmonic_content",
+    "project_fit",
 ]
 
 
@@ -786,7 +789,7 @@ def _f(v: float) -> float | None:
     return v if math.isfinite(v) else None
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def _curve_kernel(y0, d, col_of_h, theta, iterations, delta, resid, speed2):  # pragma: no cover
     """Per-sample Newton iterations of :func:`curve_projection` (numba)."""
     N = y0.size
@@ -880,8 +883,66 @@ def curve_projection(
     resid = np.empty_like(dd)
     speed2 = np.empty(y.size)
     theta = np.ascontiguousarray(flux.theta)
-    _curve_kernel(y, dd, col, theta, int(iterations), delta, resid, speed2)
+    it = int(iterations)
+    h = y.size // 2
+    if y.size < 8192:
+        _curve_kernel(y, dd, col, theta, it, delta, resid, speed2)
+        return delta, resid, speed2
+    # each sample on its own: two halves in two threads (numba releases the GIL), the same bits
+    with ThreadPoolExecutor(1) as pool:
+        fut = pool.submit(_curve_kernel, y[h:], dd[h:], col, theta, it, delta[h:], resid[h:],
+                          speed2[h:])  # fmt: skip
+        _curve_kernel(y[:h], dd[:h], col, theta, it, delta[:h], resid[:h], speed2[:h])
+        fut.result()
     return delta, resid, speed2
+
+
+@dataclass(frozen=True)
+class CurveProjection:
+    """:func:`curve_projection` of signals d on a fit's flux curve at its simulated angle
+    y0_sim, with the fit and the signals it comes from (:func:`project_fit`).
+
+    Attributes
+    ----------
+    sem : SEMResult
+        The fit (its flux g_theta and y0_sim).
+    d : ndarray (N, 3)
+        The signals.
+    delta, residual, speed2 : ndarray
+        As returned by :func:`curve_projection`.
+    """
+
+    sem: SEMResult = field(repr=False)
+    d: NDArray[np.float64] = field(repr=False)
+    delta: NDArray[np.float64] = field(repr=False)
+    residual: NDArray[np.float64] = field(repr=False)
+    speed2: NDArray[np.float64] = field(repr=False)
+
+
+def project_fit(
+    sem: SEMResult, d: NDArray[np.float64], *, known: CurveProjection | None = None
+) -> CurveProjection:
+    """:func:`curve_projection` of d on the fit's curve at its y0_sim, or ``known`` when that was
+    computed from this very fit and these very signals (the same objects: the cogging search's
+    spectrum and the adequacy check of a fit it left unchanged see the same projection).
+
+    Parameters
+    ----------
+    sem : SEMResult
+        The fit.
+    d : ndarray (N, 3)
+        The signals it used.
+    known : CurveProjection, optional
+        A projection computed before.
+
+    Returns
+    -------
+    CurveProjection
+    """
+    if known is not None and known.sem is sem and known.d is d:
+        return known
+    delta, resid, speed2 = curve_projection(sem.flux, sem.y0_sim, d)
+    return CurveProjection(sem, d, delta, resid, speed2)
 
 
 def _format_harmonics(h: tuple[int, ...], limit: int = 12) -> str:
@@ -907,6 +968,7 @@ def assess(
     dominance: float = 0.05,
     warn_predicted: float = 1.5,
     lut_points: int = 4096,
+    curve: CurveProjection | None = None,
 ) -> AdequacyReport:
     """Judge a SEM fit from the calibration data alone (model validation, Ljung 1999, sec. 16).
 
@@ -941,6 +1003,9 @@ def assess(
         parameter uncertainty adds more than the floor itself, in quadrature, times 1.1).
     lut_points : int
         Grid of the table built to check bijectivity and the correction size.
+    curve : CurveProjection, optional
+        The projection of d on the fit's curve if already computed (:func:`project_fit`: used
+        only when it comes from this very fit and these very signals).
 
     Returns
     -------
@@ -957,7 +1022,7 @@ def assess(
         tab = _table(sem, n, P, o, lv.sigma2, lut_points)
         if not math.isfinite(lv.cost) or sem.status == "diverged":
             return _failed_report(sem, lv, tab)
-        sh = _shape_and_timing(sem, dd, lv)
+        sh = _shape_and_timing(project_fit(sem, dd, known=curve), lv)
         hmax = int(max_harmonic) if max_harmonic else default_max_harmonic(n, lv.model_h)
         sp = _spectra(sem, dd, lv, sh, hmax, significance, min_amplitude, dominance)
     fails, warns, notes = _reasons(sem, lv, tab, sh, sp, warn_predicted)
@@ -1222,10 +1287,10 @@ class _Shape:
     mismatch: float
 
 
-def _shape_and_timing(sem: SEMResult, dd: NDArray, lv: _Levels) -> _Shape:
+def _shape_and_timing(curve: CurveProjection, lv: _Levels) -> _Shape:
     """Shape ratio (distance from the curve, 2 of 3 dimensions per sample, over its noise-only
     value) and the position mismatch (RMS shift along the curve beyond its noise part)."""
-    delta, e_curve, speed2 = curve_projection(sem.flux, sem.y0_sim, dd)
+    delta, e_curve, speed2 = curve.delta, curve.residual, curve.speed2
     shape_expected = (2.0 / 3.0) * lv.dof * lv.sigma2
     shape_ratio = float(np.vdot(e_curve, e_curve) / shape_expected) if lv.sigma2 > 0 else math.inf
     delta = delta - delta.mean()

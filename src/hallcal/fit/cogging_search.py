@@ -83,7 +83,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from hallcal.fit.adequacy import curve_projection
+from hallcal.fit.adequacy import CurveProjection, project_fit
 from hallcal.fit.gauss_newton import _moments
 from hallcal.fit.sem import SEMResult, solve_sem
 from hallcal.sim.cogging import CoggingTorque
@@ -193,6 +193,9 @@ class ShiftSpectrum:
         Orders whose ratio exceeds the threshold and that are local maxima of the power.
     revolutions : float
         Angle range of the run [revolutions].
+    curve : CurveProjection, optional
+        The projection of the signals on the fit's curve the shift comes from (reused by the
+        adequacy check of the same fit, :func:`hallcal.fit.adequacy.project_fit`).
     """
 
     orders: NDArray[np.int64] = field(repr=False)
@@ -202,6 +205,7 @@ class ShiftSpectrum:
     threshold: float
     candidates: tuple[int, ...]
     revolutions: float
+    curve: CurveProjection | None = field(default=None, repr=False, compare=False)
 
     @property
     def ratio(self) -> NDArray[np.float64]:
@@ -256,7 +260,8 @@ def shift_spectrum(
     K = int(max_order)
     if K < 1:
         raise ValueError("max_order must be >= 1")
-    delta, _, speed2 = curve_projection(sem.flux, y0, d)
+    curve = project_fit(sem, np.ascontiguousarray(d, dtype=np.float64))
+    delta, speed2 = curve.delta, curve.speed2
     w = speed2 / max(float(np.mean(speed2)), 1e-300)  # inverse noise variance of the shift
     delta = delta - float(np.sum(w * delta) / np.sum(w))
     C, S = _moments(y0, np.ascontiguousarray(np.column_stack([w * delta, w])), K)
@@ -295,6 +300,7 @@ def shift_spectrum(
         threshold=threshold,
         candidates=tuple(sorted(int(i) + 1 for i in hits)),
         revolutions=revs,
+        curve=curve,
     )
 
 

@@ -602,6 +602,7 @@ def calibrate_closed_loop(
             pole_pairs=setup.pole_pairs,
             projection=loop.projection,
             offset=loop.offset,
+            curve=fit.cogging.spectrum.curve if fit.cogging and fit.cogging.spectrum else None,
         )
         say(progress, "lookup table and bijectivity check")
         lut = build_lut(
