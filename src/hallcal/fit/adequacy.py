@@ -1321,7 +1321,13 @@ def _spectra(
     former come from the motion ("dynamics")."""
     e = dd - sem.d_sim
     harm = np.arange(1, hmax + 1)
-    spec = harmonic_content(sem.y0_sim, e, harmonics=harm, significance=significance)
+    # the two spectra are independent: the shape one in a second thread (NumPy releases the GIL
+    # in its array operations; each spectrum's arithmetic is the same in either thread)
+    with ThreadPoolExecutor(1) as pool:
+        shape_future = pool.submit(harmonic_content, sem.y0_sim + sh.delta, sh.e_curve,
+                                   harmonics=harm, significance=significance)  # fmt: skip
+        spec = harmonic_content(sem.y0_sim, e, harmonics=harm, significance=significance)
+        shape_spec = shape_future.result()
     explained = float(np.sum(spec.total_sum - spec.residual_sum))
     excess = lv.cost - lv.expected
     periodic_fraction = (
@@ -1333,8 +1339,6 @@ def _spectra(
     unexplained = tuple(
         int(h) for h, r in zip(spec.harmonics, relevant, strict=True) if r and h not in lv.model_h
     )
-    shape_spec = harmonic_content(sem.y0_sim + sh.delta, sh.e_curve, harmonics=harm,
-                                  significance=significance)  # fmt: skip
     suggested = dominant_harmonics(shape_spec, exclude=lv.model_h, noise_std=lv.sigma,
                                    min_amplitude=min_amplitude, dominance=dominance)  # fmt: skip
     flux_any = set(dominant_harmonics(shape_spec, exclude=lv.model_h, noise_std=lv.sigma,
