@@ -27,7 +27,6 @@ from hallcal.io.setup import Setup, read_setup, setup_from_dict
 from hallcal.pipeline import calibrate as _calibrate
 from hallcal.pipeline.calibration import Calibration as _Result
 from hallcal.pipeline.calibration import Reconstruction, calibration_from_artifact
-from hallcal.sim import numba_start
 
 __all__ = [
     "Calibration",
@@ -351,7 +350,6 @@ def calibrate(
     """
     s = as_setup(setup)
     closed = s.trajectory.kind == "closed-loop"
-    numba_start.start()  # while the data are read (no effect on any result)
     ds = as_dataset(data, required=("r", "d1", "d2", "d3") if closed else ("d1", "d2", "d3"))
     bla_ds = None
     if bla_data is not None:
