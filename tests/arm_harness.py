@@ -473,6 +473,23 @@ def _register_count(ops: str) -> int:
     return max(count, 1)
 
 
+def _traced_pcs(b: Build, ranges: dict, samples: np.ndarray, block: int, timeout: float
+                ) -> list[int]:  # fmt: skip
+    """The program counters QEMU executes inside ``ranges`` (name -> (address, size)) while the
+    harness feeds ``samples`` (re-initialising every ``block`` samples), in order."""
+    data = np.ascontiguousarray(samples, dtype=np.int32 if b.fixed else np.float32)
+    (b.workdir / "in.bin").write_bytes(data.tobytes())
+    (b.workdir / "block.bin").write_bytes(np.uint32(block).tobytes())
+    log = b.workdir / "trace.log"
+    log.unlink(missing_ok=True)
+    dfilter = ",".join(f"0x{a:x}+0x{s:x}" for a, s in ranges.values())
+    _qemu(b, ["-singlestep", "-d", "exec,nochain", "-dfilter", dfilter, "-D", str(log)], timeout)
+    pcs = [int(m.group(1), 16) for m in re.finditer(r"/([0-9a-f]{8})/[0-9a-f]{8}/[0-9a-f]{8}\]",
+                                                    log.read_text())]  # fmt: skip
+    log.unlink(missing_ok=True)
+    return pcs
+
+
 def trace(b: Build, samples: np.ndarray, *, entry: str | None = None,
           timeout: float = 300.0, block: int = 0) -> Trace:  # fmt: skip
     """Count the instructions of each ``update`` call (QEMU single-step trace).
@@ -486,16 +503,8 @@ def trace(b: Build, samples: np.ndarray, *, entry: str | None = None,
     skip = ("_read", "_init", "_clear_fault")
     ranges = {k: v for k, v in b.functions.items() if not k.endswith(skip)}
     start = ranges[entry][0]
-    data = np.ascontiguousarray(samples, dtype=np.int32 if b.fixed else np.float32)
-    (b.workdir / "in.bin").write_bytes(data.tobytes())
-    (b.workdir / "block.bin").write_bytes(np.uint32(block).tobytes())
-    log = b.workdir / "trace.log"
-    log.unlink(missing_ok=True)
-    dfilter = ",".join(f"0x{a:x}+0x{s:x}" for a, s in ranges.values())
-    _qemu(b, ["-singlestep", "-d", "exec,nochain", "-dfilter", dfilter, "-D", str(log)], timeout)
+    pcs = _traced_pcs(b, ranges, samples, block, timeout)
     dis = _disassembly(b)
-    pcs = [int(m.group(1), 16) for m in re.finditer(r"/([0-9a-f]{8})/[0-9a-f]{8}/[0-9a-f]{8}\]",
-                                                    log.read_text())]  # fmt: skip
     counts, cycles = [], []
     mnem: Counter = Counter()
     unknown: Counter = Counter()
@@ -608,17 +617,8 @@ def trace_calls(b: Build, samples: np.ndarray, *, read: bool = True, block: int 
     skip = ("_init", "_clear_fault", "_set_angle") + (() if read else ("_read",))
     ranges = {k: v for k, v in b.functions.items() if not k.endswith(skip)}
     start = ranges[entry][0]
-    data = np.ascontiguousarray(samples, dtype=np.int32 if b.fixed else np.float32)
-    (b.workdir / "in.bin").write_bytes(data.tobytes())
-    (b.workdir / "block.bin").write_bytes(np.uint32(block).tobytes())
-    log = b.workdir / "trace.log"
-    log.unlink(missing_ok=True)
-    dfilter = ",".join(f"0x{a:x}+0x{s:x}" for a, s in ranges.values())
-    _qemu(b, ["-singlestep", "-d", "exec,nochain", "-dfilter", dfilter, "-D", str(log)], timeout)
+    pcs = np.array(_traced_pcs(b, ranges, samples, block, timeout), dtype=np.int64)
     dis = _disassembly(b)
-    pcs = np.array([int(m.group(1), 16) for m in re.finditer(
-        r"/([0-9a-f]{8})/[0-9a-f]{8}/[0-9a-f]{8}\]", log.read_text())], dtype=np.int64)  # fmt: skip
-    log.unlink(missing_ok=True)
     size = np.array([dis.get(int(pc), ("?", "", 2))[2] for pc in pcs], dtype=np.int64)
     taken = np.ones(len(pcs), dtype=bool)
     taken[:-1] = pcs[1:] != pcs[:-1] + size[:-1]
