@@ -577,19 +577,20 @@ def calibrate_closed_loop(
                 f"{fit.kernel.ard_rounds} SEM solves",
             )
         )
-    refinement = None
+    refinement = refined = None
     if pm.source == "bla" and setup.model.basis == "fourier":
         say(progress, "refining the BLA's plant with the calibration run (within its uncertainty)")
         with numeric_errors("setup", "model"):
             refinement = refine_plant(setup, pm, s.r, s.d, fit.sem, found)
-        if refinement is not None and refinement.refined:
-            sem = refinement.sem
+        refined = refinement if refinement is not None and refinement.refined else None
+        if refined is not None:
+            sem = refined.sem
             fit = dataclasses.replace(
                 fit, sem=sem, flux=sem.flux, model_info=_fourier_info(sem.flux),
                 gain_factor=sem.gain, gain_factor_std=sem.gain_std, adequacy=None,
-                cogging=refinement.cogging or fit.cogging,
+                cogging=refined.cogging or fit.cogging,
             )  # fmt: skip
-    pm = _refined_plant(pm, fit, refinement if refinement and refinement.refined else None)
+    pm = _refined_plant(pm, fit, refined)
     cogging = fit.cogging.cogging if fit.cogging is not None else None
     if fit.cogging is not None and fit.cogging.status is not CoggingStatus.NONE:
         messages.append(Message.note(MessageCode.COGGING, fit.cogging.message))

@@ -191,12 +191,14 @@ def _map_step(
             drift0=sem.drift, max_iterations=iterations,
         )  # fmt: skip
 
-    def table(fit: SEMResult) -> LUT:
-        loop = closed_loop(setup, ContinuousTF(tuple(nominal[0]), tuple(nominal[1]), nominal[2]))
-        return build_lut(fit.flux, setup.pole_pairs, points=setup.model.lut_points,
-                         projection=loop.projection, offset=loop.offset)  # fmt: skip
+    nominal_shape = _shape(nominal, deviations, np.zeros(len(deviations)))
+    f_init = closed_loop(setup, nominal_shape)  # f_init's projection and offset, for the tables
 
-    base = solve(_shape(nominal, deviations, np.zeros(len(deviations))), 1, sem.flux.theta)
+    def table(fit: SEMResult) -> LUT:
+        return build_lut(fit.flux, setup.pole_pairs, points=setup.model.lut_points,
+                         projection=f_init.projection, offset=f_init.offset)  # fmt: skip
+
+    base = solve(nominal_shape, 1, sem.flux.theta)
     steps = [solve(ContinuousTF(tuple(n), tuple(dd), max(float(t), 0.0)), 1, sem.flux.theta)
              for n, dd, t in deviations]  # fmt: skip
     sigma2 = base.noise_variance
@@ -267,12 +269,12 @@ def refine_plant(
     if step.distance > bound and setup.model.cogging != "none":
         # the gain c (the paper's correction, refined with theta) may have taken up a load
         # torque's steady lag: the BLA's own plant with a load torque instead (module doc)
-        alt_gain, alt = _with_load(setup, pm, r, d, sem, found)
-        if alt is not None and alt.sem.cost < sem.cost:
-            alt_step = _map_step(setup, nominal, deviations, alt_gain, r, d, alt.sem, found,
+        alt = _with_load(setup, pm, r, d, sem, found)
+        if alt.sem.cost < sem.cost:  # its loop: the BLA's plant with the BLA's gain (1)
+            alt_step = _map_step(setup, nominal, deviations, 1.0, r, d, alt.sem, found,
                                  fit_gain=False)  # fmt: skip
             if _total(alt_step, sigma2) < _total(step, sigma2):
-                step, gain, cogging = alt_step, alt_gain, alt
+                step, gain, cogging = alt_step, 1.0, alt
     kept = PlantRefinement(pm.bla.plant, step.alpha, prior, sem, pm.gain.c, step.bias(prior),
                            refined=False, distance=step.distance, bound=bound)  # fmt: skip
     final = step.final
@@ -301,14 +303,14 @@ def _total(step: _MapStep, sigma2: float) -> float:
 
 def _with_load(
     setup: Setup, pm: PlantModel, r: NDArray, d: NDArray, sem: SEMResult, found: SensorFindings
-) -> tuple[float, CoggingSelection | None]:
-    """The BLA's own plant (gain 1: the BLA's) with the cogging search including a constant load
-    torque (order 0), from ``sem``'s flux; the gain and the selection (None if no SEM)."""
+) -> CoggingSelection:
+    """The BLA's own plant (its gain, no correction) with the cogging search including a
+    constant load torque (order 0), from ``sem``'s flux (``[model] cogging`` is not "none")."""
     assert pm.bla is not None
     loop = closed_loop(setup, pm.bla.plant).with_rails(*found.censoring.rails)
     start = solve_sem(loop, r, d, sem.flux.basis, theta0=sem.flux.theta,
                       max_iterations=setup.model.max_iterations)  # fmt: skip
-    orders = setup.model.cogging if setup.model.cogging != "none" else "auto"
+    orders = setup.model.cogging
     sel = select_cogging(loop, r, d, start, orders=orders,
                          max_iterations=setup.model.max_iterations, load=True)  # fmt: skip
     if orders == "auto" and sel.sem.cost < start.cost:
@@ -317,4 +319,4 @@ def _with_load(
                                max_iterations=setup.model.max_iterations, load=True)  # fmt: skip
         if again.sem.cost < sel.sem.cost:
             sel = again
-    return 1.0, sel
+    return sel
