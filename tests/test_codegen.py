@@ -130,7 +130,7 @@ def test_comment_text_cannot_end_a_comment():
 
 
 def test_hostile_artifact_path_reaches_no_code(tmp_path, cal):
-    """The path of issue 21 (line splice out of the comment) and a trigraph: the generated
+    """An artifact path with a line splice out of the comment, one with a trigraph: the generated
     files define only the API, checked by compiling a probe with the injected name."""
     names = [
         "x*\\\n/\n#define HALLCAL_INJECTED 1\nint hallcal_injected_symbol = 42;\n/*.json",
