@@ -136,11 +136,6 @@ class FirmwareDesign:
     messages: tuple[str, ...] = ()
     flux: FluxModel | None = None
 
-    @property
-    def step_rad_per_sample(self) -> float:
-        """The step limit as a mechanical angle per sample [rad]."""
-        return self.plausibility.step_limit * TWO_PI / self.pole_pairs
-
 
 # --------------------------------------------------------------------------------------------
 # Reading the artifact
