@@ -20,7 +20,20 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
-__all__ = ["Message", "MessageCode", "Severity", "has_warning"]
+__all__ = ["Message", "MessageCode", "Outcome", "Severity", "has_warning"]
+
+
+class Outcome(enum.StrEnum):
+    """A result's typed status (how a solve, search or step ended).
+
+    The first member is the success: :attr:`success` is True for it alone. A status with more
+    than one acceptable outcome overrides :attr:`success`.
+    """
+
+    @property
+    def success(self) -> bool:
+        """True for the first member (the success)."""
+        return self is next(iter(type(self)))
 
 
 class Severity(enum.StrEnum):

@@ -24,7 +24,6 @@ n_m times the mechanical ones. Hall signals are in the artifact's unit.
 
 from __future__ import annotations
 
-import enum
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -35,6 +34,7 @@ from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
 from hallcal.io.artifact import ArtifactData, validate_artifact
+from hallcal.messages import Outcome
 from hallcal.output.plausibility import (
     DEFAULT_SPEED,
     Plausibility,
@@ -349,7 +349,7 @@ MAX_POWERUP_TABLE = 65536
 EXP2_CUT = 126
 
 
-class PowerUpCode(enum.StrEnum):
+class PowerUpCode(Outcome):
     """Whether the exported float variant identifies the pole pair at power-up."""
 
     EMITTED = "emitted"  # the decoder is in the float variant
@@ -358,10 +358,6 @@ class PowerUpCode(enum.StrEnum):
     UNSUPPORTED = "unsupported"  # a grid the C cannot index with shifts, or a huge table
     SINGLE_POLE_PAIR = "single_pole_pair"  # nothing to identify: f_init's frame is absolute
     DISABLED = "disabled"  # left out on request (export_c(powerup=False), --no-powerup)
-
-    @property
-    def success(self) -> bool:
-        return self is PowerUpCode.EMITTED
 
 
 @dataclass(frozen=True)

@@ -34,12 +34,12 @@ compiled with numba; float64 throughout.
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal.messages import Outcome
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.reconstruction import clarke_matrix
 from hallcal.sim.cogging import CoggingTorque
@@ -55,16 +55,12 @@ __all__ = [
 ]
 
 
-class LoopStatus(enum.StrEnum):
+class LoopStatus(Outcome):
     """Outcome of a closed-loop simulation or sensitivity pass."""
 
     OK = "ok"
     #: the states left a sane range or the angle moved half an electrical period in one sample
     DIVERGED = "diverged"
-
-    @property
-    def success(self) -> bool:
-        return self is LoopStatus.OK
 
 
 @dataclass(frozen=True)
