@@ -51,9 +51,8 @@ from hallcal.sensor.firmware_tables import (
     choose_table,
     exp2_poly,
     fit_table,
+    newton_seed,
     newton_steps,
-    reciprocal_seed,
-    rsqrt_seed,
     table_sizes,
     tangent_range,
 )
@@ -564,12 +563,12 @@ def _decoder_numbers(
         raise _bad(source, "identifiability.noise_std", "is implausible for the signals")
     # 1/sqrt(r2) on the amplitude window the lean code admits
     w_lo, w_hi = pl.radius_lo**2, pl.radius_hi**2
-    c0, c1, e0 = rsqrt_seed(w_lo, w_hi)
+    c0, c1, e0 = newton_seed(w_lo, w_hi, root=True)
     rs_steps, rs_err = newton_steps(e0, 1.5 + e0)
     # 1/tt on the range of tt over the table, widened by 10 % both ways
     t_lo, t_hi = tangent_range(dec, sigma, A, B, C)
     t_lo, t_hi = 0.9 * t_lo, 1.1 * t_hi
-    r0, r1, re0 = reciprocal_seed(t_lo, t_hi)
+    r0, r1, re0 = newton_seed(t_lo, t_hi)
     tt_steps, tt_err = newton_steps(re0, 1.0)
     poly, p_err = exp2_poly()
     return PowerUpFirmware(
