@@ -534,7 +534,7 @@ def solve_sem(
     if covariance not in _COVARIANCE_SOURCES:
         raise ValueError(f"covariance must be one of {_COVARIANCE_SOURCES}, not {covariance!r}")
     t_start = time.perf_counter()
-    r, d = _checked_record(r, d)
+    r, d = checked_record(r, d)
     cog0: CoggingTorque | None = None
     if isinstance(cogging, CoggingTorque):
         cog0, orders = cogging, cogging.orders
@@ -611,7 +611,7 @@ def default_chunk(n_samples: int) -> int:
     return int(min(4096, max(512, int(n_samples) // BATCHES)))
 
 
-def _checked_record(r: ArrayLike, d: ArrayLike) -> tuple[NDArray, NDArray]:
+def checked_record(r: ArrayLike, d: ArrayLike) -> tuple[NDArray, NDArray]:
     """r (N,) and d (N, 3) as contiguous float64 arrays; d within the accepted Hall scale."""
     r = np.ascontiguousarray(r, dtype=np.float64)
     d = np.ascontiguousarray(d, dtype=np.float64)
