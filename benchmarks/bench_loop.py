@@ -1,9 +1,9 @@
 """Speed of the closed loop and of its sensitivities (the inner loop of the identification).
 
 Paper-size run (104 000 samples, 11 pole pairs, Fourier flux with harmonics 1..11): one
-simulation, one dense Jacobian pass (the test oracle, 69 parameters) and one structured
-Gauss-Newton pass (J^T J, J^T e, e^T e without the dense Jacobian, :mod:`hallcal.fit.gauss_newton`)
-with one and two threads. Then a large model: harmonics 1..55 (333 parameters) on 160 000 samples,
+simulation, one model simulation and one structured Gauss-Newton pass (J^T J, J^T e, e^T e
+without the dense Jacobian, :mod:`hallcal.fit.gauss_newton`) with one and two threads. Then a
+large model: harmonics 1..55 (333 parameters) on 160 000 samples,
 exact (stride 1) and with the strided Hessian of the iterations (stride 4).
 
 Run: ``python benchmarks/bench_loop.py``; the output is committed beside it. The machine has two
@@ -20,7 +20,7 @@ import numpy as np
 from hallcal.fit.gauss_newton import ParameterLayout, gauss_newton_system, simulate_model
 from hallcal.sensor.flux import FourierBasis
 from hallcal.sim.bench import BenchConfig
-from hallcal.sim.loop import loop_jacobian, simulate_loop
+from hallcal.sim.loop import simulate_loop
 
 
 def best_of(fn, repeats: int = 7) -> tuple[float, float]:
@@ -52,10 +52,9 @@ def main() -> None:
     x = truth.theta.ravel()
     t0 = time.perf_counter()
     simulate_loop(loop, truth, r[:100], noise=noise[:100])
-    loop_jacobian(loop, truth, r[:100])
     gauss_newton_system(loop, layout, x, r[:100], d[:100])
     simulate_model(loop, layout, x, r[:100])
-    print(f"numba compilation or cache load (4 kernels): {time.perf_counter() - t0:.2f} s")
+    print(f"numba compilation or cache load (3 kernels): {time.perf_counter() - t0:.2f} s")
     mn, md = best_of(lambda: simulate_loop(loop, truth, r, noise=noise))
     print(
         f"simulate_loop, 104000 samples: min {mn * 1e3:.1f} ms, median {md * 1e3:.1f} ms "
@@ -64,12 +63,6 @@ def main() -> None:
     mn, md = best_of(lambda: simulate_model(loop, layout, x, r))
     print(f"simulate_model (trigonometric recursion), same run: min {mn * 1e3:.1f} ms, "
           f"median {md * 1e3:.1f} ms")  # fmt: skip
-    jac = np.empty((r.size, 3, truth.theta.size))
-    mn, md = best_of(lambda: loop_jacobian(loop, truth, r, out=jac), repeats=5)
-    print(
-        f"loop_jacobian (dense oracle), 104000 samples x {truth.theta.size} parameters: "
-        f"min {mn:.3f} s, median {md:.3f} s"
-    )
     for threads in (1, 2):
         mn, md = best_of(lambda t=threads: gauss_newton_system(loop, layout, x, r, d, threads=t),
                          repeats=5)  # fmt: skip

@@ -340,7 +340,6 @@ MAX_FUNCTION_LINES = 80
 #: in a dozen scratch arrays, which a further split would pass through every call of the hot loop.
 LONG_NUMBA_KERNELS = {
     "hallcal.fit.gauss_newton._sens_block",
-    "hallcal.sim.loop._jacobian_kernel",
 }
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from hallcal.errors import HallcalInputError
-from hallcal.identify.excitation import multisine, multisine_experiment, ramp
+from hallcal.identify.excitation import multisine, multisine_experiment
 
 N = 1000
 TS = 1e-3  # resolution 1 Hz
@@ -144,14 +144,3 @@ def test_experiment_drift_is_a_known_ramp_under_the_multisine() -> None:
     np.testing.assert_allclose(ex.r - ex.trend, flat.r, atol=1e-14)
     # the ramp is continuous across realizations: slope drift over the whole experiment
     assert np.polyfit(ex.t, ex.r, 1)[0] == pytest.approx(drift, rel=1e-2)
-
-
-def test_ramp() -> None:
-    x = ramp(104_000, stop=13.0)
-    assert x.shape == (104_000,)
-    assert x[0] == 0.0 and x[-1] == 13.0
-    np.testing.assert_allclose(np.diff(x), 13.0 / 103_999)
-    y = ramp(5, start=1.0, stop=-1.0)
-    np.testing.assert_allclose(y, [1.0, 0.5, 0.0, -0.5, -1.0])
-    with pytest.raises(HallcalInputError):
-        ramp(1, stop=1.0)

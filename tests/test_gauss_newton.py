@@ -1,8 +1,9 @@
 """The structured Gauss-Newton system (fit/gauss_newton.py) against the dense Jacobian.
 
-The oracle is :func:`hallcal.sim.loop.loop_jacobian`, a separate, straightforward forward-
-sensitivity recursion that forms the dense (N, 3, p) Jacobian with direct sines and cosines; it is
-itself checked against central differences of the plain simulation in ``tests/test_loop.py``.
+The oracle is ``loop_jacobian`` of ``tests/loop_oracle.py``, a separate, straightforward
+forward-sensitivity recursion that forms the dense (N, 3, p) Jacobian with direct sines and
+cosines; it is itself checked against central differences of the plain simulation in
+``tests/test_loop.py``.
 
 Tolerances: the structured system takes its sines and cosines from the angle-addition recursion
 (rounding error ~ n eps at harmonic n) and sums in other orders (chunks, threads, trigonometric
@@ -19,6 +20,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from loop_oracle import loop_jacobian
 
 from hallcal.fit.gauss_newton import (
     ParameterLayout,
@@ -31,7 +33,7 @@ from hallcal.fit.gauss_newton import (
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sim.bench import BenchConfig, ramp_run
 from hallcal.sim.cogging import CoggingTorque
-from hallcal.sim.loop import loop_jacobian, simulate_loop
+from hallcal.sim.loop import simulate_loop
 
 TWO_PI = 2.0 * math.pi
 RTOL = 1e-10

@@ -13,12 +13,13 @@ import numpy as np
 import pytest
 import scipy.integrate
 import scipy.signal
+from loop_oracle import loop_jacobian
 
 from hallcal.sensor.flux import FluxModel, FourierBasis, sinusoidal_theta
 from hallcal.sensor.reconstruction import InitReconstructor
 from hallcal.sim.bench import PAPER_CONTROLLER, PAPER_PLANT, BenchConfig
 from hallcal.sim.cogging import CoggingTorque
-from hallcal.sim.loop import ClosedLoop, loop_jacobian, simulate_loop
+from hallcal.sim.loop import ClosedLoop, simulate_loop
 
 TS = 2.5e-4
 N_ORACLE = 300

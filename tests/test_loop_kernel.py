@@ -1,11 +1,11 @@
 """The closed loop's forms against each other on random small loops (sim/loop_kernel.py).
 
-The loop's steps are written once (:mod:`hallcal.sim.loop_kernel`), but driven by four kernels
-in three forms: the bench simulation (:func:`~hallcal.sim.loop.simulate_loop`, direct sines per
-harmonic), the solver's model simulation and structured Gauss-Newton pass
-(:func:`~hallcal.fit.gauss_newton.simulate_model`,
-:func:`~hallcal.fit.gauss_newton.gauss_newton_system`: the trigonometric recursion, column
-blocks, weights, rails, drift) and the dense Jacobian (:func:`~hallcal.sim.loop.loop_jacobian`).
+The loop's steps are written once (:mod:`hallcal.sim.loop_kernel`) and driven by two kernels
+of the package: the one simulation (the bench's :func:`~hallcal.sim.loop.simulate_loop`, direct
+sines per harmonic, and the solver's :func:`~hallcal.fit.gauss_newton.simulate_model`, the
+trigonometric recursion) and the structured Gauss-Newton pass
+(:func:`~hallcal.fit.gauss_newton.gauss_newton_system`: column blocks, weights, rails, drift);
+the tests' dense Jacobian (``tests/loop_oracle.py``) is a third, independent form.
 On random stable loops (plant, controller, n_m, flux harmonics, cogging orders, gain, rails,
 drift, a loop's own known cogging torque) they must agree with each other, and the
 sensitivities with central differences of the simulation (an oracle that shares no sensitivity
@@ -19,12 +19,13 @@ import math
 import numpy as np
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
+from loop_oracle import loop_jacobian
 
 from hallcal.fit.gauss_newton import ParameterLayout, gauss_newton_system, simulate_model
 from hallcal.sensor.flux import FluxModel, FourierBasis, sinusoidal_theta
 from hallcal.sim.bench import PAPER_CONTROLLER, PAPER_PLANT
 from hallcal.sim.cogging import CoggingTorque
-from hallcal.sim.loop import ClosedLoop, loop_jacobian, simulate_loop
+from hallcal.sim.loop import ClosedLoop, simulate_loop
 from hallcal.sim.lti import ContinuousTF, DiscreteTF
 
 #: samples of each random run (0.15 s at 4 kHz): short, yet the loop's transient and a few

@@ -30,7 +30,6 @@ from hallcal.limits import MAX_POLE_PAIRS
 from hallcal.messages import Message, MessageCode
 
 EXIT_INPUT = HallcalInputError.exit_status
-EXIT_REFUSED = CalibrationRefused.exit_status
 EXIT_FLEET_INCOMPLETE = 4  # hallcal.fleet.EXIT_INCOMPLETE
 #: Exit status after Ctrl-C (SIGINT): 128 + 2, the shells' convention.
 EXIT_ABORTED = 130

@@ -20,7 +20,20 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
-__all__ = ["Message", "MessageCode", "Severity", "has_warning"]
+__all__ = ["Message", "MessageCode", "Outcome", "Severity", "has_warning"]
+
+
+class Outcome(enum.StrEnum):
+    """A result's typed status (how a solve, search or step ended).
+
+    The first member is the success: :attr:`success` is True for it alone. A status with more
+    than one acceptable outcome overrides :attr:`success`.
+    """
+
+    @property
+    def success(self) -> bool:
+        """True for the first member (the success)."""
+        return self is next(iter(type(self)))
 
 
 class Severity(enum.StrEnum):
@@ -96,6 +109,30 @@ class MessageCode(enum.StrEnum):
     STORED = "stored"
 
 
+def _constructor(severity: Severity) -> classmethod[Message, [MessageCode, str], Message]:
+    """``Message.<severity>(code, text)``: the constructor of one severity (the four share it)."""
+
+    def make(cls: type[Message], code: MessageCode, text: str) -> Message:
+        return cls(severity, code, text)
+
+    make.__name__ = severity.value
+    make.__qualname__ = f"Message.{severity.value}"
+    make.__doc__ = f"""A :attr:`Severity.{severity.name}` message.
+
+    Parameters
+    ----------
+    code : MessageCode
+        What it is about.
+    text : str
+        One line without a severity label.
+
+    Returns
+    -------
+    Message
+    """
+    return classmethod(make)
+
+
 @dataclass(frozen=True)
 class Message:
     """One note, warning or refusal for the user.
@@ -118,73 +155,10 @@ class Message:
         object.__setattr__(self, "severity", Severity(self.severity))
         object.__setattr__(self, "code", MessageCode(self.code))
 
-    @classmethod
-    def info(cls, code: MessageCode, text: str) -> Message:
-        """A :attr:`Severity.INFO` message.
-
-        Parameters
-        ----------
-        code : MessageCode
-            What it is about.
-        text : str
-            One line without a severity label.
-
-        Returns
-        -------
-        Message
-        """
-        return cls(Severity.INFO, code, text)
-
-    @classmethod
-    def note(cls, code: MessageCode, text: str) -> Message:
-        """A :attr:`Severity.NOTE` message.
-
-        Parameters
-        ----------
-        code : MessageCode
-            What it is about.
-        text : str
-            One line without a severity label.
-
-        Returns
-        -------
-        Message
-        """
-        return cls(Severity.NOTE, code, text)
-
-    @classmethod
-    def warning(cls, code: MessageCode, text: str) -> Message:
-        """A :attr:`Severity.WARNING` message.
-
-        Parameters
-        ----------
-        code : MessageCode
-            What it is about.
-        text : str
-            One line without a severity label.
-
-        Returns
-        -------
-        Message
-        """
-        return cls(Severity.WARNING, code, text)
-
-    @classmethod
-    def refusal(cls, code: MessageCode, text: str) -> Message:
-        """A :attr:`Severity.REFUSAL` message.
-
-        Parameters
-        ----------
-        code : MessageCode
-            What it is about.
-        text : str
-            One line without a severity label.
-
-        Returns
-        -------
-        Message
-        """
-        return cls(Severity.REFUSAL, code, text)
+    info = _constructor(Severity.INFO)
+    note = _constructor(Severity.NOTE)
+    warning = _constructor(Severity.WARNING)
+    refusal = _constructor(Severity.REFUSAL)
 
     @property
     def is_warning(self) -> bool:

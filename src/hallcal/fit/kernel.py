@@ -99,9 +99,8 @@ from hallcal.fit.gauss_newton import (
     regression_normal_equations,
 )
 from hallcal.fit.order import WORK_BUDGET
-from hallcal.fit.sem import SEMResult, SEMStatus, solve_sem
+from hallcal.fit.sem import SEMResult, SEMStatus, checked_record, solve_sem
 from hallcal.fit.warp import BandEdge, band_edge
-from hallcal.limits import check_hall_scale
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.loop import ClosedLoop
@@ -778,23 +777,13 @@ def solve_kernel_sem(
     KernelSEMResult
     """
     t_start = time.perf_counter()
-    r, d = _checked_record(r, d)
+    r, d = checked_record(r, d)
     o = _options(points, lengthscale, lengthscale_range, criterion, spectrum, max_harmonics,
                  max_iterations, tol, stride, ard_rounds, work_budget)  # fmt: skip
     band = _band_and_start(loop, d, y, o)  # 1
     best, tried = _kernel_hyperparameters(band.x, d, band.K, o)  # 2
     fit = _spectrum_and_map_sem(loop, r, d, band, _bessel_variances(o, best, band.K), o)  # 3-4
     return _kernel_result(best, tried, band, fit, o, time.perf_counter() - t_start)
-
-
-def _checked_record(r: ArrayLike, d: ArrayLike) -> tuple[NDArray, NDArray]:
-    """r (N,) and d (N, 3) as contiguous float64 arrays; d within the accepted Hall scale."""
-    r = np.ascontiguousarray(r, dtype=np.float64)
-    d = np.ascontiguousarray(d, dtype=np.float64)
-    if d.shape != (r.size, 3):
-        raise ValueError("d must have shape (N, 3) with N = len(r)")
-    check_hall_scale(float(np.max(np.abs(d))) if d.size else 0.0)
-    return r, d
 
 
 @dataclass(frozen=True)

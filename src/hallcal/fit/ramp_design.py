@@ -23,7 +23,6 @@ Pintelon & Schoukens (2012), sec. 2.7.
 
 from __future__ import annotations
 
-import enum
 import math
 from dataclasses import dataclass, field
 
@@ -32,6 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from hallcal.fit.gauss_newton import ParameterLayout, gauss_newton_system, simulate_model
 from hallcal.fit.sem import predicted_angle_error
+from hallcal.messages import Outcome
 from hallcal.sensor.flux import FluxModel
 from hallcal.sim.loop import ClosedLoop
 
@@ -57,7 +57,7 @@ SAMPLES_PER_PARAMETER = 20
 GRAM_SAMPLES = 40_000
 
 
-class PlanStatus(enum.StrEnum):
+class PlanStatus(Outcome):
     """How :func:`plan_ramp` ended."""
 
     #: A speed on the grid reaches the target; ``recommended`` is the slowest such speed.
@@ -66,11 +66,6 @@ class PlanStatus(enum.StrEnum):
     TARGET_NOT_REACHED = "target_not_reached"
     #: The closed loop diverged (or the information was singular) at every speed.
     FAILED = "failed"
-
-    @property
-    def success(self) -> bool:
-        """True when a speed reaches the target."""
-        return self is PlanStatus.OK
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,6 @@ Parameter covariance (Ljung 1999, "System Identification", sec. 9.3): for white 
 
 from __future__ import annotations
 
-import enum
 import math
 import time
 from collections.abc import Sequence
@@ -40,6 +39,7 @@ from hallcal.fit.gauss_newton import (
     simulate_model,
 )
 from hallcal.limits import check_hall_scale, check_work_memory
+from hallcal.messages import Outcome
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.cogging import CoggingTorque
@@ -58,7 +58,7 @@ __all__ = [
 TWO_PI = 2.0 * math.pi
 
 
-class SEMStatus(enum.StrEnum):
+class SEMStatus(Outcome):
     """How a SEM solve ended."""
 
     #: the Gauss-Newton step predicts a relative cost decrease below the tolerance
@@ -70,10 +70,6 @@ class SEMStatus(enum.StrEnum):
     DIVERGED = "diverged"
     #: not known (a result rebuilt from an artifact without the solver's status)
     UNKNOWN = "unknown"
-
-    @property
-    def success(self) -> bool:
-        return self is SEMStatus.CONVERGED
 
 
 @dataclass(frozen=True)
@@ -538,7 +534,7 @@ def solve_sem(
     if covariance not in _COVARIANCE_SOURCES:
         raise ValueError(f"covariance must be one of {_COVARIANCE_SOURCES}, not {covariance!r}")
     t_start = time.perf_counter()
-    r, d = _checked_record(r, d)
+    r, d = checked_record(r, d)
     cog0: CoggingTorque | None = None
     if isinstance(cogging, CoggingTorque):
         cog0, orders = cogging, cogging.orders
@@ -615,7 +611,7 @@ def default_chunk(n_samples: int) -> int:
     return int(min(4096, max(512, int(n_samples) // BATCHES)))
 
 
-def _checked_record(r: ArrayLike, d: ArrayLike) -> tuple[NDArray, NDArray]:
+def checked_record(r: ArrayLike, d: ArrayLike) -> tuple[NDArray, NDArray]:
     """r (N,) and d (N, 3) as contiguous float64 arrays; d within the accepted Hall scale."""
     r = np.ascontiguousarray(r, dtype=np.float64)
     d = np.ascontiguousarray(d, dtype=np.float64)

@@ -29,7 +29,6 @@ f_init 5.9 mrad) to 1.03x; SEM started there converges in two iterations.
 
 from __future__ import annotations
 
-import enum
 import math
 import time
 from dataclasses import dataclass, field
@@ -42,6 +41,7 @@ from threadpoolctl import threadpool_limits
 
 from hallcal.fit.adequacy import chi2_isf_even
 from hallcal.fit.gauss_newton import regression_normal_equations
+from hallcal.messages import Outcome
 from hallcal.sensor.flux import FluxModel, FourierBasis
 
 __all__ = [
@@ -151,15 +151,11 @@ def _view_from_normal_equations(M: NDArray, Btd: NDArray, noise_variance: float)
 # ================================================================================================
 
 
-class UnwarpStatus(enum.StrEnum):
+class UnwarpStatus(Outcome):
     """How :func:`unwarp` ended."""
 
     CONVERGED = "converged"
     MAX_ITERATIONS = "max_iterations"
-
-    @property
-    def success(self) -> bool:
-        return self is UnwarpStatus.CONVERGED
 
 
 @dataclass(frozen=True)
@@ -479,7 +475,7 @@ def _warp_normal_equations(
 # ================================================================================================
 
 
-class BandEdgeStatus(enum.StrEnum):
+class BandEdgeStatus(Outcome):
     """Outcome of :func:`band_edge`."""
 
     #: the smallest adequate band was found
@@ -489,10 +485,6 @@ class BandEdgeStatus(enum.StrEnum):
     #: the f_init angle covers less than a revolution: harmonics are not separable, no band
     #: is chosen (the fundamental's band 1..n_m, at f_init's parametrization, is returned)
     TOO_SHORT = "too_short"
-
-    @property
-    def success(self) -> bool:
-        return self is BandEdgeStatus.FOUND
 
 
 @dataclass(frozen=True)

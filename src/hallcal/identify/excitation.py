@@ -1,4 +1,4 @@
-"""Excitation signals: slow ramps and random-phase multisines.
+"""Excitation signals: random-phase multisines, optionally on top of a slow ramp.
 
 The calibration run of the paper (Algorithm 1, step 1) tracks a slow ramp reference; the closed-loop
 BLA experiment (section "Obtaining a Best Linear Approximation") uses several realizations of a
@@ -28,7 +28,6 @@ __all__ = [
     "MultisineExperiment",
     "multisine",
     "multisine_experiment",
-    "ramp",
 ]
 
 LineSpec = Literal["full", "odd", "random-odd"]
@@ -140,28 +139,6 @@ class MultisineExperiment:
     rms: float
     drift: float
     status: ExcitationStatus = ExcitationStatus.OK
-
-
-def ramp(n_samples: int, *, start: float = 0.0, stop: float) -> np.ndarray:
-    """Linear ramp from ``start`` to ``stop`` (both included) in ``n_samples`` samples.
-
-    The calibration reference of the paper (section "Control and reference design"): a slow ramp
-    from 0 to ``2 pi n`` rad places the position-dependent disturbances at low frequencies, where
-    the loop rejects them (e.g. 0 -> 13 rad in 104 000 samples in the simulation study).
-
-    Parameters
-    ----------
-    n_samples : int
-        Number of samples, at least 2.
-    start, stop : float
-        First and last value [rad].
-
-    Returns
-    -------
-    ndarray, shape (n_samples,)
-    """
-    n = _positive_int(n_samples, "n_samples", minimum=2)
-    return np.linspace(float(start), float(stop), n, dtype=np.float64)
 
 
 def multisine(

@@ -659,9 +659,6 @@ def _as_vector(arr: Any, name: str, length: int, source: str, what: str) -> np.n
     return arr.reshape(-1)
 
 
-_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
-
-
 def _read_hdf5(p: Path) -> dict[str, np.ndarray]:
     import h5py
 

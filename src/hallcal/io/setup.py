@@ -13,7 +13,7 @@ import math
 import os
 import re
 import tomllib
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, NoReturn
 
@@ -626,9 +626,10 @@ class _Table:
                 if self.has(s.name):
                     self.error(f"key '{self.key(s.name)}' applies only to {s.only_text()}")
 
-    def _get(self, name: str, default: Any, what: str) -> Any:
+    def _read(self, name: str, default: Any, what: str, convert: Callable[[Any], Any]) -> Any:
+        """Key `name` converted by `convert` (which checks it), or `default` when not given."""
         if name in self.data:
-            return self.data[name]
+            return convert(self.data[name])
         if default is REQUIRED:
             self.error(f"key '{self.key(name)}' is missing (it must be {what})")
         return default
@@ -642,14 +643,15 @@ class _Table:
         maximum: int | None = None,
     ) -> Any:
         what = "an integer" + (f" >= {minimum}" if minimum is not None else "")
-        value = self._get(name, default, what)
-        if value is default and name not in self.data:
-            return value
-        if not _is_int(value) or (minimum is not None and value < minimum):
-            self.fail(name, what)
-        if maximum is not None and value > maximum:
-            self.above(name, maximum)
-        return int(value)
+
+        def convert(value: Any) -> int:
+            if not _is_int(value) or (minimum is not None and value < minimum):
+                self.fail(name, what)
+            if maximum is not None and value > maximum:
+                self.above(name, maximum)
+            return int(value)
+
+        return self._read(name, default, what, convert)
 
     def above(self, name: str, maximum: float, what: str = "") -> NoReturn:
         """The value of `name` exceeds hallcal's limit `maximum` (:mod:`hallcal.limits`)."""
@@ -672,29 +674,35 @@ class _Table:
             what += " > 0"
         elif minimum is not None:
             what += f" >= {minimum:g}"
-        value = self._get(name, default, what)
-        if value is default and name not in self.data:
-            return value
-        if not _is_number(value) or not _finite(value):
-            self.fail(name, "a finite number" if _is_number(value) else what)
-        if (positive and value <= 0) or (minimum is not None and value < minimum):
-            self.fail(name, what)
-        if maximum is not None and abs(value) > maximum:
-            self.above(name, maximum)
-        return float(value)
+
+        def convert(value: Any) -> float:
+            if not _is_number(value) or not _finite(value):
+                self.fail(name, "a finite number" if _is_number(value) else what)
+            if (positive and value <= 0) or (minimum is not None and value < minimum):
+                self.fail(name, what)
+            if maximum is not None and abs(value) > maximum:
+                self.above(name, maximum)
+            return float(value)
+
+        return self._read(name, default, what, convert)
 
     def boolean(self, name: str, *, default: Any = REQUIRED) -> Any:
-        value = self._get(name, default, "true or false")
-        if not isinstance(value, bool):
-            self.fail(name, "true or false")
-        return value
+        def convert(value: Any) -> bool:
+            if not isinstance(value, bool):
+                self.fail(name, "true or false")
+            return value
+
+        return self._read(name, default, "true or false", convert)
 
     def choice(self, name: str, options: Sequence[str], *, default: Any = REQUIRED) -> Any:
         what = "one of " + ", ".join(f'"{o}"' for o in options)
-        value = self._get(name, default, what)
-        if not isinstance(value, str) or value not in options:
-            self.fail(name, what, _suggest(value, options) if isinstance(value, str) else "")
-        return value
+
+        def convert(value: Any) -> str:
+            if not isinstance(value, str) or value not in options:
+                self.fail(name, what, _suggest(value, options) if isinstance(value, str) else "")
+            return value
+
+        return self._read(name, default, what, convert)
 
     def numbers(
         self,
@@ -708,23 +716,44 @@ class _Table:
         what = (
             f"a list of {length} numbers" if length is not None else "a non-empty list of numbers"
         )
-        value = self._get(name, default, what)
-        if value is default and name not in self.data:
-            return value
+
+        def convert(value: Any) -> tuple[float, ...]:
+            if (
+                not isinstance(value, list | tuple)
+                or not value
+                or (length is not None and len(value) != length)
+                or not all(_is_number(v) for v in value)
+            ):
+                self.fail(name, what)
+            if not all(_finite(v) for v in value):
+                self.fail(name, "a list of finite numbers")
+            if max_length is not None and len(value) > max_length:
+                self.above(name, max_length, f"a list of {len(value)} numbers")
+            if maximum is not None and any(abs(v) > maximum for v in value):
+                self.above(name, maximum, "a list with " + _show(max(value, key=abs)))
+            return tuple(float(v) for v in value)
+
+        return self._read(name, default, what, convert)
+
+    def distinct_integers(
+        self, name: str, value: Any, *, minimum: int, what: str, noun: str, max_count: int
+    ) -> tuple[int, ...]:
+        """`value` of key `name` as a non-empty list of distinct integers >= `minimum`: at most
+        `max_count` of them, none above MAX_HARMONIC (harmonics, cogging orders)."""
         if (
             not isinstance(value, list | tuple)
             or not value
-            or (length is not None and len(value) != length)
-            or not all(_is_number(v) for v in value)
+            or not all(_is_int(k) and k >= minimum for k in value)
         ):
             self.fail(name, what)
-        if not all(_finite(v) for v in value):
-            self.fail(name, "a list of finite numbers")
-        if max_length is not None and len(value) > max_length:
-            self.above(name, max_length, f"a list of {len(value)} numbers")
-        if maximum is not None and any(abs(v) > maximum for v in value):
-            self.above(name, maximum, "a list with " + _show(max(value, key=abs)))
-        return tuple(float(v) for v in value)
+        if len(value) > max_count:
+            self.above(name, max_count, f"a list of {len(value)} {noun}s")
+        if max(value) > MAX_HARMONIC:
+            self.above(name, MAX_HARMONIC, f"a list with the {noun} {max(value)}")
+        if len(set(value)) != len(value):
+            article = "an" if noun[0] in "aeiou" else "a"
+            self.error(f"key '{self.key(name)}' lists {article} {noun} twice: {_show(value)}")
+        return tuple(int(k) for k in value)
 
     def table_at(self, name: str) -> _Table | None:
         if name not in self.data:
@@ -765,21 +794,11 @@ def _parse_model(t: _Table | None) -> ModelSpec:
     lengthscale: float | str = t.default("lengthscale")
     if basis == "fourier":
         value = t.data.get("harmonics", harmonics)
-        what = 'a list of distinct integers >= 1 or "auto"'
         if not (isinstance(value, str) and value == "auto"):
-            if (
-                not isinstance(value, list | tuple)
-                or not value
-                or not all(_is_int(h) and h >= 1 for h in value)
-            ):
-                t.fail("harmonics", what)
-            if len(value) > MAX_HARMONICS:
-                t.above("harmonics", MAX_HARMONICS, f"a list of {len(value)} harmonics")
-            if max(value) > MAX_HARMONIC:
-                t.above("harmonics", MAX_HARMONIC, f"a list with the harmonic {max(value)}")
-            if len(set(value)) != len(value):
-                t.error(f"key '{t.key('harmonics')}' lists a harmonic twice: {_show(value)}")
-            harmonics = tuple(int(h) for h in value)
+            harmonics = t.distinct_integers(
+                "harmonics", value, minimum=1, what='a list of distinct integers >= 1 or "auto"',
+                noun="harmonic", max_count=MAX_HARMONICS,
+            )  # fmt: skip
     else:
         points = t.get("points")
         value = t.data.get("lengthscale", lengthscale)
@@ -812,20 +831,11 @@ def _parse_cogging(t: _Table, basis: str) -> tuple[int, ...] | str:
         return value
     if basis != "fourier":
         t.error(f"key '{t.key('cogging')}' with orders applies only to basis = \"fourier\"")
-    if (
-        not isinstance(value, list | tuple)
-        or not value
-        or not all(_is_int(k) and k >= 0 for k in value)
-    ):
-        t.fail("cogging", 'a list of distinct integers >= 0 (periods per revolution, 0 a '
-               'constant load torque), "auto" or "none"')  # fmt: skip
-    if len(set(value)) != len(value):
-        t.error(f"key '{t.key('cogging')}' lists an order twice: {_show(value)}")
-    if len(value) > MAX_COGGING_ORDERS:
-        t.above("cogging", MAX_COGGING_ORDERS, f"a list of {len(value)} orders")
-    if max(value) > MAX_HARMONIC:
-        t.above("cogging", MAX_HARMONIC, f"a list with the order {max(value)}")
-    return tuple(int(k) for k in value)
+    what = ('a list of distinct integers >= 0 (periods per revolution, 0 a constant load '
+            'torque), "auto" or "none"')  # fmt: skip
+    return t.distinct_integers(
+        "cogging", value, minimum=0, what=what, noun="order", max_count=MAX_COGGING_ORDERS
+    )
 
 
 def _parse_trajectory(t: _Table | None) -> TrajectorySpec:

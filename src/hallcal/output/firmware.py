@@ -24,7 +24,6 @@ n_m times the mechanical ones. Hall signals are in the artifact's unit.
 
 from __future__ import annotations
 
-import enum
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -35,6 +34,7 @@ from numpy.typing import NDArray
 
 from hallcal.errors import HallcalInputError
 from hallcal.io.artifact import ArtifactData, validate_artifact
+from hallcal.messages import Outcome
 from hallcal.output.plausibility import (
     DEFAULT_SPEED,
     Plausibility,
@@ -51,9 +51,8 @@ from hallcal.sensor.firmware_tables import (
     choose_table,
     exp2_poly,
     fit_table,
+    newton_seed,
     newton_steps,
-    reciprocal_seed,
-    rsqrt_seed,
     table_sizes,
     tangent_range,
 )
@@ -135,11 +134,6 @@ class FirmwareDesign:
     sha256: str
     messages: tuple[str, ...] = ()
     flux: FluxModel | None = None
-
-    @property
-    def step_rad_per_sample(self) -> float:
-        """The step limit as a mechanical angle per sample [rad]."""
-        return self.plausibility.step_limit * TWO_PI / self.pole_pairs
 
 
 # --------------------------------------------------------------------------------------------
@@ -354,7 +348,7 @@ MAX_POWERUP_TABLE = 65536
 EXP2_CUT = 126
 
 
-class PowerUpCode(enum.StrEnum):
+class PowerUpCode(Outcome):
     """Whether the exported float variant identifies the pole pair at power-up."""
 
     EMITTED = "emitted"  # the decoder is in the float variant
@@ -363,10 +357,6 @@ class PowerUpCode(enum.StrEnum):
     UNSUPPORTED = "unsupported"  # a grid the C cannot index with shifts, or a huge table
     SINGLE_POLE_PAIR = "single_pole_pair"  # nothing to identify: f_init's frame is absolute
     DISABLED = "disabled"  # left out on request (export_c(powerup=False), --no-powerup)
-
-    @property
-    def success(self) -> bool:
-        return self is PowerUpCode.EMITTED
 
 
 @dataclass(frozen=True)
@@ -573,12 +563,12 @@ def _decoder_numbers(
         raise _bad(source, "identifiability.noise_std", "is implausible for the signals")
     # 1/sqrt(r2) on the amplitude window the lean code admits
     w_lo, w_hi = pl.radius_lo**2, pl.radius_hi**2
-    c0, c1, e0 = rsqrt_seed(w_lo, w_hi)
+    c0, c1, e0 = newton_seed(w_lo, w_hi, root=True)
     rs_steps, rs_err = newton_steps(e0, 1.5 + e0)
     # 1/tt on the range of tt over the table, widened by 10 % both ways
     t_lo, t_hi = tangent_range(dec, sigma, A, B, C)
     t_lo, t_hi = 0.9 * t_lo, 1.1 * t_hi
-    r0, r1, re0 = reciprocal_seed(t_lo, t_hi)
+    r0, r1, re0 = newton_seed(t_lo, t_hi)
     tt_steps, tt_err = newton_steps(re0, 1.0)
     poly, p_err = exp2_poly()
     return PowerUpFirmware(

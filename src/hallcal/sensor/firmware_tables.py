@@ -40,9 +40,8 @@ __all__ = [
     "choose_table",
     "exp2_poly",
     "fit_table",
+    "newton_seed",
     "newton_steps",
-    "reciprocal_seed",
-    "rsqrt_seed",
     "table_error",
     "table_sizes",
     "tangent_range",
@@ -317,40 +316,28 @@ def choose_table(lut: LUT, budget: float) -> CorrectionTable:
 # --------------------------------------------------------------------------------------------
 
 
-def reciprocal_seed(lo: float, hi: float) -> tuple[float, float, float]:
-    """Linear minimax seed ``c0 - c1 x`` of 1/x on [lo, hi] (relative error) and that error.
+def newton_seed(lo: float, hi: float, *, root: bool = False) -> tuple[float, float, float]:
+    """Linear minimax seed ``c0 - c1 x`` of 1/x (or of 1/sqrt(x) with ``root``) on [lo, hi]
+    (relative error) and that error. For 1/sqrt(x) the error ``sqrt(x) (c0 - c1 x) - 1``
+    equioscillates at lo, hi and its maximum ``x* = c0 / (3 c1)``: equal values at the ends give
+    ``c0 / c1 = lo + sqrt(lo hi) + hi``, opposite ones at an end and at x* fix c1.
 
     Parameters
     ----------
     lo, hi : float
         The window of x, 0 < lo < hi.
+    root : bool, keyword-only
+        Seed 1/sqrt(x) instead of 1/x.
 
     Returns
     -------
     (float, float, float)
         c0, c1 and the largest relative error.
     """
-    c1 = 8.0 / (4.0 * lo * hi + (lo + hi) ** 2)
-    c0 = c1 * (lo + hi)
-    return c0, c1, abs(1.0 - c1 * lo * hi)
-
-
-def rsqrt_seed(lo: float, hi: float) -> tuple[float, float, float]:
-    """Linear minimax seed ``c0 - c1 x`` of 1/sqrt(x) on [lo, hi] (relative error) and that
-    error. The error ``sqrt(x) (c0 - c1 x) - 1`` equioscillates at lo, hi and its maximum
-    ``x* = c0 / (3 c1)``: equal values at the ends give ``c0 / c1 = lo + sqrt(lo hi) + hi``,
-    opposite ones at an end and at x* fix c1.
-
-    Parameters
-    ----------
-    lo, hi : float
-        The window of x, 0 < lo < hi.
-
-    Returns
-    -------
-    (float, float, float)
-        c0, c1 and the largest relative error.
-    """
+    if not root:
+        c1 = 8.0 / (4.0 * lo * hi + (lo + hi) ** 2)
+        c0 = c1 * (lo + hi)
+        return c0, c1, abs(1.0 - c1 * lo * hi)
     ratio = lo + math.sqrt(lo * hi) + hi
     xs = ratio / 3.0
     c1 = 2.0 / (math.sqrt(lo) * (ratio - lo) + 2.0 * xs**1.5)

@@ -5,9 +5,9 @@ The per-sample pieces of eq. (state_eq) and of its forward sensitivities (the eq
 angle-addition recursion of the solver's per-thread tables), the flux and its slope, the
 cogging torque T_c(y0) with its regressors, the ADC (quantizer, rails), the sensors' drift,
 f_init's projection and unwrapping, the controller output, the state-space steps, the angle's
-sensitivity and the divergence test. The kernels of :mod:`hallcal.sim.loop` (bench simulation,
-dense Jacobian) and :mod:`hallcal.fit.gauss_newton` (model simulation, structured
-Gauss-Newton pass) are built from these steps only.
+sensitivity and the divergence test. The kernels here (the one simulation, used by
+:mod:`hallcal.sim.loop` and the solver's model simulation) and of :mod:`hallcal.fit.gauss_newton`
+(the structured Gauss-Newton pass) are built from these steps only.
 
 Each step is a small leaf function inlined into the kernels (``inline="always"``). Measured on
 the paper run: a per-sample step that takes a dozen arrays, or nests other steps, costs about

@@ -8,6 +8,7 @@ the files atomically.
 
 from __future__ import annotations
 
+import builtins
 import dataclasses
 import math
 import os
@@ -182,7 +183,7 @@ class _Numbers:
     fixed: _FixedNumbers | None
 
     @property
-    def worst(self) -> float:
+    def worst(self) -> builtins.float:  # the field ``float`` shadows the builtin here
         """The larger stated bound of the two variants [rad]."""
         return max(self.float.bound, self.fixed.bound if self.fixed is not None else 0.0)
 

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from hallcal.errors import HallcalInputError
 from hallcal.output.codegen.c_text import _U32
 from hallcal.output.firmware import FirmwareDesign, Plausibility
-from hallcal.sensor.firmware_tables import reciprocal_seed
+from hallcal.sensor.firmware_tables import newton_seed
 
 TWO_PI = 2.0 * math.pi
 _EPS_F32 = 2.0**-24  # unit roundoff of IEEE single precision
@@ -104,7 +104,7 @@ def _float_atan2_design(
     if magic:
         c0, c1, eps = 0.0, 0.0, _magic_seed_error()
     else:
-        c0, c1, eps = reciprocal_seed(x_lo, x_hi)
+        c0, c1, eps = newton_seed(x_lo, x_hi)
     newton, e = 1, eps * eps
     while 0.354 * e > reciprocal_target and newton < max_newton:
         e, newton = e * e, newton + 1
@@ -415,7 +415,7 @@ def _fixed_atan2(r_true_lo: float, r_true_hi: float, pe: float) -> _FixedAtan2:
             "the amplitude window is too wide for the fixed-point reciprocal (lower the tolerance)"
         )
     kr = 15 + int(math.floor(math.log2(xh_lo)))  # R ~ 2^kr / xh < 2^16
-    c0, c1, eps0 = reciprocal_seed(float(xh_lo), float(xh_hi + 1))
+    c0, c1, eps0 = newton_seed(float(xh_lo), float(xh_hi + 1))
     seed_shift = 15 - int(math.floor(math.log2(c1 * 2.0**kr)))
     seed_b = int(round(c1 * 2.0**kr * 2.0**seed_shift))
     seed_a = int(round(c0 * 2.0**kr))
