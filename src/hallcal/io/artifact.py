@@ -17,7 +17,7 @@ import hashlib
 import json
 import math
 import os
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
@@ -213,6 +213,10 @@ class ArtifactData(Mapping[str, Any]):
     bijective_checked : bool
         False when validated with ``bijective=False`` (an in-memory refused calibration's
         report): checked again, not passed through, where a usable table is required.
+    checked : bool
+        False for the artifact of a calibration computed in this process
+        (:meth:`in_memory`): :func:`validate_artifact` checks it before it is written or
+        reported.
     """
 
     format: str
@@ -230,6 +234,55 @@ class ArtifactData(Mapping[str, Any]):
     source: str = "<artifact>"
     file_sha256: str | None = None
     bijective_checked: bool = field(default=True, repr=False)
+    checked: bool = field(default=True, repr=False)
+    _typed: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    @classmethod
+    def in_memory(cls, data: Mapping[str, Any], lut: LUT, typed: Mapping[str, Any]) -> ArtifactData:
+        """The artifact of a calibration computed in this process, not yet checked.
+
+        Its typed objects are the ones it was written from, not rebuilt from the JSON.
+
+        Parameters
+        ----------
+        data : mapping
+            The artifact's keys (NumPy data and a :class:`Setup` allowed; NaN not refused
+            until it is written).
+        lut : LUT
+            Its table (``reconstruction`` and ``lut``).
+        typed : mapping
+            Objects :meth:`typed` returns by name (``"flux"``, ``"plant"``, ...).
+
+        Returns
+        -------
+        ArtifactData
+            Unchecked (``checked`` False): :func:`validate_artifact` checks its data.
+        """
+        return cls(
+            format=data["format"],
+            version=data["hallcal_version"],
+            pole_pairs=int(data["pole_pairs"]),
+            projection=lut.projection,
+            offset=lut.offset,
+            y_hat=lut.y_hat,
+            eta=lut.eta,
+            setup=data["setup"],
+            model=data["model"],
+            diagnostics=data["diagnostics"],
+            plant=data.get("plant"),
+            data=data,
+            source="in memory",
+            bijective_checked=False,
+            checked=False,
+            _typed={"lut": lut, **typed},
+        )
+
+    def typed(self, name: str, build: Callable[[], Any]) -> Any:
+        """The typed object `name` of this artifact, built once by `build` (or, for a
+        calibration computed in this process, the object the artifact was written from)."""
+        if name not in self._typed:
+            self._typed[name] = build()
+        return self._typed[name]
 
     def __getitem__(self, key: str) -> Any:
         return self.data[key]
@@ -261,11 +314,19 @@ class ArtifactData(Mapping[str, Any]):
 
     def lut(self) -> LUT:
         """The lookup table and the f_init it corrects (:class:`hallcal.sensor.lut.LUT`)."""
-        return LUT.from_arrays(self.pole_pairs, self.projection, self.offset, self.y_hat, self.eta)
+        return self.typed(
+            "lut",
+            lambda: LUT.from_arrays(
+                self.pole_pairs, self.projection, self.offset, self.y_hat, self.eta
+            ),
+        )
 
     def plant_model(self) -> ContinuousTF | None:
         """The plant G(s) the calibration used (``plant``: gain correction applied), or None
         when the artifact has none (open-loop runs, older artifacts)."""
+        return self.typed("plant", self._plant_model)
+
+    def _plant_model(self) -> ContinuousTF | None:
         p = self.plant
         if p is None:
             return None
@@ -280,6 +341,9 @@ class ArtifactData(Mapping[str, Any]):
         HallcalInputError
             When the model refuses the checked coefficients (the message names the key).
         """
+        return self.typed("cogging", self._cogging_torque)
+
+    def _cogging_torque(self) -> CoggingTorque | None:
         if self.data.get("cogging") is None:
             return None
         try:
@@ -292,9 +356,11 @@ class ArtifactData(Mapping[str, Any]):
     def flux(self) -> FluxModel:
         """The flux model as a Fourier series (a kernel model stores its harmonics and
         coefficients too): :class:`hallcal.sensor.flux.FluxModel`."""
+        return self.typed("flux", self._flux)
+
+    def _flux(self) -> FluxModel:
         harmonics = tuple(int(h) for h in self.model["harmonics"])
-        theta = np.array(self.model["theta"], dtype=np.float64)
-        return FluxModel(FourierBasis(harmonics), theta)
+        return FluxModel(FourierBasis(harmonics), np.array(self.model["theta"], dtype=np.float64))
 
 
 class _Checker:
@@ -651,8 +717,10 @@ def validate_artifact(
     HallcalInputError
         The first problem found.
     """
-    if isinstance(artifact, ArtifactData) and (artifact.bijective_checked or not bijective):
-        return artifact
+    if isinstance(artifact, ArtifactData):
+        if artifact.checked and (artifact.bijective_checked or not bijective):
+            return artifact
+        artifact = artifact.data
     c = _Checker(source)
     if not isinstance(artifact, Mapping):
         c.bad("not a hallcal calibration artifact (not a JSON object)")

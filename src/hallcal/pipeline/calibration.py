@@ -60,10 +60,12 @@ if TYPE_CHECKING:  # result types of the steps, for annotations only (keeps the 
 __all__ = [
     "Calibration",
     "CalibrationStatus",
+    "Diagnostics",
     "Reconstruction",
     "Validation",
     "artifact_from_calibration",
     "calibration_from_artifact",
+    "computed_calibration",
     "reconstruct",
     "require_table",
     "validate",
@@ -231,93 +233,171 @@ class Reconstruction:
 
 
 @dataclass(frozen=True)
-class Calibration:
-    """Result of a calibration (Algorithm 1), or one rebuilt from its artifact.
+class Diagnostics:
+    """What a calibration computed in this process has beyond its artifact (all optional).
+
+    A calibration loaded from an artifact has none of it: what the artifact keeps of these is
+    in its ``diagnostics`` (:attr:`Calibration.diagnostics`).
 
     Attributes
     ----------
-    setup : Setup
-    flux : FluxModel
-        Identified g_theta* (Fourier coefficients; the kernel model in its exact Fourier form).
-    lut : LUT
-        The table and the f_init it corrects.
-    status : CalibrationStatus
-    refusal : str or None
-        Why the table must not be used (``status.refused``), else None.
-    messages : tuple of Message
-        Warnings and notes for the user, most important first.
-    predicted_error : float
-        Predicted RMS angle error of f_star [rad]: the noise floor and the table's uncertainty
-        from cov(theta), in quadrature (:class:`~hallcal.fit.adequacy.AdequacyReport`).
-    noise_floor : float
-        RMS angle error [rad] that the Hall noise alone causes with this sensor map.
-    plant : ContinuousTF or None
-        The plant model used in SEM (gain correction applied); None for open-loop runs.
-    plant_source : {"setup", "bla"} or None
-    gain : GainCorrection or None
     sem : SEMResult or None
-        The SEM solve (closed-loop runs computed in this process).
+        The SEM solve (closed-loop runs): d_sim, y0_sim, cov(theta), the cost history.
     bla : BLAIdentification or None
+    gain : GainCorrection or None
+        The BLA's gain correction c-hat (the artifact keeps its value and report).
     adequacy : AdequacyReport or None
     validation : Validation or None
-        Errors against ``y_ref`` when the calibration data had it (validation only).
-    timings : dict
-        Seconds per step.
-    model_info : dict
-        Basis description for the artifact (basis, harmonics, theta, kernel hyperparameters).
+        Errors against ``y_ref`` when the calibration data had it.
     selection : HarmonicSelection or None
         The automatic choice of harmonics (``harmonics = "auto"``).
     kernel : KernelSEMResult or None
         The kernel-basis solve (``basis = "kernel"``).
     constant_speed : ConstantSpeedResult or None
         The open-loop constant-speed fit (``[trajectory] kind = "constant-speed"``).
-    cogging : CoggingTorque or None
-        The cogging torque identified jointly with the flux (``[model] cogging``), with the
-        covariance of its coefficients; None when none was modelled or found.
     cogging_selection : CoggingSelection or None
-        How its orders were chosen (evidence and tests).
-    identifiability : IdentifiabilityReport or None
-        How well the pole pair can be identified at power-up from the magnets' signatures
-        (:mod:`hallcal.sensor.absolute`); None without a bijective table or for artifacts
-        made before it existed.
-    observer : mapping or None
-        The model-based observer's check at calibration time (the artifact's ``observer``
-        entry: noise variance per channel, whether the three-signal curve is injective with
-        its margin; :func:`hallcal.pipeline.observe.observer_check`); None when not checked.
-    sensors : dict
-        What the data say about the sensors themselves (:mod:`hallcal.fit.censor`,
-        :mod:`hallcal.fit.drift`): ``censoring`` (censored samples per sensor, rails,
-        quantization step) and ``drift`` when found; the artifact's ``diagnostics.sensors``.
-    artifact : dict or None
-        The artifact this calibration was loaded from (None when computed here).
+        How the cogging torque's orders were chosen (evidence and tests).
     """
 
-    setup: Setup
-    flux: FluxModel
-    lut: LUT
-    status: CalibrationStatus
-    predicted_error: float
-    noise_floor: float
-    refusal: str | None = None
-    messages: tuple[Message, ...] = ()
-    plant: ContinuousTF | None = None
-    plant_source: str | None = None
-    gain: GainCorrection | None = None
     sem: SEMResult | None = field(default=None, repr=False)
     bla: BLAIdentification | None = field(default=None, repr=False)
+    gain: GainCorrection | None = None
     adequacy: AdequacyReport | None = field(default=None, repr=False)
     validation: Validation | None = None
-    timings: Mapping[str, float] = field(default_factory=dict, repr=False)
-    model_info: Mapping[str, Any] = field(default_factory=dict, repr=False)
     selection: HarmonicSelection | None = field(default=None, repr=False)
     kernel: KernelSEMResult | None = field(default=None, repr=False)
     constant_speed: ConstantSpeedResult | None = field(default=None, repr=False)
-    cogging: CoggingTorque | None = field(default=None, repr=False)
     cogging_selection: CoggingSelection | None = field(default=None, repr=False)
-    identifiability: IdentifiabilityReport | None = field(default=None, repr=False)
-    observer: Mapping[str, Any] | None = field(default=None, repr=False)
-    sensors: Mapping[str, Any] = field(default_factory=dict, repr=False)
-    artifact: Mapping[str, Any] | None = field(default=None, repr=False)
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    """A calibration: its artifact, and what the calibrating process has beyond it.
+
+    The one form of a calibration, computed (:func:`hallcal.pipeline.calibrate`, through
+    :func:`computed_calibration`) or loaded (:func:`calibration_from_artifact`): the typed
+    artifact that :meth:`save` writes, the report, the C export and the fleet read, with the
+    in-memory :class:`Diagnostics` when computed here. Every other attribute is read from the
+    artifact (for a computed calibration, the object it was written from).
+
+    Attributes
+    ----------
+    artifact : ArtifactData
+        The artifact (checked when loaded; checked by :meth:`save` when computed here).
+    computed : Diagnostics or None
+        The solver's results in memory; None when loaded from an artifact.
+
+    Properties read from the artifact: ``setup``; ``flux`` (g_theta*, Fourier coefficients;
+    the kernel model in its exact Fourier form); ``lut`` (the table and the f_init it
+    corrects); ``status``; ``refusal`` (why the table must not be used, else None);
+    ``messages`` (warnings and notes, most important first); ``predicted_error`` (RMS angle
+    error of f_star [rad] predicted from the noise floor and cov(theta), in quadrature);
+    ``noise_floor`` (RMS angle error [rad] of the Hall noise alone); ``plant`` (G(s) used in
+    SEM, gain correction applied; None for open-loop runs) and ``plant_source`` ("setup" or
+    "bla"); ``timings`` (seconds per step); ``model_info`` (basis, harmonics, theta, kernel
+    hyperparameters); ``cogging`` (the cogging torque identified with the flux, with the
+    covariance of its coefficients); ``identifiability`` (the pole pair at power-up from the
+    magnets' signatures, :mod:`hallcal.sensor.absolute`); ``observer`` (the model-based
+    observer's check: noise variance per channel, whether the three-signal curve is injective,
+    :func:`hallcal.pipeline.observe.observer_check`); ``sensors`` (censoring and drift of the
+    sensors, :mod:`hallcal.fit.censor`, :mod:`hallcal.fit.drift`); ``diagnostics`` (the
+    artifact's ``diagnostics``). Read from :attr:`computed` (None when loaded): ``sem``,
+    ``bla``, ``gain``, ``adequacy``, ``validation``, ``selection``, ``kernel``,
+    ``constant_speed``, ``cogging_selection``.
+    """
+
+    artifact: ArtifactData = field(repr=False)
+    computed: Diagnostics | None = field(default=None, repr=False)
+
+    def __repr__(self) -> str:
+        shown = ("setup", "flux", "lut", "status", "predicted_error", "noise_floor", "refusal")
+        shown += ("messages", "plant", "plant_source", "gain", "validation")
+        return f"Calibration({', '.join(f'{k}={getattr(self, k)!r}' for k in shown)})"
+
+    @property
+    def setup(self) -> Setup:
+        return self.artifact.setup
+
+    @property
+    def flux(self) -> FluxModel:
+        return self.artifact.flux()
+
+    @property
+    def lut(self) -> LUT:
+        return self.artifact.lut()
+
+    @property
+    def plant(self) -> ContinuousTF | None:
+        return self.artifact.plant_model()
+
+    @property
+    def cogging(self) -> CoggingTorque | None:
+        return self.artifact.cogging_torque()
+
+    @property
+    def diagnostics(self) -> Mapping[str, Any]:
+        """The artifact's ``diagnostics`` (status, costs, noise variance, ...)."""
+        return self.artifact.diagnostics
+
+    @property
+    def status(self) -> CalibrationStatus:
+        return self.artifact.typed("status", lambda: _status(self.artifact))
+
+    @property
+    def refusal(self) -> str | None:
+        return self.diagnostics.get("refusal")
+
+    @property
+    def messages(self) -> tuple[Message, ...]:
+        return self.artifact.typed(
+            "messages",
+            lambda: tuple(Message.from_record(m) for m in self.diagnostics.get("messages", ())),
+        )
+
+    @property
+    def predicted_error(self) -> float:
+        return _float_or_nan(self.diagnostics.get("predicted_angle_error_rms"))
+
+    @property
+    def noise_floor(self) -> float:
+        return _float_or_nan(self.diagnostics.get("noise_floor"))
+
+    @property
+    def plant_source(self) -> str | None:
+        return None if self.artifact.plant is None else self.artifact.plant.get("source")
+
+    @property
+    def timings(self) -> Mapping[str, float]:
+        return self.diagnostics.get("timings", {})
+
+    @property
+    def model_info(self) -> Mapping[str, Any]:
+        return self.artifact.model
+
+    @property
+    def identifiability(self) -> IdentifiabilityReport | None:
+        return self.artifact.typed("identifiability", lambda: _identifiability(self.artifact))
+
+    @property
+    def observer(self) -> Mapping[str, Any] | None:
+        return self.artifact.get("observer")
+
+    @property
+    def sensors(self) -> Mapping[str, Any]:
+        return self.diagnostics.get("sensors", {})
+
+    def _computed(self, name: str) -> Any:
+        return None if self.computed is None else getattr(self.computed, name)
+
+    sem = property(lambda self: self._computed("sem"))
+    bla = property(lambda self: self._computed("bla"))
+    gain = property(lambda self: self._computed("gain"))
+    adequacy = property(lambda self: self._computed("adequacy"))
+    validation = property(lambda self: self._computed("validation"))
+    selection = property(lambda self: self._computed("selection"))
+    kernel = property(lambda self: self._computed("kernel"))
+    constant_speed = property(lambda self: self._computed("constant_speed"))
+    cogging_selection = property(lambda self: self._computed("cogging_selection"))
 
     @property
     def pole_pairs(self) -> int:
@@ -334,20 +414,23 @@ class Calibration:
             and self.observer.get("injective") is True
         )
 
-    @property
-    def diagnostics(self) -> Mapping[str, Any]:
-        """The artifact's ``diagnostics`` (status, costs, noise variance, ...): as loaded, or as
-        :meth:`save` writes them; the same keys whichever way this calibration was made."""
-        if self.artifact is not None:
-            return self.artifact["diagnostics"]
-        return _diagnostics(self)
-
     def to_artifact(self) -> dict[str, Any]:
-        """The JSON artifact (a plain dict; see :func:`artifact_from_calibration`); for a
-        calibration loaded from an artifact, that artifact."""
-        if self.artifact is not None:
-            return dict(self.artifact)
-        return artifact_from_calibration(self)
+        """The JSON artifact's keys (a plain dict: :meth:`save` writes it)."""
+        return dict(self.artifact.data)
+
+    def with_note(self, note: Message, status: CalibrationStatus) -> Calibration:
+        """This calibration with `note` first among its messages and the given status."""
+        diag = {
+            **self.diagnostics,
+            "status": status.value,
+            "messages": [note.record(), *self.diagnostics.get("messages", ())],
+        }
+        if self.artifact.checked:  # loaded: checked again
+            return calibration_from_artifact({**self.artifact.data, "diagnostics": diag})
+        typed = {**self.artifact._typed, "messages": (note, *self.messages)}
+        typed.pop("status", None)
+        art = ArtifactData.in_memory({**self.artifact.data, "diagnostics": diag}, self.lut, typed)
+        return Calibration(art, self.computed)
 
     def save(self, path: str | os.PathLike[str], *, force: bool = False) -> None:
         """Write the JSON artifact atomically.
@@ -428,18 +511,56 @@ class Calibration:
         return dataclasses.replace(rec, signals=check_signals(decoder, data))
 
 
-def _diagnostics(cal: Calibration) -> dict[str, Any]:
+def computed_calibration(
+    setup: Setup,
+    flux: FluxModel,
+    lut: LUT,
+    status: CalibrationStatus,
+    predicted_error: float,
+    noise_floor: float,
+    *,
+    refusal: str | None = None,
+    messages: tuple[Message, ...] = (),
+    plant: ContinuousTF | None = None,
+    plant_source: str | None = None,
+    timings: Mapping[str, float] | None = None,
+    model_info: Mapping[str, Any] | None = None,
+    cogging: CoggingTorque | None = None,
+    identifiability: IdentifiabilityReport | None = None,
+    observer: Mapping[str, Any] | None = None,
+    sensors: Mapping[str, Any] | None = None,
+    computed: Diagnostics | None = None,
+) -> Calibration:
+    """A calibration computed in this process: its artifact (the versioned JSON of
+    docs/design.md), written once here from the steps' results, and its :class:`Diagnostics`.
+
+    Parameters
+    ----------
+    setup, flux, lut, status, predicted_error, noise_floor, refusal, messages, plant, \
+plant_source, timings, model_info, cogging, identifiability, observer, sensors
+        What the artifact records (see :class:`Calibration`).
+    computed : Diagnostics, keyword-only, optional
+        The steps' results in memory.
+
+    Returns
+    -------
+    Calibration
+        Its artifact: format, pole pairs, f_init's projection and offsets, the model (basis,
+        theta), the table, the setup, diagnostics, and where present identifiability, plant,
+        cogging and observer; checked when written (:meth:`Calibration.save`).
+    """
+    x = computed or Diagnostics()
     diag: dict[str, Any] = {
-        "status": cal.status.value,
-        "refusal": cal.refusal,
-        "messages": [m.record() for m in cal.messages],
-        "bijective": bool(cal.lut.bijective),
-        "min_slope": cal.lut.min_slope,
-        "predicted_angle_error_rms": cal.predicted_error,
-        "noise_floor": cal.noise_floor,
-        "timings": dict(cal.timings),
+        "status": status.value,
+        "refusal": refusal,
+        "messages": [m.record() for m in messages],
+        "bijective": bool(lut.bijective),
+        "min_slope": lut.min_slope,
+        "predicted_angle_error_rms": predicted_error,
+        "noise_floor": noise_floor,
+        "timings": dict(timings or {}),
     }
-    sem = cal.sem
+    sem = x.sem
     if sem is not None:
         diag.update(
             {
@@ -453,89 +574,109 @@ def _diagnostics(cal: Calibration) -> dict[str, Any]:
                 "n_samples": sem.n_samples,
             }
         )
-    if cal.adequacy is not None:
-        diag["adequacy"] = cal.adequacy.to_dict()
-    if cal.validation is not None:
-        diag["validation"] = cal.validation.to_dict()
-    if cal.gain is not None:
-        diag["gain_correction"] = cal.gain.to_dict()
-    if cal.constant_speed is not None:
-        diag["constant_speed"] = cal.constant_speed.to_dict()
-    if cal.cogging_selection is not None:
-        diag["cogging"] = cal.cogging_selection.to_dict()
-    if cal.selection is not None:  # without wall times: they live in "timings" only
-        diag["model_selection"] = cal.selection.to_dict(timings=False)
+    if x.adequacy is not None:
+        diag["adequacy"] = x.adequacy.to_dict()
+    if x.validation is not None:
+        diag["validation"] = x.validation.to_dict()
+    if x.gain is not None:
+        diag["gain_correction"] = x.gain.to_dict()
+    if x.constant_speed is not None:
+        diag["constant_speed"] = x.constant_speed.to_dict()
+    if x.cogging_selection is not None:
+        diag["cogging"] = x.cogging_selection.to_dict()
+    if x.selection is not None:  # without wall times: they live in "timings" only
+        diag["model_selection"] = x.selection.to_dict(timings=False)
         del diag["model_selection"]["report"]  # the final fit's is "adequacy"
-    if cal.kernel is not None:
+    if x.kernel is not None:
         diag["model_selection"] = {
             "basis": "kernel",
-            "ard_rounds": cal.kernel.ard_rounds,
-            "settled": bool(cal.kernel.settled),
-            "budget_hit": not cal.kernel.settled,
-            "sem_status": str(cal.kernel.status),
+            "ard_rounds": x.kernel.ard_rounds,
+            "settled": bool(x.kernel.settled),
+            "budget_hit": not x.kernel.settled,
+            "sem_status": str(x.kernel.status),
         }
-    if cal.sensors:
-        diag["sensors"] = dict(cal.sensors)
-    return diag
-
-
-def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
-    """The versioned JSON calibration artifact of docs/design.md (a plain dict).
-
-    Parameters
-    ----------
-    cal : Calibration
-        The result of a calibration.
-
-    Returns
-    -------
-    dict
-        Format, pole pairs, f_init's projection and offsets, the model (basis, theta), the
-        table, the setup, diagnostics, and where present identifiability, plant and cogging;
-        ready for :func:`~hallcal.io.write_artifact`.
-    """
+    if sensors:
+        diag["sensors"] = dict(sensors)
     art: dict[str, Any] = {
         "format": ARTIFACT_FORMAT,
         "hallcal_version": __version__,
         "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-        "pole_pairs": cal.setup.pole_pairs,
+        "pole_pairs": setup.pole_pairs,
         "reconstruction": {
             "method": "f_init (Clarke/projection, atan2, unwrap) + lookup table (f_star)",
-            "projection": cal.lut.projection.tolist(),
-            "offset": cal.lut.offset.tolist(),
+            "projection": lut.projection.tolist(),
+            "offset": lut.offset.tolist(),
         },
-        "model": dict(cal.model_info),
-        "lut": cal.lut.to_dict(),
-        "setup": cal.setup,
-        "diagnostics": _diagnostics(cal),
+        "model": dict(model_info or {}),
+        "lut": lut.to_dict(),
+        "setup": setup,
+        "diagnostics": diag,
     }
-    if cal.identifiability is not None:
-        art["identifiability"] = cal.identifiability.to_dict()
-    if cal.plant is not None:
+    if identifiability is not None:
+        art["identifiability"] = identifiability.to_dict()
+    if plant is not None:
         art["plant"] = {
-            "num": list(cal.plant.num),
-            "den": list(cal.plant.den),
-            "delay": cal.plant.delay,
-            "gain_correction": None if cal.gain is None else cal.gain.value,
-            "source": cal.plant_source,
+            "num": list(plant.num),
+            "den": list(plant.den),
+            "delay": plant.delay,
+            "gain_correction": None if x.gain is None else x.gain.value,
+            "source": plant_source,
         }
-    if cal.cogging is not None:
-        art["cogging"] = cal.cogging.to_dict()
-    if cal.observer is not None:
-        art["observer"] = dict(cal.observer)
-    return art
+    if cogging is not None:
+        art["cogging"] = cogging.to_dict()
+    if observer is not None:
+        art["observer"] = dict(observer)
+    typed = {
+        "flux": flux,
+        "plant": plant,
+        "cogging": cogging,
+        "status": status,
+        "messages": tuple(messages),
+        "identifiability": identifiability,
+    }
+    return Calibration(ArtifactData.in_memory(art, lut, typed), computed)
+
+
+def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
+    """The calibration's artifact as a plain dict (:meth:`Calibration.to_artifact`), ready for
+    :func:`~hallcal.io.write_artifact`."""
+    return cal.to_artifact()
 
 
 def _float_or_nan(value: Any) -> float:
     return float(value) if isinstance(value, int | float) else math.nan
 
 
-def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Calibration:
-    """Rebuild a :class:`Calibration` from an artifact (:func:`~hallcal.io.read_artifact`'s, or
-    a mapping, which is checked by :func:`~hallcal.io.validate_artifact` first).
+def _status(art: ArtifactData) -> CalibrationStatus:
+    """``diagnostics.status`` as a :class:`CalibrationStatus` (an error names the file)."""
+    try:
+        return CalibrationStatus(art.diagnostics.get("status", "ok"))
+    except ValueError:
+        options = ", ".join(f'"{s.value}"' for s in CalibrationStatus)
+        raise HallcalInputError(
+            f"{art.source}: key 'diagnostics.status' must be one of {options}",
+            source=art.source,
+            key="diagnostics.status",
+        ) from None
 
-    The flux model, table, setup, status, messages, predicted error and plant come back; the
-    solver's internals (SEM iterates, BLA spectra) stay in :attr:`Calibration.artifact`.
+
+def _identifiability(art: ArtifactData) -> IdentifiabilityReport | None:
+    """The artifact's ``identifiability`` entry (an error names the file)."""
+    try:
+        return identifiability_from_artifact(art.data)
+    except HallcalInputError as exc:  # it says "artifact:"; name the file
+        text = str(exc).removeprefix("artifact:").strip()
+        raise HallcalInputError(
+            f"{art.source}: {text}", source=art.source, key=exc.key or "identifiability"
+        ) from None
+
+
+def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Calibration:
+    """The :class:`Calibration` of an artifact (:func:`~hallcal.io.read_artifact`'s, or a
+    mapping, which is checked by :func:`~hallcal.io.validate_artifact` first).
+
+    Everything the artifact holds is read from it; the solver's results in memory
+    (:attr:`Calibration.computed`: SEM iterates, BLA spectra) are None.
 
     Parameters
     ----------
@@ -549,45 +690,12 @@ def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Cal
     Raises
     ------
     HallcalInputError
-        The artifact does not pass the validator, or its ``diagnostics.status`` is not one of
-        :class:`CalibrationStatus`.
+        The artifact does not pass the validator, its ``diagnostics.status`` is not one of
+        :class:`CalibrationStatus`, or its ``identifiability`` entry is malformed.
     """
-    art = validate_artifact(artifact, "artifact")
-    diag = art.diagnostics
-    try:
-        status = CalibrationStatus(diag.get("status", "ok"))
-    except ValueError:
-        options = ", ".join(f'"{s.value}"' for s in CalibrationStatus)
-        raise HallcalInputError(
-            f"{art.source}: key 'diagnostics.status' must be one of {options}",
-            source=art.source,
-            key="diagnostics.status",
-        ) from None
-    try:
-        identifiability = identifiability_from_artifact(art.data)
-    except HallcalInputError as exc:  # it says "artifact:"; name the file
-        text = str(exc).removeprefix("artifact:").strip()
-        raise HallcalInputError(
-            f"{art.source}: {text}", source=art.source, key=exc.key or "identifiability"
-        ) from None
-    return Calibration(
-        setup=art.setup,
-        flux=art.flux(),
-        lut=art.lut(),
-        status=status,
-        predicted_error=_float_or_nan(diag.get("predicted_angle_error_rms")),
-        noise_floor=_float_or_nan(diag.get("noise_floor")),
-        refusal=diag.get("refusal"),
-        messages=tuple(Message.from_record(m) for m in diag.get("messages", ())),
-        plant=art.plant_model(),
-        plant_source=None if art.plant is None else art.plant.get("source"),
-        timings=dict(diag.get("timings", {})),
-        model_info=dict(art.model),
-        identifiability=identifiability,
-        observer=art.data.get("observer"),
-        artifact=art.data,
-        cogging=art.cogging_torque(),
-    )
+    cal = Calibration(validate_artifact(artifact, "artifact"))
+    _ = (cal.status, cal.identifiability)  # checked now: a malformed file is refused when read
+    return cal
 
 
 def require_table(artifact: ArtifactData | Mapping[str, Any], source: str = "artifact") -> None:
