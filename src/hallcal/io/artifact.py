@@ -239,25 +239,10 @@ class ArtifactData(Mapping[str, Any]):
 
     @classmethod
     def in_memory(cls, data: Mapping[str, Any], lut: LUT, typed: Mapping[str, Any]) -> ArtifactData:
-        """The artifact of a calibration computed in this process, not yet checked.
-
-        Its typed objects are the ones it was written from, not rebuilt from the JSON.
-
-        Parameters
-        ----------
-        data : mapping
-            The artifact's keys (NumPy data and a :class:`Setup` allowed; NaN not refused
-            until it is written).
-        lut : LUT
-            Its table (``reconstruction`` and ``lut``).
-        typed : mapping
-            Objects :meth:`typed` returns by name (``"flux"``, ``"plant"``, ...).
-
-        Returns
-        -------
-        ArtifactData
-            Unchecked (``checked`` False): :func:`validate_artifact` checks its data.
-        """
+        """The artifact of a calibration computed in this process, unchecked (``checked``
+        False: :func:`validate_artifact` checks `data` before it is written or reported), its
+        typed objects the ones it was written from (`lut`; by name in `typed`, for
+        :meth:`typed`). `data` may hold NumPy data, a :class:`Setup` and NaN."""
         return cls(
             format=data["format"],
             version=data["hallcal_version"],

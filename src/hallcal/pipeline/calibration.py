@@ -1,7 +1,9 @@
 """The result of a calibration, its artifact, and applying it to a recording.
 
-:class:`Calibration` is what :func:`hallcal.pipeline.calibrate` returns and what
-:func:`calibration_from_artifact` rebuilds from a JSON artifact; :func:`reconstruct` applies it
+:class:`Calibration` is what :func:`hallcal.pipeline.calibrate` returns
+(:func:`computed_calibration` writes its artifact) and what :func:`calibration_from_artifact`
+reads from a JSON artifact: one type, the artifact plus the in-memory :class:`Diagnostics` of a
+calibration computed here; :func:`reconstruct` applies it
 (f_init then the table, the paper's eq. for f_star), :func:`validate` measures it against an
 encoder or the bench's truth (step 5 of Algorithm 1).
 """
@@ -314,81 +316,27 @@ class Calibration:
         shown += ("messages", "plant", "plant_source", "gain", "validation")
         return f"Calibration({', '.join(f'{k}={getattr(self, k)!r}' for k in shown)})"
 
-    @property
-    def setup(self) -> Setup:
-        return self.artifact.setup
-
-    @property
-    def flux(self) -> FluxModel:
-        return self.artifact.flux()
-
-    @property
-    def lut(self) -> LUT:
-        return self.artifact.lut()
-
-    @property
-    def plant(self) -> ContinuousTF | None:
-        return self.artifact.plant_model()
-
-    @property
-    def cogging(self) -> CoggingTorque | None:
-        return self.artifact.cogging_torque()
-
-    @property
-    def diagnostics(self) -> Mapping[str, Any]:
-        """The artifact's ``diagnostics`` (status, costs, noise variance, ...)."""
-        return self.artifact.diagnostics
-
-    @property
-    def status(self) -> CalibrationStatus:
-        return self.artifact.typed("status", lambda: _status(self.artifact))
-
-    @property
-    def refusal(self) -> str | None:
-        return self.diagnostics.get("refusal")
-
-    @property
-    def messages(self) -> tuple[Message, ...]:
-        return self.artifact.typed(
-            "messages",
-            lambda: tuple(Message.from_record(m) for m in self.diagnostics.get("messages", ())),
-        )
-
-    @property
-    def predicted_error(self) -> float:
-        return _float_or_nan(self.diagnostics.get("predicted_angle_error_rms"))
-
-    @property
-    def noise_floor(self) -> float:
-        return _float_or_nan(self.diagnostics.get("noise_floor"))
-
-    @property
-    def plant_source(self) -> str | None:
-        return None if self.artifact.plant is None else self.artifact.plant.get("source")
-
-    @property
-    def timings(self) -> Mapping[str, float]:
-        return self.diagnostics.get("timings", {})
-
-    @property
-    def model_info(self) -> Mapping[str, Any]:
-        return self.artifact.model
-
-    @property
-    def identifiability(self) -> IdentifiabilityReport | None:
-        return self.artifact.typed("identifiability", lambda: _identifiability(self.artifact))
-
-    @property
-    def observer(self) -> Mapping[str, Any] | None:
-        return self.artifact.get("observer")
-
-    @property
-    def sensors(self) -> Mapping[str, Any]:
-        return self.diagnostics.get("sensors", {})
-
-    def _computed(self, name: str) -> Any:
-        return None if self.computed is None else getattr(self.computed, name)
-
+    # read from the artifact (the objects it was written from, when computed here)
+    setup = property(lambda self: self.artifact.setup)
+    flux = property(lambda self: self.artifact.flux())
+    lut = property(lambda self: self.artifact.lut())
+    plant = property(lambda self: self.artifact.plant_model())
+    cogging = property(lambda self: self.artifact.cogging_torque())
+    model_info = property(lambda self: self.artifact.model)
+    observer = property(lambda self: self.artifact.get("observer"))
+    plant_source = property(lambda self: (self.artifact.plant or {}).get("source"))
+    diagnostics = property(lambda self: self.artifact.diagnostics)
+    refusal = property(lambda self: self.diagnostics.get("refusal"))
+    timings = property(lambda self: self.diagnostics.get("timings", {}))
+    sensors = property(lambda self: self.diagnostics.get("sensors", {}))
+    predicted_error = property(lambda self: _number(self.diagnostics, "predicted_angle_error_rms"))
+    noise_floor = property(lambda self: _number(self.diagnostics, "noise_floor"))
+    status = property(lambda self: self.artifact.typed("status", lambda: _status(self.artifact)))
+    messages = property(lambda self: self.artifact.typed("messages", lambda: _messages(self)))
+    identifiability = property(
+        lambda self: self.artifact.typed("identifiability", lambda: _identifiability(self.artifact))
+    )
+    # the solver's results in memory (None when loaded)
     sem = property(lambda self: self._computed("sem"))
     bla = property(lambda self: self._computed("bla"))
     gain = property(lambda self: self._computed("gain"))
@@ -398,6 +346,9 @@ class Calibration:
     kernel = property(lambda self: self._computed("kernel"))
     constant_speed = property(lambda self: self._computed("constant_speed"))
     cogging_selection = property(lambda self: self._computed("cogging_selection"))
+
+    def _computed(self, name: str) -> Any:
+        return None if self.computed is None else getattr(self.computed, name)
 
     @property
     def pole_pairs(self) -> int:
@@ -420,17 +371,14 @@ class Calibration:
 
     def with_note(self, note: Message, status: CalibrationStatus) -> Calibration:
         """This calibration with `note` first among its messages and the given status."""
-        diag = {
-            **self.diagnostics,
-            "status": status.value,
-            "messages": [note.record(), *self.diagnostics.get("messages", ())],
-        }
-        if self.artifact.checked:  # loaded: checked again
-            return calibration_from_artifact({**self.artifact.data, "diagnostics": diag})
-        typed = {**self.artifact._typed, "messages": (note, *self.messages)}
-        typed.pop("status", None)
-        art = ArtifactData.in_memory({**self.artifact.data, "diagnostics": diag}, self.lut, typed)
-        return Calibration(art, self.computed)
+        records = [note.record(), *self.diagnostics.get("messages", ())]
+        diag = {**self.diagnostics, "status": status.value, "messages": records}
+        typed = {**self.artifact._typed, "status": status, "messages": (note, *self.messages)}
+        art = dataclasses.replace(
+            self.artifact, data={**self.artifact.data, "diagnostics": diag}, diagnostics=diag,
+            file_sha256=None, _typed=typed,
+        )  # fmt: skip
+        return dataclasses.replace(self, artifact=art)
 
     def save(self, path: str | os.PathLike[str], *, force: bool = False) -> None:
         """Write the JSON artifact atomically.
@@ -476,17 +424,22 @@ class Calibration:
         Parameters
         ----------
         data : Dataset
+            Columns d1, d2, d3 (``y_ref``, when present, validates the result).
         y_initial : float, keyword-only
             f_init's angle before the first sample [rad] (the calibration run started at 0).
         absolute : bool, keyword-only
-            The recording starts at power-up anywhere: identify the pole pair from the
-            magnets' signatures and give the angles in the calibration's frame (modulo one
-            revolution; ``y_initial`` is not used). Raises :class:`CalibrationRefused` when
-            the calibration says the pole pair is not identifiable.
+            The recording starts at power-up wherever the rotor stopped (no homing): the pole
+            pair is identified from the magnets' signatures and the angles are in the
+            calibration's frame, modulo one revolution (``rec.identification`` says when it
+            was certain; ``y_initial`` is not used). Raises :class:`CalibrationRefused` when
+            :attr:`identifiability` says the pole pair is not identifiable.
         observer : bool, keyword-only
-            Also run the model-based observer (:mod:`hallcal.sensor.observer`): columns
-            y_obs, misfit and state. The only way to use a calibration without a table
-            (:attr:`observer_only`).
+            Also run the model-based observer (:mod:`hallcal.sensor.observer`):
+            ``rec["y_obs"]`` (tracking maximum-likelihood angle [rad] with online gain/offset
+            adaptation), ``rec["misfit"]`` (windowed chi-square per degree of freedom, about 1
+            when the model fits) and ``rec["state"]`` (ok | adapting | stale | degraded |
+            fault). A calibration without a table (folding map, :attr:`observer_only`) can
+            only be used this way.
 
         Returns
         -------
@@ -643,8 +596,14 @@ def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
     return cal.to_artifact()
 
 
-def _float_or_nan(value: Any) -> float:
+def _number(diag: Mapping[str, Any], key: str) -> float:
+    """``diagnostics[key]`` as a float, NaN when absent or null."""
+    value = diag.get(key)
     return float(value) if isinstance(value, int | float) else math.nan
+
+
+def _messages(cal: Calibration) -> tuple[Message, ...]:
+    return tuple(Message.from_record(m) for m in cal.diagnostics.get("messages", ()))
 
 
 def _status(art: ArtifactData) -> CalibrationStatus:
