@@ -312,9 +312,9 @@ class Calibration:
     computed: Diagnostics | None = field(default=None, repr=False)
 
     def __repr__(self) -> str:
-        shown = ("setup", "flux", "lut", "status", "predicted_error", "noise_floor", "refusal")
-        shown += ("messages", "plant", "plant_source", "gain", "validation")
-        return f"Calibration({', '.join(f'{k}={getattr(self, k)!r}' for k in shown)})"
+        shown = "setup flux lut status predicted_error noise_floor refusal messages plant"
+        shown += " plant_source gain validation"
+        return f"Calibration({', '.join(f'{k}={getattr(self, k)!r}' for k in shown.split())})"
 
     # read from the artifact (the objects it was written from, when computed here)
     setup = property(lambda self: self.artifact.setup)
