@@ -217,6 +217,8 @@ class ArtifactData(Mapping[str, Any]):
         False for the artifact of a calibration computed in this process
         (:meth:`in_memory`): :func:`validate_artifact` checks it before it is written or
         reported.
+    objects : dict
+        The typed objects built so far, by name (:meth:`typed`).
     """
 
     format: str
@@ -235,7 +237,7 @@ class ArtifactData(Mapping[str, Any]):
     file_sha256: str | None = None
     bijective_checked: bool = field(default=True, repr=False)
     checked: bool = field(default=True, repr=False)
-    _typed: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+    objects: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
     def in_memory(cls, data: Mapping[str, Any], lut: LUT, typed: Mapping[str, Any]) -> ArtifactData:
@@ -259,15 +261,15 @@ class ArtifactData(Mapping[str, Any]):
             source="in memory",
             bijective_checked=False,
             checked=False,
-            _typed={"lut": lut, **typed},
+            objects={"lut": lut, **typed},
         )
 
     def typed(self, name: str, build: Callable[[], Any]) -> Any:
         """The typed object `name` of this artifact, built once by `build` (or, for a
         calibration computed in this process, the object the artifact was written from)."""
-        if name not in self._typed:
-            self._typed[name] = build()
-        return self._typed[name]
+        if name not in self.objects:
+            self.objects[name] = build()
+        return self.objects[name]
 
     def __getitem__(self, key: str) -> Any:
         return self.data[key]

@@ -334,7 +334,10 @@ class Calibration:
     status = property(lambda self: self.artifact.typed("status", lambda: _status(self.artifact)))
     messages = property(lambda self: self.artifact.typed("messages", lambda: _messages(self)))
     identifiability = property(
-        lambda self: self.artifact.typed("identifiability", lambda: _identifiability(self.artifact))
+        lambda self: self.artifact.typed(
+            "identifiability",
+            lambda: identifiability_from_artifact(self.artifact, self.artifact.source),
+        )
     )
     # the solver's results in memory (None when loaded)
     sem = property(lambda self: self._computed("sem"))
@@ -373,10 +376,10 @@ class Calibration:
         """This calibration with `note` first among its messages and the given status."""
         records = [note.record(), *self.diagnostics.get("messages", ())]
         diag = {**self.diagnostics, "status": status.value, "messages": records}
-        typed = {**self.artifact._typed, "status": status, "messages": (note, *self.messages)}
+        typed = {**self.artifact.objects, "status": status, "messages": (note, *self.messages)}
         art = dataclasses.replace(
             self.artifact, data={**self.artifact.data, "diagnostics": diag}, diagnostics=diag,
-            file_sha256=None, _typed=typed,
+            file_sha256=None, objects=typed,
         )  # fmt: skip
         return dataclasses.replace(self, artifact=art)
 
@@ -619,17 +622,6 @@ def _status(art: ArtifactData) -> CalibrationStatus:
         ) from None
 
 
-def _identifiability(art: ArtifactData) -> IdentifiabilityReport | None:
-    """The artifact's ``identifiability`` entry (an error names the file)."""
-    try:
-        return identifiability_from_artifact(art.data)
-    except HallcalInputError as exc:  # it says "artifact:"; name the file
-        text = str(exc).removeprefix("artifact:").strip()
-        raise HallcalInputError(
-            f"{art.source}: {text}", source=art.source, key=exc.key or "identifiability"
-        ) from None
-
-
 def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Calibration:
     """The :class:`Calibration` of an artifact (:func:`~hallcal.io.read_artifact`'s, or a
     mapping, which is checked by :func:`~hallcal.io.validate_artifact` first).
@@ -786,33 +778,8 @@ def reconstruct(
     y_initial: float = 0.0,
     absolute: bool = False,
 ) -> Reconstruction:
-    """Apply a calibration artifact to a recording (``hallcal reconstruct [--absolute]``).
-
-    Parameters
-    ----------
-    artifact : ArtifactData or mapping
-        A loaded artifact, or its parsed JSON.
-    dataset : Dataset
-        The recording (d1, d2, d3; ``y_ref`` is used for validation when present).
-    y_initial : float, keyword-only
-        f_init's estimate before the first sample [rad] (ignored with ``absolute``).
-    absolute : bool, keyword-only
-        Identify the pole pair at power-up and give the angles in the calibration's frame.
-
-    Returns
-    -------
-    Reconstruction
-        y_init and y_star [rad] per sample, the validation against ``y_ref`` when present, and
-        the power-up identification with ``absolute``.
-
-    Raises
-    ------
-    HallcalInputError
-        The artifact does not pass :func:`~hallcal.io.validate_artifact` (a table that is not
-        bijective included).
-    CalibrationRefused
-        (``absolute``) When the pole pair is not identifiable with this motor's sensors.
-    """
+    """Apply a calibration artifact (:func:`~hallcal.io.read_artifact`'s, or a mapping) to a
+    recording: :func:`calibration_from_artifact`, then :meth:`Calibration.reconstruct`."""
     return calibration_from_artifact(artifact).reconstruct(
         dataset, y_initial=y_initial, absolute=absolute
     )
