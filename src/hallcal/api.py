@@ -131,9 +131,17 @@ class Calibration(_Result):
     ) -> Reconstruction:
         """f_init and f_star over a recording: ``rec["y_init"]``, ``rec["y_star"]`` [rad].
 
-        As :meth:`hallcal.pipeline.Calibration.reconstruct` (the parameters and the result),
-        `data` also a path or a mapping of columns d1, d2, d3 (``y_ref``, when present,
-        validates the result, and is checked to be in radians first).
+        Parameters
+        ----------
+        data : path, Dataset or mapping
+            Columns d1, d2, d3 (``y_ref``, when present, validates the result: it is checked to
+            be in radians first).
+        y_initial, absolute, observer : keyword-only
+            As :meth:`hallcal.pipeline.Calibration.reconstruct`.
+
+        Returns
+        -------
+        Reconstruction
         """
         from hallcal.pipeline.checks import check_recording, raise_if_failed
 

@@ -241,10 +241,23 @@ class ArtifactData(Mapping[str, Any]):
 
     @classmethod
     def in_memory(cls, data: Mapping[str, Any], lut: LUT, typed: Mapping[str, Any]) -> ArtifactData:
-        """The artifact of a calibration computed in this process, unchecked (``checked``
-        False: :func:`validate_artifact` checks `data` before it is written or reported), its
-        typed objects the ones it was written from (`lut`; by name in `typed`, for
-        :meth:`typed`). `data` may hold NumPy data, a :class:`Setup` and NaN."""
+        """The artifact of a calibration computed in this process, unchecked.
+
+        Parameters
+        ----------
+        data : mapping
+            Its keys (NumPy data, a :class:`Setup` and NaN allowed: :func:`validate_artifact`
+            checks them before they are written or reported).
+        lut : LUT
+            Its table (``reconstruction`` and ``lut``).
+        typed : mapping
+            The other objects it was written from, by name (:meth:`typed`).
+
+        Returns
+        -------
+        ArtifactData
+            With ``checked`` False.
+        """
         return cls(
             format=data["format"],
             version=data["hallcal_version"],
@@ -265,8 +278,20 @@ class ArtifactData(Mapping[str, Any]):
         )
 
     def typed(self, name: str, build: Callable[[], Any]) -> Any:
-        """The typed object `name` of this artifact, built once by `build` (or, for a
-        calibration computed in this process, the object the artifact was written from)."""
+        """A typed object of this artifact, built once.
+
+        Parameters
+        ----------
+        name : str
+            Its name (``"lut"``, ``"flux"``, ...).
+        build : callable
+            Builds it from the artifact; not called when it exists (or, for a calibration
+            computed in this process, is the object the artifact was written from).
+
+        Returns
+        -------
+        object
+        """
         if name not in self.objects:
             self.objects[name] = build()
         return self.objects[name]

@@ -373,7 +373,17 @@ class Calibration:
         return dict(self.artifact.data)
 
     def with_note(self, note: Message, status: CalibrationStatus) -> Calibration:
-        """This calibration with `note` first among its messages and the given status."""
+        """This calibration with a note first among its messages and another status.
+
+        Parameters
+        ----------
+        note : Message
+        status : CalibrationStatus
+
+        Returns
+        -------
+        Calibration
+        """
         records = [note.record(), *self.diagnostics.get("messages", ())]
         diag = {**self.diagnostics, "status": status.value, "messages": records}
         typed = {**self.artifact.objects, "status": status, "messages": (note, *self.messages)}
@@ -594,8 +604,17 @@ plant_source, timings, model_info, cogging, identifiability, observer, sensors
 
 
 def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
-    """The calibration's artifact as a plain dict (:meth:`Calibration.to_artifact`), ready for
-    :func:`~hallcal.io.write_artifact`."""
+    """The calibration's artifact as a plain dict (:meth:`Calibration.to_artifact`).
+
+    Parameters
+    ----------
+    cal : Calibration
+
+    Returns
+    -------
+    dict
+        Ready for :func:`~hallcal.io.write_artifact`.
+    """
     return cal.to_artifact()
 
 
@@ -778,8 +797,19 @@ def reconstruct(
     y_initial: float = 0.0,
     absolute: bool = False,
 ) -> Reconstruction:
-    """Apply a calibration artifact (:func:`~hallcal.io.read_artifact`'s, or a mapping) to a
-    recording: :func:`calibration_from_artifact`, then :meth:`Calibration.reconstruct`."""
+    """Apply a calibration artifact to a recording (``hallcal reconstruct [--absolute]``).
+
+    Parameters
+    ----------
+    artifact : ArtifactData or mapping
+        A loaded artifact, or its parsed JSON (:func:`calibration_from_artifact`).
+    dataset, y_initial, absolute
+        As :meth:`Calibration.reconstruct`.
+
+    Returns
+    -------
+    Reconstruction
+    """
     return calibration_from_artifact(artifact).reconstruct(
         dataset, y_initial=y_initial, absolute=absolute
     )
