@@ -321,7 +321,8 @@ class ArtifactData(Mapping[str, Any]):
         prints for it), else of the artifact's canonical JSON (sorted keys, no spaces)."""
         if self.file_sha256 is not None:
             return self.file_sha256
-        canon = json.dumps(self.data, sort_keys=True, separators=(",", ":"), allow_nan=False)
+        data = to_jsonable(self.data)  # plain already, unless computed in this process
+        canon = json.dumps(data, sort_keys=True, separators=(",", ":"), allow_nan=False)
         return hashlib.sha256(canon.encode()).hexdigest()
 
     def lut(self) -> LUT:
