@@ -15,6 +15,7 @@ import pytest
 import hallcal
 from hallcal import pipeline
 from hallcal.io import default_setup, read_dataset, setup_to_toml, write_dataset
+from hallcal.io.files import to_jsonable
 from hallcal.sensor.metrics import angle_error
 
 README = Path(__file__).resolve().parents[1] / "README.md"
@@ -80,6 +81,19 @@ def test_save_load_reconstruct_matches_the_cli_to_1e_12(paper_files, tmp_path):
     with pytest.raises(dataclasses.FrozenInstanceError):
         loaded.status = cal.status
     assert loaded.diagnostics["noise_variance"] == cal.diagnostics["noise_variance"]
+    # one form: the computed and the loaded calibration are one type reading one artifact; the
+    # loaded one lacks only the solver's results in memory
+    assert type(loaded) is type(cal) and loaded.computed is None and cal.sem is not None
+    assert loaded.to_artifact() == hallcal.io.read_json(tmp_path / "api.json")
+    for name in ("status", "refusal", "predicted_error", "noise_floor", "plant_source"):
+        assert getattr(loaded, name) == getattr(cal, name), name
+    for name in ("model_info", "observer", "sensors", "timings"):
+        assert to_jsonable(getattr(loaded, name)) == to_jsonable(getattr(cal, name)), name
+    assert [m.record() for m in loaded.messages] == [m.record() for m in cal.messages]
+    np.testing.assert_array_equal(loaded.lut.eta, cal.lut.eta)  # JSON floats read back exactly
+    np.testing.assert_array_equal(loaded.flux.theta, cal.flux.theta)
+    assert loaded.plant == cal.plant
+    assert loaded.identifiability.to_dict() == cal.identifiability.to_dict()
     api = loaded.reconstruct(folder / "run.csv")
     cli = subprocess.run(
         [sys.executable, "-m", "hallcal.cli", "reconstruct", str(tmp_path / "api.json"),

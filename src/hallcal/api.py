@@ -103,37 +103,23 @@ def as_setup(setup: SetupLike) -> Setup:
     )
 
 
-class Calibration:
+@dataclasses.dataclass(frozen=True, eq=False, repr=False)
+class Calibration(_Result):
     """A calibration with the verbs a notebook user needs: :meth:`save`, :meth:`reconstruct`,
     :meth:`report`, :meth:`export_c`.
 
-    It wraps the pipeline's result (:attr:`result`, a :class:`hallcal.pipeline.Calibration`,
-    computed here or rebuilt from an artifact) and reads its fields through: ``cal.status``,
-    ``cal.lut``, ``cal.predicted_error``, ``cal.to_artifact()``, ... (see that class).
+    A :class:`hallcal.pipeline.Calibration` (its artifact and, when computed in this process,
+    its in-memory diagnostics: ``cal.status``, ``cal.lut``, ``cal.predicted_error``,
+    ``cal.to_artifact()``, ... see that class) whose methods also take file paths and mappings.
     """
 
-    __slots__ = ("result",)
-    result: _Result
-
-    def __init__(self, result: _Result) -> None:
-        object.__setattr__(self, "result", result)
-
-    def __getattr__(self, name: str) -> Any:
-        if name == "result":  # not set yet (copying, unpickling): no recursion
-            raise AttributeError(name)
-        return getattr(self.result, name)
-
-    def __setattr__(self, name: str, value: Any) -> None:
-        raise dataclasses.FrozenInstanceError(f"cannot assign to field {name!r}")
-
-    def __dir__(self) -> list[str]:
-        return sorted(set(super().__dir__()) | set(dir(self.result)))
+    @property
+    def result(self) -> _Result:
+        """The pipeline's calibration: this object."""
+        return self
 
     def __repr__(self) -> str:
-        return f"hallcal.{self.result!r}"
-
-    def __reduce__(self) -> tuple[Any, ...]:  # copy.copy / deepcopy
-        return (Calibration, (self.result,))
+        return f"hallcal.{super().__repr__()}"
 
     def reconstruct(
         self,
@@ -148,22 +134,14 @@ class Calibration:
         Parameters
         ----------
         data : path, Dataset or mapping
-            Columns d1, d2, d3 (``y_ref``, when present, validates the result).
-        y_initial : float, keyword-only
-            f_init's angle before the first sample [rad] (the calibration run started at 0).
-        absolute : bool, keyword-only
-            The recording starts at power-up wherever the rotor stopped (no homing): the pole
-            pair is identified from the magnets' signatures and the angles are in the
-            calibration's frame, modulo one revolution (``rec.identification`` says when it
-            was certain). Raises :class:`~hallcal.errors.CalibrationRefused` when
-            ``cal.identifiability`` says the pole pair is not identifiable.
-        observer : bool, keyword-only
-            Also run the model-based observer: ``rec["y_obs"]`` (tracking maximum-likelihood
-            angle [rad] with online gain/offset adaptation), ``rec["misfit"]`` (windowed
-            chi-square per degree of freedom, about 1 when the model fits) and
-            ``rec["state"]`` (ok | adapting | stale | degraded | fault); see
-            :mod:`hallcal.sensor.observer`. A calibration without a table (folding map,
-            ``cal.observer_only``) can only be used this way.
+            Columns d1, d2, d3 (``y_ref``, when present, validates the result: it is checked to
+            be in radians first).
+        y_initial, absolute, observer : keyword-only
+            As :meth:`hallcal.pipeline.Calibration.reconstruct`.
+
+        Returns
+        -------
+        Reconstruction
         """
         from hallcal.pipeline.checks import check_recording, raise_if_failed
 
@@ -173,9 +151,7 @@ class Calibration:
             ds, pole_pairs=self.pole_pairs, sample_time=None, angles=("y_ref",)
         )
         raise_if_failed(checks, ds.source)
-        return self.result.reconstruct(
-            ds, y_initial=y_initial, absolute=absolute, observer=observer
-        )
+        return super().reconstruct(ds, y_initial=y_initial, absolute=absolute, observer=observer)
 
     def report(
         self,
@@ -205,7 +181,7 @@ class Calibration:
         if data is None:  # the report is drawn from the recording: it cannot be written without
             raise HallcalInputError("report needs data=, the calibration recording")
         return write_calibration_report(
-            self.result,
+            self,
             as_dataset(data),
             out_dir,
             validation=None if validation is None else as_dataset(validation, required=("y_ref",)),
@@ -354,7 +330,8 @@ def calibrate(
     bla_ds = None
     if bla_data is not None:
         bla_ds = as_dataset(bla_data, required=("r", "u", "y", "realization"))
-    return Calibration(_calibrate(ds, s, bla_dataset=bla_ds, progress=progress))
+    result = _calibrate(ds, s, bla_dataset=bla_ds, progress=progress)
+    return Calibration(result.artifact, result.computed)
 
 
 def load(path: str | os.PathLike[str]) -> Calibration:
@@ -375,4 +352,4 @@ def load(path: str | os.PathLike[str]) -> Calibration:
     HallcalInputError
         Missing file or an invalid artifact (the message names the key).
     """
-    return Calibration(calibration_from_artifact(read_artifact(path)))
+    return Calibration(calibration_from_artifact(read_artifact(path)).artifact)

@@ -28,6 +28,7 @@ from hallcal.fleet.summary import (
 )
 from hallcal.fleet.worker import _failed_result, _Result, _run_motor, _Task, _version
 from hallcal.formatting import one_line
+from hallcal.io import make_folder
 
 #: How long to wait for an existing scheduler (``scheduler="tcp://..."``) to answer.
 _CONNECT_TIMEOUT = "10s"
@@ -174,7 +175,7 @@ def run_fleet(
     ):
         raise HallcalInputError(f"adc_scale must be a positive number, got {adc_scale!r}")
     _check_names(specs, Path(out), source)
-    out_dir = _out_folder(out)
+    out_dir = make_folder(out)
     with _locked(out_dir):
         return _run_locked(
             specs, source, out_dir, scheduler=scheduler, workers=workers, export_c=export_c,
@@ -279,17 +280,6 @@ def _run_locked(
 
             write_fleet_report(table, out_dir / REPORT_NAME, source=source)
     return table
-
-
-def _out_folder(out: str | os.PathLike[str]) -> Path:
-    out_dir = Path(out)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise HallcalInputError(f"{out_dir}: exists and is not a folder")
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise HallcalInputError(f"{out_dir}: cannot create the folder ({exc.strerror})") from None
-    return out_dir
 
 
 @dataclass

@@ -17,7 +17,7 @@ import hashlib
 import json
 import math
 import os
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
@@ -213,6 +213,12 @@ class ArtifactData(Mapping[str, Any]):
     bijective_checked : bool
         False when validated with ``bijective=False`` (an in-memory refused calibration's
         report): checked again, not passed through, where a usable table is required.
+    checked : bool
+        False for the artifact of a calibration computed in this process
+        (:meth:`in_memory`): :func:`validate_artifact` checks it before it is written or
+        reported.
+    objects : dict
+        The typed objects built so far, by name (:meth:`typed`).
     """
 
     format: str
@@ -230,6 +236,65 @@ class ArtifactData(Mapping[str, Any]):
     source: str = "<artifact>"
     file_sha256: str | None = None
     bijective_checked: bool = field(default=True, repr=False)
+    checked: bool = field(default=True, repr=False)
+    objects: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    @classmethod
+    def in_memory(cls, data: Mapping[str, Any], lut: LUT, typed: Mapping[str, Any]) -> ArtifactData:
+        """The artifact of a calibration computed in this process, unchecked.
+
+        Parameters
+        ----------
+        data : mapping
+            Its keys (NumPy data, a :class:`Setup` and NaN allowed: :func:`validate_artifact`
+            checks them before they are written or reported).
+        lut : LUT
+            Its table (``reconstruction`` and ``lut``).
+        typed : mapping
+            The other objects it was written from, by name (:meth:`typed`).
+
+        Returns
+        -------
+        ArtifactData
+            With ``checked`` False.
+        """
+        return cls(
+            format=data["format"],
+            version=data["hallcal_version"],
+            pole_pairs=int(data["pole_pairs"]),
+            projection=lut.projection,
+            offset=lut.offset,
+            y_hat=lut.y_hat,
+            eta=lut.eta,
+            setup=data["setup"],
+            model=data["model"],
+            diagnostics=data["diagnostics"],
+            plant=data.get("plant"),
+            data=data,
+            source="in memory",
+            bijective_checked=False,
+            checked=False,
+            objects={"lut": lut, **typed},
+        )
+
+    def typed(self, name: str, build: Callable[[], Any]) -> Any:
+        """A typed object of this artifact, built once.
+
+        Parameters
+        ----------
+        name : str
+            Its name (``"lut"``, ``"flux"``, ...).
+        build : callable
+            Builds it from the artifact; not called when it exists (or, for a calibration
+            computed in this process, is the object the artifact was written from).
+
+        Returns
+        -------
+        object
+        """
+        if name not in self.objects:
+            self.objects[name] = build()
+        return self.objects[name]
 
     def __getitem__(self, key: str) -> Any:
         return self.data[key]
@@ -256,16 +321,25 @@ class ArtifactData(Mapping[str, Any]):
         prints for it), else of the artifact's canonical JSON (sorted keys, no spaces)."""
         if self.file_sha256 is not None:
             return self.file_sha256
-        canon = json.dumps(self.data, sort_keys=True, separators=(",", ":"), allow_nan=False)
+        data = to_jsonable(self.data)  # plain already, unless computed in this process
+        canon = json.dumps(data, sort_keys=True, separators=(",", ":"), allow_nan=False)
         return hashlib.sha256(canon.encode()).hexdigest()
 
     def lut(self) -> LUT:
         """The lookup table and the f_init it corrects (:class:`hallcal.sensor.lut.LUT`)."""
-        return LUT.from_arrays(self.pole_pairs, self.projection, self.offset, self.y_hat, self.eta)
+        return self.typed(
+            "lut",
+            lambda: LUT.from_arrays(
+                self.pole_pairs, self.projection, self.offset, self.y_hat, self.eta
+            ),
+        )
 
     def plant_model(self) -> ContinuousTF | None:
         """The plant G(s) the calibration used (``plant``: gain correction applied), or None
         when the artifact has none (open-loop runs, older artifacts)."""
+        return self.typed("plant", self._plant_model)
+
+    def _plant_model(self) -> ContinuousTF | None:
         p = self.plant
         if p is None:
             return None
@@ -280,6 +354,9 @@ class ArtifactData(Mapping[str, Any]):
         HallcalInputError
             When the model refuses the checked coefficients (the message names the key).
         """
+        return self.typed("cogging", self._cogging_torque)
+
+    def _cogging_torque(self) -> CoggingTorque | None:
         if self.data.get("cogging") is None:
             return None
         try:
@@ -292,9 +369,11 @@ class ArtifactData(Mapping[str, Any]):
     def flux(self) -> FluxModel:
         """The flux model as a Fourier series (a kernel model stores its harmonics and
         coefficients too): :class:`hallcal.sensor.flux.FluxModel`."""
+        return self.typed("flux", self._flux)
+
+    def _flux(self) -> FluxModel:
         harmonics = tuple(int(h) for h in self.model["harmonics"])
-        theta = np.array(self.model["theta"], dtype=np.float64)
-        return FluxModel(FourierBasis(harmonics), theta)
+        return FluxModel(FourierBasis(harmonics), np.array(self.model["theta"], dtype=np.float64))
 
 
 class _Checker:
@@ -651,8 +730,10 @@ def validate_artifact(
     HallcalInputError
         The first problem found.
     """
-    if isinstance(artifact, ArtifactData) and (artifact.bijective_checked or not bijective):
-        return artifact
+    if isinstance(artifact, ArtifactData):
+        if artifact.checked and (artifact.bijective_checked or not bijective):
+            return artifact
+        artifact = artifact.data
     c = _Checker(source)
     if not isinstance(artifact, Mapping):
         c.bad("not a hallcal calibration artifact (not a JSON object)")

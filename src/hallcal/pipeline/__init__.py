@@ -14,7 +14,6 @@ one short message per step.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -146,7 +145,7 @@ def calibrate(
                 status = cal.status
                 if status is CalibrationStatus.OK:
                     status = CalibrationStatus.WARNING
-                cal = dataclasses.replace(cal, status=status, messages=(note, *cal.messages))
+                cal = cal.with_note(note, status)
             return cal
         return calibrate_closed_loop(
             dataset, setup, bla_dataset=bla_dataset, bla=bla, progress=progress

@@ -1,7 +1,9 @@
 """The result of a calibration, its artifact, and applying it to a recording.
 
-:class:`Calibration` is what :func:`hallcal.pipeline.calibrate` returns and what
-:func:`calibration_from_artifact` rebuilds from a JSON artifact; :func:`reconstruct` applies it
+:class:`Calibration` is what :func:`hallcal.pipeline.calibrate` returns
+(:func:`computed_calibration` writes its artifact) and what :func:`calibration_from_artifact`
+reads from a JSON artifact: one type, the artifact plus the in-memory :class:`Diagnostics` of a
+calibration computed here; :func:`reconstruct` applies it
 (f_init then the table, the paper's eq. for f_star), :func:`validate` measures it against an
 encoder or the bench's truth (step 5 of Algorithm 1).
 """
@@ -60,10 +62,12 @@ if TYPE_CHECKING:  # result types of the steps, for annotations only (keeps the 
 __all__ = [
     "Calibration",
     "CalibrationStatus",
+    "Diagnostics",
     "Reconstruction",
     "Validation",
     "artifact_from_calibration",
     "calibration_from_artifact",
+    "computed_calibration",
     "reconstruct",
     "require_table",
     "validate",
@@ -231,93 +235,123 @@ class Reconstruction:
 
 
 @dataclass(frozen=True)
-class Calibration:
-    """Result of a calibration (Algorithm 1), or one rebuilt from its artifact.
+class Diagnostics:
+    """What a calibration computed in this process has beyond its artifact (all optional).
+
+    A calibration loaded from an artifact has none of it: what the artifact keeps of these is
+    in its ``diagnostics`` (:attr:`Calibration.diagnostics`).
 
     Attributes
     ----------
-    setup : Setup
-    flux : FluxModel
-        Identified g_theta* (Fourier coefficients; the kernel model in its exact Fourier form).
-    lut : LUT
-        The table and the f_init it corrects.
-    status : CalibrationStatus
-    refusal : str or None
-        Why the table must not be used (``status.refused``), else None.
-    messages : tuple of Message
-        Warnings and notes for the user, most important first.
-    predicted_error : float
-        Predicted RMS angle error of f_star [rad]: the noise floor and the table's uncertainty
-        from cov(theta), in quadrature (:class:`~hallcal.fit.adequacy.AdequacyReport`).
-    noise_floor : float
-        RMS angle error [rad] that the Hall noise alone causes with this sensor map.
-    plant : ContinuousTF or None
-        The plant model used in SEM (gain correction applied); None for open-loop runs.
-    plant_source : {"setup", "bla"} or None
-    gain : GainCorrection or None
     sem : SEMResult or None
-        The SEM solve (closed-loop runs computed in this process).
+        The SEM solve (closed-loop runs): d_sim, y0_sim, cov(theta), the cost history.
     bla : BLAIdentification or None
+    gain : GainCorrection or None
+        The BLA's gain correction c-hat (the artifact keeps its value and report).
     adequacy : AdequacyReport or None
     validation : Validation or None
-        Errors against ``y_ref`` when the calibration data had it (validation only).
-    timings : dict
-        Seconds per step.
-    model_info : dict
-        Basis description for the artifact (basis, harmonics, theta, kernel hyperparameters).
+        Errors against ``y_ref`` when the calibration data had it.
     selection : HarmonicSelection or None
         The automatic choice of harmonics (``harmonics = "auto"``).
     kernel : KernelSEMResult or None
         The kernel-basis solve (``basis = "kernel"``).
     constant_speed : ConstantSpeedResult or None
         The open-loop constant-speed fit (``[trajectory] kind = "constant-speed"``).
-    cogging : CoggingTorque or None
-        The cogging torque identified jointly with the flux (``[model] cogging``), with the
-        covariance of its coefficients; None when none was modelled or found.
     cogging_selection : CoggingSelection or None
-        How its orders were chosen (evidence and tests).
-    identifiability : IdentifiabilityReport or None
-        How well the pole pair can be identified at power-up from the magnets' signatures
-        (:mod:`hallcal.sensor.absolute`); None without a bijective table or for artifacts
-        made before it existed.
-    observer : mapping or None
-        The model-based observer's check at calibration time (the artifact's ``observer``
-        entry: noise variance per channel, whether the three-signal curve is injective with
-        its margin; :func:`hallcal.pipeline.observe.observer_check`); None when not checked.
-    sensors : dict
-        What the data say about the sensors themselves (:mod:`hallcal.fit.censor`,
-        :mod:`hallcal.fit.drift`): ``censoring`` (censored samples per sensor, rails,
-        quantization step) and ``drift`` when found; the artifact's ``diagnostics.sensors``.
-    artifact : dict or None
-        The artifact this calibration was loaded from (None when computed here).
+        How the cogging torque's orders were chosen (evidence and tests).
     """
 
-    setup: Setup
-    flux: FluxModel
-    lut: LUT
-    status: CalibrationStatus
-    predicted_error: float
-    noise_floor: float
-    refusal: str | None = None
-    messages: tuple[Message, ...] = ()
-    plant: ContinuousTF | None = None
-    plant_source: str | None = None
-    gain: GainCorrection | None = None
     sem: SEMResult | None = field(default=None, repr=False)
     bla: BLAIdentification | None = field(default=None, repr=False)
+    gain: GainCorrection | None = None
     adequacy: AdequacyReport | None = field(default=None, repr=False)
     validation: Validation | None = None
-    timings: Mapping[str, float] = field(default_factory=dict, repr=False)
-    model_info: Mapping[str, Any] = field(default_factory=dict, repr=False)
     selection: HarmonicSelection | None = field(default=None, repr=False)
     kernel: KernelSEMResult | None = field(default=None, repr=False)
     constant_speed: ConstantSpeedResult | None = field(default=None, repr=False)
-    cogging: CoggingTorque | None = field(default=None, repr=False)
     cogging_selection: CoggingSelection | None = field(default=None, repr=False)
-    identifiability: IdentifiabilityReport | None = field(default=None, repr=False)
-    observer: Mapping[str, Any] | None = field(default=None, repr=False)
-    sensors: Mapping[str, Any] = field(default_factory=dict, repr=False)
-    artifact: Mapping[str, Any] | None = field(default=None, repr=False)
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    """A calibration: its artifact, and what the calibrating process has beyond it.
+
+    The one form of a calibration, computed (:func:`hallcal.pipeline.calibrate`, through
+    :func:`computed_calibration`) or loaded (:func:`calibration_from_artifact`): the typed
+    artifact that :meth:`save` writes, the report, the C export and the fleet read, with the
+    in-memory :class:`Diagnostics` when computed here. Every other attribute is read from the
+    artifact (for a computed calibration, the object it was written from).
+
+    Attributes
+    ----------
+    artifact : ArtifactData
+        The artifact (checked when loaded; checked by :meth:`save` when computed here).
+    computed : Diagnostics or None
+        The solver's results in memory; None when loaded from an artifact.
+
+    Properties read from the artifact: ``setup``; ``flux`` (g_theta*, Fourier coefficients;
+    the kernel model in its exact Fourier form); ``lut`` (the table and the f_init it
+    corrects); ``status``; ``refusal`` (why the table must not be used, else None);
+    ``messages`` (warnings and notes, most important first); ``predicted_error`` (RMS angle
+    error of f_star [rad] predicted from the noise floor and cov(theta), in quadrature);
+    ``noise_floor`` (RMS angle error [rad] of the Hall noise alone); ``plant`` (G(s) used in
+    SEM, gain correction applied; None for open-loop runs) and ``plant_source`` ("setup" or
+    "bla"); ``timings`` (seconds per step); ``model_info`` (basis, harmonics, theta, kernel
+    hyperparameters); ``cogging`` (the cogging torque identified with the flux, with the
+    covariance of its coefficients); ``identifiability`` (the pole pair at power-up from the
+    magnets' signatures, :mod:`hallcal.sensor.absolute`); ``observer`` (the model-based
+    observer's check: noise variance per channel, whether the three-signal curve is injective,
+    :func:`hallcal.pipeline.observe.observer_check`); ``sensors`` (censoring and drift of the
+    sensors, :mod:`hallcal.fit.censor`, :mod:`hallcal.fit.drift`); ``diagnostics`` (the
+    artifact's ``diagnostics``). Read from :attr:`computed` (None when loaded): ``sem``,
+    ``bla``, ``gain``, ``adequacy``, ``validation``, ``selection``, ``kernel``,
+    ``constant_speed``, ``cogging_selection``.
+    """
+
+    artifact: ArtifactData = field(repr=False)
+    computed: Diagnostics | None = field(default=None, repr=False)
+
+    def __repr__(self) -> str:
+        shown = "setup flux lut status predicted_error noise_floor refusal messages plant"
+        shown += " plant_source gain validation"
+        return f"Calibration({', '.join(f'{k}={getattr(self, k)!r}' for k in shown.split())})"
+
+    # read from the artifact (the objects it was written from, when computed here)
+    setup = property(lambda self: self.artifact.setup)
+    flux = property(lambda self: self.artifact.flux())
+    lut = property(lambda self: self.artifact.lut())
+    plant = property(lambda self: self.artifact.plant_model())
+    cogging = property(lambda self: self.artifact.cogging_torque())
+    model_info = property(lambda self: self.artifact.model)
+    observer = property(lambda self: self.artifact.get("observer"))
+    plant_source = property(lambda self: (self.artifact.plant or {}).get("source"))
+    diagnostics = property(lambda self: self.artifact.diagnostics)
+    refusal = property(lambda self: self.diagnostics.get("refusal"))
+    timings = property(lambda self: self.diagnostics.get("timings", {}))
+    sensors = property(lambda self: self.diagnostics.get("sensors", {}))
+    predicted_error = property(lambda self: _number(self.diagnostics, "predicted_angle_error_rms"))
+    noise_floor = property(lambda self: _number(self.diagnostics, "noise_floor"))
+    status = property(lambda self: self.artifact.typed("status", lambda: _status(self.artifact)))
+    messages = property(lambda self: self.artifact.typed("messages", lambda: _messages(self)))
+    identifiability = property(
+        lambda self: self.artifact.typed(
+            "identifiability",
+            lambda: identifiability_from_artifact(self.artifact, self.artifact.source),
+        )
+    )
+    # the solver's results in memory (None when loaded)
+    sem = property(lambda self: self._computed("sem"))
+    bla = property(lambda self: self._computed("bla"))
+    gain = property(lambda self: self._computed("gain"))
+    adequacy = property(lambda self: self._computed("adequacy"))
+    validation = property(lambda self: self._computed("validation"))
+    selection = property(lambda self: self._computed("selection"))
+    kernel = property(lambda self: self._computed("kernel"))
+    constant_speed = property(lambda self: self._computed("constant_speed"))
+    cogging_selection = property(lambda self: self._computed("cogging_selection"))
+
+    def _computed(self, name: str) -> Any:
+        return None if self.computed is None else getattr(self.computed, name)
 
     @property
     def pole_pairs(self) -> int:
@@ -334,20 +368,30 @@ class Calibration:
             and self.observer.get("injective") is True
         )
 
-    @property
-    def diagnostics(self) -> Mapping[str, Any]:
-        """The artifact's ``diagnostics`` (status, costs, noise variance, ...): as loaded, or as
-        :meth:`save` writes them; the same keys whichever way this calibration was made."""
-        if self.artifact is not None:
-            return self.artifact["diagnostics"]
-        return _diagnostics(self)
-
     def to_artifact(self) -> dict[str, Any]:
-        """The JSON artifact (a plain dict; see :func:`artifact_from_calibration`); for a
-        calibration loaded from an artifact, that artifact."""
-        if self.artifact is not None:
-            return dict(self.artifact)
-        return artifact_from_calibration(self)
+        """The JSON artifact's keys (a plain dict: :meth:`save` writes it)."""
+        return dict(self.artifact.data)
+
+    def with_note(self, note: Message, status: CalibrationStatus) -> Calibration:
+        """This calibration with a note first among its messages and another status.
+
+        Parameters
+        ----------
+        note : Message
+        status : CalibrationStatus
+
+        Returns
+        -------
+        Calibration
+        """
+        records = [note.record(), *self.diagnostics.get("messages", ())]
+        diag = {**self.diagnostics, "status": status.value, "messages": records}
+        typed = {**self.artifact.objects, "status": status, "messages": (note, *self.messages)}
+        art = dataclasses.replace(
+            self.artifact, data={**self.artifact.data, "diagnostics": diag}, diagnostics=diag,
+            file_sha256=None, objects=typed,
+        )  # fmt: skip
+        return dataclasses.replace(self, artifact=art)
 
     def save(self, path: str | os.PathLike[str], *, force: bool = False) -> None:
         """Write the JSON artifact atomically.
@@ -393,17 +437,22 @@ class Calibration:
         Parameters
         ----------
         data : Dataset
+            Columns d1, d2, d3 (``y_ref``, when present, validates the result).
         y_initial : float, keyword-only
             f_init's angle before the first sample [rad] (the calibration run started at 0).
         absolute : bool, keyword-only
-            The recording starts at power-up anywhere: identify the pole pair from the
-            magnets' signatures and give the angles in the calibration's frame (modulo one
-            revolution; ``y_initial`` is not used). Raises :class:`CalibrationRefused` when
-            the calibration says the pole pair is not identifiable.
+            The recording starts at power-up wherever the rotor stopped (no homing): the pole
+            pair is identified from the magnets' signatures and the angles are in the
+            calibration's frame, modulo one revolution (``rec.identification`` says when it
+            was certain; ``y_initial`` is not used). Raises :class:`CalibrationRefused` when
+            :attr:`identifiability` says the pole pair is not identifiable.
         observer : bool, keyword-only
-            Also run the model-based observer (:mod:`hallcal.sensor.observer`): columns
-            y_obs, misfit and state. The only way to use a calibration without a table
-            (:attr:`observer_only`).
+            Also run the model-based observer (:mod:`hallcal.sensor.observer`):
+            ``rec["y_obs"]`` (tracking maximum-likelihood angle [rad] with online gain/offset
+            adaptation), ``rec["misfit"]`` (windowed chi-square per degree of freedom, about 1
+            when the model fits) and ``rec["state"]`` (ok | adapting | stale | degraded |
+            fault). A calibration without a table (folding map, :attr:`observer_only`) can
+            only be used this way.
 
         Returns
         -------
@@ -428,18 +477,56 @@ class Calibration:
         return dataclasses.replace(rec, signals=check_signals(decoder, data))
 
 
-def _diagnostics(cal: Calibration) -> dict[str, Any]:
+def computed_calibration(
+    setup: Setup,
+    flux: FluxModel,
+    lut: LUT,
+    status: CalibrationStatus,
+    predicted_error: float,
+    noise_floor: float,
+    *,
+    refusal: str | None = None,
+    messages: tuple[Message, ...] = (),
+    plant: ContinuousTF | None = None,
+    plant_source: str | None = None,
+    timings: Mapping[str, float] | None = None,
+    model_info: Mapping[str, Any] | None = None,
+    cogging: CoggingTorque | None = None,
+    identifiability: IdentifiabilityReport | None = None,
+    observer: Mapping[str, Any] | None = None,
+    sensors: Mapping[str, Any] | None = None,
+    computed: Diagnostics | None = None,
+) -> Calibration:
+    """A calibration computed in this process: its artifact (the versioned JSON of
+    docs/design.md), written once here from the steps' results, and its :class:`Diagnostics`.
+
+    Parameters
+    ----------
+    setup, flux, lut, status, predicted_error, noise_floor, refusal, messages, plant, \
+plant_source, timings, model_info, cogging, identifiability, observer, sensors
+        What the artifact records (see :class:`Calibration`).
+    computed : Diagnostics, keyword-only, optional
+        The steps' results in memory.
+
+    Returns
+    -------
+    Calibration
+        Its artifact: format, pole pairs, f_init's projection and offsets, the model (basis,
+        theta), the table, the setup, diagnostics, and where present identifiability, plant,
+        cogging and observer; checked when written (:meth:`Calibration.save`).
+    """
+    x = computed or Diagnostics()
     diag: dict[str, Any] = {
-        "status": cal.status.value,
-        "refusal": cal.refusal,
-        "messages": [m.record() for m in cal.messages],
-        "bijective": bool(cal.lut.bijective),
-        "min_slope": cal.lut.min_slope,
-        "predicted_angle_error_rms": cal.predicted_error,
-        "noise_floor": cal.noise_floor,
-        "timings": dict(cal.timings),
+        "status": status.value,
+        "refusal": refusal,
+        "messages": [m.record() for m in messages],
+        "bijective": bool(lut.bijective),
+        "min_slope": lut.min_slope,
+        "predicted_angle_error_rms": predicted_error,
+        "noise_floor": noise_floor,
+        "timings": dict(timings or {}),
     }
-    sem = cal.sem
+    sem = x.sem
     if sem is not None:
         diag.update(
             {
@@ -453,89 +540,113 @@ def _diagnostics(cal: Calibration) -> dict[str, Any]:
                 "n_samples": sem.n_samples,
             }
         )
-    if cal.adequacy is not None:
-        diag["adequacy"] = cal.adequacy.to_dict()
-    if cal.validation is not None:
-        diag["validation"] = cal.validation.to_dict()
-    if cal.gain is not None:
-        diag["gain_correction"] = cal.gain.to_dict()
-    if cal.constant_speed is not None:
-        diag["constant_speed"] = cal.constant_speed.to_dict()
-    if cal.cogging_selection is not None:
-        diag["cogging"] = cal.cogging_selection.to_dict()
-    if cal.selection is not None:  # without wall times: they live in "timings" only
-        diag["model_selection"] = cal.selection.to_dict(timings=False)
+    if x.adequacy is not None:
+        diag["adequacy"] = x.adequacy.to_dict()
+    if x.validation is not None:
+        diag["validation"] = x.validation.to_dict()
+    if x.gain is not None:
+        diag["gain_correction"] = x.gain.to_dict()
+    if x.constant_speed is not None:
+        diag["constant_speed"] = x.constant_speed.to_dict()
+    if x.cogging_selection is not None:
+        diag["cogging"] = x.cogging_selection.to_dict()
+    if x.selection is not None:  # without wall times: they live in "timings" only
+        diag["model_selection"] = x.selection.to_dict(timings=False)
         del diag["model_selection"]["report"]  # the final fit's is "adequacy"
-    if cal.kernel is not None:
+    if x.kernel is not None:
         diag["model_selection"] = {
             "basis": "kernel",
-            "ard_rounds": cal.kernel.ard_rounds,
-            "settled": bool(cal.kernel.settled),
-            "budget_hit": not cal.kernel.settled,
-            "sem_status": str(cal.kernel.status),
+            "ard_rounds": x.kernel.ard_rounds,
+            "settled": bool(x.kernel.settled),
+            "budget_hit": not x.kernel.settled,
+            "sem_status": str(x.kernel.status),
         }
-    if cal.sensors:
-        diag["sensors"] = dict(cal.sensors)
-    return diag
-
-
-def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
-    """The versioned JSON calibration artifact of docs/design.md (a plain dict).
-
-    Parameters
-    ----------
-    cal : Calibration
-        The result of a calibration.
-
-    Returns
-    -------
-    dict
-        Format, pole pairs, f_init's projection and offsets, the model (basis, theta), the
-        table, the setup, diagnostics, and where present identifiability, plant and cogging;
-        ready for :func:`~hallcal.io.write_artifact`.
-    """
+    if sensors:
+        diag["sensors"] = dict(sensors)
     art: dict[str, Any] = {
         "format": ARTIFACT_FORMAT,
         "hallcal_version": __version__,
         "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-        "pole_pairs": cal.setup.pole_pairs,
+        "pole_pairs": setup.pole_pairs,
         "reconstruction": {
             "method": "f_init (Clarke/projection, atan2, unwrap) + lookup table (f_star)",
-            "projection": cal.lut.projection.tolist(),
-            "offset": cal.lut.offset.tolist(),
+            "projection": lut.projection.tolist(),
+            "offset": lut.offset.tolist(),
         },
-        "model": dict(cal.model_info),
-        "lut": cal.lut.to_dict(),
-        "setup": cal.setup,
-        "diagnostics": _diagnostics(cal),
+        "model": dict(model_info or {}),
+        "lut": lut.to_dict(),
+        "setup": setup,
+        "diagnostics": diag,
     }
-    if cal.identifiability is not None:
-        art["identifiability"] = cal.identifiability.to_dict()
-    if cal.plant is not None:
+    if identifiability is not None:
+        art["identifiability"] = identifiability.to_dict()
+    if plant is not None:
         art["plant"] = {
-            "num": list(cal.plant.num),
-            "den": list(cal.plant.den),
-            "delay": cal.plant.delay,
-            "gain_correction": None if cal.gain is None else cal.gain.value,
-            "source": cal.plant_source,
+            "num": list(plant.num),
+            "den": list(plant.den),
+            "delay": plant.delay,
+            "gain_correction": None if x.gain is None else x.gain.value,
+            "source": plant_source,
         }
-    if cal.cogging is not None:
-        art["cogging"] = cal.cogging.to_dict()
-    if cal.observer is not None:
-        art["observer"] = dict(cal.observer)
-    return art
+    if cogging is not None:
+        art["cogging"] = cogging.to_dict()
+    if observer is not None:
+        art["observer"] = dict(observer)
+    typed = {
+        "flux": flux,
+        "plant": plant,
+        "cogging": cogging,
+        "status": status,
+        "messages": tuple(messages),
+        "identifiability": identifiability,
+    }
+    return Calibration(ArtifactData.in_memory(art, lut, typed), computed)
 
 
-def _float_or_nan(value: Any) -> float:
+def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
+    """The calibration's artifact as a plain dict (:meth:`Calibration.to_artifact`).
+
+    Parameters
+    ----------
+    cal : Calibration
+
+    Returns
+    -------
+    dict
+        Ready for :func:`~hallcal.io.write_artifact`.
+    """
+    return cal.to_artifact()
+
+
+def _number(diag: Mapping[str, Any], key: str) -> float:
+    """``diagnostics[key]`` as a float, NaN when absent or null."""
+    value = diag.get(key)
     return float(value) if isinstance(value, int | float) else math.nan
 
 
-def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Calibration:
-    """Rebuild a :class:`Calibration` from an artifact (:func:`~hallcal.io.read_artifact`'s, or
-    a mapping, which is checked by :func:`~hallcal.io.validate_artifact` first).
+def _messages(cal: Calibration) -> tuple[Message, ...]:
+    return tuple(Message.from_record(m) for m in cal.diagnostics.get("messages", ()))
 
-    The flux model, table, setup, status, messages, predicted error and plant come back; the
-    solver's internals (SEM iterates, BLA spectra) stay in :attr:`Calibration.artifact`.
+
+def _status(art: ArtifactData) -> CalibrationStatus:
+    """``diagnostics.status`` as a :class:`CalibrationStatus` (an error names the file)."""
+    try:
+        return CalibrationStatus(art.diagnostics.get("status", "ok"))
+    except ValueError:
+        options = ", ".join(f'"{s.value}"' for s in CalibrationStatus)
+        raise HallcalInputError(
+            f"{art.source}: key 'diagnostics.status' must be one of {options}",
+            source=art.source,
+            key="diagnostics.status",
+        ) from None
+
+
+def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Calibration:
+    """The :class:`Calibration` of an artifact (:func:`~hallcal.io.read_artifact`'s, or a
+    mapping, which is checked by :func:`~hallcal.io.validate_artifact` first).
+
+    Everything the artifact holds is read from it; the solver's results in memory
+    (:attr:`Calibration.computed`: SEM iterates, BLA spectra) are None.
 
     Parameters
     ----------
@@ -549,45 +660,12 @@ def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Cal
     Raises
     ------
     HallcalInputError
-        The artifact does not pass the validator, or its ``diagnostics.status`` is not one of
-        :class:`CalibrationStatus`.
+        The artifact does not pass the validator, its ``diagnostics.status`` is not one of
+        :class:`CalibrationStatus`, or its ``identifiability`` entry is malformed.
     """
-    art = validate_artifact(artifact, "artifact")
-    diag = art.diagnostics
-    try:
-        status = CalibrationStatus(diag.get("status", "ok"))
-    except ValueError:
-        options = ", ".join(f'"{s.value}"' for s in CalibrationStatus)
-        raise HallcalInputError(
-            f"{art.source}: key 'diagnostics.status' must be one of {options}",
-            source=art.source,
-            key="diagnostics.status",
-        ) from None
-    try:
-        identifiability = identifiability_from_artifact(art.data)
-    except HallcalInputError as exc:  # it says "artifact:"; name the file
-        text = str(exc).removeprefix("artifact:").strip()
-        raise HallcalInputError(
-            f"{art.source}: {text}", source=art.source, key=exc.key or "identifiability"
-        ) from None
-    return Calibration(
-        setup=art.setup,
-        flux=art.flux(),
-        lut=art.lut(),
-        status=status,
-        predicted_error=_float_or_nan(diag.get("predicted_angle_error_rms")),
-        noise_floor=_float_or_nan(diag.get("noise_floor")),
-        refusal=diag.get("refusal"),
-        messages=tuple(Message.from_record(m) for m in diag.get("messages", ())),
-        plant=art.plant_model(),
-        plant_source=None if art.plant is None else art.plant.get("source"),
-        timings=dict(diag.get("timings", {})),
-        model_info=dict(art.model),
-        identifiability=identifiability,
-        observer=art.data.get("observer"),
-        artifact=art.data,
-        cogging=art.cogging_torque(),
-    )
+    cal = Calibration(validate_artifact(artifact, "artifact"))
+    _ = (cal.status, cal.identifiability)  # checked now: a malformed file is refused when read
+    return cal
 
 
 def require_table(artifact: ArtifactData | Mapping[str, Any], source: str = "artifact") -> None:
@@ -724,27 +802,13 @@ def reconstruct(
     Parameters
     ----------
     artifact : ArtifactData or mapping
-        A loaded artifact, or its parsed JSON.
-    dataset : Dataset
-        The recording (d1, d2, d3; ``y_ref`` is used for validation when present).
-    y_initial : float, keyword-only
-        f_init's estimate before the first sample [rad] (ignored with ``absolute``).
-    absolute : bool, keyword-only
-        Identify the pole pair at power-up and give the angles in the calibration's frame.
+        A loaded artifact, or its parsed JSON (:func:`calibration_from_artifact`).
+    dataset, y_initial, absolute
+        As :meth:`Calibration.reconstruct`.
 
     Returns
     -------
     Reconstruction
-        y_init and y_star [rad] per sample, the validation against ``y_ref`` when present, and
-        the power-up identification with ``absolute``.
-
-    Raises
-    ------
-    HallcalInputError
-        The artifact does not pass :func:`~hallcal.io.validate_artifact` (a table that is not
-        bijective included).
-    CalibrationRefused
-        (``absolute``) When the pole pair is not identifiable with this motor's sensors.
     """
     return calibration_from_artifact(artifact).reconstruct(
         dataset, y_initial=y_initial, absolute=absolute

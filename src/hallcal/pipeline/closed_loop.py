@@ -31,7 +31,13 @@ from hallcal.io.setup import Setup
 from hallcal.messages import Message, MessageCode, has_warning
 from hallcal.pipeline import sensors
 from hallcal.pipeline.boundary import numeric_errors
-from hallcal.pipeline.calibration import Calibration, CalibrationStatus, validate
+from hallcal.pipeline.calibration import (
+    Calibration,
+    CalibrationStatus,
+    Diagnostics,
+    computed_calibration,
+    validate,
+)
 from hallcal.pipeline.checks import (
     CheckStatus,
     check_direction,
@@ -665,29 +671,31 @@ def calibrate_closed_loop(
     validation = None
     if "y_ref" in dataset and lut.bijective:
         validation = validate(lut, dataset, noise_floor=adequacy.noise_floor)
-    return Calibration(
-        setup=setup,
-        flux=fit.flux,
-        lut=lut,
-        status=status,
-        predicted_error=predicted,
-        noise_floor=adequacy.noise_floor,
+    return computed_calibration(
+        setup,
+        fit.flux,
+        lut,
+        status,
+        predicted,
+        adequacy.noise_floor,
         refusal=refusal,
         messages=leading + tuple(messages),
         plant=pm.plant,
         plant_source=pm.source,
-        gain=pm.gain,
-        sem=fit.sem,
-        bla=pm.bla,
-        adequacy=adequacy,
-        validation=validation,
         timings=timings,
         model_info=fit.model_info,
-        selection=fit.selection,
-        kernel=fit.kernel,
         cogging=cogging,
-        cogging_selection=fit.cogging,
         identifiability=identifiability,
         observer=observer_entry,
         sensors=sensor_info,
+        computed=Diagnostics(
+            sem=fit.sem,
+            bla=pm.bla,
+            gain=pm.gain,
+            adequacy=adequacy,
+            validation=validation,
+            selection=fit.selection,
+            kernel=fit.kernel,
+            cogging_selection=fit.cogging,
+        ),
     )

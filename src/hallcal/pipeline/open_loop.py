@@ -23,7 +23,7 @@ from hallcal.fit.constant_speed import (
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.messages import Message, MessageCode
-from hallcal.pipeline.calibration import Calibration, validate
+from hallcal.pipeline.calibration import Calibration, Diagnostics, computed_calibration, validate
 from hallcal.pipeline.checks import CheckStatus, check_pole_pairs, check_recording, raise_if_failed
 from hallcal.pipeline.observe import FOLDING_NOTE, calibrated_noise, observer_section
 from hallcal.pipeline.powerup import power_up_analysis
@@ -182,23 +182,22 @@ def calibrate_open_loop(
         validation = validate(
             res.lut, dataset, noise_floor=res.angle_noise_floor, remove_mean=True
         )  # the spin fixes no frame: the table's offset is arbitrary
-    return Calibration(
-        setup=setup,
-        flux=res.model,
-        lut=res.lut,
-        status=status,
-        predicted_error=res.angle_noise_floor,
-        noise_floor=res.angle_noise_floor,
+    return computed_calibration(
+        setup,
+        res.model,
+        res.lut,
+        status,
+        res.angle_noise_floor,
+        res.angle_noise_floor,
         refusal=refusal,
         messages=tuple(messages),
-        validation=validation,
         timings=timings,
         model_info={
             "basis": "fourier",
             "harmonics": list(harmonics),
             "theta": res.model.theta.tolist(),
         },
-        constant_speed=res,
         identifiability=identifiability,
         observer=observer_section(injectivity, var),
+        computed=Diagnostics(validation=validation, constant_speed=res),
     )

@@ -90,13 +90,17 @@ def power_up_analysis(
     return report
 
 
-def identifiability_from_artifact(artifact: Mapping[str, Any]) -> IdentifiabilityReport | None:
+def identifiability_from_artifact(
+    artifact: Mapping[str, Any], source: str = "artifact"
+) -> IdentifiabilityReport | None:
     """The artifact's ``"identifiability"`` entry, or None for an artifact made without it.
 
     Parameters
     ----------
     artifact : mapping
         The parsed artifact.
+    source : str
+        Its name in messages (the file).
 
     Returns
     -------
@@ -111,11 +115,15 @@ def identifiability_from_artifact(artifact: Mapping[str, Any]) -> Identifiabilit
     if entry is None:
         return None
     if not isinstance(entry, Mapping):
-        raise HallcalInputError("artifact: key 'identifiability' must be an object")
+        raise HallcalInputError(
+            f"{source}: key 'identifiability' must be an object",
+            source=source,
+            key="identifiability",
+        )
     try:
         return IdentifiabilityReport.from_dict(entry)
     except ValueError as exc:
-        raise HallcalInputError(f"artifact: {exc}", key="identifiability") from None
+        raise HallcalInputError(f"{source}: {exc}", source=source, key="identifiability") from None
 
 
 def decoder_for(flux: FluxModel, lut: LUT, report: IdentifiabilityReport | None) -> PowerUpDecoder:

@@ -450,8 +450,6 @@ class ReportExtras:
         -------
         ReportExtras
         """
-        if cal.artifact is not None:
-            return cls(**extras)
         return cls(sem=cal.sem, bla=cal.bla, **extras)
 
 
@@ -470,7 +468,7 @@ def calibration_artifact(cal: Any) -> ArtifactData:
         accepted so that a calibration refused as such can still be reported
         (:meth:`~hallcal.pipeline.Calibration.save` never writes it).
     """
-    return validate_artifact(cal.to_artifact(), "in memory", bijective=False)
+    return validate_artifact(cal.artifact, "in memory", bijective=False)
 
 
 def _artifact_floor(diag: Mapping[str, Any], flux: FluxModel, n_m: int) -> tuple[float | None, str]:

@@ -249,8 +249,8 @@ def write_calibration_report(
     """The report of a calibration object (``Calibration.report``), computed or loaded.
 
     Drawn from the calibration's artifact (:func:`report_content`); a calibration computed in
-    this process adds its SEM solve and BLA from memory, one loaded from an artifact
-    (:attr:`Calibration.artifact`) is reported as ``hallcal report`` does it.
+    this process adds its SEM solve and BLA from memory (:attr:`Calibration.computed`), one
+    loaded from an artifact is reported as ``hallcal report`` does it.
 
     Parameters
     ----------
