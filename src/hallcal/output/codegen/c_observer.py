@@ -445,20 +445,6 @@ static float gn(float srr, float num, float den, float *chi)
     return step;
 }
 
-/* gn with the reciprocal of den given (the fits without one channel); rden = 0 where den is 0
- * (den >= 0 here: a sum of the others' w J^2) gives gn's no step and chi = srr (>= 0) */
-static float gnr(float srr, float num, float den, float rden, float *chi)
-{
-    float step, c;
-    step = num * rden;
-    if (fabs_(step) > MAXSTEP) { /* rare: one comparison on the common path */
-        step = step > 0.0f ? MAXSTEP : -MAXSTEP;
-    }
-    c = srr - step * (2.0f * num - step * den);
-    *chi = c > 0.0f ? c : 0.0f;
-    return step;
-}
-
 /* the start: the best of NA table nodes within half a pole pitch of y0 */
 NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, float w0,
                               float w1, float w2, float y0)
@@ -597,7 +583,8 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     float w0, w1, w2, f0 = 0.0f, f1 = 0.0f, f2 = 0.0f, g0 = 0.0f, g1 = 0.0f, g2 = 0.0f;
     float r0 = 0.0f, r1 = 0.0f, r2 = 0.0f, J0 = 0.0f, J1 = 0.0f, J2 = 0.0f, tr0, tr1, tr2;
     float tn0, tn1, tn2, td0, td1, td2, f[3], dg[3], yp, y, step = 0.0f, chi = 0.0f;
-    float srr = 0.0f, num = 0.0f, den = 0.0f, best, best_step, cq, sq, e, travel, mf = 0.0f;
+    float srr = 0.0f, num = 0.0f, den = 0.0f, best, best_step, cq, e, travel, mf = 0.0f;
+    float n0, n1, n2, s0, s1, s2;
     float cc, cmax, A01, A11, rs, Js0, Js1, Js2, det, x, e0, e1, e2, i0, i1, i2;
     int active, blamed = -1, mark = -1, others, above = 0, stale, acquired, fitted, loo = 0;
     int fin0, fin1, fin2, u0, u1, u2, i, dof;
@@ -686,24 +673,35 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                     i1 = e1 > 0.0f ? 1.0f / e1 : 0.0f;
                     i2 = e2 > 0.0f ? 1.0f / e2 : 0.0f;
                 }
-                best_step = gnr(srr - tr0, num - tn0, e0, i0, &best);
+                /* chi2 of the fit without q, unbounded: (srr - tr_q) - n_q^2 / e_q */
+                n0 = num - tn0;
+                n1 = num - tn1;
+                n2 = num - tn2;
+                s0 = n0 * i0;
+                s1 = n1 * i1;
+                s2 = n2 * i2;
+                best = (srr - tr0) - s0 * n0;
+                best_step = s0;
                 blamed = 0;
-                sq = gnr(srr - tr1, num - tn1, e1, i1, &cq);
+                cq = (srr - tr1) - s1 * n1;
                 if (cq < best) {
                     best = cq;
-                    best_step = sq;
+                    best_step = s1;
                     blamed = 1;
                 }
-                sq = gnr(srr - tr2, num - tn2, e2, i2, &cq);
+                cq = (srr - tr2) - s2 * n2;
                 if (cq < best) {
                     best = cq;
-                    best_step = sq;
+                    best_step = s2;
                     blamed = 2;
                 }
                 if (!(best < EXPLAINED && best < 0.1f * chi)) {
                     blamed = -1;
                     mark = 3;
                 } else {
+                    if (fabs_(best_step) > MAXSTEP) { /* the chosen fit's step, bounded */
+                        best_step = best_step > 0.0f ? MAXSTEP : -MAXSTEP;
+                    }
                     e = SEL(blamed, r0, r1, r2) - SEL(blamed, J0, J1, J2) * best_step;
                     if (fabs_(e) < GROSS[blamed]) {
                         blamed = -1;
