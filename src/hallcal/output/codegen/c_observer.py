@@ -223,8 +223,10 @@ def _cubics(model: ObserverModel) -> np.ndarray:
 
 def _adapt_parts() -> tuple[str, str]:
     """The adaptation's parts 1..14 as straight-line C (one function each: rows 0..5 of the
-    information H, columns 0..5 of its L D L^T, the two triangular solves) and the switch cases
-    that call them; no loop, so that each part's cycles are its own few dozen operations."""
+    information H, row 0 first turning the measure's forgetting argument and den into
+    exp(-x) and CYCLE / den; columns 0..5 of its L D L^T, the two triangular solves) and the
+    switch cases that call them; no loop, so that each part's cycles are its own few dozen
+    operations."""
     fns: list[str] = []
     calls: list[str] = []
 
