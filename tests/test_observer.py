@@ -149,6 +149,31 @@ def test_a_curve_that_is_not_injective_fails_the_check():
     assert not inj.injective and inj.separation < inj.margin
 
 
+@pytest.mark.parametrize("offset", [0.01, 0.3])
+def test_a_glitch_is_blamed_on_its_channel_and_the_step_comes_from_the_two_others(offset):
+    """An outlier sample on the linearized model (no noise): the prediction ``offset`` rad short
+    of the angle and channel 1 off by 0.5. The fits without one channel are chosen by their
+    chi-square without the step bound, so channel 1 is blamed also where the two others' fit
+    needs more than the bound (0.3 rad against max_step 0.2); only the chosen step is bounded."""
+    from hallcal.sensor.observer import _robust, _step
+
+    y = 0.7
+    f = np.cos(y - 2.0 * np.pi / 3.0 * np.arange(3))
+    dg = -np.sin(y - 2.0 * np.pi / 3.0 * np.arange(3))
+    a, w = np.ones(3), np.full(3, 1e4)  # sigma 0.01
+    r = dg * offset  # the residuals of a prediction `offset` short, linearized
+    r[1] += 0.5  # the glitch: 50 sigma
+    srr, num, den = np.sum(w * r * r), np.sum(w * dg * r), np.sum(w * dg * dg)
+    max_step = 0.2
+    chi = _step(srr, num, den, max_step)[1]
+    gross = np.full(3, 0.05)
+    step, _, blamed, mark, outlier = _robust(f, dg, r, a, w, srr, num, den, chi, max_step, 12.0,
+                                             gross)  # fmt: skip
+    assert (blamed, mark, outlier) == (1, 1, True)
+    # the two others' fit is exact here (no noise, linear); bounded at max_step beyond it
+    assert step == pytest.approx(min(offset, max_step), rel=1e-9)
+
+
 def test_a_ring_remounted_one_pole_pitch_off_goes_stale_within_one_revolution(healthy):
     # the ring turned by one pole pitch relative to the sensors: each sample now shows the
     # neighbouring magnet's signature

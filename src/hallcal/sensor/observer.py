@@ -551,7 +551,9 @@ def _step(srr, num, den, max_step):
 def _robust(f, dg, r, a, w, srr, num, den, chi, max_step, explained, gross):
     """An outlier sample (three channels, chi2 above ``outlier``), on the linearized model: is it
     explained by a common gain s of the field parts (remanence, air gap; the (y, s) least
-    squares)? If not, the fits without each channel. Returns (step, chi2, blamed channel or -1,
+    squares)? If not, the fits without each channel (chosen by their chi2 unbounded, closed form
+    from the sums; the chosen one's step then bounded by max_step, so that firmware needs no
+    bound per fit). Returns (step, chi2, blamed channel or -1,
     mark: blamed, 3 unexplained outlier, -1; outlier: True when no common gain explains it)."""
     A01 = 0.0
     A11 = 0.0
@@ -569,14 +571,17 @@ def _robust(f, dg, r, a, w, srr, num, den, chi, max_step, explained, gross):
     best = math.inf
     best_step = 0.0
     blamed = -1
-    for q in range(3):
+    for q in range(3):  # the fits without q, unbounded: chi2 = srr_q - num_q^2 / den_q
         Jq = a[q] * dg[q]
-        sq, cq = _step(srr - w[q] * r[q] * r[q], num - w[q] * Jq * r[q], den - w[q] * Jq * Jq,
-                       max_step)  # fmt: skip
+        nq = num - w[q] * Jq * r[q]
+        eq = den - w[q] * Jq * Jq
+        sq = nq / eq if eq > 0.0 else 0.0
+        cq = (srr - w[q] * r[q] * r[q]) - sq * nq
         if cq < best:
             best = cq
             best_step = sq
             blamed = q
+    best_step = min(max(best_step, -max_step), max_step)  # the chosen fit's step, bounded
     step = _step(srr, num, den, max_step)[0]
     if not (best < explained and best < 0.1 * chi):
         return step, chi, -1, 3, True

@@ -223,8 +223,10 @@ def _cubics(model: ObserverModel) -> np.ndarray:
 
 def _adapt_parts() -> tuple[str, str]:
     """The adaptation's parts 1..14 as straight-line C (one function each: rows 0..5 of the
-    information H, columns 0..5 of its L D L^T, the two triangular solves) and the switch cases
-    that call them; no loop, so that each part's cycles are its own few dozen operations."""
+    information H, row 0 first turning the measure's forgetting argument and den into
+    exp(-x) and CYCLE / den; columns 0..5 of its L D L^T, the two triangular solves) and the
+    switch cases that call them; no loop, so that each part's cycles are its own few dozen
+    operations."""
     fns: list[str] = []
     calls: list[str] = []
 
@@ -238,6 +240,10 @@ def _adapt_parts() -> tuple[str, str]:
         prior = f"(1.0f - lam) * Q[{p}]"
         extra = f"s->u[{i}]" if p & 1 else f"s->u[{i}] * s->fy[{i}] * s->fy[{i}]"
         body = [f"    const float lam = s->lam, v = s->t * s->qv[{p}];"]
+        if p == 0:  # the measure's forgetting exp(-x) (cubic Taylor) and CYCLE / den
+            body = ["    const float x = s->lam, t = (float)CYCLE / s->t, v = t * s->qv[0];",
+                    "    const float lam = 1.0f - x + 0.5f * x * x - x * x * x * (1.0f / 6.0f);",
+                    "    s->lam = lam;", "    s->t = t;"]  # fmt: skip
         body.append(
             f"    s->H[{p}][{p}] = ((s->H[{p}][{p}] * lam + {prior}) + {extra}) - v * s->qv[{p}];"
         )
@@ -313,7 +319,8 @@ typedef struct {
     float H[6][6];                  /* the adaptation's information (upper triangle) */
     float L[6][6], P[6], R[6];      /* its L D L^T (R = 1 / P), built over a cycle */
     float gr[6], z[6], wm[3];       /* the cycle's gradient, solution, channels measured */
-    float qv[6], fy[3], u[3], lam, t; /* the cycle's sample: projection, regressors, weights */
+    float qv[6], fy[3], u[3], lam, t; /* the cycle's sample: projection, regressors, weights;
+                                       * forgetting, CYCLE / den */
     uint8_t pending, phase;         /* a cycle's update is under way; its part next */
     float ring_chi[@P@_WINDOW];
     uint8_t ring_dof[@P@_WINDOW];
@@ -390,6 +397,14 @@ static const float T[M][12] = { /* per channel i: the cubic of g_i - c_i on [y_j
 #endif
 
 #if defined(__GNUC__)
+#define RARE(x) __builtin_expect(!!(x), 0) /* block layout: the worst-case path falls through */
+#define LIKELY(x) __builtin_expect(!!(x), 1)
+#else
+#define RARE(x) (x)
+#define LIKELY(x) (x)
+#endif
+
+#if defined(__GNUC__)
 #define fabs_(x) __builtin_fabsf(x) /* VABS.F32: no library call */
 #else
 static float fabs_(float x) { return x < 0.0f ? -x : x; }
@@ -437,21 +452,7 @@ static float gn(float srr, float num, float den, float *chi)
         return 0.0f;
     }
     step = num / den;
-    if (fabs_(step) > MAXSTEP) { /* rare: one comparison on the common path */
-        step = step > 0.0f ? MAXSTEP : -MAXSTEP;
-    }
-    c = srr - step * (2.0f * num - step * den);
-    *chi = c > 0.0f ? c : 0.0f;
-    return step;
-}
-
-/* gn with the reciprocal of den given (the fits without one channel); rden = 0 where den is 0
- * (den >= 0 here: a sum of the others' w J^2) gives gn's no step and chi = srr (>= 0) */
-static float gnr(float srr, float num, float den, float rden, float *chi)
-{
-    float step, c;
-    step = num * rden;
-    if (fabs_(step) > MAXSTEP) { /* rare: one comparison on the common path */
+    if (RARE(fabs_(step) > MAXSTEP)) { /* rare: one comparison on the common path */
         step = step > 0.0f ? MAXSTEP : -MAXSTEP;
     }
     c = srr - step * (2.0f * num - step * den);
@@ -597,13 +598,14 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     float w0, w1, w2, f0 = 0.0f, f1 = 0.0f, f2 = 0.0f, g0 = 0.0f, g1 = 0.0f, g2 = 0.0f;
     float r0 = 0.0f, r1 = 0.0f, r2 = 0.0f, J0 = 0.0f, J1 = 0.0f, J2 = 0.0f, tr0, tr1, tr2;
     float tn0, tn1, tn2, td0, td1, td2, f[3], dg[3], yp, y, step = 0.0f, chi = 0.0f;
-    float srr = 0.0f, num = 0.0f, den = 0.0f, best, best_step, cq, sq, e, travel, mf = 0.0f;
+    float srr = 0.0f, num = 0.0f, den = 0.0f, best, best_step, cq, e, travel, mf = 0.0f;
+    float n0, n1, n2, s0, s1, s2, rb, Jb, gb;
     float cc, cmax, A01, A11, rs, Js0, Js1, Js2, det, x, e0, e1, e2, i0, i1, i2;
     int active, blamed = -1, mark = -1, others, above = 0, stale, acquired, fitted, loo = 0;
     int fin0, fin1, fin2, u0, u1, u2, i, dof;
     uint32_t slot, jw, ph;
     int8_t old;
-    if (s->next >= 0) { /* the exclusion decided on the previous sample */
+    if (RARE(s->next >= 0)) { /* the exclusion decided on the previous sample */
         exclude(s);
     }
     fin0 = FIN(d1);
@@ -628,7 +630,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     y = yp;
     acquired = active >= 2 && s->acquire;
     fitted = active >= 2 && !acquired;
-    if (acquired) {
+    if (RARE(acquired)) {
         y = acquire(s, d1, d2, d3, w0, w1, w2, yp);
         s->acquire = 0u;
     } else if (fitted) {
@@ -686,26 +688,46 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                     i1 = e1 > 0.0f ? 1.0f / e1 : 0.0f;
                     i2 = e2 > 0.0f ? 1.0f / e2 : 0.0f;
                 }
-                best_step = gnr(srr - tr0, num - tn0, e0, i0, &best);
+                /* chi2 of the fit without q, unbounded: (srr - tr_q) - n_q^2 / e_q */
+                n0 = num - tn0;
+                n1 = num - tn1;
+                n2 = num - tn2;
+                s0 = n0 * i0;
+                s1 = n1 * i1;
+                s2 = n2 * i2;
+                best = (srr - tr0) - s0 * n0;
+                best_step = s0;
                 blamed = 0;
-                sq = gnr(srr - tr1, num - tn1, e1, i1, &cq);
+                rb = r0; /* the chosen channel's residual, slope and gross level */
+                Jb = J0;
+                gb = GROSS[0];
+                cq = (srr - tr1) - s1 * n1;
                 if (cq < best) {
                     best = cq;
-                    best_step = sq;
+                    best_step = s1;
                     blamed = 1;
+                    rb = r1;
+                    Jb = J1;
+                    gb = GROSS[1];
                 }
-                sq = gnr(srr - tr2, num - tn2, e2, i2, &cq);
+                cq = (srr - tr2) - s2 * n2;
                 if (cq < best) {
                     best = cq;
-                    best_step = sq;
+                    best_step = s2;
                     blamed = 2;
+                    rb = r2;
+                    Jb = J2;
+                    gb = GROSS[2];
                 }
                 if (!(best < EXPLAINED && best < 0.1f * chi)) {
                     blamed = -1;
                     mark = 3;
                 } else {
-                    e = SEL(blamed, r0, r1, r2) - SEL(blamed, J0, J1, J2) * best_step;
-                    if (fabs_(e) < GROSS[blamed]) {
+                    if (fabs_(best_step) > MAXSTEP) { /* the chosen fit's step, bounded */
+                        best_step = best_step > 0.0f ? MAXSTEP : -MAXSTEP;
+                    }
+                    e = rb - Jb * best_step;
+                    if (fabs_(e) < gb) {
                         blamed = -1;
                     } else {
                         step = best_step;
@@ -752,7 +774,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     cc = chi < cmax ? chi : cmax;
     dof = fitted ? active - 1 : 0;
     jw = s->k % (uint32_t)W;
-    if (s->k >= s->window_from + (uint32_t)W) {
+    if (LIKELY(s->k >= s->window_from + (uint32_t)W)) {
         s->sum_chi -= s->ring_chi[jw];
         s->sum_dof -= (int32_t)s->ring_dof[jw];
     }
@@ -778,9 +800,8 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         if (ph == 0u) {
             if (fitted && !stale && blamed < 0) {
                 x = (float)CYCLE * travel * INVMEM;
-                x = x < 1.0f ? x : 1.0f;
-                s->lam = 1.0f - x + 0.5f * x * x - x * x * x * (1.0f / 6.0f);
-                s->t = (float)CYCLE / den;
+                s->lam = x < 1.0f ? x : 1.0f; /* row0 makes them lam and CYCLE / den */
+                s->t = den;
                 MEASURE(0, f0, g0, r0, J0, w0);
                 MEASURE(1, f1, g1, r1, J1, w1);
                 MEASURE(2, f2, g2, r2, J2, w2);
@@ -803,7 +824,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         }
     }
     /* readmission */
-    if (fitted && s->excluded >= 0) {
+    if (RARE(fitted && s->excluded >= 0)) {
         i = s->excluded;
         if (!SEL(i, fin0, fin1, fin2)) {
             s->clean = 0.0f;
