@@ -172,7 +172,8 @@ def _background_modules(session: pytest.Session) -> list[Any]:
 def pytest_collection_finish(session: pytest.Session) -> None:
     """The hostile cases and the setup fuzz start in the background as soon as the tests are
     known: their processes use the core the one-at-a-time suite leaves idle; their tests wait
-    for them and check what they found."""
+    for them and check what they found. In an xdist worker (``-n``) their tests start them:
+    every worker collects every test, and their modules are given out first."""
     if session.config.option.collectonly or _worker(session.config):
         return  # in an xdist worker, the tests start their work: their groups run first
     for module in _background_modules(session):
