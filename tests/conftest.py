@@ -61,7 +61,8 @@ def weak_bench() -> tuple[Any, Any, Any, Any]:
 @pytest.fixture(scope="session")
 def demo_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Any, Any]:
     """The demo's study (``run_demo(..., report=False)``: BLA, calibration and validation runs,
-    Algorithm 1; about 15 s) once per session for test_plots_report.py and test_codegen_arm.py.
+    Algorithm 1; about 15 s) once per session for test_plots_report.py, test_codegen_arm.py and
+    test_algorithm1.py.
     Read-only: a module writes its own outputs into a folder of its own.
 
     Returns
@@ -76,10 +77,84 @@ def demo_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Any, Any]:
     return out, run_demo(out, report=False)
 
 
+# ------------------------------------------------------------------------------------------------
+# parallel runs: `pytest -n auto` (pytest-xdist; the README's command)
+
+#: The modules that share a session fixture of this file, by the fixture: they run in one
+#: worker, so the fixture is computed once (checked at collection: :func:`_check_groups`).
+_SHARED = {
+    "demo_run": ("test_algorithm1.py", "test_codegen_arm.py", "test_plots_report.py"),
+    "weak_bench": ("test_absolute.py", "test_misfit.py"),
+}
+_GROUP = {module: fixture for fixture, modules in _SHARED.items() for module in modules}
+
+
+def _group(nodeid: str) -> str:
+    """The unit of work of a parallel run: the test's module (its module fixtures and caches are
+    computed once), or the session fixture it shares with other modules (:data:`_SHARED`)."""
+    module = nodeid.split("::", 1)[0].rsplit("/", 1)[-1]
+    return _GROUP.get(module, module)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """With ``-n``: whole groups (:func:`_group`) to a worker, in the order collected
+    (:func:`pytest_collection_modifyitems`: the longest work first), not xdist's order by number
+    of tests, which would start the one-test setup fuzz last. An explicit ``--dist`` other
+    than ``load`` (the default of ``-n``) is xdist's own."""
+    if config.getvalue("dist") != "load":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class ByGroup(LoadScopeScheduling):  # type: ignore[misc]
+        def _split_scope(self, nodeid: str) -> str:
+            return _group(nodeid)
+
+    config.option.loadscopereorder = False
+    return ByGroup(config, log)
+
+
+def _worker(config: pytest.Config) -> bool:
+    """True in an xdist worker."""
+    return hasattr(config, "workerinput")
+
+
+def _check_groups(items: list[pytest.Item]) -> None:
+    """A module that uses a session fixture is in :data:`_SHARED` (else each worker would
+    compute the fixture again)."""
+    for item in items:
+        for name in getattr(item, "fixturenames", ()):
+            if name in _SHARED and item.path.name not in _SHARED[name]:
+                raise pytest.UsageError(
+                    f"{item.path.name} uses the session fixture {name}: add it to "
+                    "_SHARED in tests/conftest.py"
+                )
+
+
+def _rank(item: pytest.Item) -> int:
+    """0 for the modules with background work (the hostile cases and the setup fuzz: minutes
+    in child processes), 1 for the slow ones, 2 for the others."""
+    if hasattr(getattr(item, "module", None), "start_in_background"):
+        return 0
+    return 1 if "slow" in _MARKERS.get(item.path.name, ()) else 2
+
+
+@pytest.hookimpl(tryfirst=True)  # the order of the items is the order the workers get them
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
         for name in _MARKERS.get(item.path.name, ()):
             item.add_marker(getattr(pytest.mark, name))
+    if not _worker(config):
+        return
+    # in an xdist worker: each group (_group) ranked by its longest work, so that the two
+    # workers end near together; within a rank, the order collected
+    _check_groups(items)
+    rank: dict[str, int] = {}
+    for item in items:
+        g = _group(item.nodeid)
+        rank[g] = min(rank.get(g, 2), _rank(item))
+    first = {g: i for i, g in enumerate(dict.fromkeys(_group(item.nodeid) for item in items))}
+    items.sort(key=lambda item: (rank[_group(item.nodeid)], first[_group(item.nodeid)]))
 
 
 def _background_modules(session: pytest.Session) -> list[Any]:
@@ -97,9 +172,10 @@ def _background_modules(session: pytest.Session) -> list[Any]:
 def pytest_collection_finish(session: pytest.Session) -> None:
     """The hostile cases and the setup fuzz start in the background as soon as the tests are
     known: their processes use the core the one-at-a-time suite leaves idle; their tests wait
-    for them and check what they found."""
-    if session.config.option.collectonly:
-        return
+    for them and check what they found. In an xdist worker (``-n``) their tests start them:
+    every worker collects every test, and their modules are given out first."""
+    if session.config.option.collectonly or _worker(session.config):
+        return  # in an xdist worker, the tests start their work: their groups run first
     for module in _background_modules(session):
         module.start_in_background(session)
 

@@ -20,18 +20,16 @@ from hallcal.sim.lti import ContinuousTF
 
 
 @pytest.fixture(scope="module")
-def study():
+def study(demo_run):
+    """The demo's study (conftest ``demo_run``, once per session): the paper's bench (seed 1),
+    its multisine, calibration and validation runs (seed 1001), and the calibration that saw
+    only the controller and the data."""
+    _, demo = demo_run
     s = default_setup()
-    s = dataclasses.replace(s, bench=dataclasses.replace(s.bench, seed=2))
-    ms = pipeline.simulate(s, experiment="multisine")
-    cal = pipeline.simulate(s, experiment="ramp")
-    val = pipeline.simulate(s, experiment="ramp", seed=555, ramp_end=12.0, duration=24.0)
-    user = dataclasses.replace(s, plant=None)
-    ds = {
-        k: Dataset.from_columns(v.columns()) for k, v in {"ms": ms, "cal": cal, "val": val}.items()
-    }
-    result = pipeline.calibrate(ds["cal"], user, bla_dataset=ds["ms"])
-    return s, ds, result, cal
+    s = dataclasses.replace(s, bench=dataclasses.replace(s.bench, seed=1))
+    runs = {"ms": demo.runs["bla"], "cal": demo.runs["calibration"], "val": demo.runs["validation"]}
+    ds = {k: Dataset.from_columns(v.columns()) for k, v in runs.items()}
+    return s, ds, demo.calibration, runs["cal"]
 
 
 def test_bla_matches_true_plant(study):

@@ -16,6 +16,8 @@ How it runs: the property runs in a child process (``python tests/test_fuzz_setu
 started as soon as the session's tests are collected (:func:`start_in_background`, from
 conftest.py), on the core the one-at-a-time suite leaves idle; the collected test waits for it
 and fails with the child's output (Hypothesis's falsifying example and the broken contract).
+With ``-n auto`` (pytest-xdist) the test starts the child, and tests/conftest.py gives this module
+to a worker first.
 The child applies the suite's warning filter (a hallcal RuntimeWarning is an error).
 """
 

@@ -19,7 +19,8 @@ the core that leaves idle. The workers run under an address-space limit (``RLIMI
 case hangs (over 120 s, far above any case's run time even on a loaded machine: the case fails
 as a hang; the worker restarts with the next one). A sample of cases per
 subcommand also runs as a real ``python -m hallcal.cli`` subprocess under the same limits. With
-``-k``, only the selected cases are built and run.
+``-k``, only the selected cases are built and run. With ``-n auto`` (pytest-xdist) the ``hostile``
+fixture starts the driver, and tests/conftest.py gives this module to a worker first.
 """
 
 from __future__ import annotations
