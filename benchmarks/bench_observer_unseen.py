@@ -28,6 +28,12 @@ calibration applied to every capture: observer (misfit median, travel to ``stale
 the misfit check, and 40 power-ups of 300 samples (locks on a capture that is not the
 calibration's are confidently wrong answers: the ring was remounted).
 
+Before this audit's fixes (measured on the same inputs): the check said mismatch@10 for "d2 at
+its rail for the first 20 samples" and mismatch@12 for "noise 10x on the first 30 samples"
+(plain ``reconstruct`` refused, "recalibrate", recordings that fit after them); and
+``reconstruct --absolute`` accepted every lock (the last two columns of section 5 equalled
+"right" and "wrong": 10 of 60 wrong locks with d1 and d2 swapped at 2 rad/s).
+
 Run: ``python benchmarks/bench_observer_unseen.py``; output committed beside it
 (bench_observer_unseen.txt).
 """
@@ -169,6 +175,13 @@ def observer_motion() -> None:
     for i, (name, v) in enumerate(cases.items()):
         y0, _ = speed_profile(v, N)
         out(f"   {name:44s} " + verdicts(m, y0, m.signals(y0, 200 + i)))
+    # already spinning at the first sample (a recording cut from a run, a power-up while coasting)
+    for v in (60.0, 86.0, 171.0, 400.0):
+        y0 = v * TS * np.arange(N)
+        out(
+            f"   {f'spinning from the first sample: {v:.0f} rad/s':44s} "
+            + verdicts(m, y0, m.signals(y0, 250))
+        )
     # fast: electrical speed per sample as a fraction of Nyquist (pi), reached by a 0.5 s ramp
     for frac in (0.1, 0.2, 0.3, 0.4, 0.5, 0.6):
         top = frac * math.pi / m.n / TS
@@ -232,6 +245,15 @@ def observer_faults() -> None:
         spans.append((k0, k0 + L))
     run("dropouts: 1-5 samples to the rail, every 0.375 s", d, spans)
     d = base.copy()
+    d[:20, 1] = m.model.center[1] + 1.5 * amp[1]
+    run("d2 at its rail for the first 20 samples", d, [(0, 20)])
+    d = base.copy()
+    d[:30] += 9.0 * m.sigma * np.random.default_rng(704).standard_normal((30, 3))
+    run("noise 10x on the first 30 samples", d, [(0, 30)])
+    d = base.copy()
+    d[:, 1] += 0.002 * t * amp[1]
+    run("offset drift 0.2 %/s on d2", d)
+    d = base.copy()
     d[8000:8200] += 9.0 * m.sigma * np.random.default_rng(702).standard_normal((200, 3))
     run("noise burst: 200 samples at 10x noise", d, [(8000, 8200)])
     d = base.copy()
@@ -257,7 +279,7 @@ def eccentricity() -> None:
         "   w = n_m eps / R electrical rad for both); detection = first 'stale' (and first "
         "non-ok) in revolutions of travel at 2 rad/s;"
     )
-    out("   the check's verdict on the first 20 000 samples; y_obs error while 'ok'")
+    out("   the check's verdict on the first 20 000 samples; y_obs error after 512 samples")
     m = Motor(11)
     N = int(round(5 * TWO_PI / 2.0 / TS))  # five revolutions
     y0, t = speed_profile(lambda t: 2.0 + 0 * t, N)
@@ -287,7 +309,7 @@ def eccentricity() -> None:
         c = chk.status.value + (f"@{chk.sample}" if chk.sample is not None else "")
         s1 = f"{st[0] / rev:.2f} rev" if st.size else "never"
         s2 = f"{(no[0] + 512) / rev:.2f} rev" if no.size else "never"
-        out(f"   {w_deg:12.1f} {s1:>12s} {s2:>13s}  {e:15.2f}  {c:16s}")
+        out(f"   {w_deg:12.2f} {s1:>12s} {s2:>13s}  {e:15.2f}  {c:16s}")
 
 
 def power_up() -> None:
