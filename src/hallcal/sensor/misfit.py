@@ -51,7 +51,13 @@ kelvin of NdFeB remanence on the paper's bench) is refused, and 0.2 % can still 
 
 The same statistic over a whole recording (:func:`model_misfit`) is the wiring check of plain
 ``reconstruct``: it runs on the best pole-pair hypothesis (the recording may start anywhere) and
-fails at the first sample where D crosses the upper boundary.
+fails at the first sample where D crosses the upper boundary, unless the misfit was transient:
+restarted after the crossing, the test accepted the model for the rest of the recording (a noise
+burst of 20 samples or one channel 11 samples at its rail at the start of a recording crossed
+it, and plain ``reconstruct`` refused a recording that fits everywhere else,
+``benchmarks/bench_observer_unseen.txt``). The restart keeps the false-alarm bound (a mismatch
+still needs a crossing) and refuses a changed model as before (it crosses again after every
+restart).
 """
 
 from __future__ import annotations
@@ -196,6 +202,9 @@ class MisfitResult:
     offset : int
         The pole-pair hypothesis j attaining T (the recording's frame relative to the
         calibration's, as in :class:`~hallcal.sensor.absolute.PowerUpIdentification`).
+    transients : int
+        Upper crossings that the rest of the recording overrode (the test restarted after each
+        and accepted the model): transient misfits, not a changed model.
     """
 
     status: MisfitStatus
@@ -204,6 +213,7 @@ class MisfitResult:
     cost_per_dof: float
     samples: int
     offset: int
+    transients: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -213,7 +223,7 @@ class MisfitResult:
             "cost_per_dof": float(self.cost_per_dof),
             "samples": int(self.samples),
             "offset": int(self.offset),
-        }
+        } | ({"transients": int(self.transients)} if self.transients else {})
 
 
 class _CostModel(Protocol):
@@ -238,6 +248,23 @@ class _CostModel(Protocol):
 def model_misfit(decoder: _CostModel, d: ArrayLike) -> MisfitResult:
     """The sequential misfit test over a whole recording (no lock: every sample is evidence).
 
+    A transient (a noise burst, a channel a few samples at its rail) can carry the test over
+    its upper boundary although the model fits the rest of the recording: the test is then
+    restarted after the crossing (the pole pair free again, no evidence carried over), and the
+    recording is a mismatch only when the misfit persists: the last restarted test did not
+    accept the model, or the stretches that ended in a crossing hold at least half of the
+    samples, or the samples after the last restart show a misfit of :data:`CONFIRM_RATIO`
+    (a more sensitive test of the same beta). A changed ring, wiring or gain misfits at every
+    sample and crosses again within about 11 samples of each restart, so it stays a mismatch;
+    one that misfits on part of the turn only is caught by the confirmation; a transient of up
+    to a few hundred samples in a recording of thousands does not condemn it.
+
+    False alarm: a recording whose model fits is called a mismatch only if the test crosses
+    at least once, which has probability at most beta (Ville's inequality, module docstring);
+    requiring more can only lower it. So the stated rate (:data:`DEFAULT_MISMATCH_RATE`) holds
+    unchanged, and a recording without any crossing gives exactly the verdict of the plain
+    test.
+
     Parameters
     ----------
     decoder : PowerUpDecoder
@@ -248,31 +275,112 @@ def model_misfit(decoder: _CostModel, d: ArrayLike) -> MisfitResult:
     Returns
     -------
     MisfitResult
+        On a mismatch, the first crossing (its sample, statistic and cost); otherwise the last
+        restarted test's verdict over its samples, ``transients`` the crossings it overrode.
     """
     d = np.atleast_2d(np.asarray(d, dtype=np.float64))
     if d.shape[0] == 0:
         raise ValueError("no samples")
     test = decoder.misfit
-    lam = np.cumsum(decoder.sample_costs(d), axis=0)
-    T = np.min(lam, axis=1)
-    k = np.cumsum(decoder.features(d)["valid"])
-    D = test.statistic(T, k)
-    hit = np.flatnonzero(D >= test.bound)
-    stop = int(hit[0]) if hit.size else d.shape[0] - 1
-    if hit.size:
-        status = MisfitStatus.MISMATCH
-    elif D[stop] <= -test.fit_bound:
-        status = MisfitStatus.FITS
-    else:
-        status = MisfitStatus.UNDECIDED
-    used = int(k[stop])
+    costs = decoder.sample_costs(d)
+    valid = decoder.features(d)["valid"]
+    K = d.shape[0]
+    segments: list[_Segment] = []
+    start = 0
+    while start < K:
+        seg = _segment(test, costs, valid, start)
+        segments.append(seg)
+        if seg.hit is None:
+            break
+        start = seg.hit + 1
+    first, last = segments[0], segments[-1]
+    crossed = [s for s in segments if s.hit is not None]
+    in_crossed = sum(s.stop + 1 - s.start for s in crossed)
+    if crossed and (
+        last.hit is not None
+        or not last.fits
+        or 2 * in_crossed >= K
+        or _refuted(test, costs[last.start :], valid[last.start :])
+    ):
+        return _result(MisfitStatus.MISMATCH, crossed[0], 0)
+    status = MisfitStatus.FITS if last.fits else MisfitStatus.UNDECIDED
+    return _result(status, last if crossed else first, len(crossed))
+
+
+#: kappa of the confirmation that forgives a crossing: the test after the last restart must not
+#: find a misfit of this ratio either. The main test (kappa 8) accepts any cost below 2.4x the
+#: noise's as a fit; a ring remounted with an eccentricity at the detection limit misfits only
+#: on part of the turn (cost 2.0x): its first crossings looked like transients and the test
+#: restarted in a well-fitting stretch accepted it (measured: 3 of 5 trials at 0.3 deg_el).
+CONFIRM_RATIO = 1.5
+
+
+def _refuted(test: MisfitTest, costs: NDArray, valid: NDArray) -> bool:
+    """Does the sequential test of a misfit :data:`CONFIRM_RATIO` times the noise's (the same
+    beta) reject the model somewhere on these samples? Under a fitting model that has
+    probability at most beta (Ville's inequality), so the forgiveness costs no false alarms."""
+    confirm = MisfitTest(ratio=CONFIRM_RATIO, rate=test.rate, fit_rate=test.fit_rate)
+    lam = np.cumsum(costs, axis=0)
+    D = confirm.statistic(np.min(lam, axis=1), np.cumsum(valid))
+    return bool(np.any(D >= confirm.bound))
+
+
+@dataclass(frozen=True)
+class _Segment:
+    """One run of the sequential test from ``start``: its stop (the crossing, or the last
+    sample), the statistic and cost there, and whether it ended accepting the model."""
+
+    start: int
+    stop: int
+    hit: int | None
+    statistic: float
+    cost: float
+    used: int
+    offset: int
+    fits: bool
+
+
+#: Samples of a restarted test evaluated at once (a crossing comes within a few dozen samples
+#: of a misfit; the rest is computed only when none comes).
+_CHUNK = 512
+
+
+def _segment(test: MisfitTest, costs: NDArray, valid: NDArray, start: int) -> _Segment:
+    """The sequential test from ``start`` to its first upper crossing or the last sample."""
+    K = costs.shape[0]
+    stop = min(K, start + _CHUNK)
+    while True:
+        lam = np.cumsum(costs[start:stop], axis=0)
+        T = np.min(lam, axis=1)
+        k = np.cumsum(valid[start:stop])
+        D = test.statistic(T, k)
+        hit = np.flatnonzero(D >= test.bound)
+        if hit.size or stop == K:
+            break
+        stop = K
+    i = int(hit[0]) if hit.size else D.size - 1
+    used = int(k[i])
+    return _Segment(
+        start=start,
+        stop=start + i,
+        hit=start + i if hit.size else None,
+        statistic=float(D[i]),
+        cost=float(T[i]) / (2.0 * used) if used else math.nan,
+        used=used,
+        offset=int(np.argmin(lam[i])),
+        fits=bool(D[i] <= -test.fit_bound),
+    )
+
+
+def _result(status: MisfitStatus, seg: _Segment, transients: int) -> MisfitResult:
     return MisfitResult(
         status=status,
-        sample=stop if hit.size else None,
-        statistic=float(D[stop]),
-        cost_per_dof=float(T[stop]) / (2.0 * used) if used else math.nan,
-        samples=used,
-        offset=int(np.argmin(lam[stop])),
+        sample=seg.hit if status is MisfitStatus.MISMATCH else None,
+        statistic=seg.statistic,
+        cost_per_dof=seg.cost,
+        samples=seg.used,
+        offset=seg.offset,
+        transients=transients,
     )
 
 
