@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 from hallcal.errors import HallcalInputError
 from hallcal.formatting import AngleUnit
 from hallcal.io import ArtifactData, Dataset, Setup, validate_artifact
+from hallcal.pipeline.calibration import Calibration
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sim.lti import ContinuousTF
@@ -73,8 +74,8 @@ class ReportContent:
     gain_details : dict or None
         ``c`` (the gain correction c-hat), ``c_refined``, ``c_refined_std`` and the rest of the gain
         report.
-    predicted_error : float or None
-        Predicted RMS error of f_star [rad].
+    predicted_error : float
+        Predicted RMS error of f_star [rad] (NaN when the artifact has none).
     noise_floor : float or None
         RMS angle error of Hall noise alone [rad].
     noise_floor_source : str
@@ -131,7 +132,7 @@ class ReportContent:
     plant: ContinuousTF | None
     gain_correction: float | None
     gain_details: dict[str, Any] | None
-    predicted_error: float | None
+    predicted_error: float
     noise_floor: float | None
     noise_floor_source: str
     status: str
@@ -408,12 +409,9 @@ class ReportExtras:
 
     Attributes
     ----------
-    sem : SEMResult or None
-        The SEM solve of a calibration computed in this process: its d_sim and cov(theta) are
-        shown as they are. Without it the closed loop is replayed from the artifact
-        (:func:`hallcal.fit.replay.replay_closed_loop`).
     bla : BLAIdentification or None
-        The BLA (in memory, or read from ``hallcal bla``'s file).
+        The BLA read from ``hallcal bla``'s file (a calibration computed in this process has
+        its own).
     validation : Validation or None
         Errors already computed on the report's ``validation_data`` (recomputed when None).
     noise_floor : float or None
@@ -424,7 +422,6 @@ class ReportExtras:
         The virtual bench's truth, drawn for comparison.
     """
 
-    sem: Any = None
     bla: Any = None
     validation: Any = None
     noise_floor: float | None = None
@@ -434,51 +431,14 @@ class ReportExtras:
     true_noise_variance: float | None = None
     true_cogging: Any = None
 
-    @classmethod
-    def of(cls, cal: Any, **extras: Any) -> ReportExtras:
-        """What a :class:`~hallcal.pipeline.Calibration` has beyond its artifact.
 
-        Parameters
-        ----------
-        cal : Calibration
-            Computed in this process: its SEM solve and BLA are added; loaded from an artifact:
-            nothing (its report is the one ``hallcal report`` writes).
-        **extras
-            Further fields (``validation``, ``noise_floor``, the truth).
-
-        Returns
-        -------
-        ReportExtras
-        """
-        return cls(sem=cal.sem, bla=cal.bla, **extras)
-
-
-def calibration_artifact(cal: Any) -> ArtifactData:
-    """The typed artifact of a calibration, for its report.
-
-    Parameters
-    ----------
-    cal : Calibration
-        Loaded from an artifact (that artifact) or computed in this process (its own).
-
-    Returns
-    -------
-    ArtifactData
-        Checked by :func:`~hallcal.io.validate_artifact`, a table that is not bijective
-        accepted so that a calibration refused as such can still be reported
-        (:meth:`~hallcal.pipeline.Calibration.save` never writes it).
-    """
-    return validate_artifact(cal.artifact, "in memory", bijective=False)
-
-
-def _artifact_floor(diag: Mapping[str, Any], flux: FluxModel, n_m: int) -> tuple[float | None, str]:
+def _artifact_floor(cal: Calibration, flux: FluxModel) -> tuple[float | None, str]:
     """The artifact's noise floor (the calibration's own), or for artifacts written before it
     was stored, the estimate from the SEM's noise variance."""
-    stored = diag.get("noise_floor")
-    if isinstance(stored, int | float) and math.isfinite(stored):
-        return float(stored), _ESTIMATED_FLOOR
+    if math.isfinite(cal.noise_floor):
+        return float(cal.noise_floor), _ESTIMATED_FLOOR
     return (
-        _estimated_floor(diag.get("noise_variance"), flux, n_m),
+        _estimated_floor(cal.diagnostics.get("noise_variance"), flux, cal.pole_pairs),
         "estimated from the SEM residual",
     )
 
@@ -565,7 +525,7 @@ def _replayed_sem(
 
 
 def report_content(
-    artifact: ArtifactData | Mapping[str, Any],
+    calibration: Calibration | ArtifactData | Mapping[str, Any],
     data: Dataset,
     *,
     extras: ReportExtras | None = None,
@@ -577,22 +537,26 @@ def report_content(
     """Gather a report's content: the one builder (``hallcal report``, ``demo``,
     :meth:`hallcal.Calibration.report`).
 
-    The lookup table, the flux model, the plant and the diagnostics come from the artifact.
-    The model fit (Fig. 4) and the table's uncertainty band need the SEM's simulated signals
-    and cov(theta): from ``extras.sem`` when the calibration was computed in this process,
-    else the closed loop is replayed with the stored plant and controller. The noise floor is
+    The lookup table, the flux model, the plant and the diagnostics come from the artifact
+    (through :class:`~hallcal.pipeline.Calibration`'s properties). The model fit (Fig. 4) and
+    the table's uncertainty band need the SEM's simulated signals and cov(theta): from the
+    calibration's SEM solve when it was computed in this process, else the closed loop is
+    replayed with the stored plant and controller. The noise floor is
     the calibration's own (``diagnostics.noise_floor``) unless ``extras`` gives one.
 
     Parameters
     ----------
-    artifact : ArtifactData or mapping
-        As returned by :func:`hallcal.io.read_artifact`, or a mapping (checked by
+    calibration : Calibration, ArtifactData or mapping
+        A :class:`~hallcal.pipeline.Calibration` (computed in this process: its SEM solve and
+        BLA are shown from memory; a table that is not bijective is accepted, so that a
+        calibration refused as such can still be reported), or an artifact as returned by
+        :func:`hallcal.io.read_artifact`, or a mapping (checked by
         :func:`hallcal.io.validate_artifact`).
     data : Dataset
         The calibration recording (d1..d3; r for the replay; y_ref validates when no
         ``validation_data`` is given).
     extras : ReportExtras, keyword-only, optional
-        What the caller has in memory beyond the artifact.
+        What the caller has beyond the calibration (validation, noise floor, the truth).
     validation_data : Dataset, keyword-only, optional
         A fresh recording with ``y_ref``.
     sources : mapping, keyword-only, optional
@@ -605,19 +569,23 @@ def report_content(
     ReportContent
     """
     x = extras or ReportExtras()
-    source = (sources or {}).get("artifact", "artifact")
-    art = validate_artifact(artifact, source)
-    setup, lut, flux, diag = art.setup, art.lut(), art.flux(), art.diagnostics
-    cogging = art.cogging_torque()
-    plant = art.plant_model() or setup.plant  # the calibration's (a BLA's), else the setup's
+    if isinstance(calibration, Calibration):
+        art = validate_artifact(calibration.artifact, "in memory", bijective=False)
+        cal = Calibration(art, calibration.computed)
+    else:
+        art = validate_artifact(calibration, (sources or {}).get("artifact", "artifact"))
+        cal = Calibration(art)
+    setup, lut, flux, diag = cal.setup, cal.lut, cal.flux, cal.diagnostics
+    cogging = cal.cogging
+    plant = cal.plant or setup.plant  # the calibration's (a BLA's), else the setup's
     notes: list[str] = []
     cal_traces = _traces(lut, data)
-    sem = x.sem
+    sem = cal.sem
     if sem is None:
         sem = _replayed_sem(art, flux, plant, data, lut, cogging, progress=progress, notes=notes)
     noise_floor, floor_source = x.noise_floor, x.noise_floor_source
     if noise_floor is None:
-        noise_floor, floor_source = _artifact_floor(diag, flux, art.pole_pairs)
+        noise_floor, floor_source = _artifact_floor(cal, flux)
     constant_speed = diag.get("constant_speed")
     if not isinstance(constant_speed, Mapping):
         constant_speed = None
@@ -634,7 +602,7 @@ def report_content(
         )  # fmt: skip
     return ReportContent(
         title=title,
-        bla=x.bla,
+        bla=x.bla if cal.bla is None else cal.bla,
         plant=plant,
         noise_floor=noise_floor,
         noise_floor_source=floor_source,
@@ -648,17 +616,20 @@ def report_content(
         sources=dict(sources or {}),
         notes=notes,
         cogging=cogging,
-        **_artifact_fields(art, lut, flux, sem),
+        **_artifact_fields(cal, lut, flux, sem),
         **_recording_parts(data, setup, lut, flux, sem, cal_traces, constant_speed),
     )
 
 
-def _artifact_fields(art: ArtifactData, lut: LUT, flux: FluxModel, sem: Any) -> dict[str, Any]:
-    """What an artifact says of its calibration (:class:`ReportContent` fields)."""
-    diag = art.diagnostics
+def _artifact_fields(cal: Calibration, lut: LUT, flux: FluxModel, sem: Any) -> dict[str, Any]:
+    """What an artifact says of its calibration (:class:`ReportContent` fields).
+
+    An artifact without ``diagnostics.status`` (the validator reads it as "ok") is reported
+    with status "unknown": the report does not vouch for what the file does not say.
+    """
+    art, diag = cal.artifact, cal.diagnostics
     gain = (art.plant or {}).get("gain_correction")
     gain_details = diag.get("gain_correction")
-    predicted = diag.get("predicted_angle_error_rms")
     adequacy = diag.get("adequacy")
     timings = dict(diag["timings"]) if isinstance(diag.get("timings"), Mapping) else {}
     return dict(
@@ -668,9 +639,9 @@ def _artifact_fields(art: ArtifactData, lut: LUT, flux: FluxModel, sem: Any) -> 
         sem=sem,
         gain_correction=None if gain is None else float(gain),
         gain_details=dict(gain_details) if isinstance(gain_details, Mapping) else None,
-        predicted_error=None if predicted is None else float(predicted),
-        status=str(diag.get("status", "unknown")),
-        messages=[str(m) for m in diag.get("messages", [])],
+        predicted_error=cal.predicted_error,
+        status=cal.status.value if "status" in diag else "unknown",
+        messages=[m.record() for m in cal.messages],
         adequacy=dict(adequacy) if isinstance(adequacy, Mapping) else None,
         timings={str(k): float(v) for k, v in timings.items()},
         model_info={k: v for k, v in art.model.items() if k not in ("theta", "weights")},

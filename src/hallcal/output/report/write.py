@@ -27,7 +27,6 @@ from hallcal.output.report.content import (
     ReportContent,
     ReportExtras,
     _say,
-    calibration_artifact,
     report_content,
 )
 from hallcal.output.report.figures import make_figures
@@ -213,8 +212,7 @@ def write_demo_report(
         The HTML file.
     """
     cal_run, val_run = runs["calibration"], runs["validation"]
-    extras = ReportExtras.of(
-        cal,
+    extras = ReportExtras(
         validation=val,
         noise_floor=noise_floor,
         noise_floor_source="virtual bench: σ·√(2/3)/(A·n_m) with the true σ and A",
@@ -223,7 +221,7 @@ def write_demo_report(
         true_noise_variance=cal_run.config.noise_variance,
     )
     content = report_content(
-        calibration_artifact(cal),
+        cal,
         Dataset.from_columns(cal_run.columns(), path="calibration.npz"),
         extras=extras,
         validation_data=Dataset.from_columns(val_run.columns(), path="validation.npz"),
@@ -272,9 +270,8 @@ def write_calibration_report(
     """
     unit = AngleUnit.parse(units)  # before the work
     content = report_content(
-        calibration_artifact(cal),
+        cal,
         data,
-        extras=ReportExtras.of(cal),
         validation_data=validation,
         progress=progress,
     )
