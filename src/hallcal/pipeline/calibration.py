@@ -65,7 +65,6 @@ __all__ = [
     "Diagnostics",
     "Reconstruction",
     "Validation",
-    "artifact_from_calibration",
     "calibration_from_artifact",
     "computed_calibration",
     "reconstruct",
@@ -601,21 +600,6 @@ plant_source, timings, model_info, cogging, identifiability, observer, sensors
         "identifiability": identifiability,
     }
     return Calibration(ArtifactData.in_memory(art, lut, typed), computed)
-
-
-def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
-    """The calibration's artifact as a plain dict (:meth:`Calibration.to_artifact`).
-
-    Parameters
-    ----------
-    cal : Calibration
-
-    Returns
-    -------
-    dict
-        Ready for :func:`~hallcal.io.write_artifact`.
-    """
-    return cal.to_artifact()
 
 
 def _number(diag: Mapping[str, Any], key: str) -> float:
