@@ -5,7 +5,7 @@ calibration computed in this process has in memory (:class:`ReportExtras`)."""
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -16,17 +16,12 @@ from hallcal.errors import HallcalInputError
 from hallcal.formatting import AngleUnit
 from hallcal.io import ArtifactData, Dataset, Setup, validate_artifact
 from hallcal.pipeline.calibration import Calibration
+from hallcal.pipeline.progress import Progress, say
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sim.lti import ContinuousTF
 
-Progress = Callable[[str], None] | None
 TWO_PI = 2.0 * math.pi
-
-
-def _say(progress: Progress, message: str) -> None:
-    if progress is not None:
-        progress(message)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -261,13 +256,13 @@ def _amplitude(flux: FluxModel, n_m: int) -> float:
 
 
 def _estimated_floor(noise_variance: float | None, flux: FluxModel, n_m: int) -> float | None:
-    """sigma sqrt(2/3) / (A n_m): the RMS angle error of white Hall noise alone (docs/design.md)."""
+    """The noise floor of the model's amplitude (:func:`hallcal.sim.bench.noise_floor`)."""
+    from hallcal.sim.bench import noise_floor
+
     if noise_variance is None or not math.isfinite(noise_variance) or noise_variance < 0:
         return None
     a = _amplitude(flux, n_m)
-    if not a > 0:
-        return None
-    return math.sqrt(noise_variance) * math.sqrt(2.0 / 3.0) / (a * n_m)
+    return noise_floor(noise_variance, n_m, a) if a > 0 else None
 
 
 _ESTIMATED_FLOOR = "estimated from the calibration data (model-free Hall noise level)"
@@ -484,10 +479,10 @@ def _replayed_sem(
     else:
         from hallcal.fit.replay import replay_closed_loop
 
-        _say(progress, "re-simulating the closed loop with the identified model")
+        say(progress, "re-simulating the closed loop with the identified model")
         fourier = art.model.get("basis", "fourier") == "fourier"
         if fourier:
-            _say(progress, "parameter covariance (one sensitivity pass) for the LUT band")
+            say(progress, "parameter covariance (one sensitivity pass) for the LUT band")
         run = replay_closed_loop(
             flux, lut, plant, setup.controller, setup.sample_time, data["r"], data.d,
             cogging=cogging, noise_variance=s2, covariance=fourier,
@@ -631,7 +626,6 @@ def _artifact_fields(cal: Calibration, lut: LUT, flux: FluxModel, sem: Any) -> d
     gain = (art.plant or {}).get("gain_correction")
     gain_details = diag.get("gain_correction")
     adequacy = diag.get("adequacy")
-    timings = dict(diag["timings"]) if isinstance(diag.get("timings"), Mapping) else {}
     return dict(
         setup=art.setup,
         lut=lut,
@@ -643,6 +637,6 @@ def _artifact_fields(cal: Calibration, lut: LUT, flux: FluxModel, sem: Any) -> d
         status=cal.status.value if "status" in diag else "unknown",
         messages=[m.record() for m in cal.messages],
         adequacy=dict(adequacy) if isinstance(adequacy, Mapping) else None,
-        timings={str(k): float(v) for k, v in timings.items()},
-        model_info={k: v for k, v in art.model.items() if k not in ("theta", "weights")},
+        timings={str(k): float(v) for k, v in cal.timings.items()},
+        model_info={k: v for k, v in cal.model_info.items() if k not in ("theta", "weights")},
     )

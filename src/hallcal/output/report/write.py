@@ -22,16 +22,11 @@ from hallcal.io import (
 )
 from hallcal.io.artifact import migrate_values
 from hallcal.output.plots import figure_png
-from hallcal.output.report.content import (
-    Progress,
-    ReportContent,
-    ReportExtras,
-    _say,
-    report_content,
-)
+from hallcal.output.report.content import ReportContent, ReportExtras, report_content
 from hallcal.output.report.figures import make_figures
 from hallcal.output.report.page import _DPI, render_html
 from hallcal.pipeline.calibration import Calibration
+from hallcal.pipeline.progress import Progress, say
 from hallcal.sim.lti import ContinuousTF
 
 REPORT_NAME = "report.html"
@@ -63,10 +58,10 @@ def write_report(
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise HallcalInputError(f"{out}: exists and is not a directory")
-    _say(progress, "figures")
+    say(progress, "figures")
     figs = make_figures(content)
     images = [(f, figure_png(f.figure, dpi=_DPI)) for f in figs]
-    _say(progress, "HTML report")
+    say(progress, "HTML report")
     text = render_html(content, images)
     path = out / REPORT_NAME
     with output_set():  # the figures and the page appear together, or nothing changes
