@@ -58,7 +58,7 @@ import numpy as np
 
 from hallcal.errors import HallcalInputError
 from hallcal.formatting import one_line
-from hallcal.io.files import _existing_file, _suggest, atomic_path, atomic_write
+from hallcal.io.files import _suggest, atomic_path, atomic_write, existing_file
 from hallcal.io.text import TEXT_EXTENSIONS, read_text_table, write_text_table
 from hallcal.limits import (
     MAX_ABS_VALUE,
@@ -416,7 +416,7 @@ def read_dataset(
         (with its row), columns of different lengths, fewer than `min_samples` rows, an
         object (pickled) array in an ``.npz`` file.
     """
-    p = _existing_file(path)
+    p = existing_file(path)
     ext = _check_extension(p)
     if p.stat().st_size == 0:
         raise HallcalInputError(f"{p}: file is empty")
