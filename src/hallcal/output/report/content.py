@@ -235,12 +235,13 @@ def _straight_line(
 
 
 def _constant_speed_parts(
-    cs: Any, lut: LUT, data: Dataset, traces: Traces
+    cs: Mapping[str, Any] | None, lut: LUT, data: Dataset, traces: Traces
 ) -> tuple[dict[str, Any] | None, float | None, StraightLineCheck | None]:
-    """Summary, Hall noise variance and straight-line check of a constant-speed calibration."""
+    """Summary, Hall noise variance and straight-line check of a constant-speed calibration
+    (the artifact's ``diagnostics.constant_speed``)."""
     if cs is None:
         return None, None, None
-    summary = dict(cs.to_dict()) if hasattr(cs, "to_dict") else dict(cs)
+    summary = dict(cs)
     noise = summary.get("noise_std")
     variance = float(noise) ** 2 if isinstance(noise, int | float) and noise > 0 else None
     return summary, variance, _straight_line(summary, lut, data, traces)
@@ -369,7 +370,7 @@ def _recording_parts(
     flux: FluxModel,
     sem: Any,
     cal_traces: Traces,
-    constant_speed: Any,
+    constant_speed: Mapping[str, Any] | None,
 ) -> dict[str, Any]:
     """What the report shows of the calibration recording: the signals and the model's, the
     time axis, the table's uncertainty and the constant-speed check (:class:`ReportContent`
