@@ -73,7 +73,7 @@ def test_artifact_round_trip_reconstructs_identically(study, tmp_path):
 
     _, ds, result, _ = study
     path = tmp_path / "cal.json"
-    write_artifact(path, pipeline.artifact_from_calibration(result))
+    write_artifact(path, result.to_artifact())
     art = read_artifact(path)
     rec = pipeline.reconstruct(art, ds["val"])
     np.testing.assert_allclose(rec.y_star, result.lut.f_star(ds["val"].d), atol=1e-13)

@@ -260,7 +260,6 @@ def test_report_draws_the_cogging_map(bench_data, tmp_path):
     from hallcal.output import plots
     from hallcal.output.report import (
         ReportExtras,
-        calibration_artifact,
         make_figures,
         report_content,
     )
@@ -268,8 +267,8 @@ def test_report_draws_the_cogging_map(bench_data, tmp_path):
     cfg, run, _ = bench_data
     data = Dataset.from_columns(run.columns(with_encoder=False), path="cal")
     cal = hallcal.calibrate(data, _bench_setup(plant=True))
-    extras = ReportExtras.of(cal, true_cogging=cfg.cogging_torque())
-    content = report_content(calibration_artifact(cal), data, extras=extras)
+    extras = ReportExtras(true_cogging=cfg.cogging_torque())
+    content = report_content(cal, data, extras=extras)
     figs = {f.key: f for f in make_figures(content)}
     assert "cogging" in figs
     axes = figs["cogging"].figure.axes

@@ -379,7 +379,7 @@ def test_pipeline_constant_speed(tmp_path):
     assert cal.status == "ok", cal.messages
     assert cal.model_info["harmonics"] == list(default_harmonics(n))
     assert cal.validation is not None
-    art = pipeline.artifact_from_calibration(cal)
+    art = cal.to_artifact()
     cs = art["diagnostics"]["constant_speed"]
     np.testing.assert_allclose(cs["geometry"]["phases_deg"], np.degrees(PHASES), atol=0.5)
     np.testing.assert_allclose(art["reconstruction"]["projection"], cal.lut.projection)

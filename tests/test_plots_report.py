@@ -27,7 +27,7 @@ from hallcal.output.report import (
     write_report,
     write_report_from_files,
 )
-from hallcal.pipeline import CalibrationStatus
+from hallcal.pipeline import Calibration, CalibrationStatus
 
 CHROMIUM = "/usr/bin/chromium"
 DEMO_FIGURES = ("ripple", "hall_model", "angle_error", "spectrum", "bla", "sem_cost", "lut")
@@ -292,7 +292,7 @@ def test_report_degrades_without_sem_or_a_bijective_table(demo, tmp_path):
     assert not folded.lut().bijective
     with pytest.raises(HallcalInputError, match="not bijective"):  # never by default
         validate_artifact({**art, "lut": lut})
-    content = report_content(folded, data, extras=ReportExtras.of(cal))
+    content = report_content(Calibration(folded, cal.computed), data)  # its SEM and BLA
     text = write_report(content, tmp_path / "broken").read_text()
     assert "bijective: <b>NO</b>" in text and "status-bad" in text
     assert 'id="fig-angle_error"' in text and 'id="fig-spectrum"' not in text

@@ -275,7 +275,7 @@ def test_ringjig_through_the_pipeline(results):
     assert cal.status == "ok", cal.messages
     y_star = cal.lut.f_star(r["d"])
     np.testing.assert_allclose(y_star, r["res"].lut.f_star(r["d"]), atol=1e-9)
-    art = pipeline.artifact_from_calibration(cal)
+    art = cal.to_artifact()
     geo = art["diagnostics"]["constant_speed"]["geometry"]
     np.testing.assert_allclose(np.diff(geo["phases_deg"]), [101.0, 160.0], atol=2.0)
 

@@ -30,7 +30,6 @@ from hallcal.limits import MAX_POLE_PAIRS
 from hallcal.messages import Message, MessageCode
 
 EXIT_INPUT = HallcalInputError.exit_status
-EXIT_FLEET_INCOMPLETE = 4  # hallcal.fleet.EXIT_INCOMPLETE
 #: Exit status after Ctrl-C (SIGINT): 128 + 2, the shells' convention.
 EXIT_ABORTED = 130
 
@@ -1029,7 +1028,7 @@ def fleet(
         TimeRemainingColumn,
     )
 
-    from hallcal.fleet import all_succeeded, run_fleet, summary_counts
+    from hallcal.fleet import EXIT_INCOMPLETE, all_succeeded, run_fleet, summary_counts
 
     if workers is not None and scheduler is not None:
         raise HallcalInputError("--workers applies to the local cluster, not to --scheduler")
@@ -1086,7 +1085,7 @@ def fleet(
     written = ["summary.csv", "summary.parquet"] + ([] if no_report else ["fleet.html"])
     _out.print("wrote " + ", ".join(str(out_dir / w) for w in written))
     if not all_succeeded(table):
-        sys.exit(EXIT_FLEET_INCOMPLETE)
+        sys.exit(EXIT_INCOMPLETE)
 
 
 def main() -> None:

@@ -146,7 +146,7 @@ def run_demo(
         bla_dataset=_dataset(ms, "bla"),
         progress=say,
     )
-    art = pipeline.artifact_from_calibration(cal)
+    art = cal.to_artifact()
     art_path = out / "calibration.json"
     write_artifact(art_path, art)
     files.append(art_path)

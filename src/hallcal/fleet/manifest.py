@@ -14,6 +14,7 @@ from typing import Any
 import pyarrow as pa
 
 from hallcal.errors import HallcalInputError
+from hallcal.io.files import existing_file
 
 #: Manifest columns: required first, then optional.
 MANIFEST_COLUMNS: tuple[str, ...] = ("motor_id", "data", "setup", "bla_data", "validation")
@@ -190,11 +191,7 @@ def read_manifest(path: str | os.PathLike[str]) -> list[MotorSpec]:
         Missing or unreadable file, unknown extension, a required column missing, a misspelled
         column, or no motor at all; the message names the file and the column.
     """
-    p = Path(path)
-    if not p.exists():
-        raise HallcalInputError(f"{p}: file not found")
-    if not p.is_file():
-        raise HallcalInputError(f"{p}: not a regular file")
+    p = existing_file(path)
     ext = p.suffix.lower()
     if ext == ".csv":
         header, rows = _manifest_rows_csv(p)

@@ -865,7 +865,7 @@ def write_artifact(path: str | os.PathLike[str], artifact: Mapping[str, Any]) ->
         Destination file; its directory must exist.
     artifact : mapping
         The artifact's keys (e.g. from
-        :func:`hallcal.pipeline.calibration.artifact_from_calibration`).
+        :meth:`hallcal.pipeline.Calibration.to_artifact`).
 
     Raises
     ------

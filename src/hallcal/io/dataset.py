@@ -58,7 +58,7 @@ import numpy as np
 
 from hallcal.errors import HallcalInputError
 from hallcal.formatting import one_line
-from hallcal.io.files import _existing_file, _suggest, atomic_path, atomic_write
+from hallcal.io.files import _suggest, atomic_path, atomic_write, existing_file
 from hallcal.io.text import TEXT_EXTENSIONS, read_text_table, write_text_table
 from hallcal.limits import (
     MAX_ABS_VALUE,
@@ -416,7 +416,7 @@ def read_dataset(
         (with its row), columns of different lengths, fewer than `min_samples` rows, an
         object (pickled) array in an ``.npz`` file.
     """
-    p = _existing_file(path)
+    p = existing_file(path)
     ext = _check_extension(p)
     if p.stat().st_size == 0:
         raise HallcalInputError(f"{p}: file is empty")
@@ -771,13 +771,15 @@ def _read_mat(p: Path) -> dict[str, np.ndarray]:
     }
 
 
-def _npy_header(f: IO[bytes], name: str, source: str) -> tuple[tuple[int, ...], np.dtype]:
-    """Shape and dtype of a .npy member from its header, refusing object (pickled) arrays."""
+def _npy_header(f: IO[bytes], name: str, source: str) -> tuple[tuple[int, ...], bool, np.dtype]:
+    """Shape, Fortran order and dtype of a .npy member from its header, refusing object
+    (pickled) arrays and unknown versions (a HallcalInputError, a ValueError as a malformed
+    header's)."""
     version = np.lib.format.read_magic(f)
     if version == (1, 0):
-        shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+        shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
     elif version == (2, 0):
-        shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+        shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
     else:
         raise HallcalInputError(f"{source}: array '{name}' has an unsupported .npy version")
     if dtype.hasobject:
@@ -785,7 +787,7 @@ def _npy_header(f: IO[bytes], name: str, source: str) -> tuple[tuple[int, ...], 
             f"{source}: array '{name}' holds Python objects (object dtype); hallcal never "
             "unpickles data, save numeric arrays"
         )
-    return tuple(int(s) for s in shape), dtype
+    return tuple(int(s) for s in shape), bool(fortran), dtype
 
 
 def _read_npz(p: Path) -> dict[str, np.ndarray]:
@@ -811,7 +813,7 @@ def _read_npz(p: Path) -> dict[str, np.ndarray]:
             by_name[name] = info
             with archive.open(info) as f:
                 try:
-                    shape, dtype = _npy_header(f, name, source)
+                    shape, _, dtype = _npy_header(f, name, source)
                 except ValueError:
                     if not info.filename.endswith(".npy"):
                         members.append(_Member(name, None, "not a .npy array"))
@@ -880,16 +882,8 @@ def _mapped_npy(mm: mmap.mmap, info: zipfile.ZipInfo) -> np.ndarray | None:
         return None
     head = io.BytesIO(mm[start : min(end, start + (1 << 20))])
     try:
-        version = np.lib.format.read_magic(head)
-        if version == (1, 0):
-            shape, fortran, dtype = np.lib.format.read_array_header_1_0(head)
-        elif version == (2, 0):
-            shape, fortran, dtype = np.lib.format.read_array_header_2_0(head)
-        else:
-            return None
-    except ValueError:
-        return None
-    if dtype.hasobject:
+        shape, fortran, dtype = _npy_header(head, info.filename, "")
+    except ValueError:  # an unknown version, a malformed header or object (pickled) values
         return None
     count = math.prod(shape)
     offset = start + head.tell()

@@ -36,6 +36,7 @@ __all__ = [
     "atomic_path",
     "atomic_write",
     "check_outputs",
+    "existing_file",
     "make_folder",
     "output_set",
     "read_json",
@@ -488,7 +489,23 @@ def _suggest(name: str, candidates: Iterable[str]) -> str:
     return f" (did you mean '{guess}'?)" if guess is not None else ""
 
 
-def _existing_file(path: str | os.PathLike[str]) -> Path:
+def existing_file(path: str | os.PathLike[str]) -> Path:
+    """An input file that must exist (the readers' first check).
+
+    Parameters
+    ----------
+    path : path-like
+        The file.
+
+    Returns
+    -------
+    pathlib.Path
+
+    Raises
+    ------
+    HallcalInputError
+        It does not exist, or is not a regular file (the message names it).
+    """
     p = Path(path)
     if not p.exists():
         raise HallcalInputError(f"{p}: file not found")
@@ -744,7 +761,7 @@ def read_json(path: str | os.PathLike[str]) -> Any:
 
 def _read_json_raw(path: str | os.PathLike[str]) -> tuple[Any, bytes]:
     """:func:`read_json`, also returning the bytes it parsed (for their SHA-256)."""
-    p = _existing_file(path)
+    p = existing_file(path)
     raw = _read_bytes(p, limit=MAX_JSON_BYTES, what="a JSON file")
     containers = raw.count(b"{") + raw.count(b"[")  # at least as many as the parser would make
     if containers > MAX_JSON_CONTAINERS:

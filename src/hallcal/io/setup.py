@@ -25,11 +25,11 @@ from hallcal.io.files import (
     _check_parsed,
     _closest,
     _decode_text,
-    _existing_file,
     _nested_too_deeply,
     _read_bytes,
     _suggest,
     atomic_write,
+    existing_file,
 )
 from hallcal.limits import (
     MAX_BENCH_ELECTRICAL_HARMONICS,
@@ -1061,7 +1061,7 @@ def read_setup(path: str | os.PathLike[str]) -> Setup:
         :data:`~hallcal.limits.MAX_JSON_DEPTH`, invalid UTF-8, malformed TOML (with its line), a
         number out of range, or any problem :func:`setup_from_dict` reports.
     """
-    p = _existing_file(path)
+    p = existing_file(path)
     text = _decode_text(p, _read_bytes(p, limit=MAX_SETUP_BYTES, what="a setup file"))
     try:
         data = tomllib.loads(text)

@@ -65,7 +65,6 @@ __all__ = [
     "Diagnostics",
     "Reconstruction",
     "Validation",
-    "artifact_from_calibration",
     "calibration_from_artifact",
     "computed_calibration",
     "reconstruct",
@@ -331,7 +330,11 @@ class Calibration:
     sensors = property(lambda self: self.diagnostics.get("sensors", {}))
     predicted_error = property(lambda self: _number(self.diagnostics, "predicted_angle_error_rms"))
     noise_floor = property(lambda self: _number(self.diagnostics, "noise_floor"))
-    status = property(lambda self: self.artifact.typed("status", lambda: _status(self.artifact)))
+    status = property(  # the validator checked the value (ARTIFACT_STATUSES)
+        lambda self: self.artifact.typed(
+            "status", lambda: CalibrationStatus(self.diagnostics.get("status", "ok"))
+        )
+    )
     messages = property(lambda self: self.artifact.typed("messages", lambda: _messages(self)))
     identifiability = property(
         lambda self: self.artifact.typed(
@@ -603,21 +606,6 @@ plant_source, timings, model_info, cogging, identifiability, observer, sensors
     return Calibration(ArtifactData.in_memory(art, lut, typed), computed)
 
 
-def artifact_from_calibration(cal: Calibration) -> dict[str, Any]:
-    """The calibration's artifact as a plain dict (:meth:`Calibration.to_artifact`).
-
-    Parameters
-    ----------
-    cal : Calibration
-
-    Returns
-    -------
-    dict
-        Ready for :func:`~hallcal.io.write_artifact`.
-    """
-    return cal.to_artifact()
-
-
 def _number(diag: Mapping[str, Any], key: str) -> float:
     """``diagnostics[key]`` as a float, NaN when absent or null."""
     value = diag.get(key)
@@ -626,19 +614,6 @@ def _number(diag: Mapping[str, Any], key: str) -> float:
 
 def _messages(cal: Calibration) -> tuple[Message, ...]:
     return tuple(Message.from_record(m) for m in cal.diagnostics.get("messages", ()))
-
-
-def _status(art: ArtifactData) -> CalibrationStatus:
-    """``diagnostics.status`` as a :class:`CalibrationStatus` (an error names the file)."""
-    try:
-        return CalibrationStatus(art.diagnostics.get("status", "ok"))
-    except ValueError:
-        options = ", ".join(f'"{s.value}"' for s in CalibrationStatus)
-        raise HallcalInputError(
-            f"{art.source}: key 'diagnostics.status' must be one of {options}",
-            source=art.source,
-            key="diagnostics.status",
-        ) from None
 
 
 def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Calibration:
@@ -660,11 +635,11 @@ def calibration_from_artifact(artifact: ArtifactData | Mapping[str, Any]) -> Cal
     Raises
     ------
     HallcalInputError
-        The artifact does not pass the validator, its ``diagnostics.status`` is not one of
-        :class:`CalibrationStatus`, or its ``identifiability`` entry is malformed.
+        The artifact does not pass the validator (which checks ``diagnostics.status``), or its
+        ``identifiability`` entry is malformed.
     """
     cal = Calibration(validate_artifact(artifact, "artifact"))
-    _ = (cal.status, cal.identifiability)  # checked now: a malformed file is refused when read
+    _ = cal.identifiability  # checked now: a malformed file is refused when read
     return cal
 
 

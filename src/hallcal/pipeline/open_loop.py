@@ -27,7 +27,7 @@ from hallcal.pipeline.calibration import Calibration, Diagnostics, computed_cali
 from hallcal.pipeline.checks import CheckStatus, check_pole_pairs, check_recording, raise_if_failed
 from hallcal.pipeline.observe import FOLDING_NOTE, calibrated_noise, observer_section
 from hallcal.pipeline.powerup import power_up_analysis
-from hallcal.pipeline.progress import Progress
+from hallcal.pipeline.progress import Progress, say
 from hallcal.pipeline.verdict import decide
 from hallcal.sensor.flux import FourierBasis
 from hallcal.sensor.observer import observer_model
@@ -137,10 +137,10 @@ def calibrate_open_loop(
                 'constant-speed calibration (trajectory.kind = "constant-speed")',
             )
         )
-    if progress is not None:
-        progress(
-            f"constant-speed calibration on samples {start}..{stop} ({len(harmonics)} harmonics)"
-        )
+    say(
+        progress,
+        f"constant-speed calibration on samples {start}..{stop} ({len(harmonics)} harmonics)",
+    )
     t0 = time.perf_counter()
     try:
         res = calibrate_constant_speed(
@@ -172,8 +172,7 @@ def calibrate_open_loop(
         checks_passed=res.status.success and not messages, min_slope=res.lut.min_slope,
     )  # fmt: skip
     status, refusal = verdict.status, verdict.refusal
-    if progress is not None:
-        progress("power-up identifiability of the pole pair")
+    say(progress, "power-up identifiability of the pole pair")
     t0 = time.perf_counter()
     identifiability = power_up_analysis(res.model, res.lut, d, start=start, stop=stop)
     timings["identifiability"] = time.perf_counter() - t0

@@ -48,6 +48,7 @@ import scipy.signal
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal.sensor.flux import FluxModel, FourierBasis
+from hallcal.sensor.reconstruction import unwrap_to
 from hallcal.sim.bench_spec import BenchSpec
 from hallcal.sim.cogging import CoggingTorque
 from hallcal.sim.loop import ClosedLoop, LoopStatus, SensorADC, simulate_loop
@@ -664,7 +665,7 @@ def power_up_start(config: BenchConfig, initial_angle: float) -> float:
     P = config.loop().projection
     a, b = P @ (g - config.loop().offset)
     n = config.pole_pairs
-    return (math.fmod(math.fmod(math.atan2(b, a) + math.pi, TWO_PI) + TWO_PI, TWO_PI) - math.pi) / n
+    return unwrap_to(math.atan2(b, a), 0.0) / n
 
 
 def power_up_run(

@@ -31,7 +31,6 @@ from hallcal.output.report.page import render_html
 from hallcal.output.report.write import (
     FIGURE_DIR,
     REPORT_NAME,
-    calibration_artifact,
     write_calibration_report,
     write_demo_report,
     write_report,
@@ -44,7 +43,6 @@ __all__ = [
     "ReportContent",
     "ReportExtras",
     "ReportFigure",
-    "calibration_artifact",
     "make_figures",
     "render_html",
     "report_content",

@@ -5,7 +5,7 @@ calibration computed in this process has in memory (:class:`ReportExtras`)."""
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -15,17 +15,13 @@ from numpy.typing import NDArray
 from hallcal.errors import HallcalInputError
 from hallcal.formatting import AngleUnit
 from hallcal.io import ArtifactData, Dataset, Setup, validate_artifact
+from hallcal.pipeline.calibration import Calibration
+from hallcal.pipeline.progress import Progress, say
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sim.lti import ContinuousTF
 
-Progress = Callable[[str], None] | None
 TWO_PI = 2.0 * math.pi
-
-
-def _say(progress: Progress, message: str) -> None:
-    if progress is not None:
-        progress(message)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -73,8 +69,8 @@ class ReportContent:
     gain_details : dict or None
         ``c`` (the gain correction c-hat), ``c_refined``, ``c_refined_std`` and the rest of the gain
         report.
-    predicted_error : float or None
-        Predicted RMS error of f_star [rad].
+    predicted_error : float
+        Predicted RMS error of f_star [rad] (NaN when the artifact has none).
     noise_floor : float or None
         RMS angle error of Hall noise alone [rad].
     noise_floor_source : str
@@ -131,7 +127,7 @@ class ReportContent:
     plant: ContinuousTF | None
     gain_correction: float | None
     gain_details: dict[str, Any] | None
-    predicted_error: float | None
+    predicted_error: float
     noise_floor: float | None
     noise_floor_source: str
     status: str
@@ -239,12 +235,13 @@ def _straight_line(
 
 
 def _constant_speed_parts(
-    cs: Any, lut: LUT, data: Dataset, traces: Traces
+    cs: Mapping[str, Any] | None, lut: LUT, data: Dataset, traces: Traces
 ) -> tuple[dict[str, Any] | None, float | None, StraightLineCheck | None]:
-    """Summary, Hall noise variance and straight-line check of a constant-speed calibration."""
+    """Summary, Hall noise variance and straight-line check of a constant-speed calibration
+    (the artifact's ``diagnostics.constant_speed``)."""
     if cs is None:
         return None, None, None
-    summary = dict(cs.to_dict()) if hasattr(cs, "to_dict") else dict(cs)
+    summary = dict(cs)
     noise = summary.get("noise_std")
     variance = float(noise) ** 2 if isinstance(noise, int | float) and noise > 0 else None
     return summary, variance, _straight_line(summary, lut, data, traces)
@@ -260,13 +257,13 @@ def _amplitude(flux: FluxModel, n_m: int) -> float:
 
 
 def _estimated_floor(noise_variance: float | None, flux: FluxModel, n_m: int) -> float | None:
-    """sigma sqrt(2/3) / (A n_m): the RMS angle error of white Hall noise alone (docs/design.md)."""
+    """The noise floor of the model's amplitude (:func:`hallcal.sim.bench.noise_floor`)."""
+    from hallcal.sim.bench import noise_floor
+
     if noise_variance is None or not math.isfinite(noise_variance) or noise_variance < 0:
         return None
     a = _amplitude(flux, n_m)
-    if not a > 0:
-        return None
-    return math.sqrt(noise_variance) * math.sqrt(2.0 / 3.0) / (a * n_m)
+    return noise_floor(noise_variance, n_m, a) if a > 0 else None
 
 
 _ESTIMATED_FLOOR = "estimated from the calibration data (model-free Hall noise level)"
@@ -373,7 +370,7 @@ def _recording_parts(
     flux: FluxModel,
     sem: Any,
     cal_traces: Traces,
-    constant_speed: Any,
+    constant_speed: Mapping[str, Any] | None,
 ) -> dict[str, Any]:
     """What the report shows of the calibration recording: the signals and the model's, the
     time axis, the table's uncertainty and the constant-speed check (:class:`ReportContent`
@@ -408,12 +405,9 @@ class ReportExtras:
 
     Attributes
     ----------
-    sem : SEMResult or None
-        The SEM solve of a calibration computed in this process: its d_sim and cov(theta) are
-        shown as they are. Without it the closed loop is replayed from the artifact
-        (:func:`hallcal.fit.replay.replay_closed_loop`).
     bla : BLAIdentification or None
-        The BLA (in memory, or read from ``hallcal bla``'s file).
+        The BLA read from ``hallcal bla``'s file (a calibration computed in this process has
+        its own).
     validation : Validation or None
         Errors already computed on the report's ``validation_data`` (recomputed when None).
     noise_floor : float or None
@@ -424,7 +418,6 @@ class ReportExtras:
         The virtual bench's truth, drawn for comparison.
     """
 
-    sem: Any = None
     bla: Any = None
     validation: Any = None
     noise_floor: float | None = None
@@ -434,51 +427,14 @@ class ReportExtras:
     true_noise_variance: float | None = None
     true_cogging: Any = None
 
-    @classmethod
-    def of(cls, cal: Any, **extras: Any) -> ReportExtras:
-        """What a :class:`~hallcal.pipeline.Calibration` has beyond its artifact.
 
-        Parameters
-        ----------
-        cal : Calibration
-            Computed in this process: its SEM solve and BLA are added; loaded from an artifact:
-            nothing (its report is the one ``hallcal report`` writes).
-        **extras
-            Further fields (``validation``, ``noise_floor``, the truth).
-
-        Returns
-        -------
-        ReportExtras
-        """
-        return cls(sem=cal.sem, bla=cal.bla, **extras)
-
-
-def calibration_artifact(cal: Any) -> ArtifactData:
-    """The typed artifact of a calibration, for its report.
-
-    Parameters
-    ----------
-    cal : Calibration
-        Loaded from an artifact (that artifact) or computed in this process (its own).
-
-    Returns
-    -------
-    ArtifactData
-        Checked by :func:`~hallcal.io.validate_artifact`, a table that is not bijective
-        accepted so that a calibration refused as such can still be reported
-        (:meth:`~hallcal.pipeline.Calibration.save` never writes it).
-    """
-    return validate_artifact(cal.artifact, "in memory", bijective=False)
-
-
-def _artifact_floor(diag: Mapping[str, Any], flux: FluxModel, n_m: int) -> tuple[float | None, str]:
+def _artifact_floor(cal: Calibration, flux: FluxModel) -> tuple[float | None, str]:
     """The artifact's noise floor (the calibration's own), or for artifacts written before it
     was stored, the estimate from the SEM's noise variance."""
-    stored = diag.get("noise_floor")
-    if isinstance(stored, int | float) and math.isfinite(stored):
-        return float(stored), _ESTIMATED_FLOOR
+    if math.isfinite(cal.noise_floor):
+        return float(cal.noise_floor), _ESTIMATED_FLOOR
     return (
-        _estimated_floor(diag.get("noise_variance"), flux, n_m),
+        _estimated_floor(cal.diagnostics.get("noise_variance"), flux, cal.pole_pairs),
         "estimated from the SEM residual",
     )
 
@@ -524,10 +480,10 @@ def _replayed_sem(
     else:
         from hallcal.fit.replay import replay_closed_loop
 
-        _say(progress, "re-simulating the closed loop with the identified model")
+        say(progress, "re-simulating the closed loop with the identified model")
         fourier = art.model.get("basis", "fourier") == "fourier"
         if fourier:
-            _say(progress, "parameter covariance (one sensitivity pass) for the LUT band")
+            say(progress, "parameter covariance (one sensitivity pass) for the LUT band")
         run = replay_closed_loop(
             flux, lut, plant, setup.controller, setup.sample_time, data["r"], data.d,
             cogging=cogging, noise_variance=s2, covariance=fourier,
@@ -565,7 +521,7 @@ def _replayed_sem(
 
 
 def report_content(
-    artifact: ArtifactData | Mapping[str, Any],
+    calibration: Calibration | ArtifactData | Mapping[str, Any],
     data: Dataset,
     *,
     extras: ReportExtras | None = None,
@@ -577,22 +533,26 @@ def report_content(
     """Gather a report's content: the one builder (``hallcal report``, ``demo``,
     :meth:`hallcal.Calibration.report`).
 
-    The lookup table, the flux model, the plant and the diagnostics come from the artifact.
-    The model fit (Fig. 4) and the table's uncertainty band need the SEM's simulated signals
-    and cov(theta): from ``extras.sem`` when the calibration was computed in this process,
-    else the closed loop is replayed with the stored plant and controller. The noise floor is
+    The lookup table, the flux model, the plant and the diagnostics come from the artifact
+    (through :class:`~hallcal.pipeline.Calibration`'s properties). The model fit (Fig. 4) and
+    the table's uncertainty band need the SEM's simulated signals and cov(theta): from the
+    calibration's SEM solve when it was computed in this process, else the closed loop is
+    replayed with the stored plant and controller. The noise floor is
     the calibration's own (``diagnostics.noise_floor``) unless ``extras`` gives one.
 
     Parameters
     ----------
-    artifact : ArtifactData or mapping
-        As returned by :func:`hallcal.io.read_artifact`, or a mapping (checked by
+    calibration : Calibration, ArtifactData or mapping
+        A :class:`~hallcal.pipeline.Calibration` (computed in this process: its SEM solve and
+        BLA are shown from memory; a table that is not bijective is accepted, so that a
+        calibration refused as such can still be reported), or an artifact as returned by
+        :func:`hallcal.io.read_artifact`, or a mapping (checked by
         :func:`hallcal.io.validate_artifact`).
     data : Dataset
         The calibration recording (d1..d3; r for the replay; y_ref validates when no
         ``validation_data`` is given).
     extras : ReportExtras, keyword-only, optional
-        What the caller has in memory beyond the artifact.
+        What the caller has beyond the calibration (validation, noise floor, the truth).
     validation_data : Dataset, keyword-only, optional
         A fresh recording with ``y_ref``.
     sources : mapping, keyword-only, optional
@@ -605,19 +565,23 @@ def report_content(
     ReportContent
     """
     x = extras or ReportExtras()
-    source = (sources or {}).get("artifact", "artifact")
-    art = validate_artifact(artifact, source)
-    setup, lut, flux, diag = art.setup, art.lut(), art.flux(), art.diagnostics
-    cogging = art.cogging_torque()
-    plant = art.plant_model() or setup.plant  # the calibration's (a BLA's), else the setup's
+    if isinstance(calibration, Calibration):
+        art = validate_artifact(calibration.artifact, "in memory", bijective=False)
+        cal = Calibration(art, calibration.computed)
+    else:
+        art = validate_artifact(calibration, (sources or {}).get("artifact", "artifact"))
+        cal = Calibration(art)
+    setup, lut, flux, diag = cal.setup, cal.lut, cal.flux, cal.diagnostics
+    cogging = cal.cogging
+    plant = cal.plant or setup.plant  # the calibration's (a BLA's), else the setup's
     notes: list[str] = []
     cal_traces = _traces(lut, data)
-    sem = x.sem
+    sem = cal.sem
     if sem is None:
         sem = _replayed_sem(art, flux, plant, data, lut, cogging, progress=progress, notes=notes)
     noise_floor, floor_source = x.noise_floor, x.noise_floor_source
     if noise_floor is None:
-        noise_floor, floor_source = _artifact_floor(diag, flux, art.pole_pairs)
+        noise_floor, floor_source = _artifact_floor(cal, flux)
     constant_speed = diag.get("constant_speed")
     if not isinstance(constant_speed, Mapping):
         constant_speed = None
@@ -634,7 +598,7 @@ def report_content(
         )  # fmt: skip
     return ReportContent(
         title=title,
-        bla=x.bla,
+        bla=x.bla if cal.bla is None else cal.bla,
         plant=plant,
         noise_floor=noise_floor,
         noise_floor_source=floor_source,
@@ -648,19 +612,21 @@ def report_content(
         sources=dict(sources or {}),
         notes=notes,
         cogging=cogging,
-        **_artifact_fields(art, lut, flux, sem),
+        **_artifact_fields(cal, lut, flux, sem),
         **_recording_parts(data, setup, lut, flux, sem, cal_traces, constant_speed),
     )
 
 
-def _artifact_fields(art: ArtifactData, lut: LUT, flux: FluxModel, sem: Any) -> dict[str, Any]:
-    """What an artifact says of its calibration (:class:`ReportContent` fields)."""
-    diag = art.diagnostics
+def _artifact_fields(cal: Calibration, lut: LUT, flux: FluxModel, sem: Any) -> dict[str, Any]:
+    """What an artifact says of its calibration (:class:`ReportContent` fields).
+
+    An artifact without ``diagnostics.status`` (the validator reads it as "ok") is reported
+    with status "unknown": the report does not vouch for what the file does not say.
+    """
+    art, diag = cal.artifact, cal.diagnostics
     gain = (art.plant or {}).get("gain_correction")
     gain_details = diag.get("gain_correction")
-    predicted = diag.get("predicted_angle_error_rms")
     adequacy = diag.get("adequacy")
-    timings = dict(diag["timings"]) if isinstance(diag.get("timings"), Mapping) else {}
     return dict(
         setup=art.setup,
         lut=lut,
@@ -668,10 +634,10 @@ def _artifact_fields(art: ArtifactData, lut: LUT, flux: FluxModel, sem: Any) -> 
         sem=sem,
         gain_correction=None if gain is None else float(gain),
         gain_details=dict(gain_details) if isinstance(gain_details, Mapping) else None,
-        predicted_error=None if predicted is None else float(predicted),
-        status=str(diag.get("status", "unknown")),
-        messages=[str(m) for m in diag.get("messages", [])],
+        predicted_error=cal.predicted_error,
+        status=cal.status.value if "status" in diag else "unknown",
+        messages=[m.record() for m in cal.messages],
         adequacy=dict(adequacy) if isinstance(adequacy, Mapping) else None,
-        timings={str(k): float(v) for k, v in timings.items()},
-        model_info={k: v for k, v in art.model.items() if k not in ("theta", "weights")},
+        timings={str(k): float(v) for k, v in cal.timings.items()},
+        model_info={k: v for k, v in cal.model_info.items() if k not in ("theta", "weights")},
     )

@@ -22,17 +22,11 @@ from hallcal.io import (
 )
 from hallcal.io.artifact import migrate_values
 from hallcal.output.plots import figure_png
-from hallcal.output.report.content import (
-    Progress,
-    ReportContent,
-    ReportExtras,
-    _say,
-    calibration_artifact,
-    report_content,
-)
+from hallcal.output.report.content import ReportContent, ReportExtras, report_content
 from hallcal.output.report.figures import make_figures
 from hallcal.output.report.page import _DPI, render_html
 from hallcal.pipeline.calibration import Calibration
+from hallcal.pipeline.progress import Progress, say
 from hallcal.sim.lti import ContinuousTF
 
 REPORT_NAME = "report.html"
@@ -64,10 +58,10 @@ def write_report(
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise HallcalInputError(f"{out}: exists and is not a directory")
-    _say(progress, "figures")
+    say(progress, "figures")
     figs = make_figures(content)
     images = [(f, figure_png(f.figure, dpi=_DPI)) for f in figs]
-    _say(progress, "HTML report")
+    say(progress, "HTML report")
     text = render_html(content, images)
     path = out / REPORT_NAME
     with output_set():  # the figures and the page appear together, or nothing changes
@@ -213,8 +207,7 @@ def write_demo_report(
         The HTML file.
     """
     cal_run, val_run = runs["calibration"], runs["validation"]
-    extras = ReportExtras.of(
-        cal,
+    extras = ReportExtras(
         validation=val,
         noise_floor=noise_floor,
         noise_floor_source="virtual bench: σ·√(2/3)/(A·n_m) with the true σ and A",
@@ -223,7 +216,7 @@ def write_demo_report(
         true_noise_variance=cal_run.config.noise_variance,
     )
     content = report_content(
-        calibration_artifact(cal),
+        cal,
         Dataset.from_columns(cal_run.columns(), path="calibration.npz"),
         extras=extras,
         validation_data=Dataset.from_columns(val_run.columns(), path="validation.npz"),
@@ -272,9 +265,8 @@ def write_calibration_report(
     """
     unit = AngleUnit.parse(units)  # before the work
     content = report_content(
-        calibration_artifact(cal),
+        cal,
         data,
-        extras=ReportExtras.of(cal),
         validation_data=validation,
         progress=progress,
     )
