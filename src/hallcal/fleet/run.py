@@ -60,7 +60,9 @@ def _local_cluster(workers: int | None) -> Any:
             threads_per_worker=1,
             processes=True,
             dashboard_address="127.0.0.1:0",  # a free port: no clash with other clusters
-            silence_logs=logging.ERROR,
+            # a worker's log of a lost heartbeat under load comes with a traceback at ERROR
+            # while the run completes; a crash reaches the user through the task's future
+            silence_logs=logging.CRITICAL,
             env={
                 "OMP_NUM_THREADS": "1",
                 "OPENBLAS_NUM_THREADS": "1",
