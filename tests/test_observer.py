@@ -100,6 +100,26 @@ def test_warm_motor_adapts_to_the_floor_within_two_seconds_where_the_table_does_
     assert run.excluded == -1
 
 
+@pytest.mark.parametrize("speed", [0.2, 0.47, 1.1])
+def test_a_rotor_already_spinning_at_the_first_sample_is_not_learned_as_drift(speed):
+    """A recording cut from a run (or a power-up while coasting): the first sample is acquired
+    with the speed at 0, so the first predictions lag by up to ``speed`` electrical rad per
+    sample until the speed is tracked. The adaptation must not learn that lag as gains and
+    levels (it did: gains 2 % off, then stale for good with y_obs at 4-27x the floor)."""
+    m = _model(BENCH)
+    n = 8000
+    y0 = speed / N_M * np.arange(n)  # electrical rad per sample -> mechanical
+    g, _ = BENCH.truth().value_and_derivative(y0)
+    rng = np.random.default_rng(7)
+    d = g + rng.normal(0.0, math.sqrt(BENCH.noise_variance), g.shape)
+    run = run_observer(m, d)
+    obs = angle_error(run.y_obs[1000:], y0[1000:]).rms
+    assert obs < 1.1 * BENCH.noise_floor  # the floor's 7 000-sample spread is ~1 %
+    # at most a short alarm while the speed is caught (the window's first 256 samples)
+    assert np.mean(run.state[1000:] == ObserverState.OK.value) > 0.99
+    assert np.allclose(run.gain, 1.0, atol=5e-3)  # the adaptation's noise with its prior
+
+
 @pytest.mark.parametrize(
     ("kind", "channel"), [("zero-field", 0), ("rail", 1), ("clipped", 2), ("disconnected", 1)]
 )

@@ -878,7 +878,10 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, offsets, a, b, y_out, misf
             # longer fits (remount): readmit the channel and let the misfit monitor speak
             I[_EXCL], I[_SUPPRESS] = -1, 1
         if not outlier:  # the adaptation's cycle advances on samples without the fits of _robust
-            eligible = fitted and not stale and blamed < 0
+            # settled: the step (the innovation) within 5 sigma of the angle's own noise 1/den,
+            # so the gains and levels never learn a prediction still catching up (a rotor
+            # already spinning at the first sample, an acquisition off by a transient)
+            eligible = fitted and not stale and blamed < 0 and step * step * den < 25.0
             pending, phase = _adapt_cycle(
                 phase, pending, eligible, stale, travel, f, dg, r, step, den, amp, w, w0, a, b,
                 p0, H, gr, wm, L, P, cfg,
