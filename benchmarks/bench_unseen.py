@@ -258,6 +258,53 @@ def run_closed(seed: int, case: dict) -> dict:
     return row
 
 
+#: Sensor changes after calibration for the power-up audit: (name, gains, offsets added).
+CHANGES = (("healthy", (1.0, 1.0, 1.0), (0.0, 0.0, 0.0)),
+           ("d2 gain x1.10", (1.0, 1.1, 1.0), (0.0, 0.0, 0.0)),
+           ("d1 gain x0.95", (0.95, 1.0, 1.0), (0.0, 0.0, 0.0)),
+           ("d3 offset +0.05", (1.0, 1.0, 1.0), (0.0, 0.0, 0.05)),
+           ("all gains x0.97", (0.97, 0.97, 0.97), (0.0, 0.0, 0.0)))  # fmt: skip
+
+
+def run_powerup(seed: int, trials: int = 40) -> list[str]:
+    """Power-ups on a calibrated unseen motor: healthy, and after a sensor's gain or offset
+    changed (the table no longer matches). Counts: identified right / identified WRONG (a lock
+    claiming certainty on the wrong pole pair) / mismatch (refused) / undecided, at rest (half)
+    and at 2 electrical revolutions per second (half), 600 samples each."""
+    from hallcal.sensor import absolute as ab
+    from hallcal.sim.bench import power_up_run
+
+    case = draw_case(seed)
+    cfg = case["cfg"]
+    run = _ramp(cfg, case["end"], case["duration"], seed)
+    cal = pipeline.calibrate(Dataset.from_columns(run.columns()), _setup(cfg))
+    rep = cal.identifiability
+    head = (f"{seed:4d} {case['fam']:>8} n_m {cfg.pole_pairs:2d} calibration {cal.status}, "
+            f"power-up {rep.status if rep is not None else '-'}")  # fmt: skip
+    if rep is None or not rep.status.success:
+        return [head + ": no decoder"]
+    dec = rep.decoder(cal.flux, cal.lut)
+    n = cfg.pole_pairs
+    out = [head]
+    for name, gains, offs in CHANGES:
+        rng = np.random.default_rng([seed, 99])
+        counts = {"right": 0, "WRONG": 0, "mismatch": 0, "undecided": 0}
+        for i in range(trials):
+            speed = 0.0 if i % 2 else 2.0 * TWO_PI / n
+            pu = power_up_run(cfg, float(rng.uniform(0, TWO_PI)), samples=600, speed=speed,
+                              seed=seed * 1000 + i)  # fmt: skip
+            j = int(np.round((pu.y0[0] - pu.y[0]) * n / TWO_PI)) % n
+            ident = dec.identify(pu.d * np.asarray(gains) + np.asarray(offs))
+            if ident.status is ab.PowerUpStatus.IDENTIFIED:
+                counts["right" if ident.offset == j else "WRONG"] += 1
+            elif ident.status is ab.PowerUpStatus.MISMATCH:
+                counts["mismatch"] += 1
+            else:
+                counts["undecided"] += 1
+        out.append(f"     {name:16s} " + "  ".join(f"{k} {v:2d}" for k, v in counts.items()))
+    return out
+
+
 def run_case(seed: int) -> dict:
     case = draw_case(seed)
     try:
@@ -302,6 +349,13 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--repeat", type=int, default=0, help="calibrate the first K cases twice")
     ap.add_argument("--out", default=None)
+    ap.add_argument(
+        "--powerup",
+        type=int,
+        nargs="*",
+        default=[],
+        help="power-up audit on these cases (closed-loop families)",
+    )
     args = ap.parse_args()
     seeds = args.seeds or list(range(FIRST_SEED, FIRST_SEED + args.cases))
     lines = [
@@ -332,6 +386,15 @@ def main() -> None:
         again = run_case(r["seed"])
         tail.append(f"repeat seed {r['seed']}: {r['fp']} then {again['fp']} "
                     f"({'identical' if again['fp'] == r['fp'] else 'DIFFERENT'})")  # fmt: skip
+    if args.powerup:
+        tail += [
+            "",
+            f"power-up after calibration ({len(CHANGES)} sensor states, 40 power-ups "
+            "each: identified right / identified WRONG / mismatch (refused) / undecided)",
+        ]
+        for seed in args.powerup:
+            tail += run_powerup(seed)
+            print("\n".join(tail[-len(CHANGES) - 1 :]), flush=True)
     tail.append(f"load average at end {os.getloadavg()[0]:.1f}")
     print("\n".join(tail))
     if args.out:
