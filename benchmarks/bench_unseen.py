@@ -33,6 +33,26 @@ what a user writes: the true loop and the defaults (``harmonics = "auto"``, ``co
 Columns as bench_zoo's: ``star/fl``, ``init/fl``, ``pred/fl``, ``act/pred``, ``off/fl`` (the
 table's mean error / floor), ``sec`` (wall clock under the load printed), the model chosen.
 
+``--powerup 202 213 ...``: after calibrating those cases, 40 closed-loop power-ups (half at rest,
+half at two electrical revolutions per second, 600 samples) with the sensors as calibrated and
+after one sensor's gain or offset, or all gains, changed: identified right, identified WRONG (a
+lock claiming certainty on data that no longer match), mismatch (refused), undecided.
+
+Found (``bench_unseen.txt``): the constant-speed route predicted the noise floor whatever its
+basis missed, so spins of magnets with strong 5th/7th harmonics were "ok" at 11x (case 210) and
+45x (221) the floor; now :mod:`hallcal.fit.held_out` predicts from a held-out revolution and
+chooses the band (210: ok at 1.03x, predicted 0.99x; 221: warning at 22x, predicted 22x). Not
+fixed: with a random low-frequency load torque and the plant from a BLA (``blaload`` 222) the
+table is 670x the floor (f_init 17x) with a "warning" predicting 124x: the SEM's covariance
+misses what the disturbance does to the weakly determined warp directions, and the "worse than
+f_init" rule compares with the model's own (large, wrong) correction. Not fixed either: the
+power-up lock after a sensor change on motors whose magnets differ by a few per cent (202, 213:
+20 and 16 pole pairs, noise 0.9 %): a common gain of 0.97 (25 K of NdFeB remanence) locked on the
+WRONG pole pair in 24/40 and 20/40 power-ups, one sensor's gain 0.95-1.10 or offset +0.05 in
+9-20/40: at one position a gain change and another magnet look alike, the changed signals fit
+the wrong hypothesis (cost 0.6-2.2 per degree of freedom), so the misfit test (kappa = 8) passes
+them (218, 6 pole pairs, 10-bit ADC: 0-2/40; 227, 19 pole pairs: 1-4/40).
+
 Run: ``nice python benchmarks/bench_unseen.py [--seeds 201 202 ...] [--jobs 2] [--out
 benchmarks/bench_unseen.txt]``.
 """
