@@ -45,7 +45,9 @@ chooses the band (210: ok at 1.03x, predicted 0.99x; 221: warning at 22x, predic
 fixed: with a random low-frequency load torque and the plant from a BLA (``blaload`` 222) the
 table is 670x the floor (f_init 17x) with a "warning" predicting 124x: the SEM's covariance
 misses what the disturbance does to the weakly determined warp directions, and the "worse than
-f_init" rule compares with the model's own (large, wrong) correction. Not fixed either: the
+f_init" rule compares with the model's own (large, wrong) correction. The random torque is the
+cause: without it (constant load only) 222 is a warning at 2.78x predicted 3.43x; with it and
+the true plant, or with it alone, the calibration is refused (460x, 53x). Not fixed either: the
 power-up lock after a sensor change on motors whose magnets differ by a few per cent (202, 213:
 20 and 16 pole pairs, noise 0.9 %): a common gain of 0.97 (25 K of NdFeB remanence) locked on the
 WRONG pole pair in 24/40 and 20/40 power-ups, one sensor's gain 0.95-1.10 or offset +0.05 in
