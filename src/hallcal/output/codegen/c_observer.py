@@ -157,6 +157,11 @@ def _texts(
         "@M@": str(model.points),
         "@W@": str(W),
         "@FW@": str(s.fault_window),
+        "@FWPAD@": str(4 * -(-s.fault_window // 4)),
+        "@FWW@": str(-(-s.fault_window // 4)),
+        "@RINGRESET@": "".join(
+            f"    s->ring_blame.w[{i}] = 0xffffffffu;\n" for i in range(-(-s.fault_window // 4))
+        ),
         "@FC@": str(s.fault_count),
         "@NA@": str(s.acquire_points),
         "@CYCLE@": str(ADAPT_CYCLE),
@@ -324,10 +329,13 @@ typedef struct {
     uint8_t pending, phase;         /* a cycle's update is under way; its part next */
     float ring_chi[@P@_WINDOW];
     uint8_t ring_dof[@P@_WINDOW];
-    int8_t ring_blame[@P@_FAULT_WINDOW];
+    union {
+        int8_t b[@FWPAD@];
+        uint32_t w[@FWW@]; /* the ring's reset in words */
+    } ring_blame;   /* -1: no blame */
     int16_t blame[4];
     int32_t sum_dof;
-    uint32_t window_from, blame_from; /* ring entries written before these samples count as empty */
+    uint32_t window_from; /* window entries written before this sample count as empty */
     int8_t excluded, next;          /* the channel excluded; the one excluded at the next sample */
     uint8_t blamed_out, suppress, acquire;
     uint32_t k;
@@ -533,9 +541,8 @@ NOINLINE static void exclude(@p@_state *s)
     s->next = -1;
     s->blamed_out = 1u;
     s->clean = 0.0f;
-    s->blame_from = s->k; /* the blame ring and the window start again */
-    s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0;
-    s->window_from = s->k;
+    s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0; /* the blame ring and */
+@RINGRESET@    s->window_from = s->k; /* the window start again */
     s->sum_chi = 0.0f;
     s->sum_dof = 0;
 }
@@ -560,8 +567,7 @@ void @p@_init(@p@_state *s)
     s->phase = 0u;
     s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0;
     s->window_from = 0u;
-    s->blame_from = 0u;
-    s->excluded = -1;
+@RINGRESET@    s->excluded = -1;
     s->next = -1;
     s->blamed_out = 0u;
     s->suppress = 0u;
@@ -740,11 +746,11 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     }
     /* fault isolation */
     slot = s->k % (uint32_t)FW;
-    old = (s->k >= s->blame_from + (uint32_t)FW) ? s->ring_blame[slot] : (int8_t)-1;
+    old = s->ring_blame.b[slot];
     if (old >= 0) {
         s->blame[old]--;
     }
-    s->ring_blame[slot] = (int8_t)mark;
+    s->ring_blame.b[slot] = (int8_t)mark;
     if (mark >= 0) {
         s->blame[mark]++;
     }
