@@ -606,7 +606,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     float tn0, tn1, tn2, td0, td1, td2, f[3], dg[3], yp, y, step = 0.0f, chi = 0.0f;
     float srr = 0.0f, num = 0.0f, den = 0.0f, best, best_step, cq, e, travel, mf = 0.0f;
     float n0, n1, n2, s0, s1, s2, rb, Jb, gb;
-    float cc, cmax, A01, A11, rs, Js0, Js1, Js2, det, x, e0, e1, e2, i0, i1, i2;
+    float cc, cmax = CAP, A01, A11, rs, Js0, Js1, Js2, det, x, e0, e1, e2, i0, i1, i2;
     int active, blamed = -1, mark = -1, others, above = 0, stale, acquired, fitted, loo = 0;
     int fin0, fin1, fin2, u0, u1, u2, i, dof;
     uint32_t slot, jw, ph;
@@ -667,6 +667,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         num = tn0 + tn1 + tn2;
         den = td0 + td1 + td2;
         step = gn(srr, num, den, &chi);
+        cmax = active == 3 ? 2.0f * CAP : CAP; /* CAP per degree of freedom */
         if (active == 3 && chi > OUTLIER) {
             /* explained by a common gain of the field parts? else the fits without a channel */
             Js0 = s->a[0] * f0;
@@ -738,6 +739,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                     } else {
                         step = best_step;
                         mark = blamed;
+                        cmax = CAP; /* CAP when a channel is blamed */
                     }
                 }
             }
@@ -776,7 +778,6 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     travel = NM * fabs_(s->v);
     /* misfit window */
     /* a sample's cap: CAP per degree of freedom, CAP when a channel is blamed */
-    cmax = (fitted && active >= 3 && blamed < 0) ? 2.0f * CAP : CAP;
     cc = chi < cmax ? chi : cmax;
     dof = fitted ? active - 1 : 0;
     jw = s->k % (uint32_t)W;
