@@ -80,6 +80,11 @@ def _f(x: float) -> str:
     return f"{v:.9g}f" if ("." in f"{v:.9g}" or "e" in f"{v:.9g}") else f"{v:.9g}.0f"
 
 
+def _bits(x: float) -> int:
+    """The IEEE 754 single-precision bits of x."""
+    return int(np.array(x, dtype=np.float32).view(np.uint32))
+
+
 def _rows(a: np.ndarray) -> str:
     return ",\n".join("    {" + ", ".join(_f(x) for x in row) + "}" for row in a)
 
@@ -157,6 +162,10 @@ def _texts(
         "@M@": str(model.points),
         "@W@": str(W),
         "@FW@": str(s.fault_window),
+        # 1e-37 < x < 1e37 as one unsigned compare of the float's bits (positive floats order
+        # as their bits; negative ones and NaN fall above the range)
+        "@XLO@": hex(_bits(1e-37) + 1),
+        "@XRANGE@": hex(_bits(1e37) - _bits(1e-37) - 1),
         "@FWPAD@": str(4 * -(-s.fault_window // 4)),
         "@FWW@": str(-(-s.fault_window // 4)),
         "@RINGRESET@": "".join(
@@ -685,7 +694,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                 e1 = den - td1;
                 e2 = den - td2;
                 x = e0 * e1 * e2;
-                if (x > 1.0e-37f && x < 1.0e37f) {
+                if (bits_(x) - @XLO@u < @XRANGE@u) { /* 1e-37 < x < 1e37: one compare */
                     x = 1.0f / x;
                     i0 = e1 * e2 * x;
                     i1 = e0 * e2 * x;
