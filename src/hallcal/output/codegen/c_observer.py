@@ -686,8 +686,8 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
             A11 = w0 * Js0 * Js0 + w1 * Js1 * Js1 + w2 * Js2 * Js2;
             rs = w0 * Js0 * r0 + w1 * Js1 * r1 + w2 * Js2 * r2;
             det = den * A11 - A01 * A01;
-            if (!(det > 0.0f && srr * det - (A11 * num * num - 2.0f * A01 * num * rs
-                                             + den * rs * rs) <= EXPLAINED * det)) {
+            if (!(det > 0.0f && (srr - EXPLAINED) * det <= num * (A11 * num - 2.0f * A01 * rs)
+                                                            + den * rs * rs)) {
                 loo = 1;
                 /* the three fits without one channel; their 1 / den from one division */
                 e0 = den - td0;
@@ -877,8 +877,16 @@ void @p@_read(const @p@_state *s, @p@_reading *r)
 {
     uint32_t a, b;
     do {
+        const volatile @p@_reading *q;
         a = s->seq;
-        *r = s->buf[a & 1u];
+        q = &s->buf[a & 1u];
+        r->revolutions = q->revolutions;
+        r->angle = q->angle;
+        r->misfit = q->misfit;
+        r->state = q->state;
+        r->excluded = q->excluded;
+        r->flags = q->flags;
+        r->sample = q->sample;
         b = s->seq;
     } while (a != b);
 }
