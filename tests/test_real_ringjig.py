@@ -272,7 +272,13 @@ def test_ringjig_through_the_pipeline(results):
         }
     )
     cal = pipeline.calibrate(load_dataset(FILES[1]), setup)
-    assert cal.status == "ok", cal.messages
+    # The rig's own motion is 4-16x the noise floor here: the held-out check (fit/held_out.py)
+    # predicts the table's error against the straight line at 0.92 deg_el (8.9x the floor), so
+    # "ok" (at the floor) cannot be claimed. The prediction is conservative, not low: the table
+    # measured on the held-out revolutions after the segment is 0.40 deg_el; within 3x of it.
+    assert cal.status == "warning", cal.messages
+    predicted = math.degrees(cal.predicted_error) * POLE_PAIRS
+    assert r["star"] <= 1.5 * predicted <= 3.0 * 1.5 * r["star"], (predicted, r["star"])
     y_star = cal.lut.f_star(r["d"])
     np.testing.assert_allclose(y_star, r["res"].lut.f_star(r["d"]), atol=1e-9)
     art = cal.to_artifact()

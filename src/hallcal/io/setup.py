@@ -97,7 +97,8 @@ class ModelSpec:
         '`"auto"`: chosen from the data with an adequacy check, then narrowed to the narrowest '
         "band 1..E whose dropped harmonics the run does not need (Wald test on the wide fit), "
         "within a budget of work (SEM fits, Gauss-Newton iterations), never of time (closed "
-        "loop); every harmonic 1 .. 3 n_m (constant speed). A search stopped by its budget says "
+        "loop); the band 1 .. E n_m, E = 3, 5, 7 or 9, with the least error on a held-out "
+        "revolution (constant speed). A search stopped by its budget says "
         "so in a warning and in the artifact's `diagnostics.model_selection`.",
     )
     points: int = setting(

@@ -20,6 +20,7 @@ from hallcal.fit.constant_speed import (
     find_constant_speed,
     speed_deviation,
 )
+from hallcal.fit.held_out import held_out_choice, held_out_error
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
 from hallcal.messages import Message, MessageCode
@@ -142,19 +143,30 @@ def calibrate_open_loop(
         f"constant-speed calibration on samples {start}..{stop} ({len(harmonics)} harmonics)",
     )
     t0 = time.perf_counter()
+    fit = {"start": start, "stop": stop, "max_iterations": setup.model.max_iterations,
+           "lut_points": setup.model.lut_points}  # fmt: skip
     try:
-        res = calibrate_constant_speed(
-            d,
-            n,
-            FourierBasis(harmonics),
-            start=start,
-            stop=stop,
-            max_iterations=setup.model.max_iterations,
-            lut_points=setup.model.lut_points,
-        )
+        res = calibrate_constant_speed(d, n, FourierBasis(harmonics), **fit)
+        if setup.model.harmonics == "auto":
+            held = held_out_choice(d, n, speed=res.b, **fit)
+            if held is not None and held.harmonics != harmonics:
+                harmonics = held.harmonics
+                res = calibrate_constant_speed(d, n, FourierBasis(harmonics), **fit)
+        else:
+            held = held_out_error(d, n, harmonics, speed=res.b, **fit)
     except ValueError as exc:
         raise HallcalInputError(f"{dataset.source}: {exc}") from None
     timings = {"constant_speed": time.perf_counter() - t0}
+    predicted = res.angle_noise_floor if held is None else held.predicted(res)
+    if held is None:
+        messages.append(
+            Message.warning(
+                MessageCode.SPEED_FIT,
+                f"the segment holds {res.revolutions:.2f} revolutions, too few to hold one out "
+                "and check the table on it: the predicted error is the noise floor alone (1.5 "
+                "revolutions or more give a checked prediction)",
+            )
+        )
     messages.extend(Message.warning(MessageCode.SPEED_FIT, w) for w in res.warnings)
     if res.status is ConstantSpeedStatus.NOT_CONVERGED:
         messages.append(
@@ -165,9 +177,8 @@ def calibrate_open_loop(
     if not res.lut.bijective and injectivity.injective:
         folding = FOLDING_NOTE.format(sep=injectivity.separation)
         messages.insert(0, Message.note(MessageCode.FOLDING, folding))
-    # the prediction is the noise floor (the constant-speed fit gives no covariance of the table)
     verdict = decide(
-        bijective=res.lut.bijective, predicted=res.angle_noise_floor,
+        bijective=res.lut.bijective, predicted=predicted,
         floor=res.angle_noise_floor, correction_rms=float(np.sqrt(np.mean(res.lut.eta**2))),
         checks_passed=res.status.success and not messages, min_slope=res.lut.min_slope,
     )  # fmt: skip
@@ -186,7 +197,7 @@ def calibrate_open_loop(
         res.model,
         res.lut,
         status,
-        res.angle_noise_floor,
+        predicted,
         res.angle_noise_floor,
         refusal=refusal,
         messages=tuple(messages),

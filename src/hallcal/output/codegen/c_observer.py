@@ -80,6 +80,11 @@ def _f(x: float) -> str:
     return f"{v:.9g}f" if ("." in f"{v:.9g}" or "e" in f"{v:.9g}") else f"{v:.9g}.0f"
 
 
+def _bits(x: float) -> int:
+    """The IEEE 754 single-precision bits of x."""
+    return int(np.array(x, dtype=np.float32).view(np.uint32))
+
+
 def _rows(a: np.ndarray) -> str:
     return ",\n".join("    {" + ", ".join(_f(x) for x in row) + "}" for row in a)
 
@@ -157,6 +162,15 @@ def _texts(
         "@M@": str(model.points),
         "@W@": str(W),
         "@FW@": str(s.fault_window),
+        # 1e-37 < x < 1e37 as one unsigned compare of the float's bits (positive floats order
+        # as their bits; negative ones and NaN fall above the range)
+        "@XLO@": hex(_bits(1e-37) + 1),
+        "@XRANGE@": hex(_bits(1e37) - _bits(1e-37) - 1),
+        "@FWPAD@": str(4 * -(-s.fault_window // 4)),
+        "@FWW@": str(-(-s.fault_window // 4)),
+        "@RINGRESET@": "".join(
+            f"    s->ring_blame.w[{i}] = 0xffffffffu;\n" for i in range(-(-s.fault_window // 4))
+        ),
         "@FC@": str(s.fault_count),
         "@NA@": str(s.acquire_points),
         "@CYCLE@": str(ADAPT_CYCLE),
@@ -324,10 +338,13 @@ typedef struct {
     uint8_t pending, phase;         /* a cycle's update is under way; its part next */
     float ring_chi[@P@_WINDOW];
     uint8_t ring_dof[@P@_WINDOW];
-    int8_t ring_blame[@P@_FAULT_WINDOW];
+    union {
+        int8_t b[@FWPAD@];
+        uint32_t w[@FWW@]; /* the ring's reset in words */
+    } ring_blame;   /* -1: no blame */
     int16_t blame[4];
     int32_t sum_dof;
-    uint32_t window_from, blame_from; /* ring entries written before these samples count as empty */
+    uint32_t window_from; /* window entries written before this sample count as empty */
     int8_t excluded, next;          /* the channel excluded; the one excluded at the next sample */
     uint8_t blamed_out, suppress, acquire;
     uint32_t k;
@@ -533,9 +550,8 @@ NOINLINE static void exclude(@p@_state *s)
     s->next = -1;
     s->blamed_out = 1u;
     s->clean = 0.0f;
-    s->blame_from = s->k; /* the blame ring and the window start again */
-    s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0;
-    s->window_from = s->k;
+    s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0; /* the blame ring and */
+@RINGRESET@    s->window_from = s->k; /* the window start again */
     s->sum_chi = 0.0f;
     s->sum_dof = 0;
 }
@@ -560,8 +576,7 @@ void @p@_init(@p@_state *s)
     s->phase = 0u;
     s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0;
     s->window_from = 0u;
-    s->blame_from = 0u;
-    s->excluded = -1;
+@RINGRESET@    s->excluded = -1;
     s->next = -1;
     s->blamed_out = 0u;
     s->suppress = 0u;
@@ -600,7 +615,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     float tn0, tn1, tn2, td0, td1, td2, f[3], dg[3], yp, y, step = 0.0f, chi = 0.0f;
     float srr = 0.0f, num = 0.0f, den = 0.0f, best, best_step, cq, e, travel, mf = 0.0f;
     float n0, n1, n2, s0, s1, s2, rb, Jb, gb;
-    float cc, cmax, A01, A11, rs, Js0, Js1, Js2, det, x, e0, e1, e2, i0, i1, i2;
+    float cc, cmax = CAP, A01, A11, rs, Js0, Js1, Js2, det, x, e0, e1, e2, i0, i1, i2;
     int active, blamed = -1, mark = -1, others, above = 0, stale, acquired, fitted, loo = 0;
     int fin0, fin1, fin2, u0, u1, u2, i, dof;
     uint32_t slot, jw, ph;
@@ -661,6 +676,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         num = tn0 + tn1 + tn2;
         den = td0 + td1 + td2;
         step = gn(srr, num, den, &chi);
+        cmax = active == 3 ? 2.0f * CAP : CAP; /* CAP per degree of freedom */
         if (active == 3 && chi > OUTLIER) {
             /* explained by a common gain of the field parts? else the fits without a channel */
             Js0 = s->a[0] * f0;
@@ -670,15 +686,15 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
             A11 = w0 * Js0 * Js0 + w1 * Js1 * Js1 + w2 * Js2 * Js2;
             rs = w0 * Js0 * r0 + w1 * Js1 * r1 + w2 * Js2 * r2;
             det = den * A11 - A01 * A01;
-            if (!(det > 0.0f && srr * det - (A11 * num * num - 2.0f * A01 * num * rs
-                                             + den * rs * rs) <= EXPLAINED * det)) {
+            if (!(det > 0.0f && (srr - EXPLAINED) * det <= num * (A11 * num - 2.0f * A01 * rs)
+                                                            + den * rs * rs)) {
                 loo = 1;
                 /* the three fits without one channel; their 1 / den from one division */
                 e0 = den - td0;
                 e1 = den - td1;
                 e2 = den - td2;
                 x = e0 * e1 * e2;
-                if (x > 1.0e-37f && x < 1.0e37f) {
+                if (bits_(x) - @XLO@u < @XRANGE@u) { /* 1e-37 < x < 1e37: one compare */
                     x = 1.0f / x;
                     i0 = e1 * e2 * x;
                     i1 = e0 * e2 * x;
@@ -732,6 +748,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                     } else {
                         step = best_step;
                         mark = blamed;
+                        cmax = CAP; /* CAP when a channel is blamed */
                     }
                 }
             }
@@ -740,11 +757,11 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     }
     /* fault isolation */
     slot = s->k % (uint32_t)FW;
-    old = (s->k >= s->blame_from + (uint32_t)FW) ? s->ring_blame[slot] : (int8_t)-1;
+    old = s->ring_blame.b[slot];
     if (old >= 0) {
         s->blame[old]--;
     }
-    s->ring_blame[slot] = (int8_t)mark;
+    s->ring_blame.b[slot] = (int8_t)mark;
     if (mark >= 0) {
         s->blame[mark]++;
     }
@@ -770,7 +787,6 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     travel = NM * fabs_(s->v);
     /* misfit window */
     /* a sample's cap: CAP per degree of freedom, CAP when a channel is blamed */
-    cmax = (fitted && active >= 3 && blamed < 0) ? 2.0f * CAP : CAP;
     cc = chi < cmax ? chi : cmax;
     dof = fitted ? active - 1 : 0;
     jw = s->k % (uint32_t)W;
@@ -861,8 +877,16 @@ void @p@_read(const @p@_state *s, @p@_reading *r)
 {
     uint32_t a, b;
     do {
+        const volatile @p@_reading *q;
         a = s->seq;
-        *r = s->buf[a & 1u];
+        q = &s->buf[a & 1u];
+        r->revolutions = q->revolutions;
+        r->angle = q->angle;
+        r->misfit = q->misfit;
+        r->state = q->state;
+        r->excluded = q->excluded;
+        r->flags = q->flags;
+        r->sample = q->sample;
         b = s->seq;
     } while (a != b);
 }
