@@ -814,7 +814,8 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     if (!loo) {
         ph = s->phase;
         if (ph == 0u) {
-            if (fitted && !stale && blamed < 0) {
+            /* settled: the step within 5 sigma of the angle's own noise (1 / den) */
+            if (fitted && !stale && blamed < 0 && step * step * den < 25.0f) {
                 x = (float)CYCLE * travel * INVMEM;
                 s->lam = x < 1.0f ? x : 1.0f; /* row0 makes them lam and CYCLE / den */
                 s->t = den;
