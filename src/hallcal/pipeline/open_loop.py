@@ -9,6 +9,7 @@ data); this module takes the dataset and the setup, checks the options and retur
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import numpy as np
 
@@ -143,8 +144,12 @@ def calibrate_open_loop(
         f"constant-speed calibration on samples {start}..{stop} ({len(harmonics)} harmonics)",
     )
     t0 = time.perf_counter()
-    fit = {"start": start, "stop": stop, "max_iterations": setup.model.max_iterations,
-           "lut_points": setup.model.lut_points}  # fmt: skip
+    fit: dict[str, Any] = {
+        "start": start,
+        "stop": stop,
+        "max_iterations": setup.model.max_iterations,
+        "lut_points": setup.model.lut_points,
+    }
     try:
         res = calibrate_constant_speed(d, n, FourierBasis(harmonics), **fit)
         if setup.model.harmonics == "auto":
