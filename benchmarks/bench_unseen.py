@@ -31,9 +31,7 @@ what a user writes: the true loop and the defaults (``harmonics = "auto"``, ``co
 (everything must count work, not seconds).
 
 Columns as bench_zoo's: ``star/fl``, ``init/fl``, ``pred/fl``, ``act/pred``, ``off/fl`` (the
-table's mean error / floor), ``colour`` (the table's variance from the batch-means
-covariance over the white one: above 10 with a predicted error above 1.15x, refused), ``sec``
-(wall clock under the load printed), the model chosen.
+table's mean error / floor), ``sec`` (wall clock under the load printed), the model chosen.
 
 ``--powerup 202 213 ...``: after calibrating those cases, 40 closed-loop power-ups (half at rest,
 half at two electrical revolutions per second, 600 samples) with the sensors as calibrated and
@@ -206,7 +204,7 @@ def _row(case: dict, seed: int) -> dict:
     return {"seed": seed, "fam": case["fam"], "n_m": cfg.pole_pairs,
             "fs": int(round(1 / cfg.sample_time)), "N": 0, "status": "diverged",
             "init": math.nan, "star": math.nan, "pred": math.nan, "off": math.nan,
-            "sec": math.nan, "model": "", "fp": "", "colour": math.nan}  # fmt: skip
+            "sec": math.nan, "model": "", "fp": ""}  # fmt: skip
 
 
 def _fingerprint(cal) -> str:
@@ -279,8 +277,6 @@ def run_closed(seed: int, case: dict) -> dict:
         e = angle_error(cal.lut.f_star(val.d), val.y0)
         row["star"], row["off"] = e.rms_raw / floor, e.mean / floor
     row["pred"] = cal.predicted_error / floor
-    if cal.adequacy is not None:
-        row["colour"] = cal.adequacy.colour
     return row
 
 
@@ -345,7 +341,7 @@ def _line(r: dict) -> str:
     return (
         f"{r['seed']:4d} {r['fam']:>8} {r['n_m']:3d} {r['fs']:6d} {r['N']:7d} {r['status']:>11} "
         f"{r['star']:8.3f} {r['init']:8.2f} {r['pred']:8.3f} {r['star'] / r['pred']:8.2f} "
-        f"{r['off']:6.2f} {r['colour']:6.2f} {r['sec']:6.1f}  {r['model']}"
+        f"{r['off']:6.2f} {r['sec']:6.1f}  {r['model']}"
     )
 
 
@@ -390,8 +386,7 @@ def main() -> None:
         f"load average at start {os.getloadavg()[0]:.1f} (2 cores)",
         "",
         f"{'seed':>4} {'family':>8} {'n_m':>3} {'fs':>6} {'N':>7} {'status':>11} {'star/fl':>8} "
-        f"{'init/fl':>8} {'pred/fl':>8} {'act/pred':>8} {'off/fl':>6} {'colour':>6} "
-        f"{'sec':>6}  model",
+        f"{'init/fl':>8} {'pred/fl':>8} {'act/pred':>8} {'off/fl':>6} {'sec':>6}  model",
     ]
     print("\n".join(lines), flush=True)
     rows = []

@@ -32,10 +32,8 @@ calibration's seconds (wall clock under the load printed in the header), the cla
 ``off/fl`` f_star's mean error (the table's offset) / floor, ``efl`` the floor the calibration
 estimated / the oracle floor, ``white`` and ``batch`` the prediction from each covariance alone
 (the calibration takes the larger), ``upper`` the upper 95 % quantile of one run's error
-/ floor ("ok" needs it within 1.3x, :mod:`hallcal.pipeline.verdict`), ``colour`` the table's
-variance from the batch-means covariance over the white one (above 10 with a predicted error
-above 1.15x: refused, :mod:`hallcal.pipeline.verdict`), ``B`` batches, ``p`` flux parameters,
-the model chosen.
+/ floor ("ok" needs it within 1.3x, :mod:`hallcal.pipeline.verdict`), ``B`` batches, ``p``
+flux parameters, the model chosen.
 
 Run ``nice python benchmarks/bench_zoo.py [--motors 30] [--out benchmarks/bench_zoo.txt]
 [--plot benchmarks/bench_zoo_calibration.png] [--jobs 2]``; ``--seeds 1 3 5`` picks motors,
@@ -183,7 +181,7 @@ def run_motor(seed: int, verbose: bool = False) -> dict:
         "fs": int(round(1 / cfg.sample_time)), "N": cal_run.n_samples, "fast": fast,
         "status": "diverged", "init": math.nan, "star": math.nan, "pred": math.nan,
         "sec": math.nan, "model": "", "off": math.nan, "efl": math.nan, "white": math.nan,
-        "batch": math.nan, "B": 0, "p": 0, "upper": math.nan, "colour": math.nan,
+        "batch": math.nan, "B": 0, "p": 0, "upper": math.nan,
     }  # fmt: skip
     if cal_run.status != "ok":
         return row
@@ -204,7 +202,6 @@ def run_motor(seed: int, verbose: bool = False) -> dict:
     row["pred"] = cal.predicted_error / floor
     if cal.adequacy is not None:
         row["upper"] = cal.adequacy.predicted_upper / floor
-        row["colour"] = cal.adequacy.colour
     row["efl"] = cal.noise_floor / floor
     row.update(_predictions(cal, floor))
     h = cal.model_info.get("harmonics", [])
@@ -243,7 +240,7 @@ def _line(r: dict) -> str:
         f"{r['seed']:4d} {r['kind']:>7} {r['n_m']:3d} {r['fs']:6d} {r['N']:7d} x{r['fast']:<2g}"
         f"{r['status']:>13} {r['star']:8.3f} {r['init']:8.2f} {r['pred']:8.3f} {ratio:8.2f} "
         f"{r['sec']:6.1f} {r['off']:6.2f} {r['efl']:5.2f} {r['white']:7.2f} {r['batch']:7.2f} "
-        f"{r['upper']:6.2f} {r['colour']:6.2f} {r['B']:3d} {r['p']:4d}  {r['model']}"
+        f"{r['upper']:6.2f} {r['B']:3d} {r['p']:4d}  {r['model']}"
     )
 
 
@@ -348,8 +345,7 @@ def main() -> None:
         "",
         f"{'seed':>4} {'class':>7} {'n_m':>3} {'fs':>6} {'N':>7} {'':3}{'status':>13} "
         f"{'star/fl':>8} {'init/fl':>8} {'pred/fl':>8} {'act/pred':>8} {'sec':>6} "
-        f"{'off/fl':>6} {'efl':>5} {'white':>7} {'batch':>7} {'upper':>6} {'colour':>6} "
-        f"{'B':>3} {'p':>4}  model",
+        f"{'off/fl':>6} {'efl':>5} {'white':>7} {'batch':>7} {'upper':>6} {'B':>3} {'p':>4}  model",
     ]
     print("\n".join(lines), flush=True)
     rows = []

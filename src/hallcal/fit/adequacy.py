@@ -689,14 +689,6 @@ class AdequacyReport:
     error_sources : str
         What carries the predicted variance of the table (:func:`error_sources`), "" when
         nothing stands out.
-    colour : float
-        The table's mean variance from the batch-means covariance over the one from the white
-        ``sigma^2 (J^T J)^-1`` (:func:`_theta_covariances`): how much more the residual scatters
-        the table than white noise of its level would (White 1982's sandwich against the
-        model's own covariance). Near 1 (0.1-3 on ``benchmarks/bench_zoo.py``) for a residual
-        the model explains; far above when an unmodelled disturbance drives the directions
-        that determine the table (:data:`hallcal.pipeline.verdict.COLOUR_LIMIT`). NaN when the
-        run has too few batches.
     """
 
     verdict: Verdict
@@ -730,7 +722,6 @@ class AdequacyReport:
     status: AdequacyStatus = AdequacyStatus.OK
     predicted_upper: float = math.nan
     error_sources: str = ""
-    colour: float = math.nan
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "verdict", Verdict(self.verdict))
@@ -1097,7 +1088,6 @@ class _Table:
     predicted: float
     upper: float = math.nan
     sources: str = ""
-    colour: float = math.nan
 
 
 #: Batches of the SEM residual needed before the batch-means covariance is used at all: each
@@ -1144,19 +1134,17 @@ def _table(sem: SEMResult, n: int, P: NDArray, o: NDArray, sigma2: float, points
     eta = lut.eta  # about zero: f_init's error with its offset, as the prediction
     floor = angle_noise_floor(sem.flux, n, sigma2, projection=P, offset=o, points=lut.y0.size)
     sources = ""
-    colour = math.nan
     try:
         G = angle_error_gradient(sem.flux, n, projection=P, offset=o)
-        spreads = [(*error_spread(G, C), C) for C in _theta_covariances(sem)]
-        mean_var_eta, excess_q, C = max(spreads, key=lambda t: t[0])
+        mean_var_eta, excess_q, C = max(
+            ((*error_spread(G, C), C) for C in _theta_covariances(sem)), key=lambda t: t[0]
+        )
         sources = error_sources(G, C, sem.flux.basis.harmonics, fundamental=n)
-        if len(spreads) == 2 and spreads[0][0] > 0:  # batch-means over white (the sandwich)
-            colour = spreads[1][0] / spreads[0][0]
     except (ValueError, np.linalg.LinAlgError):
         mean_var_eta = excess_q = math.nan
     predicted = math.sqrt(floor**2 + mean_var_eta) if math.isfinite(mean_var_eta) else math.nan
     upper = math.sqrt(floor**2 + excess_q) if math.isfinite(excess_q) else math.nan
-    return _Table(lut, float(np.sqrt(np.mean(eta**2))), floor, predicted, upper, sources, colour)
+    return _Table(lut, float(np.sqrt(np.mean(eta**2))), floor, predicted, upper, sources)
 
 
 def error_sources(
@@ -1568,7 +1556,6 @@ def _report(
         status=AdequacyStatus.OK,
         predicted_upper=tab.upper,
         error_sources=tab.sources,
-        colour=tab.colour,
     )
 
 

@@ -8,46 +8,28 @@ user's only reference, so the policy is stated on them:
    bijectivity condition, eq. recon_biject) -> ``NOT_BIJECTIVE``.
 2. **Refused, the model does not explain the data**: the adequacy check's verdict is inadequate
    (:func:`hallcal.fit.adequacy.assess`) -> ``INADEQUATE``.
-3. **Refused, an unmodelled disturbance drives the table**: the residual scatters the table
-   more than :data:`COLOUR_LIMIT` times as much as white noise of its level would (``colour``,
-   the table's mean variance from the batch-means covariance of theta over the one from the
-   white ``sigma^2 (J^T J)^-1``: White's (1982) sandwich against the model's own covariance;
-   Ljung 1999, sec. 9.3) while the predicted error is above :data:`OK_RATIO` times the floor
-   -> ``INADEQUATE``. A model that explains its residual has a colour near 1: 0.14-3.0 on
-   the 30 zoo motors (``benchmarks/bench_zoo.py``; the loop whitens or colours the Hall noise
-   a little) and 0.14-2.0 on the closed-loop cases of ``benchmarks/bench_unseen.py`` that
-   gave usable tables. Far above it, the directions that determine the table (its offset,
-   slow warps) are set by a disturbance the model does not have, a pseudo-true value whose
-   bias neither covariance bounds (White 1982, sec. 3), and the model's correction, the only
-   measure of f_init's error without an encoder, carries the same bias, so the comparison
-   with f_init below cannot be made either: ``bench_unseen.txt`` case 222 (a random
-   low-frequency load torque, the plant from a BLA) had a colour of 254 and a table 670x the
-   floor, 5.4x its batch-means prediction and 40x worse than f_init (16.6x), with a
-   correction of 624x that was mostly the table's own error. The limit is an effect size,
-   not a test of whiteness: at 24 batches a white residual stays within 2.2 (the 99.9 %
-   quantile of chi-square(23) / 23), and a coloured one the model explains within about 3.
-4. **Refused, the table may not help**: the table's own predicted error ``sqrt(predicted^2 -
+3. **Refused, the table may not help**: the table's own predicted error ``sqrt(predicted^2 -
    floor^2)`` is at least the correction it applies (RMS eta about zero, the model's view of
    f_init's error), or at least :data:`WORSE_FRACTION` of it and more than half the noise
    floor: f_star may be worse than f_init ->
    ``INADEQUATE``, never a table written with exit status 0. Half, not all, and of the
-   table's upper quantile (item 6) rather than its expectation: when a few weakly determined
+   table's upper quantile (item 5) rather than its expectation: when a few weakly determined
    directions carry the error (slow warps, the table's offset, which only the start of the run
    informs) one run's table error scatters about it by up to 2x (``benchmarks/bench_zoo.txt``:
    1.4x and 1.7x on two slow ramps whose tables came out worse than f_init with a prediction
    just below it). Not caught: a model whose table is wrong beyond its covariance (zoo motor
    113, harmonics chosen above the flux content: predicted 13x the floor, upper quantile 23x,
    the model's correction 77x against f_init's 27x, the table 64x).
-5. **Warning**: any warning another step raised (``checks_passed`` False), an adequacy
+4. **Warning**: any warning another step raised (``checks_passed`` False), an adequacy
    warning, no finite predicted error, or a predicted error above :data:`OK_RATIO` times the
    noise floor.
-6. **Warning, one run may be far off**: the upper quantile of one run's error
+5. **Warning, one run may be far off**: the upper quantile of one run's error
    (:func:`hallcal.fit.adequacy.error_spread`, 95 %) above :data:`OK_UPPER_RATIO` times the
    floor. The predicted error is an expectation; when a few directions carry it (the table's
    constant offset, which only the start of the run informs, a single chi-square(1) term) one
    run's table scatters far about it: zoo motor 30 was "ok" at 1.34x the floor with 1.12x
    predicted (its offset 0.86x the floor; 1.11-1.34x over four noise seeds).
-7. **Ok**: none of the above; then ``predicted <= OK_RATIO * floor``, the upper quantile within
+6. **Ok**: none of the above; then ``predicted <= OK_RATIO * floor``, the upper quantile within
    ``OK_UPPER_RATIO * floor`` and every check passed.
 
 What a refusal means for the user is stated once too (:func:`refusal`, "refuse unless
@@ -69,7 +51,6 @@ from dataclasses import dataclass
 from hallcal.messages import Message, MessageCode
 
 __all__ = [
-    "COLOUR_LIMIT",
     "OK_RATIO",
     "OK_UPPER_RATIO",
     "WORSE_FRACTION",
@@ -87,12 +68,6 @@ WORSE_FRACTION = 0.5
 #: "ok" as "at the noise floor"; 1.15 leaves room for the spread of one run's error, about
 #: sqrt(2 / revolutions-worth of independent samples), and for a few weak directions).
 OK_RATIO = 1.15
-
-#: Colour (batch-means over white variance of the table) above which the residual, not the
-#: noise, sets the table (see the module docstring, item 3): an order of magnitude above what a
-#: model that explains its residual shows (at most 3.0 measured), far below the 254 of a table
-#: set by an unmodelled load torque.
-COLOUR_LIMIT = 10.0
 
 #: Upper quantile of one run's error / noise floor up to which a calibration may be "ok": "ok"
 #: above 1.3x the floor is what the zoo counts as dishonest (``benchmarks/bench_zoo.py``).
@@ -153,7 +128,6 @@ def decide(
     min_slope: float = math.nan,
     predicted_upper: float = math.nan,
     limit: str = "",
-    colour: float = math.nan,
 ) -> Verdict:
     """The status of a calibration (see the module docstring for the policy).
 
@@ -182,10 +156,6 @@ def decide(
         What carries the table's predicted variance (one phrase,
         :func:`hallcal.fit.adequacy.error_sources`), named in a refusal for a poorly determined
         table.
-    colour : float, keyword-only
-        The table's mean variance from the batch-means covariance of theta over the one from
-        the white covariance (:attr:`hallcal.fit.adequacy.AdequacyReport.colour`; NaN: not
-        known, not checked).
 
     Returns
     -------
@@ -203,17 +173,6 @@ def decide(
         )
     if adequacy == "inadequate":
         return Verdict(CalibrationStatus.INADEQUATE, adequacy_message, ())
-    if colour > COLOUR_LIMIT and predicted > OK_RATIO * floor:
-        return Verdict(
-            CalibrationStatus.INADEQUATE,
-            f"an unmodelled disturbance sets the table: the residual scatters it {colour:.3g} "
-            f"times as much as white noise would (more than {COLOUR_LIMIT:g}), so neither its "
-            f"predicted error ({mrad * predicted:.3g} mrad RMS, noise floor {mrad * floor:.3g} "
-            "mrad) nor its correction bounds what it does; f_star may be far worse than f_init "
-            "(a varying load torque, or dynamics the plant model misses: record the run "
-            "without the load, or give [plant])",
-            (),
-        )
     own = math.sqrt(max(predicted**2 - floor**2, 0.0)) if math.isfinite(predicted) else math.nan
     # one run's table may reach its upper quantile (NaN, not known: the expectation only)
     own_up = math.sqrt(max(predicted_upper**2 - floor**2, 0.0)) if predicted_upper > 0 else own
