@@ -19,7 +19,10 @@ user's only reference, so the policy is stated on them:
    1.4x and 1.7x on two slow ramps whose tables came out worse than f_init with a prediction
    just below it). Not caught: a model whose table is wrong beyond its covariance (zoo motor
    113, harmonics chosen above the flux content: predicted 13x the floor, upper quantile 23x,
-   the model's correction 77x against f_init's 27x, the table 64x).
+   the model's correction 77x against f_init's 27x, the table 64x; ``benchmarks/bench_unseen.py``
+   case 222, a random load torque with the plant from a BLA: a "warning" predicted 124x, upper
+   quantile 226x, the model's correction 624x against f_init's 17x, the table 670x, a bias of
+   the slow warp directions that the model's loop prefers, see that script's docstring).
 4. **Warning**: any warning another step raised (``checks_passed`` False), an adequacy
    warning, no finite predicted error, or a predicted error above :data:`OK_RATIO` times the
    noise floor.
