@@ -196,6 +196,11 @@ def held_out_choice(
     that misses the 7th electrical harmonic may score worse than a narrower one (measured:
     ``benchmarks/bench_unseen.py`` case 210, E = 3, 5, 7: 5.9, 14.4, 0.54x the floor).
 
+    Parameters
+    ----------
+    d, pole_pairs, start, stop, speed, max_iterations, lut_points
+        As :func:`held_out_error` (the band replaces its ``harmonics``).
+
     Returns
     -------
     HeldOut or None
