@@ -100,6 +100,12 @@ angle is right from the first sample either way, so commutation never waits for 
 The first output lies in [-pi/n, 2 pi - pi/n) (the calibration frame modulo one revolution);
 later outputs are continuous.
 
+Sensors changed since calibration. The decoder assumes the calibrated sensors: a gain or offset
+change moves the measured point off the right hypothesis's curve, and where the magnets differ
+by little it can move it onto a wrong one, which then wins the lock and passes the misfit test.
+:mod:`hallcal.sensor.drift_margin` measures from the tables how large a change that takes
+(:attr:`IdentifiabilityReport.drift`); the decoder itself has no gain parameter.
+
 Units: angles in rad (mechanical unless said electrical); d, rho, zeta in the sensor's unit;
 costs in noise-sigma units squared.
 """
