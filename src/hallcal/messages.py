@@ -103,6 +103,7 @@ class MessageCode(enum.StrEnum):
     VALIDATION_SKIPPED = "validation_skipped"
     VALIDATION_WORSE = "validation_worse"
     POWERUP = "powerup"
+    POWERUP_DRIFT = "powerup_drift"
     C_EXPORT = "c_export"
     SEE_DIAGNOSTICS = "see_diagnostics"
     #: a stored string read back (:meth:`Message.from_record`): its producer is not recorded

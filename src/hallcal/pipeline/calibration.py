@@ -33,6 +33,7 @@ from hallcal.pipeline.powerup import (
     SignalStatus,
     check_signals,
     decoder_for,
+    drift_message,
     identifiability_from_artifact,
     identification_check,
     same_revolution,
@@ -755,13 +756,14 @@ def _reconstruct_absolute(cal: Calibration, dataset: Dataset) -> Reconstruction:
             lambda: validate(cal.lut, moved, angles=(out.y_init, out.y_star))
         )
     signals = identification_check(decoder, dataset, out)
+    drift = drift_message(cal.identifiability, warning=True)  # the lock's margin, if small
     return Reconstruction(
         out.y_init,
         out.y_star,
         validation,
         out.identification,
         signals=signals,
-        messages=notes,
+        messages=notes + (() if drift is None else (drift,)),
     )
 
 

@@ -49,7 +49,7 @@ from hallcal.pipeline.checks import (
 from hallcal.pipeline.observe import FOLDING_NOTE, observer_check, observer_section
 from hallcal.pipeline.plant import BLAIdentification, PlantModel, closed_loop, plant_model
 from hallcal.pipeline.plant_refine import PlantRefinement, refine_plant
-from hallcal.pipeline.powerup import power_up_analysis
+from hallcal.pipeline.powerup import drift_message, power_up_analysis
 from hallcal.pipeline.progress import Progress, say
 from hallcal.pipeline.verdict import decide
 from hallcal.sensor.flux import FluxModel, FourierBasis
@@ -668,6 +668,7 @@ def calibrate_closed_loop(
     t0 = time.perf_counter()
     identifiability = power_up_analysis(fit.flux, lut, s.d)
     timings["identifiability"] = time.perf_counter() - t0
+    messages.extend(m for m in [drift_message(identifiability)] if m is not None)
     validation = None
     if "y_ref" in dataset and lut.bijective:
         validation = validate(lut, dataset, noise_floor=adequacy.noise_floor)

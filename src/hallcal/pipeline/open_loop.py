@@ -28,7 +28,7 @@ from hallcal.messages import Message, MessageCode
 from hallcal.pipeline.calibration import Calibration, Diagnostics, computed_calibration, validate
 from hallcal.pipeline.checks import CheckStatus, check_pole_pairs, check_recording, raise_if_failed
 from hallcal.pipeline.observe import FOLDING_NOTE, calibrated_noise, observer_section
-from hallcal.pipeline.powerup import power_up_analysis
+from hallcal.pipeline.powerup import drift_message, power_up_analysis
 from hallcal.pipeline.progress import Progress, say
 from hallcal.pipeline.verdict import decide
 from hallcal.sensor.flux import FourierBasis
@@ -192,6 +192,7 @@ def calibrate_open_loop(
     t0 = time.perf_counter()
     identifiability = power_up_analysis(res.model, res.lut, d, start=start, stop=stop)
     timings["identifiability"] = time.perf_counter() - t0
+    messages.extend(m for m in [drift_message(identifiability)] if m is not None)
     validation = None
     if "y_ref" in dataset and res.lut.bijective:
         validation = validate(

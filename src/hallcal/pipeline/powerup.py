@@ -42,6 +42,7 @@ __all__ = [
     "SignalStatus",
     "check_signals",
     "decoder_for",
+    "drift_message",
     "identifiability_from_artifact",
     "identification_check",
     "power_up_analysis",
@@ -124,6 +125,47 @@ def identifiability_from_artifact(
         return IdentifiabilityReport.from_dict(entry)
     except ValueError as exc:
         raise HallcalInputError(f"{source}: {exc}", source=source, key="identifiability") from None
+
+
+def drift_message(report: IdentifiabilityReport | None, *, warning: bool = False) -> Message | None:
+    """The line saying the power-up lock does not survive a plausible sensor change, or None.
+
+    Said when the drift margin (:mod:`hallcal.sensor.drift_margin`) of a common gain change is
+    below the one a plausible temperature swing produces (``DriftMargin.fragile``: 5 %, 40 K of
+    NdFeB remanence at -0.12 %/K). ``calibrate`` says it as a note (the table is not in
+    question, so the calibration's status stays what it is; the note qualifies the power-up
+    verdict), ``reconstruct --absolute`` as a warning (``warning=True``).
+
+    Parameters
+    ----------
+    report : IdentifiabilityReport or None
+        The calibration's identifiability analysis (None, or one without a drift margin from an
+        older version: nothing to say).
+    warning : bool, keyword-only
+        Severity WARNING instead of NOTE.
+
+    Returns
+    -------
+    Message or None
+    """
+    m = None if report is None else report.drift
+    if m is None or not m.fragile:
+        return None
+
+    def pct(x: float) -> str:
+        return "beyond 10 %" if not math.isfinite(x) else f"+-{100 * x:.2g} %"
+
+    text = (
+        f"the power-up lock holds only for sensor gains within {pct(m.common_gain)} of "
+        f"calibration (about {m.kelvin:.0f} K of magnet temperature; one sensor's gain "
+        f"{pct(m.sensor_gain)}, its offset {pct(m.sensor_offset)} of its amplitude): beyond, a "
+        f"wrong pole pair fits the changed signals and locks with claimed certainty at up to "
+        f"{100 * m.share_at_plausible:.0f} % of positions within +-{100 * m.plausible_gain:.0f} "
+        "% (a 40 K swing); after a temperature change re-home the axis, or calibrate at the "
+        "temperature of use"
+    )
+    make = Message.warning if warning else Message.note
+    return make(MessageCode.POWERUP_DRIFT, text)
 
 
 def decoder_for(flux: FluxModel, lut: LUT, report: IdentifiabilityReport | None) -> PowerUpDecoder:

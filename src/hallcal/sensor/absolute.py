@@ -100,6 +100,12 @@ angle is right from the first sample either way, so commutation never waits for 
 The first output lies in [-pi/n, 2 pi - pi/n) (the calibration frame modulo one revolution);
 later outputs are continuous.
 
+Sensors changed since calibration. The decoder assumes the calibrated sensors: a gain or offset
+change moves the measured point off the right hypothesis's curve, and where the magnets differ
+by little it can move it onto a wrong one, which then wins the lock and passes the misfit test.
+:mod:`hallcal.sensor.drift_margin` measures from the tables how large a change that takes
+(:attr:`IdentifiabilityReport.drift`); the decoder itself has no gain parameter.
+
 Units: angles in rad (mechanical unless said electrical); d, rho, zeta in the sensor's unit;
 costs in noise-sigma units squared.
 """
@@ -115,6 +121,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal.sensor.drift_margin import DriftMargin, drift_margin
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT
 from hallcal.sensor.misfit import (
@@ -1102,6 +1109,9 @@ class IdentifiabilityReport:
         The noise estimate sigma came from.
     misfit_ratio, mismatch_rate, fit_rate : float
         kappa, beta and gamma of the decoder's misfit test (:mod:`hallcal.sensor.misfit`).
+    drift : DriftMargin or None
+        How far the sensors may change since calibration before a wrong pole pair can lock
+        (:mod:`hallcal.sensor.drift_margin`); None in artifacts made before it existed.
     """
 
     status: Identifiability
@@ -1129,6 +1139,7 @@ class IdentifiabilityReport:
     misfit_ratio: float = DEFAULT_MISFIT_RATIO
     mismatch_rate: float = DEFAULT_MISMATCH_RATE
     fit_rate: float = DEFAULT_FIT_RATE
+    drift: DriftMargin | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The artifact's ``"identifiability"`` entry (JSON-ready; infinities as None)."""
@@ -1164,6 +1175,8 @@ class IdentifiabilityReport:
         }
         if self.noise is not None:
             out["noise"] = self.noise.to_dict()
+        if self.drift is not None:
+            out["drift_margin"] = self.drift.to_dict()
         return out
 
     @classmethod
@@ -1182,6 +1195,7 @@ class IdentifiabilityReport:
 
         try:
             noise = d.get("noise")
+            drift = d.get("drift_margin")  # optional: older artifacts have none
             MisfitTest(  # validates them (a ratio <= 1 or a rate outside (0, 0.5) is refused)
                 float(d.get("misfit_ratio", DEFAULT_MISFIT_RATIO)),
                 float(d.get("mismatch_rate", DEFAULT_MISMATCH_RATE)),
@@ -1217,6 +1231,7 @@ class IdentifiabilityReport:
                 else NoiseEstimate(
                     float(noise["total_std"]), float(noise["white_std"]), int(noise["samples"])
                 ),
+                drift=None if drift is None else DriftMargin.from_dict(drift),
             )
         except KeyError as exc:
             raise ValueError(f"identifiability: missing key {exc.args[0]!r}") from None
@@ -1392,6 +1407,7 @@ def assess_identifiability(
     calibration_samples: int | None = None,
     basis_size: int | None = None,
     noise: NoiseEstimate | None = None,
+    drift: bool = True,
 ) -> IdentifiabilityReport:
     """Identifiability analysis of the pole pair at power-up (for ``hallcal calibrate``).
 
@@ -1419,6 +1435,9 @@ def assess_identifiability(
         N and m of the calibration (for ``model_floor``).
     noise : NoiseEstimate, optional
         Stored in the report.
+    drift : bool, keyword-only
+        Also compute the drift margin (:func:`hallcal.sensor.drift_margin.drift_margin`) when
+        the pole pair is identifiable.
 
     Returns
     -------
@@ -1457,6 +1476,9 @@ def assess_identifiability(
         misfit_ratio=dec.misfit.ratio,
         mismatch_rate=dec.misfit.rate,
         fit_rate=dec.misfit.fit_rate,
+        drift=drift_margin(dec, standstill_budget=standstill_budget)
+        if drift and status.success and dec.pole_pairs > 1
+        else None,
     )
     return IdentifiabilityReport(message=_message(report), **report)
 

@@ -1,0 +1,144 @@
+"""The power-up lock's drift margin (hallcal.sensor.drift_margin) against measured wrong locks.
+
+For each case: calibrate (the unseen motors 202, 213, 218, 227 of ``bench_unseen.py``, its
+generator and ramp; the paper bench, magnet sets 0, 1, 2, as ``bench_powerup.py``), print the
+drift margin the artifact stores (common gain, one sensor's gain, one sensor's offset; the worst
+wrong-lock share within +-5 %) and whether ``calibrate`` notes it, then for sensor changes
+after calibration the predicted wrong-lock share (share of positions where the noise-free
+changed signals let a wrong pole pair win the lock and pass the misfit test) against the
+measured outcome of 40 closed-loop power-ups per change (``bench_unseen.py --powerup``'s
+procedure: half at rest, half at two electrical revolutions per second, 600 samples): right /
+WRONG (a lock claiming certainty on the wrong pole pair) / mismatch (refused) / undecided.
+
+The prediction is a standstill figure (the moving half sees many positions, where a wrong
+hypothesis must win on average); it is meant to rank motors, not to be the rate.
+
+Run: ``nice python benchmarks/bench_powerup_margin.py``; output committed beside it
+(bench_powerup_margin.txt).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import bench_unseen as bu  # noqa: E402
+
+from hallcal import pipeline  # noqa: E402
+from hallcal.io import Dataset, default_setup  # noqa: E402
+from hallcal.messages import MessageCode  # noqa: E402
+from hallcal.sensor import absolute as ab  # noqa: E402
+from hallcal.sensor.drift_margin import _amplitudes, _table_signals, wrong_lock_share  # noqa: E402
+from hallcal.sim.bench import BenchConfig, power_up_run  # noqa: E402
+
+TWO_PI = 2.0 * math.pi
+
+#: Changes after calibration: bench_unseen's audit set and a few more common gains (gains
+#: multiply d as in the audit; offsets added in the signal's unit).
+CHANGES = (*bu.CHANGES,
+           ("all gains x0.995", (0.995,) * 3, (0.0,) * 3),
+           ("all gains x0.99", (0.99,) * 3, (0.0,) * 3),
+           ("all gains x1.03", (1.03,) * 3, (0.0,) * 3),
+           ("all gains x0.95", (0.95,) * 3, (0.0,) * 3))  # fmt: skip
+
+
+def unseen(seed: int):
+    case = bu.draw_case(seed)
+    cfg = case["cfg"]
+    run = bu._ramp(cfg, case["end"], case["duration"], seed)
+    cal = pipeline.calibrate(Dataset.from_columns(run.columns()), bu._setup(cfg))
+    return f"{seed} {case['fam']} n_m {cfg.pole_pairs}", cfg, cal
+
+
+def paper(seed: int):
+    s = default_setup()
+    setup = dataclasses.replace(s, bench=dataclasses.replace(s.bench, seed=seed))
+    run = pipeline.simulate(setup)
+    cal = pipeline.calibrate(Dataset.from_columns(run.columns(with_encoder=False)), setup)
+    return f"paper bench seed {seed} n_m 11", BenchConfig(seed=seed), cal
+
+
+def predicted(dec, gains, offs) -> float:
+    """wrong_lock_share for ``d g + delta`` (the audit's change), rewritten about f_init's
+    offsets o: ``o + g (d - o) + ((g - 1) o + delta)``, offsets in channel amplitudes."""
+    g = np.asarray(gains, dtype=np.float64)
+    amp = _amplitudes(_table_signals(dec), dec.offset)
+    extra = ((g - 1.0) * dec.offset + np.asarray(offs, dtype=np.float64)) / amp
+    return wrong_lock_share(dec, g, extra)
+
+
+def measured(cfg, dec, seed: int, gains, offs, trials: int = 40) -> dict[str, int]:
+    """bench_unseen.run_powerup's loop for one change (same seeds)."""
+    n = cfg.pole_pairs
+    rng = np.random.default_rng([seed, 99])
+    counts = {"right": 0, "WRONG": 0, "mismatch": 0, "undecided": 0}
+    for i in range(trials):
+        speed = 0.0 if i % 2 else 2.0 * TWO_PI / n
+        pu = power_up_run(cfg, float(rng.uniform(0, TWO_PI)), samples=600, speed=speed,
+                          seed=seed * 1000 + i)  # fmt: skip
+        j = int(np.round((pu.y0[0] - pu.y[0]) * n / TWO_PI)) % n
+        ident = dec.identify(pu.d * np.asarray(gains) + np.asarray(offs))
+        if ident.status is ab.PowerUpStatus.IDENTIFIED:
+            counts["right" if ident.offset == j else "WRONG"] += 1
+        elif ident.status is ab.PowerUpStatus.MISMATCH:
+            counts["mismatch"] += 1
+        else:
+            counts["undecided"] += 1
+    return counts
+
+
+def pct(x: float) -> str:
+    return "none within 10%" if not math.isfinite(x) else f"{100 * x:.2f}%"
+
+
+def report(name: str, cfg, cal, seed: int) -> tuple[float, int]:
+    """Print one case; returns the predicted shares summed and the WRONG locks counted over the
+    changes (healthy excluded)."""
+    rep = cal.identifiability
+    print(f"\n-- {name}: calibration {cal.status}, power-up {rep.status} --")
+    m = rep.drift
+    print(
+        f"   drift margin (wrong-lock share > {100 * m.share:.0f}%): common gain "
+        f"{pct(m.common_gain)}, one sensor's gain {pct(m.sensor_gain)}, one sensor's offset "
+        f"{pct(m.sensor_offset)} of its amplitude; worst share within +-"
+        f"{100 * m.plausible_gain:.0f}%: {100 * m.share_at_plausible:.1f}%"
+    )
+    notes = [x for x in cal.messages if x.code is MessageCode.POWERUP_DRIFT]
+    print(f"   calibrate says: {notes[0].line() if notes else '(nothing: margin beyond 5 %)'}")
+    dec = rep.decoder(cal.flux, cal.lut)
+    print("   change             predicted share   measured (40 power-ups)")
+    pred_sum, wrong = 0.0, 0
+    for label, gains, offs in CHANGES:
+        c = measured(cfg, dec, seed, gains, offs)
+        p = predicted(dec, gains, offs)
+        if label != "healthy":
+            pred_sum, wrong = pred_sum + p, wrong + c["WRONG"]
+        print(
+            f"   {label:18s} {100 * p:12.1f}%   " + "  ".join(f"{k} {v:2d}" for k, v in c.items())
+        )
+    return pred_sum, wrong
+
+
+def main() -> None:
+    print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())} (2 cores, shared)")
+    t0 = time.perf_counter()
+    rows = [(s, report(*unseen(s), s)) for s in (202, 213, 218, 227)]
+    rows += [(f"paper {s}", report(*paper(s), s)) for s in (0, 1, 2)]
+    k = len(CHANGES) - 1
+    print(f"\npooled over the {k} changes (40 power-ups each): mean predicted share, WRONG locks")
+    for name, (p, w) in rows:
+        print(f"   {name!s:9s} predicted {100 * p / k:5.1f}%   measured {w:3d}/{40 * k} "
+              f"({100 * w / (40 * k):4.1f}%)")  # fmt: skip
+    print(f"\ntotal {time.perf_counter() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
