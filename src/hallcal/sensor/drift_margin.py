@@ -79,10 +79,10 @@ SEARCH_LIMIT = 0.1
 
 #: Positions per electrical period the analysis looks at (every L // GRID th table point):
 #: bounds the work on fine tables (L up to 1024) at a share resolution of 1 / (GRID n_m).
-GRID = 128
+GRID = 64
 
 #: Scan step of the search [fraction], then bisection to :data:`RESOLUTION`.
-_SCAN_STEP = 0.005
+_SCAN_STEP = 0.01
 #: Resolution of the reported margins [fraction].
 RESOLUTION = 0.0005
 
@@ -121,7 +121,7 @@ class DriftMargin:
         (:data:`PLAUSIBLE_GAIN_CHANGE`).
     share_at_plausible : float
         Largest wrong-lock share for common gain changes up to +-plausible_gain (scanned in
-        steps of 0.5 %).
+        steps of 1 %).
     """
 
     common_gain: float
@@ -274,9 +274,9 @@ def drift_margin(
 ) -> DriftMargin:
     """The drift margins of a calibration's power-up lock (see the module doc).
 
-    A scan in steps of 0.5 % up to :data:`SEARCH_LIMIT`, then bisection to
+    A scan in steps of 1 % up to :data:`SEARCH_LIMIT`, then bisection to
     :data:`RESOLUTION` below the first size whose share exceeds ``share`` (a deterministic
-    count of cost evaluations: about 20 x 14 runs around the revolution).
+    count of cost evaluations: about 10 x 14 runs around the revolution).
 
     Parameters
     ----------
