@@ -35,9 +35,8 @@ import bench_unseen as bu  # noqa: E402
 from hallcal import pipeline  # noqa: E402
 from hallcal.io import Dataset, default_setup  # noqa: E402
 from hallcal.messages import MessageCode  # noqa: E402
-from hallcal.sensor import absolute as ab  # noqa: E402
 from hallcal.sensor.drift_margin import _amplitudes, _table_signals, wrong_lock_share  # noqa: E402
-from hallcal.sim.bench import BenchConfig, power_up_run  # noqa: E402
+from hallcal.sim.bench import BenchConfig  # noqa: E402
 
 TWO_PI = 2.0 * math.pi
 
@@ -76,23 +75,8 @@ def predicted(dec, gains, offs) -> float:
 
 
 def measured(cfg, dec, seed: int, gains, offs, trials: int = 40) -> dict[str, int]:
-    """bench_unseen.run_powerup's loop for one change (same seeds)."""
-    n = cfg.pole_pairs
-    rng = np.random.default_rng([seed, 99])
-    counts = {"right": 0, "WRONG": 0, "mismatch": 0, "undecided": 0}
-    for i in range(trials):
-        speed = 0.0 if i % 2 else 2.0 * TWO_PI / n
-        pu = power_up_run(cfg, float(rng.uniform(0, TWO_PI)), samples=600, speed=speed,
-                          seed=seed * 1000 + i)  # fmt: skip
-        j = int(np.round((pu.y0[0] - pu.y[0]) * n / TWO_PI)) % n
-        ident = dec.identify(pu.d * np.asarray(gains) + np.asarray(offs))
-        if ident.status is ab.PowerUpStatus.IDENTIFIED:
-            counts["right" if ident.offset == j else "WRONG"] += 1
-        elif ident.status is ab.PowerUpStatus.MISMATCH:
-            counts["mismatch"] += 1
-        else:
-            counts["undecided"] += 1
-    return counts
+    """bench_unseen's power-up count for one change (same seeds)."""
+    return bu.powerup_counts(cfg, dec, seed, gains, offs, trials)
 
 
 def pct(x: float) -> str:

@@ -308,9 +308,6 @@ def run_powerup(seed: int, trials: int = 40) -> list[str]:
     changed (the table no longer matches). Counts: identified right / identified WRONG (a lock
     claiming certainty on the wrong pole pair) / mismatch (refused) / undecided, at rest (half)
     and at 2 electrical revolutions per second (half), 600 samples each."""
-    from hallcal.sensor import absolute as ab
-    from hallcal.sim.bench import power_up_run
-
     case = draw_case(seed)
     cfg = case["cfg"]
     run = _ramp(cfg, case["end"], case["duration"], seed)
@@ -321,25 +318,36 @@ def run_powerup(seed: int, trials: int = 40) -> list[str]:
     if rep is None or not rep.status.success:
         return [head + ": no decoder"]
     dec = rep.decoder(cal.flux, cal.lut)
-    n = cfg.pole_pairs
     out = [head]
     for name, gains, offs in CHANGES:
-        rng = np.random.default_rng([seed, 99])
-        counts = {"right": 0, "WRONG": 0, "mismatch": 0, "undecided": 0}
-        for i in range(trials):
-            speed = 0.0 if i % 2 else 2.0 * TWO_PI / n
-            pu = power_up_run(cfg, float(rng.uniform(0, TWO_PI)), samples=600, speed=speed,
-                              seed=seed * 1000 + i)  # fmt: skip
-            j = int(np.round((pu.y0[0] - pu.y[0]) * n / TWO_PI)) % n
-            ident = dec.identify(pu.d * np.asarray(gains) + np.asarray(offs))
-            if ident.status is ab.PowerUpStatus.IDENTIFIED:
-                counts["right" if ident.offset == j else "WRONG"] += 1
-            elif ident.status is ab.PowerUpStatus.MISMATCH:
-                counts["mismatch"] += 1
-            else:
-                counts["undecided"] += 1
+        counts = powerup_counts(cfg, dec, seed, gains, offs, trials)
         out.append(f"     {name:16s} " + "  ".join(f"{k} {v:2d}" for k, v in counts.items()))
     return out
+
+
+def powerup_counts(cfg, dec, seed: int, gains, offs, trials: int = 40) -> dict[str, int]:
+    """Power-ups after the sensor change (gains, offsets): half at rest, half at two electrical
+    revolutions per second, 600 samples each: right / WRONG (a claimed lock on the wrong pole
+    pair) / mismatch (refused) / undecided."""
+    from hallcal.sensor import absolute as ab
+    from hallcal.sim.bench import power_up_run
+
+    n = cfg.pole_pairs
+    rng = np.random.default_rng([seed, 99])
+    counts = {"right": 0, "WRONG": 0, "mismatch": 0, "undecided": 0}
+    for i in range(trials):
+        speed = 0.0 if i % 2 else 2.0 * TWO_PI / n
+        pu = power_up_run(cfg, float(rng.uniform(0, TWO_PI)), samples=600, speed=speed,
+                          seed=seed * 1000 + i)  # fmt: skip
+        j = int(np.round((pu.y0[0] - pu.y[0]) * n / TWO_PI)) % n
+        ident = dec.identify(pu.d * np.asarray(gains) + np.asarray(offs))
+        if ident.status is ab.PowerUpStatus.IDENTIFIED:
+            counts["right" if ident.offset == j else "WRONG"] += 1
+        elif ident.status is ab.PowerUpStatus.MISMATCH:
+            counts["mismatch"] += 1
+        else:
+            counts["undecided"] += 1
+    return counts
 
 
 def run_case(seed: int) -> dict:
