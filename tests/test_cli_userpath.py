@@ -139,11 +139,24 @@ def test_unstable_bla_is_refused_with_the_fix(motor):
 # calibrate: choices said once, checks before the expensive steps
 
 
-def test_calibrate_says_which_plant_once_and_records_it(motor):
-    res = run(
+@pytest.fixture(scope="module")
+def with_bla(motor) -> subprocess.CompletedProcess:
+    """The motor calibrated with its BLA, angles shown in electrical degrees (``cal.json``):
+    once for the module (test_report_wording reports from it)."""
+    return run(
         "calibrate", "cal.csv", "--setup", "setup.toml", "--bla-data", "bla.csv",
         "--out", "cal.json", "--units", "electrical-deg", cwd=motor,
     )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def plant_run(motor) -> subprocess.CompletedProcess:
+    """The motor calibrated with the setup's [plant] (``plant.json``), once for the module."""
+    return run("calibrate", "cal.csv", "--setup", "setup.toml", "--out", "plant.json", cwd=motor)
+
+
+def test_calibrate_says_which_plant_once_and_records_it(motor, with_bla, plant_run):
+    res = with_bla
     assert res.returncode == 0, res.stderr
     assert res.stderr.count("plant: the BLA identified from bla.csv") == 1
     assert "wins over the setup's [plant]" in res.stderr
@@ -152,7 +165,7 @@ def test_calibrate_says_which_plant_once_and_records_it(motor):
     assert art["plant"]["source"] == "bla"
     assert any("wins over" in m for m in art["diagnostics"]["messages"])
     assert not LEAKS.search(res.stdout + res.stderr), res.stdout
-    res = run("calibrate", "cal.csv", "--setup", "setup.toml", "--out", "plant.json", cwd=motor)
+    res = plant_run
     assert res.returncode == 0, res.stderr
     assert "plant: G(s) from the setup's [plant] table" in res.stderr
     assert read_artifact(motor / "plant.json")["plant"]["source"] == "setup"
@@ -246,9 +259,8 @@ def test_bla_data_with_a_constant_speed_run_is_a_warning(ring, motor):
 # outputs
 
 
-def test_generated_c_files_are_world_readable_and_worded(motor, tmp_path):
-    if not (motor / "plant.json").exists():
-        test_calibrate_says_which_plant_once_and_records_it(motor)
+def test_generated_c_files_are_world_readable_and_worded(motor, plant_run, tmp_path):
+    assert plant_run.returncode == 0, plant_run.stderr
     old = os.umask(0o022)
     try:
         res = run(
@@ -283,7 +295,7 @@ def _last(res: subprocess.CompletedProcess) -> str:
     return res.stderr.strip().splitlines()[-1]
 
 
-def test_angles_in_degrees_are_named_before_anything_expensive(motor):
+def test_angles_in_degrees_are_named_before_anything_expensive(motor, plant_run):
     def degrees(c):
         for k in ("r", "y", "y_ref"):
             c[k] = np.degrees(c[k])
@@ -299,8 +311,7 @@ def test_angles_in_degrees_are_named_before_anything_expensive(motor):
     bla_deg = _variant(motor, "bla.csv", "bla_deg.csv", degrees)
     res = run("bla", bla_deg, "--setup", "setup.toml", "--out", "b.json", cwd=motor)
     assert res.returncode == 2 and "bla_deg.csv: r looks like degrees" in _last(res)
-    if not (motor / "plant.json").exists():
-        test_calibrate_says_which_plant_once_and_records_it(motor)
+    assert plant_run.returncode == 0, plant_run.stderr
     res = run("reconstruct", "plant.json", deg, "--out", "a.csv", cwd=motor)
     assert res.returncode == 2 and "deg.csv: y_ref looks like degrees" in _last(res)
 
@@ -387,10 +398,9 @@ def test_inspect_says_a_multisine_run_is_a_bla_experiment(motor):
     assert "calibrate it" not in res.stdout
 
 
-def test_export_defaults_work_on_a_normalized_artifact(motor, tmp_path):
+def test_export_defaults_work_on_a_normalized_artifact(motor, plant_run, tmp_path):
     """The float pair always; the fixed-point pair needs a scale here, and a note says so."""
-    if not (motor / "plant.json").exists():
-        test_calibrate_says_which_plant_once_and_records_it(motor)
+    assert plant_run.returncode == 0, plant_run.stderr
     res = run("export-c", str(motor / "plant.json"), "--out", "fw", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert sorted(p.name for p in (tmp_path / "fw").iterdir()) == ["hallcal.c", "hallcal.h"]
@@ -421,15 +431,14 @@ def test_fleet_export_c_writes_the_float_pair_of_every_good_motor(motor, tmp_pat
     assert "no C export" not in summary and ",ok," in summary, summary
 
 
-def test_report_wording(motor, tmp_path):
-    """No raw backticks, no doubled c-hat, sigma^2 with its unit, ±, no '<dataset>'."""
-    res = run(
-        "calibrate", "cal.csv", "--setup", "setup.toml", "--bla-data", "bla.csv",
-        "--out", "withbla.json", cwd=motor,
-    )  # fmt: skip
+def test_report_wording(motor, with_bla, tmp_path):
+    """No raw backticks, no doubled c-hat, sigma^2 with its unit, ±, no '<dataset>'. The
+    calibration with the BLA is ``with_bla``'s (--units changes only how angles are shown: the
+    noise variance is in the Hall signals' unit, and the artifact is the same)."""
+    res = with_bla
     assert res.returncode == 0, res.stderr
     assert "noise variance 7.5" in res.stdout and "(Hall signal unit)²" in res.stdout
-    res = run("report", "withbla.json", "cal.csv", "--out", str(tmp_path / "rep"), cwd=motor)
+    res = run("report", "cal.json", "cal.csv", "--out", str(tmp_path / "rep"), cwd=motor)
     assert res.returncode == 0, res.stderr
     html = (tmp_path / "rep" / "report.html").read_text(encoding="utf-8")
     text = re.sub(r"<[^>]+>", " ", re.sub(r"<img[^>]*>", "", html))
@@ -446,9 +455,8 @@ def test_report_wording(motor, tmp_path):
     assert any("the BLA identified from the multisine experiment" in m.text for m in cal.messages)
 
 
-def test_plan_says_when_the_slowest_speed_meets_the_target(motor):
-    if not (motor / "plant.json").exists():
-        test_calibrate_says_which_plant_once_and_records_it(motor)
+def test_plan_says_when_the_slowest_speed_meets_the_target(motor, plant_run):
+    assert plant_run.returncode == 0, plant_run.stderr
     res = run("plan", "plant.json", "--revolutions", "2", "--speeds", "0.25,0.5,1,2", cwd=motor)
     assert res.returncode == 0, res.stderr
     last = res.stdout.strip().splitlines()[-1]

@@ -191,33 +191,49 @@ def motor_dir(readme_run) -> Path:
     return d
 
 
-def test_the_other_readme_examples_run_as_written(motor_dir):
+@pytest.fixture(scope="module")
+def other_run(motor_dir) -> dict[str, list[subprocess.CompletedProcess]]:
+    """Every bash line of the README outside "Your own motor" (the demo aside: it is a --help
+    example, run by test_every_help_example_runs_as_written), run once in order in the README
+    motor's folder: each command's results by subcommand. The --help examples that are the same
+    command in the same folder are not run again."""
+    results: dict[str, list[subprocess.CompletedProcess]] = {}
+    for args in other_readme_commands():
+        if args[1] != "demo":
+            results.setdefault(args[1], []).append(_run(args, motor_dir))
+    return results
+
+
+def test_the_other_readme_examples_run_as_written(motor_dir, other_run):
     """Quick start aside (the demo: run by the --help test), every bash line of the README."""
     cmds = other_readme_commands()
     assert [c[1] for c in cmds] == ["demo", "plan", "fleet", "fleet", "reconstruct", "reconstruct"]
-    for args in cmds:
-        if args[1] == "demo":
-            continue  # the same command is a --help example, run in test_every_help_example...
-        res = _run(args, motor_dir)
-        if args[1] == "fleet":
-            assert "1 ok" in res.stdout or "1 motors: 1 ok" in res.stdout, res.stdout
+    assert len(other_run["fleet"]) == 2
+    for res in other_run["fleet"]:
+        assert "1 ok" in res.stdout or "1 motors: 1 ok" in res.stdout, res.stdout
     assert (motor_dir / "batch" / "m1" / "c" / "hallcal.c").is_file()  # fleet --export-c
     # the prose's inline examples
     _run(["hallcal", "export-c", "cal.json", "--out", "fw/"], motor_dir)
     assert (motor_dir / "fw" / "hallcal.c").is_file()
 
 
-def test_the_readme_python_runs_as_written(motor_dir):
-    """The notebook block, then the prose's report and export_c calls; status prints as shown."""
+def test_the_readme_python_runs_as_written(motor_dir, tmp_path):
+    """The notebook block, then the prose's report and export_c calls; status prints as shown.
+    They run in a folder of their own holding the README motor's recordings and setup: the
+    block saves its own cal.json, which must not replace the CLI's that the --help examples
+    read in the motor's folder."""
     (block,) = readme_blocks("python")
+    for name in ("cal.csv", "run.csv", "setup.toml"):
+        (tmp_path / name).write_bytes((motor_dir / name).read_bytes())
     code = block + '\ncal.report("report/", data="cal.csv")\ncal.export_c("fw_py/")\n'
     res = subprocess.run(
-        [sys.executable, "-c", code], cwd=motor_dir, capture_output=True, text=True, timeout=900
+        [sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=900
     )
     assert res.returncode == 0, res.stderr
     shown = re.search(r"print\(cal\.status, cal\.predicted_error\)\s+# (\S+) ", block).group(1)
     assert res.stdout.splitlines()[0].split()[0] == shown  # what the README says is printed
-    assert (motor_dir / "fw_py" / "hallcal.c").is_file()
+    assert (tmp_path / "fw_py" / "hallcal.c").is_file()
+    assert (tmp_path / "report" / "report.html").is_file()
 
 
 #: Order in which the --help examples run (inputs before the commands that read them).
@@ -225,12 +241,12 @@ ORDER = ("simulate", "inspect", "bla", "calibrate", "reconstruct", "plan", "expo
          "fleet", "demo")  # fmt: skip
 
 
-def test_every_help_example_runs_as_written(motor_dir, tmp_path):
+def test_every_help_example_runs_as_written(motor_dir, other_run, tmp_path):
     """Each example of each ``--help``, in the README motor's folder, or, when it names a
     ring-jig file, in a folder holding the ring jig's capture (ring.txt, its CSV ring.csv and
-    the setup inspect suggests, ring.toml). An example that is also a line of the README's
-    block has run there already (``readme_run``), in the same folder: it is not run twice
-    (calibrate excepted)."""
+    the setup inspect suggests, ring.toml). An example that is also a bash line of the README
+    has run there already (``readme_run``, ``other_run``: each exited 0), in the same folder:
+    it is not run twice."""
     from hallcal.io import read_dataset, write_dataset
 
     examples = help_examples()
@@ -250,9 +266,8 @@ def test_every_help_example_runs_as_written(motor_dir, tmp_path):
         "pole_pairs = 25\nsample_time = 1.0\n\n" + out[out.index("[trajectory]") :]
     )
     (motor_dir / "powerup.csv").write_bytes((motor_dir / "run.csv").read_bytes())
-    # run as written in motor_dir by readme_run (each exit 0), except calibrate: the Python
-    # block saves another cal.json there, and the examples after calibrate read the CLI's
-    ran = [c for c in readme_commands() if c[1] != "calibrate"]
+    # run as written in motor_dir by readme_run and other_run (each exit 0)
+    ran = readme_commands() + [c for c in other_readme_commands() if c[1] != "demo"]
     for args in sorted(examples, key=lambda a: ORDER.index(a[1])):
         where = ring if any(a.startswith("ring.") for a in args) else motor_dir
         if where == motor_dir and args in ran:

@@ -44,7 +44,6 @@ import math
 from dataclasses import dataclass, field, fields
 
 import numpy as np
-import scipy.signal
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal.sensor.flux import FluxModel, FourierBasis
@@ -105,6 +104,8 @@ def position_controller(plant: ContinuousTF, sample_time: float, crossover_hz: f
     c_wc = np.polyval(num_s, 1j * wc) / np.polyval(den_s, 1j * wc)
     g_wc = plant.frequency_response(np.array([crossover_hz]))[0]
     k = 1.0 / abs(c_wc * g_wc)
+    import scipy.signal  # here: importing it costs 0.7 s of CPU, paid by the commands that use it
+
     numd, dend, _ = scipy.signal.cont2discrete((k * num_s, den_s), sample_time, method="bilinear")
     numd = np.atleast_1d(np.squeeze(numd))
     return DiscreteTF(tuple(float(v) for v in numd), tuple(float(v) for v in dend))
@@ -520,6 +521,8 @@ def _lowpass_noise(rng: np.random.Generator, n: int, std: float, ts: float, fc: 
         return np.zeros(n)
     a = math.exp(-TWO_PI * fc * ts)
     w = rng.standard_normal(n) * std * math.sqrt(1 - a * a)
+    import scipy.signal  # here: see position_controller
+
     return scipy.signal.lfilter([1.0], [1.0, -a], w)
 
 
