@@ -36,6 +36,7 @@ Units: gains as fractions (0.018 = 1.8 %), offsets as fractions of the channel's
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -87,16 +88,25 @@ _SCAN_STEP = 0.01
 RESOLUTION = 0.0005
 
 
-class _Decoder(Protocol):  # what is used of hallcal.sensor.absolute.PowerUpDecoder
-    pole_pairs: int
-    grid: int
-    projection: NDArray[np.float64]
-    offset: NDArray[np.float64]
-    null: NDArray[np.float64]
-    radius: NDArray[np.float64]
-    zero: NDArray[np.float64]
-    error_target: float
-    misfit: MisfitTest
+class _Decoder(Protocol):  # what is used of hallcal.sensor.absolute.PowerUpDecoder (read-only)
+    @property
+    def pole_pairs(self) -> int: ...
+    @property
+    def grid(self) -> int: ...
+    @property
+    def projection(self) -> NDArray[np.float64]: ...
+    @property
+    def offset(self) -> NDArray[np.float64]: ...
+    @property
+    def null(self) -> NDArray[np.float64]: ...
+    @property
+    def radius(self) -> NDArray[np.float64]: ...
+    @property
+    def zero(self) -> NDArray[np.float64]: ...
+    @property
+    def error_target(self) -> float: ...
+    @property
+    def misfit(self) -> MisfitTest: ...
 
     def sample_costs(self, d: ArrayLike) -> NDArray[np.float64]: ...
 
@@ -246,14 +256,39 @@ def wrong_lock_share(
 
 #: The changes of each kind at size t: (gains, offsets) as functions of t (both signs; one
 #: sensor at a time for the per-sensor kinds).
-_KINDS = {
-    "common_gain": [(lambda t, s=s: np.full(3, 1.0 + s * t), lambda t: np.zeros(3))
-                    for s in (1.0, -1.0)],
-    "sensor_gain": [(lambda t, s=s, e=e: 1.0 + s * t * e, lambda t: np.zeros(3))
-                    for e in np.eye(3) for s in (1.0, -1.0)],
-    "sensor_offset": [(lambda t: np.ones(3), lambda t, s=s, e=e: s * t * e)
-                      for e in np.eye(3) for s in (1.0, -1.0)],
-}  # fmt: skip
+_Change = Callable[[float], NDArray[np.float64]]
+
+
+def _gain_change(direction: NDArray[np.float64]) -> tuple[_Change, _Change]:
+    """Gains 1 + t direction, offsets unchanged."""
+
+    def gains(t: float) -> NDArray[np.float64]:
+        return 1.0 + t * direction
+
+    def offsets(t: float) -> NDArray[np.float64]:
+        return np.zeros(3)
+
+    return gains, offsets
+
+
+def _offset_change(direction: NDArray[np.float64]) -> tuple[_Change, _Change]:
+    """Gains unchanged, offsets t direction (fractions of each sensor's amplitude)."""
+
+    def gains(t: float) -> NDArray[np.float64]:
+        return np.ones(3)
+
+    def offsets(t: float) -> NDArray[np.float64]:
+        return t * direction
+
+    return gains, offsets
+
+
+_SIGNS = (1.0, -1.0)
+_KINDS: dict[str, list[tuple[_Change, _Change]]] = {
+    "common_gain": [_gain_change(np.full(3, s)) for s in _SIGNS],
+    "sensor_gain": [_gain_change(s * e) for e in np.eye(3) for s in _SIGNS],
+    "sensor_offset": [_offset_change(s * e) for e in np.eye(3) for s in _SIGNS],
+}
 
 
 def _shares(dec: _Decoder, sig: NDArray, t: float, kinds: list[str], budget: int) -> list[float]:
