@@ -86,6 +86,7 @@ from hallcal.fit.constant_speed import (
     find_constant_speed,
 )
 from hallcal.io import Dataset, setup_from_dict
+from hallcal.messages import MessageCode
 from hallcal.sensor.flux import FourierBasis
 from hallcal.sensor.reconstruction import f_init
 
@@ -277,6 +278,9 @@ def test_ringjig_through_the_pipeline(results):
     # "ok" (at the floor) cannot be claimed. The prediction is conservative, not low: the table
     # measured on the held-out revolutions after the segment is 0.40 deg_el; within 3x of it.
     assert cal.status == "warning", cal.messages
+    # the warning says why (the held-out prediction above the floor), and what it includes
+    assert cal.messages[0].code == MessageCode.ABOVE_NOISE_FLOOR, cal.messages
+    assert "held-out revolutions" in cal.messages[1].text
     predicted = math.degrees(cal.predicted_error) * POLE_PAIRS
     assert r["star"] <= 1.5 * predicted <= 3.0 * 1.5 * r["star"], (predicted, r["star"])
     y_star = cal.lut.f_star(r["d"])

@@ -188,6 +188,18 @@ def calibrate_open_loop(
         checks_passed=res.status.success and not messages, min_slope=res.lut.min_slope,
     )  # fmt: skip
     status, refusal = verdict.status, verdict.refusal
+    messages[:0] = verdict.leading  # the reason for a warning first, as in the closed loop
+    if held is not None and verdict.leading:
+        messages.insert(
+            len(verdict.leading),
+            Message.note(
+                MessageCode.SPEED_FIT,
+                "the prediction is the table's error on held-out revolutions against the "
+                "straight-line angle, so the rotor's own departure from constant speed counts "
+                "in it (on a stepper jig it can dominate): the table may be better than "
+                "predicted, never claimed at the floor",
+            ),
+        )
     say(progress, "power-up identifiability of the pole pair")
     t0 = time.perf_counter()
     identifiability = power_up_analysis(res.model, res.lut, d, start=start, stop=stop)
