@@ -300,7 +300,7 @@ def model_misfit(decoder: _CostModel, d: ArrayLike) -> MisfitResult:
         last.hit is not None
         or not last.fits
         or 2 * in_crossed >= K
-        or _refuted(test, costs[last.start :], valid[last.start :])
+        or _segment(_confirmation(test), costs, valid, last.start).hit is not None
     ):
         return _result(MisfitStatus.MISMATCH, crossed[0], 0)
     status = MisfitStatus.FITS if last.fits else MisfitStatus.UNDECIDED
@@ -315,14 +315,12 @@ def model_misfit(decoder: _CostModel, d: ArrayLike) -> MisfitResult:
 CONFIRM_RATIO = 1.5
 
 
-def _refuted(test: MisfitTest, costs: NDArray, valid: NDArray) -> bool:
-    """Does the sequential test of a misfit :data:`CONFIRM_RATIO` times the noise's (the same
-    beta) reject the model somewhere on these samples? Under a fitting model that has
-    probability at most beta (Ville's inequality), so the forgiveness costs no false alarms."""
-    confirm = MisfitTest(ratio=CONFIRM_RATIO, rate=test.rate, fit_rate=test.fit_rate)
-    lam = np.cumsum(costs, axis=0)
-    D = confirm.statistic(np.min(lam, axis=1), np.cumsum(valid))
-    return bool(np.any(D >= confirm.bound))
+def _confirmation(test: MisfitTest) -> MisfitTest:
+    """The sequential test of a misfit :data:`CONFIRM_RATIO` times the noise's (the same beta):
+    run after the last restart, its crossing refutes the forgiveness. Under a fitting model it
+    crosses with probability at most beta (Ville's inequality), so forgiving costs no false
+    alarms."""
+    return MisfitTest(ratio=CONFIRM_RATIO, rate=test.rate, fit_rate=test.fit_rate)
 
 
 @dataclass(frozen=True)
