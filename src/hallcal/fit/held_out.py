@@ -21,12 +21,13 @@ so the table fitted on the whole segment (K samples) is predicted at
 ``held^2 - floor^2 p (1 / K_train - 1 / K)``. delta is not an error of f_star against a true
 encoder, but nothing without one tells it from m: the prediction keeps it (conservative), and a
 rig that rings (the ring jig: 4-8x the floor held out, ``tests/test_real_ringjig.py``) is then
-not "ok". With ``harmonics = "auto"`` the band 1..E n_m grows over the odd E = 3, 5, 7, 9 while
-the held-out error falls by more than its own scatter (:func:`held_out_choice`).
+not "ok". With ``harmonics = "auto"`` the band 1..E n_m, E = 3, 5, 7, 9, is the narrowest whose
+held-out error is within its own scatter of the lowest (:func:`held_out_choice`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -103,11 +104,11 @@ class HeldOut:
         return math.sqrt(max(self.rms**2 - extra, f2 * (1.0 + p / K)))
 
 
-def _split(result_like_start: int, stop: int, speed: float) -> int | None:
-    """The training part's end: the segment less one revolution (None: under two revolutions'
-    worth, where training would not cover the ring; at least half a revolution held out)."""
+def _split(start: int, stop: int, speed: float) -> int | None:
+    """The training part's end: the segment less one revolution (None: under 1.5 revolutions,
+    where training would not cover the ring; at least half a revolution held out)."""
     per_rev = TWO_PI / max(abs(speed), 1e-300)
-    K = stop - result_like_start
+    K = stop - start
     if K < 1.5 * per_rev:
         return None
     return stop - int(min(per_rev, K - per_rev))
@@ -223,6 +224,4 @@ def held_out_choice(
     lowest = min(r.rms for _, r in scored)
     best = next(r for _, r in scored
                 if r.rms <= lowest * (1.0 + 3.0 / math.sqrt(r.samples)))  # fmt: skip
-    tried = tuple((E, r.rms) for E, r in scored)
-    return HeldOut(best.harmonics, best.train_samples, best.rms, best.samples, best.floor,
-                   best.absorbed, tried)  # fmt: skip
+    return dataclasses.replace(best, tried=tuple((E, r.rms) for E, r in scored))
