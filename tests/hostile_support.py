@@ -18,8 +18,12 @@ import json
 import math
 import os
 import re
+import shutil
+import subprocess
+import sys
+import tempfile
 import traceback
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -193,3 +197,40 @@ def to_toml(d: dict[str, Any]) -> str:
             lines += ["", f"[{name}]"]
             lines += [f"{k} = {_toml_value(v)}" for k, v in table.items()]
     return "\n".join(lines) + "\n"
+
+
+def start_child(
+    stash: Any,
+    key: Any,
+    script: Path,
+    *,
+    prefix: str,
+    env: dict[str, str],
+    log: str,
+    prepare: Callable[[Path], list[str]] = lambda folder: [],
+) -> None:
+    """Start ``python SCRIPT FOLDER [ARGS]`` in the background: FOLDER a new temporary folder
+    (ARGS what ``prepare`` writes there and returns), the child's output in FOLDER/LOG; the pair
+    (FOLDER, process) is kept in the session's ``stash`` under ``key`` (the hostile driver and
+    the setup fuzz, started at collection by conftest.py or by their own test)."""
+    folder = Path(tempfile.mkdtemp(prefix=prefix))
+    args = [str(folder), *prepare(folder)]
+    with open(folder / log, "w", encoding="utf-8") as out:
+        proc = subprocess.Popen(
+            [sys.executable, str(script), *args], env=env, stdout=out, stderr=subprocess.STDOUT
+        )
+    stash[key] = (folder, proc)
+
+
+def stop_child(stash: Any, key: Any, *, keep: bool = False) -> None:
+    """At the session's end: a child still running (its test deselected, a failure with
+    ``-x``, an interrupt) is ended, and its folder removed unless ``keep``."""
+    started = stash.get(key, None)
+    if started is None:
+        return
+    folder, proc = started
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait()
+    if not keep:
+        shutil.rmtree(folder, ignore_errors=True)

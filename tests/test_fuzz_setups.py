@@ -34,7 +34,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from hostile_support import contract_violations, files_under, run_in_process, to_toml
+from hostile_support import (
+    contract_violations,
+    files_under,
+    run_in_process,
+    start_child,
+    stop_child,
+    to_toml,
+)
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -278,31 +285,16 @@ def start_in_background(session: pytest.Session) -> None:
     conftest.py once the tests are collected, and by the test itself)."""
     if not _selected(session) or _CHILD in session.config.stash:
         return
-    d = Path(tempfile.mkdtemp(prefix="hallcal-fuzz-"))
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(HERE.parent / "src"), env.get("PYTHONPATH", "")])
     env.setdefault("MPLBACKEND", "Agg")
-    log = open(d / "child.log", "w", encoding="utf-8")  # noqa: SIM115 (the child's output)
-    proc = subprocess.Popen(
-        [sys.executable, str(Path(__file__).resolve()), str(d)],
-        env=env,
-        stdout=log,
-        stderr=subprocess.STDOUT,
-    )
-    log.close()
-    session.config.stash[_CHILD] = (d, proc)
+    start_child(session.config.stash, _CHILD, Path(__file__).resolve(), prefix="hallcal-fuzz-",
+                env=env, log="child.log")  # fmt: skip
 
 
 def stop_background(session: pytest.Session) -> None:
     """At the session's end: a child still running is ended and its folder removed."""
-    started = session.config.stash.get(_CHILD, None)
-    if started is None:
-        return
-    d, proc = started
-    if proc.poll() is None:
-        proc.kill()
-        proc.wait()
-    shutil.rmtree(d, ignore_errors=True)
+    stop_child(session.config.stash, _CHILD)
 
 
 def test_every_subcommand_keeps_the_contract_on_random_setups(request: pytest.FixtureRequest):

@@ -33,7 +33,6 @@ import resource
 import shutil
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -46,13 +45,14 @@ from hostile_cases import (
     Base,
     Case,
     all_cases,
-    remove,
 )
 from hostile_support import (
     Outcome,
     contract_violations,
     files_under,
     run_in_process,
+    start_child,
+    stop_child,
     to_toml,
 )
 
@@ -282,31 +282,26 @@ def start_in_background(session: pytest.Session) -> None:
     ids = [c.id for c in _selected(session.items)]
     if not ids or _DRIVER in session.config.stash:
         return
-    d = Path(tempfile.mkdtemp(prefix="hallcal-hostile-"))
-    (d / "ids.json").write_text(json.dumps(ids))
-    log = open(d / "driver.log", "w", encoding="utf-8")  # noqa: SIM115 (the driver's stderr)
-    proc = subprocess.Popen(
-        [sys.executable, str(Path(__file__).resolve()), str(d), str(d / "ids.json")],
+
+    def prepare(d: Path) -> list[str]:
+        (d / "ids.json").write_text(json.dumps(ids))
+        return [str(d / "ids.json")]
+
+    start_child(
+        session.config.stash,
+        _DRIVER,
+        Path(__file__).resolve(),
+        prefix="hallcal-hostile-",
         env=_env(),
-        stdout=log,
-        stderr=subprocess.STDOUT,
+        log="driver.log",
+        prepare=prepare,
     )
-    log.close()
-    session.config.stash[_DRIVER] = (d, proc)
 
 
 def stop_background(session: pytest.Session) -> None:
     """At the session's end: a driver still running (its tests deselected by a failure with
     ``-x``, or interrupted) is ended, and its folder removed unless ``HOSTILE_KEEP``."""
-    started = session.config.stash.get(_DRIVER, None)
-    if started is None:
-        return
-    d, proc = started
-    if proc.poll() is None:
-        proc.kill()
-        proc.wait()
-    if not os.environ.get("HOSTILE_KEEP"):
-        remove(d)
+    stop_child(session.config.stash, _DRIVER, keep=bool(os.environ.get("HOSTILE_KEEP")))
 
 
 @pytest.fixture(scope="module")
