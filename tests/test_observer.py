@@ -121,6 +121,30 @@ def test_a_rotor_already_spinning_at_the_first_sample_is_not_learned_as_drift(sp
 
 
 @pytest.mark.parametrize(
+    ("peak_speed", "frequency"),
+    [(200.0, 8.0), (600.0, 26.5), (2230.0, 18.0)],  # peak accelerations 1.0e4, 1.0e5, 2.5e5 rad/s^2
+)
+def test_servo_motion_is_tracked_without_calling_the_model_stale(peak_speed, frequency):
+    """A servo's reversing motion, v = V sin(2 pi f t) (4 pole pairs, 4 kHz; the last case
+    reaches 0.71 of the Nyquist speed): the prediction must follow the acceleration, or the misfit
+    taken on the model linearized at a lagging prediction reads as a model that no longer fits.
+    With the speed-only tracker: 100 % `stale` from 1e4 rad/s^2 (n_m 11), the angle lost at 1e5
+    (468x the floor, benchmarks/bench_observer_unseen.txt)."""
+    m = _model(BENCH)
+    n = 8000
+    t = np.arange(n) * 2.5e-4
+    w = 2.0 * math.pi * frequency
+    y0 = peak_speed / w * (1.0 - np.cos(w * t))
+    g, _ = BENCH.truth().value_and_derivative(y0)
+    d = g + np.random.default_rng(17).normal(0.0, math.sqrt(BENCH.noise_variance), g.shape)
+    run = run_observer(m, d)
+    err = angle_error(run.y_obs[500:], y0[500:]).rms
+    assert err < 1.15 * BENCH.noise_floor  # measured 1.02-1.06x; the floor's spread is ~1 %
+    assert np.mean(run.state[500:] == ObserverState.OK.value) > 0.99  # 1e-9 per sample
+    assert np.max(np.abs(run.y_obs - y0)) < math.pi / (4 * N_M)  # never near a pole pitch
+
+
+@pytest.mark.parametrize(
     ("kind", "channel"), [("zero-field", 0), ("rail", 1), ("clipped", 2), ("disconnected", 1)]
 )
 def test_a_failed_channel_is_excluded_quickly_and_the_angle_never_slips(healthy, kind, channel):

@@ -181,13 +181,15 @@ def _texts(
         "@H@": _f(TWO_PI / model.points),
         "@INVH@": _f(model.points / TWO_PI),
         "@TWO_PI@": _f(TWO_PI),
-        "@VMAX@": _f(TWO_PI / model.pole_pairs / 4.0),
+        "@VMAX@": _f(0.4 * TWO_PI / model.pole_pairs),
         "@MAXSTEP@": _f(TWO_PI / model.pole_pairs / 8.0),
         "@KV@": _f(s.speed_gain),
+        "@KA@": _f(s.accel_gain),
         "@CAP@": _f(s.sample_cap),
         "@OUTLIER@": _f(s.outlier),
         "@EXPLAINED@": _f(s.explained),
         "@INVMEM@": _f(1.0 / s.adapt_memory),
+        "@XMAX@": _f(ADAPT_CYCLE / s.adapt_min_samples),
         "@Q@": ", ".join(
             _f(s.prior_samples * w0[p >> 1] * (1.0 if p & 1 else model.amplitude[p >> 1] ** 2))
             for p in range(6)
@@ -236,11 +238,11 @@ def _cubics(model: ObserverModel) -> np.ndarray:
 
 
 def _adapt_parts() -> tuple[str, str]:
-    """The adaptation's parts 1..14 as straight-line C (one function each: rows 0..5 of the
-    information H, row 0 first turning the measure's forgetting argument and den into
-    exp(-x) and CYCLE / den; columns 0..5 of its L D L^T, the two triangular solves) and the
-    switch cases that call them; no loop, so that each part's cycles are its own few dozen
-    operations."""
+    """The adaptation's parts 1..14 as straight-line C (one function each: rows 0, 1, 2 and
+    rows 3-5 together of the information H, row 0 first turning the measure's forgetting
+    argument and den into exp(-x) and CYCLE / den; columns 0..5 of its L D L^T, the two
+    triangular solves; the bounded update of channels 0 and 1) and the switch cases that call
+    them; no loop, so that each part's cycles are its own few dozen operations."""
     fns: list[str] = []
     calls: list[str] = []
 
@@ -249,22 +251,28 @@ def _adapt_parts() -> tuple[str, str]:
         calls.append(f"                case {len(calls) + 1}u:\n                    {name}(s);"
                      "\n                    break;")  # fmt: skip
 
+    merged: list[str] = ["    const float lam = s->lam;"]
     for p in range(6):
         i = p >> 1
         prior = f"(1.0f - lam) * Q[{p}]"
         extra = f"s->u[{i}]" if p & 1 else f"s->u[{i}] * s->fy[{i}] * s->fy[{i}]"
-        body = [f"    const float lam = s->lam, v = s->t * s->qv[{p}];"]
+        body = [f"    const float v{p} = s->t * s->qv[{p}];"]
         if p == 0:  # the measure's forgetting exp(-x) (cubic Taylor) and CYCLE / den
-            body = ["    const float x = s->lam, t = (float)CYCLE / s->t, v = t * s->qv[0];",
+            body = ["    const float x = s->lam, t = (float)CYCLE / s->t, v0 = t * s->qv[0];",
                     "    const float lam = 1.0f - x + 0.5f * x * x - x * x * x * (1.0f / 6.0f);",
                     "    s->lam = lam;", "    s->t = t;"]  # fmt: skip
-        body.append(
-            f"    s->H[{p}][{p}] = ((s->H[{p}][{p}] * lam + {prior}) + {extra}) - v * s->qv[{p}];"
-        )
+        diag = f"s->H[{p}][{p}]"
+        body.append(f"    {diag} = (({diag} * lam + {prior}) + {extra}) - v{p} * s->qv[{p}];")
         for q in range(p + 1, 6):
             add = f" + s->u[{i}] * s->fy[{i}]" if (q == p + 1 and not p & 1) else ""
-            body.append(f"    s->H[{p}][{q}] = (s->H[{p}][{q}] * lam{add}) - v * s->qv[{q}];")
-        fn(f"row{p}", body)
+            body.append(f"    s->H[{p}][{q}] = (s->H[{p}][{q}] * lam{add}) - v{p} * s->qv[{q}];")
+        if p == 0:
+            fn("row0", body)
+        elif p < 3:
+            fn(f"row{p}", ["    const float lam = s->lam;", *body])
+        else:  # rows 3, 4 and 5 (3, 2 and 1 entries) in one part
+            merged += body
+    fn("rows345", merged)
     for j in range(6):
         body = [f"    float t = s->H[{j}][{j}], rj;"]
         body += [f"    const float m{k} = s->L[{j}][{k}] * s->P[{k}];" for k in range(j)]
@@ -287,6 +295,9 @@ def _adapt_parts() -> tuple[str, str]:
         body.append(f"    const float z{i} = s->z[{i}] * s->R[{i}]{terms};")
     body += [f"    s->z[{i}] = z{i};" for i in range(6)]
     fn("backward", body)
+    for i in range(2):  # the bounded update of channels 0 and 1 (2 and the commit: the last part)
+        calls.append(f"                case {len(calls) + 1}u:\n                    bound{i}(s);"
+                     "\n                    break;")  # fmt: skip
     return "\n".join(fns), "\n".join(calls)
 
 
@@ -328,7 +339,7 @@ typedef struct {
 
 typedef struct {
     int32_t rev;
-    float ang, v, clean, bad, sum_chi;
+    float ang, v, acc, clean, bad, sum_chi; /* angle, speed, acceleration of the tracker */
     float a[3], b[3];
     float H[6][6];                  /* the adaptation's information (upper triangle) */
     float L[6][6], P[6], R[6];      /* its L D L^T (R = 1 / P), built over a cycle */
@@ -379,10 +390,12 @@ static const float TWOPI = @TWO_PI@;
 static const float MAXSTEP = @MAXSTEP@;
 static const float VMAX = @VMAX@;
 static const float KV = @KV@;
+static const float KA = @KA@;
 static const float CAP = @CAP@;
 static const float OUTLIER = @OUTLIER@;
 static const float EXPLAINED = @EXPLAINED@;
 static const float INVMEM = @INVMEM@;
+static const float XMAX = @XMAX@; /* the forgetting per cycle at most: CYCLE / adapt_min_samples */
 /* the prior's information: prior_samples w0_i (amplitude_i^2, 1) */
 static const float Q[6] = {@Q@};
 static const float ALO = @ALO@;
@@ -507,9 +520,10 @@ NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, 
 }
 
 /* The adaptation, one small part per sample of its cycle of CYCLE samples (the cycle advances
- * on samples without the fits of the outlier test): 0 the sample's regressors, 1..6 one row of
- * the information H (upper triangle), 7..12 one column of its L D L^T, 13 L z = gr,
- * 14 D L^T x = z, 15 the bounded update. */
+ * on samples without the fits of the outlier test): 0 the sample's regressors, 1..4 rows 0, 1,
+ * 2 and 3-5 of the information H (upper triangle), 5..10 one column of its L D L^T, 11 L z = gr,
+ * 12 D L^T x = z, 13 and 14 the bounded update of channels 0 and 1, 15 of channel 2 and the
+ * commit of all three. */
 /* the cycle's sample, channel i (in update: f, dg, r, J, w, step of the sample) */
 #define MEASURE(i, fi, gi, ri, Ji, wi)                                                         \
     do {                                                                                   \
@@ -525,22 +539,41 @@ NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, 
     } while (0)
 
 @PARTS@
-/* the bounded update of the channels measured (straight-line, one block per channel) */
-#define APPLY(i)                                                                             \
+/* the bounded update of the channels measured, one channel per part (into z: the new a_i, b_i;
+ * unchanged for a channel not measured), committed with the last channel's (so that the gains
+ * and levels change at one sample, as in Python) */
+#define BOUND(i)                                                                             \
     if (s->wm[i] > 0.0f) {                                                                   \
         float t_ = s->a[i] + s->z[2 * (i)];                                                  \
         t_ = t_ < ALO ? ALO : t_;                                                            \
-        s->a[i] = t_ > AHI ? AHI : t_;                                                       \
+        s->z[2 * (i)] = t_ > AHI ? AHI : t_;                                                 \
         t_ = s->b[i] + s->z[2 * (i) + 1];                                                    \
         t_ = t_ < BLO[i] ? BLO[i] : t_;                                                      \
-        s->b[i] = t_ > BHI[i] ? BHI[i] : t_;                                                 \
+        s->z[2 * (i) + 1] = t_ > BHI[i] ? BHI[i] : t_;                                       \
+    } else {                                                                                 \
+        s->z[2 * (i)] = s->a[i];                                                             \
+        s->z[2 * (i) + 1] = s->b[i];                                                         \
     }
+
+NOINLINE static void bound0(@p@_state *s)
+{
+    BOUND(0)
+}
+
+NOINLINE static void bound1(@p@_state *s)
+{
+    BOUND(1)
+}
 
 NOINLINE static void apply(@p@_state *s)
 {
-    APPLY(0)
-    APPLY(1)
-    APPLY(2)
+    BOUND(2)
+    s->a[0] = s->z[0];
+    s->b[0] = s->z[1];
+    s->a[1] = s->z[2];
+    s->b[1] = s->z[3];
+    s->a[2] = s->z[4];
+    s->b[2] = s->z[5];
 }
 
 /* the exclusion of channel s->next (decided on the previous sample) */
@@ -561,7 +594,7 @@ void @p@_init(@p@_state *s)
     int i, j;
     s->rev = 0;
     s->ang = 0.0f;
-    s->v = s->clean = s->bad = s->sum_chi = 0.0f;
+    s->v = s->acc = s->clean = s->bad = s->sum_chi = 0.0f;
     s->sum_dof = 0;
     for (i = 0; i < 3; i++) {
         s->a[i] = 1.0f;
@@ -601,6 +634,7 @@ uint8_t @p@_set_angle(@p@_state *s, int32_t revolutions, float angle)
     s->rev = revolutions;
     s->ang = angle;
     s->v = 0.0f;
+    s->acc = 0.0f;
     s->acquire = 1u; /* the next sample searches within half a pole pitch of it */
     return 0u;
 }
@@ -771,9 +805,16 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
             s->next = (int8_t)blamed; /* excluded from the next sample on */
         }
     }
-    if (blamed < 0 && fitted) {
-        x = s->v + KV * step;
-        s->v = fabs_(x) > VMAX ? (x > 0.0f ? VMAX : -VMAX) : x;
+    if (blamed < 0 && fitted) { /* the tracker: acceleration, then speed (bounded: then no
+                                 * acceleration, so that it does not wind up) */
+        e = s->acc + KA * step;
+        x = s->v + e + KV * step;
+        if (RARE(fabs_(x) > VMAX)) {
+            x = x > 0.0f ? VMAX : -VMAX;
+            e = 0.0f;
+        }
+        s->acc = e;
+        s->v = x;
     }
     /* the angle within the revolution (|y - angle| < 2 pi: one wrap at most) */
     if (y >= TWOPI) {
@@ -817,7 +858,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
             /* settled: the step within 5 sigma of the angle's own noise (1 / den) */
             if (fitted && !stale && blamed < 0 && step * step * den < 25.0f) {
                 x = (float)CYCLE * travel * INVMEM;
-                s->lam = x < 1.0f ? x : 1.0f; /* row0 makes them lam and CYCLE / den */
+                s->lam = x < XMAX ? x : XMAX; /* row0 makes them lam and CYCLE / den */
                 s->t = den;
                 MEASURE(0, f0, g0, r0, J0, w0);
                 MEASURE(1, f1, g1, r1, J1, w1);
