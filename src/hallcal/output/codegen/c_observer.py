@@ -241,8 +241,9 @@ def _adapt_parts() -> tuple[str, str]:
     """The adaptation's parts 1..14 as straight-line C (one function each: rows 0, 1, 2 and
     rows 3-5 together of the information H, row 0 first turning the measure's forgetting
     argument and den into exp(-x) and CYCLE / den; columns 0..5 of its L D L^T, the two
-    triangular solves; the bounded update of channels 0 and 1) and the switch cases that call
-    them; no loop, so that each part's cycles are its own few dozen operations."""
+    triangular solves, the second in two halves; the bounded update of channels 0 and 1) and the
+    switch cases that call them; no loop, so that each part's cycles are its own few dozen
+    operations."""
     fns: list[str] = []
     calls: list[str] = []
 
@@ -289,15 +290,16 @@ def _adapt_parts() -> tuple[str, str]:
         body.append(f"    const float z{i} = s->gr[{i}]{terms};")
     body += [f"    s->z[{i}] = z{i};" for i in range(6)]
     fn("forward", body)
-    body = ["    const float z5 = s->z[5] * s->R[5];"]
-    for i in range(4, -1, -1):
-        terms = "".join(f" - s->L[{k}][{i}] * z{k}" for k in range(i + 1, 6))
-        body.append(f"    const float z{i} = s->z[{i}] * s->R[{i}]{terms};")
-    body += [f"    s->z[{i}] = z{i};" for i in range(6)]
-    fn("backward", body)
-    for i in range(2):  # the bounded update of channels 0 and 1 (2 and the commit: the last part)
-        calls.append(f"                case {len(calls) + 1}u:\n                    bound{i}(s);"
-                     "\n                    break;")  # fmt: skip
+    for half, rows in (("backward5", range(5, 2, -1)), ("backward2", range(2, -1, -1))):
+        body = [f"    const float z{k} = s->z[{k}];" for k in range(rows[0] + 1, 6)]
+        for i in rows:
+            terms = "".join(f" - s->L[{k}][{i}] * z{k}" for k in range(i + 1, 6))
+            body.append(f"    const float z{i} = s->z[{i}] * s->R[{i}]{terms};")
+        body += [f"    s->z[{i}] = z{i};" for i in rows]
+        fn(half, body)  # D L^T x = z in two halves: x5..x3, then x2..x0
+    # the bounded update of channels 0 and 1 (of 2 and the commit: the cycle's last part)
+    calls.append(f"                case {len(calls) + 1}u:\n                    bound01(s);"
+                 "\n                    break;")  # fmt: skip
     return "\n".join(fns), "\n".join(calls)
 
 
@@ -522,8 +524,8 @@ NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, 
 /* The adaptation, one small part per sample of its cycle of CYCLE samples (the cycle advances
  * on samples without the fits of the outlier test): 0 the sample's regressors, 1..4 rows 0, 1,
  * 2 and 3-5 of the information H (upper triangle), 5..10 one column of its L D L^T, 11 L z = gr,
- * 12 D L^T x = z, 13 and 14 the bounded update of channels 0 and 1, 15 of channel 2 and the
- * commit of all three. */
+ * 12 and 13 D L^T x = z (x5..x3, x2..x0), 14 the bounded update of channels 0 and 1, 15 of
+ * channel 2 and the commit of all three. */
 /* the cycle's sample, channel i (in update: f, dg, r, J, w, step of the sample) */
 #define MEASURE(i, fi, gi, ri, Ji, wi)                                                         \
     do {                                                                                   \
@@ -555,13 +557,9 @@ NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, 
         s->z[2 * (i) + 1] = s->b[i];                                                         \
     }
 
-NOINLINE static void bound0(@p@_state *s)
+NOINLINE static void bound01(@p@_state *s)
 {
     BOUND(0)
-}
-
-NOINLINE static void bound1(@p@_state *s)
-{
     BOUND(1)
 }
 
@@ -905,8 +903,6 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         rd->revolutions = s->rev;
         rd->angle = s->ang;
         rd->misfit = mf;
-        rd->state = st;
-        rd->excluded = s->excluded;
         rd->flags = (uint32_t)st | ((uint32_t)(s->excluded + 1) << 8);
         rd->sample = s->k + 1u;
         s->seq = next;
@@ -917,7 +913,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
 
 void @p@_read(const @p@_state *s, @p@_reading *r)
 {
-    uint32_t a, b;
+    uint32_t a, b, f;
     do {
         const volatile @p@_reading *q;
         a = s->seq;
@@ -925,11 +921,12 @@ void @p@_read(const @p@_state *s, @p@_reading *r)
         r->revolutions = q->revolutions;
         r->angle = q->angle;
         r->misfit = q->misfit;
-        r->state = q->state;
-        r->excluded = q->excluded;
-        r->flags = q->flags;
+        f = q->flags; /* state and excluded channel published in it, one word */
         r->sample = q->sample;
         b = s->seq;
     } while (a != b);
+    r->flags = f;
+    r->state = (uint8_t)(f & 0xffu);
+    r->excluded = (int8_t)((int32_t)(f >> 8) - 1);
 }
 """
