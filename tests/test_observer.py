@@ -35,6 +35,7 @@ from hallcal.sensor.observer import (
 from hallcal.sim.bench import BenchConfig, ramp_run, simulate_run
 
 N_M = 4
+TWO_PI = 2.0 * math.pi
 BENCH = BenchConfig(pole_pairs=N_M, seed=3)
 #: a bench whose map y0 -> f_init(g(y0)) folds (min slope -0.26) while g(y) is injective
 FOLDING = BenchConfig(pole_pairs=N_M, shape_variation=0.25, seed=1)
@@ -142,6 +143,23 @@ def test_servo_motion_is_tracked_without_calling_the_model_stale(peak_speed, fre
     assert err < 1.15 * BENCH.noise_floor  # measured 1.02-1.06x; the floor's spread is ~1 %
     assert np.mean(run.state[500:] == ObserverState.OK.value) > 0.99  # 1e-9 per sample
     assert np.max(np.abs(run.y_obs - y0)) < math.pi / (4 * N_M)  # never near a pole pitch
+
+
+def test_an_angle_lost_with_a_channel_out_is_stale_not_degraded(healthy):
+    """Garbage readings (600 random samples) lose the angle; a channel reading NaN now and then
+    stays excluded. When the signals are healthy again the two channels left do not fit the
+    model at the lost angle (misfit at its cap): that is `stale`, not `degraded` (which says the
+    angle from two channels is trustworthy). Before: `degraded` throughout, 3.1 rad off."""
+    m = _model(BENCH)
+    d = healthy.d[:8000].copy()
+    d[1000:1600] = np.random.default_rng(0).uniform(-2.0, 2.0, (600, 3))
+    d[::13, 1] = np.nan
+    run = run_observer(m, d)
+    tail = slice(6000, 8000)
+    off = np.abs((run.y_obs[tail] - healthy.y0[tail] + np.pi) % TWO_PI - np.pi)
+    lost = off > math.pi / (4 * N_M)  # a quarter pole pitch: not the two-channel ML angle
+    assert lost.any()  # the garbage does lose the angle here (measured: 3.1 rad off)
+    assert set(run.state[tail][lost]) <= {"stale", "fault"}
 
 
 @pytest.mark.parametrize(

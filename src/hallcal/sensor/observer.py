@@ -88,9 +88,11 @@ class ObserverState(enum.StrEnum):
     #: the misfit is above the threshold and the gain/offset adaptation is working on it
     ADAPTING = "adapting"
     #: the misfit stayed above the threshold for ``stale_travel``: the model no longer fits
-    #: (remount, wiring, damage); the adaptation is frozen
+    #: (remount, wiring, damage, an angle lost to garbage readings), also with a channel
+    #: excluded; the adaptation is frozen
     STALE = "stale"
-    #: one channel excluded (stuck, clipped, disconnected); the angle from the other two
+    #: one channel excluded (stuck, clipped, disconnected); the angle from the other two, which
+    #: fit the model
     DEGRADED = "degraded"
     #: fewer than two usable channels, or the two left do not fit either
     FAULT = "fault"
@@ -917,5 +919,6 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, offsets, a, b, y_out, misf
         if fitted:
             _readmit(d, k, r, a, dg, step, w0, travel, cfg[15], S, I)
         y_out[k], misfit[k] = S[_Y], mf
-        code[k] = 4 if active < 2 else 3 if I[_EXCL] >= 0 else 2 if stale else 1 if above else 0
+        # a model that no longer fits outranks a channel out: the two left must fit to be trusted
+        code[k] = 4 if active < 2 else 2 if stale else 3 if I[_EXCL] >= 0 else 1 if above else 0
     info[0], info[1] = I[_EXCL], I[_FIRST]

@@ -898,8 +898,8 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         uint32_t next = s->seq + 1u;
         volatile @p@_reading *rd = &s->buf[next & 1u];
         uint8_t st = active < 2 ? @P@_FAULT
-                     : (s->excluded >= 0 ? @P@_DEGRADED
-                     : (stale ? @P@_STALE : (above ? @P@_ADAPTING : @P@_OK)));
+                     : (stale ? @P@_STALE /* a model that no longer fits outranks a channel out */
+                     : (s->excluded >= 0 ? @P@_DEGRADED : (above ? @P@_ADAPTING : @P@_OK)));
         rd->revolutions = s->rev;
         rd->angle = s->ang;
         rd->misfit = mf;
