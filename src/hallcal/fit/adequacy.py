@@ -82,6 +82,7 @@ __all__ = [
     "default_max_harmonic",
     "dominant_harmonics",
     "estimate_noise_variance",
+    "motion_bias",
     "harmonic_content",
     "project_fit",
 ]
@@ -136,6 +137,8 @@ class AdequacyStatus(enum.StrEnum):
     def success(self) -> bool:
         return self is AdequacyStatus.OK
 
+
+TWO_PI = 2.0 * math.pi
 
 #: Median of the chi-square distribution with one degree of freedom.
 _CHI2_1_MEDIAN = 0.45493642311957283
@@ -688,7 +691,11 @@ class AdequacyReport:
         [rad] (:func:`error_spread`): the predicted error is its expectation.
     error_sources : str
         What carries the predicted variance of the table (:func:`error_sources`), "" when
-        nothing stands out.
+        nothing stands out; first, with unmodelled motion, the bias it may carry.
+    motion_bias : float
+        With the cost above its warning level (unmodelled motion or shape): RMS [rad] of the
+        correction in the directions the run determines poorly (:func:`motion_bias`), counted
+        in ``predicted_error``; 0 otherwise.
     """
 
     verdict: Verdict
@@ -722,6 +729,7 @@ class AdequacyReport:
     status: AdequacyStatus = AdequacyStatus.OK
     predicted_upper: float = math.nan
     error_sources: str = ""
+    motion_bias: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "verdict", Verdict(self.verdict))
@@ -1019,7 +1027,8 @@ def assess(
         lv = _levels(sem, dd, noise, warn_ratio, fail_ratio)
         lv.thresholds.update(significance=significance, min_amplitude_over_sigma=min_amplitude,
                              dominance=dominance, warn_predicted=warn_predicted)  # fmt: skip
-        tab = _table(sem, n, P, o, lv.sigma2, lut_points)
+        motion = lv.ratio if lv.ratio > lv.warn and not lv.no_noise else None
+        tab = _table(sem, n, P, o, lv.sigma2, lut_points, motion=motion)
         if not math.isfinite(lv.cost) or sem.status == "diverged":
             return _failed_report(sem, lv, tab)
         sh = _shape_and_timing(project_fit(sem, dd, known=curve), lv)
@@ -1088,6 +1097,7 @@ class _Table:
     predicted: float
     upper: float = math.nan
     sources: str = ""
+    motion_bias: float = 0.0
 
 
 #: Batches of the SEM residual needed before the batch-means covariance is used at all: each
@@ -1124,27 +1134,95 @@ def _theta_covariances(sem: SEMResult) -> list[NDArray]:
     return covs
 
 
-def _table(sem: SEMResult, n: int, P: NDArray, o: NDArray, sigma2: float, points: int) -> _Table:
+def _table(
+    sem: SEMResult, n: int, P: NDArray, o: NDArray, sigma2: float, points: int,
+    *, motion: float | None = None,
+) -> _Table:  # fmt: skip
     """Bijectivity and correction size of the table; noise floor of the angle for this model's
     amplitude; predicted error ``sqrt(floor^2 + mean var eta)`` from cov(theta), the larger of
     the white and the batch-means one (:func:`_theta_covariances`), the variance of the table's
     constant offset included (both the correction and the prediction are about zero), and its
-    upper quantile (:func:`error_spread`)."""
+    upper quantile (:func:`error_spread`). With ``motion`` (the cost ratio, given when it is
+    above its warning level) the correction in the directions the run determines poorly counts
+    as possible bias too (:func:`motion_bias`)."""
     lut = build_lut(sem.flux, n, points=points, projection=P, offset=o)
     eta = lut.eta  # about zero: f_init's error with its offset, as the prediction
     floor = angle_noise_floor(sem.flux, n, sigma2, projection=P, offset=o, points=lut.y0.size)
     sources = ""
+    bias = 0.0
     try:
         G = angle_error_gradient(sem.flux, n, projection=P, offset=o)
         mean_var_eta, excess_q, C = max(
             ((*error_spread(G, C), C) for C in _theta_covariances(sem)), key=lambda t: t[0]
         )
         sources = error_sources(G, C, sem.flux.basis.harmonics, fundamental=n)
+        if motion is not None and math.isfinite(mean_var_eta):
+            grid = TWO_PI * np.arange(G.shape[0]) / G.shape[0]
+            bias = motion_bias(G, C, np.interp(grid, lut.y0, eta, period=TWO_PI), floor=floor)
     except (ValueError, np.linalg.LinAlgError):
         mean_var_eta = excess_q = math.nan
     predicted = math.sqrt(floor**2 + mean_var_eta) if math.isfinite(mean_var_eta) else math.nan
     upper = math.sqrt(floor**2 + excess_q) if math.isfinite(excess_q) else math.nan
-    return _Table(lut, float(np.sqrt(np.mean(eta**2))), floor, predicted, upper, sources)
+    if bias > 0.0:
+        # a bound, not a spread: added to the expectation; one run's quantile is at least that
+        predicted = math.hypot(predicted, bias)
+        upper = max(upper, predicted)
+        sources = (
+            f"unmodelled motion (cost {motion:.3g}x the noise level) may have put "
+            f"{1e3 * bias:.3g} mrad RMS of the correction into directions the run determines "
+            "poorly (counted in the predicted error)" + (f"; {sources}" if sources else "")
+        )
+    return _Table(lut, float(np.sqrt(np.mean(eta**2))), floor, predicted, upper, sources, bias)
+
+
+def motion_bias(G: NDArray, C: ArrayLike, eta: ArrayLike, *, floor: float) -> float:
+    """RMS [rad] of the table's correction in the directions the run determines poorly.
+
+    cov(theta) assumes the model explains the data up to white noise. When it does not (the
+    cost well above its noise level: a varying load torque, cogging or a plant error the model
+    lacks, :func:`assess`), the estimate is biased, and the bias is cheapest, so largest, along
+    the directions of the table that the data determine poorly: a shift there costs little in
+    the fit (Ljung 1999, ch. 8 on the limit of a misspecified prediction-error estimate: it
+    minimizes the misfit weighted by what each direction costs). There, the correction eta the
+    table applies is no evidence of f_init's error: all of it may be the motion's imprint, and
+    a table that applies it is then wrong by as much. Measured on ``benchmarks/bench_unseen.py``
+    case 222 (a random load torque, the plant from a BLA): 616x the noise floor of the
+    correction (624x) lay in such directions, the table was 670x the floor against f_init's
+    17x, the covariance alone predicted 124x; on the paper's bench with the plant from a BLA and
+    a random load torque of 0.01 and 0.03: 6.3x and 14.1x, tables 6.4x and 14.2x, predicted
+    2.4x and 6.5x without it.
+
+    The directions are the eigenvectors of ``A = G C G^T / M`` (the table's error covariance
+    over the grid, :func:`error_spread`) whose standard deviation exceeds the noise floor: each
+    alone would put the table above the floor.
+
+    Parameters
+    ----------
+    G : ndarray (M, p)
+        d eta / d theta on a uniform grid of y0 (:func:`hallcal.fit.sem.angle_error_gradient`).
+    C : array_like (p, p)
+        cov(theta) (the one the predicted error uses).
+    eta : array_like (M,)
+        The table's correction on the same grid [rad].
+    floor : float, keyword-only
+        Noise floor of the angle [rad RMS].
+
+    Returns
+    -------
+    float
+        ``sqrt(sum_i c_i^2)`` over the poorly determined directions u_i, ``c_i`` the projection
+        of eta on u_i normalized to unit RMS over the grid [rad]; 0 when there are none.
+    """
+    C = np.asarray(C, dtype=np.float64)
+    w, V = np.linalg.eigh(0.5 * (C + C.T))
+    M = G.shape[0]
+    U, S, _ = np.linalg.svd(G @ (V * np.sqrt(np.clip(w, 0.0, None))) / math.sqrt(M),
+                            full_matrices=False)  # fmt: skip
+    weak = S > floor
+    if not np.any(weak):
+        return 0.0
+    c = U[:, weak].T @ np.asarray(eta, dtype=np.float64) / math.sqrt(M)
+    return float(np.sqrt(np.sum(c * c)))
 
 
 def error_sources(
@@ -1556,6 +1634,7 @@ def _report(
         status=AdequacyStatus.OK,
         predicted_upper=tab.upper,
         error_sources=tab.sources,
+        motion_bias=tab.motion_bias,
     )
 
 

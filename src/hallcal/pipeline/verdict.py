@@ -200,7 +200,11 @@ def decide(
             f"correction it applies ({mrad * correction_rms:.3g} mrad): the run determines the "
             "table too poorly ("
             + (f"{limit}; " if limit else "")
-            + "a longer or faster ramp helps"
+            + (
+                "a run under a steady load, a longer or a faster ramp helps"
+                if "unmodelled motion" in limit
+                else "a longer or faster ramp helps"
+            )
             + (", or fewer harmonics" if "harmonic" in limit else "")
             + ")",
             (),
