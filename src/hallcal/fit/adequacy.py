@@ -42,6 +42,14 @@ Thresholds (measured on the virtual bench, 104 000 samples, see the tests):
   the noise floor (within 0.5 % up to disturbance 1e-2): the flux estimate is insensitive to such
   mismatches, so they give a "warning" that states the mismatch, not a refusal. Only the shape
   ratio and flux harmonics missing from the model make a fit "inadequate".
+- Unless the table is poorly determined: a random low-frequency load torque with the plant from
+  a BLA (``benchmarks/bench_unseen.py`` case 222, cost ratio 2.15, shape 1.1) bent the slow
+  warp directions of a 12-pole-pair table (its offset, harmonics 9, 11, 13) by 616x the noise
+  floor that no covariance showed (predicted 124x, the table 670x, f_init 17x). With the cost
+  above ``warn_ratio`` the correction in directions the covariance calls poorly determined
+  (standard deviation above the noise floor) counts as possible bias in the predicted error
+  (:func:`motion_bias`): 629x there, and the status policy refuses the table
+  (:mod:`hallcal.pipeline.verdict`).
 - The exception: when the flux itself has harmonics at the sidebands of the motion error
   (trapezoidal flux with harmonics 33, 55, 77 in the model plus cogging 1e-2 at 66 periods), the
   model absorbs part of it: f_star 2.8x the floor (f_init 19x), shape ratio 1.3, ratio 2.6, a
@@ -668,9 +676,10 @@ class AdequacyReport:
     noise_floor : float
         RMS angle error [rad] that the noise alone causes, from sigma and the model's amplitude.
     predicted_error : float
-        ``sqrt(noise_floor^2 + mean var eta)`` [rad]: expected RMS error of f_star about zero
-        (the table's constant offset included, as ``reconstruct`` outputs it and an encoder
-        measures it) if the model is adequate (cov(theta) propagated to the table).
+        ``sqrt(noise_floor^2 + mean var eta + motion_bias^2)`` [rad]: expected RMS error of
+        f_star about zero (the table's constant offset included, as ``reconstruct`` outputs it
+        and an encoder measures it): cov(theta) propagated to the table, and with unmodelled
+        motion the correction it may carry as bias (``motion_bias``).
     correction_rms : float
         RMS [rad] of the table's correction eta about zero (the model's view of f_init's error,
         its constant offset included).
