@@ -28,6 +28,7 @@ from hallcal.identify.excitation import multisine_experiment
 from hallcal.io import Dataset, ModelSpec, Setup, write_dataset
 from hallcal.io.setup import BLASpec, write_setup
 from hallcal.pipeline.calibration import CalibrationStatus
+from hallcal.pipeline.verdict import decide
 from hallcal.sensor.metrics import angle_error
 from hallcal.sim.bench import BenchConfig, position_controller, simulate_run
 from hallcal.sim.lti import ContinuousTF
@@ -167,3 +168,19 @@ def test_cli_refuses_a_table_bent_by_unmodelled_motion_exit_3(tmp_path):
     assert "worse than f_init" in lines[0] and "unmodelled motion" in lines[0]
     assert "steady load" in lines[0]
     assert not out.exists()
+
+
+def test_the_refusal_names_the_motion_and_the_remedy():
+    # the numbers of bench_unseen's case 222 [rad]: the correction is the model's view of
+    # f_init's error, most of it possibly the motion's imprint
+    limit = (
+        "unmodelled motion (cost 2.15x the noise level) may have put 106 mrad RMS of the "
+        "correction into directions the run determines poorly (counted in the predicted error)"
+    )
+    v = decide(bijective=True, predicted=0.1085, floor=1.73e-4, correction_rms=0.1077,
+               adequacy="warning", adequacy_message="warning: x", limit=limit)  # fmt: skip
+    assert v.status is CalibrationStatus.INADEQUATE
+    assert "as the model sees it" in v.refusal and "steady load" in v.refusal
+    # without motion the message is the plain one
+    plain = decide(bijective=True, predicted=0.1085, floor=1.73e-4, correction_rms=0.1077)
+    assert "as the model sees it" not in plain.refusal and "steady load" not in plain.refusal

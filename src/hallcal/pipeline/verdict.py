@@ -200,7 +200,10 @@ def decide(
         return Verdict(
             CalibrationStatus.INADEQUATE,
             f"f_star may be worse than f_init: predicted {mrad * predicted:.3g} mrad RMS against "
-            f"{mrad * init:.3g} mrad for f_init (noise floor {mrad * floor:.3g} mrad); the "
+            f"{mrad * init:.3g} mrad for f_init"
+            # with unmodelled motion the correction, so f_init's error, is the model's view
+            + (" as the model sees it" if "unmodelled motion" in limit else "")
+            + f" (noise floor {mrad * floor:.3g} mrad); the "
             f"table's own error {mrad * own:.3g} mrad"
             + (f" (one run's up to {mrad * own_up:.3g} mrad, 95 %)" if own_up > own else "")
             + f" is at least {WORSE_FRACTION:g} of the "
