@@ -23,7 +23,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hallcal import pipeline
-from hallcal.fit.adequacy import motion_bias
+from hallcal.fit.adequacy import POORLY_DETERMINED, motion_bias
 from hallcal.identify.excitation import multisine_experiment
 from hallcal.io import Dataset, ModelSpec, Setup, write_dataset
 from hallcal.io.setup import BLASpec, write_setup
@@ -49,13 +49,14 @@ def test_motion_bias_is_the_correction_along_the_poorly_determined_directions():
     y = TWO_PI * np.arange(M) / M
     C = np.diag([4.0, 0.01, 0.01])  # the offset's sd 2, the others 0.1
     eta = 3.0 + 0.5 * math.sqrt(2) * np.cos(y)
-    # floor 1: only the offset's direction (sd 2) is poorly determined; the correction's
-    # offset (3) may be all bias, its well determined cosine (0.5) not
+    # floor 1 (poorly determined above sd 0.25): only the offset's direction (sd 2) is; the
+    # correction's offset (3) may be all bias, its well determined cosine (0.5) not
+    assert POORLY_DETERMINED == 0.25
     assert motion_bias(G, C, eta, floor=1.0) == pytest.approx(3.0, rel=1e-12)
-    # floor 0.05: every direction is above it, the whole correction counts
+    # floor 0.05: every direction is above 0.0125, the whole correction counts
     assert motion_bias(G, C, eta, floor=0.05) == pytest.approx(math.hypot(3.0, 0.5), rel=1e-12)
-    # floor 3: none is, nothing counts
-    assert motion_bias(G, C, eta, floor=3.0) == 0.0
+    # floor 10: none is above 2.5, nothing counts
+    assert motion_bias(G, C, eta, floor=10.0) == 0.0
 
 
 @settings(max_examples=40, deadline=None)
