@@ -139,19 +139,31 @@ def test_a_table_bent_by_unmodelled_motion_is_predicted_and_refused():
     assert "worse than f_init" in cal.refusal and "unmodelled motion" in cal.refusal
 
 
-def test_unmodelled_motion_alone_leaves_a_good_table_its_prediction():
-    # measured at this seed: a random torque the model lacks (cost 5.4x the noise level) that
-    # left no correction in poorly determined directions: the table 1.6x the floor, f_init 4.6x
+def test_a_table_slightly_worse_than_f_init_is_no_longer_a_warning():
+    # measured at this seed: the table 2.8x the floor, f_init 2.6x, cost 4.1x the noise level;
+    # the covariance alone predicted 1.2x (a "warning", exit 0, before the motion bias); the
+    # correction in poorly determined directions adds 2.6x: predicted 2.9x
+    cal, star, init, pred = calibrated(2, 0.3, 2)
+    assert star > init
+    assert 0.67 <= star / pred <= 1.5
+    assert cal.status is CalibrationStatus.INADEQUATE
+    assert "worse than f_init" in cal.refusal and "unmodelled motion" in cal.refusal
+
+
+def test_unmodelled_motion_leaves_a_good_table_written_with_its_prediction():
+    # measured at this seed: a random torque the model lacks (cost 5.4x the noise level), the
+    # table 1.6x the floor, f_init 4.6x; the covariance alone predicted 1.4x, with the motion
+    # bias (1.2x) 1.8x
     cal, star, init, pred = calibrated(6, 0.11, 1)
     ad = cal.computed.adequacy
     assert ad.ratio > ad.thresholds["warn_ratio"]
-    assert ad.motion_bias == 0.0
+    assert 0.67 <= star / pred <= 1.5
     assert cal.status is CalibrationStatus.WARNING
     assert star < 0.5 * init  # the table helps, and stays written (exit 0)
 
 
 def test_cli_refuses_a_table_bent_by_unmodelled_motion_exit_3(tmp_path):
-    setup, run, bla, _ = motion_bench(3, 0.3, 7)
+    setup, run, bla, _ = motion_bench(2, 0.3, 2)  # a warning (exit 0) before the motion bias
     write_dataset(tmp_path / "cal.csv", run.columns(with_encoder=False))
     write_dataset(tmp_path / "bla.csv", bla.columns(with_encoder=False))
     write_setup(tmp_path / "setup.toml", setup)
