@@ -56,18 +56,18 @@ step moves the table by 16x only) nor a longer correlation (batch means with 2-8
 batches: 99-121x); a refit on the first 75 % of the run gives the same table (619x), so a held-out
 check passes it. The batch-means variance over the white one ("colour": 254 on 222, 403 on 211, 280
 on 233, 0.05-5.1 on the zoo and 13 other closed-loop cases) also separated them, but refused good
-tables with a BLA and a random torque. What does: of the model's 624x correction, 616x lies in
-directions of the table whose own standard deviation exceeds the floor; with the cost above its
-warning level :func:`hallcal.fit.adequacy.motion_bias` counts that part in the predicted error: 222
-is refused at 629x predicted (actual/predicted 1.07), 211 stays refused (533x predicted for 576x),
-233 too (22.7x for 16.6x); the paper's bench with a BLA and random torques of 0.01 and 0.03 is
-predicted 6.8x and 15.5x for tables at 6.4x and 14.2x (2.4x and 6.5x before; the first stays a
-warning, its table 2x better than f_init). Not fixed: the power-up lock after a sensor change on
-motors whose magnets differ by a few per cent (202, 213: 20 and 16 pole pairs, noise 0.9 %): a
-common gain of 0.97 (25 K of NdFeB remanence) locked on the WRONG pole pair in 24/40 and 20/40
-power-ups, one sensor's gain 0.95-1.10 or offset +0.05 in 9-20/40: at one position a gain change
-and another magnet look alike, the changed signals fit the wrong hypothesis (cost 0.6-2.2 per
-degree of freedom), so the misfit test (kappa = 8) passes them (218, 6 pole pairs, 10-bit ADC:
+tables with a BLA and a random torque. What does: of the model's 624x correction, 618x lies in
+directions of the table whose own standard deviation exceeds a quarter of the floor; with the cost
+above its warning level :func:`hallcal.fit.adequacy.motion_bias` counts that part in the predicted
+error: 222 is refused at 631x predicted (actual/predicted 1.06), 211 stays refused (532x predicted
+for 576x), 233 too (22.9x for 16.6x); the paper's bench with a BLA and random torques of 0.01 and
+0.03 is predicted 6.8x and 15.5x for tables at 6.4x and 14.2x (2.4x and 6.5x before; the first
+stays a warning, its table 2x better than f_init). Not fixed: the power-up lock after a sensor
+change on motors whose magnets differ by a few per cent (202, 213: 20 and 16 pole pairs, noise 0.9
+%): a common gain of 0.97 (25 K of NdFeB remanence) locked on the WRONG pole pair in 24/40 and
+20/40 power-ups, one sensor's gain 0.95-1.10 or offset +0.05 in 9-20/40: at one position a gain
+change and another magnet look alike, the changed signals fit the wrong hypothesis (cost 0.6-2.2
+per degree of freedom), so the misfit test (kappa = 8) passes them (218, 6 pole pairs, 10-bit ADC:
 0-2/40; 227, 19 pole pairs: 1-4/40).
 
 Run: ``nice python benchmarks/bench_unseen.py [--seeds 201 202 ...] [--jobs 2] [--out

@@ -44,11 +44,11 @@ Thresholds (measured on the virtual bench, 104 000 samples, see the tests):
   ratio and flux harmonics missing from the model make a fit "inadequate".
 - Unless the table is poorly determined: a random low-frequency load torque with the plant from
   a BLA (``benchmarks/bench_unseen.py`` case 222, cost ratio 2.15, shape 1.1) bent the slow
-  warp directions of a 12-pole-pair table (its offset, harmonics 9, 11, 13) by 616x the noise
+  warp directions of a 12-pole-pair table (its offset, harmonics 9, 11, 13) by 618x the noise
   floor that no covariance showed (predicted 124x, the table 670x, f_init 17x). With the cost
   above ``warn_ratio`` the correction in directions the covariance calls poorly determined
-  (standard deviation above the noise floor) counts as possible bias in the predicted error
-  (:func:`motion_bias`): 629x there, and the status policy refuses the table
+  (standard deviation above a quarter of the noise floor) counts as possible bias in the
+  predicted error (:func:`motion_bias`): 631x there, and the status policy refuses the table
   (:mod:`hallcal.pipeline.verdict`).
 - The exception: when the flux itself has harmonics at the sidebands of the motion error
   (trapezoidal flux with harmonics 33, 55, 77 in the model plus cogging 1e-2 at 66 periods), the
@@ -1207,7 +1207,7 @@ def motion_bias(G: NDArray, C: ArrayLike, eta: ArrayLike, *, floor: float) -> fl
     minimizes the misfit weighted by what each direction costs). There, the correction eta the
     table applies is no evidence of f_init's error: all of it may be the motion's imprint, and
     a table that applies it is then wrong by as much. Measured on ``benchmarks/bench_unseen.py``
-    case 222 (a random load torque, the plant from a BLA): 616x the noise floor of the
+    case 222 (a random load torque, the plant from a BLA): 618x the noise floor of the
     correction (624x) lay in such directions, the table was 670x the floor against f_init's
     17x, the covariance alone predicted 124x; on the paper's bench with the plant from a BLA and
     a random load torque of 0.01 and 0.03: 6.3x and 14.1x, tables 6.4x and 14.2x, predicted
