@@ -133,6 +133,7 @@ def test_a_table_bent_by_unmodelled_motion_is_predicted_and_refused():
     ad = cal.computed.adequacy
     assert ad.ratio > ad.thresholds["warn_ratio"]  # the fit shows unmodelled motion
     assert ad.motion_bias > 0.0
+    assert any(n.startswith("Unmodelled motion bends") for n in ad.notes)  # the report's note
     # the prediction is calibrated again (bench_unseen's band [0.67, 1.5] of actual/predicted)
     assert 0.67 <= star / pred <= 1.5
     assert cal.status is CalibrationStatus.INADEQUATE
