@@ -1544,14 +1544,7 @@ def _reasons(
             "On the virtual bench such mismatches up to 5 mrad left f_star within 10 % of the "
             "noise floor."
         )
-    if tab.motion_bias > 0.0:
-        notes.append(
-            f"Unmodelled motion bends the directions of the table the run determines poorly, and "
-            f"no covariance shows it: {1e3 * tab.motion_bias:.3g} mrad RMS of the correction lies "
-            "there and may be the motion's imprint rather than f_init's error, so the predicted "
-            "error counts it. A calibration run under a steady load (no varying torque), a longer "
-            "or a faster ramp determines them better."
-        )
+    notes += _motion_notes(tab)
     if sp.dynamics:
         notes.append(
             f"Residual harmonics {_format_harmonics(sp.dynamics)} vanish when each sample may "
@@ -1568,6 +1561,19 @@ def _reasons(
     if not math.isfinite(tab.predicted):
         notes.append("The covariance of theta is not available; no predicted error.")
     return fails, warns, notes
+
+
+def _motion_notes(tab: _Table) -> list[str]:
+    """The report's note on the bias unmodelled motion may carry (:func:`motion_bias`)."""
+    if not tab.motion_bias > 0.0:
+        return []
+    return [
+        f"Unmodelled motion bends the directions of the table the run determines poorly, and "
+        f"no covariance shows it: {1e3 * tab.motion_bias:.3g} mrad RMS of the correction lies "
+        "there and may be the motion's imprint rather than f_init's error, so the predicted "
+        "error counts it. A calibration run under a steady load (no varying torque), a longer "
+        "or a faster ramp determines them better."
+    ]
 
 
 def _decision(
