@@ -51,12 +51,15 @@ Constants (:class:`PowerUpDecoder`, all float64 in the reference):
   36(6)), the likelihood of Gaussian noise contaminated by rare outliers; one sample then weighs
   at most a likelihood ratio of 100 against any hypothesis, so with alpha < 1 % no single sample
   (a glitch) can lock.
+- ``w``: the common-gain prior's information ``1 / gain_sd^2`` (only with the gain profile,
+  ``gain_sd > 0``; see "Common gain" below);
 - ``wt``, ``kd``, ``bd``, ``bf``: the misfit test's weight ``(1 - 1 / kappa) / 2``, drift
   ``ln kappa`` and bounds ``ln(1 / beta)``, ``ln(1 / gamma)`` (:mod:`hallcal.sensor.misfit`:
   does any pole pair fit at all?).
 
 State: ``m`` (integer turn count, 0), ``psi_prev`` (none yet), ``Lam[j] = 0`` for j = 0..n-1,
-``locked = false``, ``mismatch = false``, ``best = 0``, ``D = 0`` (misfit statistic).
+``locked = false``, ``mismatch = false``, ``best = 0``, ``D = 0`` (misfit statistic); with the
+gain profile also ``s[j] = 1`` and ``I[j] = w``.
 
 Per sample ``d = (d1, d2, d3)``:
 
@@ -82,7 +85,13 @@ Per sample ``d = (d1, d2, d3)``:
    - ``rr = a^2 Guu + 2 a b Gun + b^2 Gnn``;
      ``tr = a (dR Guu + Rj Guv + dZ Gun) + b (dR Gun + Rj Gvn + dZ Gnn)``;
      ``tt = dR^2 Guu + Rj^2 Gvv + dZ^2 Gnn + 2 dR Rj Guv + 2 dR dZ Gun + 2 Rj dZ Gvn``;
-   - ``Lam[j] += min(rr - tr^2 / tt, cap)``.
+   - without the gain profile: ``Lam[j] += min(rr - tr^2 / tt, cap)``;
+   - with it (``a = rho - s[j] Rj``, ``b = zeta - s[j] Zj`` above instead):
+     ``e = rr - tr^2 / tt``, ``tp = Rj (dR Guu + Rj Guv + dZ Gun) + Zj (dR Gun + Rj Gvn + dZ Gnn)``,
+     ``pr = Rj (a Guu + b Gun) + Zj (a Gun + b Gnn) - tp tr / tt``,
+     ``pp = Rj^2 Guu + 2 Rj Zj Gun + Zj^2 Gnn - tp^2 / tt``, ``inc = e - pr^2 / (I[j] + pp)``;
+     ``u = 1`` if ``inc <= cap`` else ``cap / inc``; ``I[j] += u pp``;
+     ``s[j] += u pr / I[j]``; ``Lam[j] += min(inc, cap)``.
 6. ``Lmin = min_j Lam[j]``, ``best`` = the smallest j attaining it; ``Lam[j] -= Lmin`` for all j
    (keeps the numbers bounded; the posterior only depends on differences). The sum of the Lmin
    so far is the best hypothesis's whole cost: ``D += wt Lmin - kd`` (the misfit statistic);
@@ -100,11 +109,27 @@ angle is right from the first sample either way, so commutation never waits for 
 The first output lies in [-pi/n, 2 pi - pi/n) (the calibration frame modulo one revolution);
 later outputs are continuous.
 
-Sensors changed since calibration. The decoder assumes the calibrated sensors: a gain or offset
-change moves the measured point off the right hypothesis's curve, and where the magnets differ
-by little it can move it onto a wrong one, which then wins the lock and passes the misfit test.
-:mod:`hallcal.sensor.drift_margin` measures from the tables how large a change that takes
-(:attr:`IdentifiabilityReport.drift`); the decoder itself has no gain parameter.
+Common gain. All sensors' signals scaled by s about f_init's offsets (the magnets'
+temperature: NdFeB remanence -0.12 %/K) leave psi unchanged and scale rho, zeta and the
+tangent; hypothesis j's cost over the samples so far is then ``sum_k e_jk(s) + w (s - 1)^2``,
+quadratic in s, and its minimum over s is kept by a recursive least-squares update: ``s[j]`` the
+estimate, ``I[j]`` its information (``w`` plus the ``pp`` of the samples), ``inc`` exactly what
+the profiled cost grows by with the new sample (Laplace-equivalent to integrating s out: the
+Occam factors of the hypotheses differ by their radii, about 1 %). Censoring stays per sample
+(no sample brings more than cap); a censored sample still moves s, with Huber's bounded
+weight ``cap / inc`` (Huber 1964, Ann. Math. Statist. 35(1)), so that one hypothesis whose
+first samples were censored is not held at a wrong s for good. The price: at standstill a
+common gain and a magnet's strength look alike, so only the direction of (rho, zeta) across the
+curve separates the pole pairs, which one sensor's own gain or offset moves; hence the
+calibration keeps the profile only where it makes the lock more robust
+(:func:`analyze_calibration`). ``gain_sd = 0`` is the decoder without it (s = 1; artifacts
+made before it).
+
+Sensors changed since calibration. The decoder assumes the calibrated sensors (up to the common
+gain, with the profile): a change moves the measured point off the right hypothesis's curve,
+and where the magnets differ by little it can move it onto a wrong one, which then wins the
+lock and passes the misfit test. :mod:`hallcal.sensor.drift_margin` measures from the tables how
+large a change that takes (:attr:`IdentifiabilityReport.drift`).
 
 Units: angles in rad (mechanical unless said electrical); d, rho, zeta in the sensor's unit;
 costs in noise-sigma units squared.

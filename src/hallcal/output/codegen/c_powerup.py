@@ -151,15 +151,15 @@ ${gram_calc}
         const float zj = z0 + (f * dz);
         const float tr = dr * ${slope};    /* dR_j, dZ_j per electrical rad */
         const float tz = dz * ${slope};
-        const float ea = rho - rj;         /* residual r = ea u + eb n */
-        const float eb = zeta - zj;
+${gain_scale}        const float ea = ${ea};         /* residual r = ea u + eb n */
+        const float eb = ${eb};
         /* tangent t = dR u + R v + dZ n: <t, u>, <t, v>, <t, n> in the metric S */
 ${tangent_calc}
         float q = ${tt_c0} - (${tt_c1} * tt); /* 1/tt: seed on [${tt_lo}, ${tt_hi}], Newton */
         float cost;
 ${tt_steps}
         cost = rr - ((rt * rt) * q);
-        if (cost > ${cap}) {
+${gain_update}        if (cost > ${cap}) {
             cost = ${cap};
         }
         s->lam[j] = (s->samples != 0u) ? (s->lam[j] + cost) : cost; /* 0 + cost, exactly */
@@ -376,6 +376,59 @@ def _powerup_metric(pu: PowerUpFirmware) -> tuple[str, str, str, str]:
     return "\n".join(decls) + "\n", "\n".join(lines), tangent, note
 
 
+#: The common-gain profile's update in the per-hypothesis loop (module doc of
+#: :mod:`hallcal.sensor.absolute`, step 5 "with it"): inc is what the profiled cost grows by,
+#: a censored sample moves the gain with Huber's weight cap / inc.
+_GAIN_UPDATE = string.Template(
+    r"""        {
+            const float tp = (rj * tu) + (zj * tn); /* <t, p>, p = R_j u + Z_j n */
+            const float pr = ${pr} - ((tp * rt) * q);
+            const float pp = ${pp} - ((tp * tp) * q);
+            const float info = i0 + pp;
+            const float inc = cost - ((pr * pr) / info);
+            float u = 1.0f;
+            if (inc > ${cap}) {
+                u = ${cap} / inc;
+            }
+            s->info[j] = i0 + (u * pp);
+            s->gain[j] = sj + ((u * pr) / s->info[j]);
+            cost = inc;
+        }
+"""
+)
+
+
+def _gain_terms(pu: PowerUpFirmware) -> dict[str, str]:
+    """The substitutions of the per-hypothesis loop for the common-gain profile (none without
+    it: the residual at the calibrated gain, the decoder of artifacts made before it)."""
+    dec = pu.decoder
+    if dec is None or not dec.gain_sd > 0.0:
+        return {"gain_scale": "", "ea": "rho - rj", "eb": "zeta - zj", "gain_update": ""}
+    A, B, C = pu.gram_a, pu.gram_b, pu.gram_c
+    big = max(float(np.max(np.abs(A))), float(np.max(np.abs(B))), abs(C))
+    has_n = abs(B[0]) > 1e-12 * big or abs(B[1]) > 1e-12 * big
+    w = "Gram"
+    cnn = _cf(C, w)
+    if has_n:
+        pr = f"((rj * ((ea * guu) + (eb * gun))) + (zj * ((ea * gun) + (eb * {cnn}))))"
+        pp = f"((((rj * rj) * guu) + (((2.0f * rj) * zj) * gun)) + ((zj * zj) * {cnn}))"
+    else:
+        pr = f"((rj * (ea * guu)) + (zj * (eb * {cnn})))"
+        pp = f"(((rj * rj) * guu) + ((zj * zj) * {cnn}))"
+    first = "(s->samples != 0u)"
+    scale = (
+        f"        const float sj = {first} ? s->gain[j] : 1.0f; /* s_j, I_j (set at the first\n"
+        "                                                  * sample: no loop in init) */\n"
+        f"        const float i0 = {first} ? s->info[j] : {_cf(dec.gain_weight, 'gain prior')};\n"
+    )
+    return {
+        "gain_scale": scale,
+        "ea": "rho - (sj * rj)",
+        "eb": "zeta - (sj * zj)",
+        "gain_update": _GAIN_UPDATE.substitute(pr=pr, pp=pp, cap=_cf(pu.cost_cap, "cost cap")),
+    }
+
+
 def _fine_atan2(ctx: _Context) -> str:
     """``hc_angle_fine``: the lean atan2's octant reduction with more Newton steps and polynomial
     terms, for the decoder's table positions (within :data:`POWERUP_ATAN2_POLY`)."""
@@ -456,6 +509,7 @@ def _powerup_source(ctx: _Context, pu: PowerUpFirmware) -> str:
         fit_lo=_cf(-mis.fit_bound, "fit bound"),
         fit_hi_text=f"{mis.bound:.4g}",
         fit_lo_text=f"{mis.fit_bound:.4g}",
+        **_gain_terms(pu),
     )
     return source + _powerup_identify(ctx) + "\n"
 
@@ -490,6 +544,7 @@ def _powerup_hooks(ctx: _Context, pu: PowerUpFirmware) -> dict[str, str]:
             "    uint32_t best;     /* maximum-likelihood pole-pair offset j */\n"
             "    uint32_t samples;  /* samples of evidence so far (until identified) */\n"
             f"    float lam[{n}];    /* Lambda_j - min Lambda [noise sigma^2] */\n"
+            + _gain_members(pu, n)
         ),
         "init_decl": (
             f"/* Until the pole pair is identified, {pfx}_update hands each sample to this\n"
@@ -530,6 +585,16 @@ def _powerup_hooks(ctx: _Context, pu: PowerUpFirmware) -> dict[str, str]:
         "before_update": _powerup_source(ctx, pu),
         "update_dispatch": f"s->locked == 0u|{pfx}_identify_sample",
     }
+
+
+def _gain_members(pu: PowerUpFirmware, n: int) -> str:
+    """State members of the common-gain profile (none without it)."""
+    if pu.decoder is None or not pu.decoder.gain_sd > 0.0:
+        return ""
+    return (
+        f"    float gain[{n}];   /* s_j: common gain of the signals under hypothesis j */\n"
+        f"    float info[{n}];   /* I_j: its information [1 / gain^2] */\n"
+    )
 
 
 def _powerup_section(ctx: _Context) -> Section | None:
