@@ -131,3 +131,77 @@ def test_drift_message_names_the_margin_only_when_it_is_small(alike, distinct):
     assert drift_message(ab.assess_identifiability(distinct[3])) is None
     assert drift_message(None) is None
     assert ab.assess_identifiability(alike[3], drift=False).drift is None
+
+
+# ------------------------------------------------------------------------------------------------
+# The common-gain profile
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def alike_profiled(alike):
+    cfg, truth, lut, dec = alike
+    prof = ab.build_decoder(truth, lut, noise_std=dec.noise_std, gain_sd=ab.DEFAULT_GAIN_SD)
+    return cfg, truth, lut, prof
+
+
+@pytest.mark.parametrize("gain", [0.95, 0.97, 0.99, 0.995, 1.01, 1.03, 1.05])
+def test_the_profile_absorbs_a_common_gain(alike, alike_profiled, gain):
+    """40 standstill power-ups per common gain change within +-5 %: no wrong lock with the
+    profile; without it, at 1-3 % several (beyond, the misfit test refuses them: mismatch)."""
+    assert _wrong_locks(alike_profiled, gain) == 0
+    if 0.01 <= abs(gain - 1.0) <= 0.03:
+        assert _wrong_locks(alike, gain) >= 2
+
+
+def test_the_profiled_posterior_is_calibrated_under_a_common_gain(alike_profiled):
+    """At rest, K = 5..60 samples, all gains x0.97: each decision's stated error probability
+    (1 - posterior, no lock) against the observed error frequency; the stated mean matches
+    the observed rate (4 binomial standard deviations plus 10 %: the profile's posterior is a
+    profile likelihood, Laplace-equivalent to integrating s out up to the radii's 1 %
+    differences) and no bin is overconfident."""
+    cfg, truth, lut, dec = alike_profiled
+    rng = np.random.default_rng(41)
+    sigma, n = math.sqrt(cfg.noise_variance), cfg.pole_pairs
+    stated, wrong = [], []
+    for _ in range(1500):
+        y0 = rng.uniform(0.0, TWO_PI)
+        K = int(rng.integers(5, 60))
+        d = truth(np.full(K, y0)) + sigma * rng.standard_normal((K, 3))
+        d = dec.offset + 0.97 * (d - dec.offset)
+        j = int(np.round((y0 - lut.f_init(d[:1])[0]) * n / TWO_PI)) % n
+        res = dec.identify(d, lock=False)
+        stated.append(1.0 - res.posterior)
+        wrong.append(res.offset != j)
+    stated, wrong = np.array(stated), np.array(wrong, dtype=float)
+    print("stated", stated.mean(), "observed", wrong.mean())
+    assert wrong.sum() >= 20  # weak enough to count errors
+    sd = math.sqrt(wrong.mean() * (1 - wrong.mean()) / wrong.size)
+    assert abs(stated.mean() - wrong.mean()) <= 4 * sd + 0.1 * wrong.mean()
+    for lo, hi in ((0.0, 1e-2), (1e-2, 0.2), (0.2, 1.0)):
+        m = (stated >= lo) & (stated < hi)
+        if m.sum() >= 100:
+            p = stated[m].mean()
+            assert wrong[m].mean() <= p + 4 * math.sqrt(max(p * (1 - p), 1e-6) / m.sum())
+
+
+def test_the_profile_trades_standstill_evidence_for_the_gain(alike, alike_profiled, distinct):
+    """What the profile costs, from the analysis: at standstill only the direction across the
+    curve is left (median separation down), so the calibration keeps it only where the lock
+    without it is fragile (robustness: the smallest margin over its plausible change)."""
+    plain = ab.assess_identifiability(alike[3])
+    prof = ab.assess_identifiability(alike_profiled[3])
+    assert prof.separation_median < plain.separation_median
+    assert math.isinf(prof.drift.common_gain) and prof.drift.robustness > plain.drift.robustness
+    assert prof.gain_sd == ab.DEFAULT_GAIN_SD and plain.gain_sd == 0.0
+    far = ab.assess_identifiability(distinct[3])
+    assert math.isinf(far.drift.robustness)  # nothing to gain: calibrate keeps it as it is
+    entry = prof.to_dict()
+    assert entry["gain_sd"] == ab.DEFAULT_GAIN_SD
+    assert ab.IdentifiabilityReport.from_dict(entry) == prof
+    older = {k: v for k, v in entry.items() if k != "gain_sd"}  # made before the profile
+    assert ab.IdentifiabilityReport.from_dict(older).gain_sd == 0.0
+    assert "gain_sd" not in plain.to_dict()  # artifacts without the profile: as before
+    note = drift_message(prof)
+    assert note is not None and "absorbs a common gain change" in note.text
+    assert f"+-{100 * prof.drift.sensor_gain:.2g} %" in note.text

@@ -32,6 +32,7 @@ from hallcal.sensor.absolute import (
     PowerUpStatus,
     analyze_calibration,
 )
+from hallcal.sensor.drift_margin import PLAUSIBLE_SENSOR_CHANGE
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT
 from hallcal.sensor.misfit import MisfitResult, MisfitStatus, common_scale, model_misfit
@@ -132,9 +133,11 @@ def drift_message(report: IdentifiabilityReport | None, *, warning: bool = False
 
     Said when the drift margin (:mod:`hallcal.sensor.drift_margin`) of a common gain change is
     below the one a plausible temperature swing produces (``DriftMargin.fragile``: 5 %, 40 K of
-    NdFeB remanence at -0.12 %/K). ``calibrate`` says it as a note (the table is not in
-    question, so the calibration's status stays what it is; the note qualifies the power-up
-    verdict), ``reconstruct --absolute`` as a warning (``warning=True``).
+    NdFeB remanence at -0.12 %/K), or, when the common gain is absorbed (the decoder's gain
+    profile) or its margin wide, when one sensor's own gain or offset margin is below a
+    plausible one (``DriftMargin.sensor_fragile``: 1 %). ``calibrate`` says it as a note (the
+    table is not in question, so the calibration's status stays what it is; the note qualifies
+    the power-up verdict), ``reconstruct --absolute`` as a warning (``warning=True``).
 
     Parameters
     ----------
@@ -149,12 +152,25 @@ def drift_message(report: IdentifiabilityReport | None, *, warning: bool = False
     Message or None
     """
     m = None if report is None else report.drift
-    if m is None or not m.fragile:
+    if m is None or not (m.fragile or m.sensor_fragile):
         return None
 
     def pct(x: float) -> str:
         return "beyond 10 %" if not math.isfinite(x) else f"+-{100 * x:.2g} %"
 
+    make = Message.warning if warning else Message.note
+    if not m.fragile:  # the common gain is absorbed (the decoder's profile) or far enough
+        absorbed = "absorbs" if report is not None and report.gain_sd > 0.0 else "survives"
+        return make(
+            MessageCode.POWERUP_DRIFT,
+            f"the power-up lock {absorbed} a common gain change of the sensors (magnet "
+            f"temperature; tested to +-10 %), but holds only for one sensor's own gain within "
+            f"{pct(m.sensor_gain)} and its offset within {pct(m.sensor_offset)} of its "
+            f"amplitude (about {100 * PLAUSIBLE_SENSOR_CHANGE:.0f} % is plausible over 60 K): "
+            "beyond, a wrong pole pair fits the changed signals and can lock with claimed "
+            "certainty; after a sensor was replaced or has drifted re-home the axis, or "
+            "recalibrate",
+        )
     text = (
         f"the power-up lock holds only for sensor gains within {pct(m.common_gain)} of "
         f"calibration (about {m.kelvin:.0f} K of magnet temperature; one sensor's gain "
@@ -164,7 +180,6 @@ def drift_message(report: IdentifiabilityReport | None, *, warning: bool = False
         "% (a 40 K swing); after a temperature change re-home the axis, or calibrate at the "
         "temperature of use"
     )
-    make = Message.warning if warning else Message.note
     return make(MessageCode.POWERUP_DRIFT, text)
 
 
@@ -256,7 +271,8 @@ class SignalCheck:
     scale : float
         The signals' common amplitude relative to the calibration's when it had to be divided
         out for them to fit (:func:`hallcal.sensor.misfit.common_scale`), else 1: harmless to
-        f_init and f_star, but the power-up decoder needs it to be 1.
+        f_init and f_star, and to the power-up decoder with the gain profile (the one without
+        it needs 1).
     """
 
     status: SignalStatus
@@ -361,7 +377,12 @@ def check_signals(
     # gain and another pole pair's magnet look alike)
     scale = common_scale(decoder, d)
     scaled = model_misfit(decoder, decoder.offset + (d - decoder.offset) / scale)
-    if scaled.status.success and _electrical_turns(decoder, d) >= 1.0:
+    # with its gain profile the power-up decoder divides the common gain out itself: the scaled
+    # signals are its view at any length (its own mismatch stays one)
+    profiled = decoder.gain_sd > 0.0
+    if scaled.status.success and (
+        (profiled and misfit is None) or (not profiled and _electrical_turns(decoder, d) >= 1.0)
+    ):
         if misfit is not None:  # the power-up decoder needs the calibrated amplitude
             return SignalCheck(
                 SignalStatus.MISMATCH,
