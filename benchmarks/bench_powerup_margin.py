@@ -10,6 +10,10 @@ measured outcome of 40 closed-loop power-ups per change (``bench_unseen.py --pow
 procedure: half at rest, half at two electrical revolutions per second, 600 samples): right /
 WRONG (a lock claiming certainty on the wrong pole pair) / mismatch (refused) / undecided.
 
+Where calibrate kept the decoder with the common-gain profile (its lock without it breaks at a
+plausible drift), both are measured on the same power-ups: "no profile" (the decoder before)
+and "profile"; the samples to each right lock are given (median/max).
+
 The prediction is a standstill figure (the moving half sees many positions, where a wrong
 hypothesis must win on average); it is meant to rank motors, not to be the rate.
 
@@ -35,6 +39,7 @@ import bench_unseen as bu  # noqa: E402
 from hallcal import pipeline  # noqa: E402
 from hallcal.io import Dataset, default_setup  # noqa: E402
 from hallcal.messages import MessageCode  # noqa: E402
+from hallcal.sensor import absolute as ab  # noqa: E402
 from hallcal.sensor.drift_margin import _amplitudes, _table_signals, wrong_lock_share  # noqa: E402
 from hallcal.sim.bench import BenchConfig  # noqa: E402
 
@@ -77,9 +82,38 @@ def predicted(dec, gains, offs) -> float:
     return wrong_lock_share(dec, g, extra)
 
 
-def measured(cfg, dec, seed: int, gains, offs, trials: int = 40) -> dict[str, int]:
-    """bench_unseen's power-up count for one change (same seeds)."""
-    return bu.powerup_counts(cfg, dec, seed, gains, offs, trials)
+def power_ups(cfg, seed: int, trials: int = 40) -> list[tuple[np.ndarray, int]]:
+    """bench_unseen's power-ups (``powerup_counts``: same seeds, half at rest, half at two
+    electrical revolutions per second, 600 samples), simulated once per case: (d, true j)."""
+    from hallcal.sim.bench import power_up_run
+
+    n = cfg.pole_pairs
+    rng = np.random.default_rng([seed, 99])
+    out = []
+    for i in range(trials):
+        speed = 0.0 if i % 2 else 2.0 * TWO_PI / n
+        pu = power_up_run(cfg, float(rng.uniform(0, TWO_PI)), samples=600, speed=speed,
+                          seed=seed * 1000 + i)  # fmt: skip
+        out.append((pu.d, int(np.round((pu.y0[0] - pu.y[0]) * n / TWO_PI)) % n))
+    return out
+
+
+def measured(runs, dec, gains, offs) -> tuple[dict[str, int], list[int]]:
+    """bench_unseen's count for one change (``d * gains + offs``): right / WRONG / mismatch /
+    undecided, and the samples to each right lock."""
+    counts = {"right": 0, "WRONG": 0, "mismatch": 0, "undecided": 0}
+    samples = []
+    for d, j in runs:
+        ident = dec.identify(d * np.asarray(gains) + np.asarray(offs))
+        if ident.status is ab.PowerUpStatus.IDENTIFIED:
+            counts["right" if ident.offset == j else "WRONG"] += 1
+            if ident.offset == j:
+                samples.append(ident.samples)
+        elif ident.status is ab.PowerUpStatus.MISMATCH:
+            counts["mismatch"] += 1
+        else:
+            counts["undecided"] += 1
+    return counts, samples
 
 
 def pct(x: float) -> str:
@@ -100,17 +134,25 @@ def report(name: str, cfg, cal, seed: int) -> tuple[float, int]:
     )
     notes = [x for x in cal.messages if x.code is MessageCode.POWERUP_DRIFT]
     print(f"   calibrate says: {notes[0].line() if notes else '(nothing: margin beyond 5 %)'}")
-    dec = rep.decoder(cal.flux, cal.lut)
-    print("   change             predicted share   measured (40 power-ups)")
+    runs = power_ups(cfg, seed)
+    chosen = rep.decoder(cal.flux, cal.lut)
+    decoders = [("chosen", chosen)]
+    if chosen.gain_sd > 0.0:  # the profile was chosen: the decoder without it for comparison
+        plain = dataclasses.replace(rep, gain_sd=0.0).decoder(cal.flux, cal.lut)
+        decoders = [("no profile", plain), ("profile", chosen)]
+    print(f"   decoder kept by calibrate: {'common-gain profile' if chosen.gain_sd else 'plain'}")
+    print("   change             decoder     predicted share   measured (40 power-ups)"
+          "                           lock samples median/max")  # fmt: skip
     pred_sum, wrong = 0.0, 0
     for label, gains, offs in CHANGES:
-        c = measured(cfg, dec, seed, gains, offs)
-        p = predicted(dec, gains, offs)
-        if label != "healthy":
-            pred_sum, wrong = pred_sum + p, wrong + c["WRONG"]
-        print(
-            f"   {label:18s} {100 * p:12.1f}%   " + "  ".join(f"{k} {v:2d}" for k, v in c.items())
-        )
+        for name, dec in decoders:
+            c, k = measured(runs, dec, gains, offs)
+            p = predicted(dec, gains, offs)
+            if label != "healthy" and dec is chosen:
+                pred_sum, wrong = pred_sum + p, wrong + c["WRONG"]
+            lock = f"{np.median(k):5.0f}/{max(k):3d}" if k else "    -"
+            print(f"   {label:18s} {name:10s} {100 * p:8.1f}%   "
+                  + "  ".join(f"{key} {v:2d}" for key, v in c.items()) + f"   {lock}")  # fmt: skip
     return pred_sum, wrong
 
 
