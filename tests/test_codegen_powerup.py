@@ -444,3 +444,51 @@ def _reference_lambda(dec, x: np.ndarray) -> np.ndarray:
         ident.update(*row)
         out[i] = ident.lam
     return out
+
+
+@pytest.fixture(scope="module")
+def alike_travel(alike, tmp_path_factory):
+    """The same motor as calibrate exports it: the profile and the lock after one electrical
+    revolution of motion (its drift robustness is below 1)."""
+    art = copy.deepcopy(alike["art"])
+    art["identifiability"]["lock_travel"] = ab.DEFAULT_LOCK_TRAVEL
+    d = tmp_path_factory.mktemp("powerup_travel")
+    res = export_c(art, d, source="bench.json", adc_scale=ADC_SCALE)
+    exe = compile_driver(d, fixed=False, flags=["-O2"])
+    dec, lut = python_decoder(art)
+    assert dec.lock_travel == ab.DEFAULT_LOCK_TRAVEL
+    return {**alike, "art": art, "dir": d, "res": res, "exe": exe, "dec": dec, "lut": lut}
+
+
+def test_c_waits_for_the_travel_like_python(alike_travel):
+    """20 power-ups of 2000 samples at 3-5 rad/s either way (one electrical revolution of the 5
+    pole pairs takes 1000-1700 samples) and 4 at rest, one sensor's offset +1 % of the
+    amplitude (a plausible drift): the C locks at the same sample and on the same pole pair
+    as PowerUpIdentifier, never before one electrical revolution, never on a wrong pole pair;
+    at rest neither locks."""
+    dec, lut = alike_travel["dec"], alike_travel["lut"]
+    pu = PowerUps(alike_travel["cfg"])
+    rng = np.random.default_rng(2032)
+    n, samples = 5, 2000
+    locked = 0
+    for k in range(24):
+        angle = rng.uniform(0.0, TWO_PI)
+        speed = 0.0 if k >= 20 else float(rng.uniform(3.0, 5.0) * rng.choice([-1.0, 1.0]))
+        x = pu.run(angle, samples, speed, seed=80_000 + k)
+        truth_j = int(np.round((angle - lut.f_init(x[:1])[0]) * n / TWO_PI)) % n
+        x = x.astype(np.float64) + np.array([0.0, 0.0, 0.01])
+        x = x.astype(np.float32)
+        words, _ = _c_lam(alike_travel, x, samples)
+        lock, j, _ = identify_python(dec, x.astype(np.float64))
+        ident_c = words[:, 2] >> 31
+        lock_c = int(np.argmax(ident_c)) if ident_c.any() else None
+        assert lock_c == lock, (k, lock_c, lock)
+        if speed == 0.0:
+            assert lock is None
+        elif lock is not None:
+            locked += 1
+            assert j == truth_j
+            y = lut.f_init(x[: lock + 1].astype(np.float64)) * n / TWO_PI  # electrical turns
+            assert np.ptp(y) >= 1.0
+    print(f"travel: {locked}/20 moving power-ups locked after one electrical revolution")
+    assert locked >= 15

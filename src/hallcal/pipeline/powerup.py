@@ -32,7 +32,6 @@ from hallcal.sensor.absolute import (
     PowerUpStatus,
     analyze_calibration,
 )
-from hallcal.sensor.drift_margin import PLAUSIBLE_SENSOR_CHANGE
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT
 from hallcal.sensor.misfit import MisfitResult, MisfitStatus, common_scale, model_misfit
@@ -133,11 +132,11 @@ def drift_message(report: IdentifiabilityReport | None, *, warning: bool = False
 
     Said when the drift margin (:mod:`hallcal.sensor.drift_margin`) of a common gain change is
     below the one a plausible temperature swing produces (``DriftMargin.fragile``: 5 %, 40 K of
-    NdFeB remanence at -0.12 %/K), or, when the common gain is absorbed (the decoder's gain
-    profile) or its margin wide, when one sensor's own gain or offset margin is below a
-    plausible one (``DriftMargin.sensor_fragile``: 1 %). ``calibrate`` says it as a note (the
-    table is not in question, so the calibration's status stays what it is; the note qualifies
-    the power-up verdict), ``reconstruct --absolute`` as a warning (``warning=True``).
+    NdFeB remanence at -0.12 %/K): the decoder of an artifact made before the lock that waits
+    for motion on such motors (:func:`hallcal.sensor.absolute.analyze_calibration`; its verdict
+    says it instead). ``calibrate`` says it as a note (the table is not in question, so the
+    calibration's status stays what it is; the note qualifies the power-up verdict),
+    ``reconstruct --absolute`` as a warning (``warning=True``).
 
     Parameters
     ----------
@@ -152,25 +151,12 @@ def drift_message(report: IdentifiabilityReport | None, *, warning: bool = False
     Message or None
     """
     m = None if report is None else report.drift
-    if m is None or not (m.fragile or m.sensor_fragile):
+    if m is None or not m.fragile:
         return None
 
     def pct(x: float) -> str:
         return "beyond 10 %" if not math.isfinite(x) else f"+-{100 * x:.2g} %"
 
-    make = Message.warning if warning else Message.note
-    if not m.fragile:  # the common gain is absorbed (the decoder's profile) or far enough
-        absorbed = "absorbs" if report is not None and report.gain_sd > 0.0 else "survives"
-        return make(
-            MessageCode.POWERUP_DRIFT,
-            f"the power-up lock {absorbed} a common gain change of the sensors (magnet "
-            f"temperature; tested to +-10 %), but holds only for one sensor's own gain within "
-            f"{pct(m.sensor_gain)} and its offset within {pct(m.sensor_offset)} of its "
-            f"amplitude (about {100 * PLAUSIBLE_SENSOR_CHANGE:.0f} % is plausible over 60 K): "
-            "beyond, a wrong pole pair fits the changed signals and can lock with claimed "
-            "certainty; after a sensor was replaced or has drifted re-home the axis, or "
-            "recalibrate",
-        )
     text = (
         f"the power-up lock holds only for sensor gains within {pct(m.common_gain)} of "
         f"calibration (about {m.kelvin:.0f} K of magnet temperature; one sensor's gain "
@@ -180,6 +166,7 @@ def drift_message(report: IdentifiabilityReport | None, *, warning: bool = False
         "% (a 40 K swing); after a temperature change re-home the axis, or calibrate at the "
         "temperature of use"
     )
+    make = Message.warning if warning else Message.note
     return make(MessageCode.POWERUP_DRIFT, text)
 
 

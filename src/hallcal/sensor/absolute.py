@@ -190,6 +190,14 @@ DEFAULT_COST_CAP = 2.0 * math.log(100.0)
 #: scale finite: one sample already carries about (R / sigma)^2 = 10^5 times its information.
 #: 0 disables the profile (the decoder of artifacts made before it: s = 1).
 DEFAULT_GAIN_SD = PLAUSIBLE_GAIN_CHANGE
+#: Electrical turns of motion the decoder of a drift-fragile calibration waits for before the
+#: lock (:func:`analyze_calibration`): over one electrical revolution one sensor's gain or
+#: offset change is a fixed pattern in the electrical angle, the same under every hypothesis,
+#: while the magnets' differences are not; measured on a 5-pole-pair bench whose magnets are
+#: 1 % apart (30 power-ups each, 0.5 rad/s): right 30 healthy, 30 with all gains x0.97, 30 with
+#: one sensor's gain x0.99 or offset +1 %, mismatch 30 with 5 %, no wrong lock (at standstill
+#: the same decoder locked wrong at most positions with 1 %).
+DEFAULT_LOCK_TRAVEL = 1.0
 
 
 # ------------------------------------------------------------------------------------------------
@@ -420,6 +428,9 @@ class PowerUpDecoder:
     gain_sd : float
         Prior standard deviation of the signals' common gain s since calibration (step 5,
         :data:`DEFAULT_GAIN_SD`); 0: no gain profile (s = 1, the decoder before it).
+    lock_travel : float
+        Electrical turns f_init's angle must have spanned since power-up before the lock
+        (step 7); 0: none (the decoder before it).
     """
 
     pole_pairs: int
@@ -438,6 +449,7 @@ class PowerUpDecoder:
     cost_cap: float = DEFAULT_COST_CAP
     misfit: MisfitTest = field(default_factory=MisfitTest)
     gain_sd: float = 0.0
+    lock_travel: float = 0.0
 
     @property
     def gain_weight(self) -> float:
@@ -608,6 +620,7 @@ class PowerUpDecoder:
             "interpolation_error": float(self.interpolation_error),
             "cost_cap": float(self.cost_cap),
             "gain_sd": float(self.gain_sd),
+            "lock_travel": float(self.lock_travel),
             **self.misfit.to_dict(),
         }
 
@@ -640,20 +653,31 @@ def _profiled_lambda(dec: PowerUpDecoder, d: NDArray, *, stop: bool) -> NDArray[
             scale = scale + weight * pr / info
             lam = lam + np.minimum(inc, cap)
         out[k] = lam
-        if stop and (k + 1) % _LAMBDA_BLOCK == 0 and _decided(dec, out[: k + 1], F["valid"]):
+        if stop and (k + 1) % _LAMBDA_BLOCK == 0 and _decided(dec, out[: k + 1], F["valid"], d):
             return out[: k + 1]
     return out
 
 
-def _decided(dec: PowerUpDecoder, lam: NDArray, valid: NDArray) -> bool:
+def _span(dec: PowerUpDecoder, d: NDArray) -> NDArray[np.float64]:
+    """Per sample, the range of f_init's electrical angle ``psi + 2 pi m`` over the samples of
+    evidence so far [rad, electrical] (step 7's travel)."""
+    F = dec.features(d)
+    y = np.where(F["valid"], F["psi"] + TWO_PI * F["m"], np.nan)
+    with np.errstate(invalid="ignore"):
+        span = np.fmax.accumulate(y) - np.fmin.accumulate(y)
+    return np.where(np.isnan(span), -1.0, span)
+
+
+def _decided(dec: PowerUpDecoder, lam: NDArray, valid: NDArray, d: NDArray) -> bool:
     """Whether the lock rule or the mismatch has been reached within these rows."""
+    rows = lam.shape[0]
     total = np.min(lam, axis=1)
-    D = dec.misfit.statistic(total, np.cumsum(valid[: lam.shape[0]]))
+    D = dec.misfit.statistic(total, np.cumsum(valid[:rows]))
     W = np.sum(np.exp(-0.5 * (lam - total[:, None])), axis=1) - 1.0
-    return bool(
-        np.any(D >= dec.misfit.bound)
-        or np.any((W <= dec.lock_threshold) & (D <= -dec.misfit.fit_bound))
-    )
+    lock = (W <= dec.lock_threshold) & (D <= -dec.misfit.fit_bound)
+    if dec.lock_travel > 0.0:
+        lock &= _span(dec, d[:rows]) >= TWO_PI * dec.lock_travel
+    return bool(np.any(D >= dec.misfit.bound) or np.any(lock))
 
 
 def _gram(
@@ -699,6 +723,7 @@ def build_decoder(
     mismatch_rate: float = DEFAULT_MISMATCH_RATE,
     fit_rate: float = DEFAULT_FIT_RATE,
     gain_sd: float = 0.0,
+    lock_travel: float = 0.0,
 ) -> PowerUpDecoder:
     """Tables and constants of the power-up decoder for an identified flux model.
 
@@ -732,6 +757,9 @@ def build_decoder(
     gain_sd : float
         Prior standard deviation of the signals' common gain since calibration (>= 0; 0: no
         gain profile, s = 1), see :data:`DEFAULT_GAIN_SD`; :func:`analyze_calibration` chooses.
+    lock_travel : float
+        Electrical turns of motion before the lock (>= 0; step 7), see
+        :data:`DEFAULT_LOCK_TRAVEL`.
 
     Returns
     -------
@@ -740,6 +768,8 @@ def build_decoder(
     lut._require_bijective()
     if not (gain_sd >= 0.0 and math.isfinite(gain_sd)):
         raise ValueError("gain_sd must be a finite number >= 0")
+    if not (lock_travel >= 0.0 and math.isfinite(lock_travel)):
+        raise ValueError("lock_travel must be a finite number >= 0")
     if not 0.0 < error_target < 0.5:
         raise ValueError("error_target must be in (0, 0.5)")
     if not cost_cap > 0.0:
@@ -789,6 +819,7 @@ def build_decoder(
         cost_cap=float(cost_cap),
         misfit=misfit,
         gain_sd=float(gain_sd),
+        lock_travel=float(lock_travel),
     )
 
 
@@ -897,6 +928,8 @@ def _identify(dec: PowerUpDecoder, d: NDArray, *, lock: bool) -> PowerUpIdentifi
             mismatch_at = int(bad[0])
         limit = rows if mismatch_at is None else mismatch_at
         fits = D[:limit] <= -dec.misfit.fit_bound
+        if dec.lock_travel > 0.0:  # and f_init's angle has spanned lock_travel turns
+            fits &= _span(dec, d[:limit]) >= TWO_PI * dec.lock_travel
         hit = np.flatnonzero((W[:limit] <= dec.lock_threshold) & fits)
         if hit.size:
             lock_at = int(hit[0])
@@ -960,6 +993,8 @@ class PowerUpIdentifier:
         self._bd = dec.misfit.bound
         self._bf = dec.misfit.fit_bound
         self._profile = dec.gain_sd > 0.0
+        self._travel = TWO_PI * dec.lock_travel
+        self._ymin = self._ymax = math.nan  # range of f_init's electrical angle (step 7)
         self.scale = [1.0] * self._n  # s_j, the common gain of each hypothesis
         self.info = [dec.gain_weight] * self._n  # I_j, its information
         self.m = 0
@@ -1023,6 +1058,9 @@ class PowerUpIdentifier:
         if self.locked or self.mismatch or rho <= self._rho_min:
             return self.best
         self.samples += 1
+        y_el = psi + TWO_PI * self.m
+        self._ymin = y_el if self.samples == 1 else min(self._ymin, y_el)
+        self._ymax = y_el if self.samples == 1 else max(self._ymax, y_el)
         # 4. Gram terms at this angle
         c, s = al / rho, be / rho
         (A00, A01), (_, A11) = self._A
@@ -1069,7 +1107,8 @@ class PowerUpIdentifier:
             return self.best
         # 7. sequential test
         W = sum(math.exp(-0.5 * v) for j, v in enumerate(self.lam) if j != self.best)
-        if W <= self._threshold and self.fit <= -self._bf:
+        moved = self._ymax - self._ymin >= self._travel
+        if W <= self._threshold and self.fit <= -self._bf and moved:
             self.locked = True
             self.lock_sample = self.samples - 1
         return self.best
@@ -1227,6 +1266,7 @@ class IdentifiabilityReason(enum.StrEnum):
     WEAK_POSITIONS = "weak_positions"  # some positions need more than the standstill budget
     TOO_UNIFORM = "too_uniform"  # even one electrical revolution needs more than the motion budget
     BELOW_MODEL_UNCERTAINTY = "below_model_uncertainty"  # signature within the fit's own noise
+    SENSOR_DRIFT = "sensor_drift"  # at standstill a plausible sensor drift looks like a magnet
 
 
 @dataclass(frozen=True)
@@ -1287,6 +1327,9 @@ class IdentifiabilityReport:
     gain_sd : float
         The decoder's common-gain prior (:attr:`PowerUpDecoder.gain_sd`); 0 in artifacts made
         before the gain profile (their decoder keeps s = 1).
+    lock_travel : float
+        Electrical turns of motion the decoder waits for before the lock
+        (:attr:`PowerUpDecoder.lock_travel`); 0 in artifacts made before it.
     """
 
     status: Identifiability
@@ -1316,6 +1359,7 @@ class IdentifiabilityReport:
     fit_rate: float = DEFAULT_FIT_RATE
     drift: DriftMargin | None = None
     gain_sd: float = 0.0
+    lock_travel: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         """The artifact's ``"identifiability"`` entry (JSON-ready; infinities as None)."""
@@ -1351,6 +1395,8 @@ class IdentifiabilityReport:
         }
         if self.gain_sd > 0.0:  # absent: the decoder without the gain profile (older artifacts)
             out["gain_sd"] = float(self.gain_sd)
+        if self.lock_travel > 0.0:  # absent: the lock at standstill (older artifacts)
+            out["lock_travel"] = float(self.lock_travel)
         if self.noise is not None:
             out["noise"] = self.noise.to_dict()
         if self.drift is not None:
@@ -1405,6 +1451,7 @@ class IdentifiabilityReport:
                 mismatch_rate=float(d.get("mismatch_rate", DEFAULT_MISMATCH_RATE)),
                 fit_rate=float(d.get("fit_rate", DEFAULT_FIT_RATE)),
                 gain_sd=float(d.get("gain_sd", 0.0)),
+                lock_travel=float(d.get("lock_travel", 0.0)),
                 noise=None
                 if noise is None
                 else NoiseEstimate(
@@ -1447,6 +1494,7 @@ class IdentifiabilityReport:
             mismatch_rate=self.mismatch_rate,
             fit_rate=self.fit_rate,
             gain_sd=self.gain_sd,
+            lock_travel=self.lock_travel,
         )
 
 
@@ -1648,6 +1696,8 @@ def assess_identifiability(
     floor = _model_floor(calibration_samples, basis_size)
     worst_K = float(np.max(need.standstill))
     status, reason = _verdict(need, floor, standstill_budget, motion_budget)
+    if dec.lock_travel > 0.0 and status.success:  # the lock waits for motion by design
+        status, reason = Identifiability.NEEDS_MOTION, IdentifiabilityReason.SENSOR_DRIFT
     report: dict[str, Any] = dict(
         status=status,
         reason=reason,
@@ -1674,6 +1724,7 @@ def assess_identifiability(
         mismatch_rate=dec.misfit.rate,
         fit_rate=dec.misfit.fit_rate,
         gain_sd=dec.gain_sd,
+        lock_travel=dec.lock_travel,
         drift=drift_margin(dec, standstill_budget=standstill_budget)
         if drift and status.success and dec.pole_pairs > 1
         else None,
@@ -1768,6 +1819,14 @@ def _message(r: dict[str, Any]) -> str:
             f"pole pair identifiable at power-up at standstill: right with probability >= {pct} "
             f"within {_fmt_k(r['standstill_samples_worst'])} samples at every position ({seps})"
         )
+    if reason is IdentifiabilityReason.SENSOR_DRIFT:
+        return (
+            f"pole pair identifiable at power-up with motion: the lock waits for "
+            f"{r['lock_travel']:g} electrical revolution of motion, because at standstill one "
+            f"sensor's plausible drift (its gain or offset by about 1 %) looks like another pole "
+            f"pair's magnet on this motor; the sensors' common gain (magnet temperature) is "
+            f"divided out ({seps})"
+        )
     if status is Identifiability.NEEDS_MOTION:
         return (
             f"pole pair identifiable at power-up with motion: at standstill "
@@ -1812,16 +1871,19 @@ def analyze_calibration(
 ) -> tuple[PowerUpDecoder, IdentifiabilityReport]:
     """Noise estimate, decoder and identifiability report for a calibration, in one call.
 
-    The decoder's common-gain profile (step 5) is a trade, measured
-    (``benchmarks/bench_powerup_margin.txt``): it absorbs the magnets' temperature, but at
-    standstill a common gain and a magnet's strength look alike, so the evidence left is the
-    direction of (rho, zeta) across the curve, which one sensor's own gain or offset moves.
-    On magnets that differ in strength (the paper bench) it cuts the standstill separation
-    from 8.1 to 1.8 noise sigmas typical and the per-sensor drift margin from beyond 10 % to
-    0.2-0.3 %; on nearly alike magnets (unseen cases 202, 213) the lock without it already
-    breaks at a 0.44 % common gain. So the decoder without the profile is analysed first; when
-    a plausible drift breaks it (:attr:`DriftMargin.robustness` finite), the profiled one is
-    analysed too and kept if its robustness is larger.
+    Which decoder (measured: ``benchmarks/bench_powerup_margin.txt``). The decoder without the
+    common-gain profile and with the lock at standstill is analysed first, and kept unless a
+    plausible drift breaks its lock (:attr:`DriftMargin.robustness` below 1: a 5 % common gain
+    or a 1 % change of one sensor makes a wrong pole pair lock at 10 % of positions). Then
+    the pole pairs cannot be told at standstill with certainty: a common gain and a magnet's
+    strength look alike, and with the gain profiled one sensor's drift moves the remaining
+    evidence (the direction of (rho, zeta) across the curve) onto another magnet (unseen case
+    202: wrong locks under a 1 % offset of one sensor 6 of 40 without the profile, 28 with it).
+    So that calibration gets the profile and a lock that waits for
+    :data:`DEFAULT_LOCK_TRAVEL` electrical revolution of motion (verdict "needs motion",
+    reason ``SENSOR_DRIFT``). Where the magnets differ in strength (the paper bench) the
+    profile would cost the standstill separation (8.1 to 1.8 noise sigmas typical) and is not
+    used.
 
     Sigma is the total noise across the model curve on the calibration samples
     (:func:`estimate_normal_noise`): white noise plus the model's own error there, so the
@@ -1856,8 +1918,8 @@ def analyze_calibration(
         sigma = 1e-9 * max(float(np.std(np.asarray(d, dtype=np.float64))), 1e-300)
     used = len(range(*slice(start, stop).indices(np.shape(d)[0])))
 
-    def analysis(gain_sd: float) -> tuple[PowerUpDecoder, IdentifiabilityReport]:
-        dec = build_decoder(flux, lut, noise_std=sigma, gain_sd=gain_sd)
+    def analysis(gain_sd: float, travel: float) -> tuple[PowerUpDecoder, IdentifiabilityReport]:
+        dec = build_decoder(flux, lut, noise_std=sigma, gain_sd=gain_sd, lock_travel=travel)
         return dec, assess_identifiability(
             dec,
             standstill_budget=standstill_budget,
@@ -1867,10 +1929,7 @@ def analyze_calibration(
             noise=noise,
         )
 
-    dec, rep = analysis(0.0)
-    if rep.drift is None or math.isinf(rep.drift.robustness):
-        return dec, rep  # nothing a plausible drift breaks: keep the standstill evidence
-    profiled = analysis(DEFAULT_GAIN_SD)
-    if profiled[1].drift is not None and profiled[1].drift.robustness > rep.drift.robustness:
-        return profiled
-    return dec, rep
+    dec, rep = analysis(0.0, 0.0)
+    if rep.drift is None or not rep.drift.robustness < 1.0:
+        return dec, rep  # no plausible drift breaks the lock: keep the standstill evidence
+    return analysis(DEFAULT_GAIN_SD, DEFAULT_LOCK_TRAVEL)

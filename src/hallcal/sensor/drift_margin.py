@@ -73,8 +73,8 @@ DEFAULT_SHARE = 0.1
 PLAUSIBLE_GAIN_CHANGE = 0.05
 
 #: One sensor's own sensitivity or offset change that is plausible without a fault [fraction]:
-#: about 1 % over 60 K measured (docs: DESIGN "Temperature"). A per-sensor margin below it is
-#: named by ``calibrate`` when the decoder absorbs the common gain.
+#: about 1 % over 60 K measured (docs: DESIGN "Temperature"). A per-sensor margin below it
+#: makes :func:`hallcal.sensor.absolute.analyze_calibration` let the lock wait for motion.
 PLAUSIBLE_SENSOR_CHANGE = 0.01
 
 #: NdFeB remanence temperature coefficient [1/K] (magnitude), to state a margin in kelvin.
@@ -157,19 +157,13 @@ class DriftMargin:
         """The smallest margin as a multiple of its plausible change (common gain against
         ``plausible_gain``, one sensor's gain and offset against
         :data:`PLAUSIBLE_SENSOR_CHANGE`): below 1, a plausible drift breaks the lock; inf when
-        no margin is within the search. The calibration keeps the decoder (with or without the
-        common-gain profile) whose robustness is larger."""
+        no margin is within the search. Below 1 the calibration makes the lock wait for motion
+        (:func:`hallcal.sensor.absolute.analyze_calibration`)."""
         return min(
             self.common_gain / self.plausible_gain,
             self.sensor_gain / PLAUSIBLE_SENSOR_CHANGE,
             self.sensor_offset / PLAUSIBLE_SENSOR_CHANGE,
         )
-
-    @property
-    def sensor_fragile(self) -> bool:
-        """Whether a plausible change of one sensor alone (:data:`PLAUSIBLE_SENSOR_CHANGE`, its
-        gain or its offset) can make the lock go wrong."""
-        return min(self.sensor_gain, self.sensor_offset) < PLAUSIBLE_SENSOR_CHANGE
 
     @property
     def kelvin(self) -> float:

@@ -131,7 +131,7 @@ ${gram_decls}    float f;
     uint32_t lo;
     uint32_t j;
     uint32_t best = 0u;
-${rsqrt_steps}
+${travel_update}${rsqrt_steps}
     c = a * y; /* cos and sin of the electrical angle */
     sn = b * y;
     rho = (r2 * y) * ${inv_sigma}; /* radius in sigmas */
@@ -184,7 +184,7 @@ ${gain_update}        if (cost > ${cap}) {
     if (s->fit >= ${fit_hi}) {
         s->mismatch = 1u;
         s->locked = 0u;
-    } else if (s->fit <= ${fit_lo}) {
+    } else if ((s->fit <= ${fit_lo})${travel_cond}) {
         s->locked = hc_lock_rule(s->lam, best);
     } else {
         s->locked = 0u;
@@ -510,6 +510,7 @@ def _powerup_source(ctx: _Context, pu: PowerUpFirmware) -> str:
         fit_hi_text=f"{mis.bound:.4g}",
         fit_lo_text=f"{mis.fit_bound:.4g}",
         **_gain_terms(pu),
+        **_travel_terms(pu),
     )
     return source + _powerup_identify(ctx) + "\n"
 
@@ -588,13 +589,52 @@ def _powerup_hooks(ctx: _Context, pu: PowerUpFirmware) -> dict[str, str]:
 
 
 def _gain_members(pu: PowerUpFirmware, n: int) -> str:
-    """State members of the common-gain profile (none without it)."""
-    if pu.decoder is None or not pu.decoder.gain_sd > 0.0:
-        return ""
-    return (
-        f"    float gain[{n}];   /* s_j: common gain of the signals under hypothesis j */\n"
-        f"    float info[{n}];   /* I_j: its information [1 / gain^2] */\n"
-    )
+    """State members of the common-gain profile and of the travel before the lock (none
+    without them)."""
+    dec = pu.decoder
+    out = ""
+    if dec is not None and dec.gain_sd > 0.0:
+        out += (
+            f"    float gain[{n}];   /* s_j: common gain of the signals under hypothesis j */\n"
+            f"    float info[{n}];   /* I_j: its information [1 / gain^2] */\n"
+        )
+    if dec is not None and dec.lock_travel > 0.0:
+        out += (
+            "    float pos;         /* f_init's electrical angle since power-up [turns] */\n"
+            "    float pmin;        /* its range so far: the lock waits for the travel */\n"
+            "    float pmax;\n"
+            "    uint32_t pprev;    /* the last sample's angle, Q0.32 turns */\n"
+        )
+    return out
+
+
+#: The travel of f_init's electrical angle since power-up (step 7: the lock waits for it).
+_TRAVEL_UPDATE = r"""    if (s->samples != 0u) { /* unwrapped from the steps, as f_init */
+        s->pos = s->pos + ((float)hc_s32(p - s->pprev) * 2.32830644e-10f);
+        if (s->pos > s->pmax) {
+            s->pmax = s->pos;
+        }
+        if (s->pos < s->pmin) {
+            s->pmin = s->pos;
+        }
+    } else {
+        s->pos = 0.0f;
+        s->pmin = 0.0f;
+        s->pmax = 0.0f;
+    }
+    s->pprev = p;
+"""
+
+
+def _travel_terms(pu: PowerUpFirmware) -> dict[str, str]:
+    """The travel's update and its part of the lock condition (none without it)."""
+    dec = pu.decoder
+    if dec is None or not dec.lock_travel > 0.0:
+        return {"travel_update": "", "travel_cond": ""}
+    return {
+        "travel_update": _TRAVEL_UPDATE,
+        "travel_cond": f" && ((s->pmax - s->pmin) >= {_cf(dec.lock_travel, 'lock travel')})",
+    }
 
 
 def _powerup_section(ctx: _Context) -> Section | None:
