@@ -10,9 +10,11 @@ measured outcome of 40 closed-loop power-ups per change (``bench_unseen.py --pow
 procedure: half at rest, half at two electrical revolutions per second, 600 samples): right /
 WRONG (a lock claiming certainty on the wrong pole pair) / mismatch (refused) / undecided.
 
-Where calibrate kept the decoder with the common-gain profile (its lock without it breaks at a
-plausible drift), both are measured on the same power-ups: "no profile" (the decoder before)
-and "profile"; the samples to each right lock are given (median/max).
+Where calibrate kept the decoder with the common-gain profile and the lock after one electrical
+revolution of motion (its lock without them breaks at a plausible drift), the decoder before
+("no profile") is measured on the same power-ups, and 20 more power-ups turning 1.5 electrical
+revolutions show the lock that waits for motion against the profile locking at once; the
+samples to each right lock are given (median/max).
 
 The prediction is a standstill figure (the moving half sees many positions, where a wrong
 hypothesis must win on average); it is meant to rank motors, not to be the rate.
@@ -82,17 +84,20 @@ def predicted(dec, gains, offs) -> float:
     return wrong_lock_share(dec, g, extra)
 
 
-def power_ups(cfg, seed: int, trials: int = 40) -> list[tuple[np.ndarray, int]]:
+def power_ups(cfg, seed: int, trials: int = 40, *, turning: bool = False):
     """bench_unseen's power-ups (``powerup_counts``: same seeds, half at rest, half at two
-    electrical revolutions per second, 600 samples), simulated once per case: (d, true j)."""
+    electrical revolutions per second, 600 samples), simulated once per case: (d, true j).
+    ``turning``: instead, all at ten electrical revolutions per second for 1.5 electrical
+    revolutions (a lock that waits for one electrical revolution of motion can come)."""
     from hallcal.sim.bench import power_up_run
 
     n = cfg.pole_pairs
     rng = np.random.default_rng([seed, 99])
+    samples = int(1.5 / (10.0 * cfg.sample_time)) if turning else 600
     out = []
     for i in range(trials):
-        speed = 0.0 if i % 2 else 2.0 * TWO_PI / n
-        pu = power_up_run(cfg, float(rng.uniform(0, TWO_PI)), samples=600, speed=speed,
+        speed = 10.0 * TWO_PI / n if turning else (0.0 if i % 2 else 2.0 * TWO_PI / n)
+        pu = power_up_run(cfg, float(rng.uniform(0, TWO_PI)), samples=samples, speed=speed,
                           seed=seed * 1000 + i)  # fmt: skip
         out.append((pu.d, int(np.round((pu.y0[0] - pu.y[0]) * n / TWO_PI)) % n))
     return out
@@ -125,6 +130,7 @@ def report(name: str, cfg, cal, seed: int) -> tuple[float, int]:
     changes (healthy excluded)."""
     rep = cal.identifiability
     print(f"\n-- {name}: calibration {cal.status}, power-up {rep.status} --")
+    print(f"   {rep.message}")
     m = rep.drift
     print(
         f"   drift margin (wrong-lock share > {100 * m.share:.0f}%): common gain "
@@ -138,9 +144,12 @@ def report(name: str, cfg, cal, seed: int) -> tuple[float, int]:
     chosen = rep.decoder(cal.flux, cal.lut)
     decoders = [("chosen", chosen)]
     if chosen.gain_sd > 0.0:  # the profile was chosen: the decoder without it for comparison
-        plain = dataclasses.replace(rep, gain_sd=0.0).decoder(cal.flux, cal.lut)
-        decoders = [("no profile", plain), ("profile", chosen)]
-    print(f"   decoder kept by calibrate: {'common-gain profile' if chosen.gain_sd else 'plain'}")
+        plain = dataclasses.replace(rep, gain_sd=0.0, lock_travel=0.0).decoder(cal.flux, cal.lut)
+        decoders = [("no profile", plain), ("kept", chosen)]
+    kept = "plain (lock at standstill)"
+    if chosen.gain_sd > 0.0:
+        kept = f"common-gain profile, lock after {chosen.lock_travel:g} electrical revolution"
+    print(f"   decoder kept by calibrate: {kept}")
     print("   change             decoder     predicted share   measured (40 power-ups)"
           "                           lock samples median/max")  # fmt: skip
     pred_sum, wrong = 0.0, 0
@@ -153,7 +162,25 @@ def report(name: str, cfg, cal, seed: int) -> tuple[float, int]:
             lock = f"{np.median(k):5.0f}/{max(k):3d}" if k else "    -"
             print(f"   {label:18s} {name:10s} {100 * p:8.1f}%   "
                   + "  ".join(f"{key} {v:2d}" for key, v in c.items()) + f"   {lock}")  # fmt: skip
+    if chosen.lock_travel > 0.0:
+        _turning(cfg, seed, decoders)
     return pred_sum, wrong
+
+
+def _turning(cfg, seed: int, decoders) -> None:
+    """The same changes on 20 power-ups turning 1.5 electrical revolutions (10 per second)."""
+    runs = power_ups(cfg, seed, 20, turning=True)
+    # the same decoder without the travel: what the profile alone does with that motion
+    prof = decoders[-1][1]
+    more = [*decoders[:-1], ("profile, lock at once", dataclasses.replace(prof, lock_travel=0.0)),
+            ("kept (profile + travel)", prof)]  # fmt: skip
+    print(f"   20 power-ups turning 1.5 electrical revolutions ({runs[0][0].shape[0]} samples):")
+    for label, gains, offs in CHANGES:
+        for name, dec in more:
+            c, k = measured(runs, dec, gains, offs)
+            lock = f"{np.median(k):6.0f}/{max(k):5d}" if k else "     -"
+            print(f"   {label:18s} {name:22s} "
+                  + "  ".join(f"{key} {v:2d}" for key, v in c.items()) + f"   {lock}")  # fmt: skip
 
 
 def main() -> None:
