@@ -52,7 +52,8 @@ Constants (:class:`PowerUpDecoder`, all float64 in the reference):
   at most a likelihood ratio of 100 against any hypothesis, so with alpha < 1 % no single sample
   (a glitch) can lock.
 - ``w``: the common-gain prior's information ``1 / gain_sd^2`` (only with the gain profile,
-  ``gain_sd > 0``; see "Common gain" below);
+  ``gain_sd > 0``; see "Common gain" below); ``T``: electrical turns of motion before the lock
+  (0: none; see "Sensors changed since calibration");
 - ``wt``, ``kd``, ``bd``, ``bf``: the misfit test's weight ``(1 - 1 / kappa) / 2``, drift
   ``ln kappa`` and bounds ``ln(1 / beta)``, ``ln(1 / gamma)`` (:mod:`hallcal.sensor.misfit`:
   does any pole pair fit at all?).
@@ -98,7 +99,9 @@ Per sample ``d = (d1, d2, d3)``:
    if ``D >= bd``: ``mismatch = true`` (no pole pair fits: the signals do not match this
    calibration), stop here for good.
 7. ``W = sum_{j != best} exp(-Lam[j] / 2)``; posterior of best ``p = 1 / (1 + W)``; lock when
-   ``W <= alpha / (1 - alpha)`` (i.e. p >= 1 - alpha) and ``D <= -bf`` (the best fits). Margin
+   ``W <= alpha / (1 - alpha)`` (i.e. p >= 1 - alpha) and ``D <= -bf`` (the best fits) and,
+   with a travel ``T > 0`` (``lock_travel``), f_init's electrical angle ``psi + 2 pi m`` has
+   spanned at least ``2 pi T`` (max - min over the samples of evidence so far). Margin
    ``sqrt(min_{j != best} Lam[j])`` in noise sigmas (the log-likelihood-ratio margin is half its
    square).
 
@@ -129,7 +132,13 @@ Sensors changed since calibration. The decoder assumes the calibrated sensors (u
 gain, with the profile): a change moves the measured point off the right hypothesis's curve,
 and where the magnets differ by little it can move it onto a wrong one, which then wins the
 lock and passes the misfit test. :mod:`hallcal.sensor.drift_margin` measures from the tables how
-large a change that takes (:attr:`IdentifiabilityReport.drift`).
+large a change that takes (:attr:`IdentifiabilityReport.drift`). Where a plausible one suffices
+(one sensor's gain or offset by 1 %, all by 5 %), no decoder can be certain at standstill: a
+common gain looks like a magnet's strength, and once it is profiled one sensor's drift moves
+the remaining evidence onto another magnet. Over one electrical revolution of motion one
+sensor's change is the same pattern in the electrical angle under every hypothesis while the
+magnets differ, so :func:`analyze_calibration` gives such a calibration the profile and the
+travel ``T = 1`` (:data:`DEFAULT_LOCK_TRAVEL`).
 
 Units: angles in rad (mechanical unless said electrical); d, rho, zeta in the sensor's unit;
 costs in noise-sigma units squared.
