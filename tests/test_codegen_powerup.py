@@ -359,6 +359,8 @@ def test_artifact_without_analysis_emits_no_decoder(paper, tmp_path):
         ("identifiability.status", "maybe", "identifiability"),
         ("identifiability.pole_pairs", 7, "identifiability.pole_pairs"),
         ("identifiability.noise_std", -1.0, "identifiability.noise_std"),
+        ("identifiability.gain_sd", -0.05, "gain_sd"),
+        ("identifiability.lock_travel", float("nan"), "lock_travel"),
     ],
 )
 def test_malformed_analysis_is_refused(paper, tmp_path, key, value, named):

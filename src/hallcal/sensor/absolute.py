@@ -1459,8 +1459,8 @@ class IdentifiabilityReport:
                 misfit_ratio=float(d.get("misfit_ratio", DEFAULT_MISFIT_RATIO)),
                 mismatch_rate=float(d.get("mismatch_rate", DEFAULT_MISMATCH_RATE)),
                 fit_rate=float(d.get("fit_rate", DEFAULT_FIT_RATE)),
-                gain_sd=float(d.get("gain_sd", 0.0)),
-                lock_travel=float(d.get("lock_travel", 0.0)),
+                gain_sd=_nonnegative(d, "gain_sd"),
+                lock_travel=_nonnegative(d, "lock_travel"),
                 noise=None
                 if noise is None
                 else NoiseEstimate(
@@ -1505,6 +1505,14 @@ class IdentifiabilityReport:
             gain_sd=self.gain_sd,
             lock_travel=self.lock_travel,
         )
+
+
+def _nonnegative(d: Mapping[str, Any], key: str) -> float:
+    """``d[key]`` as a finite number >= 0 (0 when absent: an artifact made before it)."""
+    v = float(d.get(key, 0.0))
+    if not (v >= 0.0 and math.isfinite(v)):
+        raise ValueError(f"{key} must be a finite number >= 0, got {v!r}")
+    return v
 
 
 @dataclass(frozen=True)
