@@ -11,7 +11,10 @@
      one revolution) against the noise floor.
 2. Weak bench (7 pole pairs, magnet variation 0.01): the identifiability analysis's predicted
    standstill error rate against the observed one (2000 power-ups), the stated posterior
-   against the observed error frequency (binned), and the sequential test's wrong locks.
+   against the observed error frequency (binned), and the sequential test's wrong locks. Its
+   lock breaks under a plausible sensor drift, so calibrate gives it the common-gain profile
+   and a lock after one electrical revolution of motion: at rest that lock never comes, so the
+   same decoder locking at once is also shown (the sequential test's own error rate).
 3. Ring-jig recordings (25 pole pairs, open loop): 50 random starts in the held-out
    revolutions per file, and every start (wrong locks, false "mismatch").
 4. The ring remounted: the calibration of one capture, 60 random power-ups of 1000 samples on
@@ -183,7 +186,7 @@ def weak_bench() -> None:
     stated, miss = [], []
     for i in range(T):
         res, j = pu.run(rng.uniform(0.0, TWO_PI), int(Ks[-1]), 0.0, seed=50_000 + i)
-        lam = np.cumsum(dec.sample_costs(res.d), axis=0)
+        lam = dec.cumulative_costs(res.d)
         for k, K in enumerate(Ks):
             lk = lam[K - 1] - lam[K - 1].min()
             best = int(np.argmin(lk))
@@ -205,27 +208,32 @@ def weak_bench() -> None:
                 f"   [{lo:g}, {hi:g}): {m.sum():5d} decisions, stated {stated[m].mean():.4f}, "
                 f"observed {miss[m].mean():.4f}"
             )
-    # sequential test at rest, long budget
-    wrong_lock = undecided = mismatch = 0
-    lock_at = []
-    for i in range(1000):
-        res, j = pu.run(rng.uniform(0.0, TWO_PI), 4000, 0.0, seed=90_000 + i)
-        ident = dec.identify(res.d)
-        if ident.status is ab.PowerUpStatus.IDENTIFIED:
-            wrong_lock += ident.offset != j
-            lock_at.append(ident.lock_sample + 1)
-        elif ident.status is ab.PowerUpStatus.MISMATCH:
-            mismatch += 1
-        else:
-            undecided += 1
-    print(
-        f"   sequential test at rest (alpha = {dec.error_target:g}), 1000 power-ups, up to 4000 "
-        f"samples: wrong locks {wrong_lock}, undecided {undecided}, false mismatch {mismatch}, "
-        f"samples to lock median "
-        f"{np.median(lock_at):.0f}, 99th percentile {np.percentile(lock_at, 99):.0f}; analysis:"
-        f" {100 * rep.standstill_fraction_ok:.1f}% of positions within 200, worst "
-        f"{rep.standstill_samples_worst:.0f}"
-    )
+    # sequential test at rest, long budget (a lock that waits for motion: also the same decoder
+    # locking at once, the sequential test's own error rate)
+    runs = [pu.run(rng.uniform(0.0, TWO_PI), 4000, 0.0, seed=90_000 + i) for i in range(1000)]
+    decoders = [("", dec)]
+    if dec.lock_travel > 0.0:
+        decoders.append((" (the same, locking at once)", dataclasses.replace(dec, lock_travel=0.0)))
+    for name, dd in decoders:
+        wrong_lock = undecided = mismatch = 0
+        lock_at = []
+        for res, j in runs:
+            ident = dd.identify(res.d)
+            if ident.status is ab.PowerUpStatus.IDENTIFIED:
+                wrong_lock += ident.offset != j
+                lock_at.append(ident.lock_sample + 1)
+            elif ident.status is ab.PowerUpStatus.MISMATCH:
+                mismatch += 1
+            else:
+                undecided += 1
+        when = (f"samples to lock median {np.median(lock_at):.0f}, 99th percentile "
+                f"{np.percentile(lock_at, 99):.0f}" if lock_at else "no lock")  # fmt: skip
+        print(
+            f"   sequential test at rest{name} (alpha = {dd.error_target:g}), 1000 power-ups, up "
+            f"to 4000 samples: wrong locks {wrong_lock}, undecided {undecided}, false mismatch "
+            f"{mismatch}, {when}; analysis: {100 * rep.standstill_fraction_ok:.1f}% of positions "
+            f"within 200, worst {rep.standstill_samples_worst:.0f}"
+        )
 
 
 def ring_jig() -> None:
@@ -277,10 +285,11 @@ def ring_jig() -> None:
             total += 1
             wrong += ident.status is ab.PowerUpStatus.IDENTIFIED and ident.offset != expected % n
             mismatch += ident.status is ab.PowerUpStatus.MISMATCH
+        when = f"{np.median(lock_at):6.0f}/{max(lock_at):<4d}" if lock_at else "     -/-   "
         print(
             f"   {i:4d}  {rep.status.value:12s} {rep.noise.total_std:7.1f} / "
             f"{rep.noise.white_std:4.1f}      {dec.grid:4d}  {agree:9d}/50 {locked:5d}/50"
-            f"  {np.median(lock_at):6.0f}/{max(lock_at):<4d}  {wrong:10d}/{total}"
+            f"  {when}  {wrong:10d}/{total}"
             f"  {mismatch:8d}/{total} ({100 * mismatch / total:.2f}%)"
         )
         print(f"         {rep.message}")

@@ -133,7 +133,8 @@ def test_true_hypothesis_cost_is_chi_square_with_two_degrees(paper):
 
 def test_noise_free_costs(paper):
     """Zero for the truth (up to table interpolation), and the separation map's values for the
-    wrong pole pairs at grid points (same function, same tables)."""
+    wrong pole pairs at grid points (same function, same tables; with the gain profile, each
+    position's own best common gain)."""
     _, truth, lut, dec = paper
     q = np.arange(0, dec.table_size, 7)
     y_cal = TWO_PI * q / dec.table_size
@@ -146,7 +147,7 @@ def test_noise_free_costs(paper):
     # between consecutive points are fine for the costs (each point is evaluated alone), but
     # the turn count is then not the physical one, so compare per point with its own offset
     for k in range(0, q.size, 37):
-        ek = dec.sample_costs(truth(y0[k : k + 1]))[0]
+        ek = dec.standstill_costs(truth(y0[k : k + 1]))[0]
         jk = true_offset(y0[k], f_init(truth(y0[k : k + 1]), 11)[0], 11)
         assert ek[jk] < 1e-12
         smap = ab.separation_map(dec)
@@ -174,7 +175,7 @@ def test_streaming_reference_matches_the_vectorized_decoder(paper):
     assert ident.lock_sample == res.lock_sample
     np.testing.assert_array_equal(best, res.best)
     stop = res.samples - 1
-    lam = np.cumsum(dec.sample_costs(d)[: stop + 1], axis=0)[-1]
+    lam = dec.cumulative_costs(d)[stop]
     np.testing.assert_allclose(ident.lam, lam - lam.min(), rtol=1e-9, atol=1e-9)
     assert ident.posterior == pytest.approx(res.posterior, rel=1e-12)
     assert res.offset == true_offset(y0[0], f_init(d[:1], 11)[0], 11)
@@ -264,7 +265,7 @@ def test_weak_bench_predicted_error_rate_matches_observed(weak):
         a = rng.uniform(0.0, TWO_PI)
         d = standstill(truth, a, max(Ks), sigma, rng)
         j = true_offset(a, f_init(d[:1], 7)[0], 7)
-        lam = np.cumsum(dec.sample_costs(d), axis=0)
+        lam = dec.cumulative_costs(d)
         for i, K in enumerate(Ks):
             wrong[i] += int(np.argmin(lam[K - 1])) != j
     obs = wrong / T

@@ -359,6 +359,8 @@ def test_artifact_without_analysis_emits_no_decoder(paper, tmp_path):
         ("identifiability.status", "maybe", "identifiability"),
         ("identifiability.pole_pairs", 7, "identifiability.pole_pairs"),
         ("identifiability.noise_std", -1.0, "identifiability.noise_std"),
+        ("identifiability.gain_sd", -0.05, "gain_sd"),
+        ("identifiability.lock_travel", float("nan"), "lock_travel"),
     ],
 )
 def test_malformed_analysis_is_refused(paper, tmp_path, key, value, named):
@@ -371,3 +373,124 @@ def test_malformed_analysis_is_refused(paper, tmp_path, key, value, named):
     with pytest.raises(HallcalInputError, match=named.replace(".", r"\.")):
         export_c(art, tmp_path, adc_scale=ADC_SCALE)
     assert not list(tmp_path.iterdir())
+
+
+# ------------------------------------------------------------------------------------------------
+# The common-gain profile (decoders whose analysis chose it: magnets nearly alike)
+# ------------------------------------------------------------------------------------------------
+
+DRIFT_STARTS = 60
+
+
+@pytest.fixture(scope="module")
+def alike(tmp_path_factory):
+    """5 pole pairs, magnets 1 % apart, 0.9 % noise (the defect of unseen cases 202 and 213 in
+    small: a common gain change of 0.34 % makes another magnet fit), exported with the
+    common-gain profile (the artifact's ``gain_sd``, as calibrate stores it when it chooses
+    the profile)."""
+    cfg = BenchConfig(pole_pairs=5, magnet_variation=0.01, noise_variance=8e-5)
+    art = bench_artifact(cfg)
+    art["identifiability"]["gain_sd"] = ab.DEFAULT_GAIN_SD
+    d = tmp_path_factory.mktemp("powerup_gain")
+    res = export_c(art, d, source="bench.json", adc_scale=ADC_SCALE)
+    exe = compile_driver(d, fixed=False, flags=["-O2"])
+    dec, lut = python_decoder(art)
+    assert dec.gain_sd == ab.DEFAULT_GAIN_SD
+    return {"cfg": cfg, "art": art, "dir": d, "res": res, "exe": exe, "dec": dec, "lut": lut}
+
+
+@pytest.mark.parametrize("gain", [1.0, 0.95, 1.05])
+def test_c_profiles_the_common_gain_like_python(alike, gain):
+    """60 power-ups (half at rest, half at 0.5-5 rad/s) with every signal times ``gain`` about
+    f_init's offsets: the C locks on the same pole pair at the same sample as PowerUpIdentifier
+    (or neither locks), and no lock is wrong; Lambda_j below 50 before the lock within 1e-2 of
+    Python's: as on the paper bench, float's 2^-24 of the radius per cost, a random walk, but
+    over up to 600 samples (sqrt(600) 1e-4 = 2.4e-3) and with the increment a difference of
+    two terms of up to the cost's size (the profiled part subtracted): 2 x 2.4e-3, and a factor
+    2 of room."""
+    dec = alike["dec"]
+    pu = PowerUps(alike["cfg"])
+    rng = np.random.default_rng(2031)
+    n = alike["cfg"].pole_pairs
+    locked = worst_lam = 0
+    for k in range(DRIFT_STARTS):
+        angle = rng.uniform(0.0, TWO_PI)
+        speed = 0.0 if k % 2 else float(rng.uniform(0.5, 5.0) * rng.choice([-1.0, 1.0]))
+        x = pu.run(angle, MOVING_SAMPLES, speed, seed=70_000 + k)
+        truth_j = int(np.round((angle - alike["lut"].f_init(x[:1])[0]) * n / TWO_PI)) % n
+        x = (dec.offset + gain * (x - dec.offset)).astype(np.float32)
+        words, lam_c = _c_lam(alike, x, MOVING_SAMPLES)
+        lock, j, _ = identify_python(dec, x.astype(np.float64))
+        ident_c = words[:, 2] >> 31
+        lock_c = int(np.argmax(ident_c)) if ident_c.any() else None
+        assert lock_c == lock, (k, lock_c, lock)
+        stop = MOVING_SAMPLES if lock is None else lock + 1
+        assert (words[stop - 1, 2] >> 16) & 0x7FFF == j
+        if lock is not None:
+            locked += 1
+            assert j == truth_j, (k, j, truth_j)  # no wrong lock
+        ref = _reference_lambda(dec, x.astype(np.float64)[:stop])
+        small = ref < 50.0
+        worst_lam = max(worst_lam, float(np.max(np.abs(lam_c[:stop] - ref)[small])))
+    print(f"gain {gain}: {locked}/{DRIFT_STARTS} locked, same sample and pole pair as Python; "
+          f"max |Lambda_C - Lambda_py| {worst_lam:.1e}")  # fmt: skip
+    assert locked >= DRIFT_STARTS // 2  # most lock within 600 samples (measured: see print)
+    assert worst_lam <= 1e-2
+
+
+def _reference_lambda(dec, x: np.ndarray) -> np.ndarray:
+    """PowerUpIdentifier's Lambda_j after each sample (relative to the best)."""
+    ident = ab.PowerUpIdentifier(dec)
+    out = np.empty((x.shape[0], dec.pole_pairs))
+    for i, row in enumerate(x.tolist()):
+        ident.update(*row)
+        out[i] = ident.lam
+    return out
+
+
+@pytest.fixture(scope="module")
+def alike_travel(alike, tmp_path_factory):
+    """The same motor as calibrate exports it: the profile and the lock after one electrical
+    revolution of motion (its drift robustness is below 1)."""
+    art = copy.deepcopy(alike["art"])
+    art["identifiability"]["lock_travel"] = ab.DEFAULT_LOCK_TRAVEL
+    d = tmp_path_factory.mktemp("powerup_travel")
+    res = export_c(art, d, source="bench.json", adc_scale=ADC_SCALE)
+    exe = compile_driver(d, fixed=False, flags=["-O2"])
+    dec, lut = python_decoder(art)
+    assert dec.lock_travel == ab.DEFAULT_LOCK_TRAVEL
+    return {**alike, "art": art, "dir": d, "res": res, "exe": exe, "dec": dec, "lut": lut}
+
+
+def test_c_waits_for_the_travel_like_python(alike_travel):
+    """20 power-ups of 2000 samples at 3-5 rad/s either way (one electrical revolution of the 5
+    pole pairs takes 1000-1700 samples) and 4 at rest, one sensor's offset +1 % of the
+    amplitude (a plausible drift): the C locks at the same sample and on the same pole pair
+    as PowerUpIdentifier, never before one electrical revolution, never on a wrong pole pair;
+    at rest neither locks."""
+    dec, lut = alike_travel["dec"], alike_travel["lut"]
+    pu = PowerUps(alike_travel["cfg"])
+    rng = np.random.default_rng(2032)
+    n, samples = 5, 2000
+    locked = 0
+    for k in range(24):
+        angle = rng.uniform(0.0, TWO_PI)
+        speed = 0.0 if k >= 20 else float(rng.uniform(3.0, 5.0) * rng.choice([-1.0, 1.0]))
+        x = pu.run(angle, samples, speed, seed=80_000 + k)
+        truth_j = int(np.round((angle - lut.f_init(x[:1])[0]) * n / TWO_PI)) % n
+        x = x.astype(np.float64) + np.array([0.0, 0.0, 0.01])
+        x = x.astype(np.float32)
+        words, _ = _c_lam(alike_travel, x, samples)
+        lock, j, _ = identify_python(dec, x.astype(np.float64))
+        ident_c = words[:, 2] >> 31
+        lock_c = int(np.argmax(ident_c)) if ident_c.any() else None
+        assert lock_c == lock, (k, lock_c, lock)
+        if speed == 0.0:
+            assert lock is None
+        elif lock is not None:
+            locked += 1
+            assert j == truth_j
+            y = lut.f_init(x[: lock + 1].astype(np.float64)) * n / TWO_PI  # electrical turns
+            assert np.ptp(y) >= 1.0
+    print(f"travel: {locked}/20 moving power-ups locked after one electrical revolution")
+    assert locked >= 15

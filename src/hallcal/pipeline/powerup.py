@@ -132,9 +132,11 @@ def drift_message(report: IdentifiabilityReport | None, *, warning: bool = False
 
     Said when the drift margin (:mod:`hallcal.sensor.drift_margin`) of a common gain change is
     below the one a plausible temperature swing produces (``DriftMargin.fragile``: 5 %, 40 K of
-    NdFeB remanence at -0.12 %/K). ``calibrate`` says it as a note (the table is not in
-    question, so the calibration's status stays what it is; the note qualifies the power-up
-    verdict), ``reconstruct --absolute`` as a warning (``warning=True``).
+    NdFeB remanence at -0.12 %/K): the decoder of an artifact made before the lock that waits
+    for motion on such motors (:func:`hallcal.sensor.absolute.analyze_calibration`; its verdict
+    says it instead). ``calibrate`` says it as a note (the table is not in question, so the
+    calibration's status stays what it is; the note qualifies the power-up verdict),
+    ``reconstruct --absolute`` as a warning (``warning=True``).
 
     Parameters
     ----------
@@ -256,7 +258,8 @@ class SignalCheck:
     scale : float
         The signals' common amplitude relative to the calibration's when it had to be divided
         out for them to fit (:func:`hallcal.sensor.misfit.common_scale`), else 1: harmless to
-        f_init and f_star, but the power-up decoder needs it to be 1.
+        f_init and f_star, and to the power-up decoder with the gain profile (the one without
+        it needs 1).
     """
 
     status: SignalStatus
@@ -361,7 +364,12 @@ def check_signals(
     # gain and another pole pair's magnet look alike)
     scale = common_scale(decoder, d)
     scaled = model_misfit(decoder, decoder.offset + (d - decoder.offset) / scale)
-    if scaled.status.success and _electrical_turns(decoder, d) >= 1.0:
+    # with its gain profile the power-up decoder divides the common gain out itself: the scaled
+    # signals are its view at any length (its own mismatch stays one)
+    profiled = decoder.gain_sd > 0.0
+    if scaled.status.success and (
+        (profiled and misfit is None) or (not profiled and _electrical_turns(decoder, d) >= 1.0)
+    ):
         if misfit is not None:  # the power-up decoder needs the calibrated amplitude
             return SignalCheck(
                 SignalStatus.MISMATCH,

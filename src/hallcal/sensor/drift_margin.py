@@ -48,6 +48,7 @@ from hallcal.sensor.misfit import MisfitTest
 __all__ = [
     "DEFAULT_SHARE",
     "PLAUSIBLE_GAIN_CHANGE",
+    "PLAUSIBLE_SENSOR_CHANGE",
     "DriftMargin",
     "drift_margin",
     "wrong_lock_share",
@@ -70,6 +71,11 @@ DEFAULT_SHARE = 0.1
 #: sensors' own sensitivity drift (datasheets: a few 0.01 %/K after compensation) adds to it.
 #: A margin below this is named by ``calibrate``.
 PLAUSIBLE_GAIN_CHANGE = 0.05
+
+#: One sensor's own sensitivity or offset change that is plausible without a fault [fraction]:
+#: about 1 % over 60 K measured (docs: DESIGN "Temperature"). A per-sensor margin below it
+#: makes :func:`hallcal.sensor.absolute.analyze_calibration` let the lock wait for motion.
+PLAUSIBLE_SENSOR_CHANGE = 0.01
 
 #: NdFeB remanence temperature coefficient [1/K] (magnitude), to state a margin in kelvin.
 REMANENCE_TEMPCO = 0.0012
@@ -108,7 +114,7 @@ class _Decoder(Protocol):  # what is used of hallcal.sensor.absolute.PowerUpDeco
     @property
     def misfit(self) -> MisfitTest: ...
 
-    def sample_costs(self, d: ArrayLike) -> NDArray[np.float64]: ...
+    def standstill_costs(self, d: ArrayLike) -> NDArray[np.float64]: ...
 
 
 @dataclass(frozen=True)
@@ -145,6 +151,19 @@ class DriftMargin:
     def fragile(self) -> bool:
         """Whether a plausible temperature change can make the lock go wrong."""
         return self.common_gain < self.plausible_gain
+
+    @property
+    def robustness(self) -> float:
+        """The smallest margin as a multiple of its plausible change (common gain against
+        ``plausible_gain``, one sensor's gain and offset against
+        :data:`PLAUSIBLE_SENSOR_CHANGE`): below 1, a plausible drift breaks the lock; inf when
+        no margin is within the search. Below 1 the calibration makes the lock wait for motion
+        (:func:`hallcal.sensor.absolute.analyze_calibration`)."""
+        return min(
+            self.common_gain / self.plausible_gain,
+            self.sensor_gain / PLAUSIBLE_SENSOR_CHANGE,
+            self.sensor_offset / PLAUSIBLE_SENSOR_CHANGE,
+        )
 
     @property
     def kelvin(self) -> float:
@@ -208,7 +227,9 @@ def _amplitudes(signals: NDArray, offset: NDArray) -> NDArray:
 def _wrong_lock(dec: _Decoder, d: NDArray, standstill_budget: int) -> NDArray[np.bool_]:
     """Per sample of ``d`` (consecutive runs around the revolution, each from table point 0),
     whether a wrong pole pair locks there (the two conditions of the module doc)."""
-    e = dec.sample_costs(d)  # column 0 the right pole pair (each run continuous from q = 0)
+    # column 0 the right pole pair (each run continuous from q = 0); with the decoder's gain
+    # profile, each position's own best common gain (what samples held there converge to)
+    e = dec.standstill_costs(d)
     if e.shape[1] < 2:
         return np.zeros(e.shape[0], dtype=bool)
     alpha = dec.error_target

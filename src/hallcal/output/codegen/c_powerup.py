@@ -131,7 +131,7 @@ ${gram_decls}    float f;
     uint32_t lo;
     uint32_t j;
     uint32_t best = 0u;
-${rsqrt_steps}
+${travel_update}${rsqrt_steps}
     c = a * y; /* cos and sin of the electrical angle */
     sn = b * y;
     rho = (r2 * y) * ${inv_sigma}; /* radius in sigmas */
@@ -151,15 +151,15 @@ ${gram_calc}
         const float zj = z0 + (f * dz);
         const float tr = dr * ${slope};    /* dR_j, dZ_j per electrical rad */
         const float tz = dz * ${slope};
-        const float ea = rho - rj;         /* residual r = ea u + eb n */
-        const float eb = zeta - zj;
+${gain_scale}        const float ea = ${ea};         /* residual r = ea u + eb n */
+        const float eb = ${eb};
         /* tangent t = dR u + R v + dZ n: <t, u>, <t, v>, <t, n> in the metric S */
 ${tangent_calc}
         float q = ${tt_c0} - (${tt_c1} * tt); /* 1/tt: seed on [${tt_lo}, ${tt_hi}], Newton */
         float cost;
 ${tt_steps}
         cost = rr - ((rt * rt) * q);
-        if (cost > ${cap}) {
+${gain_update}        if (cost > ${cap}) {
             cost = ${cap};
         }
         s->lam[j] = (s->samples != 0u) ? (s->lam[j] + cost) : cost; /* 0 + cost, exactly */
@@ -184,7 +184,7 @@ ${tt_steps}
     if (s->fit >= ${fit_hi}) {
         s->mismatch = 1u;
         s->locked = 0u;
-    } else if (s->fit <= ${fit_lo}) {
+    } else if ((s->fit <= ${fit_lo})${travel_cond}) {
         s->locked = hc_lock_rule(s->lam, best);
     } else {
         s->locked = 0u;
@@ -376,6 +376,59 @@ def _powerup_metric(pu: PowerUpFirmware) -> tuple[str, str, str, str]:
     return "\n".join(decls) + "\n", "\n".join(lines), tangent, note
 
 
+#: The common-gain profile's update in the per-hypothesis loop (module doc of
+#: :mod:`hallcal.sensor.absolute`, step 5 "with it"): inc is what the profiled cost grows by,
+#: a censored sample moves the gain with Huber's weight cap / inc.
+_GAIN_UPDATE = string.Template(
+    r"""        {
+            const float tp = (rj * tu) + (zj * tn); /* <t, p>, p = R_j u + Z_j n */
+            const float pr = ${pr} - ((tp * rt) * q);
+            const float pp = ${pp} - ((tp * tp) * q);
+            const float info = i0 + pp;
+            const float inc = cost - ((pr * pr) / info);
+            float u = 1.0f;
+            if (inc > ${cap}) {
+                u = ${cap} / inc;
+            }
+            s->info[j] = i0 + (u * pp);
+            s->gain[j] = sj + ((u * pr) / s->info[j]);
+            cost = inc;
+        }
+"""
+)
+
+
+def _gain_terms(pu: PowerUpFirmware) -> dict[str, str]:
+    """The substitutions of the per-hypothesis loop for the common-gain profile (none without
+    it: the residual at the calibrated gain, the decoder of artifacts made before it)."""
+    dec = pu.decoder
+    if dec is None or not dec.gain_sd > 0.0:
+        return {"gain_scale": "", "ea": "rho - rj", "eb": "zeta - zj", "gain_update": ""}
+    A, B, C = pu.gram_a, pu.gram_b, pu.gram_c
+    big = max(float(np.max(np.abs(A))), float(np.max(np.abs(B))), abs(C))
+    has_n = abs(B[0]) > 1e-12 * big or abs(B[1]) > 1e-12 * big
+    w = "Gram"
+    cnn = _cf(C, w)
+    if has_n:
+        pr = f"((rj * ((ea * guu) + (eb * gun))) + (zj * ((ea * gun) + (eb * {cnn}))))"
+        pp = f"((((rj * rj) * guu) + (((2.0f * rj) * zj) * gun)) + ((zj * zj) * {cnn}))"
+    else:
+        pr = f"((rj * (ea * guu)) + (zj * (eb * {cnn})))"
+        pp = f"(((rj * rj) * guu) + ((zj * zj) * {cnn}))"
+    first = "(s->samples != 0u)"
+    scale = (
+        f"        const float sj = {first} ? s->gain[j] : 1.0f; /* s_j, I_j (set at the first\n"
+        "                                                  * sample: no loop in init) */\n"
+        f"        const float i0 = {first} ? s->info[j] : {_cf(dec.gain_weight, 'gain prior')};\n"
+    )
+    return {
+        "gain_scale": scale,
+        "ea": "rho - (sj * rj)",
+        "eb": "zeta - (sj * zj)",
+        "gain_update": _GAIN_UPDATE.substitute(pr=pr, pp=pp, cap=_cf(pu.cost_cap, "cost cap")),
+    }
+
+
 def _fine_atan2(ctx: _Context) -> str:
     """``hc_angle_fine``: the lean atan2's octant reduction with more Newton steps and polynomial
     terms, for the decoder's table positions (within :data:`POWERUP_ATAN2_POLY`)."""
@@ -456,6 +509,8 @@ def _powerup_source(ctx: _Context, pu: PowerUpFirmware) -> str:
         fit_lo=_cf(-mis.fit_bound, "fit bound"),
         fit_hi_text=f"{mis.bound:.4g}",
         fit_lo_text=f"{mis.fit_bound:.4g}",
+        **_gain_terms(pu),
+        **_travel_terms(pu),
     )
     return source + _powerup_identify(ctx) + "\n"
 
@@ -490,6 +545,7 @@ def _powerup_hooks(ctx: _Context, pu: PowerUpFirmware) -> dict[str, str]:
             "    uint32_t best;     /* maximum-likelihood pole-pair offset j */\n"
             "    uint32_t samples;  /* samples of evidence so far (until identified) */\n"
             f"    float lam[{n}];    /* Lambda_j - min Lambda [noise sigma^2] */\n"
+            + _gain_members(pu, n)
         ),
         "init_decl": (
             f"/* Until the pole pair is identified, {pfx}_update hands each sample to this\n"
@@ -529,6 +585,55 @@ def _powerup_hooks(ctx: _Context, pu: PowerUpFirmware) -> dict[str, str]:
         ),
         "before_update": _powerup_source(ctx, pu),
         "update_dispatch": f"s->locked == 0u|{pfx}_identify_sample",
+    }
+
+
+def _gain_members(pu: PowerUpFirmware, n: int) -> str:
+    """State members of the common-gain profile and of the travel before the lock (none
+    without them)."""
+    dec = pu.decoder
+    out = ""
+    if dec is not None and dec.gain_sd > 0.0:
+        out += (
+            f"    float gain[{n}];   /* s_j: common gain of the signals under hypothesis j */\n"
+            f"    float info[{n}];   /* I_j: its information [1 / gain^2] */\n"
+        )
+    if dec is not None and dec.lock_travel > 0.0:
+        out += (
+            "    float pos;         /* f_init's electrical angle since power-up [turns] */\n"
+            "    float pmin;        /* its range so far: the lock waits for the travel */\n"
+            "    float pmax;\n"
+            "    uint32_t pprev;    /* the last sample's angle, Q0.32 turns */\n"
+        )
+    return out
+
+
+#: The travel of f_init's electrical angle since power-up (step 7: the lock waits for it).
+_TRAVEL_UPDATE = r"""    if (s->samples != 0u) { /* unwrapped from the steps, as f_init */
+        s->pos = s->pos + ((float)hc_s32(p - s->pprev) * 2.32830644e-10f);
+        if (s->pos > s->pmax) {
+            s->pmax = s->pos;
+        }
+        if (s->pos < s->pmin) {
+            s->pmin = s->pos;
+        }
+    } else {
+        s->pos = 0.0f;
+        s->pmin = 0.0f;
+        s->pmax = 0.0f;
+    }
+    s->pprev = p;
+"""
+
+
+def _travel_terms(pu: PowerUpFirmware) -> dict[str, str]:
+    """The travel's update and its part of the lock condition (none without it)."""
+    dec = pu.decoder
+    if dec is None or not dec.lock_travel > 0.0:
+        return {"travel_update": "", "travel_cond": ""}
+    return {
+        "travel_update": _TRAVEL_UPDATE,
+        "travel_cond": f" && ((s->pmax - s->pmin) >= {_cf(dec.lock_travel, 'lock travel')})",
     }
 
 
