@@ -278,6 +278,9 @@ def test_reconstruct_absolute_at_rest_does_not_lock_on_alike_magnets(alike):
     res = run("reconstruct", "cal.json", "pu.csv", "--absolute", "--out", "abs.csv", cwd=d)
     assert res.returncode == 0, res.stderr
     assert "identified after" not in res.stdout and "not certain" in res.stderr, res.stderr
+    # the remedy is motion, named, not "a weak position" (every position is weak here)
+    assert "waits for 1 electrical revolution of motion" in res.stderr, res.stderr
+    assert "weak position" not in res.stderr
 
 
 def test_reconstruct_absolute_after_a_common_gain_change(alike):

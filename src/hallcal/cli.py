@@ -660,7 +660,9 @@ def reconstruct(
     _out.print(f"wrote {out} ({len(rec)} samples)")
     _notes(rec.messages)
     if rec.identification is not None:
-        _print_identification(rec.identification, cal.pole_pairs)
+        report = cal.identifiability
+        travel = report.lock_travel if report is not None else 0.0
+        _print_identification(rec.identification, cal.pole_pairs, lock_travel=travel)
     _print_validation(rec.validation, units, cal.pole_pairs)
     if rec.observer is not None:
         _print_observer(rec, units, cal.pole_pairs)
@@ -749,22 +751,29 @@ def plan(artifact: str, revolutions: float, speeds: str | None, target: float) -
     _out.print(result.message)
 
 
-def _print_identification(ident, pole_pairs: int) -> None:
-    """One line: which pole pair the recording started in, and how certain that is."""
+def _print_identification(ident, pole_pairs: int, *, lock_travel: float = 0.0) -> None:
+    """One line: which pole pair the recording started in, and how certain that is (with
+    ``lock_travel`` > 0 the calibration's lock waits for that many electrical revolutions)."""
     where = f"pole pair offset {ident.offset} of {pole_pairs}"
     if ident.status.success:
         _out.print(
             f"{where}: identified after {ident.lock_sample + 1} samples "
             f"(posterior {ident.posterior:.6f}, margin {ident.margin:.1f} sigma)"
         )
-    else:
-        warning = Message.warning(
-            MessageCode.POWERUP,
-            f"{where} is the most likely one but not certain after all "
-            f"{ident.samples} samples (posterior {ident.posterior:.3f}); the rotor stood at a "
-            "weak position: move it, or record longer",
-        )
-        _err.print(warning.line())
+        return
+    why = (
+        f"this motor's lock waits for {lock_travel:g} electrical revolution"
+        f"{'' if lock_travel == 1 else 's'} of motion (at rest a sensor's drift since calibration "
+        "would mimic another pole pair): turn the rotor that far"
+        if lock_travel > 0.0
+        else "the rotor stood at a weak position: move it, or record longer"
+    )
+    warning = Message.warning(
+        MessageCode.POWERUP,
+        f"{where} is the most likely one but not certain after all {ident.samples} samples "
+        f"(posterior {ident.posterior:.3f}); {why}",
+    )
+    _err.print(warning.line())
 
 
 @cli.command(
