@@ -12,9 +12,9 @@ from typing import Any
 #
 # One BLAS thread: on the 2 cores that the suite keeps busy with two processes, OpenBLAS's second
 # thread only spins while it waits for work; measured under load (tests/test_bench.py 9.1 s of
-# CPU with two threads against 2.6 s with one, test_misfit.py 13.1 against 4.9 s). The solver
-# already runs its BLAS at one thread (threadpool_limits in hallcal.fit) for the same reason; the
-# results do not depend on it. A value set by the caller is kept.
+# CPU with two threads against 2.6 s with one, test_misfit.py 13.1 against 4.9 s). The solver's
+# passes run their BLAS at one thread already (threadpool_limits in hallcal.fit, for the same
+# reason). A value set by the caller is kept.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 # Bytecode: with PYTHONDONTWRITEBYTECODE each of the suite's ~300 interpreters compiles hallcal's
 # sources (and pytest rewrites every test module) again, ~0.1 s per CLI command and ~2.6 s per
