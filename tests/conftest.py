@@ -1,4 +1,5 @@
-"""Shared test settings: deterministic hypothesis profile and small bench fixtures."""
+"""Shared test settings: the processes' environment (one BLAS thread, bytecode kept), a
+deterministic hypothesis profile, small bench fixtures and the parallel scheduler."""
 
 from __future__ import annotations
 
