@@ -484,10 +484,41 @@ def _traced_pcs(b: Build, ranges: dict, samples: np.ndarray, block: int, timeout
     log.unlink(missing_ok=True)
     dfilter = ",".join(f"0x{a:x}+0x{s:x}" for a, s in ranges.values())
     _qemu(b, ["-singlestep", "-d", "exec,nochain", "-dfilter", dfilter, "-D", str(log)], timeout)
-    pcs = [int(m.group(1), 16) for m in re.finditer(r"/([0-9a-f]{8})/[0-9a-f]{8}/[0-9a-f]{8}\]",
-                                                    log.read_text())]  # fmt: skip
+    pcs = [int(h, 16) for h in re.findall(r"/([0-9a-f]{8})/[0-9a-f]{8}/[0-9a-f]{8}\]",
+                                          log.read_text())]  # fmt: skip
     log.unlink(missing_ok=True)
     return pcs
+
+
+#: Kinds of instruction for :func:`trace`'s cycle estimate (:func:`_decode`).
+_BRANCH, _LOAD_STORE, _FIXED, _UNKNOWN = range(4)
+
+
+def _decode(instruction: tuple[str, str, int]) -> tuple:
+    """What :func:`trace` needs of one instruction ``(mnemonic, operands, size)``, once per
+    address: ``(base, kind, cycles, base register, destination of an integer load or None,
+    size, mnemonic, operands)``. The cycles are those of the instruction alone: a branch's
+    depend on whether it was taken, and a load or store not of the always-one-cycle form
+    ``STR Rx, [Ry, #imm]`` costs 1 instead of 2 when pipelined with the previous load: the
+    trace decides those."""
+    mn, ops, size = instruction
+    base = _fp_base(mn.lower().split(".")[0]) if mn.startswith("v") else _base(mn)
+    load_dest = ops.split(",")[0].strip() if base in _INT_LOADS else None
+    base_reg = ""
+    if base in _BRANCHES:
+        kind, cost = _BRANCH, 1
+    elif base in _MULTI:
+        kind, cost = _FIXED, 1 + _register_count(ops) + (2 if "pc" in ops else 0)
+    elif base in _INT_LOADS or base in _INT_STORES:
+        kind, cost = _LOAD_STORE, 2
+        base_reg = ops.split("[", 1)[1].split(",")[0].split("]")[0].strip() if "[" in ops else ""
+        if base in _INT_STORES and re.search(r"\[\w+(, #-?\d+)?\]$", ops.strip()):
+            kind, cost = _FIXED, 1  # STR Rx, [Ry, #imm] is always one cycle
+    elif base in M4_CYCLES:
+        kind, cost = _FIXED, M4_CYCLES[base]
+    else:
+        kind, cost = _UNKNOWN, 1
+    return base, kind, cost, base_reg, load_dest, size, mn, ops
 
 
 def trace(b: Build, samples: np.ndarray, *, entry: str | None = None,
@@ -509,6 +540,7 @@ def trace(b: Build, samples: np.ndarray, *, entry: str | None = None,
     mnem: Counter = Counter()
     unknown: Counter = Counter()
     per_pc: dict[int, list] = {}
+    decoded: dict[int, tuple] = {}  # pc -> what does not depend on the run (_decode)
     prev_load: str | None = None  # destination register of the previous integer load
     n = c = 0
     started = False
@@ -520,33 +552,25 @@ def trace(b: Build, samples: np.ndarray, *, entry: str | None = None,
             started, n, c = True, 0, 0
         if not started:
             continue
-        mn, ops, size = dis.get(pc, ("?", "", 2))
-        base = _fp_base(mn.lower().split(".")[0]) if mn.startswith("v") else _base(mn)
-        nxt = pcs[k + 1] if k + 1 < len(pcs) else None
-        taken = nxt is not None and nxt != pc + size
+        d = decoded.get(pc)
+        if d is None:
+            d = decoded[pc] = _decode(dis.get(pc, ("?", "", 2)))
+        base, kind, cost, base_reg, load_dest = d[0], d[1], d[2], d[3], d[4]
         n += 1
         mnem[base] += 1
-        if base in _BRANCHES:
-            cost = 3 if taken else 1
-        elif base in _MULTI:
-            cost = 1 + _register_count(ops) + (2 if "pc" in ops else 0)
-        elif base in _INT_LOADS or base in _INT_STORES:
-            cost = 2
-            base_reg = (
-                ops.split("[", 1)[1].split(",")[0].split("]")[0].strip() if "[" in ops else ""
-            )
-            if base in _INT_STORES and re.search(r"\[\w+(, #-?\d+)?\]$", ops.strip()):
-                cost = 1  # STR Rx, [Ry, #imm] is always one cycle
-            elif prev_load is not None and base_reg != prev_load and base_reg != "pc":
+        if kind == _BRANCH:
+            nxt = pcs[k + 1] if k + 1 < len(pcs) else None
+            cost = 3 if nxt is not None and nxt != pc + d[5] else 1  # taken: 3
+        elif kind == _LOAD_STORE:
+            if prev_load is not None and base_reg != prev_load and base_reg != "pc":
                 cost = 1  # pipelined with the previous load
-        elif base in M4_CYCLES:
-            cost = M4_CYCLES[base]
-        else:
+        elif kind == _UNKNOWN:
             unknown[base] += 1
-            cost = 1
         c += cost
-        prev_load = ops.split(",")[0].strip() if base in _INT_LOADS else None
-        rec = per_pc.setdefault(pc, [0, 0, mn, ops])
+        prev_load = load_dest
+        rec = per_pc.get(pc)
+        if rec is None:
+            rec = per_pc[pc] = [0, 0, d[6], d[7]]
         rec[0] += 1
         rec[1] += cost
     if started:

@@ -1,12 +1,38 @@
-"""Shared test settings: deterministic hypothesis profile and small bench fixtures."""
+"""Shared test settings: the processes' environment (one BLAS thread, bytecode kept), a
+deterministic hypothesis profile, small bench fixtures and the parallel scheduler."""
 
 from __future__ import annotations
 
 import os
+import sys
 from typing import Any
 
-import pytest
-from hypothesis import HealthCheck, settings
+# The suite's processes (xdist workers, the hostile and fuzz children, the CLI subprocesses, Dask
+# workers) inherit this environment from here: it is set before any of them starts and before
+# this process loads numpy.
+#
+# One BLAS thread: on the 2 cores that the suite keeps busy with two processes, OpenBLAS's second
+# thread only spins while it waits for work; measured under load (tests/test_bench.py 9.1 s of
+# CPU with two threads against 2.6 s with one, test_misfit.py 13.1 against 4.9 s). The solver's
+# passes run their BLAS at one thread already (threadpool_limits in hallcal.fit, for the same
+# reason). A value set by the caller is kept.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# Bytecode: with PYTHONDONTWRITEBYTECODE each of the suite's ~300 interpreters compiles hallcal's
+# sources (and pytest rewrites every test module) again, ~0.1 s per CLI command and ~2.6 s per
+# xdist worker. Written to the __pycache__ folders beside the sources (ignored by git), where
+# numba keeps its compiled kernels already.
+os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+sys.dont_write_bytecode = False
+
+import numpy  # noqa: E402,F401 - loaded here, under the limit set above
+import pytest  # noqa: E402
+import scipy.linalg  # noqa: E402,F401 - scipy's own OpenBLAS, loaded under the limit too
+from hypothesis import HealthCheck, settings  # noqa: E402
+from threadpoolctl import threadpool_limits  # noqa: E402
+
+# numpy or scipy loaded before this file (a plugin) kept its threads: limit them now as well
+if os.environ["OPENBLAS_NUM_THREADS"] == "1":
+    threadpool_limits(limits=1, user_api="blas")
 
 settings.register_profile(
     "hallcal",
