@@ -391,12 +391,18 @@ def alike(tmp_path_factory):
     cfg = BenchConfig(pole_pairs=5, magnet_variation=0.01, noise_variance=8e-5)
     art = bench_artifact(cfg)
     art["identifiability"]["gain_sd"] = ab.DEFAULT_GAIN_SD
-    d = tmp_path_factory.mktemp("powerup_gain")
+    built = _exported(art, tmp_path_factory.mktemp("powerup_gain"))
+    assert built["dec"].gain_sd == ab.DEFAULT_GAIN_SD
+    return {"cfg": cfg, **built}
+
+
+def _exported(art: dict, d) -> dict:  # noqa: ANN001
+    """The artifact's C decoder exported to ``d`` and compiled (float, -O2), and its Python
+    decoder: what the drift tests compare."""
     res = export_c(art, d, source="bench.json", adc_scale=ADC_SCALE)
     exe = compile_driver(d, fixed=False, flags=["-O2"])
     dec, lut = python_decoder(art)
-    assert dec.gain_sd == ab.DEFAULT_GAIN_SD
-    return {"cfg": cfg, "art": art, "dir": d, "res": res, "exe": exe, "dec": dec, "lut": lut}
+    return {"art": art, "dir": d, "res": res, "exe": exe, "dec": dec, "lut": lut}
 
 
 @pytest.mark.parametrize("gain", [1.0, 0.95, 1.05])
@@ -454,12 +460,9 @@ def alike_travel(alike, tmp_path_factory):
     revolution of motion (its drift robustness is below 1)."""
     art = copy.deepcopy(alike["art"])
     art["identifiability"]["lock_travel"] = ab.DEFAULT_LOCK_TRAVEL
-    d = tmp_path_factory.mktemp("powerup_travel")
-    res = export_c(art, d, source="bench.json", adc_scale=ADC_SCALE)
-    exe = compile_driver(d, fixed=False, flags=["-O2"])
-    dec, lut = python_decoder(art)
-    assert dec.lock_travel == ab.DEFAULT_LOCK_TRAVEL
-    return {**alike, "art": art, "dir": d, "res": res, "exe": exe, "dec": dec, "lut": lut}
+    built = _exported(art, tmp_path_factory.mktemp("powerup_travel"))
+    assert built["dec"].lock_travel == ab.DEFAULT_LOCK_TRAVEL
+    return {**alike, **built}
 
 
 def test_c_waits_for_the_travel_like_python(alike_travel):
