@@ -143,6 +143,10 @@ def test_write_errors_of_the_system_are_one_line(tmp_path: Path, monkeypatch) ->
         assert str(info.value) == f"{tmp_path / 'o.json'}: cannot write ({os.strerror(code)})"
 
 
+def _default_interrupt() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _interrupt_when(args: list[str], cwd: Path, ready, *, group: bool = False):  # noqa: ANN001
     """Run ``hallcal ARGS``; send SIGINT (to its process group with `group`, as a terminal's
     Ctrl-C does) once ``ready(stderr_so_far)`` is true (polled every 0.02 s).
@@ -161,6 +165,9 @@ def _interrupt_when(args: list[str], cwd: Path, ready, *, group: bool = False): 
                 stdout=subprocess.DEVNULL,
                 stderr=sink,
                 start_new_session=group,
+                # a terminal's command: SIGINT at its default, whatever the test process inherited
+                # (the suite's workers can run with it ignored: then every child ignored it too)
+                preexec_fn=_default_interrupt,
             )
             for _ in range(6000):  # at most 120 s
                 if proc.poll() is not None or ready(err.read_text()):
