@@ -171,6 +171,7 @@ def observer_motion() -> None:
         "accel 1e3 rad/s^2 to 300 rad/s": lambda t: np.minimum(1e3 * t, 300.0),
         "accel 1e4 rad/s^2, +-": lambda t: 200.0 * np.sin(TWO_PI * 8.0 * t),
         "accel 4e4 rad/s^2, +-": lambda t: 400.0 * np.sin(TWO_PI * 16.0 * t),
+        "accel 1e5 rad/s^2, +-": lambda t: 600.0 * np.sin(TWO_PI * 26.5 * t),
     }
     for i, (name, v) in enumerate(cases.items()):
         y0, _ = speed_profile(v, N)
