@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +43,29 @@ def ringjig_case(folder: Path) -> tuple[dict, np.ndarray] | None:
     cal = hallcal.calibrate({f"d{h + 1}": d[:, h] for h in range(3)}, setup)
     cal.save(folder / "ringjig1.json")
     return read_artifact(folder / "ringjig1.json"), d
+
+
+def run_rows(run: Callable[[int], dict], seeds: list[int], jobs: int,
+             line: Callable[[dict], str], lines: list[str]) -> list[dict]:  # fmt: skip
+    """Each seed's row by ``run`` (in a pool of ``jobs`` processes when jobs > 1, in seed order),
+    its formatted ``line`` appended to ``lines`` and printed as it comes."""
+    rows: list[dict] = []
+
+    def take(r: dict) -> None:
+        rows.append(r)
+        lines.append(line(r))
+        print(lines[-1], flush=True)
+
+    if jobs > 1:
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(jobs) as pool:
+            for r in pool.map(run, seeds):
+                take(r)
+    else:
+        for s in seeds:
+            take(run(s))
+    return rows
 
 
 def finish_report(lines: list[str], out: Path | None) -> int:

@@ -93,6 +93,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_bla import _multisine  # noqa: E402
+from bench_support import run_rows  # noqa: E402
 
 from hallcal import pipeline  # noqa: E402
 from hallcal.errors import HallcalError  # noqa: E402
@@ -416,20 +417,7 @@ def main() -> None:
         f"{'init/fl':>8} {'pred/fl':>8} {'act/pred':>8} {'off/fl':>6} {'sec':>6}  model",
     ]
     print("\n".join(lines), flush=True)
-    rows = []
-    if args.jobs > 1:
-        from concurrent.futures import ProcessPoolExecutor
-
-        with ProcessPoolExecutor(args.jobs) as pool:
-            for r in pool.map(run_case, seeds):
-                rows.append(r)
-                lines.append(_line(r))
-                print(lines[-1], flush=True)
-    else:
-        for s in seeds:
-            rows.append(run_case(s))
-            lines.append(_line(rows[-1]))
-            print(lines[-1], flush=True)
+    rows = run_rows(run_case, seeds, args.jobs, _line, lines)
     tail = summary(rows)
     for r in rows[: args.repeat]:
         again = run_case(r["seed"])

@@ -43,12 +43,14 @@ Run ``nice python benchmarks/bench_zoo.py [--motors 30] [--out benchmarks/bench_
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import os
 import time
 from dataclasses import replace
 
 import numpy as np
+from bench_support import run_rows
 
 from hallcal import pipeline
 from hallcal.io import Dataset, ModelSpec, Setup
@@ -348,20 +350,9 @@ def main() -> None:
         f"{'off/fl':>6} {'efl':>5} {'white':>7} {'batch':>7} {'upper':>6} {'B':>3} {'p':>4}  model",
     ]
     print("\n".join(lines), flush=True)
-    rows = []
-    if args.jobs > 1:
-        from concurrent.futures import ProcessPoolExecutor
-
-        with ProcessPoolExecutor(args.jobs) as pool:
-            for r in pool.map(run_motor, seeds):  # in seed order
-                rows.append(r)
-                lines.append(_line(r))
-                print(lines[-1], flush=True)
-    else:
-        for seed in seeds:
-            rows.append(run_motor(seed, args.verbose))
-            lines.append(_line(rows[-1]))
-            print(lines[-1], flush=True)
+    # verbose only in this process (the pool's workers print nothing of their own)
+    run = functools.partial(run_motor, verbose=args.verbose and args.jobs <= 1)
+    rows = run_rows(run, seeds, args.jobs, _line, lines)
     tail = summary(rows) + [f"load average at end {os.getloadavg()[0]:.1f}"]
     print("\n".join(tail))
     if args.out:
