@@ -192,7 +192,8 @@ def test_the_refusal_names_the_motion_and_the_remedy():
         "correction into directions the run determines poorly (counted in the predicted error)"
     )
     v = decide(bijective=True, predicted=0.1085, floor=1.73e-4, correction_rms=0.1077,
-               adequacy="warning", adequacy_message="warning: x", limit=limit)  # fmt: skip
+               adequacy="warning", adequacy_message="warning: x", limit=limit,
+               motion_bias=0.106)  # fmt: skip
     assert v.status is CalibrationStatus.INADEQUATE
     assert "as the model sees it" in v.refusal and "steady load" in v.refusal
     # without motion the message is the plain one

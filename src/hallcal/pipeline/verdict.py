@@ -140,6 +140,7 @@ def decide(
     min_slope: float = math.nan,
     predicted_upper: float = math.nan,
     limit: str = "",
+    motion_bias: float = 0.0,
 ) -> Verdict:
     """The status of a calibration (see the module docstring for the policy).
 
@@ -168,12 +169,18 @@ def decide(
         What carries the table's predicted variance (one phrase,
         :func:`hallcal.fit.adequacy.error_sources`), named in a refusal for a poorly determined
         table.
+    motion_bias : float, keyword-only
+        The part of the correction unmodelled motion may have put in poorly determined
+        directions, counted in ``predicted`` [rad RMS] (:func:`hallcal.fit.adequacy.motion_bias`;
+        0: none): a refusal then says f_init's error is the model's view and names a steady
+        load as a remedy.
 
     Returns
     -------
     Verdict
     """
     mrad = 1e3
+    motion = motion_bias > 0.0
     if not bijective:
         return Verdict(
             CalibrationStatus.NOT_BIJECTIVE,
@@ -204,7 +211,7 @@ def decide(
             f"f_star may be worse than f_init: predicted {mrad * predicted:.3g} mrad RMS against "
             f"{mrad * init:.3g} mrad for f_init"
             # with unmodelled motion the correction, so f_init's error, is the model's view
-            + (" as the model sees it" if "unmodelled motion" in limit else "")
+            + (" as the model sees it" if motion else "")
             + f" (noise floor {mrad * floor:.3g} mrad); the "
             f"table's own error {mrad * own:.3g} mrad"
             + (f" (one run's up to {mrad * own_up:.3g} mrad, 95 %)" if own_up > own else "")
@@ -214,7 +221,7 @@ def decide(
             + (f"{limit}; " if limit else "")
             + (
                 "a run under a steady load, a longer or a faster ramp helps"
-                if "unmodelled motion" in limit
+                if motion
                 else "a longer or faster ramp helps"
             )
             + (", or fewer harmonics" if "harmonic" in limit else "")
