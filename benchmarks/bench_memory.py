@@ -54,7 +54,7 @@ STEPS = [
     ("hallcal.pipeline.closed_loop", "_with_cogging", "cogging"),
     ("hallcal.pipeline.closed_loop", "assess", "model adequacy"),
     ("hallcal.pipeline.closed_loop", "build_lut", "lookup table"),
-    ("hallcal.pipeline.closed_loop", "_motion_bias", "motion bias (warning only)"),
+    ("hallcal.pipeline.closed_loop", "_unmodelled_cogging_bias", "cogging bias (warning only)"),
     ("hallcal.pipeline.closed_loop", "power_up_analysis", "power-up identifiability"),
     ("hallcal.sensor.absolute", "estimate_normal_noise", "noise across the curve"),
     ("hallcal.sensor.absolute", "build_decoder", "decoder tables"),

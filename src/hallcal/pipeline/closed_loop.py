@@ -410,7 +410,7 @@ def _ramp_advice(
     )
 
 
-def _motion_bias(
+def _unmodelled_cogging_bias(
     loop: ClosedLoop, s: _Signals, setup: Setup, fit: _ModelFit, lut: LUT
 ) -> tuple[float, Message | None]:
     """How far unmodelled cogging may have moved the table, when cogging is not modelled.
@@ -627,7 +627,7 @@ def calibrate_closed_loop(
         upper = math.hypot(upper, 1.96 * refinement.bias)
         messages.append(refinement.message)
     if lut.bijective and adequacy.verdict == "warning":
-        bias, note = _motion_bias(loop, s, setup, fit, lut)
+        bias, note = _unmodelled_cogging_bias(loop, s, setup, fit, lut)
         predicted, upper = math.hypot(predicted, bias), math.hypot(upper, bias)
         if note is not None:
             messages.append(note)
