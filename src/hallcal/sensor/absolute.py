@@ -650,43 +650,66 @@ def _profiled_lambda(dec: PowerUpDecoder, d: NDArray, *, stop: bool) -> NDArray[
     lam = np.zeros(n)
     out = np.empty((K, n))
     cap = dec.cost_cap
+    used, span = np.cumsum(F["valid"]), _span(F)  # step 7's inputs, every prefix at once
     for k in range(K):
         if F["valid"][k]:
             gram = (g["guu"][k], g["gvv"][k], g["guv"][k], g["gun"][k], g["gvn"][k], dec.gram_c)
             a = F["rho"][k] - scale * Rj[k]
             b = F["zeta"][k] - scale * Zj[k]
             e, pr, pp = gain_terms(a, b, Rj[k], Zj[k], dR[k], dZ[k], gram)
-            inc = e - pr * pr / (info + pp)
-            weight = np.where(inc <= cap, 1.0, cap / np.where(inc > cap, inc, 1.0))
-            info = info + weight * pp
-            scale = scale + weight * pr / info
-            lam = lam + np.minimum(inc, cap)
+            add, info, scale = _profile_step(e, pr, pp, info, scale, cap)
+            lam = lam + add
         out[k] = lam
-        if stop and (k + 1) % _LAMBDA_BLOCK == 0 and _decided(dec, out[: k + 1], F["valid"], d):
-            return out[: k + 1]
+        if stop and (k + 1) % _LAMBDA_BLOCK == 0:
+            rows = k + 1
+            rule = _lock_rule(dec, out[:rows], used[:rows], span[:rows])
+            if np.any(rule.mismatch) or np.any(rule.lock):
+                return out[:rows]
     return out
 
 
-def _span(dec: PowerUpDecoder, d: NDArray) -> NDArray[np.float64]:
-    """Per sample, the range of f_init's electrical angle ``psi + 2 pi m`` over the samples of
-    evidence so far [rad, electrical] (step 7's travel)."""
-    F = dec.features(d)
+def _profile_step(e: _Num, pr: _Num, pp: _Num, info: _Num, scale: _Num, cap: float) -> tuple:
+    """Step 5 with the gain profile, one sample (numbers, or arrays over the hypotheses): the
+    increment of Lambda (censored at ``cap``) and the new information I and scale s; a censored
+    sample moves s with Huber's bounded weight ``cap / inc`` (module doc, "Common gain")."""
+    inc = e - pr * pr / (info + pp)
+    weight = cap / np.maximum(inc, cap)
+    info = info + weight * pp
+    return np.minimum(inc, cap), info, scale + weight * pr / info
+
+
+def _span(F: dict[str, NDArray]) -> NDArray[np.float64]:
+    """Per sample of the features ``F``, the range of f_init's electrical angle
+    ``psi + 2 pi m`` over the samples of evidence so far [rad, electrical] (step 7's travel)."""
     y = np.where(F["valid"], F["psi"] + TWO_PI * F["m"], np.nan)
     with np.errstate(invalid="ignore"):
         span = np.fmax.accumulate(y) - np.fmin.accumulate(y)
     return np.where(np.isnan(span), -1.0, span)
 
 
-def _decided(dec: PowerUpDecoder, lam: NDArray, valid: NDArray, d: NDArray) -> bool:
-    """Whether the lock rule or the mismatch has been reached within these rows."""
-    rows = lam.shape[0]
-    total = np.min(lam, axis=1)
-    D = dec.misfit.statistic(total, np.cumsum(valid[:rows]))
-    W = np.sum(np.exp(-0.5 * (lam - total[:, None])), axis=1) - 1.0
+@dataclass(frozen=True)
+class _Rule:
+    """Steps 6 and 7 on cumulative costs, per row: the best hypothesis's cost, the costs
+    relative to it, the misfit statistic D, and where the mismatch and the lock rule hold."""
+
+    total: NDArray[np.float64]
+    relative: NDArray[np.float64]
+    D: NDArray[np.float64]
+    mismatch: NDArray[np.bool_]
+    lock: NDArray[np.bool_]
+
+
+def _lock_rule(dec: PowerUpDecoder, lam: NDArray, used: NDArray, span: NDArray) -> _Rule:
+    """Steps 6 and 7 on cumulative costs ``lam`` (K, n), with the samples of evidence ``used``
+    and f_init's electrical travel ``span`` per row (:func:`_span`)."""
+    total = np.min(lam, axis=1)  # the best hypothesis's whole cost (sum of the Lmin, step 6)
+    D = dec.misfit.statistic(total, used)
+    relative = lam - total[:, None]
+    W = np.sum(np.exp(-0.5 * relative), axis=1) - 1.0  # the best contributes exp(0) = 1
     lock = (W <= dec.lock_threshold) & (D <= -dec.misfit.fit_bound)
-    if dec.lock_travel > 0.0:
-        lock &= _span(dec, d[:rows]) >= TWO_PI * dec.lock_travel
-    return bool(np.any(D >= dec.misfit.bound) or np.any(lock))
+    if dec.lock_travel > 0.0:  # and f_init's angle has spanned lock_travel turns
+        lock &= span >= TWO_PI * dec.lock_travel
+    return _Rule(total, relative, D, D >= dec.misfit.bound, lock)
 
 
 def _gram(
@@ -924,22 +947,18 @@ def _identify(dec: PowerUpDecoder, d: NDArray, *, lock: bool) -> PowerUpIdentifi
         raise ValueError("no samples")
     lam = dec.cumulative_costs(d, stop=lock)  # fewer rows only when decided within them
     rows = lam.shape[0]
-    total = np.min(lam, axis=1)  # the best hypothesis's whole cost (sum of the Lmin, step 6)
-    used = np.cumsum(dec.features(d)["valid"])[: lam.shape[0]]
-    D = dec.misfit.statistic(total, used)
-    lam -= total[:, None]
+    F = dec.features(d)
+    used = np.cumsum(F["valid"])[:rows]
+    rule = _lock_rule(dec, lam, used, _span(F)[:rows])
+    total, D, lam = rule.total, rule.D, rule.relative
     best = np.argmin(lam, axis=1)
-    W = np.sum(np.exp(-0.5 * lam), axis=1) - 1.0  # the best contributes exp(0) = 1
     lock_at = mismatch_at = None
     if lock:
-        bad = np.flatnonzero(D >= dec.misfit.bound)
+        bad = np.flatnonzero(rule.mismatch)
         if bad.size:
             mismatch_at = int(bad[0])
         limit = rows if mismatch_at is None else mismatch_at
-        fits = D[:limit] <= -dec.misfit.fit_bound
-        if dec.lock_travel > 0.0:  # and f_init's angle has spanned lock_travel turns
-            fits &= _span(dec, d[:limit]) >= TWO_PI * dec.lock_travel
-        hit = np.flatnonzero((W[:limit] <= dec.lock_threshold) & fits)
+        hit = np.flatnonzero(rule.lock[:limit])
         if hit.size:
             lock_at = int(hit[0])
             mismatch_at = None
@@ -1100,11 +1119,9 @@ class PowerUpIdentifier:
                 continue
             sj = self.scale[j]
             e, pr, pp = gain_terms(rho - sj * Rj, zeta - sj * Zj, Rj, Zj, dR, dZ, gram)
-            inc = e - pr * pr / (self.info[j] + pp)
-            weight = 1.0 if inc <= self._cap else self._cap / inc  # Huber: bounded influence
-            self.info[j] += weight * pp
-            self.scale[j] = sj + weight * pr / self.info[j]
-            self.lam[j] += min(inc, self._cap)
+            add, info, scale = _profile_step(e, pr, pp, self.info[j], sj, self._cap)
+            self.info[j], self.scale[j] = float(info), float(scale)
+            self.lam[j] += float(add)
         # 6. best, renormalize; the misfit statistic
         lmin = min(self.lam)
         self.best = self.lam.index(lmin)
