@@ -20,6 +20,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from hallcal import pipeline
+from hallcal.fit.adequacy import ErrorSource, ErrorSources
 from hallcal.io import Dataset, ModelSpec, Setup, write_dataset
 from hallcal.messages import MessageCode
 from hallcal.pipeline.calibration import CalibrationStatus
@@ -260,11 +261,61 @@ def test_error_sources_name_the_offset_and_the_harmonics_that_carry_the_variance
     G[:, 0] += 5.0
     C = np.zeros((3 * m, 3 * m))
     C[0, 0] = 1.0
-    assert "constant offset carries" in error_sources(G, C, harmonics)
+    offset = error_sources(G, C, harmonics)
+    assert "constant offset carries" in offset.text
+    assert ErrorSource.OFFSET in offset.kinds and offset.offset_share >= 0.25
     C = np.zeros((3 * m, 3 * m))
     for s in range(3):
         for c in (5, 6):  # sine and cosine of harmonic 3 in sensor s
             C[s * m + c, s * m + c] = 1.0
     G = rng.normal(size=(512, 3 * m))  # zero-mean columns: no offset
-    assert error_sources(G, C, harmonics) == "harmonic 3 carries 100 %"
-    assert error_sources(G, np.zeros_like(C), harmonics) == ""
+    third = error_sources(G, C, harmonics)
+    assert third.text == "harmonic 3 carries 100 %"
+    assert third.kinds == {ErrorSource.HARMONICS} and third.harmonics == (3,)
+    nothing = error_sources(G, np.zeros_like(C), harmonics)
+    assert nothing.text == "" and nothing.kinds == frozenset()
+
+
+def test_the_motion_bias_is_named_first_and_typed():
+    """The adequacy report's phrase (bench_unseen case 222's wording) from the typed sources."""
+    src = ErrorSources(offset_share=0.45, harmonics=(16, 17, 18), harmonics_share=0.8,
+                       motion_cost=2.15, motion_bias=0.106)  # fmt: skip
+    assert src.kinds == {ErrorSource.OFFSET, ErrorSource.HARMONICS, ErrorSource.MOTION}
+    assert src.text == (
+        "unmodelled motion (cost 2.15x the noise level) may have put 106 mrad RMS of the "
+        "correction into directions the run determines poorly (counted in the predicted error); "
+        "the table's constant offset carries 45 % of it; harmonics 16, 17, 18 carry 80 %"
+    )
+
+
+def test_fewer_harmonics_is_offered_on_the_type_not_on_the_wording():
+    """A refusal for a poorly determined table adds "fewer harmonics" to its remedies when the
+    adequacy check says harmonics carry the error (typed), whatever the phrase says."""
+    worse = dict(bijective=True, predicted=2e-3, floor=1e-4, correction_rms=1e-3)
+    typed = decide(**worse, limit="harmonics 16, 17 carry 80 %",
+                   limited_by=ErrorSources(harmonics=(16, 17), harmonics_share=0.8))  # fmt: skip
+    assert typed.status is CalibrationStatus.INADEQUATE
+    assert typed.refusal.endswith("(harmonics 16, 17 carry 80 %; a longer or faster ramp helps, "
+                                  "or fewer harmonics)")  # fmt: skip
+    # the word alone, without the type, offers nothing; the type alone offers it
+    wording = decide(**worse, limit="harmonics 16, 17 carry 80 %")
+    assert "fewer harmonics" not in wording.refusal
+    offset = decide(**worse, limit="the table's constant offset carries 60 % of it",
+                    limited_by=ErrorSources(offset_share=0.6))  # fmt: skip
+    assert "fewer harmonics" not in offset.refusal
+
+
+@given(
+    offset=st.sampled_from([0.0, 0.25, 0.6]),
+    harmonics=st.lists(st.integers(1, 99), max_size=3, unique=True).map(lambda h: tuple(sorted(h))),
+    bias=st.sampled_from([0.0, 1e-4, 0.1]),
+)
+def test_the_type_and_the_phrase_name_the_same_sources(offset, harmonics, bias):
+    """The remedies used to be chosen on the phrase ("harmonic" / "offset" in it): the typed
+    kinds say the same thing for every phrase, so the messages are unchanged."""
+    src = ErrorSources(offset_share=offset, harmonics=harmonics,
+                       harmonics_share=0.5 if harmonics else 0.0, motion_cost=2.0,
+                       motion_bias=bias)  # fmt: skip
+    assert ("harmonic" in src.text) == (ErrorSource.HARMONICS in src.kinds)
+    assert ("offset" in src.text) == (ErrorSource.OFFSET in src.kinds)
+    assert ("unmodelled motion" in src.text) == (ErrorSource.MOTION in src.kinds)

@@ -58,6 +58,7 @@ Thresholds (measured on the virtual bench, 104 000 samples, see the tests):
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 import statistics
@@ -69,6 +70,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
+from hallcal.fit.error_source import ErrorSource, ErrorSources
 from hallcal.fit.ramp_design import angle_noise_floor
 from hallcal.fit.sem import SEMResult, angle_error_gradient
 from hallcal.sensor.flux import FluxModel
@@ -80,6 +82,8 @@ __all__ = [
     "AdequacyStatus",
     "ContentStatus",
     "CurveProjection",
+    "ErrorSource",
+    "ErrorSources",
     "HarmonicContent",
     "NoiseEstimate",
     "NoiseStatus",
@@ -89,6 +93,7 @@ __all__ = [
     "curve_projection",
     "default_max_harmonic",
     "dominant_harmonics",
+    "error_sources",
     "estimate_noise_variance",
     "POORLY_DETERMINED",
     "motion_bias",
@@ -701,11 +706,15 @@ class AdequacyReport:
         [rad] (:func:`error_spread`): the predicted error is its expectation.
     error_sources : str
         What carries the predicted variance of the table (:func:`error_sources`), "" when
-        nothing stands out; first, with unmodelled motion, the bias it may carry.
+        nothing stands out; first, with unmodelled motion, the bias it may carry
+        (``ErrorSources.text`` of ``limited_by``).
     motion_bias : float
         With the cost above its warning level (unmodelled motion or shape): RMS [rad] of the
         correction in the directions the run determines poorly (:func:`motion_bias`), counted
         in ``predicted_error``; 0 otherwise.
+    limited_by : ErrorSources
+        The same, typed: what the remedy of a poorly determined table is chosen on
+        (:func:`hallcal.pipeline.verdict.decide`).
     """
 
     verdict: Verdict
@@ -740,6 +749,7 @@ class AdequacyReport:
     predicted_upper: float = math.nan
     error_sources: str = ""
     motion_bias: float = 0.0
+    limited_by: ErrorSources = field(default_factory=ErrorSources, repr=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "verdict", Verdict(self.verdict))
@@ -1106,7 +1116,7 @@ class _Table:
     floor: float
     predicted: float
     upper: float = math.nan
-    sources: str = ""
+    sources: ErrorSources = field(default_factory=ErrorSources)
     motion_bias: float = 0.0
 
 
@@ -1158,7 +1168,7 @@ def _table(
     lut = build_lut(sem.flux, n, points=points, projection=P, offset=o)
     eta = lut.eta  # about zero: f_init's error with its offset, as the prediction
     floor = angle_noise_floor(sem.flux, n, sigma2, projection=P, offset=o, points=lut.y0.size)
-    sources = ""
+    sources = ErrorSources()
     bias = 0.0
     try:
         G = angle_error_gradient(sem.flux, n, projection=P, offset=o)
@@ -1177,11 +1187,7 @@ def _table(
         # a bound, not a spread: added to the expectation; one run's quantile is at least that
         predicted = math.hypot(predicted, bias)
         upper = max(upper, predicted)
-        sources = (
-            f"unmodelled motion (cost {motion:.3g}x the noise level) may have put "
-            f"{1e3 * bias:.3g} mrad RMS of the correction into directions the run determines "
-            "poorly (counted in the predicted error)" + (f"; {sources}" if sources else "")
-        )
+        sources = dataclasses.replace(sources, motion_cost=motion, motion_bias=bias)
     return _Table(lut, float(np.sqrt(np.mean(eta**2))), floor, predicted, upper, sources, bias)
 
 
@@ -1248,8 +1254,8 @@ def motion_bias(G: NDArray, C: ArrayLike, eta: ArrayLike, *, floor: float) -> fl
 
 def error_sources(
     G: NDArray, C: ArrayLike, harmonics: tuple[int, ...], *, top: int = 3, fundamental: int = 0
-) -> str:
-    """What carries the table's predicted variance ``tr A``, ``A = G C G^T / M``: one phrase.
+) -> ErrorSources:
+    """What carries the table's predicted variance ``tr A``, ``A = G C G^T / M``.
 
     The table's constant offset takes ``mean(G) C mean(G)^T`` of it; each flux harmonic h takes
     ``tr(G_h C_h. G^T) / M`` over the columns of theta at h (its sine and cosine in the three
@@ -1272,36 +1278,31 @@ def error_sources(
 
     Returns
     -------
-    str
-        e.g. "the table's constant offset carries 45 % of it; harmonics 16, 17, 18 carry 80 %",
-        or "" when nothing stands out.
+    ErrorSources
+        Its ``text`` e.g. "the table's constant offset carries 45 % of it; harmonics 16, 17, 18
+        carry 80 %", or "" when nothing stands out (then its ``kinds`` are empty).
     """
     C = np.asarray(C, dtype=np.float64)
     M = G.shape[0]
     total = float(np.sum((G.T @ G) * C)) / M
     if not (math.isfinite(total) and total > 0):
-        return ""
+        return ErrorSources()
     gbar = G.mean(axis=0)
-    parts = []
     offset = float(gbar @ C @ gbar) / total
-    if offset >= 0.25:
-        parts.append(f"the table's constant offset carries {100 * offset:.0f} % of it")
+    offset = offset if offset >= 0.25 else 0.0
     m = 1 + 2 * len(harmonics)
     col = np.arange(G.shape[1]) % m
     owner = np.where(col == 0, 0, np.asarray((0, *harmonics))[(col + 1) // 2])
     per_column = np.sum((G.T @ G) * C, axis=1) / M / total
     share = {int(h): float(per_column[owner == h].sum()) for h in harmonics}
     ranked = [h for h in sorted(share, key=lambda h: -share[h])
-              if not (parts and h == fundamental)]  # fmt: skip
+              if not (offset > 0.0 and h == fundamental)]  # fmt: skip
     acc = 0.0
     for i, h in enumerate(ranked[:top]):
         acc += share[h]
         if acc >= 0.5:
-            named = ", ".join(str(v) for v in sorted(ranked[: i + 1]))
-            parts.append(f"harmonic{'s' if i else ''} {named} carr{'y' if i else 'ies'} "
-                         f"{100 * acc:.0f} %")  # fmt: skip
-            break
-    return "; ".join(parts)
+            return ErrorSources(offset, tuple(sorted(ranked[: i + 1])), acc)
+    return ErrorSources(offset)
 
 
 #: Probability of the upper quantile of one run's table error (:func:`error_spread`).
@@ -1526,7 +1527,7 @@ def _reasons(
         warns.append(
             f"the data determine the table poorly (the covariance of theta predicts "
             f"{tab.predicted / tab.floor:.2g}x the noise floor"
-            + (f"; {tab.sources}" if tab.sources else "")
+            + (f"; {tab.sources.text}" if tab.sources.text else "")
             + ")"
         )
         notes.append(
@@ -1668,8 +1669,9 @@ def _report(
         thresholds=lv.thresholds,
         status=AdequacyStatus.OK,
         predicted_upper=tab.upper,
-        error_sources=tab.sources,
+        error_sources=tab.sources.text,
         motion_bias=tab.motion_bias,
+        limited_by=tab.sources,
     )
 
 

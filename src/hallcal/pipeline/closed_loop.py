@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hallcal.errors import HallcalError, HallcalInputError
-from hallcal.fit.adequacy import AdequacyReport, assess
+from hallcal.fit.adequacy import AdequacyReport, ErrorSource, assess
 from hallcal.fit.cogging_search import CoggingSelection, CoggingStatus, select_cogging
 from hallcal.fit.ramp_design import plan_ramp, speed_limits
 from hallcal.fit.sem import SEMResult, SEMStatus, solve_sem
@@ -632,13 +632,18 @@ def calibrate_closed_loop(
         if note is not None:
             messages.append(note)
     limit = adequacy.error_sources
-    if cogging is not None and 0 in cogging.orders and "offset" in limit:
+    if (
+        cogging is not None
+        and 0 in cogging.orders
+        and ErrorSource.OFFSET in adequacy.limited_by.kinds
+    ):
         limit += ", which trades off with the constant load torque in the model (cogging 0)"
     verdict = decide(
         bijective=lut.bijective, predicted=predicted, floor=adequacy.noise_floor,
         correction_rms=adequacy.correction_rms, adequacy=str(adequacy.verdict),
         adequacy_message=adequacy.message, min_slope=lut.min_slope, predicted_upper=upper,
         limit=limit, motion_bias=adequacy.motion_bias, checks_passed=not has_warning(messages),
+        limited_by=adequacy.limited_by,
     )  # fmt: skip
     first = (verdict.status, verdict.refusal, verdict.leading)
     with numeric_errors("setup", "model"):

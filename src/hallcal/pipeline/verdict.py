@@ -59,8 +59,12 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from hallcal.messages import Message, MessageCode
+
+if TYPE_CHECKING:  # not at run time: applying a table (reconstruct) loads no hallcal.fit
+    from hallcal.fit.error_source import ErrorSources
 
 __all__ = [
     "OK_RATIO",
@@ -141,6 +145,7 @@ def decide(
     predicted_upper: float = math.nan,
     limit: str = "",
     motion_bias: float = 0.0,
+    limited_by: ErrorSources | None = None,
 ) -> Verdict:
     """The status of a calibration (see the module docstring for the policy).
 
@@ -174,6 +179,10 @@ def decide(
         directions, counted in ``predicted`` [rad RMS] (:func:`hallcal.fit.adequacy.motion_bias`;
         0: none): a refusal then says f_init's error is the model's view and names a steady
         load as a remedy.
+    limited_by : ErrorSources or None, keyword-only
+        What ``limit`` names, typed (:attr:`hallcal.fit.adequacy.AdequacyReport.limited_by`):
+        when harmonics carry the table's variance (its ``harmonics``), the refusal adds fewer
+        harmonics to the remedies. None: nothing named.
 
     Returns
     -------
@@ -181,6 +190,7 @@ def decide(
     """
     mrad = 1e3
     motion = motion_bias > 0.0
+    fewer_harmonics = limited_by is not None and bool(limited_by.harmonics)
     if not bijective:
         return Verdict(
             CalibrationStatus.NOT_BIJECTIVE,
@@ -224,7 +234,7 @@ def decide(
                 if motion
                 else "a longer or faster ramp helps"
             )
-            + (", or fewer harmonics" if "harmonic" in limit else "")
+            + (", or fewer harmonics" if fewer_harmonics else "")
             + ")",
             (),
         )
