@@ -85,6 +85,7 @@ from hallcal.fit.constant_speed import (
     estimate_sensor_geometry,
     find_constant_speed,
 )
+from hallcal.fit.held_out import held_out_error
 from hallcal.io import Dataset, setup_from_dict
 from hallcal.messages import MessageCode
 from hallcal.sensor.flux import FourierBasis
@@ -102,6 +103,7 @@ def _data_dir() -> Path:
 DATA_DIR = _data_dir()
 FILES = [DATA_DIR / f"hall_calibration_one_rotation_{i}.txt" for i in (1, 2, 3)]
 POLE_PAIRS = 25
+TWO_PI = 2.0 * math.pi
 CAL_REVOLUTIONS = 2.0
 
 
@@ -288,6 +290,40 @@ def test_ringjig_through_the_pipeline(results):
     art = cal.to_artifact()
     geo = art["diagnostics"]["constant_speed"]["geometry"]
     np.testing.assert_allclose(np.diff(geo["phases_deg"]), [101.0, 160.0], atol=2.0)
+
+
+def test_ringjig_prediction_follows_the_motion_of_the_revolutions_it_calibrates_on(results):
+    """Why the held-out prediction is about 2x the check on captures 1 and 2 (1.20 against
+    0.57 mrad on capture 1): not a bias of the predictor but the jig's motion, which is not
+    stationary. The prediction's held-out part is the rotor's departure from the straight line
+    on the calibration revolutions (capture 1: 78 % of the predicted mean square; the rest the
+    tables' absorbed motion, the floor 0.3 %), and the ring rings most in its first two
+    revolutions (the fit's motion off the line 1.03 mrad there, 0.57 on the last two).
+    Calibrating on the last two revolutions instead, the same predictor is optimistic about the
+    first ones: the ratio swaps sides of 1, and their geometric mean is 0.83 (measured: 0.48
+    and 1.44; over five two-revolution windows of each capture, 0.44-3.09, geometric mean 0.89).
+    """
+    r = results[1]
+    d, seg = r["d"], r["seg"]
+    per = int(round(TWO_PI / abs(seg.speed)))  # samples per revolution
+    harmonics = default_harmonics(POLE_PAIRS)
+    ratios, motion = [], []
+    for lo, hi in ((seg.start, seg.start + 2 * per), (seg.stop - 2 * per, seg.stop)):
+        res = calibrate_constant_speed(d, POLE_PAIRS, FourierBasis(harmonics), start=lo, stop=hi)
+        held = held_out_error(d, POLE_PAIRS, harmonics, start=lo, stop=hi, speed=res.b)
+        y = res.lut.f_star(d)
+        checked = np.concatenate(
+            [line_residual(y[a:b], np.arange(a, b)) for a, b in ((seg.start, lo), (hi, seg.stop))
+             if b - a > per // 2]
+        )  # fmt: skip
+        ratios.append(float(np.sqrt(np.mean(checked**2))) / held.predicted(res))
+        motion.append(res.motion_rms)
+    # the calm half is the one checked first, the ringing one second (1.03 against 0.57 mrad)
+    assert motion[0] > 1.5 * motion[1], motion
+    # 0.48 and 1.44 measured; the margins leave room for BLAS rounding in 150-column fits, far
+    # below the jig's own effect
+    assert ratios[0] < 0.6 and ratios[1] > 1.2, ratios
+    assert 0.67 <= math.sqrt(ratios[0] * ratios[1]) <= 1.5, ratios
 
 
 def test_ringjig_power_up_pole_pair(results):
