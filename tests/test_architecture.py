@@ -425,10 +425,6 @@ LARGE_MODULES: dict[str, str] = {
         "numeric core, not yet split: the power-up decoder's specification, the reference "
         "decoder and its identifiability analysis (the firmware mirrors it line by line)"
     ),
-    "hallcal.fit.adequacy": (
-        "numeric core, not yet split: the four adequacy diagnostics and the verdict that combines "
-        "them"
-    ),
 }
 
 #: Longest function of the output layer and the front [lines of code, its docstring not
