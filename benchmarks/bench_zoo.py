@@ -158,14 +158,15 @@ def draw_motor(seed: int) -> tuple[BenchConfig, float, float, str, float]:
     return cfg, end, duration, kind, fast
 
 
-def setup_for(cfg: BenchConfig) -> Setup:
-    """What a user would write: the true loop, the default model (auto harmonics and cogging)."""
+def setup_for(cfg: BenchConfig, *, cogging: str = "auto") -> Setup:
+    """What a user would write: the true loop, the default model (auto harmonics and cogging;
+    ``cogging`` overrides the latter for ``bench_zoo_noise.py``)."""
     return Setup(
         pole_pairs=cfg.pole_pairs,
         sample_time=cfg.sample_time,
         controller=cfg.controller,
         plant=cfg.plant,
-        model=ModelSpec(harmonics="auto"),
+        model=ModelSpec(harmonics="auto", cogging=cogging),
     )
 
 
@@ -174,10 +175,12 @@ def ramp(cfg: BenchConfig, end: float, duration: float, seed: int):
     return simulate_run(cfg, end * np.arange(n) / n, seed=seed)
 
 
-def run_motor(seed: int, verbose: bool = False) -> dict:
-    """Calibrate one motor of the zoo and score it against the oracle floor."""
+def run_motor(seed: int, verbose: bool = False, *, noise: int = 0, cogging: str = "auto") -> dict:
+    """Calibrate one motor of the zoo and score it against the oracle floor (``noise`` k > 0:
+    the calibration run's noise seed ``seed + 20000 k`` instead of ``seed``, the same motor and
+    validation run; ``cogging``: the model's cogging setting)."""
     cfg, end, duration, kind, fast = draw_motor(seed)
-    cal_run = ramp(cfg, end, duration, seed)
+    cal_run = ramp(cfg, end, duration, seed + 20_000 * noise)
     row = {
         "seed": seed, "kind": kind, "n_m": cfg.pole_pairs,
         "fs": int(round(1 / cfg.sample_time)), "N": cal_run.n_samples, "fast": fast,
@@ -188,7 +191,9 @@ def run_motor(seed: int, verbose: bool = False) -> dict:
     if cal_run.status != "ok":
         return row
     t0 = time.perf_counter()
-    cal = pipeline.calibrate(Dataset.from_columns(cal_run.columns()), setup_for(cfg))
+    cal = pipeline.calibrate(
+        Dataset.from_columns(cal_run.columns()), setup_for(cfg, cogging=cogging)
+    )
     row["sec"] = time.perf_counter() - t0
     row["status"] = str(cal.status)
     if verbose:
