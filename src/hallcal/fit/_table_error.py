@@ -113,7 +113,7 @@ def _table(
         mean_var_eta = excess_q = math.nan
     predicted = math.sqrt(floor**2 + mean_var_eta) if math.isfinite(mean_var_eta) else math.nan
     upper = math.sqrt(floor**2 + excess_q) if math.isfinite(excess_q) else math.nan
-    if bias > 0.0:
+    if bias > 0.0 and motion is not None:  # bias > 0 only with motion
         # a bound, not a spread: added to the expectation; one run's quantile is at least that
         predicted = math.hypot(predicted, bias)
         upper = max(upper, predicted)
