@@ -15,11 +15,14 @@ import sys
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from hallcal import pipeline
-from hallcal.fit.ramp_design import PlanStatus, predict_ramp_error
+from hallcal.fit.ramp_design import PlanStatus, RampPrediction, predict_ramp_error
 from hallcal.io import Dataset, ModelSpec, Setup
 from hallcal.messages import MessageCode
+from hallcal.pipeline.closed_loop import FASTER_HELPS, _speed_advice
 from hallcal.pipeline.plan import plan_next_ramp
 from hallcal.pipeline.plant import closed_loop
 from hallcal.sensor.metrics import angle_error
@@ -150,3 +153,22 @@ def test_cli_plan_as_a_user_runs_it(slow, tmp_path):
     impossible = _hallcal("plan", "cal.json", "--speeds", "2,4", "--target", "1", cwd=tmp_path)
     assert impossible.returncode == 3, impossible.stderr
     assert "no speed reaches" in impossible.stderr and "Traceback" not in impossible.stderr
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    ratio=st.floats(1.5, 1e3),
+    gain=st.floats(0.05, 1.2),
+    speed=st.floats(0.1, 1e3),
+)
+def test_the_speed_advice_follows_its_numbers(ratio: float, gain: float, speed: float) -> None:
+    """ "Faster" is advised only when the faster ramp is predicted at most FASTER_HELPS of the
+    run's own ratio (unseen zoo motor 178: 22.38x at its speed, 22.37x at four times it, was told
+    "record more revolutions, faster"); otherwise the advice says that speed would not help."""
+    best = RampPrediction(speed=speed, revolutions=1.5, samples=1000, predicted=gain * ratio,
+                          floor=1.0)  # fmt: skip
+    text = _speed_advice(best, ratio, 1.5, reaches_target=False)
+    helps = best.ratio <= FASTER_HELPS * ratio
+    assert ("faster (hallcal plan" in text) == helps
+    assert ("would not help" in text) == (not helps)
+    assert f"{best.ratio:.2f}x" in text  # the number the words follow is shown

@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from hallcal.errors import HallcalError, HallcalInputError
 from hallcal.fit.adequacy import AdequacyReport, ErrorSource, assess
 from hallcal.fit.cogging_search import CoggingSelection, CoggingStatus, select_cogging
-from hallcal.fit.ramp_design import plan_ramp, speed_limits
+from hallcal.fit.ramp_design import RampPrediction, plan_ramp, speed_limits
 from hallcal.fit.sem import SEMResult, SEMStatus, solve_sem
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
@@ -360,6 +360,12 @@ def _final_fit(
 #: Predicted / floor above which calibrate says how fast a ramp would have to be.
 RAMP_ADVICE = 1.5
 
+#: A faster ramp is advised only when its prediction is below this fraction of the run's own;
+#: above, the advice says speed would not help (unseen zoo motor 178, 24 pole pairs on 1.5
+#: revolutions: 22.38x at the run's speed and 22.37x at four times it, which was advised as
+#: "record more revolutions, faster").
+FASTER_HELPS = 0.9
+
 
 def _ramp_advice(
     loop: ClosedLoop, setup: Setup, s: _Signals, fit: _ModelFit, ratio: float
@@ -398,15 +404,31 @@ def _ramp_advice(
     best = plan.recommended
     if best is None:
         return None
-    if plan.status.success:
+    return f"{head}; {_speed_advice(best, ratio, revs, reaches_target=plan.status.success)}"
+
+
+def _speed_advice(
+    best: RampPrediction, ratio: float, revolutions: float, *, reaches_target: bool
+) -> str:
+    """What the ramp plan's best speed says to do next, in words that follow its numbers.
+
+    ``ratio`` is the run's own predicted / floor; ``best`` the plan's recommended faster speed.
+    Faster is advised only when it predicts less than :data:`FASTER_HELPS` x ``ratio``.
+    """
+    if reaches_target:
         return (
-            f"{head}; the same {revs:.3g} revolutions at >= {best.speed:.3g} rad/s "
+            f"the same {revolutions:.3g} revolutions at >= {best.speed:.3g} rad/s "
             f"({best.samples} samples) are predicted at {best.ratio:.2f}x: record the next "
             "run faster (hallcal plan shows the curve)"
         )
+    if best.ratio > FASTER_HELPS * ratio:
+        return (
+            f"a faster ramp would not help (at {best.speed:.3g} rad/s: {best.ratio:.2f}x): "
+            "record more revolutions (hallcal plan shows the curve)"
+        )
     return (
-        f"{head}; at {best.speed:.3g} rad/s it would be {best.ratio:.2f}x: record more "
-        "revolutions, faster (hallcal plan shows the curve)"
+        f"at {best.speed:.3g} rad/s it would be {best.ratio:.2f}x: record more revolutions, "
+        "faster (hallcal plan shows the curve)"
     )
 
 
