@@ -359,6 +359,7 @@ typedef struct {
     int32_t sum_dof;
     uint32_t window_from; /* window entries written before this sample count as empty */
     int8_t excluded, next;          /* the channel excluded; the one excluded at the next sample */
+    float w[3];                     /* the weights 1 / sigma_i^2, 0 for the channel excluded */
     uint8_t blamed_out, suppress, acquire;
     uint32_t k;
     volatile uint32_t seq;
@@ -452,6 +453,10 @@ static uint32_t bits_(float x)
     return v.u;
 }
 #define FIN(x) ((bits_(x) & 0x7f800000u) != 0x7f800000u)
+/* all three finite: an exponent of all ones carries into bit 31 */
+#define FIN3(x, y, z)                                                                          \
+    (((((bits_(x) & 0x7f800000u) + 0x00800000u) | ((bits_(y) & 0x7f800000u) + 0x00800000u) |   \
+       ((bits_(z) & 0x7f800000u) + 0x00800000u)) & 0x80000000u) == 0u)
 
 /* cubic Hermite interpolation of g - c and dg/dy at y (any real y: wrap-around); the table
  * holds, per node and channel, the interval's cubic in t = y / h - j (its power-basis
@@ -574,10 +579,19 @@ NOINLINE static void apply(@p@_state *s)
     s->b[2] = s->z[5];
 }
 
+/* the weights of the channels in use (after a change of the excluded channel) */
+static void weights(@p@_state *s)
+{
+    s->w[0] = s->excluded != 0 ? W0[0] : 0.0f;
+    s->w[1] = s->excluded != 1 ? W0[1] : 0.0f;
+    s->w[2] = s->excluded != 2 ? W0[2] : 0.0f;
+}
+
 /* the exclusion of channel s->next (decided on the previous sample) */
 NOINLINE static void exclude(@p@_state *s)
 {
     s->excluded = s->next;
+    weights(s);
     s->next = -1;
     s->blamed_out = 1u;
     s->clean = 0.0f;
@@ -608,6 +622,7 @@ void @p@_init(@p@_state *s)
     s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0;
     s->window_from = 0u;
 @RINGRESET@    s->excluded = -1;
+    weights(s);
     s->next = -1;
     s->blamed_out = 0u;
     s->suppress = 0u;
@@ -645,34 +660,40 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     float w0, w1, w2, f0 = 0.0f, f1 = 0.0f, f2 = 0.0f, g0 = 0.0f, g1 = 0.0f, g2 = 0.0f;
     float r0 = 0.0f, r1 = 0.0f, r2 = 0.0f, J0 = 0.0f, J1 = 0.0f, J2 = 0.0f, tr0, tr1, tr2;
     float tn0, tn1, tn2, td0, td1, td2, f[3], dg[3], yp, y, step = 0.0f, chi = 0.0f;
-    float srr = 0.0f, num = 0.0f, den = 0.0f, best, best_step, cq, e, travel, mf = 0.0f;
-    float n0, n1, n2, s0, s1, s2, rb, Jb, gb;
+    float srr = 0.0f, num = 0.0f, den = 0.0f, best, best_step, e, travel, mf = 0.0f;
+    float n0, n1, n2, s0, s1, s2, c0, c1, c2, Jb;
     float cc, cmax = CAP, A01, A11, rs, Js0, Js1, Js2, det, x, e0, e1, e2, i0, i1, i2;
     int active, blamed = -1, mark = -1, others, above = 0, stale, acquired, fitted, loo = 0;
-    int fin0, fin1, fin2, u0, u1, u2, i, dof;
+    int fin0, fin1, fin2, i, dof;
     uint32_t slot, jw, ph;
     int8_t old;
     if (RARE(s->next >= 0)) { /* the exclusion decided on the previous sample */
         exclude(s);
     }
-    fin0 = FIN(d1);
-    fin1 = FIN(d2);
-    fin2 = FIN(d3);
-    d1 = fin0 ? d1 : 0.0f;
-    d2 = fin1 ? d2 : 0.0f;
-    d3 = fin2 ? d3 : 0.0f;
-    if (!(fin0 && fin1 && fin2) && s->excluded < 0) { /* a disconnected channel */
-        s->excluded = (int8_t)(!fin0 ? 0 : (!fin1 ? 1 : 2));
-        s->blamed_out = 0u;
-        s->clean = 0.0f;
+    if (LIKELY(FIN3(d1, d2, d3))) { /* all finite: the weights of the channels in use */
+        fin0 = fin1 = fin2 = 1;
+        w0 = s->w[0];
+        w1 = s->w[1];
+        w2 = s->w[2];
+        active = s->excluded < 0 ? 3 : 2;
+    } else {
+        fin0 = FIN(d1);
+        fin1 = FIN(d2);
+        fin2 = FIN(d3);
+        d1 = fin0 ? d1 : 0.0f;
+        d2 = fin1 ? d2 : 0.0f;
+        d3 = fin2 ? d3 : 0.0f;
+        if (s->excluded < 0) { /* a disconnected channel */
+            s->excluded = (int8_t)(!fin0 ? 0 : (!fin1 ? 1 : 2));
+            s->blamed_out = 0u;
+            s->clean = 0.0f;
+            weights(s);
+        }
+        w0 = fin0 ? s->w[0] : 0.0f; /* 0 for a channel not in use */
+        w1 = fin1 ? s->w[1] : 0.0f;
+        w2 = fin2 ? s->w[2] : 0.0f;
+        active = (w0 > 0.0f) + (w1 > 0.0f) + (w2 > 0.0f);
     }
-    u0 = s->excluded != 0 && fin0;
-    u1 = s->excluded != 1 && fin1;
-    u2 = s->excluded != 2 && fin2;
-    w0 = u0 ? W0[0] : 0.0f; /* 0 for a channel not in use */
-    w1 = u1 ? W0[1] : 0.0f;
-    w2 = u2 ? W0[2] : 0.0f;
-    active = u0 + u1 + u2;
     yp = s->ang + s->v;
     y = yp;
     acquired = active >= 2 && s->acquire;
@@ -743,39 +764,40 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                 s0 = n0 * i0;
                 s1 = n1 * i1;
                 s2 = n2 * i2;
-                best = (srr - tr0) - s0 * n0;
+                c0 = (srr - tr0) - s0 * n0;
+                c1 = (srr - tr1) - s1 * n1;
+                c2 = (srr - tr2) - s2 * n2;
+                /* the smallest (the first of equals), by conditional moves; the chosen
+                 * channel's residual off the fit without it */
+                best = c0;
                 best_step = s0;
                 blamed = 0;
-                rb = r0; /* the chosen channel's residual, slope and gross level */
                 Jb = J0;
-                gb = GROSS[0];
-                cq = (srr - tr1) - s1 * n1;
-                if (cq < best) {
-                    best = cq;
+                e = r0 - J0 * s0;
+                if (c1 < best) {
+                    best = c1;
                     best_step = s1;
                     blamed = 1;
-                    rb = r1;
                     Jb = J1;
-                    gb = GROSS[1];
+                    e = r1 - J1 * s1;
                 }
-                cq = (srr - tr2) - s2 * n2;
-                if (cq < best) {
-                    best = cq;
+                if (c2 < best) {
+                    best = c2;
                     best_step = s2;
                     blamed = 2;
-                    rb = r2;
                     Jb = J2;
-                    gb = GROSS[2];
+                    e = r2 - J2 * s2;
                 }
                 if (!(best < EXPLAINED && best < 0.1f * chi)) {
                     blamed = -1;
                     mark = 3;
                 } else {
-                    if (fabs_(best_step) > MAXSTEP) { /* the chosen fit's step, bounded */
-                        best_step = best_step > 0.0f ? MAXSTEP : -MAXSTEP;
+                    if (RARE(fabs_(best_step) > MAXSTEP)) { /* the chosen fit's step, bounded */
+                        x = best_step > 0.0f ? MAXSTEP : -MAXSTEP;
+                        e += Jb * (best_step - x); /* the residual at the bounded step */
+                        best_step = x;
                     }
-                    e = rb - Jb * best_step;
-                    if (fabs_(e) < gb) {
+                    if (fabs_(e) < GROSS[blamed]) {
                         blamed = -1;
                     } else {
                         step = best_step;
@@ -848,6 +870,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     } else if (s->excluded >= 0 && s->blamed_out && SEL(s->excluded, fin0, fin1, fin2)) {
         s->excluded = -1;
         s->suppress = 1u;
+        weights(s);
     }
     /* adaptation: one part per sample of its cycle */
     if (!loo) {
@@ -891,6 +914,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         if (s->clean >= READMIT) {
             s->excluded = -1;
             s->clean = 0.0f;
+            weights(s);
         }
     }
     /* publish */
