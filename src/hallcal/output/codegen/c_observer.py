@@ -663,7 +663,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     float srr = 0.0f, num = 0.0f, den = 0.0f, best, best_step, e, travel, mf = 0.0f;
     float n0, n1, n2, s0, s1, s2, c0, c1, c2, Jb;
     float cc, cmax = CAP, A01, A11, rs, Js0, Js1, Js2, det, x, e0, e1, e2, i0, i1, i2;
-    int active, blamed = -1, mark = -1, others, above = 0, stale, acquired, fitted, loo = 0;
+    int active, blamed = -1, mark = -1, others, above = 0, stale, fitted, loo = 0;
     int fin0, fin1, fin2, i, dof;
     uint32_t slot, jw, ph;
     int8_t old;
@@ -696,12 +696,14 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     }
     yp = s->ang + s->v;
     y = yp;
-    acquired = active >= 2 && s->acquire;
-    fitted = active >= 2 && !acquired;
-    if (RARE(acquired)) {
+    fitted = 0;
+    if (RARE(active < 2)) {
+        /* no fit: fault */
+    } else if (RARE(s->acquire)) {
         y = acquire(s, d1, d2, d3, w0, w1, w2, yp);
         s->acquire = 0u;
-    } else if (fitted) {
+    } else {
+        fitted = 1;
         table(yp, f, dg);
         f0 = f[0];
         f1 = f[1];
