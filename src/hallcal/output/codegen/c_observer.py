@@ -259,9 +259,9 @@ def _adapt_parts() -> tuple[str, str]:
         extra = f"s->u[{i}]" if p & 1 else f"s->u[{i}] * s->fy[{i}] * s->fy[{i}]"
         body = [f"    const float v{p} = s->t * s->qv[{p}];"]
         if p == 0:  # the measure's forgetting exp(-x) (cubic Taylor) and CYCLE / den
-            body = ["    const float x = s->lam, t = (float)CYCLE / s->t, v0 = t * s->qv[0];",
+            body = ["    const float x = s->lam, v0 = s->t * s->qv[0];",
                     "    const float lam = 1.0f - x + 0.5f * x * x - x * x * x * (1.0f / 6.0f);",
-                    "    s->lam = lam;", "    s->t = t;"]  # fmt: skip
+                    "    s->lam = lam;"]  # fmt: skip
         diag = f"s->H[{p}][{p}]"
         body.append(f"    {diag} = (({diag} * lam + {prior}) + {extra}) - v{p} * s->qv[{p}];")
         for q in range(p + 1, 6):
@@ -355,7 +355,7 @@ typedef struct {
         int8_t b[@FWPAD@];
         uint32_t w[@FWW@]; /* the ring's reset in words */
     } ring_blame;   /* -1: no blame */
-    int16_t blame[4];
+    int16_t blame[4], marks;      /* marks per channel (3: none explains) in the ring, all */
     int32_t sum_dof;
     uint32_t window_from; /* window entries written before this sample count as empty */
     int8_t excluded, next;          /* the channel excluded; the one excluded at the next sample */
@@ -595,7 +595,7 @@ NOINLINE static void exclude(@p@_state *s)
     s->next = -1;
     s->blamed_out = 1u;
     s->clean = 0.0f;
-    s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0; /* the blame ring and */
+    s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = s->marks = 0; /* the ring and */
 @RINGRESET@    s->window_from = s->k; /* the window start again */
     s->sum_chi = 0.0f;
     s->sum_dof = 0;
@@ -619,7 +619,7 @@ void @p@_init(@p@_state *s)
     }
     s->pending = 0u;
     s->phase = 0u;
-    s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0;
+    s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = s->marks = 0;
     s->window_from = 0u;
 @RINGRESET@    s->excluded = -1;
     weights(s);
@@ -811,20 +811,24 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         }
         y = yp + step;
     }
-    /* fault isolation */
-    slot = s->k % (uint32_t)FW;
-    old = s->ring_blame.b[slot];
-    if (old >= 0) {
-        s->blame[old]--;
-    }
-    s->ring_blame.b[slot] = (int8_t)mark;
-    if (mark >= 0) {
-        s->blame[mark]++;
-    }
-    if (blamed >= 0 && s->excluded < 0 && !s->suppress) {
-        others = s->blame[0] + s->blame[1] + s->blame[2] + s->blame[3] - s->blame[blamed];
-        if (s->blame[blamed] >= FC && 4 * others <= s->blame[blamed]) {
-            s->next = (int8_t)blamed; /* excluded from the next sample on */
+    /* fault isolation (the ring all -1 when no mark is in it: nothing to do without one) */
+    if (mark >= 0 || s->marks != 0) {
+        slot = s->k % (uint32_t)FW;
+        old = s->ring_blame.b[slot];
+        if (old >= 0) {
+            s->blame[old]--;
+            s->marks--;
+        }
+        s->ring_blame.b[slot] = (int8_t)mark;
+        if (mark >= 0) {
+            s->blame[mark]++;
+            s->marks++;
+        }
+        if (blamed >= 0 && s->excluded < 0 && !s->suppress) {
+            others = s->marks - s->blame[blamed];
+            if (s->blame[blamed] >= FC && 4 * others <= s->blame[blamed]) {
+                s->next = (int8_t)blamed; /* excluded from the next sample on */
+            }
         }
     }
     if (blamed < 0 && fitted) { /* the tracker: acceleration, then speed (bounded: then no
@@ -881,12 +885,12 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
             /* settled: the step within 5 sigma of the angle's own noise (1 / den) */
             if (fitted && !stale && blamed < 0 && step * step * den < 25.0f) {
                 x = (float)CYCLE * travel * INVMEM;
-                s->lam = x < XMAX ? x : XMAX; /* row0 makes them lam and CYCLE / den */
-                s->t = den;
+                s->lam = x < XMAX ? x : XMAX; /* row0 makes it exp(-x) */
+                s->t = (float)CYCLE / den; /* no slope: nothing measured (below) */
                 MEASURE(0, f0, g0, r0, J0, w0);
                 MEASURE(1, f1, g1, r1, J1, w1);
                 MEASURE(2, f2, g2, r2, J2, w2);
-                s->pending = 1u;
+                s->pending = (uint8_t)(den > 0.0f);
                 s->phase = 1u;
             }
         } else {
