@@ -869,14 +869,19 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         mf = s->sum_chi * INV[s->sum_dof];
         above = s->sum_chi > THR[s->sum_dof];
     }
-    s->bad = above ? s->bad + travel : 0.0f;
-    stale = above && s->bad >= STALE;
+    stale = 0;
     if (!above) {
+        s->bad = 0.0f;
         s->suppress = 0u;
-    } else if (s->excluded >= 0 && s->blamed_out && SEL(s->excluded, fin0, fin1, fin2)) {
-        s->excluded = -1;
-        s->suppress = 1u;
-        weights(s);
+    } else {
+        x = s->bad + travel;
+        s->bad = x;
+        stale = x >= STALE;
+        if (s->excluded >= 0 && s->blamed_out && SEL(s->excluded, fin0, fin1, fin2)) {
+            s->excluded = -1;
+            s->suppress = 1u;
+            weights(s);
+        }
     }
     /* adaptation: one part per sample of its cycle */
     if (!loo) {
