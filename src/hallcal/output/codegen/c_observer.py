@@ -149,6 +149,8 @@ def _texts(
     """The header and the source, filled from the model and the settings."""
     P = prefix.upper()
     W = s.window
+    if s.fault_window > 255:  # the blame counts are packed one byte per channel
+        raise ValueError("the C observer needs fault_window <= 255")
     z = -_normal_quantile(s.false_alarm)
     thr = [0.0] + [chi_square_quantile(float(k), z) for k in range(1, 2 * W + 1)]
     inv = [0.0] + [1.0 / k for k in range(1, 2 * W + 1)]
@@ -355,7 +357,7 @@ typedef struct {
         int8_t b[@FWPAD@];
         uint32_t w[@FWW@]; /* the ring's reset in words */
     } ring_blame;   /* -1: no blame */
-    int16_t blame[4], marks;      /* marks per channel (3: none explains) in the ring, all */
+    uint32_t blames; /* the ring's marks per channel (byte q: channel q, byte 3: none explains) */
     int32_t sum_dof;
     uint32_t window_from; /* window entries written before this sample count as empty */
     int8_t excluded, next;          /* the channel excluded; the one excluded at the next sample */
@@ -411,6 +413,8 @@ static const float C0[3] = {@C@};
 static const float W0[3] = {@W0@};
 static const float GROSS[3] = {@GROSS@};
 static const int16_t OFF[NA] = {@OFF@};
+/* a mark's count in the packed blame counts (index mark + 1: none, channel 0, 1, 2, 3) */
+static const uint32_t ONE[5] = {0u, 1u, 0x100u, 0x10000u, 0x1000000u};
 static const float INV[2 * W + 1] = { /* 1 / k */
     @INV@
 };
@@ -595,7 +599,7 @@ NOINLINE static void exclude(@p@_state *s)
     s->next = -1;
     s->blamed_out = 1u;
     s->clean = 0.0f;
-    s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = s->marks = 0; /* the ring and */
+    s->blames = 0u; /* the blame ring and */
 @RINGRESET@    s->window_from = s->k; /* the window start again */
     s->sum_chi = 0.0f;
     s->sum_dof = 0;
@@ -619,7 +623,7 @@ void @p@_init(@p@_state *s)
     }
     s->pending = 0u;
     s->phase = 0u;
-    s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = s->marks = 0;
+    s->blames = 0u;
     s->window_from = 0u;
 @RINGRESET@    s->excluded = -1;
     weights(s);
@@ -663,9 +667,9 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     float srr = 0.0f, num = 0.0f, den = 0.0f, best, best_step, e, travel, mf = 0.0f;
     float n0, n1, n2, s0, s1, s2, c0, c1, c2, Jb;
     float cc, cmax = CAP, A01, A11, rs, Js0, Js1, Js2, det, x, e0, e1, e2, i0, i1, i2;
-    int active, blamed = -1, mark = -1, others, above = 0, stale, fitted, loo = 0;
+    int active, blamed = -1, mark = -1, above = 0, stale, fitted, loo = 0;
     int fin0, fin1, fin2, i, dof;
-    uint32_t slot, jw, ph;
+    uint32_t slot, jw, ph, bw, nb, others;
     int8_t old;
     if (RARE(s->next >= 0)) { /* the exclusion decided on the previous sample */
         exclude(s);
@@ -812,21 +816,16 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         y = yp + step;
     }
     /* fault isolation (the ring all -1 when no mark is in it: nothing to do without one) */
-    if (mark >= 0 || s->marks != 0) {
+    if (mark >= 0 || s->blames != 0u) {
         slot = s->k % (uint32_t)FW;
         old = s->ring_blame.b[slot];
-        if (old >= 0) {
-            s->blame[old]--;
-            s->marks--;
-        }
         s->ring_blame.b[slot] = (int8_t)mark;
-        if (mark >= 0) {
-            s->blame[mark]++;
-            s->marks++;
-        }
+        bw = s->blames + ONE[mark + 1] - ONE[old + 1];
+        s->blames = bw;
         if (blamed >= 0 && s->excluded < 0 && !s->suppress) {
-            others = s->marks - s->blame[blamed];
-            if (s->blame[blamed] >= FC && 4 * others <= s->blame[blamed]) {
+            nb = (bw >> (8 * blamed)) & 0xffu;
+            others = ((bw * 0x01010101u) >> 24) - nb; /* the bytes' sum, less channel blamed's */
+            if (nb >= FC && 4u * others <= nb) {
                 s->next = (int8_t)blamed; /* excluded from the next sample on */
             }
         }
