@@ -749,9 +749,9 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                                                             + den * rs * rs)) {
                 loo = 1;
                 /* the three fits without one channel; their 1 / den from one division */
-                e0 = den - td0;
-                e1 = den - td1;
-                e2 = den - td2;
+                e0 = den - (J0 * J0) * w0; /* (recomputed: not kept live) */
+                e1 = den - (J1 * J1) * w1;
+                e2 = den - (J2 * J2) * w2;
                 x = e0 * e1 * e2;
                 if (bits_(x) - @XLO@u < @XRANGE@u) { /* 1e-37 < x < 1e37: one compare */
                     x = 1.0f / x;
@@ -764,15 +764,15 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                     i2 = e2 > 0.0f ? 1.0f / e2 : 0.0f;
                 }
                 /* chi2 of the fit without q, unbounded: (srr - tr_q) - n_q^2 / e_q */
-                n0 = num - tn0;
-                n1 = num - tn1;
-                n2 = num - tn2;
+                n0 = num - (r0 * J0) * w0;
+                n1 = num - (r1 * J1) * w1;
+                n2 = num - (r2 * J2) * w2;
                 s0 = n0 * i0;
                 s1 = n1 * i1;
                 s2 = n2 * i2;
-                c0 = (srr - tr0) - s0 * n0;
-                c1 = (srr - tr1) - s1 * n1;
-                c2 = (srr - tr2) - s2 * n2;
+                c0 = (srr - (r0 * r0) * w0) - s0 * n0;
+                c1 = (srr - (r1 * r1) * w1) - s1 * n1;
+                c2 = (srr - (r2 * r2) * w2) - s2 * n2;
                 /* the smallest (the first of equals), by conditional moves; the chosen
                  * channel's residual off the fit without it */
                 best = c0;
