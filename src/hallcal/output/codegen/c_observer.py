@@ -753,7 +753,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                 e1 = den - (J1 * J1) * w1;
                 e2 = den - (J2 * J2) * w2;
                 x = e0 * e1 * e2;
-                if (bits_(x) - @XLO@u < @XRANGE@u) { /* 1e-37 < x < 1e37: one compare */
+                if (LIKELY(bits_(x) - @XLO@u < @XRANGE@u)) { /* 1e-37 < x < 1e37: one compare */
                     x = 1.0f / x;
                     i0 = e1 * e2 * x;
                     i1 = e0 * e2 * x;
