@@ -341,10 +341,14 @@ typedef struct {
     uint32_t sample;     /* samples processed */
 } @p@_reading;
 
-typedef struct {
+typedef struct { /* the fields of every sample first (short offsets) */
     int32_t rev;
     float ang, v, acc, clean, bad, sum_chi; /* angle, speed, acceleration of the tracker */
     float a[3], b[3];
+    float w[3];                     /* the weights 1 / sigma_i^2, 0 for the channel excluded */
+    uint32_t k;
+    volatile uint32_t seq;
+    volatile @p@_reading buf[2]; /* volatile: the copies stay between the reads of seq */
     float H[6][6];                  /* the adaptation's information (upper triangle) */
     float L[6][6], P[6], R[6];      /* its L D L^T (R = 1 / P), built over a cycle */
     float gr[6], z[6], wm[3];       /* the cycle's gradient, solution, channels measured */
@@ -361,11 +365,7 @@ typedef struct {
     int32_t sum_dof;
     uint32_t window_from; /* window entries written before this sample count as empty */
     int8_t excluded, next;          /* the channel excluded; the one excluded at the next sample */
-    float w[3];                     /* the weights 1 / sigma_i^2, 0 for the channel excluded */
     uint8_t blamed_out, suppress, acquire;
-    uint32_t k;
-    volatile uint32_t seq;
-    volatile @p@_reading buf[2]; /* volatile: the copies stay between the reads of seq */
 } @p@_state;
 
 void @p@_init(@p@_state *s); /* angle 0 of revolution 0 */
