@@ -816,7 +816,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         y = yp + step;
     }
     /* fault isolation (the ring all -1 when no mark is in it: nothing to do without one) */
-    if (mark >= 0 || s->blames != 0u) {
+    if ((mark >= 0) | (s->blames != 0u)) {
         slot = s->k % (uint32_t)FW;
         old = s->ring_blame.b[slot];
         s->ring_blame.b[slot] = (int8_t)mark;
@@ -931,9 +931,12 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     {
         uint32_t next = s->seq + 1u;
         volatile @p@_reading *rd = &s->buf[next & 1u];
-        uint8_t st = active < 2 ? @P@_FAULT
-                     : (stale ? @P@_STALE /* a model that no longer fits outranks a channel out */
-                     : (s->excluded >= 0 ? @P@_DEGRADED : (above ? @P@_ADAPTING : @P@_OK)));
+        /* by priority, each a conditional move: a model that no longer fits outranks a
+         * channel out */
+        uint8_t st = above ? @P@_ADAPTING : @P@_OK;
+        st = s->excluded >= 0 ? @P@_DEGRADED : st;
+        st = stale ? @P@_STALE : st;
+        st = active < 2 ? @P@_FAULT : st;
         rd->revolutions = s->rev;
         rd->angle = s->ang;
         rd->misfit = mf;
