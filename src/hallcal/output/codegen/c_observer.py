@@ -457,10 +457,16 @@ static uint32_t bits_(float x)
     return v.u;
 }
 #define FIN(x) ((bits_(x) & 0x7f800000u) != 0x7f800000u)
-/* all three finite: an exponent of all ones carries into bit 31 */
-#define FIN3(x, y, z)                                                                          \
+#if defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+/* (-ffast-math: x - x would be folded to 0) an exponent of all ones carries into bit 31 */
+#define FINITE3(x, y, z)                                                                       \
     (((((bits_(x) & 0x7f800000u) + 0x00800000u) | ((bits_(y) & 0x7f800000u) + 0x00800000u) |   \
        ((bits_(z) & 0x7f800000u) + 0x00800000u)) & 0x80000000u) == 0u)
+#else
+/* x - x is +0 for a finite x and NaN otherwise, and NaN fails every comparison: the readings
+ * stay in the FPU's registers */
+#define FINITE3(x, y, z) (((x) - (x)) + ((y) - (y)) + ((z) - (z)) <= 0.0f)
+#endif
 
 /* cubic Hermite interpolation of g - c and dg/dy at y (any real y: wrap-around); the table
  * holds, per node and channel, the interval's cubic in t = y / h - j (its power-basis
@@ -674,7 +680,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     if (RARE(s->next >= 0)) { /* the exclusion decided on the previous sample */
         exclude(s);
     }
-    if (LIKELY(FIN3(d1, d2, d3))) { /* all finite: the weights of the channels in use */
+    if (LIKELY(FINITE3(d1, d2, d3))) { /* all finite: the weights of the channels in use */
         fin0 = fin1 = fin2 = 1;
         w0 = s->w[0];
         w1 = s->w[1];
