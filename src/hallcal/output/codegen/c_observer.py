@@ -262,7 +262,7 @@ def _adapt_parts() -> tuple[str, str]:
         body = [f"    const float v{p} = s->t * s->qv[{p}];"]
         if p == 0:  # the measure's forgetting exp(-x) (cubic Taylor) and CYCLE / den
             body = ["    const float x = s->lam, v0 = s->t * s->qv[0];",
-                    "    const float lam = 1.0f - x + 0.5f * x * x - x * x * x * (1.0f / 6.0f);",
+                    "    const float lam = 1.0f - x * (1.0f - x * (0.5f - x * (1.0f / 6.0f)));",
                     "    s->lam = lam;"]  # fmt: skip
         diag = f"s->H[{p}][{p}]"
         body.append(f"    {diag} = (({diag} * lam + {prior}) + {extra}) - v{p} * s->qv[{p}];")
