@@ -210,11 +210,10 @@ def _texts(
         "@W0@": ", ".join(_f(x) for x in w0),
         "@GROSS@": ", ".join(_f(x) for x in gross),
         "@T@": _rows(_cubics(model)),
-        "@INV@": ",\n    ".join(
-            ", ".join(_f(x) for x in inv[i : i + 6]) for i in range(0, len(inv), 6)
-        ),  # fmt: skip
-        "@THR@": ",\n    ".join(
-            ", ".join(_f(x) for x in thr[i : i + 6]) for i in range(0, len(thr), 6)
+        "@THRINV@": ",\n    ".join(
+            ", ".join("{" + _f(a) + ", " + _f(b) + "}" for a, b in zip(thr[i : i + 3],
+                                                                  inv[i : i + 3], strict=True))
+            for i in range(0, len(inv), 3)
         ),  # fmt: skip
     }
     parts, dispatch = _adapt_parts()
@@ -415,11 +414,9 @@ static const float GROSS[3] = {@GROSS@};
 static const int16_t OFF[NA] = {@OFF@};
 /* a mark's count in the packed blame counts (index mark + 1: none, channel 0, 1, 2, 3) */
 static const uint32_t ONE[5] = {0u, 1u, 0x100u, 0x10000u, 0x1000000u};
-static const float INV[2 * W + 1] = { /* 1 / k */
-    @INV@
-};
-static const float THR[2 * W + 1] = {
-    @THR@
+/* per k degrees of freedom of the window: the alarm threshold and 1 / k (one address) */
+static const float THRINV[2 * W + 1][2] = {
+    @THRINV@
 };
 static const float T[M][12] = { /* per channel i: the cubic of g_i - c_i on [y_j, y_j+1] in
                                   * t = y / h - j (y_j = j 2 pi / M, h = 2 pi / M): constant,
@@ -871,8 +868,8 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     s->ring_chi[jw] = cc;
     s->ring_dof[jw] = (uint8_t)dof;
     if (s->sum_dof > 0) {
-        mf = s->sum_chi * INV[s->sum_dof];
-        above = s->sum_chi > THR[s->sum_dof];
+        mf = s->sum_chi * THRINV[s->sum_dof][1];
+        above = s->sum_chi > THRINV[s->sum_dof][0];
     }
     stale = 0;
     if (!above) {
