@@ -164,10 +164,10 @@ def _texts(
         "@M@": str(model.points),
         "@W@": str(W),
         "@FW@": str(s.fault_window),
-        # 1e-37 < x < 1e37 as one unsigned compare of the float's bits (positive floats order
-        # as their bits; negative ones and NaN fall above the range)
-        "@XLO@": hex(_bits(1e-37) + 1),
-        "@XRANGE@": hex(_bits(1e37) - _bits(1e-37) - 1),
+        # 2^-124 <= x < 2^124 as one unsigned compare of the float's bits (positive floats
+        # order as their bits; negative ones and NaN fall above the range)
+        "@XLO@": hex(_bits(2.0**-124)),  # bounds whose bits are Thumb-2 immediates
+        "@XRANGE@": hex(_bits(2.0**124) - _bits(2.0**-124)),
         "@FWPAD@": str(4 * -(-s.fault_window // 4)),
         "@FWW@": str(-(-s.fault_window // 4)),
         "@RINGRESET@": "".join(
@@ -756,7 +756,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                 e1 = den - (J1 * J1) * w1;
                 e2 = den - (J2 * J2) * w2;
                 x = e0 * e1 * e2;
-                if (LIKELY(bits_(x) - @XLO@u < @XRANGE@u)) { /* 1e-37 < x < 1e37: one compare */
+                if (LIKELY(bits_(x) - @XLO@u < @XRANGE@u)) { /* 2^-124 <= x < 2^124 */
                     x = 1.0f / x;
                     i0 = e1 * e2 * x;
                     i1 = e0 * e2 * x;
