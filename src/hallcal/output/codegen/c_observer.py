@@ -470,21 +470,26 @@ static uint32_t bits_(float x)
  * coefficients: the same polynomial as the Hermite form of values and slopes) */
 static void table(float y, float f[3], float dg[3])
 {
-    float u = y * INVH, t, t3;
+    float u = y * INVH, t, c, a, b;
     int32_t j = (int32_t)u;
     const float *p;
     if ((float)j > u) {
         j -= 1;
     }
     t = u - (float)j;
-    t3 = 3.0f * t;
     p = T[(uint32_t)j & (uint32_t)(M - 1)];
-    f[0] = ((p[3] * t + p[2]) * t + p[1]) * t + p[0];
-    dg[0] = ((p[3] * t3 + (p[2] + p[2])) * t + p[1]) * INVH;
-    f[1] = ((p[7] * t + p[6]) * t + p[5]) * t + p[4];
-    dg[1] = ((p[7] * t3 + (p[6] + p[6])) * t + p[5]) * INVH;
-    f[2] = ((p[11] * t + p[10]) * t + p[9]) * t + p[8];
-    dg[2] = ((p[11] * t3 + (p[10] + p[10])) * t + p[9]) * INVH;
+    /* Horner: a = c3 t + c2, b = a t + c1, g = b t + c0; its derivative in t,
+     * 3 c3 t^2 + 2 c2 t + c1 = b + (a + c3 t) t, from the same partial sums */
+#define CUBIC(i, k)                                                                            \
+    c = p[(k) + 3] * t;                                                                        \
+    a = c + p[(k) + 2];                                                                        \
+    b = a * t + p[(k) + 1];                                                                    \
+    f[i] = b * t + p[k];                                                                       \
+    dg[i] = (b + (a + c) * t) * INVH;
+    CUBIC(0, 0)
+    CUBIC(1, 4)
+    CUBIC(2, 8)
+#undef CUBIC
 }
 
 /* one Gauss-Newton step on the linearized model, bounded; the chi2 after it in *chi */
