@@ -677,13 +677,13 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     float cc, cmax = CAP, A01, A11, rs, Js0, Js1, Js2, det, x, e0, e1, e2, i0, i1, i2;
     int active, blamed = -1, mark = -1, above = 0, stale, fitted, loo = 0;
     int fin0, fin1, fin2, i, dof;
+    uint32_t fin = 7u; /* bit i: reading i finite */
     uint32_t slot, jw, ph, bw, nb, others;
     int8_t old;
     if (RARE(s->next >= 0)) { /* the exclusion decided on the previous sample */
         exclude(s);
     }
     if (LIKELY(FINITE3(d1, d2, d3))) { /* all finite: the weights of the channels in use */
-        fin0 = fin1 = fin2 = 1;
         w0 = s->w[0];
         w1 = s->w[1];
         w2 = s->w[2];
@@ -695,6 +695,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         d1 = fin0 ? d1 : 0.0f;
         d2 = fin1 ? d2 : 0.0f;
         d3 = fin2 ? d3 : 0.0f;
+        fin = (uint32_t)fin0 | (uint32_t)fin1 << 1 | (uint32_t)fin2 << 2;
         if (s->excluded < 0) { /* a disconnected channel */
             s->excluded = (int8_t)(!fin0 ? 0 : (!fin1 ? 1 : 2));
             s->blamed_out = 0u;
@@ -884,7 +885,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         x = s->bad + travel;
         s->bad = x;
         stale = x >= STALE;
-        if (s->excluded >= 0 && s->blamed_out && SEL(s->excluded, fin0, fin1, fin2)) {
+        if (s->excluded >= 0 && s->blamed_out && (fin >> s->excluded & 1u)) {
             s->excluded = -1;
             s->suppress = 1u;
             weights(s);
@@ -923,7 +924,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     /* readmission */
     if (RARE(fitted && s->excluded >= 0)) {
         i = s->excluded;
-        if (!SEL(i, fin0, fin1, fin2)) {
+        if (!(fin >> i & 1u)) {
             s->clean = 0.0f;
         } else {
             e = SEL(i, r0, r1, r2) - SEL(i, J0, J1, J2) * step;
