@@ -885,7 +885,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         x = s->bad + travel;
         s->bad = x;
         stale = x >= STALE;
-        if (s->excluded >= 0 && s->blamed_out && (fin >> s->excluded & 1u)) {
+        if (RARE(s->excluded >= 0 && s->blamed_out && (fin >> s->excluded & 1u))) {
             s->excluded = -1;
             s->suppress = 1u;
             weights(s);
