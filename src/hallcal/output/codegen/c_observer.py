@@ -211,10 +211,12 @@ def _texts(
         "@GROSS@": ", ".join(_f(x) for x in gross),
         "@T@": _rows(_cubics(model)),
         "@THRINV@": ",\n    ".join(
-            ", ".join("{" + _f(a) + ", " + _f(b) + "}" for a, b in zip(thr[i : i + 3],
-                                                                  inv[i : i + 3], strict=True))
+            ", ".join(
+                "{" + _f(a) + ", " + _f(b) + "}"
+                for a, b in zip(thr[i : i + 3], inv[i : i + 3], strict=True)
+            )
             for i in range(0, len(inv), 3)
-        ),  # fmt: skip
+        ),
     }
     parts, dispatch = _adapt_parts()
     h, c = _HEADER, _SOURCE.replace("@PARTS@", parts).replace("@DISPATCH@", dispatch)
