@@ -102,8 +102,9 @@ def test_m4f_observer_worst_case_cycles_update_and_read(observer_m4f):
     the next sample; 984 before the per-channel values were kept in registers and the adaptation's
     parts written out straight-line; 4282 per normal sample and 28112 at an exclusion before the
     linearized step and the spread adaptation). The issue's budget of 600 is met on the paper
-    bench, not on this one (its exclusion sample, 13 over): the per-sample path without the adaptation's part costs about 430 with the read, the adaptation's
-    part 36-87 and its dispatch about 20, an outlier's tests about 150 (docs/firmware.md)."""
+    bench, not on this one (its exclusion sample, 13 over): the per-sample path without the
+    adaptation's part costs about 430 with the read, the adaptation's part 36-87 and its
+    dispatch about 20, an outlier's tests about 150 (docs/firmware.md)."""
     cal, res, b, val = observer_m4f
     adv = observer_adversarial(val.d[:6000], cal.flux.theta[:, 0])
     cyc = ah.model_cycles(ah.trace_calls(b, adv, read=True), ah.CycleModel())
