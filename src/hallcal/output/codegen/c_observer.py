@@ -525,6 +525,9 @@ NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, 
         j0 -= 1;
     }
     bj = j0;
+#if defined(__GNUC__) && (__GNUC__ >= 8)
+#pragma GCC unroll 8
+#endif
     for (q = 0; q < NA; q++) {
         j = j0 + OFF[q];
         p = T[(uint32_t)j & (uint32_t)(M - 1)];
@@ -707,7 +710,9 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         w0 = fin0 ? s->w[0] : 0.0f; /* 0 for a channel not in use */
         w1 = fin1 ? s->w[1] : 0.0f;
         w2 = fin2 ? s->w[2] : 0.0f;
-        active = (w0 > 0.0f) + (w1 > 0.0f) + (w2 > 0.0f);
+        /* the channels in use: finite and not excluded (here one is: it was, or is now) */
+        i = (int)(fin & ~(1u << s->excluded));
+        active = (i & 1) + (i >> 1 & 1) + (i >> 2);
     }
     yp = s->ang + s->v;
     y = yp;
