@@ -149,6 +149,8 @@ def _texts(
     """The header and the source, filled from the model and the settings."""
     P = prefix.upper()
     W = s.window
+    if s.fault_window > 255:  # the blame counts are packed one byte per channel
+        raise ValueError("the C observer needs fault_window <= 255")
     z = -_normal_quantile(s.false_alarm)
     thr = [0.0] + [chi_square_quantile(float(k), z) for k in range(1, 2 * W + 1)]
     inv = [0.0] + [1.0 / k for k in range(1, 2 * W + 1)]
@@ -162,10 +164,10 @@ def _texts(
         "@M@": str(model.points),
         "@W@": str(W),
         "@FW@": str(s.fault_window),
-        # 1e-37 < x < 1e37 as one unsigned compare of the float's bits (positive floats order
-        # as their bits; negative ones and NaN fall above the range)
-        "@XLO@": hex(_bits(1e-37) + 1),
-        "@XRANGE@": hex(_bits(1e37) - _bits(1e-37) - 1),
+        # 2^-124 <= x < 2^124 as one unsigned compare of the float's bits (positive floats
+        # order as their bits; negative ones and NaN fall above the range)
+        "@XLO@": hex(_bits(2.0**-124)),  # bounds whose bits are Thumb-2 immediates
+        "@XRANGE@": hex(_bits(2.0**124) - _bits(2.0**-124)),
         "@FWPAD@": str(4 * -(-s.fault_window // 4)),
         "@FWW@": str(-(-s.fault_window // 4)),
         "@RINGRESET@": "".join(
@@ -208,12 +210,13 @@ def _texts(
         "@W0@": ", ".join(_f(x) for x in w0),
         "@GROSS@": ", ".join(_f(x) for x in gross),
         "@T@": _rows(_cubics(model)),
-        "@INV@": ",\n    ".join(
-            ", ".join(_f(x) for x in inv[i : i + 6]) for i in range(0, len(inv), 6)
-        ),  # fmt: skip
-        "@THR@": ",\n    ".join(
-            ", ".join(_f(x) for x in thr[i : i + 6]) for i in range(0, len(thr), 6)
-        ),  # fmt: skip
+        "@THRINV@": ",\n    ".join(
+            ", ".join(
+                "{" + _f(a) + ", " + _f(b) + "}"
+                for a, b in zip(thr[i : i + 3], inv[i : i + 3], strict=True)
+            )
+            for i in range(0, len(inv), 3)
+        ),
     }
     parts, dispatch = _adapt_parts()
     h, c = _HEADER, _SOURCE.replace("@PARTS@", parts).replace("@DISPATCH@", dispatch)
@@ -259,9 +262,9 @@ def _adapt_parts() -> tuple[str, str]:
         extra = f"s->u[{i}]" if p & 1 else f"s->u[{i}] * s->fy[{i}] * s->fy[{i}]"
         body = [f"    const float v{p} = s->t * s->qv[{p}];"]
         if p == 0:  # the measure's forgetting exp(-x) (cubic Taylor) and CYCLE / den
-            body = ["    const float x = s->lam, t = (float)CYCLE / s->t, v0 = t * s->qv[0];",
-                    "    const float lam = 1.0f - x + 0.5f * x * x - x * x * x * (1.0f / 6.0f);",
-                    "    s->lam = lam;", "    s->t = t;"]  # fmt: skip
+            body = ["    const float x = s->lam, v0 = s->t * s->qv[0];",
+                    "    const float lam = 1.0f - x * (1.0f - x * (0.5f - x * (1.0f / 6.0f)));",
+                    "    s->lam = lam;"]  # fmt: skip
         diag = f"s->H[{p}][{p}]"
         body.append(f"    {diag} = (({diag} * lam + {prior}) + {extra}) - v{p} * s->qv[{p}];")
         for q in range(p + 1, 6):
@@ -339,10 +342,14 @@ typedef struct {
     uint32_t sample;     /* samples processed */
 } @p@_reading;
 
-typedef struct {
+typedef struct { /* the fields of every sample first (short offsets) */
     int32_t rev;
     float ang, v, acc, clean, bad, sum_chi; /* angle, speed, acceleration of the tracker */
     float a[3], b[3];
+    float w[3];                     /* the weights 1 / sigma_i^2, 0 for the channel excluded */
+    uint32_t k;
+    volatile uint32_t seq;
+    volatile @p@_reading buf[2]; /* volatile: the copies stay between the reads of seq */
     float H[6][6];                  /* the adaptation's information (upper triangle) */
     float L[6][6], P[6], R[6];      /* its L D L^T (R = 1 / P), built over a cycle */
     float gr[6], z[6], wm[3];       /* the cycle's gradient, solution, channels measured */
@@ -355,14 +362,11 @@ typedef struct {
         int8_t b[@FWPAD@];
         uint32_t w[@FWW@]; /* the ring's reset in words */
     } ring_blame;   /* -1: no blame */
-    int16_t blame[4];
+    uint32_t blames; /* the ring's marks per channel (byte q: channel q, byte 3: none explains) */
     int32_t sum_dof;
     uint32_t window_from; /* window entries written before this sample count as empty */
     int8_t excluded, next;          /* the channel excluded; the one excluded at the next sample */
     uint8_t blamed_out, suppress, acquire;
-    uint32_t k;
-    volatile uint32_t seq;
-    volatile @p@_reading buf[2]; /* volatile: the copies stay between the reads of seq */
 } @p@_state;
 
 void @p@_init(@p@_state *s); /* angle 0 of revolution 0 */
@@ -410,11 +414,11 @@ static const float C0[3] = {@C@};
 static const float W0[3] = {@W0@};
 static const float GROSS[3] = {@GROSS@};
 static const int16_t OFF[NA] = {@OFF@};
-static const float INV[2 * W + 1] = { /* 1 / k */
-    @INV@
-};
-static const float THR[2 * W + 1] = {
-    @THR@
+/* a mark's count in the packed blame counts (index mark + 1: none, channel 0, 1, 2, 3) */
+static const uint32_t ONE[5] = {0u, 1u, 0x100u, 0x10000u, 0x1000000u};
+/* per k degrees of freedom of the window: the alarm threshold and 1 / k (one address) */
+static const float THRINV[2 * W + 1][2] = {
+    @THRINV@
 };
 static const float T[M][12] = { /* per channel i: the cubic of g_i - c_i on [y_j, y_j+1] in
                                   * t = y / h - j (y_j = j 2 pi / M, h = 2 pi / M): constant,
@@ -452,27 +456,42 @@ static uint32_t bits_(float x)
     return v.u;
 }
 #define FIN(x) ((bits_(x) & 0x7f800000u) != 0x7f800000u)
+#if defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__
+/* (-ffast-math: x - x would be folded to 0) an exponent of all ones carries into bit 31 */
+#define FINITE3(x, y, z)                                                                       \
+    (((((bits_(x) & 0x7f800000u) + 0x00800000u) | ((bits_(y) & 0x7f800000u) + 0x00800000u) |   \
+       ((bits_(z) & 0x7f800000u) + 0x00800000u)) & 0x80000000u) == 0u)
+#else
+/* x - x is +0 for a finite x and NaN otherwise, and NaN fails every comparison: the readings
+ * stay in the FPU's registers */
+#define FINITE3(x, y, z) (((x) - (x)) + ((y) - (y)) + ((z) - (z)) <= 0.0f)
+#endif
 
 /* cubic Hermite interpolation of g - c and dg/dy at y (any real y: wrap-around); the table
  * holds, per node and channel, the interval's cubic in t = y / h - j (its power-basis
  * coefficients: the same polynomial as the Hermite form of values and slopes) */
 static void table(float y, float f[3], float dg[3])
 {
-    float u = y * INVH, t, t3;
+    float u = y * INVH, t, c, a, b;
     int32_t j = (int32_t)u;
     const float *p;
     if ((float)j > u) {
         j -= 1;
     }
     t = u - (float)j;
-    t3 = 3.0f * t;
     p = T[(uint32_t)j & (uint32_t)(M - 1)];
-    f[0] = ((p[3] * t + p[2]) * t + p[1]) * t + p[0];
-    dg[0] = ((p[3] * t3 + (p[2] + p[2])) * t + p[1]) * INVH;
-    f[1] = ((p[7] * t + p[6]) * t + p[5]) * t + p[4];
-    dg[1] = ((p[7] * t3 + (p[6] + p[6])) * t + p[5]) * INVH;
-    f[2] = ((p[11] * t + p[10]) * t + p[9]) * t + p[8];
-    dg[2] = ((p[11] * t3 + (p[10] + p[10])) * t + p[9]) * INVH;
+    /* Horner: a = c3 t + c2, b = a t + c1, g = b t + c0; its derivative in t,
+     * 3 c3 t^2 + 2 c2 t + c1 = b + (a + c3 t) t, from the same partial sums */
+#define CUBIC(i, k)                                                                            \
+    c = p[(k) + 3] * t;                                                                        \
+    a = c + p[(k) + 2];                                                                        \
+    b = a * t + p[(k) + 1];                                                                    \
+    f[i] = b * t + p[k];                                                                       \
+    dg[i] = (b + (a + c) * t) * INVH;
+    CUBIC(0, 0)
+    CUBIC(1, 4)
+    CUBIC(2, 8)
+#undef CUBIC
 }
 
 /* one Gauss-Newton step on the linearized model, bounded; the chi2 after it in *chi */
@@ -506,6 +525,9 @@ NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, 
         j0 -= 1;
     }
     bj = j0;
+#if defined(__GNUC__) && (__GNUC__ >= 8)
+#pragma GCC unroll 8
+#endif
     for (q = 0; q < NA; q++) {
         j = j0 + OFF[q];
         p = T[(uint32_t)j & (uint32_t)(M - 1)];
@@ -574,14 +596,23 @@ NOINLINE static void apply(@p@_state *s)
     s->b[2] = s->z[5];
 }
 
+/* the weights of the channels in use (after a change of the excluded channel) */
+static void weights(@p@_state *s)
+{
+    s->w[0] = s->excluded != 0 ? W0[0] : 0.0f;
+    s->w[1] = s->excluded != 1 ? W0[1] : 0.0f;
+    s->w[2] = s->excluded != 2 ? W0[2] : 0.0f;
+}
+
 /* the exclusion of channel s->next (decided on the previous sample) */
 NOINLINE static void exclude(@p@_state *s)
 {
     s->excluded = s->next;
+    weights(s);
     s->next = -1;
     s->blamed_out = 1u;
     s->clean = 0.0f;
-    s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0; /* the blame ring and */
+    s->blames = 0u; /* the blame ring and */
 @RINGRESET@    s->window_from = s->k; /* the window start again */
     s->sum_chi = 0.0f;
     s->sum_dof = 0;
@@ -605,9 +636,10 @@ void @p@_init(@p@_state *s)
     }
     s->pending = 0u;
     s->phase = 0u;
-    s->blame[0] = s->blame[1] = s->blame[2] = s->blame[3] = 0;
+    s->blames = 0u;
     s->window_from = 0u;
 @RINGRESET@    s->excluded = -1;
+    weights(s);
     s->next = -1;
     s->blamed_out = 0u;
     s->suppress = 0u;
@@ -645,42 +677,53 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     float w0, w1, w2, f0 = 0.0f, f1 = 0.0f, f2 = 0.0f, g0 = 0.0f, g1 = 0.0f, g2 = 0.0f;
     float r0 = 0.0f, r1 = 0.0f, r2 = 0.0f, J0 = 0.0f, J1 = 0.0f, J2 = 0.0f, tr0, tr1, tr2;
     float tn0, tn1, tn2, td0, td1, td2, f[3], dg[3], yp, y, step = 0.0f, chi = 0.0f;
-    float srr = 0.0f, num = 0.0f, den = 0.0f, best, best_step, cq, e, travel, mf = 0.0f;
-    float n0, n1, n2, s0, s1, s2, rb, Jb, gb;
+    float srr = 0.0f, num = 0.0f, den = 0.0f, best, best_step, e, travel, mf = 0.0f;
+    float n0, n1, n2, s0, s1, s2, c0, c1, c2, Jb;
     float cc, cmax = CAP, A01, A11, rs, Js0, Js1, Js2, det, x, e0, e1, e2, i0, i1, i2;
-    int active, blamed = -1, mark = -1, others, above = 0, stale, acquired, fitted, loo = 0;
-    int fin0, fin1, fin2, u0, u1, u2, i, dof;
-    uint32_t slot, jw, ph;
+    int active, blamed = -1, mark = -1, above = 0, stale, fitted, loo = 0;
+    int fin0, fin1, fin2, i, dof;
+    uint32_t fin = 7u; /* bit i: reading i finite */
+    uint32_t slot, jw, ph, bw, nb, others;
     int8_t old;
     if (RARE(s->next >= 0)) { /* the exclusion decided on the previous sample */
         exclude(s);
     }
-    fin0 = FIN(d1);
-    fin1 = FIN(d2);
-    fin2 = FIN(d3);
-    d1 = fin0 ? d1 : 0.0f;
-    d2 = fin1 ? d2 : 0.0f;
-    d3 = fin2 ? d3 : 0.0f;
-    if (!(fin0 && fin1 && fin2) && s->excluded < 0) { /* a disconnected channel */
-        s->excluded = (int8_t)(!fin0 ? 0 : (!fin1 ? 1 : 2));
-        s->blamed_out = 0u;
-        s->clean = 0.0f;
+    if (LIKELY(FINITE3(d1, d2, d3))) { /* all finite: the weights of the channels in use */
+        w0 = s->w[0];
+        w1 = s->w[1];
+        w2 = s->w[2];
+        active = s->excluded < 0 ? 3 : 2;
+    } else {
+        fin0 = FIN(d1);
+        fin1 = FIN(d2);
+        fin2 = FIN(d3);
+        d1 = fin0 ? d1 : 0.0f;
+        d2 = fin1 ? d2 : 0.0f;
+        d3 = fin2 ? d3 : 0.0f;
+        fin = (uint32_t)fin0 | (uint32_t)fin1 << 1 | (uint32_t)fin2 << 2;
+        if (s->excluded < 0) { /* a disconnected channel */
+            s->excluded = (int8_t)(!fin0 ? 0 : (!fin1 ? 1 : 2));
+            s->blamed_out = 0u;
+            s->clean = 0.0f;
+            weights(s);
+        }
+        w0 = fin0 ? s->w[0] : 0.0f; /* 0 for a channel not in use */
+        w1 = fin1 ? s->w[1] : 0.0f;
+        w2 = fin2 ? s->w[2] : 0.0f;
+        /* the channels in use: finite and not excluded (here one is: it was, or is now) */
+        i = (int)(fin & ~(1u << s->excluded));
+        active = (i & 1) + (i >> 1 & 1) + (i >> 2);
     }
-    u0 = s->excluded != 0 && fin0;
-    u1 = s->excluded != 1 && fin1;
-    u2 = s->excluded != 2 && fin2;
-    w0 = u0 ? W0[0] : 0.0f; /* 0 for a channel not in use */
-    w1 = u1 ? W0[1] : 0.0f;
-    w2 = u2 ? W0[2] : 0.0f;
-    active = u0 + u1 + u2;
     yp = s->ang + s->v;
     y = yp;
-    acquired = active >= 2 && s->acquire;
-    fitted = active >= 2 && !acquired;
-    if (RARE(acquired)) {
+    fitted = 0;
+    if (RARE(active < 2)) {
+        /* no fit: fault */
+    } else if (RARE(s->acquire)) {
         y = acquire(s, d1, d2, d3, w0, w1, w2, yp);
         s->acquire = 0u;
-    } else if (fitted) {
+    } else {
+        fitted = 1;
         table(yp, f, dg);
         f0 = f[0];
         f1 = f[1];
@@ -722,11 +765,11 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                                                             + den * rs * rs)) {
                 loo = 1;
                 /* the three fits without one channel; their 1 / den from one division */
-                e0 = den - td0;
-                e1 = den - td1;
-                e2 = den - td2;
+                e0 = den - (J0 * J0) * w0; /* (recomputed: not kept live) */
+                e1 = den - (J1 * J1) * w1;
+                e2 = den - (J2 * J2) * w2;
                 x = e0 * e1 * e2;
-                if (bits_(x) - @XLO@u < @XRANGE@u) { /* 1e-37 < x < 1e37: one compare */
+                if (LIKELY(bits_(x) - @XLO@u < @XRANGE@u)) { /* 2^-124 <= x < 2^124 */
                     x = 1.0f / x;
                     i0 = e1 * e2 * x;
                     i1 = e0 * e2 * x;
@@ -737,45 +780,46 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                     i2 = e2 > 0.0f ? 1.0f / e2 : 0.0f;
                 }
                 /* chi2 of the fit without q, unbounded: (srr - tr_q) - n_q^2 / e_q */
-                n0 = num - tn0;
-                n1 = num - tn1;
-                n2 = num - tn2;
+                n0 = num - (r0 * J0) * w0;
+                n1 = num - (r1 * J1) * w1;
+                n2 = num - (r2 * J2) * w2;
                 s0 = n0 * i0;
                 s1 = n1 * i1;
                 s2 = n2 * i2;
-                best = (srr - tr0) - s0 * n0;
+                c0 = (srr - (r0 * r0) * w0) - s0 * n0;
+                c1 = (srr - (r1 * r1) * w1) - s1 * n1;
+                c2 = (srr - (r2 * r2) * w2) - s2 * n2;
+                /* the smallest (the first of equals), by conditional moves; the chosen
+                 * channel's residual off the fit without it */
+                best = c0;
                 best_step = s0;
                 blamed = 0;
-                rb = r0; /* the chosen channel's residual, slope and gross level */
                 Jb = J0;
-                gb = GROSS[0];
-                cq = (srr - tr1) - s1 * n1;
-                if (cq < best) {
-                    best = cq;
+                e = r0 - J0 * s0;
+                if (c1 < best) {
+                    best = c1;
                     best_step = s1;
                     blamed = 1;
-                    rb = r1;
                     Jb = J1;
-                    gb = GROSS[1];
+                    e = r1 - J1 * s1;
                 }
-                cq = (srr - tr2) - s2 * n2;
-                if (cq < best) {
-                    best = cq;
+                if (c2 < best) {
+                    best = c2;
                     best_step = s2;
                     blamed = 2;
-                    rb = r2;
                     Jb = J2;
-                    gb = GROSS[2];
+                    e = r2 - J2 * s2;
                 }
                 if (!(best < EXPLAINED && best < 0.1f * chi)) {
                     blamed = -1;
                     mark = 3;
                 } else {
-                    if (fabs_(best_step) > MAXSTEP) { /* the chosen fit's step, bounded */
-                        best_step = best_step > 0.0f ? MAXSTEP : -MAXSTEP;
+                    if (RARE(fabs_(best_step) > MAXSTEP)) { /* the chosen fit's step, bounded */
+                        x = best_step > 0.0f ? MAXSTEP : -MAXSTEP;
+                        e += Jb * (best_step - x); /* the residual at the bounded step */
+                        best_step = x;
                     }
-                    e = rb - Jb * best_step;
-                    if (fabs_(e) < gb) {
+                    if (fabs_(e) < GROSS[blamed]) {
                         blamed = -1;
                     } else {
                         step = best_step;
@@ -787,20 +831,19 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         }
         y = yp + step;
     }
-    /* fault isolation */
-    slot = s->k % (uint32_t)FW;
-    old = s->ring_blame.b[slot];
-    if (old >= 0) {
-        s->blame[old]--;
-    }
-    s->ring_blame.b[slot] = (int8_t)mark;
-    if (mark >= 0) {
-        s->blame[mark]++;
-    }
-    if (blamed >= 0 && s->excluded < 0 && !s->suppress) {
-        others = s->blame[0] + s->blame[1] + s->blame[2] + s->blame[3] - s->blame[blamed];
-        if (s->blame[blamed] >= FC && 4 * others <= s->blame[blamed]) {
-            s->next = (int8_t)blamed; /* excluded from the next sample on */
+    /* fault isolation (the ring all -1 when no mark is in it: nothing to do without one) */
+    if ((mark >= 0) | (s->blames != 0u)) {
+        slot = s->k % (uint32_t)FW;
+        old = s->ring_blame.b[slot];
+        s->ring_blame.b[slot] = (int8_t)mark;
+        bw = s->blames + ONE[mark + 1] - ONE[old + 1];
+        s->blames = bw;
+        if (blamed >= 0 && s->excluded < 0 && !s->suppress) {
+            nb = (bw >> (8 * blamed)) & 0xffu;
+            others = ((bw * 0x01010101u) >> 24) - nb; /* the bytes' sum, less channel blamed's */
+            if (nb >= FC && 4u * others <= nb) {
+                s->next = (int8_t)blamed; /* excluded from the next sample on */
+            }
         }
     }
     if (blamed < 0 && fitted) { /* the tracker: acceleration, then speed (bounded: then no
@@ -838,16 +881,22 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     s->ring_chi[jw] = cc;
     s->ring_dof[jw] = (uint8_t)dof;
     if (s->sum_dof > 0) {
-        mf = s->sum_chi * INV[s->sum_dof];
-        above = s->sum_chi > THR[s->sum_dof];
+        mf = s->sum_chi * THRINV[s->sum_dof][1];
+        above = s->sum_chi > THRINV[s->sum_dof][0];
     }
-    s->bad = above ? s->bad + travel : 0.0f;
-    stale = above && s->bad >= STALE;
+    stale = 0;
     if (!above) {
+        s->bad = 0.0f;
         s->suppress = 0u;
-    } else if (s->excluded >= 0 && s->blamed_out && SEL(s->excluded, fin0, fin1, fin2)) {
-        s->excluded = -1;
-        s->suppress = 1u;
+    } else {
+        x = s->bad + travel;
+        s->bad = x;
+        stale = x >= STALE;
+        if (RARE(s->excluded >= 0 && s->blamed_out && (fin >> s->excluded & 1u))) {
+            s->excluded = -1;
+            s->suppress = 1u;
+            weights(s);
+        }
     }
     /* adaptation: one part per sample of its cycle */
     if (!loo) {
@@ -856,12 +905,12 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
             /* settled: the step within 5 sigma of the angle's own noise (1 / den) */
             if (fitted && !stale && blamed < 0 && step * step * den < 25.0f) {
                 x = (float)CYCLE * travel * INVMEM;
-                s->lam = x < XMAX ? x : XMAX; /* row0 makes them lam and CYCLE / den */
-                s->t = den;
+                s->lam = x < XMAX ? x : XMAX; /* row0 makes it exp(-x) */
+                s->t = (float)CYCLE / den; /* no slope: nothing measured (below) */
                 MEASURE(0, f0, g0, r0, J0, w0);
                 MEASURE(1, f1, g1, r1, J1, w1);
                 MEASURE(2, f2, g2, r2, J2, w2);
-                s->pending = 1u;
+                s->pending = (uint8_t)(den > 0.0f);
                 s->phase = 1u;
             }
         } else {
@@ -882,7 +931,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     /* readmission */
     if (RARE(fitted && s->excluded >= 0)) {
         i = s->excluded;
-        if (!SEL(i, fin0, fin1, fin2)) {
+        if (!(fin >> i & 1u)) {
             s->clean = 0.0f;
         } else {
             e = SEL(i, r0, r1, r2) - SEL(i, J0, J1, J2) * step;
@@ -891,15 +940,19 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         if (s->clean >= READMIT) {
             s->excluded = -1;
             s->clean = 0.0f;
+            weights(s);
         }
     }
     /* publish */
     {
         uint32_t next = s->seq + 1u;
         volatile @p@_reading *rd = &s->buf[next & 1u];
-        uint8_t st = active < 2 ? @P@_FAULT
-                     : (stale ? @P@_STALE /* a model that no longer fits outranks a channel out */
-                     : (s->excluded >= 0 ? @P@_DEGRADED : (above ? @P@_ADAPTING : @P@_OK)));
+        /* by priority, each a conditional move: a model that no longer fits outranks a
+         * channel out */
+        uint8_t st = above ? @P@_ADAPTING : @P@_OK;
+        st = s->excluded >= 0 ? @P@_DEGRADED : st;
+        st = stale ? @P@_STALE : st;
+        st = active < 2 ? @P@_FAULT : st;
         rd->revolutions = s->rev;
         rd->angle = s->ang;
         rd->misfit = mf;
