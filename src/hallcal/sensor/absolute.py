@@ -56,11 +56,17 @@ Constants (:class:`PowerUpDecoder`, all float64 in the reference):
   (0: none; see "Sensors changed since calibration");
 - ``wt``, ``kd``, ``bd``, ``bf``: the misfit test's weight ``(1 - 1 / kappa) / 2``, drift
   ``ln kappa`` and bounds ``ln(1 / beta)``, ``ln(1 / gamma)`` (:mod:`hallcal.sensor.misfit`:
-  does any pole pair fit at all?).
+  does any pole pair fit at all?);
+- ``K0``, ``gz``, ``g4``: the goodness-of-fit gate at the lock (see "Sensors changed since
+  calibration"): the samples of evidence before the lock ``K0`` (:data:`DEFAULT_GATE_SAMPLES`),
+  and ``gz = 2 (z^2 - 1) / 3``, ``g4 = 4 z^2`` with ``z`` the standard normal quantile of
+  ``1 - alpha_g`` (``alpha_g`` the gate's false-alarm rate, :data:`DEFAULT_GATE_RATE`); without
+  the gate ``K0 = 0`` and step 7's gate always passes (artifacts made before it).
 
 State: ``m`` (integer turn count, 0), ``psi_prev`` (none yet), ``Lam[j] = 0`` for j = 0..n-1,
-``locked = false``, ``mismatch = false``, ``best = 0``, ``D = 0`` (misfit statistic); with the
-gain profile also ``s[j] = 1`` and ``I[j] = w``.
+``locked = false``, ``mismatch = false``, ``best = 0``, ``D = 0`` (misfit statistic), ``Q = 0``
+(the best hypothesis's whole cost), ``k = 0`` (samples of evidence); with the gain profile
+also ``s[j] = 1`` and ``I[j] = w``.
 
 Per sample ``d = (d1, d2, d3)``:
 
@@ -70,7 +76,7 @@ Per sample ``d = (d1, d2, d3)``:
    first sample ``m = -floor((psi + pi) / (2 pi))``, later ``m -= floor((psi - psi_prev + pi) /
    (2 pi))``; ``psi_prev = psi``. f_init's output is ``y = (psi + 2 pi m) / n``.
 3. If locked, or mismatch, or ``rho <= 1e-12 * (1 + |R[0]|)`` (no angle information), stop
-   here.
+   here. Else ``k += 1``.
 4. ``c = al / rho``, ``s = be / rho``;
    ``Guu = A00 c^2 + 2 A01 c s + A11 s^2``, ``Gvv = A00 s^2 - 2 A01 c s + A11 c^2``,
    ``Guv = (A11 - A00) c s + A01 (c^2 - s^2)``, ``Gun = B0 c + B1 s``, ``Gvn = B1 c - B0 s``,
@@ -95,15 +101,19 @@ Per sample ``d = (d1, d2, d3)``:
      ``s[j] += u pr / I[j]``; ``Lam[j] += min(inc, cap)``.
 6. ``Lmin = min_j Lam[j]``, ``best`` = the smallest j attaining it; ``Lam[j] -= Lmin`` for all j
    (keeps the numbers bounded; the posterior only depends on differences). The sum of the Lmin
-   so far is the best hypothesis's whole cost: ``D += wt Lmin - kd`` (the misfit statistic);
+   so far is the best hypothesis's whole cost: ``Q += Lmin``; ``D += wt Lmin - kd`` (the misfit
+   statistic);
    if ``D >= bd``: ``mismatch = true`` (no pole pair fits: the signals do not match this
    calibration), stop here for good.
 7. ``W = sum_{j != best} exp(-Lam[j] / 2)``; posterior of best ``p = 1 / (1 + W)``; lock when
    ``W <= alpha / (1 - alpha)`` (i.e. p >= 1 - alpha) and ``D <= -bf`` (the best fits) and,
    with a travel ``T > 0`` (``lock_travel``), f_init's electrical angle ``psi + 2 pi m`` has
-   spanned at least ``2 pi T`` (max - min over the samples of evidence so far). Margin
-   ``sqrt(min_{j != best} Lam[j])`` in noise sigmas (the log-likelihood-ratio margin is half its
-   square).
+   spanned at least ``2 pi T`` (max - min over the samples of evidence so far), and ``k >= K0``
+   samples of evidence. The first time all of these hold, the gate: with ``x = Q - 2 k - gz``,
+   the best fits when ``x <= 0`` or ``x^2 <= g4 k`` (Q within the chi-square(2 k) quantile of
+   ``1 - alpha_g``); then lock, else ``mismatch = true`` (the data fit no pole pair as the
+   calibration's noise allows), stop here for good. Margin ``sqrt(min_{j != best} Lam[j])`` in
+   noise sigmas (the log-likelihood-ratio margin is half its square).
 
 Output: the calibration frame's f_init value ``y_abs = y + 2 pi best / n``, and the corrected
 angle ``y_star = y_abs + eta(y_abs)`` with the lookup table of eq. (f_final). Before the lock
@@ -140,6 +150,26 @@ sensor's change is the same pattern in the electrical angle under every hypothes
 magnets differ, so :func:`analyze_calibration` gives such a calibration the profile and the
 travel ``T = 1`` (:data:`DEFAULT_LOCK_TRAVEL`).
 
+Where the plain lock survives the plausible drifts, a larger change (one sensor's gain by 5-10 %,
+an offset by 5 %, a 3 % common gain: tens of noise sigmas) mostly puts the point far from every
+curve (the misfit test refuses), but in a few per cent of positions next to a wrong pole pair's
+curve, within a noise sigma or two. Measured before the gate (``benchmarks/
+bench_powerup_margin.txt``, 5 motors, 11 changes, 40 power-ups each): 73 wrong locks in 2200;
+two kinds. Locks after 15-110 samples whose best cost was already 1.7-2.3 times the noise's
+per degree of freedom (chi-square p-value 1e-3 to 1e-25): the misfit test accepts any cost
+below 2.4 times the noise's (kappa = 8), and its statistic drifts down slowly there. And quick
+locks (5-12 samples) on a wrong curve within about one sigma: at standstill nothing in 6
+samples tells that from noise (a bias b per sample adds k b^2 to a chi-square(2 k) cost). Hence
+the gate (step 7): the winner's whole cost against the chi-square(2 k) quantile of ``1 -
+alpha_g`` (Cornish-Fisher to the constant term: the tail probability at the bound within 3 % of
+alpha_g for k >= 6, 0.5 % at k = 96), once, at the first sample the lock rule holds, and not
+before ``K0`` samples of evidence: at K0 = 96 it sees a constant misfit of one noise sigma per
+sample (cost 1.5 times the noise's, :data:`~hallcal.sensor.misfit.CONFIRM_RATIO`) with
+probability 0.86, half a sigma^2 with 0.22.
+Under the calibrated noise the gate refuses a healthy power-up with probability alpha_g (the
+cost of the best is at most the right hypothesis's, a chi-square(2 k) sum); the price is the
+healthy lock after K0 samples instead of about 6.
+
 Units: angles in rad (mechanical unless said electrical); d, rho, zeta in the sensor's unit;
 costs in noise-sigma units squared.
 """
@@ -148,6 +178,7 @@ from __future__ import annotations
 
 import enum
 import math
+import statistics
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -207,6 +238,15 @@ DEFAULT_GAIN_SD = PLAUSIBLE_GAIN_CHANGE
 #: one sensor's gain x0.99 or offset +1 %, mismatch 30 with 5 %, no wrong lock (at standstill
 #: the same decoder locked wrong at most positions with 1 %).
 DEFAULT_LOCK_TRAVEL = 1.0
+#: alpha_g: false-alarm rate of the goodness-of-fit gate at the lock (step 7) under the
+#: calibrated noise; a refused healthy power-up says "mismatch" (measured: 0 in 2000 healthy
+#: power-ups on five motors, ``benchmarks/bench_powerup_margin.txt``).
+DEFAULT_GATE_RATE = 1e-3
+#: K0: samples of evidence before the lock, so that the gate can see a wrong pole pair that fits
+#: within about a noise sigma (module doc, "Sensors changed since calibration"): measured on five
+#: motors and 11 sensor changes (2200 power-ups), wrong locks 73 (no gate) -> 49 (gate, lock as
+#: before) -> 26 / 19 / 13 / 10 with K0 = 48 / 64 / 96 / 128; the healthy lock comes at K0 then.
+DEFAULT_GATE_SAMPLES = 96
 
 
 # ------------------------------------------------------------------------------------------------
@@ -440,6 +480,11 @@ class PowerUpDecoder:
     lock_travel : float
         Electrical turns f_init's angle must have spanned since power-up before the lock
         (step 7); 0: none (the decoder before it).
+    gate_rate : float
+        alpha_g, the false-alarm rate of the goodness-of-fit gate at the lock (step 7,
+        :data:`DEFAULT_GATE_RATE`); 0: no gate (the decoder before it).
+    gate_samples : int
+        K0, samples of evidence before the lock (step 7, :data:`DEFAULT_GATE_SAMPLES`).
     """
 
     pole_pairs: int
@@ -459,6 +504,28 @@ class PowerUpDecoder:
     misfit: MisfitTest = field(default_factory=MisfitTest)
     gain_sd: float = 0.0
     lock_travel: float = 0.0
+    gate_rate: float = 0.0
+    gate_samples: int = 0
+
+    @property
+    def gate_terms(self) -> tuple[float, float]:
+        """(gz, g4) of step 7's gate: ``2 (z^2 - 1) / 3`` and ``4 z^2``, z the standard normal
+        quantile of ``1 - alpha_g`` (the chi-square(2 k) quantile of ``1 - alpha_g`` is ``2 k +
+        gz + sqrt(g4 k)`` to the Cornish-Fisher expansion's constant term)."""
+        z = statistics.NormalDist().inv_cdf(1.0 - self.gate_rate)
+        return 2.0 * (z * z - 1.0) / 3.0, 4.0 * z * z
+
+    def gate_passes(self, total: ArrayLike, samples: ArrayLike) -> NDArray[np.bool_]:
+        """Step 7's gate: the best hypothesis's whole cost ``total`` (Q) over ``samples`` (k)
+        samples of evidence within the chi-square(2 k) quantile of ``1 - alpha_g`` (True
+        everywhere without the gate)."""
+        Q = np.asarray(total, dtype=np.float64)
+        k = np.asarray(samples, dtype=np.float64)
+        if not self.gate_rate > 0.0:
+            return np.ones(np.broadcast(Q, k).shape, dtype=bool)
+        gz, g4 = self.gate_terms
+        x = Q - 2.0 * k - gz
+        return (x <= 0.0) | (x * x <= g4 * k)
 
     @property
     def gain_weight(self) -> float:
@@ -630,6 +697,8 @@ class PowerUpDecoder:
             "cost_cap": float(self.cost_cap),
             "gain_sd": float(self.gain_sd),
             "lock_travel": float(self.lock_travel),
+            "gate_rate": float(self.gate_rate),
+            "gate_samples": int(self.gate_samples),
             **self.misfit.to_dict(),
         }
 
@@ -690,13 +759,15 @@ def _span(F: dict[str, NDArray]) -> NDArray[np.float64]:
 @dataclass(frozen=True)
 class _Rule:
     """Steps 6 and 7 on cumulative costs, per row: the best hypothesis's cost, the costs
-    relative to it, the misfit statistic D, and where the mismatch and the lock rule hold."""
+    relative to it, the misfit statistic D, where the mismatch and the lock rule hold, and
+    where the gate passes (it decides at the first row where the lock rule holds)."""
 
     total: NDArray[np.float64]
     relative: NDArray[np.float64]
     D: NDArray[np.float64]
     mismatch: NDArray[np.bool_]
     lock: NDArray[np.bool_]
+    gate: NDArray[np.bool_]
 
 
 def _lock_rule(dec: PowerUpDecoder, lam: NDArray, used: NDArray, span: NDArray) -> _Rule:
@@ -709,7 +780,8 @@ def _lock_rule(dec: PowerUpDecoder, lam: NDArray, used: NDArray, span: NDArray) 
     lock = (W <= dec.lock_threshold) & (D <= -dec.misfit.fit_bound)
     if dec.lock_travel > 0.0:  # and f_init's angle has spanned lock_travel turns
         lock &= span >= TWO_PI * dec.lock_travel
-    return _Rule(total, relative, D, D >= dec.misfit.bound, lock)
+    lock &= used >= dec.gate_samples  # and K0 samples of evidence
+    return _Rule(total, relative, D, D >= dec.misfit.bound, lock, dec.gate_passes(total, used))
 
 
 def _gram(
@@ -756,6 +828,8 @@ def build_decoder(
     fit_rate: float = DEFAULT_FIT_RATE,
     gain_sd: float = 0.0,
     lock_travel: float = 0.0,
+    gate_rate: float = 0.0,
+    gate_samples: int = 0,
 ) -> PowerUpDecoder:
     """Tables and constants of the power-up decoder for an identified flux model.
 
@@ -792,12 +866,21 @@ def build_decoder(
     lock_travel : float
         Electrical turns of motion before the lock (>= 0; step 7), see
         :data:`DEFAULT_LOCK_TRAVEL`.
+    gate_rate : float
+        alpha_g of the goodness-of-fit gate at the lock (in [0, 0.5); 0: no gate), see
+        :data:`DEFAULT_GATE_RATE`; :func:`analyze_calibration` sets it.
+    gate_samples : int
+        K0, samples of evidence before the lock (>= 0), see :data:`DEFAULT_GATE_SAMPLES`.
 
     Returns
     -------
     PowerUpDecoder
     """
     lut._require_bijective()
+    if not 0.0 <= gate_rate < 0.5:
+        raise ValueError("gate_rate must be in [0, 0.5)")
+    if int(gate_samples) != gate_samples or gate_samples < 0:
+        raise ValueError("gate_samples must be an integer >= 0")
     if not (gain_sd >= 0.0 and math.isfinite(gain_sd)):
         raise ValueError("gain_sd must be a finite number >= 0")
     if not (lock_travel >= 0.0 and math.isfinite(lock_travel)):
@@ -852,6 +935,8 @@ def build_decoder(
         misfit=misfit,
         gain_sd=float(gain_sd),
         lock_travel=float(lock_travel),
+        gate_rate=float(gate_rate),
+        gate_samples=int(gate_samples),
     )
 
 
@@ -959,9 +1044,11 @@ def _identify(dec: PowerUpDecoder, d: NDArray, *, lock: bool) -> PowerUpIdentifi
             mismatch_at = int(bad[0])
         limit = rows if mismatch_at is None else mismatch_at
         hit = np.flatnonzero(rule.lock[:limit])
-        if hit.size:
+        if hit.size and rule.gate[hit[0]]:
             lock_at = int(hit[0])
             mismatch_at = None
+        elif hit.size:  # the gate refuses the first lock: no pole pair fits as the noise allows
+            mismatch_at = int(hit[0])
     stop = rows - 1
     status = PowerUpStatus.UNDECIDED
     if lock_at is not None:
@@ -1022,6 +1109,10 @@ class PowerUpIdentifier:
         self._bf = dec.misfit.fit_bound
         self._profile = dec.gain_sd > 0.0
         self._travel = TWO_PI * dec.lock_travel
+        self._gate = dec.gate_rate > 0.0
+        self._k0 = int(dec.gate_samples)
+        self._gz, self._g4 = dec.gate_terms if self._gate else (0.0, 0.0)
+        self.total = 0.0  # Q, the best hypothesis's whole cost (step 6)
         self._ymin = self._ymax = math.nan  # range of f_init's electrical angle (step 7)
         self.scale = [1.0] * self._n  # s_j, the common gain of each hypothesis
         self.info = [dec.gain_weight] * self._n  # I_j, its information
@@ -1126,6 +1217,7 @@ class PowerUpIdentifier:
         lmin = min(self.lam)
         self.best = self.lam.index(lmin)
         self.lam = [v - lmin for v in self.lam]
+        self.total += lmin
         self.fit += self._wt * lmin - self._kd
         if self.fit >= self._bd:
             self.mismatch = True
@@ -1134,9 +1226,14 @@ class PowerUpIdentifier:
         # 7. sequential test
         W = sum(math.exp(-0.5 * v) for j, v in enumerate(self.lam) if j != self.best)
         moved = self._ymax - self._ymin >= self._travel
-        if W <= self._threshold and self.fit <= -self._bf and moved:
-            self.locked = True
-            self.lock_sample = self.samples - 1
+        if W <= self._threshold and self.fit <= -self._bf and moved and self.samples >= self._k0:
+            x = self.total - 2.0 * self.samples - self._gz  # the gate
+            if not self._gate or x <= 0.0 or x * x <= self._g4 * self.samples:
+                self.locked = True
+                self.lock_sample = self.samples - 1
+            else:
+                self.mismatch = True
+                self.mismatch_sample = self.samples - 1
         return self.best
 
 
@@ -1356,6 +1453,11 @@ class IdentifiabilityReport:
     lock_travel : float
         Electrical turns of motion the decoder waits for before the lock
         (:attr:`PowerUpDecoder.lock_travel`); 0 in artifacts made before it.
+    gate_rate : float
+        alpha_g of the decoder's goodness-of-fit gate at the lock
+        (:attr:`PowerUpDecoder.gate_rate`); 0 (no gate) in artifacts made before it.
+    gate_samples : int
+        K0, its samples of evidence before the lock; 0 in artifacts made before it.
     """
 
     status: Identifiability
@@ -1386,6 +1488,8 @@ class IdentifiabilityReport:
     drift: DriftMargin | None = None
     gain_sd: float = 0.0
     lock_travel: float = 0.0
+    gate_rate: float = 0.0
+    gate_samples: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         """The artifact's ``"identifiability"`` entry (JSON-ready; infinities as None)."""
@@ -1423,6 +1527,9 @@ class IdentifiabilityReport:
             out["gain_sd"] = float(self.gain_sd)
         if self.lock_travel > 0.0:  # absent: the lock at standstill (older artifacts)
             out["lock_travel"] = float(self.lock_travel)
+        if self.gate_rate > 0.0:  # absent: no goodness-of-fit gate (older artifacts)
+            out["gate_rate"] = float(self.gate_rate)
+            out["gate_samples"] = int(self.gate_samples)
         if self.noise is not None:
             out["noise"] = self.noise.to_dict()
         if self.drift is not None:
@@ -1446,6 +1553,8 @@ class IdentifiabilityReport:
         try:
             noise = d.get("noise")
             drift = d.get("drift_margin")  # optional: older artifacts have none
+            if not _nonnegative(d, "gate_rate") < 0.5:
+                raise ValueError(f"gate_rate must be in [0, 0.5), got {d['gate_rate']!r}")
             MisfitTest(  # validates them (a ratio <= 1 or a rate outside (0, 0.5) is refused)
                 float(d.get("misfit_ratio", DEFAULT_MISFIT_RATIO)),
                 float(d.get("mismatch_rate", DEFAULT_MISMATCH_RATE)),
@@ -1478,6 +1587,8 @@ class IdentifiabilityReport:
                 fit_rate=float(d.get("fit_rate", DEFAULT_FIT_RATE)),
                 gain_sd=_nonnegative(d, "gain_sd"),
                 lock_travel=_nonnegative(d, "lock_travel"),
+                gate_rate=_nonnegative(d, "gate_rate"),
+                gate_samples=_count(d, "gate_samples"),
                 noise=None
                 if noise is None
                 else NoiseEstimate(
@@ -1521,7 +1632,17 @@ class IdentifiabilityReport:
             fit_rate=self.fit_rate,
             gain_sd=self.gain_sd,
             lock_travel=self.lock_travel,
+            gate_rate=self.gate_rate,
+            gate_samples=self.gate_samples,
         )
+
+
+def _count(d: Mapping[str, Any], key: str) -> int:
+    """``d[key]`` as an integer >= 0 (0 when absent: an artifact made before it)."""
+    v = d.get(key, 0)
+    if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+        raise ValueError(f"{key} must be an integer >= 0, got {v!r}")
+    return int(v)
 
 
 def _nonnegative(d: Mapping[str, Any], key: str) -> float:
@@ -1759,6 +1880,8 @@ def assess_identifiability(
         fit_rate=dec.misfit.fit_rate,
         gain_sd=dec.gain_sd,
         lock_travel=dec.lock_travel,
+        gate_rate=dec.gate_rate,
+        gate_samples=dec.gate_samples,
         drift=drift_margin(dec, standstill_budget=standstill_budget)
         if drift and status.success and dec.pole_pairs > 1
         else None,
@@ -1917,7 +2040,9 @@ def analyze_calibration(
     :data:`DEFAULT_LOCK_TRAVEL` electrical revolution of motion (verdict "needs motion",
     reason ``SENSOR_DRIFT``). Where the magnets differ in strength (the paper bench) the
     profile would cost the standstill separation (8.1 to 1.8 noise sigmas typical) and is not
-    used.
+    used. Either decoder has the goodness-of-fit gate at the lock (:data:`DEFAULT_GATE_RATE`,
+    :data:`DEFAULT_GATE_SAMPLES`): a sensor change the calibration does not describe is refused
+    ("mismatch") instead of locking where it happens to look like another magnet.
 
     Sigma is the total noise across the model curve on the calibration samples
     (:func:`estimate_normal_noise`): white noise plus the model's own error there, so the
@@ -1953,7 +2078,15 @@ def analyze_calibration(
     used = len(range(*slice(start, stop).indices(np.shape(d)[0])))
 
     def analysis(gain_sd: float, travel: float) -> tuple[PowerUpDecoder, IdentifiabilityReport]:
-        dec = build_decoder(flux, lut, noise_std=sigma, gain_sd=gain_sd, lock_travel=travel)
+        dec = build_decoder(
+            flux,
+            lut,
+            noise_std=sigma,
+            gain_sd=gain_sd,
+            lock_travel=travel,
+            gate_rate=DEFAULT_GATE_RATE,
+            gate_samples=DEFAULT_GATE_SAMPLES,
+        )
         return dec, assess_identifiability(
             dec,
             standstill_budget=standstill_budget,
