@@ -178,15 +178,41 @@ def test_identifier_matches_the_batch_with_the_gate(bench):
 
 
 def test_report_stores_the_gate_and_old_artifacts_have_none(bench):
-    """The artifact's analysis keeps alpha_g and K0; one without them rebuilds the decoder
+    """The artifact's analysis keeps alpha_g, K0 and phi; one without them rebuilds the decoder
     without the gate; a malformed value is refused naming the key."""
-    rep = ab.assess_identifiability(bench["gate"])
+    rep = ab.assess_identifiability(dataclasses.replace(bench["gate"], gate_dispersion=2.5))
     d = rep.to_dict()
     assert d["gate_rate"] == ab.DEFAULT_GATE_RATE and d["gate_samples"] == 96
     back = ab.IdentifiabilityReport.from_dict(d)
-    assert (back.gate_rate, back.gate_samples) == (ab.DEFAULT_GATE_RATE, 96)
+    assert (back.gate_rate, back.gate_samples, back.gate_dispersion) == (1e-3, 96, 2.5)
     old = {k: v for k, v in d.items() if not k.startswith("gate_")}
     assert ab.IdentifiabilityReport.from_dict(old).gate_rate == 0.0
     for key, bad in (("gate_rate", 0.7), ("gate_samples", -1), ("gate_samples", 9.5)):
         with pytest.raises(ValueError, match=key):
             ab.IdentifiabilityReport.from_dict({**d, key: bad})
+
+
+def test_dispersion_is_one_on_white_noise_and_scales_the_quantile(bench):
+    """phi from a recording of white noise at the calibrated sigma (the bench's exact model,
+    two revolutions) is 1 (its estimate is floored there: measured 0.95); a rig whose noise
+    bursts (every 50th block of 10 samples three times the noise) gets phi > 1 (measured 1.69),
+    and the gate's quantile is Satterthwaite's: phi times chi-square(2 k / phi)'s."""
+    plain = bench["plain"]
+    cfg = BenchConfig(pole_pairs=5, magnet_variation=0.02)
+    rng = np.random.default_rng(11)
+    y0 = np.linspace(0.0, 2 * TWO_PI, 6000)
+    clean = cfg.truth()(y0)
+    white = clean + rng.normal(0.0, math.sqrt(cfg.noise_variance), clean.shape)
+    assert ab.gate_dispersion(plain, white, 96) == 1.0
+    burst = np.ones(clean.shape[0])
+    burst.reshape(-1, 10)[::50] = 3.0
+    noisy = clean + burst[:, None] * rng.normal(0.0, math.sqrt(cfg.noise_variance), clean.shape)
+    phi = ab.gate_dispersion(plain, noisy, 96)
+    assert phi > 1.5
+    dec = dataclasses.replace(bench["gate"], gate_dispersion=phi)
+    gz, g4 = dec.gate_terms
+    k = 96
+    q = 2 * k + gz + math.sqrt(g4 * k)
+    # phi chi-square(2 k / phi): tail 1e-3 at the bound within 5 % (Cornish-Fisher at fewer
+    # degrees of freedom)
+    assert chi2.sf(q / phi, 2 * k / phi) == pytest.approx(1e-3, rel=0.05)

@@ -176,6 +176,7 @@ costs in noise-sigma units squared.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 import statistics
@@ -211,6 +212,7 @@ __all__ = [
     "assess_identifiability",
     "build_decoder",
     "estimate_normal_noise",
+    "gate_dispersion",
     "null_vector",
 ]
 
@@ -485,6 +487,10 @@ class PowerUpDecoder:
         :data:`DEFAULT_GATE_RATE`); 0: no gate (the decoder before it).
     gate_samples : int
         K0, samples of evidence before the lock (step 7, :data:`DEFAULT_GATE_SAMPLES`).
+    gate_dispersion : float
+        phi >= 1: the variance of the right hypothesis's cost over K0 samples on the
+        calibration recording relative to chi-square's (:func:`gate_dispersion`); the gate's
+        quantile is Satterthwaite's for that variance (1: white noise as calibrated).
     """
 
     pole_pairs: int
@@ -506,14 +512,19 @@ class PowerUpDecoder:
     lock_travel: float = 0.0
     gate_rate: float = 0.0
     gate_samples: int = 0
+    gate_dispersion: float = 1.0
 
     @property
     def gate_terms(self) -> tuple[float, float]:
-        """(gz, g4) of step 7's gate: ``2 (z^2 - 1) / 3`` and ``4 z^2``, z the standard normal
-        quantile of ``1 - alpha_g`` (the chi-square(2 k) quantile of ``1 - alpha_g`` is ``2 k +
-        gz + sqrt(g4 k)`` to the Cornish-Fisher expansion's constant term)."""
+        """(gz, g4) of step 7's gate: ``2 phi (z^2 - 1) / 3`` and ``4 phi z^2``, z the standard
+        normal quantile of ``1 - alpha_g``, phi the dispersion. The chi-square(2 k) quantile of
+        ``1 - alpha_g`` is ``2 k + gz + sqrt(g4 k)`` to the Cornish-Fisher expansion's constant
+        term at phi = 1; a cost of mean 2 k and variance 4 k phi is ``phi`` times a
+        chi-square(2 k / phi) (Satterthwaite 1946, Biometrics Bull. 2(6)), whose quantile is
+        the same expression with these terms."""
         z = statistics.NormalDist().inv_cdf(1.0 - self.gate_rate)
-        return 2.0 * (z * z - 1.0) / 3.0, 4.0 * z * z
+        phi = self.gate_dispersion
+        return 2.0 * phi * (z * z - 1.0) / 3.0, 4.0 * phi * z * z
 
     def gate_passes(self, total: ArrayLike, samples: ArrayLike) -> NDArray[np.bool_]:
         """Step 7's gate: the best hypothesis's whole cost ``total`` (Q) over ``samples`` (k)
@@ -699,6 +710,7 @@ class PowerUpDecoder:
             "lock_travel": float(self.lock_travel),
             "gate_rate": float(self.gate_rate),
             "gate_samples": int(self.gate_samples),
+            "gate_dispersion": float(self.gate_dispersion),
             **self.misfit.to_dict(),
         }
 
@@ -830,6 +842,7 @@ def build_decoder(
     lock_travel: float = 0.0,
     gate_rate: float = 0.0,
     gate_samples: int = 0,
+    gate_dispersion: float = 1.0,
 ) -> PowerUpDecoder:
     """Tables and constants of the power-up decoder for an identified flux model.
 
@@ -871,6 +884,8 @@ def build_decoder(
         :data:`DEFAULT_GATE_RATE`; :func:`analyze_calibration` sets it.
     gate_samples : int
         K0, samples of evidence before the lock (>= 0), see :data:`DEFAULT_GATE_SAMPLES`.
+    gate_dispersion : float
+        phi >= 1 of the gate (:func:`gate_dispersion`; 1: white noise as calibrated).
 
     Returns
     -------
@@ -881,6 +896,8 @@ def build_decoder(
         raise ValueError("gate_rate must be in [0, 0.5)")
     if int(gate_samples) != gate_samples or gate_samples < 0:
         raise ValueError("gate_samples must be an integer >= 0")
+    if not (gate_dispersion >= 1.0 and math.isfinite(gate_dispersion)):
+        raise ValueError("gate_dispersion must be a finite number >= 1")
     if not (gain_sd >= 0.0 and math.isfinite(gain_sd)):
         raise ValueError("gain_sd must be a finite number >= 0")
     if not (lock_travel >= 0.0 and math.isfinite(lock_travel)):
@@ -937,6 +954,7 @@ def build_decoder(
         lock_travel=float(lock_travel),
         gate_rate=float(gate_rate),
         gate_samples=int(gate_samples),
+        gate_dispersion=float(gate_dispersion),
     )
 
 
@@ -1458,6 +1476,9 @@ class IdentifiabilityReport:
         (:attr:`PowerUpDecoder.gate_rate`); 0 (no gate) in artifacts made before it.
     gate_samples : int
         K0, its samples of evidence before the lock; 0 in artifacts made before it.
+    gate_dispersion : float
+        phi of the gate (:attr:`PowerUpDecoder.gate_dispersion`); 1 in artifacts made before
+        it.
     """
 
     status: Identifiability
@@ -1490,6 +1511,7 @@ class IdentifiabilityReport:
     lock_travel: float = 0.0
     gate_rate: float = 0.0
     gate_samples: int = 0
+    gate_dispersion: float = 1.0
 
     def to_dict(self) -> dict[str, Any]:
         """The artifact's ``"identifiability"`` entry (JSON-ready; infinities as None)."""
@@ -1530,6 +1552,7 @@ class IdentifiabilityReport:
         if self.gate_rate > 0.0:  # absent: no goodness-of-fit gate (older artifacts)
             out["gate_rate"] = float(self.gate_rate)
             out["gate_samples"] = int(self.gate_samples)
+            out["gate_dispersion"] = float(self.gate_dispersion)
         if self.noise is not None:
             out["noise"] = self.noise.to_dict()
         if self.drift is not None:
@@ -1589,6 +1612,7 @@ class IdentifiabilityReport:
                 lock_travel=_nonnegative(d, "lock_travel"),
                 gate_rate=_nonnegative(d, "gate_rate"),
                 gate_samples=_count(d, "gate_samples"),
+                gate_dispersion=max(_nonnegative(d, "gate_dispersion"), 1.0),
                 noise=None
                 if noise is None
                 else NoiseEstimate(
@@ -1634,6 +1658,7 @@ class IdentifiabilityReport:
             lock_travel=self.lock_travel,
             gate_rate=self.gate_rate,
             gate_samples=self.gate_samples,
+            gate_dispersion=self.gate_dispersion,
         )
 
 
@@ -1882,6 +1907,7 @@ def assess_identifiability(
         lock_travel=dec.lock_travel,
         gate_rate=dec.gate_rate,
         gate_samples=dec.gate_samples,
+        gate_dispersion=dec.gate_dispersion,
         drift=drift_margin(dec, standstill_budget=standstill_budget)
         if drift and status.success and dec.pole_pairs > 1
         else None,
@@ -2015,6 +2041,57 @@ def standstill_error_rate(decoder: PowerUpDecoder, samples: int | ArrayLike) -> 
     return np.array([float(np.mean(standstill_error(r1, k))) for k in K])
 
 
+def gate_dispersion(
+    decoder: PowerUpDecoder,
+    d: ArrayLike,
+    samples: int,
+    *,
+    start: int = 0,
+    stop: int | None = None,
+) -> float:
+    """phi of the gate at the lock (step 7): how much more the right hypothesis's cost over
+    ``samples`` consecutive samples varies on the calibration recording than chi-square(2 K)
+    says, at least 1.
+
+    The gate compares the best hypothesis's whole cost with a quantile of its distribution
+    under the calibrated noise; a real rig's noise is not white (vibration bursts, the model's
+    own error along the turn), so windows of the calibration recording scatter more than
+    chi-square (measured on the ring jig's three captures: 3.7-8.2 times its variance over 96
+    samples). The variance of the sliding-window sums of the calibration frame's costs
+    (hypothesis 0: f_init from y = 0 before ``d``'s first sample, censored as the decoder
+    does) over ``4 K`` is phi; the gate then uses Satterthwaite's quantile
+    (:attr:`PowerUpDecoder.gate_terms`), so that its false alarm on the calibration's own noise
+    stays near alpha_g, at the price of its power on that rig.
+
+    Parameters
+    ----------
+    decoder : PowerUpDecoder
+        The calibration's decoder (its tables, sigma and cap).
+    d : array_like, shape (N, 3)
+        The calibration recording.
+    samples : int
+        K: the window (the gate's K0).
+    start, stop : int, keyword-only
+        The samples the model was fitted on.
+
+    Returns
+    -------
+    float
+        phi >= 1 (1 when the samples hold fewer than two windows).
+    """
+    d = np.atleast_2d(np.asarray(d, dtype=np.float64))
+    F = decoder.features(d if stop is None else d[:stop])
+    F = {k: v[start:] for k, v in F.items()}
+    pos = decoder.coordinates(F["psi"], F["m"], np.zeros(1, dtype=np.int64))
+    e = np.minimum(decoder._costs(F, pos)[:, 0], decoder.cost_cap)[F["valid"]]
+    if samples < 1 or e.size < 2 * samples:
+        return 1.0
+    c = np.concatenate([[0.0], np.cumsum(e)])
+    window = c[samples:] - c[:-samples]
+    phi = float(np.var(window)) / (4.0 * samples)
+    return max(phi, 1.0) if math.isfinite(phi) else 1.0
+
+
 def analyze_calibration(
     flux: FluxModel,
     lut: LUT,
@@ -2077,15 +2154,17 @@ def analyze_calibration(
         sigma = 1e-9 * max(float(np.std(np.asarray(d, dtype=np.float64))), 1e-300)
     used = len(range(*slice(start, stop).indices(np.shape(d)[0])))
 
+    phi: list[float] = []  # the gate's dispersion: the same tables and sigma either way
+
     def analysis(gain_sd: float, travel: float) -> tuple[PowerUpDecoder, IdentifiabilityReport]:
-        dec = build_decoder(
-            flux,
-            lut,
-            noise_std=sigma,
-            gain_sd=gain_sd,
-            lock_travel=travel,
+        dec = build_decoder(flux, lut, noise_std=sigma, gain_sd=gain_sd, lock_travel=travel)
+        if not phi:
+            phi.append(gate_dispersion(dec, d, DEFAULT_GATE_SAMPLES, start=start, stop=stop))
+        dec = dataclasses.replace(
+            dec,
             gate_rate=DEFAULT_GATE_RATE,
             gate_samples=DEFAULT_GATE_SAMPLES,
+            gate_dispersion=phi[0],
         )
         return dec, assess_identifiability(
             dec,
