@@ -125,7 +125,10 @@ def test_the_gate_on_m4f_locks_like_python_and_costs_few_cycles(gate_builds):
     (or neither locks). Cycles per sample (QEMU trace, M4 timing table) before the decision,
     with and without the gate on the same samples: the gate adds one float addition and one
     integer comparison per sample, and the check at the first lock (two multiplications, a
-    comparison) once: at most 40 cycles more at any sample (measured: see the print)."""
+    comparison) once: at most 40 cycles more at any sample before the decision, and the
+    decision's sample within 60 of the plain decoder's lock sample (measured: see the print).
+    The real price is the evidence loop for K0 samples instead of about 6 (the print's
+    totals)."""
     out, x = gate_builds
     b, art = out["gate"]
     raw = ah.run(b, x.reshape(-1, 3), block=GATE_SAMPLES).reshape(GATE_STARTS, GATE_SAMPLES, 3)
@@ -147,18 +150,22 @@ def test_the_gate_on_m4f_locks_like_python_and_costs_few_cycles(gate_builds):
     # gate's decision sample (the last one here) on its own
     plain_dec, _ = fs.python_decoder(out["plain"][1])
     before = np.zeros_like(p, dtype=bool)
+    at_lock = []  # the plain decoder's lock sample: the lock rule and the publication
     for k in range(GATE_STARTS):
         lock, _, _ = fs.identify_python(plain_dec, x[k].astype(np.float64))
         before[k, : (lock if lock is not None else p.shape[1])] = True
+        at_lock += [] if lock is None else [p[k, lock]]
     diff = (g - p)[before]
     last = g[:, -1]
     print(
         f"M4 cycles per sample before the lock, 5 pole pairs: without the gate "
         f"{int(np.median(p[before]))}/{p[before].max()}, with it {int(np.median(g[before]))}/"
         f"{g[before].max()} (median/max); per sample +{int(np.median(diff))} (max "
-        f"+{diff.max()}); at the gate's decision (sample 96) {last.min()}-{last.max()}; the "
+        f"+{diff.max()}); at the decision (the lock or the gate's refusal at sample 96) "
+        f"{last.min()}-{last.max()} with the gate, at the plain decoder's lock "
+        f"{min(at_lock)}-{max(at_lock)}; the "
         f"first 96 samples in all: {int(np.median(p.sum(axis=1)))} without the gate (lean path "
         f"after its lock), {int(np.median(g.sum(axis=1)))} with it (median over the starts)"
     )
     assert diff.max() <= 40
-    assert last.max() <= p[before].max() + 60
+    assert last.max() <= max(at_lock) + 60
