@@ -7,7 +7,7 @@ it), 128 samples each. A sensor change beyond the calibration (one sensor's gain
 one offset 3-6 % of the amplitude, all gains 3-5 %) puts the point far from every curve at most
 positions (mismatch) and next to a wrong pole pair's at a few: there the lock without the gate
 claimed the wrong pole pair (measured here: 31 of 1200 power-ups over four changes; with the
-gate 10). The full-size figures: ``benchmarks/bench_powerup_margin.txt``.
+gate 13). The full-size figures: ``benchmarks/bench_powerup_margin.txt``.
 """
 
 from __future__ import annotations
@@ -100,8 +100,8 @@ def test_a_sensor_change_beyond_the_calibration_rarely_locks_wrong(bench, change
 
 
 def test_the_gate_cuts_the_wrong_locks_of_four_changes(bench):
-    """The four changes of the module doc pooled (1200 power-ups): wrong locks 31 -> 10
-    measured; asserted: at most 40 % of before, and before at least 25 (so the bench still
+    """The four changes of the module doc pooled (1200 power-ups): wrong locks 31 -> 13
+    measured; asserted: at most half of before, and before at least 25 (so the bench still
     shows the defect the gate is for)."""
     pooled = {"plain": 0, "gate": 0}
     for g, o in (
@@ -115,15 +115,15 @@ def test_the_gate_cuts_the_wrong_locks_of_four_changes(bench):
             pooled[name] += c["WRONG"]
     print(f"wrong locks over 4 changes x {STARTS} power-ups: {pooled}")
     assert pooled["plain"] >= 25
-    assert pooled["gate"] <= 0.4 * pooled["plain"]
+    assert pooled["gate"] <= 0.5 * pooled["plain"]
 
 
 def test_healthy_power_ups_lock_as_before_after_k0_samples(bench):
     """Healthy signals: every power-up the lock without the gate took is taken, on the same
     pole pair, at the first sample from K0 on where the lock rule holds, or refused by the
-    gate: at most 2 of 300 (the gate's false alarm is 1e-3 per power-up under the calibrated
-    noise: 3 or more in 300 has probability 0.4 %; this seed gives 1, at a cost 1.35 times the
-    noise's over 96 samples)."""
+    gate: at most 2 of 300 (the gate's false alarm is 1e-4 per power-up under the calibrated
+    noise: 3 or more in 300 has probability 5e-6; this seed gives none, and with 1e-3 it gave
+    1, at a cost 1.35 times the noise's over 96 samples)."""
     plain, gate = bench["plain"], bench["gate"]
     refused = 0
     for i in range(STARTS):
@@ -184,7 +184,8 @@ def test_report_stores_the_gate_and_old_artifacts_have_none(bench):
     d = rep.to_dict()
     assert d["gate_rate"] == ab.DEFAULT_GATE_RATE and d["gate_samples"] == 96
     back = ab.IdentifiabilityReport.from_dict(d)
-    assert (back.gate_rate, back.gate_samples, back.gate_dispersion) == (1e-3, 96, 2.5)
+    assert (back.gate_samples, back.gate_dispersion) == (96, 2.5)
+    assert back.gate_rate == ab.DEFAULT_GATE_RATE
     old = {k: v for k, v in d.items() if not k.startswith("gate_")}
     assert ab.IdentifiabilityReport.from_dict(old).gate_rate == 0.0
     for key, bad in (("gate_rate", 0.7), ("gate_samples", -1), ("gate_samples", 9.5)):
@@ -213,6 +214,6 @@ def test_dispersion_is_one_on_white_noise_and_scales_the_quantile(bench):
     gz, g4 = dec.gate_terms
     k = 96
     q = 2 * k + gz + math.sqrt(g4 * k)
-    # phi chi-square(2 k / phi): tail 1e-3 at the bound within 5 % (Cornish-Fisher at fewer
-    # degrees of freedom)
-    assert chi2.sf(q / phi, 2 * k / phi) == pytest.approx(1e-3, rel=0.05)
+    # phi chi-square(2 k / phi): tail alpha_g at the bound within 5 % (Cornish-Fisher at fewer
+    # degrees of freedom; measured 3 %)
+    assert chi2.sf(q / phi, 2 * k / phi) == pytest.approx(dec.gate_rate, rel=0.05)

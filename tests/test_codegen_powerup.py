@@ -526,7 +526,7 @@ def test_c_gates_the_lock_like_python(paper_gate, gains, offsets):
     locks at the same sample on the same pole pair as PowerUpIdentifier, never before K0
     samples; where Python says "mismatch" the C never identifies and takes no evidence after
     that sample (its Lambda_j frozen: the mismatch flag stops the evidence). Healthy: all lock
-    (the gate's false alarm is 1e-3 per power-up, and these seeds show none)."""
+    (the gate's false alarm is 1e-4 per power-up, and these seeds show none)."""
     dec = paper_gate["dec"]
     pu = PowerUps(paper_gate["cfg"])
     rng = np.random.default_rng(2033)
