@@ -59,8 +59,9 @@ DEFAULT_LOCK_TRAVEL = 1.0
 DEFAULT_GATE_RATE = 1e-4
 #: K0: samples of evidence before the lock, so that the gate can see a wrong pole pair that fits
 #: within about a noise sigma (module doc, "Sensors changed since calibration"): measured on five
-#: motors and 11 sensor changes (2200 power-ups), wrong locks 73 (no gate) -> 49 (gate, lock as
-#: before) -> 26 / 19 / 13 / 10 with K0 = 48 / 64 / 96 / 128; the healthy lock comes at K0 then.
+#: motors and 11 sensor changes (2200 power-ups), wrong locks 73 (no gate) -> 49 (gate at
+#: alpha_g = 1e-3, lock as before) -> 26 / 19 / 13 / 10 with K0 = 48 / 64 / 96 / 128 (at 1e-4 and
+#: K0 = 96: 16); the healthy lock comes at K0 then.
 DEFAULT_GATE_SAMPLES = 96
 
 

@@ -159,16 +159,19 @@ two kinds. Locks after 15-110 samples whose best cost was already 1.7-2.3 times 
 per degree of freedom (chi-square p-value 1e-3 to 1e-25): the misfit test accepts any cost
 below 2.4 times the noise's (kappa = 8), and its statistic drifts down slowly there. And quick
 locks (5-12 samples) on a wrong curve within about one sigma: at standstill nothing in 6
-samples tells that from noise (a bias b per sample adds k b^2 to a chi-square(2 k) cost). Hence
-the gate (step 7): the winner's whole cost against the chi-square(2 k) quantile of ``1 -
-alpha_g`` (Cornish-Fisher to the constant term: the tail probability at the bound within 3 % of
-alpha_g for k >= 6, 0.5 % at k = 96), once, at the first sample the lock rule holds, and not
-before ``K0`` samples of evidence: at K0 = 96 it sees a constant misfit of one noise sigma per
-sample (cost 1.5 times the noise's, :data:`~hallcal.sensor.misfit.CONFIRM_RATIO`) with
-probability 0.86, half a sigma^2 with 0.22.
-Under the calibrated noise the gate refuses a healthy power-up with probability alpha_g (the
-cost of the best is at most the right hypothesis's, a chi-square(2 k) sum); the price is the
-healthy lock after K0 samples instead of about 6.
+samples tells that from noise (a bias b per sample adds k b^2 to a chi-square(2 k) cost). Hence the
+gate (step 7): the winner's whole cost against the chi-square(2 k) quantile of ``1 - alpha_g``
+(Cornish-Fisher to the constant term: the tail probability at the bound is alpha_g = 1e-4 within 2 %
+at k = 96, 15 % at k = 6), once, at the first sample the lock rule holds, and not before ``K0``
+samples of evidence: at K0 = 96 it sees a constant misfit of one noise sigma per sample (cost 1.5
+times the noise's, :data:`~hallcal.sensor.misfit.CONFIRM_RATIO`) with probability 0.69, half a
+sigma^2 with 0.09. Under the calibrated noise the gate refuses a healthy power-up with probability
+alpha_g (the cost of the best is at most the right hypothesis's, a chi-square(2 k) sum); the price
+is the healthy lock after K0 samples instead of about 6. A rig whose noise is not white (the ring
+jig's bursts) gets the quantile widened by the dispersion phi its calibration recording shows
+(:func:`gate_dispersion`): its false alarm stays near alpha_g, its power is what that noise
+leaves. Only the standstill lock has the gate: the lock after motion (``T > 0``) already keeps
+out these wrong locks, and over its thousands of samples the gate would refuse plausible drifts.
 
 Units: angles in rad (mechanical unless said electrical); d, rho, zeta in the sensor's unit;
 costs in noise-sigma units squared.
