@@ -918,8 +918,8 @@ def analyze_calibration(
         dec = build_decoder(flux, lut, noise_std=sigma, gain_sd=gain_sd, lock_travel=travel)
         if not travel > 0.0:  # the standstill lock gets the gate (module doc of absolute)
             phi = gate_dispersion(dec, d, DEFAULT_GATE_SAMPLES, start=start, stop=stop)
-            gate = {"gate_rate": DEFAULT_GATE_RATE, "gate_samples": DEFAULT_GATE_SAMPLES}
-            dec = dataclasses.replace(dec, gate_dispersion=phi, **gate)
+            dec = dataclasses.replace(dec, gate_rate=DEFAULT_GATE_RATE, gate_dispersion=phi)
+            dec = dataclasses.replace(dec, gate_samples=DEFAULT_GATE_SAMPLES)
         return dec, assess_identifiability(
             dec,
             standstill_budget=standstill_budget,
