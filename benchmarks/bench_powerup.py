@@ -16,7 +16,8 @@
    and a lock after one electrical revolution of motion: at rest that lock never comes, so the
    same decoder locking at once is also shown (the sequential test's own error rate).
 3. Ring-jig recordings (25 pole pairs, open loop): 50 random starts in the held-out
-   revolutions per file, and every start (wrong locks, false "mismatch").
+   revolutions per file, and every start (wrong locks, false "mismatch"), 200 samples each
+   (60 before the goodness-of-fit gate at the lock: the gated lock comes after 96).
 4. The ring remounted: the calibration of one capture, 60 random power-ups of 1000 samples on
    each other capture (every ordered pair): locked (confidently wrong) by the lock rule alone,
    and now (identified / refused as "mismatch").
@@ -268,7 +269,7 @@ def ring_jig() -> None:
         )
         y_cont = res.lut.f_init(d)
         rng = np.random.default_rng(1000 + i)
-        W = 60
+        W = 200  # > K0 = 96: the gate decides within the window
         agree = locked = 0
         lock_at = []
         for s in rng.integers(mid, stop - W, 50):

@@ -16,6 +16,12 @@ revolution of motion (its lock without them breaks at a plausible drift), the de
 revolutions show the lock that waits for motion against the profile locking at once; the
 samples to each right lock are given (median/max).
 
+Where calibrate kept the plain decoder (the lock at standstill), the same decoder without the
+goodness-of-fit gate at the lock ("no gate": alpha_g = 0, K0 = 0, the decoder before it,
+:data:`hallcal.sensor.absolute.DEFAULT_GATE_SAMPLES`) is measured on the same power-ups: its
+WRONG locks are the ones the gate is for (a sensor change beyond the calibration that looks
+like another magnet).
+
 The prediction is a standstill figure (the moving half sees many positions, where a wrong
 hypothesis must win on average); it is meant to rank motors, not to be the rate.
 
@@ -143,28 +149,33 @@ def report(name: str, cfg, cal, seed: int) -> tuple[float, int, float]:
     runs = power_ups(cfg, seed)
     chosen = rep.decoder(cal.flux, cal.lut)
     decoders = [("chosen", chosen)]
+    if chosen.gate_rate > 0.0 and not chosen.gain_sd > 0.0:
+        decoders = [("no gate", dataclasses.replace(chosen, gate_rate=0.0, gate_samples=0)),
+                    ("kept", chosen)]  # fmt: skip
     if chosen.gain_sd > 0.0:  # the profile was chosen: the decoder without it for comparison
         plain = dataclasses.replace(rep, gain_sd=0.0, lock_travel=0.0).decoder(cal.flux, cal.lut)
         decoders = [("no profile", plain), ("kept", chosen)]
-    kept = "plain (lock at standstill)"
+    kept = f"plain (lock at standstill, gate {chosen.gate_rate:g} after {chosen.gate_samples})"
     if chosen.gain_sd > 0.0:
         kept = f"common-gain profile, lock after {chosen.lock_travel:g} electrical revolution"
     print(f"   decoder kept by calibrate: {kept}")
     print("   change             decoder     predicted share   measured (40 power-ups)"
           "                           lock samples median/max")  # fmt: skip
-    pred_sum, wrong = 0.0, 0
+    pred_sum, wrong, before = 0.0, 0, 0
     for label, gains, offs in CHANGES:
         for name, dec in decoders:
             c, k = measured(runs, dec, gains, offs)
             p = predicted(dec, gains, offs)
             if label != "healthy" and dec is chosen:
                 pred_sum, wrong = pred_sum + p, wrong + c["WRONG"]
+            if label != "healthy" and name == "no gate":
+                before += c["WRONG"]
             lock = f"{np.median(k):5.0f}/{max(k):3d}" if k else "    -"
             print(f"   {label:18s} {name:10s} {100 * p:8.1f}%   "
                   + "  ".join(f"{key} {v:2d}" for key, v in c.items()) + f"   {lock}")  # fmt: skip
     if chosen.lock_travel > 0.0:
         _turning(cfg, seed, decoders)
-    return pred_sum, wrong, chosen.lock_travel
+    return pred_sum, wrong, chosen.lock_travel, before if decoders[0][0] == "no gate" else None
 
 
 def _turning(cfg, seed: int, decoders) -> None:
@@ -190,10 +201,11 @@ def main() -> None:
     rows += [(f"paper {s}", report(*paper(s), s)) for s in (0, 1, 2)]
     k = len(CHANGES) - 1
     print(f"\npooled over the {k} changes (40 power-ups each): mean predicted share, WRONG locks")
-    for name, (p, w, travel) in rows:
+    for name, (p, w, travel, before) in rows:
         note = " (kept decoder; the prediction is a standstill lock's, this one waits for motion)"
+        gate = "" if before is None else f"; without the gate {before:3d}"
         print(f"   {name!s:9s} predicted {100 * p / k:5.1f}%   measured {w:3d}/{40 * k} "
-              f"({100 * w / (40 * k):4.1f}%){note if travel else ''}")  # fmt: skip
+              f"({100 * w / (40 * k):4.1f}%){gate}{note if travel else ''}")  # fmt: skip
     print(f"\ntotal {time.perf_counter() - t0:.0f} s")
 
 

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from motor_support import true_offset
 
+from hallcal.sensor import _absolute_analysis, _absolute_decoder
 from hallcal.sensor import absolute as ab
 from hallcal.sensor.lut import build_lut
 from hallcal.sensor.reconstruction import f_init
@@ -138,7 +139,7 @@ def test_noise_free_costs(paper):
     _, truth, lut, dec = paper
     q = np.arange(0, dec.table_size, 7)
     y_cal = TWO_PI * q / dec.table_size
-    y0 = ab._invert_model(
+    y0 = _absolute_decoder._invert_model(
         truth, 11, lut.projection, lut.offset, y_cal, y_cal + lut.correction(y_cal)
     )
     e = dec.sample_costs(truth(y0))
@@ -416,14 +417,14 @@ def test_normal_tail_matches_scipy():
     from scipy.special import ndtr
 
     x = np.linspace(-8.0, 12.0, 4001)
-    np.testing.assert_allclose(ab._normal_tail(x), ndtr(-x), rtol=1.2e-7, atol=0.0)
+    np.testing.assert_allclose(_absolute_analysis._normal_tail(x), ndtr(-x), rtol=1.2e-7, atol=0.0)
 
 
 def test_standstill_computations_in_blocks_match_whole_arrays():
     """The standstill error and the sample search run over blocks of positions (bounded
     memory): the same values as on the whole array at once."""
     rng = np.random.default_rng(0)
-    r1 = rng.uniform(0.1, 6.0, (2 * ab._ROW_BLOCK + 37, 360))
+    r1 = rng.uniform(0.1, 6.0, (2 * _absolute_analysis._ROW_BLOCK + 37, 360))
     whole = np.mean(np.exp(-0.5 * 50.0 * np.square(r1)), axis=1)
     assert np.array_equal(ab.standstill_error(r1, 50), whole)
     K = rng.uniform(1.0, 300.0, r1.shape[0])
@@ -434,7 +435,7 @@ def test_standstill_computations_in_blocks_match_whole_arrays():
     def err(K, rows):
         return np.mean(np.exp(-0.5 * K[:, None] * r1sq[rows]), axis=1)
 
-    need = ab._samples_for(err, 1e-3, r1.shape[0])
+    need = _absolute_analysis._samples_for(err, 1e-3, r1.shape[0])
     assert np.all(need >= 1.0)
     searched = need > 1.0
     assert np.all(err(need[searched], np.flatnonzero(searched)) <= 1e-3 * (1 + 1e-9))

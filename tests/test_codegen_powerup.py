@@ -497,3 +497,62 @@ def test_c_waits_for_the_travel_like_python(alike_travel):
             assert np.ptp(y) >= 1.0
     print(f"travel: {locked}/20 moving power-ups locked after one electrical revolution")
     assert locked >= 15
+
+
+# ------------------------------------------------------------------------------------------------
+# The goodness-of-fit gate at the lock (step 7), as calibrate exports it
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def paper_gate(paper, tmp_path_factory):
+    """The paper bench's artifact with the gate calibrate stores (alpha_g, K0)."""
+    art = copy.deepcopy(paper["art"])
+    art["identifiability"]["gate_rate"] = ab.DEFAULT_GATE_RATE
+    art["identifiability"]["gate_samples"] = ab.DEFAULT_GATE_SAMPLES
+    built = _exported(art, tmp_path_factory.mktemp("powerup_gate"))
+    assert built["dec"].gate_samples == ab.DEFAULT_GATE_SAMPLES
+    return {"cfg": paper["cfg"], **built}
+
+
+@pytest.mark.parametrize(
+    ("gains", "offsets"),
+    [((1.0, 1.0, 1.0), (0.0, 0.0, 0.0)), ((0.95, 1.0, 1.0), (0.0, 0.0, 0.0)),
+     ((1.0, 1.10, 1.0), (0.0, 0.0, 0.0)), ((1.0, 1.0, 1.0), (0.0, 0.0, 0.05))],
+    ids=["healthy", "d1 x0.95", "d2 x1.10", "d3 +0.05"],
+)  # fmt: skip
+def test_c_gates_the_lock_like_python(paper_gate, gains, offsets):
+    """40 power-ups at standstill (300 samples) with the sensors as calibrated or changed: the C
+    locks at the same sample on the same pole pair as PowerUpIdentifier, never before K0
+    samples; where Python says "mismatch" the C never identifies and takes no evidence after
+    that sample (its Lambda_j frozen: the mismatch flag stops the evidence). Healthy: all lock
+    (the gate's false alarm is 1e-4 per power-up, and these seeds show none)."""
+    dec = paper_gate["dec"]
+    pu = PowerUps(paper_gate["cfg"])
+    rng = np.random.default_rng(2033)
+    starts, samples = 40, STANDSTILL_SAMPLES
+    counts = {"locked": 0, "gate": 0, "mismatch": 0}
+    for k in range(starts):
+        x = pu.run(float(rng.uniform(0.0, TWO_PI)), samples, 0.0, seed=90_000 + k)
+        x = (x.astype(np.float64) * np.array(gains) + np.array(offsets)).astype(np.float32)
+        words, lam_c = _c_lam(paper_gate, x, samples)
+        ident = ab.PowerUpIdentifier(dec)
+        for row in x.astype(np.float64).tolist():
+            ident.update(*row)
+        ident_c = words[:, 2] >> 31
+        lock_c = int(np.argmax(ident_c)) if ident_c.any() else None
+        assert lock_c == ident.lock_sample, (k, lock_c, ident.lock_sample)
+        if ident.locked:
+            counts["locked"] += 1
+            assert ident.lock_sample >= ab.DEFAULT_GATE_SAMPLES - 1
+            assert (words[ident.lock_sample, 2] >> 16) & 0x7FFF == ident.best
+        if ident.mismatch:
+            m = ident.mismatch_sample
+            counts["mismatch"] += 1
+            counts["gate"] += int(m >= ab.DEFAULT_GATE_SAMPLES - 1)
+            assert np.all(lam_c[m:] == lam_c[m]), k  # no evidence after the mismatch
+    print(f"gains {gains} offsets {offsets}: {counts} of {starts}, C as Python")
+    if gains == (1.0, 1.0, 1.0) and offsets == (0.0, 0.0, 0.0):
+        assert counts["locked"] == starts
+    else:  # the gate's own refusal (at or after K0) is among them (measured: 1, 3, 1)
+        assert counts["gate"] >= 1

@@ -90,3 +90,82 @@ def test_the_profile_costs_bounded_cycles_before_the_lock(builds):
         f"{q.max()} (min/median/max); per hypothesis +{(np.median(q) - np.median(p)) / n:.0f}"
     )
     assert q.max() <= p.max() + 150 * n
+
+
+GATE_STARTS = 4
+GATE_SAMPLES = 128  # > K0 = 96: the gate decides within the record
+
+
+@pytest.fixture(scope="module")
+def gate_builds(tmp_path_factory):
+    """A 5-pole-pair bench (magnets 4 % apart: the plain lock) exported without and with the
+    goodness-of-fit gate at the lock (as calibrate stores it), built for the M4F; power-ups at
+    rest with one sensor's gain 5 % low for half of them (some refused by the gate)."""
+    cfg = BenchConfig(pole_pairs=5)
+    plain = fs.bench_artifact(cfg)
+    gate = copy.deepcopy(plain)
+    gate["identifiability"]["gate_rate"] = ab.DEFAULT_GATE_RATE
+    gate["identifiability"]["gate_samples"] = ab.DEFAULT_GATE_SAMPLES
+    gate["identifiability"]["gate_dispersion"] = 1.0
+    d = tmp_path_factory.mktemp("pu_gate_arm")
+    out = {}
+    for name, art in (("plain", plain), ("gate", gate)):
+        export_c(art, d / name, source="bench.json", adc_scale=ADC_SCALE, fixed_point=False)
+        out[name] = (ah.build(d / name, d / f"arm_{name}", target="m4f", fixed=False), art)
+    pu = fs.PowerUps(cfg)
+    rng = np.random.default_rng(506)
+    x = np.stack([pu.run(float(a), GATE_SAMPLES, 0.0, seed=9100 + i)
+                  for i, a in enumerate(rng.uniform(0.0, TWO_PI, GATE_STARTS))])  # fmt: skip
+    x[GATE_STARTS // 2 :, :, 0] *= 0.95
+    return out, x.astype(np.float32)
+
+
+def test_the_gate_on_m4f_locks_like_python_and_costs_few_cycles(gate_builds):
+    """The gated decoder on the M4F: the same lock sample and pole pair as PowerUpIdentifier
+    (or neither locks). Cycles per sample (QEMU trace, M4 timing table) before the decision,
+    with and without the gate on the same samples: the gate adds one float addition and one
+    integer comparison per sample, and the check at the first lock (two multiplications, a
+    comparison) once: at most 40 cycles more at any sample before the decision, and the
+    decision's sample within 60 of the plain decoder's lock sample (measured: see the print).
+    The real price is the evidence loop for K0 samples instead of about 6 (the print's
+    totals)."""
+    out, x = gate_builds
+    b, art = out["gate"]
+    raw = ah.run(b, x.reshape(-1, 3), block=GATE_SAMPLES).reshape(GATE_STARTS, GATE_SAMPLES, 3)
+    assert ah.undefined_symbols(b.obj) == []
+    dec, _ = fs.python_decoder(art)
+    assert dec.gate_samples == ab.DEFAULT_GATE_SAMPLES
+    for k in range(GATE_STARTS):
+        lock, j, _ = fs.identify_python(dec, x[k].astype(np.float64))
+        ident = raw[k, :, 2] >> 31
+        assert (int(np.argmax(ident)) if ident.any() else None) == lock
+        assert ((raw[k, -1, 2] >> 16) & 0x7FFF) == j
+    cycles = {}
+    for name, (bb, _) in out.items():
+        xx = x[:, : ab.DEFAULT_GATE_SAMPLES].reshape(-1, 3)  # up to the gate's decision
+        tr = ah.trace(bb, xx, block=ab.DEFAULT_GATE_SAMPLES)
+        cycles[name] = tr.cycles.reshape(GATE_STARTS, -1)
+    p, g = cycles["plain"], cycles["gate"]
+    # before the plain decoder's lock both run the same evidence: compare there, and the
+    # gate's decision sample (the last one here) on its own
+    plain_dec, _ = fs.python_decoder(out["plain"][1])
+    before = np.zeros_like(p, dtype=bool)
+    at_lock = []  # the plain decoder's lock sample: the lock rule and the publication
+    for k in range(GATE_STARTS):
+        lock, _, _ = fs.identify_python(plain_dec, x[k].astype(np.float64))
+        before[k, : (lock if lock is not None else p.shape[1])] = True
+        at_lock += [] if lock is None else [p[k, lock]]
+    diff = (g - p)[before]
+    last = g[:, -1]
+    print(
+        f"M4 cycles per sample before the lock, 5 pole pairs: without the gate "
+        f"{int(np.median(p[before]))}/{p[before].max()}, with it {int(np.median(g[before]))}/"
+        f"{g[before].max()} (median/max); per sample +{int(np.median(diff))} (max "
+        f"+{diff.max()}); at the decision (the lock or the gate's refusal at sample 96) "
+        f"{last.min()}-{last.max()} with the gate, at the plain decoder's lock "
+        f"{min(at_lock)}-{max(at_lock)}; the "
+        f"first 96 samples in all: {int(np.median(p.sum(axis=1)))} without the gate (lean path "
+        f"after its lock), {int(np.median(g.sum(axis=1)))} with it (median over the starts)"
+    )
+    assert diff.max() <= 40
+    assert last.max() <= max(at_lock) + 60

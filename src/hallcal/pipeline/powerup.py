@@ -433,17 +433,18 @@ def identification_check(
     """The signal check of ``reconstruct --absolute``: the power-up test's verdict, confirmed on
     the rest of the recording.
 
-    A lock is taken within a few samples (median 6), where two sensors swapped, one sensor's
-    offset or gain changed can still look like a magnet of the model (measured: 5-10 of 60
-    power-ups locked at a claimed error below 1e-7 on signals with d1 and d2 swapped,
-    ``benchmarks/bench_observer_unseen.txt``); the recording after the lock, with motion,
-    tells them apart. So a lock is accepted only when the whole recording's misfit test
-    (:func:`check_signals`, the check of plain ``reconstruct``) does not reject the model
-    either; the false-"mismatch" bound beta of that test is the price (at most 1e-9 per
-    recording under the calibrated noise). A power-up that the test refused is checked further
-    (:func:`check_signals`: another order of d1..d3, or the direction against a reference,
-    names the wiring); when the rest of the recording fits, the refusal names a transient at
-    power-up instead of a changed calibration.
+    A lock is taken within a few samples (median 6; with the goodness-of-fit gate of
+    calibrations made since, after :data:`~hallcal.sensor.absolute.DEFAULT_GATE_SAMPLES`),
+    where two sensors swapped, one sensor's offset or gain changed can still look like a magnet
+    of the model (measured: 5-10 of 60 power-ups locked at a claimed error below 1e-7 on
+    signals with d1 and d2 swapped, ``benchmarks/bench_observer_unseen.txt``); the recording
+    after the lock, with motion, tells them apart. So a lock is accepted only when the whole
+    recording's misfit test (:func:`check_signals`, the check of plain ``reconstruct``) does
+    not reject the model either; the false-"mismatch" bound beta of that test is the price (at
+    most 1e-9 per recording under the calibrated noise). A power-up that the test refused is
+    checked further (:func:`check_signals`: another order of d1..d3, or the direction against a
+    reference, names the wiring); when the rest of the recording fits, the refusal names a
+    transient at power-up instead of a changed calibration.
 
     Parameters
     ----------

@@ -56,7 +56,7 @@ void ${pfx}_init(${pfx}_state *s)
     s->locked = 0u;
     s->mismatch = 0u;
     s->fit = 0.0f;
-    s->best = 0u;
+${gate_init}    s->best = 0u;
     s->samples = 0u; /* lam is set by the first sample of evidence (no loop: no memset) */
     s->seq = 0u;
     hc_publish_id(s, 0, 0.0f, ${PFX}_NO_SAMPLE, 0u);
@@ -181,12 +181,12 @@ ${gain_update}        if (cost > ${cap}) {
      * by; D >= ln(1 / beta) = ${fit_hi_text}: no pole pair fits (mismatch, for good); the lock
      * needs D <= -ln(1 / gamma) = -${fit_lo_text} (the best fits) besides the posterior */
     s->fit = s->fit + ((lmin * ${fit_weight}) - ${fit_drift});
-    if (s->fit >= ${fit_hi}) {
+${gate_sum}    if (s->fit >= ${fit_hi}) {
         s->mismatch = 1u;
         s->locked = 0u;
-    } else if ((s->fit <= ${fit_lo})${travel_cond}) {
+    } else if ((s->fit <= ${fit_lo})${travel_cond}${gate_cond}) {
         s->locked = hc_lock_rule(s->lam, best);
-    } else {
+${gate_check}    } else {
         s->locked = 0u;
     }
 }
@@ -511,6 +511,7 @@ def _powerup_source(ctx: _Context, pu: PowerUpFirmware) -> str:
         fit_lo_text=f"{mis.fit_bound:.4g}",
         **_gain_terms(pu),
         **_travel_terms(pu),
+        **_gate_terms(pu),
     )
     return source + _powerup_identify(ctx) + "\n"
 
@@ -576,7 +577,7 @@ def _powerup_hooks(ctx: _Context, pu: PowerUpFirmware) -> dict[str, str]:
             " once the pole pair is identified (before: the n_m hypotheses in a\n * loop, about"
             " ten times the cycles)"
         ),
-        "init_def": _PU_INIT.substitute(pfx=pfx, PFX=PFX, n=n),
+        "init_def": _PU_INIT.substitute(pfx=pfx, PFX=PFX, n=n, gate_init=_gate_init(pu)),
         "read_locals": "    uint32_t ident;\n",
         "read_copy": "        ident = s->pub_ident[before & 1u];\n",
         "read_after": (
@@ -598,6 +599,8 @@ def _gain_members(pu: PowerUpFirmware, n: int) -> str:
             f"    float gain[{n}];   /* s_j: common gain of the signals under hypothesis j */\n"
             f"    float info[{n}];   /* I_j: its information [1 / gain^2] */\n"
         )
+    if dec is not None and dec.gate_rate > 0.0:
+        out += "    float cost;        /* Q: the best hypothesis's whole cost [noise sigma^2] */\n"
     if dec is not None and dec.lock_travel > 0.0:
         out += (
             "    float pos;         /* f_init's electrical angle since power-up [turns] */\n"
@@ -635,6 +638,40 @@ def _travel_terms(pu: PowerUpFirmware) -> dict[str, str]:
         "travel_update": _TRAVEL_UPDATE,
         "travel_cond": f" && ((s->pmax - s->pmin) >= {_cf(dec.lock_travel, 'lock travel')})",
     }
+
+
+#: The goodness-of-fit gate at the first lock (step 7 of the specification): the best
+#: hypothesis's whole cost Q within the chi-square(2 k) quantile of 1 - alpha_g, written without a
+#: root: x = Q - 2 k - gz, fits when x <= 0 or x^2 <= g4 k.
+_GATE_CHECK = string.Template(
+    r"""        if (s->locked != 0u) { /* the gate: Q within the chi-square(2 k) quantile */
+            const float k = (float)s->samples;
+            const float x = (s->cost - (2.0f * k)) - ${gz};
+            if ((x > 0.0f) && ((x * x) > (${g4} * k))) {
+                s->locked = 0u; /* no pole pair fits as the noise allows: mismatch */
+                s->mismatch = 1u;
+            }
+        }
+"""
+)
+
+
+def _gate_terms(pu: PowerUpFirmware) -> dict[str, str]:
+    """The gate's sum, its sample condition and its check (none without it)."""
+    dec = pu.decoder
+    if dec is None or not dec.gate_rate > 0.0:
+        return {"gate_sum": "", "gate_cond": "", "gate_check": ""}
+    gz, g4 = dec.gate_terms
+    return {
+        "gate_sum": "    s->cost = s->cost + lmin; /* Q, the best's whole cost */\n",
+        "gate_cond": f" && (s->samples >= {int(dec.gate_samples)}u)",
+        "gate_check": _GATE_CHECK.substitute(gz=_cf(gz, "gate"), g4=_cf(g4, "gate")),
+    }
+
+
+def _gate_init(pu: PowerUpFirmware) -> str:
+    dec = pu.decoder
+    return "    s->cost = 0.0f;\n" if dec is not None and dec.gate_rate > 0.0 else ""
 
 
 def _powerup_section(ctx: _Context) -> Section | None:
