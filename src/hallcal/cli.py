@@ -65,10 +65,11 @@ def _imports() -> Iterator[None]:
     In the command's own process (:data:`_OWN_PROCESS`) their objects live as long as it does:
     the cycle collector is paused over them, they are frozen after (``gc.freeze``: its passes
     skip them), and it makes no full pass for the rest of the command (the young generations'
-    passes go on and free the command's own cycles). The full passes over numba's heap (one in
-    the imports, one in numba's start-up at the first kernel) and the young ones over the
-    imports cost about 0.1 s of CPU per ``hallcal calibrate``. An in-process caller keeps its
-    collector as it is: a freeze would keep its garbage for good.
+    passes go on and free the command's own cycles; the command is one computation of seconds,
+    not a long run like ``fleet``, which keeps the collector as it is). The full passes over
+    numba's heap (one in the imports, one in numba's start-up at the first kernel) and the young
+    ones over the imports cost about 0.1 s of CPU per ``hallcal calibrate``. An in-process
+    caller keeps its collector as it is: a freeze would keep its garbage for good.
     """
     ctx = click.get_current_context(silent=True)
     if ctx is None or ctx.obj != _OWN_PROCESS or not gc.isenabled():
@@ -377,8 +378,9 @@ def simulate(setup_path: str | None, out: str, experiment: str | None, seed: int
     The simulated motor is the setup's [plant] with the [bench] sensor imperfections; the
     recording has the encoder column y_ref (the true angle), so it can serve as a validation run.
     """
-    from hallcal import pipeline
-    from hallcal.io import output_set, write_dataset, write_json
+    with _imports():
+        from hallcal import pipeline
+        from hallcal.io import output_set, write_dataset, write_json
 
     setup = _setup(setup_path)
     _output_file(out, dataset=True)
@@ -437,9 +439,10 @@ def inspect(data: str, setup_path: str | None, pole_pairs: int | None) -> None:
     spacing, amplitudes and offsets, ADC clipping, the constant-speed window and the [trajectory]
     start/stop to use for an open-loop calibration.
     """
-    from hallcal.io import read_dataset
-    from hallcal.limits import check_command_samples
-    from hallcal.pipeline.inspect import inspect_recording
+    with _imports():
+        from hallcal.io import read_dataset
+        from hallcal.limits import check_command_samples
+        from hallcal.pipeline.inspect import inspect_recording
 
     setup = None if setup_path is None else _setup(setup_path)
     ds = read_dataset(data, required=("d1", "d2", "d3"))
@@ -490,8 +493,9 @@ def bla(data: str, setup_path: str, out: str) -> None:
     cost against the BLA's variance, and writes the Bode plot (BLA, its standard deviations and
     the fit). An unstable fit is refused with the [bla] setting to change.
     """
-    from hallcal import pipeline
-    from hallcal.io import output_set, read_dataset, write_json
+    with _imports():
+        from hallcal import pipeline
+        from hallcal.io import output_set, read_dataset, write_json
 
     setup = _setup(setup_path)
     _output_file(out)
@@ -761,8 +765,9 @@ def plan(artifact: str, revolutions: float, speeds: str | None, target: float) -
     problem). A slow ramp on a fast position loop puts the sensor error where the loop's
     integral action hides it; the same revolutions at a higher speed determine the table.
     """
-    from hallcal.api import load
-    from hallcal.pipeline.plan import plan_next_ramp
+    with _imports():
+        from hallcal.api import load
+        from hallcal.pipeline.plan import plan_next_ramp
 
     grid = None
     if speeds is not None:
@@ -890,9 +895,10 @@ def export_c(
 
     The API, the plausibility checks and the error bounds: docs/firmware.md.
     """
-    from hallcal.api import export_c as _export
-    from hallcal.io import read_artifact
-    from hallcal.pipeline.calibration import require_table
+    with _imports():
+        from hallcal.api import export_c as _export
+        from hallcal.io import read_artifact
+        from hallcal.pipeline.calibration import require_table
 
     if observer:
         from hallcal.output.codegen.c_observer import export_observer_c
@@ -969,7 +975,8 @@ def report(artifact: str, data: str, validation: str | None, out: str, units: An
     DATA is the calibration recording; a bla.json next to the artifact is plotted when the
     plant came from a BLA.
     """
-    from hallcal.output.report import write_report_from_files
+    with _imports():
+        from hallcal.output.report import write_report_from_files
 
     _output_dir(out)
     _guard(
