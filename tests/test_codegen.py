@@ -42,7 +42,7 @@ from firmware_support import (
 
 from hallcal.errors import HallcalInputError
 from hallcal.output.codegen import comment_text, export_c
-from hallcal.output.codegen.numbers import _fixed_numbers
+from hallcal.output.codegen.numbers import MAGIC_SEED_ERROR, RECIPROCAL_MAGIC, _fixed_numbers
 
 TWO_PI = 2.0 * math.pi
 pytestmark = pytest.mark.skipif(CC is None, reason="no C compiler (cc, gcc or clang) on PATH")
@@ -127,6 +127,16 @@ def test_comment_text_cannot_end_a_comment():
         out = comment_text(hostile)
         assert "*/" not in out and "/*" not in out and "\\" not in out and "??" not in out
         assert "\n" not in out and out.isascii()
+
+
+def test_the_magic_seeds_stated_error_is_its_largest_over_every_mantissa():
+    """MAGIC_SEED_ERROR is max |1 - x seed(x)| over every x in [1, 2) (every mantissa; the
+    relative error repeats with the exponent), exactly: x and the seed have 24-bit mantissas, so
+    x seed(x) and 1 minus it are exact in double."""
+    m = np.arange(2**23, dtype=np.uint32) | np.uint32(127 << 23)  # x in [1, 2)
+    x = m.view(np.float32).astype(np.float64)
+    seed = (np.uint32(RECIPROCAL_MAGIC) - m).view(np.float32).astype(np.float64)
+    assert float(np.max(np.abs(1.0 - x * seed))) == MAGIC_SEED_ERROR
 
 
 def test_hostile_artifact_path_reaches_no_code(tmp_path, cal):

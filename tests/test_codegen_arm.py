@@ -139,30 +139,48 @@ def _line_residual(y: np.ndarray, k: np.ndarray) -> np.ndarray:
     return y - A @ coef
 
 
-@pytest.mark.skipif(not all(f.exists() for f in RINGJIG), reason="ring-jig data not available")
-@pytest.mark.parametrize("i", [1, 2, 3])
-def test_ringjig_on_arm_matches_python(tmp_path, i):
-    """The real recordings (raw 16-bit counts), calibrated as tests/test_real_ringjig.py does;
-    the whole file reconstructed from y = 0; held-out residual in electrical degrees."""
+def _ringjig(i: int, folder: Path) -> dict:
+    """Ring-jig recording i (raw 16-bit counts, 25 pole pairs) calibrated as
+    tests/test_real_ringjig.py and ``benchmarks/bench_codegen.py`` do (constant speed over the
+    first half of its constant-speed segment), its artifact exported into ``folder / "fw"``
+    and both variants built for the ARM targets."""
     import hallcal
     from hallcal.fit.constant_speed import find_constant_speed
 
     raw = np.loadtxt(RINGJIG[i - 1], dtype=np.int64)
     d = raw.astype(np.float64)
-    seg = find_constant_speed(d, 25)
-    start, mid, stop = seg.split(2.0)
+    start, mid, stop = find_constant_speed(d, 25).split(2.0)
     setup = {"pole_pairs": 25, "sample_time": 1.0,
              "trajectory": {"kind": "constant-speed", "start": start, "stop": mid}}  # fmt: skip
     cal = hallcal.calibrate({f"d{h + 1}": d[:, h] for h in range(3)}, setup)
-    art_path = tmp_path / "cal.json"
-    cal.save(art_path)
-    art = read_artifact(art_path)
-    res = export_c(_lean(art), tmp_path / "fw", source="cal.json")
-    lut = art.lut()
+    cal.save(folder / "cal.json")
+    art = read_artifact(folder / "cal.json")
+    res = export_c(_lean(art), folder / "fw", source="cal.json")
+    builds = _builds(folder / "fw", folder / "arm", 25)
+    return {"raw": raw, "d": d, "mid": mid, "stop": stop, "art": art, "res": res, "builds": builds}
+
+
+@pytest.fixture(scope="module")
+def ringjig_1(tmp_path_factory) -> dict:
+    """Ring jig 1 calibrated, exported and built once (:func:`_ringjig`) for its test on ARM and
+    its cycle trace (``ringjig_trace``)."""
+    if not RINGJIG[0].exists():
+        pytest.skip("ring-jig data not available")
+    return _ringjig(1, tmp_path_factory.mktemp("ringjig_1"))
+
+
+@pytest.mark.skipif(not all(f.exists() for f in RINGJIG), reason="ring-jig data not available")
+@pytest.mark.parametrize("i", [1, 2, 3])
+def test_ringjig_on_arm_matches_python(request, tmp_path, i):
+    """The real recordings (raw 16-bit counts), calibrated as tests/test_real_ringjig.py does;
+    the whole file reconstructed from y = 0; held-out residual in electrical degrees."""
+    jig = request.getfixturevalue("ringjig_1") if i == 1 else _ringjig(i, tmp_path)
+    raw, d, mid, stop, res = jig["raw"], jig["d"], jig["mid"], jig["stop"], jig["res"]
+    lut = jig["art"].lut()
     y_py = lut.f_star(d)
     k = np.arange(mid, stop)
     deg_py = math.degrees(_rms(_line_residual(y_py[mid:stop], k))) * 25
-    for variant, b in _builds(tmp_path / "fw", tmp_path / "arm", 25).items():
+    for variant, b in jig["builds"].items():
         fixed = variant == "fixed"
         out = ah.run(b, raw.astype(np.int32) if fixed else raw.astype(np.float32))
         assert not np.any(out[:, 2])
@@ -217,27 +235,14 @@ def test_cycles_and_instructions_per_sample(demo, demo_builds):
 
 
 @pytest.fixture(scope="module")
-def ringjig_trace(tmp_path_factory):
+def ringjig_trace(ringjig_1):
     """Ring-jig 1 (25 pole pairs, raw 16-bit counts, a quadratic table) calibrated as
-    ``benchmarks/bench_codegen.py`` does; the float variant's trace on the M4F and the fixed
-    variant's on the M0+, over 2000 samples of the recording and the fast spin."""
-    if not RINGJIG[0].exists():
-        pytest.skip("ring-jig data not available")
-    import hallcal
-    from hallcal.fit.constant_speed import find_constant_speed
-
-    out = tmp_path_factory.mktemp("ringjig_cycles")
-    d = np.loadtxt(RINGJIG[0], dtype=np.int64).astype(np.float64)
-    start, mid, _ = find_constant_speed(d, 25).split(2.0)
-    setup = {"pole_pairs": 25, "sample_time": 1.0,
-             "trajectory": {"kind": "constant-speed", "start": start, "stop": mid}}  # fmt: skip
-    cal = hallcal.calibrate({f"d{h + 1}": d[:, h] for h in range(3)}, setup)
-    cal.save(out / "cal.json")
-    art = read_artifact(out / "cal.json")
-    res = export_c(_lean(art), out / "fw", source="cal.json")
+    ``benchmarks/bench_codegen.py`` does (``ringjig_1``); the float variant's trace on the M4F
+    and the fixed variant's on the M0+, over 2000 samples of the recording and the fast spin."""
+    d, art, res = ringjig_1["d"], ringjig_1["art"], ringjig_1["res"]
     assert res.table_bytes <= 4096
     traces = {}
-    for variant, b in _builds(out / "fw", out / "arm", 25).items():
+    for variant, b in ringjig_1["builds"].items():
         fixed = variant == "fixed"
         x = np.concatenate([d[:2000] if fixed else d[:2000].astype(np.float32),
                             _fast_spin(art, 1.0, fixed)])  # fmt: skip

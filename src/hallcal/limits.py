@@ -12,8 +12,11 @@ its largest work arrays with :func:`check_work_memory`.
 
 from __future__ import annotations
 
+import functools
 import math
 import os
+import sys
+from typing import Any
 
 __all__ = [
     "BYTES_PER_SAMPLE",
@@ -51,6 +54,7 @@ __all__ = [
     "check_command_samples",
     "check_hall_scale",
     "check_work_memory",
+    "one_blas_thread",
     "work_memory_budget",
 ]
 
@@ -304,6 +308,33 @@ def check_work_memory(nbytes: float, what: str, hint: str) -> None:
             f"{what} would need {_gib(nbytes)}, above the limit of {_gib(budget)} for one work "
             f"array on this machine: {hint}"
         )
+
+
+def one_blas_thread() -> Any:
+    """One thread in every BLAS library loaded now, within a ``with`` block.
+
+    threadpoolctl's ``threadpool_limits(limits=1, user_api="blas")`` (the numeric core's
+    products are small or tall-and-thin: on a busy 2-core machine a second BLAS thread only
+    spins), from one ``ThreadpoolController`` kept while no module was imported since it looked
+    the libraries up: ``threadpool_limits`` looks them up at every call (every loaded shared
+    object, 2-6 ms on the 2-core machine; about 15 calls per ``hallcal calibrate``). A BLAS
+    library is loaded by importing an extension module (NumPy, SciPy), so the libraries found
+    are those loaded at the call, as with ``threadpool_limits``.
+
+    Returns
+    -------
+    context manager
+        Restores each library's thread count on exit.
+    """
+    return _blas_controller(len(sys.modules)).limit(limits=1, user_api="blas")
+
+
+@functools.lru_cache(maxsize=1)
+def _blas_controller(modules: int) -> Any:
+    """The thread pools of the libraries loaded while ``modules`` modules are imported."""
+    from threadpoolctl import ThreadpoolController  # loaded by the commands that compute only
+
+    return ThreadpoolController()
 
 
 def _gib(nbytes: float) -> str:

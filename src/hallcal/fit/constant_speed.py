@@ -34,8 +34,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
-from threadpoolctl import threadpool_limits
 
+from hallcal.limits import one_blas_thread
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sensor.reconstruction import f_init
@@ -931,7 +931,7 @@ def _line_and_flux(
     y = geo.f_init(x, n)
     k = np.arange(start, stop, dtype=np.float64)
     D, ys = x[start:stop], y[start:stop]
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         speed = _fit_speed(D, ys, k, n, basis, max_iterations=max_iterations, tol=tol,
                            rounds=rounds, threshold=threshold)  # fmt: skip
         # gauge: mean(f_init - y0) = 0 over the segment, in absolute sample index

@@ -46,9 +46,9 @@ import numba as nb
 import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
-from threadpoolctl import threadpool_limits
 
 from hallcal.fit.gauss_newton import gram_from_moments
+from hallcal.limits import one_blas_thread
 from hallcal.sensor.flux import FluxModel, FourierBasis
 
 __all__ = [
@@ -521,7 +521,7 @@ def group_evidence(
     status, gain, it = GroupEvidenceStatus.MAX_ITERATIONS, np.zeros(pr.ng), 0
     opts: dict[str, Any] = {"sse": sse, "n": n, "update_noise": update_noise, "prune": prune,
                             "tol": tol}  # fmt: skip
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         while it < int(max_iterations):
             settled = _settle(pr, alpha, s2, budget=int(max_iterations) - it, **opts)
             if settled is None:

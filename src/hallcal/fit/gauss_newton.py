@@ -59,10 +59,9 @@ from dataclasses import dataclass, field
 import numba as nb
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from threadpoolctl import threadpool_limits
 
 from hallcal.fit.layout import ParameterLayout
-from hallcal.limits import check_work_memory
+from hallcal.limits import check_work_memory, one_blas_thread
 from hallcal.sim.loop import ClosedLoop, LoopStatus
 from hallcal.sim.loop_kernel import (
     F64,
@@ -699,7 +698,7 @@ def gauss_newton_system(
     )
     passes = _SensitivityPass(args, layout, r, d, wt, y_initial, T, stride if gram else 0,
                               nthreads)  # fmt: skip
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         if not passes.run(gram):
             return _diverged_system(N, p, passes.n_chunks)
         G = passes.gram

@@ -90,7 +90,6 @@ import scipy.linalg
 import scipy.optimize
 import scipy.special
 from numpy.typing import ArrayLike, NDArray
-from threadpoolctl import threadpool_limits
 
 from hallcal.fit.adequacy import estimate_noise_variance
 from hallcal.fit.evidence import HarmonicRelevance, harmonic_relevance
@@ -101,6 +100,7 @@ from hallcal.fit.gauss_newton import (
 from hallcal.fit.order import WORK_BUDGET
 from hallcal.fit.sem import SEMResult, SEMStatus, checked_record, solve_sem
 from hallcal.fit.warp import BandEdge, band_edge
+from hallcal.limits import one_blas_thread
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.loop import ClosedLoop
@@ -283,7 +283,7 @@ def _criterion_at_lengthscale(
     ia = np.nonzero(act)[0]
     sv = np.sqrt(v[ia])
     Gaa = gram[np.ix_(ia, ia)]
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         D, V = scipy.linalg.eigh(sv[:, None] * Gaa * sv[None, :], check_finite=False)
     D = np.maximum(D, 0.0)
     c = gradient.shape[1]

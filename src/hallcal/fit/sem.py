@@ -28,7 +28,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
-from threadpoolctl import threadpool_limits
 
 from hallcal.fit.gauss_newton import (
     GaussNewtonSystem,
@@ -38,7 +37,7 @@ from hallcal.fit.gauss_newton import (
     regression_normal_equations,
     simulate_model,
 )
-from hallcal.limits import check_hall_scale, check_work_memory
+from hallcal.limits import check_hall_scale, check_work_memory, one_blas_thread
 from hallcal.messages import Outcome
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.reconstruction import f_init
@@ -218,7 +217,7 @@ def _normal_solve(
     sample weights w (None: 1)."""
     # Over whole revolutions the Fourier columns are nearly orthogonal, so G is well conditioned
     # and a Cholesky solve is as accurate as an SVD of the regressors.
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         try:
             if np.linalg.cond(G) > 1e10:
                 raise np.linalg.LinAlgError
@@ -374,7 +373,7 @@ def _levenberg_marquardt(
     small_steps = 0
     contraction = _FIRST_CONTRACTION
     previous = math.inf
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         while True:
             A, g = _normal_matrix(problem, system, x)
             sigma2 = F / dof
@@ -406,7 +405,7 @@ def _covariance(system: GaussNewtonSystem, ridge: NDArray, sigma2: float) -> NDA
     p = ridge.size
     if not system.status.success:
         return np.full((p, p), math.nan)
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         try:
             inv = np.linalg.inv(system.gram + np.diag(ridge))
             return (sigma2 * inv).astype(np.float64, copy=False)
@@ -424,7 +423,7 @@ def _batch_covariance(
         return None
     Sc = S - S.mean(axis=0)
     Ainv = cov / sigma2
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         L = Ainv @ Sc.T  # (p, B)
         return (B / (B - 1)) * (L @ L.T)
 

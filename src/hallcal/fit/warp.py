@@ -37,10 +37,10 @@ import numba as nb
 import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
-from threadpoolctl import threadpool_limits
 
 from hallcal.fit.adequacy import chi2_isf_even
 from hallcal.fit.gauss_newton import regression_normal_equations
+from hallcal.limits import one_blas_thread
 from hallcal.messages import Outcome
 from hallcal.sensor.flux import FluxModel, FourierBasis
 
@@ -128,7 +128,7 @@ def _view_from_normal_equations(M: NDArray, Btd: NDArray, noise_variance: float)
     leading ``2 L' + 1`` rows and columns (the same moments, bit for bit): a narrower view
     needs no second pass over the samples."""
     L = (M.shape[0] - 1) // 2
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         try:
             cf = scipy.linalg.cho_factor(M, check_finite=False)
             theta = scipy.linalg.cho_solve(cf, Btd, check_finite=False).T
@@ -336,7 +336,7 @@ def unwarp(
     c = np.zeros(2 * J) if start is None else np.array(start, dtype=np.float64)
     status = UnwarpStatus.MAX_ITERATIONS
     it = 0
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         while it < int(max_iterations):
             it += 1
             g, gp = _curve(th, x + Bw @ c)

@@ -117,7 +117,7 @@ def calibrate(
         Check :attr:`Calibration.status`: a refused calibration carries its reason in
         :attr:`Calibration.refusal`.
     """
-    from threadpoolctl import threadpool_limits
+    from hallcal.limits import one_blas_thread
 
     # The route's modules are imported before the limit: it applies to the BLAS libraries loaded
     # at that moment, and SciPy brings its own OpenBLAS (loaded with scipy.linalg), which would
@@ -131,7 +131,7 @@ def calibrate(
     # One BLAS thread throughout: the products here are small or tall-and-thin, and with two
     # BLAS threads on a busy 2-core machine an eigendecomposition of 177 x 177 took 0.1-0.3 s
     # instead of 3 ms. Where two cores pay, the numeric code runs blocks in threads itself.
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         if setup.trajectory.kind == "constant-speed":
             cal = calibrate_open_loop(dataset, setup, progress=progress)
             if bla_dataset is not None or bla is not None:

@@ -34,14 +34,10 @@ _TAN_PI_8 = math.tan(math.pi / 8.0)
 RECIPROCAL_MAGIC = 0x7EF30000
 
 
-@functools.lru_cache(maxsize=1)
-def _magic_seed_error() -> float:
-    """Largest |1 - x seed(x)| of :data:`RECIPROCAL_MAGIC` over every mantissa (exact in double:
-    the relative error repeats with the exponent)."""
-    m = np.arange(2**23, dtype=np.uint32) | np.uint32(127 << 23)  # x in [1, 2)
-    x = m.view(np.float32).astype(np.float64)
-    r = (np.uint32(RECIPROCAL_MAGIC) - m).view(np.float32).astype(np.float64)
-    return float(np.max(np.abs(1.0 - x * r)))
+#: Largest relative error |1 - x seed(x)| of :data:`RECIPROCAL_MAGIC`'s seed over every normal
+#: float x (13/256: the error repeats with the exponent; tests/test_codegen.py computes it over
+#: every mantissa, exact in double, instead of each export-c, which took about 0.1 s).
+MAGIC_SEED_ERROR = 0.05078125
 
 
 # --------------------------------------------------------------------------------------------
@@ -50,7 +46,18 @@ def _magic_seed_error() -> float:
 
 
 def _atan_poly(terms: int = 5) -> tuple[NDArray[np.float64], float]:
-    """Odd minimax polynomial of atan on [0, tan(pi/8)] (Lawson iterations) and its max error."""
+    """Odd minimax polynomial of atan on [0, tan(pi/8)] (Lawson iterations) and its max error.
+
+    Computed once per process and number of terms (:func:`_lawson_atan`, 35-50 ms each; an
+    export designs the atan2 of the table and of the power-up); the coefficients are a copy.
+    """
+    coef, err = _lawson_atan(int(terms))
+    return coef.copy(), err
+
+
+@functools.lru_cache(maxsize=8)
+def _lawson_atan(terms: int) -> tuple[NDArray[np.float64], float]:
+    """:func:`_atan_poly` (the cached computation)."""
     t = np.sort(np.cos(np.linspace(0.0, math.pi, 4001)) * 0.5 * _TAN_PI_8 + 0.5 * _TAN_PI_8)
     V = np.stack([t ** (2 * k + 1) for k in range(terms)], axis=1)
     f = np.arctan(t)
@@ -102,7 +109,7 @@ def _float_atan2_design(
     x_hi = pl.radius_hi * (1.0 + 1e-6)
     magic = magic and 2.0**-120 <= x_lo and x_hi <= 2.0**120
     if magic:
-        c0, c1, eps = 0.0, 0.0, _magic_seed_error()
+        c0, c1, eps = 0.0, 0.0, MAGIC_SEED_ERROR
     else:
         c0, c1, eps = newton_seed(x_lo, x_hi)
     newton, e = 1, eps * eps
