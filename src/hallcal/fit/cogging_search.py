@@ -684,10 +684,10 @@ def _confirmed(
         return joint, tests, candidates
     from hallcal.fit.order import restrict_theta  # the harmonic search's module, loaded lazily
 
+    torque = candidates if joint.cogging is None else joint.cogging  # warm: the joint torque
     check = solve_sem(
         loop, r, d, wide, theta0=restrict_theta(joint.flux, wide), fit_gain=fit_gain,
-        gain0=joint.gain if fit_gain else 1.0, cogging=joint.cogging,
-        max_iterations=max_iterations,
+        gain0=joint.gain if fit_gain else 1.0, cogging=torque, max_iterations=max_iterations,
     )  # fmt: skip
     failed = {t.order for t in order_tests(check, significance=significance)
               if t.order > 0 and not t.significant}  # fmt: skip
