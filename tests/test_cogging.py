@@ -347,3 +347,75 @@ def test_auto_finds_an_order_the_first_fits_flux_absorbed():
     # the large order's amplitude: within 40 % (measured 0.0234 against 0.0175: the flux and
     # the torque still trade off on 2 revolutions; the table is what the zoo scores)
     assert sel.cogging.amplitude[i] == pytest.approx(0.0175, rel=0.4)
+
+
+# ---------------------------------------------------------------------------------------------
+# Sidebands: a torque must not stand in for the flux harmonics a sparse basis left out
+# ---------------------------------------------------------------------------------------------
+
+
+@given(
+    harmonics=st.sets(st.integers(1, 40), min_size=1, max_size=12),
+    orders=st.sets(st.integers(0, 60), max_size=3),
+)
+def test_sideband_basis_adds_only_in_band_sidebands(harmonics, orders):
+    from hallcal.fit.cogging_search import sideband_basis
+
+    basis = FourierBasis(tuple(sorted(harmonics)))
+    wide = sideband_basis(basis, tuple(sorted(orders)))
+    top = max(harmonics)
+    assert set(basis.harmonics) <= set(wide.harmonics) and max(wide.harmonics) == top
+    expected = {abs(k + s * h) for k in orders if k > 0 for h in harmonics for s in (-1, 1)}
+    assert set(wide.harmonics) - set(harmonics) == {j for j in expected if 1 <= j <= top} - set(
+        harmonics
+    )
+    if wide.harmonics == basis.harmonics:
+        assert wide is basis  # nothing to add: no check fit
+
+
+def _sparse_bench(seed: int, *, third: float, cogging=()) -> tuple[BenchConfig, object, object]:
+    """3 pole pairs, a 4 rad ramp, the flux's 3rd electrical harmonic ``third`` and a sparse
+    basis (1, 2, 3, 15) that lacks it (mechanical 9): the first fit leaves flux content at 9."""
+    cfg = BenchConfig(
+        seed=seed, pole_pairs=3, magnet_variation=0.06,
+        electrical_harmonics=((3, third), (5, 0.04)), cogging_terms=cogging,
+    )  # fmt: skip
+    run = ramp_run(cfg, ramp_end=4.0, duration=8.0)
+    sem0 = solve_sem(cfg.loop(), run.r, run.d, FourierBasis((1, 2, 3, 15)), y=run.y,
+                     max_iterations=15)  # fmt: skip
+    return cfg, run, sem0
+
+
+def test_a_torque_at_2nm_does_not_stand_in_for_missing_flux_harmonics():
+    """No cogging in the truth; a torque at 6 = 2 n_m moves the signals at 6 +- h, so it fits
+    the 3rd electrical harmonic (mechanical 9 = 6 + 3) the sparse basis lacks: significant in
+    the fit on that basis (measured T^2 45-200 against ~20; "auto" before the sideband check
+    kept (6, 36, 42) on this bench), not once the basis holds its sidebands."""
+    from hallcal.fit.cogging_search import _confirmed
+
+    cfg, run, sem0 = _sparse_bench(2, third=0.25)
+    given = select_cogging(cfg.loop(), run.r, run.d, sem0, orders=(6,), max_iterations=15)
+    assert all(t.significant for t in given.tests)  # the false positive the check removes
+    joint, tests, kept = _confirmed(
+        cfg.loop(), run.r, run.d, sem0, given.sem, given.tests, (6,), fit_gain=False,
+        max_iterations=15, significance=1e-3,
+    )  # fmt: skip
+    assert kept == () and joint is sem0
+
+
+def test_sideband_check_keeps_a_true_torque():
+    """Cogging at 6 = 2 n_m in the truth, the same sparse basis, no 3rd harmonic in the flux
+    (nothing for a torque to stand in for): the check's basis adds the sidebands 4, 5, 7, 8, 9
+    of 6 and the order stays, its motion at 15 + 6 = 21 being beyond the band (the zoo's
+    cogload motors keep their orders likewise)."""
+    from hallcal.fit.cogging_search import _confirmed, sideband_basis
+
+    cfg, run, sem0 = _sparse_bench(3, third=0.0, cogging=((6, 0.004, 40.0),))
+    assert sideband_basis(sem0.flux.basis, (6,)).harmonics == (1, 2, 3, 4, 5, 7, 8, 9, 15)
+    given = select_cogging(cfg.loop(), run.r, run.d, sem0, orders=(6,), max_iterations=15)
+    assert all(t.significant for t in given.tests)
+    joint, tests, kept = _confirmed(
+        cfg.loop(), run.r, run.d, sem0, given.sem, given.tests, (6,), fit_gain=False,
+        max_iterations=15, significance=1e-3,
+    )  # fmt: skip
+    assert kept == (6,) and joint is given.sem
