@@ -67,7 +67,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from threadpoolctl import threadpool_limits
 
 from hallcal.fit._diagnostics import (
     ContentStatus,
@@ -96,6 +95,7 @@ from hallcal.fit._table_error import (
 )
 from hallcal.fit.error_source import ErrorSource, ErrorSources
 from hallcal.fit.sem import SEMResult
+from hallcal.limits import one_blas_thread
 from hallcal.sensor.reconstruction import clarke_matrix
 
 __all__ = [
@@ -397,7 +397,7 @@ def assess(
     n = int(pole_pairs)
     P = clarke_matrix()[:2] if projection is None else np.asarray(projection, dtype=np.float64)
     o = np.zeros(3) if offset is None else np.asarray(offset, dtype=np.float64)
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         lv = _levels(sem, dd, noise, warn_ratio, fail_ratio)
         lv.thresholds.update(significance=significance, min_amplitude_over_sigma=min_amplitude,
                              dominance=dominance, warn_predicted=warn_predicted)  # fmt: skip

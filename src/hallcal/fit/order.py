@@ -75,7 +75,6 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
-from threadpoolctl import threadpool_limits
 
 from hallcal.fit.adequacy import (
     AdequacyReport,
@@ -90,6 +89,7 @@ from hallcal.fit.evidence import HarmonicRelevance, harmonic_relevance
 from hallcal.fit.gauss_newton import ParameterLayout, simulate_model
 from hallcal.fit.sem import SEMResult, SEMStatus, least_squares_start, solve_sem
 from hallcal.fit.warp import BandEdge, band_edge, unwarp
+from hallcal.limits import one_blas_thread
 from hallcal.messages import Message, MessageCode
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sim.loop import ClosedLoop
@@ -674,7 +674,7 @@ def nested_bands(
         return ()
     top = max(basis.harmonics)
     out: list[NestedBand] = []
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         for E in sorted({int(e) for e in np.atleast_1d(edges) if 1 <= int(e) < top}):
             keep = tuple(h for h in basis.harmonics if h <= E)
             if not keep:

@@ -607,13 +607,15 @@ def hall_lag_correlation(dataset: Dataset) -> float:
     return float(np.sum(x[1:] * x[:-1]) / den) if den > 0.0 else 0.0
 
 
-def check_hall_motion(dataset: Dataset) -> Check:
+def check_hall_motion(dataset: Dataset, *, lag_correlation: float | None = None) -> Check:
     """Whether the Hall signals move, or are noise around a fixed point (a standstill).
 
     Parameters
     ----------
     dataset : Dataset
         A recording with d1, d2, d3.
+    lag_correlation : float, optional, keyword-only
+        :func:`hall_lag_correlation` of ``dataset`` when the caller has it already.
 
     Returns
     -------
@@ -622,7 +624,7 @@ def check_hall_motion(dataset: Dataset) -> Check:
         :data:`STANDSTILL_CORRELATION`: f_init of noise turns at random, so neither a rotation
         nor a calibration can be read from such a recording.
     """
-    rho = hall_lag_correlation(dataset)
+    rho = hall_lag_correlation(dataset) if lag_correlation is None else lag_correlation
     if rho >= STANDSTILL_CORRELATION:
         return Check(CheckStatus.OK, f"the Hall signals move (lag-1 correlation {rho:.3f})")
     d = np.asarray(dataset.d, dtype=np.float64)
@@ -649,7 +651,11 @@ def _unit_name(ratio: float, pole_pairs: int) -> str | None:
 
 
 def check_angle_units(
-    dataset: Dataset, pole_pairs: int, *, columns: tuple[str, ...] = ("r", "y", "y_ref")
+    dataset: Dataset,
+    pole_pairs: int,
+    *,
+    columns: tuple[str, ...] = ("r", "y", "y_ref"),
+    lag_correlation: float | None = None,
 ) -> Check:
     """The angle columns must be in mechanical rad: their travel against the Hall angle / n_m.
 
@@ -666,6 +672,8 @@ def check_angle_units(
         The setup's n_m.
     columns : tuple of str, keyword-only
         The angle columns to check (those absent are skipped).
+    lag_correlation : float, optional, keyword-only
+        :func:`hall_lag_correlation` of ``dataset`` when the caller has it already.
 
     Returns
     -------
@@ -676,7 +684,8 @@ def check_angle_units(
     present = [c for c in columns if c in dataset]
     if not present or dataset.n_samples < 8:
         return Check(CheckStatus.SKIPPED, "angle units not checked: no angle column")
-    if hall_lag_correlation(dataset) < STANDSTILL_CORRELATION:
+    rho = hall_lag_correlation(dataset) if lag_correlation is None else lag_correlation
+    if rho < STANDSTILL_CORRELATION:
         return Check(CheckStatus.SKIPPED, "angle units not checked: the Hall signals stand still")
     psi = unwrapped_electrical_angle(dataset)
     if float(np.ptp(psi)) < MIN_HALL_TRAVEL:
@@ -740,6 +749,7 @@ def check_recording(
     sample_time: float | None,
     angles: tuple[str, ...] = ("r", "y", "y_ref"),
     motion: bool = False,
+    lag_correlation: float | None = None,
 ) -> list[Check]:
     """The recording's plausibility checks, in the order a failure is reported.
 
@@ -759,16 +769,21 @@ def check_recording(
         The angle columns whose unit is checked.
     motion : bool, keyword-only
         Require the Hall signals to move (a calibration run).
+    lag_correlation : float, optional, keyword-only
+        :func:`hall_lag_correlation` of ``dataset`` when the caller has it already (computed
+        at most once here otherwise).
 
     Returns
     -------
     list of Check
     """
     out = [check_sample_time(dataset, sample_time)]
+    rho = lag_correlation
     if motion and {"d1", "d2", "d3"} <= set(dataset.names):
-        out.append(check_hall_motion(dataset))
+        rho = hall_lag_correlation(dataset) if rho is None else rho
+        out.append(check_hall_motion(dataset, lag_correlation=rho))
     if {"d1", "d2", "d3"} <= set(dataset.names):
-        out.append(check_angle_units(dataset, pole_pairs, columns=angles))
+        out.append(check_angle_units(dataset, pole_pairs, columns=angles, lag_correlation=rho))
     return out
 
 

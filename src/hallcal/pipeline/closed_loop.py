@@ -45,6 +45,7 @@ from hallcal.pipeline.checks import (
     check_loop,
     check_pole_pairs,
     check_recording,
+    hall_lag_correlation,
 )
 from hallcal.pipeline.observe import FOLDING_NOTE, observer_check, observer_section
 from hallcal.pipeline.plant import BLAIdentification, PlantModel, closed_loop, plant_model
@@ -529,15 +530,18 @@ def calibrate_closed_loop(
     timings: dict[str, float] = {}
     dataset.require("r", "d1", "d2", "d3")
     say(progress, "checking pole pairs and direction against the reference")
+    # the Hall signals' lag-1 correlation, computed once for the unit and the motion checks
+    # (the unit check needs it from 8 samples on, as its own early return)
+    rho = hall_lag_correlation(dataset) if dataset.n_samples >= 8 else None
     preflight = check_recording(
-        dataset, pole_pairs=setup.pole_pairs, sample_time=setup.sample_time
+        dataset, pole_pairs=setup.pole_pairs, sample_time=setup.sample_time, lag_correlation=rho
     ) + [check_pole_pairs(dataset, setup.pole_pairs), check_direction(dataset)]
     for check in preflight:
         check.raise_if_failed(dataset.source)
     s = _signals(dataset, setup.pole_pairs)
     # after the span check of _signals (a short run is named as such): Hall signals that are
     # noise around the origin make f_init turn at random, which no span check sees
-    check_hall_motion(dataset).raise_if_failed(dataset.source)
+    check_hall_motion(dataset, lag_correlation=rho).raise_if_failed(dataset.source)
     cold = setup.model.basis != "kernel" and not _kernels_cached()
     if cold:  # the first run on this machine: numba compiles before the plant's gain or SEM
         say(progress, "compiling the loop kernels once (about 15-60 s; later runs load them)")

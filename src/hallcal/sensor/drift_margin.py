@@ -239,9 +239,19 @@ def _wrong_lock(dec: _Decoder, d: NDArray, standstill_budget: int) -> NDArray[np
     return (wrong <= e[:, 0] - lock) & (wrong <= fit)
 
 
-def _changed(dec: _Decoder, sig: NDArray, gains: NDArray, offsets: NDArray) -> NDArray:
-    """``o + G (d - o) + delta amp`` for one change (gains about o, offsets in amplitudes)."""
-    return dec.offset + gains * (sig - dec.offset) + offsets * _amplitudes(sig, dec.offset)
+def _about_offset(dec: _Decoder, sig: NDArray) -> tuple[NDArray, NDArray]:
+    """``(d - o, amp)`` of the table signals: what every change of :func:`_changed` starts
+    from (computed once per analysis, not once per change)."""
+    return sig - dec.offset, _amplitudes(sig, dec.offset)
+
+
+def _changed(
+    dec: _Decoder, base: tuple[NDArray, NDArray], gains: NDArray, offsets: NDArray
+) -> NDArray:
+    """``o + G (d - o) + delta amp`` for one change (gains about o, offsets in amplitudes);
+    ``base`` is :func:`_about_offset` of the table signals d."""
+    centered, amplitudes = base
+    return dec.offset + gains * centered + offsets * amplitudes
 
 
 def wrong_lock_share(
@@ -272,7 +282,8 @@ def wrong_lock_share(
     sig = _table_signals(decoder)
     g = np.asarray(gains, dtype=np.float64)
     o = np.asarray(offsets, dtype=np.float64)
-    return float(np.mean(_wrong_lock(decoder, _changed(decoder, sig, g, o), standstill_budget)))
+    changed = _changed(decoder, _about_offset(decoder, sig), g, o)
+    return float(np.mean(_wrong_lock(decoder, changed, standstill_budget)))
 
 
 #: The changes of each kind at size t: (gains, offsets) as functions of t (both signs; one
@@ -312,11 +323,14 @@ _KINDS: dict[str, list[tuple[_Change, _Change]]] = {
 }
 
 
-def _shares(dec: _Decoder, sig: NDArray, t: float, kinds: list[str], budget: int) -> list[float]:
-    """Per kind, the largest wrong-lock share over its changes of size t (one cost call)."""
+def _shares(
+    dec: _Decoder, base: tuple[NDArray, NDArray], t: float, kinds: list[str], budget: int
+) -> list[float]:
+    """Per kind, the largest wrong-lock share over its changes of size t (one cost call);
+    ``base`` is :func:`_about_offset` of the table signals."""
     runs = [(k, g(t), o(t)) for k in kinds for g, o in _KINDS[k]]
-    d = np.concatenate([_changed(dec, sig, g, o) for _, g, o in runs])
-    bad = _wrong_lock(dec, d, budget).reshape(len(runs), sig.shape[0]).mean(axis=1)
+    d = np.concatenate([_changed(dec, base, g, o) for _, g, o in runs])
+    bad = _wrong_lock(dec, d, budget).reshape(len(runs), base[0].shape[0]).mean(axis=1)
     return [max(float(b) for (k2, _, _), b in zip(runs, bad, strict=True) if k2 == k)
             for k in kinds]  # fmt: skip
 
@@ -350,7 +364,7 @@ def drift_margin(
     DriftMargin
     """
     dec, budget = decoder, standstill_budget
-    sig = _table_signals(dec)
+    base = _about_offset(dec, _table_signals(dec))
     kinds = list(_KINDS)
     margin = dict.fromkeys(kinds, math.inf)
     at_plausible = 0.0
@@ -362,12 +376,12 @@ def drift_margin(
         todo = open_kinds + (["common_gain"] if need_common else [])
         if not todo:
             break
-        got = dict(zip(todo, _shares(dec, sig, float(t), todo, budget), strict=True))
+        got = dict(zip(todo, _shares(dec, base, float(t), todo, budget), strict=True))
         if t <= plausible_gain + 1e-12:
             at_plausible = max(at_plausible, got["common_gain"])
         for k in open_kinds:
             if got[k] > share:
-                margin[k] = _bisect(lambda x, k=k: _shares(dec, sig, x, [k], budget)[0] > share,
+                margin[k] = _bisect(lambda x, k=k: _shares(dec, base, x, [k], budget)[0] > share,
                                     lo, float(t))  # fmt: skip
         lo = float(t)
     return DriftMargin(
