@@ -30,9 +30,9 @@ are):
   ``benchmarks/bench_powerup.py`` does; the same lock sample and pole pair every time, the
   largest Lambda difference, the angle after the lock against the stated bound; 24 of them on
   the M4F under QEMU (the same bits as the host); on ring-jig 1, 50 random starts in the
-  held-out revolutions (60 samples each, as bench_powerup); and, as a stress, 1000 power-ups
-  at standstill on a weak bench (7 pole pairs, magnet variation 0.01, the true flux as the
-  model), where locks take up to thousands of samples.
+  held-out revolutions (200 samples each, as bench_powerup: the gated lock comes after 96);
+  and, as a stress, 1000 power-ups at standstill on a weak bench (7 pole pairs, magnet
+  variation 0.01, the true flux as the model), where locks take up to thousands of samples.
 """
 
 from __future__ import annotations
@@ -163,7 +163,7 @@ def _powerup(wd: Path, title: str, art: dict, d: np.ndarray, scale: float, lean_
         from hallcal.fit.constant_speed import find_constant_speed
 
         _, mid, stop = find_constant_speed(d, dec.pole_pairs).split(2.0)
-        N = 60
+        N = 200  # > K0 = 96: the goodness-of-fit gate decides within the window
         starts = np.random.default_rng(1001).integers(mid, stop - N, 50)
         x = np.stack([d[s : s + N] for s in starts])
         kinds = {"50 starts in the held-out revolutions": slice(0, 50)}
