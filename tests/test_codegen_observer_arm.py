@@ -111,4 +111,6 @@ def test_m4f_observer_worst_case_cycles_update_and_read(observer_m4f):
     assert len(cyc) == len(adv)  # every call traced
     assert cyc.max() <= 630  # measured 613: margin for GCC's block layout (+-15 seen)
     assert ah.undefined_symbols(b.obj) == []  # no library function, no libgcc helper
-    assert res.table_bytes == res.table_points * 12 * 4 + 2 * (2 * 256 + 1) * 4 + 8 * 2
+    # every table: the cubics, THRINV, OFF, ONE, Q and the per-channel BLO, BHI, C0, W0, GROSS
+    tables = res.table_points * 12 * 4 + 2 * (2 * 256 + 1) * 4 + 8 * 2 + 5 * 4 + 6 * 4 + 5 * 12
+    assert res.table_bytes == tables
