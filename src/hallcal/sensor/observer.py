@@ -864,12 +864,13 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, offsets, a, b, y_out, misf
         p0[i, 1] = b[i]
         H[2 * i, 2 * i] = cfg[10] * w0[i] * amp[i] * amp[i]
         H[2 * i + 1, 2 * i + 1] = cfg[10] * w0[i]
-    pending, phase = False, 0
+    pending, phase, hold = False, 0, False
     S = np.zeros(7)
     S[_Y] = y_initial
     I = np.array([-1, -1, 0, 0, 1, -1], dtype=np.int64)
     for k in range(d.shape[0]):
         if I[_NEXT] >= 0:  # the exclusion decided on the previous sample
+            hold = True  # the adaptation's next sample waits
             I[_EXCL], I[_BLAMED_OUT], I[_NEXT] = I[_NEXT], 1, -1
             I[_FIRST] = k if I[_FIRST] < 0 else I[_FIRST]
             S[_CLEAN] = 0.0
@@ -907,7 +908,11 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, offsets, a, b, y_out, misf
             # the two channels left do not fit either: not a channel fault but a model that no
             # longer fits (remount): readmit the channel and let the misfit monitor speak
             I[_EXCL], I[_SUPPRESS] = -1, 1
-        if not outlier:  # the adaptation's cycle advances on samples without the fits of _robust
+        if not outlier and hold:
+            # the first sample after an exclusion that would advance the adaptation's cycle
+            # waits (firmware: the exclusion's work does not share its time with a part)
+            hold = False
+        elif not outlier:  # the cycle advances on samples without the fits of _robust
             # settled: the step (the innovation) within 5 sigma of the angle's own noise 1/den,
             # so the gains and levels never learn a prediction still catching up (a rotor
             # already spinning at the first sample, an acquisition off by a transient)

@@ -137,9 +137,11 @@ def export_observer_c(
     texts = _texts(model, ObserverSettings(), prefix, comment_text(Path(source).name))
     paths = _write_files(out_dir, texts)  # one set, write errors as one line (hallcal.io)
     s = ObserverSettings()
-    # the cubics (4 floats per channel and node), the thresholds and the reciprocals (float),
-    # the search offsets (int16)
-    nbytes = model.points * 3 * 4 * 4 + 2 * (2 * s.window + 1) * 4 + s.acquire_points * 2
+    # every table: the cubics (4 floats per channel and node), the thresholds and the
+    # reciprocals (float), the search offsets (int16), the blame counts' units ONE (5 uint32),
+    # the prior Q (6 floats) and the per-channel BLO, BHI, C0, W0, GROSS (5 x 3 floats)
+    nbytes = (model.points * 3 * 4 * 4 + 2 * (2 * s.window + 1) * 4 + s.acquire_points * 2
+              + 5 * 4 + 6 * 4 + 5 * 3 * 4)  # fmt: skip
     return ObserverExport(paths, model.points, nbytes)
 
 
@@ -303,6 +305,9 @@ def _adapt_parts() -> tuple[str, str]:
     # the bounded update of channels 0 and 1 (of 2 and the commit: the cycle's last part)
     calls.append(f"                case {len(calls) + 1}u:\n                    bound01(s);"
                  "\n                    break;")  # fmt: skip
+    # the sample after an exclusion waits (phase + 2 CYCLE - 1: no part; see exclude)
+    calls.append("".join(f"                case {ph}u:\n" for ph in range(2 * ADAPT_CYCLE - 1, 3 * ADAPT_CYCLE - 1))
+                 + "                    break;")  # fmt: skip
     return "\n".join(fns), "\n".join(calls)
 
 
@@ -616,6 +621,10 @@ NOINLINE static void exclude(@p@_state *s)
 @RINGRESET@    s->window_from = s->k; /* the window start again */
     s->sum_chi = 0.0f;
     s->sum_dof = 0;
+    if (s->phase < CYCLE) { /* the adaptation's next sample waits (not on this one's time): a
+                             * phase ph + 2 CYCLE - 1, which runs no part and returns to ph */
+        s->phase = (uint8_t)(s->phase + 2u * CYCLE - 1u);
+    }
 }
 
 void @p@_init(@p@_state *s)
