@@ -306,8 +306,10 @@ def _adapt_parts() -> tuple[str, str]:
     calls.append(f"                case {len(calls) + 1}u:\n                    bound01(s);"
                  "\n                    break;")  # fmt: skip
     # the sample after an exclusion waits (phase + 2 CYCLE - 1: no part; see exclude)
-    calls.append("".join(f"                case {ph}u:\n" for ph in range(2 * ADAPT_CYCLE - 1, 3 * ADAPT_CYCLE - 1))
-                 + "                    break;")  # fmt: skip
+    held = range(2 * ADAPT_CYCLE - 1, 3 * ADAPT_CYCLE - 1)
+    calls.append(
+        "".join(f"                case {ph}u:\n" for ph in held) + "                    break;"
+    )
     return "\n".join(fns), "\n".join(calls)
 
 
