@@ -178,6 +178,8 @@ def _texts(
         "@FC@": str(s.fault_count),
         "@NA@": str(s.acquire_points),
         "@CYCLE@": str(ADAPT_CYCLE),
+        # a power of two above VMAX / h: the table's argument u positive (see table)
+        "@BIAS@": str(1 << math.ceil(math.log2(0.4 * model.points / model.pole_pairs + 1.0))),
         "@OFF@": ", ".join(
             str(int(o)) for o in acquire_offsets(model.points, model.pole_pairs, s.acquire_points)
         ),
@@ -395,6 +397,7 @@ _SOURCE = """\
 #define FC @FC@
 #define NA @NA@
 #define CYCLE @CYCLE@
+#define BIAS @BIAS@
 
 static const float NM = @NM@;
 static const float HSTEP = @H@;
@@ -479,14 +482,13 @@ static uint32_t bits_(float x)
  * coefficients: the same polynomial as the Hermite form of values and slopes) */
 static void table(float y, float f[3], float dg[3])
 {
-    float u = y * INVH, t, c, a, b;
-    int32_t j = (int32_t)u;
+    /* u > 0 for y > -VMAX (y = angle + speed: -VMAX < y < 2 pi + VMAX; BIAS, a power of two
+     * above VMAX / h, keeps u's binade), so that the conversion's truncation is the floor */
+    float u = y * INVH + (float)BIAS, t, c, a, b;
+    uint32_t j = (uint32_t)u;
     const float *p;
-    if ((float)j > u) {
-        j -= 1;
-    }
     t = u - (float)j;
-    p = T[(uint32_t)j & (uint32_t)(M - 1)];
+    p = T[(j - (uint32_t)BIAS) & (uint32_t)(M - 1)];
     /* Horner: a = c3 t + c2, b = a t + c1, g = b t + c0; its derivative in t,
      * 3 c3 t^2 + 2 c2 t + c1 = b + (a + c3 t) t, from the same partial sums */
 #define CUBIC(i, k)                                                                            \
