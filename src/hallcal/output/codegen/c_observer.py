@@ -271,13 +271,16 @@ def _adapt_parts() -> tuple[str, str]:
                     "    s->lam = lam;"]  # fmt: skip
         diag = f"s->H[{p}][{p}]"
         body.append(f"    {diag} = (({diag} * lam + {prior}) + {extra}) - v{p} * s->qv[{p}];")
-        for q in range(p + 1, 6):
+        for q in range(p + 1, 6 if p else 4):  # row 0's last two entries: in rows 1 and 2
             add = f" + s->u[{i}] * s->fy[{i}]" if (q == p + 1 and not p & 1) else ""
             body.append(f"    s->H[{p}][{q}] = (s->H[{p}][{q}] * lam{add}) - v{p} * s->qv[{q}];")
         if p == 0:
             fn("row0", body)
         elif p < 3:
-            fn(f"row{p}", ["    const float lam = s->lam;", *body])
+            q = 3 + p  # H[0][4] with row 1, H[0][5] with row 2 (row 0 has the forgetting)
+            fn(f"row{p}", ["    const float lam = s->lam;", *body,
+                           f"    s->H[0][{q}] = s->H[0][{q}] * lam - (s->t * s->qv[0]) "
+                           f"* s->qv[{q}];"])  # fmt: skip
         else:  # rows 3, 4 and 5 (3, 2 and 1 entries) in one part
             merged += body
     fn("rows345", merged)
@@ -297,13 +300,13 @@ def _adapt_parts() -> tuple[str, str]:
         body.append(f"    const float z{i} = s->gr[{i}]{terms};")
     body += [f"    s->z[{i}] = z{i};" for i in range(6)]
     fn("forward", body)
-    for half, rows in (("backward5", range(5, 2, -1)), ("backward2", range(2, -1, -1))):
+    for half, rows in (("backward5", range(5, 1, -1)), ("backward1", range(1, -1, -1))):
         body = [f"    const float z{k} = s->z[{k}];" for k in range(rows[0] + 1, 6)]
         for i in rows:
             terms = "".join(f" - s->L[{k}][{i}] * z{k}" for k in range(i + 1, 6))
             body.append(f"    const float z{i} = s->z[{i}] * s->R[{i}]{terms};")
         body += [f"    s->z[{i}] = z{i};" for i in rows]
-        fn(half, body)  # D L^T x = z in two halves: x5..x3, then x2..x0
+        fn(half, body)  # D L^T x = z in two parts: x5..x2, then x1..x0
     # the bounded update of channels 0 and 1 (of 2 and the commit: the cycle's last part)
     calls.append(f"                case {len(calls) + 1}u:\n                    bound01(s);"
                  "\n                    break;")  # fmt: skip
@@ -555,7 +558,7 @@ NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, 
 /* The adaptation, one small part per sample of its cycle of CYCLE samples (the cycle advances
  * on samples without the fits of the outlier test): 0 the sample's regressors, 1..4 rows 0, 1,
  * 2 and 3-5 of the information H (upper triangle), 5..10 one column of its L D L^T, 11 L z = gr,
- * 12 and 13 D L^T x = z (x5..x3, x2..x0), 14 the bounded update of channels 0 and 1, 15 of
+ * 12 and 13 D L^T x = z (x5..x2, x1..x0), 14 the bounded update of channels 0 and 1, 15 of
  * channel 2 and the commit of all three. */
 /* the cycle's sample, channel i (in update: f, dg, r, J, w, step of the sample) */
 #define MEASURE(i, fi, gi, ri, Ji, wi)                                                         \
