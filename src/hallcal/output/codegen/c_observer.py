@@ -246,10 +246,11 @@ def _cubics(model: ObserverModel) -> np.ndarray:
 
 def _adapt_parts() -> tuple[str, str]:
     """The adaptation's parts 1..14 as straight-line C (one function each: rows 0, 1, 2 and
-    rows 3-5 together of the information H, row 0 first turning the measure's forgetting
-    argument and den into exp(-x) and CYCLE / den; columns 0..5 of its L D L^T, the two
-    triangular solves, the second in two halves; the bounded update of channels 0 and 1) and the
-    switch cases that call them; no loop, so that each part's cycles are its own few dozen
+    rows 3-5 together of the information H, row 0's last two entries with rows 1 and 2, row 0
+    first turning the measure's forgetting argument into exp(-x); columns 0..5 of its L D L^T,
+    the two triangular solves, the second in two parts (x5..x2, x1..x0); the bounded update of
+    channels 0 and 1), the switch cases that call them and the cases of a waiting phase (after
+    an exclusion: no part); no loop, so that each part's cycles are its own few dozen
     operations."""
     fns: list[str] = []
     calls: list[str] = []
@@ -556,8 +557,9 @@ NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, 
 }
 
 /* The adaptation, one small part per sample of its cycle of CYCLE samples (the cycle advances
- * on samples without the fits of the outlier test): 0 the sample's regressors, 1..4 rows 0, 1,
- * 2 and 3-5 of the information H (upper triangle), 5..10 one column of its L D L^T, 11 L z = gr,
+ * on samples without the fits of the outlier test, but for the first after an exclusion): 0 the
+ * sample's regressors, 1..4 rows 0 (H00..H03), 1 (and H04), 2 (and H05) and 3-5 of the
+ * information H (upper triangle), 5..10 one column of its L D L^T, 11 L z = gr,
  * 12 and 13 D L^T x = z (x5..x2, x1..x0), 14 the bounded update of channels 0 and 1, 15 of
  * channel 2 and the commit of all three. */
 /* the cycle's sample, channel i (in update: f, dg, r, J, w, step of the sample) */
