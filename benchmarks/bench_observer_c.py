@@ -99,7 +99,8 @@ def main() -> None:
         print(
             f"object: text {sz['text']} bytes (tables {res.table_bytes} bytes: "
             f"{res.table_points} intervals x 3 channels x 4 cubic coefficients, floats; the "
-            f"thresholds and the search offsets), data {sz['data']}, bss {sz['bss']}; "
+            f"thresholds, the search offsets and the constant arrays), data {sz['data']}, "
+            f"bss {sz['bss']}; "
             f"nm -u: {ah.undefined_symbols(b.obj)}"
         )
         print(f"(run at load average {os.getloadavg()[0]:.1f} on 2 shared cores; the cycles are "

@@ -849,9 +849,7 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, offsets, a, b, y_out, misf
     pitch = 2.0 * math.pi / n_m
     max_step = pitch / 8.0
     v_max = 0.4 * pitch  # the tracker's speed bound: 0.8 of Nyquist (half a pitch per sample)
-    gross = np.empty(3)
-    for i in range(3):
-        gross[i] = max(cfg[16] * math.sqrt(2.0) * amp[i], 8.0 / math.sqrt(w0[i]))
+    gross = np.maximum(cfg[16] * math.sqrt(2.0) * amp, 8.0 / np.sqrt(w0))
     f, dg, r, dk, w = np.empty(3), np.empty(3), np.empty(3), np.empty(3), w0.copy()
     ring_chi, ring_dof = np.zeros(int(cfg[2])), np.zeros(int(cfg[2]))
     ring_blame = -np.ones(int(cfg[7]), dtype=np.int64)
@@ -864,13 +862,13 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, offsets, a, b, y_out, misf
         p0[i, 1] = b[i]
         H[2 * i, 2 * i] = cfg[10] * w0[i] * amp[i] * amp[i]
         H[2 * i + 1, 2 * i + 1] = cfg[10] * w0[i]
-    pending, phase = False, 0
+    pending, phase, hold = False, 0, False
     S = np.zeros(7)
     S[_Y] = y_initial
     I = np.array([-1, -1, 0, 0, 1, -1], dtype=np.int64)
     for k in range(d.shape[0]):
-        if I[_NEXT] >= 0:  # the exclusion decided on the previous sample
-            I[_EXCL], I[_BLAMED_OUT], I[_NEXT] = I[_NEXT], 1, -1
+        if I[_NEXT] >= 0:  # the exclusion decided on the previous sample (hold: see below)
+            hold, I[_EXCL], I[_BLAMED_OUT], I[_NEXT] = True, I[_NEXT], 1, -1
             I[_FIRST] = k if I[_FIRST] < 0 else I[_FIRST]
             S[_CLEAN] = 0.0
             ring_blame[:], blame[:] = -1, 0
@@ -907,7 +905,10 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, offsets, a, b, y_out, misf
             # the two channels left do not fit either: not a channel fault but a model that no
             # longer fits (remount): readmit the channel and let the misfit monitor speak
             I[_EXCL], I[_SUPPRESS] = -1, 1
-        if not outlier:  # the adaptation's cycle advances on samples without the fits of _robust
+        # the adaptation's cycle advances on samples without the fits of _robust, but for the
+        # first such sample after an exclusion (hold; firmware: the exclusion's work does not
+        # share its sample's time with a part of the adaptation)
+        if not (outlier or hold):
             # settled: the step (the innovation) within 5 sigma of the angle's own noise 1/den,
             # so the gains and levels never learn a prediction still catching up (a rotor
             # already spinning at the first sample, an acquisition off by a transient)
@@ -916,6 +917,7 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, offsets, a, b, y_out, misf
                 phase, pending, eligible, stale, travel, f, dg, r, step, den, amp, w, w0, a, b,
                 p0, H, gr, wm, L, P, cfg,
             )  # fmt: skip
+        hold = hold and outlier
         if fitted:
             _readmit(d, k, r, a, dg, step, w0, travel, cfg[15], S, I)
         y_out[k], misfit[k] = S[_Y], mf

@@ -137,9 +137,11 @@ def export_observer_c(
     texts = _texts(model, ObserverSettings(), prefix, comment_text(Path(source).name))
     paths = _write_files(out_dir, texts)  # one set, write errors as one line (hallcal.io)
     s = ObserverSettings()
-    # the cubics (4 floats per channel and node), the thresholds and the reciprocals (float),
-    # the search offsets (int16)
-    nbytes = model.points * 3 * 4 * 4 + 2 * (2 * s.window + 1) * 4 + s.acquire_points * 2
+    # every table: the cubics (4 floats per channel and node), the thresholds and the
+    # reciprocals (float), the search offsets (int16), the blame counts' units ONE (5 uint32),
+    # the prior Q (6 floats) and the per-channel BLO, BHI, C0, W0, GROSS (5 x 3 floats)
+    nbytes = (model.points * 3 * 4 * 4 + 2 * (2 * s.window + 1) * 4 + s.acquire_points * 2
+              + 5 * 4 + 6 * 4 + 5 * 3 * 4)  # fmt: skip
     return ObserverExport(paths, model.points, nbytes)
 
 
@@ -176,6 +178,8 @@ def _texts(
         "@FC@": str(s.fault_count),
         "@NA@": str(s.acquire_points),
         "@CYCLE@": str(ADAPT_CYCLE),
+        # a power of two above VMAX / h: the table's argument u positive (see table)
+        "@BIAS@": str(1 << math.ceil(math.log2(0.4 * model.points / model.pole_pairs + 1.0))),
         "@OFF@": ", ".join(
             str(int(o)) for o in acquire_offsets(model.points, model.pole_pairs, s.acquire_points)
         ),
@@ -242,10 +246,11 @@ def _cubics(model: ObserverModel) -> np.ndarray:
 
 def _adapt_parts() -> tuple[str, str]:
     """The adaptation's parts 1..14 as straight-line C (one function each: rows 0, 1, 2 and
-    rows 3-5 together of the information H, row 0 first turning the measure's forgetting
-    argument and den into exp(-x) and CYCLE / den; columns 0..5 of its L D L^T, the two
-    triangular solves, the second in two halves; the bounded update of channels 0 and 1) and the
-    switch cases that call them; no loop, so that each part's cycles are its own few dozen
+    rows 3-5 together of the information H, row 0's last two entries with rows 1 and 2, row 0
+    first turning the measure's forgetting argument into exp(-x); columns 0..5 of its L D L^T,
+    the two triangular solves, the second in two parts (x5..x2, x1..x0); the bounded update of
+    channels 0 and 1), the switch cases that call them and the cases of a waiting phase (after
+    an exclusion: no part); no loop, so that each part's cycles are its own few dozen
     operations."""
     fns: list[str] = []
     calls: list[str] = []
@@ -267,13 +272,16 @@ def _adapt_parts() -> tuple[str, str]:
                     "    s->lam = lam;"]  # fmt: skip
         diag = f"s->H[{p}][{p}]"
         body.append(f"    {diag} = (({diag} * lam + {prior}) + {extra}) - v{p} * s->qv[{p}];")
-        for q in range(p + 1, 6):
+        for q in range(p + 1, 6 if p else 4):  # row 0's last two entries: in rows 1 and 2
             add = f" + s->u[{i}] * s->fy[{i}]" if (q == p + 1 and not p & 1) else ""
             body.append(f"    s->H[{p}][{q}] = (s->H[{p}][{q}] * lam{add}) - v{p} * s->qv[{q}];")
         if p == 0:
             fn("row0", body)
         elif p < 3:
-            fn(f"row{p}", ["    const float lam = s->lam;", *body])
+            q = 3 + p  # H[0][4] with row 1, H[0][5] with row 2 (row 0 has the forgetting)
+            fn(f"row{p}", ["    const float lam = s->lam;", *body,
+                           f"    s->H[0][{q}] = s->H[0][{q}] * lam - (s->t * s->qv[0]) "
+                           f"* s->qv[{q}];"])  # fmt: skip
         else:  # rows 3, 4 and 5 (3, 2 and 1 entries) in one part
             merged += body
     fn("rows345", merged)
@@ -293,16 +301,21 @@ def _adapt_parts() -> tuple[str, str]:
         body.append(f"    const float z{i} = s->gr[{i}]{terms};")
     body += [f"    s->z[{i}] = z{i};" for i in range(6)]
     fn("forward", body)
-    for half, rows in (("backward5", range(5, 2, -1)), ("backward2", range(2, -1, -1))):
+    for half, rows in (("backward5", range(5, 1, -1)), ("backward1", range(1, -1, -1))):
         body = [f"    const float z{k} = s->z[{k}];" for k in range(rows[0] + 1, 6)]
         for i in rows:
             terms = "".join(f" - s->L[{k}][{i}] * z{k}" for k in range(i + 1, 6))
             body.append(f"    const float z{i} = s->z[{i}] * s->R[{i}]{terms};")
         body += [f"    s->z[{i}] = z{i};" for i in rows]
-        fn(half, body)  # D L^T x = z in two halves: x5..x3, then x2..x0
+        fn(half, body)  # D L^T x = z in two parts: x5..x2, then x1..x0
     # the bounded update of channels 0 and 1 (of 2 and the commit: the cycle's last part)
     calls.append(f"                case {len(calls) + 1}u:\n                    bound01(s);"
                  "\n                    break;")  # fmt: skip
+    # the sample after an exclusion waits (phase + 2 CYCLE - 1: no part; see exclude)
+    held = range(2 * ADAPT_CYCLE - 1, 3 * ADAPT_CYCLE - 1)
+    calls.append(
+        "".join(f"                case {ph}u:\n" for ph in held) + "                    break;"
+    )
     return "\n".join(fns), "\n".join(calls)
 
 
@@ -388,6 +401,7 @@ _SOURCE = """\
 #define FC @FC@
 #define NA @NA@
 #define CYCLE @CYCLE@
+#define BIAS @BIAS@
 
 static const float NM = @NM@;
 static const float HSTEP = @H@;
@@ -472,14 +486,13 @@ static uint32_t bits_(float x)
  * coefficients: the same polynomial as the Hermite form of values and slopes) */
 static void table(float y, float f[3], float dg[3])
 {
-    float u = y * INVH, t, c, a, b;
-    int32_t j = (int32_t)u;
+    /* u > 0 for y > -VMAX (y = angle + speed: -VMAX < y < 2 pi + VMAX; BIAS, a power of two
+     * above VMAX / h, keeps u's binade), so that the conversion's truncation is the floor */
+    float u = y * INVH + (float)BIAS, t, c, a, b;
+    uint32_t j = (uint32_t)u;
     const float *p;
-    if ((float)j > u) {
-        j -= 1;
-    }
     t = u - (float)j;
-    p = T[(uint32_t)j & (uint32_t)(M - 1)];
+    p = T[(j - (uint32_t)BIAS) & (uint32_t)(M - 1)];
     /* Horner: a = c3 t + c2, b = a t + c1, g = b t + c0; its derivative in t,
      * 3 c3 t^2 + 2 c2 t + c1 = b + (a + c3 t) t, from the same partial sums */
 #define CUBIC(i, k)                                                                            \
@@ -544,9 +557,10 @@ NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, 
 }
 
 /* The adaptation, one small part per sample of its cycle of CYCLE samples (the cycle advances
- * on samples without the fits of the outlier test): 0 the sample's regressors, 1..4 rows 0, 1,
- * 2 and 3-5 of the information H (upper triangle), 5..10 one column of its L D L^T, 11 L z = gr,
- * 12 and 13 D L^T x = z (x5..x3, x2..x0), 14 the bounded update of channels 0 and 1, 15 of
+ * on samples without the fits of the outlier test, but for the first after an exclusion): 0 the
+ * sample's regressors, 1..4 rows 0 (H00..H03), 1 (and H04), 2 (and H05) and 3-5 of the
+ * information H (upper triangle), 5..10 one column of its L D L^T, 11 L z = gr,
+ * 12 and 13 D L^T x = z (x5..x2, x1..x0), 14 the bounded update of channels 0 and 1, 15 of
  * channel 2 and the commit of all three. */
 /* the cycle's sample, channel i (in update: f, dg, r, J, w, step of the sample) */
 #define MEASURE(i, fi, gi, ri, Ji, wi)                                                         \
@@ -616,6 +630,10 @@ NOINLINE static void exclude(@p@_state *s)
 @RINGRESET@    s->window_from = s->k; /* the window start again */
     s->sum_chi = 0.0f;
     s->sum_dof = 0;
+    if (s->phase < CYCLE) { /* the adaptation's next sample waits (not on this one's time): a
+                             * phase ph + 2 CYCLE - 1, which runs no part and returns to ph */
+        s->phase = (uint8_t)(s->phase + 2u * CYCLE - 1u);
+    }
 }
 
 void @p@_init(@p@_state *s)
