@@ -328,9 +328,22 @@ class PowerUpDecoder:
         return 2.0 * phi * (z * z - 1.0) / 3.0, 4.0 * phi * z * z
 
     def gate_passes(self, total: ArrayLike, samples: ArrayLike) -> NDArray[np.bool_]:
-        """Step 7's gate: the best hypothesis's whole cost ``total`` (Q) over ``samples`` (k)
-        samples of evidence within the chi-square(2 k) quantile of ``1 - alpha_g`` (True
-        everywhere without the gate)."""
+        """Step 7's gate: is the best hypothesis's whole cost within the chi-square quantile?
+
+        Parameters
+        ----------
+        total : array_like
+            Q, the best hypothesis's cumulative cost [noise-normalized squared residual].
+        samples : array_like
+            k, samples of evidence behind ``total`` (broadcast against it).
+
+        Returns
+        -------
+        ndarray of bool
+            Q within the chi-square(2 k) quantile of ``1 - alpha_g`` (Cornish-Fisher form with
+            the dispersion phi, :attr:`gate_terms`); True everywhere without the gate
+            (``gate_rate`` 0).
+        """
         Q = np.asarray(total, dtype=np.float64)
         k = np.asarray(samples, dtype=np.float64)
         if not self.gate_rate > 0.0:
