@@ -35,19 +35,33 @@ SAMPLES = 80
 def builds(tmp_path_factory):
     cfg = BenchConfig(pole_pairs=5, magnet_variation=0.01, noise_variance=8e-5)
     plain = fs.bench_artifact(cfg)
-    prof = copy.deepcopy(plain)
-    prof["identifiability"]["gain_sd"] = ab.DEFAULT_GAIN_SD
     d = tmp_path_factory.mktemp("pu_arm")
-    out = {}
-    for name, art in (("plain", plain), ("profile", prof)):
-        export_c(art, d / name, source="bench.json", adc_scale=ADC_SCALE, fixed_point=False)
-        out[name] = (ah.build(d / name, d / f"arm_{name}", target="m4f", fixed=False), art)
-    pu = fs.PowerUps(cfg)
-    rng = np.random.default_rng(505)
-    x = np.stack([pu.run(float(a), SAMPLES, 0.0, seed=9000 + i)
-                  for i, a in enumerate(rng.uniform(0.0, TWO_PI, STARTS))])  # fmt: skip
+    out = _build_variants(d, plain, {"profile": {"gain_sd": ab.DEFAULT_GAIN_SD}})
+    x = _power_ups_at_rest(cfg, STARTS, SAMPLES, rng_seed=505, seed0=9000)
     x = 0.97 * x  # all gains 3 % down (the bench's offsets are 0)
     return out, x.astype(np.float32), d
+
+
+def _build_variants(d, plain: dict, variants: dict[str, dict]) -> dict:
+    """``plain`` and each variant (``plain`` with these ``identifiability`` keys), exported and
+    built for the M4F under ``d``: name -> (build, artifact)."""
+    arts = {"plain": plain}
+    for name, keys in variants.items():
+        arts[name] = copy.deepcopy(plain)
+        arts[name]["identifiability"].update(keys)
+    out = {}
+    for name, art in arts.items():
+        export_c(art, d / name, source="bench.json", adc_scale=ADC_SCALE, fixed_point=False)
+        out[name] = (ah.build(d / name, d / f"arm_{name}", target="m4f", fixed=False), art)
+    return out
+
+
+def _power_ups_at_rest(cfg, starts: int, samples: int, *, rng_seed: int, seed0: int):
+    """``starts`` power-ups at rest at random angles, ``samples`` each: (starts, samples, 3)."""
+    pu = fs.PowerUps(cfg)
+    rng = np.random.default_rng(rng_seed)
+    return np.stack([pu.run(float(a), samples, 0.0, seed=seed0 + i)
+                     for i, a in enumerate(rng.uniform(0.0, TWO_PI, starts))])  # fmt: skip
 
 
 def test_profiled_decoder_on_m4f_locks_like_python(builds):
@@ -103,19 +117,10 @@ def gate_builds(tmp_path_factory):
     rest with one sensor's gain 5 % low for half of them (some refused by the gate)."""
     cfg = BenchConfig(pole_pairs=5)
     plain = fs.bench_artifact(cfg)
-    gate = copy.deepcopy(plain)
-    gate["identifiability"]["gate_rate"] = ab.DEFAULT_GATE_RATE
-    gate["identifiability"]["gate_samples"] = ab.DEFAULT_GATE_SAMPLES
-    gate["identifiability"]["gate_dispersion"] = 1.0
-    d = tmp_path_factory.mktemp("pu_gate_arm")
-    out = {}
-    for name, art in (("plain", plain), ("gate", gate)):
-        export_c(art, d / name, source="bench.json", adc_scale=ADC_SCALE, fixed_point=False)
-        out[name] = (ah.build(d / name, d / f"arm_{name}", target="m4f", fixed=False), art)
-    pu = fs.PowerUps(cfg)
-    rng = np.random.default_rng(506)
-    x = np.stack([pu.run(float(a), GATE_SAMPLES, 0.0, seed=9100 + i)
-                  for i, a in enumerate(rng.uniform(0.0, TWO_PI, GATE_STARTS))])  # fmt: skip
+    gate = {"gate_rate": ab.DEFAULT_GATE_RATE, "gate_samples": ab.DEFAULT_GATE_SAMPLES,
+            "gate_dispersion": 1.0}  # fmt: skip
+    out = _build_variants(tmp_path_factory.mktemp("pu_gate_arm"), plain, {"gate": gate})
+    x = _power_ups_at_rest(cfg, GATE_STARTS, GATE_SAMPLES, rng_seed=506, seed0=9100)
     x[GATE_STARTS // 2 :, :, 0] *= 0.95
     return out, x.astype(np.float32)
 
