@@ -832,7 +832,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                     blamed = -1;
                     mark = 3;
                 } else {
-                    if (RARE(fabs_(best_step) > MAXSTEP)) { /* the chosen fit's step, bounded */
+                    if (fabs_(best_step) > MAXSTEP) { /* the chosen fit's step, bounded */
                         x = best_step > 0.0f ? MAXSTEP : -MAXSTEP;
                         e += Jb * (best_step - x); /* the residual at the bounded step */
                         best_step = x;
