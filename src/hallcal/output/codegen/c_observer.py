@@ -267,9 +267,9 @@ def _adapt_parts() -> tuple[str, str]:
         extra = f"s->u[{i}]" if p & 1 else f"s->u[{i}] * s->fy[{i}] * s->fy[{i}]"
         body = [f"    const float v{p} = s->t * s->qv[{p}];"]
         if p == 0:  # the measure's forgetting exp(-x) (cubic Taylor) and CYCLE / den
-            body = ["    const float x = s->lam, v0 = s->t * s->qv[0];",
+            body = ["    const float x = s->lam, t = (float)CYCLE / s->t, v0 = t * s->qv[0];",
                     "    const float lam = 1.0f - x * (1.0f - x * (0.5f - x * (1.0f / 6.0f)));",
-                    "    s->lam = lam;"]  # fmt: skip
+                    "    s->lam = lam;", "    s->t = t;"]  # fmt: skip
         diag = f"s->H[{p}][{p}]"
         body.append(f"    {diag} = (({diag} * lam + {prior}) + {extra}) - v{p} * s->qv[{p}];")
         for q in range(p + 1, 6 if p else 4):  # row 0's last two entries: in rows 1 and 2
@@ -924,7 +924,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
             if (fitted && !stale && blamed < 0 && step * step * den < 25.0f) {
                 x = (float)CYCLE * travel * INVMEM;
                 s->lam = x < XMAX ? x : XMAX; /* row0 makes it exp(-x) */
-                s->t = (float)CYCLE / den; /* no slope: nothing measured (below) */
+                s->t = den; /* row0 makes it CYCLE / den (no division on this sample) */
                 MEASURE(0, f0, g0, r0, J0, w0);
                 MEASURE(1, f1, g1, r1, J1, w1);
                 MEASURE(2, f2, g2, r2, J2, w2);
