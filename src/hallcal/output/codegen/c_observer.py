@@ -272,16 +272,17 @@ def _adapt_parts() -> tuple[str, str]:
                     "    s->lam = lam;", "    s->t = t;"]  # fmt: skip
         diag = f"s->H[{p}][{p}]"
         body.append(f"    {diag} = (({diag} * lam + {prior}) + {extra}) - v{p} * s->qv[{p}];")
-        for q in range(p + 1, 6 if p else 4):  # row 0's last two entries: in rows 1 and 2
+        for q in range(p + 1, 6 if p else 3):  # row 0's last three entries: in rows 1 and 2
             add = f" + s->u[{i}] * s->fy[{i}]" if (q == p + 1 and not p & 1) else ""
             body.append(f"    s->H[{p}][{q}] = (s->H[{p}][{q}] * lam{add}) - v{p} * s->qv[{q}];")
         if p == 0:
             fn("row0", body)
         elif p < 3:
-            q = 3 + p  # H[0][4] with row 1, H[0][5] with row 2 (row 0 has the forgetting)
-            fn(f"row{p}", ["    const float lam = s->lam;", *body,
-                           f"    s->H[0][{q}] = s->H[0][{q}] * lam - (s->t * s->qv[0]) "
-                           f"* s->qv[{q}];"])  # fmt: skip
+            # H[0][4] with row 1, H[0][3] and H[0][5] with row 2 (row 0 has the forgetting and
+            # CYCLE / den)
+            fn(f"row{p}", ["    const float lam = s->lam;", *body] + [
+                f"    s->H[0][{q}] = s->H[0][{q}] * lam - (s->t * s->qv[0]) * s->qv[{q}];"
+                for q in ((4,) if p == 1 else (3, 5))])  # fmt: skip
         else:  # rows 3, 4 and 5 (3, 2 and 1 entries) in one part
             merged += body
     fn("rows345", merged)
