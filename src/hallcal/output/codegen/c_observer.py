@@ -877,10 +877,10 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         s->v = x;
     }
     /* the angle within the revolution (|y - angle| < 2 pi: one wrap at most) */
-    if (y >= TWOPI) {
+    if (RARE(y >= TWOPI)) {
         y -= TWOPI;
         s->rev++;
-    } else if (y < 0.0f) {
+    } else if (RARE(y < 0.0f)) {
         y += TWOPI;
         s->rev--;
     }
