@@ -516,9 +516,10 @@ static float gn(float srr, float num, float den, float *chi)
         *chi = srr;
         return 0.0f;
     }
-    step = num / den;
-    if (RARE(fabs_(step) > MAXSTEP)) { /* rare: one comparison on the common path */
-        step = step > 0.0f ? MAXSTEP : -MAXSTEP;
+    if (RARE(fabs_(num) > MAXSTEP * den)) { /* bounded: no division (den > 0) */
+        step = num > 0.0f ? MAXSTEP : -MAXSTEP;
+    } else {
+        step = num / den;
     }
     c = srr - step * (2.0f * num - step * den);
     *chi = c > 0.0f ? c : 0.0f;
