@@ -918,6 +918,22 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
             weights(s);
         }
     }
+    /* readmission (before the adaptation, which does not read it: the excluded channel's
+     * gain is not updated) */
+    if (RARE(fitted && s->excluded >= 0)) {
+        i = s->excluded;
+        if (!(fin >> i & 1u)) {
+            s->clean = 0.0f;
+        } else {
+            e = SEL(i, r0, r1, r2) - SEL(i, J0, J1, J2) * step;
+            s->clean = (W0[i] * e * e < 16.0f) ? s->clean + travel : 0.0f;
+        }
+        if (s->clean >= READMIT) {
+            s->excluded = -1;
+            s->clean = 0.0f;
+            weights(s);
+        }
+    }
     /* adaptation: one part per sample of its cycle */
     if (!loo) {
         ph = s->phase;
@@ -946,21 +962,6 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                 }
             }
             s->phase = (uint8_t)((ph + 1u) % (uint32_t)CYCLE);
-        }
-    }
-    /* readmission */
-    if (RARE(fitted && s->excluded >= 0)) {
-        i = s->excluded;
-        if (!(fin >> i & 1u)) {
-            s->clean = 0.0f;
-        } else {
-            e = SEL(i, r0, r1, r2) - SEL(i, J0, J1, J2) * step;
-            s->clean = (W0[i] * e * e < 16.0f) ? s->clean + travel : 0.0f;
-        }
-        if (s->clean >= READMIT) {
-            s->excluded = -1;
-            s->clean = 0.0f;
-            weights(s);
         }
     }
     /* publish */
