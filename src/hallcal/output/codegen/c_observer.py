@@ -918,24 +918,24 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
             weights(s);
         }
     }
-    /* readmission (before the adaptation, which does not read it: the excluded channel's
-     * gain is not updated) */
-    if (RARE(fitted && s->excluded >= 0)) {
-        i = s->excluded;
-        if (!(fin >> i & 1u)) {
-            s->clean = 0.0f;
-        } else {
-            e = SEL(i, r0, r1, r2) - SEL(i, J0, J1, J2) * step;
-            s->clean = (W0[i] * e * e < 16.0f) ? s->clean + travel : 0.0f;
-        }
-        if (s->clean >= READMIT) {
-            s->excluded = -1;
-            s->clean = 0.0f;
-            weights(s);
-        }
-    }
     /* adaptation: one part per sample of its cycle */
     if (!loo) {
+        /* readmission (not on an outlier's fits: three channels in use; before the
+         * adaptation, which reads neither the excluded channel nor its gain) */
+        if (RARE(fitted && s->excluded >= 0)) {
+            i = s->excluded;
+            if (!(fin >> i & 1u)) {
+                s->clean = 0.0f;
+            } else {
+                e = SEL(i, r0, r1, r2) - SEL(i, J0, J1, J2) * step;
+                s->clean = (W0[i] * e * e < 16.0f) ? s->clean + travel : 0.0f;
+            }
+            if (s->clean >= READMIT) {
+                s->excluded = -1;
+                s->clean = 0.0f;
+                weights(s);
+            }
+        }
         ph = s->phase;
         if (ph == 0u) {
             /* settled: the step within 5 sigma of the angle's own noise (1 / den) */
