@@ -246,8 +246,9 @@ def _cubics(model: ObserverModel) -> np.ndarray:
 
 def _adapt_parts() -> tuple[str, str]:
     """The adaptation's parts 1..14 as straight-line C (one function each: rows 0, 1, 2 and
-    rows 3-5 together of the information H, row 0's last two entries with rows 1 and 2, row 0
-    first turning the measure's forgetting argument into exp(-x); columns 0..5 of its L D L^T,
+    rows 3-5 together of the information H, row 0's last three entries with rows 1 and 2, row
+    0 first turning the measure's forgetting argument into exp(-x) and its den into CYCLE / den;
+    columns 0..5 of its L D L^T,
     the two triangular solves, the second in two parts (x5..x2, x1..x0); the bounded update of
     channels 0 and 1), the switch cases that call them and the cases of a waiting phase (after
     an exclusion: no part); no loop, so that each part's cycles are its own few dozen
@@ -368,7 +369,7 @@ typedef struct { /* the fields of every sample first (short offsets) */
     float L[6][6], P[6], R[6];      /* its L D L^T (R = 1 / P), built over a cycle */
     float gr[6], z[6], wm[3];       /* the cycle's gradient, solution, channels measured */
     float qv[6], fy[3], u[3], lam, t; /* the cycle's sample: projection, regressors, weights;
-                                       * forgetting, CYCLE / den */
+                                       * forgetting, CYCLE / den (den until row 0) */
     uint8_t pending, phase;         /* a cycle's update is under way; its part next */
     float ring_chi[@P@_WINDOW];
     uint8_t ring_dof[@P@_WINDOW];
@@ -560,7 +561,7 @@ NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, 
 
 /* The adaptation, one small part per sample of its cycle of CYCLE samples (the cycle advances
  * on samples without the fits of the outlier test, but for the first after an exclusion): 0 the
- * sample's regressors, 1..4 rows 0 (H00..H03), 1 (and H04), 2 (and H05) and 3-5 of the
+ * sample's regressors, 1..4 rows 0 (H00..H02), 1 (and H04), 2 (and H03, H05) and 3-5 of the
  * information H (upper triangle), 5..10 one column of its L D L^T, 11 L z = gr,
  * 12 and 13 D L^T x = z (x5..x2, x1..x0), 14 the bounded update of channels 0 and 1, 15 of
  * channel 2 and the commit of all three. */
