@@ -555,11 +555,10 @@ def _step(srr, num, den, max_step):
     max_step, and the chi-square of the linearized model after it: (step, chi2)."""
     if den <= 0.0:
         return 0.0, srr
-    step = num / den
-    if step > max_step:
-        step = max_step
-    elif step < -max_step:
-        step = -max_step
+    if abs(num) > max_step * den:  # bounded, tested before the division (as the C: none then)
+        step = max_step if num > 0.0 else -max_step
+    else:
+        step = num / den
     chi = srr - step * (2.0 * num - step * den)
     return step, chi if chi > 0.0 else 0.0
 

@@ -246,8 +246,9 @@ def _cubics(model: ObserverModel) -> np.ndarray:
 
 def _adapt_parts() -> tuple[str, str]:
     """The adaptation's parts 1..14 as straight-line C (one function each: rows 0, 1, 2 and
-    rows 3-5 together of the information H, row 0's last two entries with rows 1 and 2, row 0
-    first turning the measure's forgetting argument into exp(-x); columns 0..5 of its L D L^T,
+    rows 3-5 together of the information H, row 0's last three entries with rows 1 and 2, row
+    0 first turning the measure's forgetting argument into exp(-x) and its den into CYCLE / den;
+    columns 0..5 of its L D L^T,
     the two triangular solves, the second in two parts (x5..x2, x1..x0); the bounded update of
     channels 0 and 1), the switch cases that call them and the cases of a waiting phase (after
     an exclusion: no part); no loop, so that each part's cycles are its own few dozen
@@ -267,21 +268,22 @@ def _adapt_parts() -> tuple[str, str]:
         extra = f"s->u[{i}]" if p & 1 else f"s->u[{i}] * s->fy[{i}] * s->fy[{i}]"
         body = [f"    const float v{p} = s->t * s->qv[{p}];"]
         if p == 0:  # the measure's forgetting exp(-x) (cubic Taylor) and CYCLE / den
-            body = ["    const float x = s->lam, v0 = s->t * s->qv[0];",
+            body = ["    const float x = s->lam, t = (float)CYCLE / s->t, v0 = t * s->qv[0];",
                     "    const float lam = 1.0f - x * (1.0f - x * (0.5f - x * (1.0f / 6.0f)));",
-                    "    s->lam = lam;"]  # fmt: skip
+                    "    s->lam = lam;", "    s->t = t;"]  # fmt: skip
         diag = f"s->H[{p}][{p}]"
         body.append(f"    {diag} = (({diag} * lam + {prior}) + {extra}) - v{p} * s->qv[{p}];")
-        for q in range(p + 1, 6 if p else 4):  # row 0's last two entries: in rows 1 and 2
+        for q in range(p + 1, 6 if p else 3):  # row 0's last three entries: in rows 1 and 2
             add = f" + s->u[{i}] * s->fy[{i}]" if (q == p + 1 and not p & 1) else ""
             body.append(f"    s->H[{p}][{q}] = (s->H[{p}][{q}] * lam{add}) - v{p} * s->qv[{q}];")
         if p == 0:
             fn("row0", body)
         elif p < 3:
-            q = 3 + p  # H[0][4] with row 1, H[0][5] with row 2 (row 0 has the forgetting)
-            fn(f"row{p}", ["    const float lam = s->lam;", *body,
-                           f"    s->H[0][{q}] = s->H[0][{q}] * lam - (s->t * s->qv[0]) "
-                           f"* s->qv[{q}];"])  # fmt: skip
+            # H[0][4] with row 1, H[0][3] and H[0][5] with row 2 (row 0 has the forgetting and
+            # CYCLE / den)
+            fn(f"row{p}", ["    const float lam = s->lam;", *body] + [
+                f"    s->H[0][{q}] = s->H[0][{q}] * lam - (s->t * s->qv[0]) * s->qv[{q}];"
+                for q in ((4,) if p == 1 else (3, 5))])  # fmt: skip
         else:  # rows 3, 4 and 5 (3, 2 and 1 entries) in one part
             merged += body
     fn("rows345", merged)
@@ -367,7 +369,7 @@ typedef struct { /* the fields of every sample first (short offsets) */
     float L[6][6], P[6], R[6];      /* its L D L^T (R = 1 / P), built over a cycle */
     float gr[6], z[6], wm[3];       /* the cycle's gradient, solution, channels measured */
     float qv[6], fy[3], u[3], lam, t; /* the cycle's sample: projection, regressors, weights;
-                                       * forgetting, CYCLE / den */
+                                       * forgetting, CYCLE / den (den until row 0) */
     uint8_t pending, phase;         /* a cycle's update is under way; its part next */
     float ring_chi[@P@_WINDOW];
     uint8_t ring_dof[@P@_WINDOW];
@@ -515,9 +517,10 @@ static float gn(float srr, float num, float den, float *chi)
         *chi = srr;
         return 0.0f;
     }
-    step = num / den;
-    if (RARE(fabs_(step) > MAXSTEP)) { /* rare: one comparison on the common path */
-        step = step > 0.0f ? MAXSTEP : -MAXSTEP;
+    if (RARE(fabs_(num) > MAXSTEP * den)) { /* bounded: no division (den > 0) */
+        step = num > 0.0f ? MAXSTEP : -MAXSTEP;
+    } else {
+        step = num / den;
     }
     c = srr - step * (2.0f * num - step * den);
     *chi = c > 0.0f ? c : 0.0f;
@@ -558,7 +561,7 @@ NOINLINE static float acquire(const @p@_state *s, float d0, float d1, float d2, 
 
 /* The adaptation, one small part per sample of its cycle of CYCLE samples (the cycle advances
  * on samples without the fits of the outlier test, but for the first after an exclusion): 0 the
- * sample's regressors, 1..4 rows 0 (H00..H03), 1 (and H04), 2 (and H05) and 3-5 of the
+ * sample's regressors, 1..4 rows 0 (H00..H02), 1 (and H04), 2 (and H03, H05) and 3-5 of the
  * information H (upper triangle), 5..10 one column of its L D L^T, 11 L z = gr,
  * 12 and 13 D L^T x = z (x5..x2, x1..x0), 14 the bounded update of channels 0 and 1, 15 of
  * channel 2 and the commit of all three. */
@@ -832,7 +835,7 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                     blamed = -1;
                     mark = 3;
                 } else {
-                    if (RARE(fabs_(best_step) > MAXSTEP)) { /* the chosen fit's step, bounded */
+                    if (fabs_(best_step) > MAXSTEP) { /* the chosen fit's step, bounded */
                         x = best_step > 0.0f ? MAXSTEP : -MAXSTEP;
                         e += Jb * (best_step - x); /* the residual at the bounded step */
                         best_step = x;
@@ -876,10 +879,10 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
         s->v = x;
     }
     /* the angle within the revolution (|y - angle| < 2 pi: one wrap at most) */
-    if (y >= TWOPI) {
+    if (RARE(y >= TWOPI)) {
         y -= TWOPI;
         s->rev++;
-    } else if (y < 0.0f) {
+    } else if (RARE(y < 0.0f)) {
         y += TWOPI;
         s->rev--;
     }
@@ -918,13 +921,29 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
     }
     /* adaptation: one part per sample of its cycle */
     if (!loo) {
+        /* readmission (not on an outlier's fits: three channels in use; before the
+         * adaptation, which reads neither the excluded channel nor its gain) */
+        if (RARE(fitted && s->excluded >= 0)) {
+            i = s->excluded;
+            if (!(fin >> i & 1u)) {
+                s->clean = 0.0f;
+            } else {
+                e = SEL(i, r0, r1, r2) - SEL(i, J0, J1, J2) * step;
+                s->clean = (W0[i] * e * e < 16.0f) ? s->clean + travel : 0.0f;
+            }
+            if (s->clean >= READMIT) {
+                s->excluded = -1;
+                s->clean = 0.0f;
+                weights(s);
+            }
+        }
         ph = s->phase;
         if (ph == 0u) {
             /* settled: the step within 5 sigma of the angle's own noise (1 / den) */
             if (fitted && !stale && blamed < 0 && step * step * den < 25.0f) {
                 x = (float)CYCLE * travel * INVMEM;
                 s->lam = x < XMAX ? x : XMAX; /* row0 makes it exp(-x) */
-                s->t = (float)CYCLE / den; /* no slope: nothing measured (below) */
+                s->t = den; /* row0 makes it CYCLE / den (no division on this sample) */
                 MEASURE(0, f0, g0, r0, J0, w0);
                 MEASURE(1, f1, g1, r1, J1, w1);
                 MEASURE(2, f2, g2, r2, J2, w2);
@@ -944,21 +963,6 @@ uint8_t @p@_update(@p@_state *s, float d1, float d2, float d3)
                 }
             }
             s->phase = (uint8_t)((ph + 1u) % (uint32_t)CYCLE);
-        }
-    }
-    /* readmission */
-    if (RARE(fitted && s->excluded >= 0)) {
-        i = s->excluded;
-        if (!(fin >> i & 1u)) {
-            s->clean = 0.0f;
-        } else {
-            e = SEL(i, r0, r1, r2) - SEL(i, J0, J1, J2) * step;
-            s->clean = (W0[i] * e * e < 16.0f) ? s->clean + travel : 0.0f;
-        }
-        if (s->clean >= READMIT) {
-            s->excluded = -1;
-            s->clean = 0.0f;
-            weights(s);
         }
     }
     /* publish */
