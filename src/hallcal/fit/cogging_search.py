@@ -96,8 +96,9 @@ onto a load's shift as a_0 = -0.0152 and -0.00168; fitted -0.0193 and -0.00172, 
 99), and the final fit takes it back to about zero (19: 7.2e-4 tested, white T^2 198, -6.2e-6
 in the artifact; with ``cogging = [0]`` a_0 ends at 3.2e-4, 4.7e-5, -4e-8, -6e-6, batch-means
 T^2 5.4, 9.4, 1.8, 0.9: ``benchmarks/bench_cogging_load.txt``), while order 0 stays in the
-model and the calibration's message reports the tested value. Not fixed either (it needs the test after the
-drift fit, or the drift in the search's fit; the table effect is a_0's start transient only).
+model and the calibration's message reports the tested value. Not fixed either (it needs the
+test after the drift fit, or the drift in the search's fit; the table effect is a_0's start
+transient only).
 
 Orders searched by default (:func:`plausible_orders`): the multiples of 2 n_m up to 24 n_m. The
 fundamental cogging order of a machine with Q stator slots and 2 n_m poles is LCM(Q, 2 n_m)
