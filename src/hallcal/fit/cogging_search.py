@@ -75,6 +75,31 @@ zero 1.28x -> 1.01x (``tests/test_verdict.py``). With a BLA plant whose gain c i
 jointly (``fit_gain``) a constant torque trades off against c (both set the loop's steady lag
 on a constant-speed ramp): there the calibration does not try order 0 (``load=False``).
 
+Not fixed: under a controller that integrates (the zoo's lead-lag PI) the integrator takes up a
+load within the start transient, so a_0 is seen in the first batch only (on unseen zoo motor
+179: 100 % of its sensitivity in the first of 25 batches, the shift of y0 at most 2.8e-6 rad at
+sample 136 for a_0 = 7e-4, 1e-12 rad after 4096 samples), and its batch-means variance, one
+batch's squared score, has about one degree of freedom, not the B - 1 of the F(1, B - 1) test.
+On 179 (adc12, no load in its truth) order 0 was kept on noise draws 3, 5, 7, 9 with T^2 19,
+83, 81, 34 against 14.0: the batch-means variance there was 0.13, 0.02, 0.016, 0.035x the
+white one, whose T^2 is 2.4, 2.0, 1.3, 1.2 (noise). Testing a_0 with the larger of the two
+variances drops it on those draws (T^2 2.3, 1.8), but also drops the true loads of zoo
+``cogload`` motors 14 and 30 (load 0.0015 and 0.019; white T^2 6.7 and 3.1, batch-means 1138
+and 101, variance ratio 0.006 and 0.03: they were found by the same understatement; tables
+1.028x -> 1.007x and 1.335x -> 1.360x the floor; 6 and 22 keep theirs): on these runs a true
+load and noise are not told apart, so the change was not made. On the zoo's drift and adc12
+motors 4, 11, 12, 19 (no load) order 0 is kept for another reason: it is tested on the search's
+joint fit, before the final fit that adds the sensors' drift
+(:func:`hallcal.pipeline.sensors.final_fit`); there a_0 stands in for the drift's effect at the
+run's start (on 4 and 12 the y0 shift the truth's drift alone causes in the first batch projects
+onto a load's shift as a_0 = -0.0152 and -0.00168; fitted -0.0193 and -0.00172, white T^2 89 and
+99), and the final fit takes it back to about zero (19: 7.2e-4 tested, white T^2 198, -6.2e-6
+in the artifact; with ``cogging = [0]`` a_0 ends at 3.2e-4, 4.7e-5, -4e-8, -6e-6, batch-means
+T^2 5.4, 9.4, 1.8, 0.9: ``benchmarks/bench_cogging_load.txt``), while order 0 stays in the
+model and the calibration's message reports the tested value. Not fixed either (it needs the
+test after the drift fit, or the drift in the search's fit; the table effect is a_0's start
+transient only).
+
 Orders searched by default (:func:`plausible_orders`): the multiples of 2 n_m up to 24 n_m. The
 fundamental cogging order of a machine with Q stator slots and 2 n_m poles is LCM(Q, 2 n_m)
 periods per revolution, followed by its multiples (for 11 pole pairs: 66 with 33 slots, 132 with
