@@ -146,6 +146,22 @@ def test_auto_finds_the_orders(two_orders):
     assert "66/rev" in sel.message and sel.to_dict()["orders"] == [66, 132]
 
 
+def test_a_refitted_selection_states_the_refitted_torque(two_orders):
+    """After a later fit (the final fit with the sensors' drift, the plant's refinement) the
+    selection's message states that fit's torque: zoo motor 19's note said a constant load
+    7.2e-4 (the search's fit) while its artifact held -6.2e-6 (the final fit)."""
+    cfg, run, val = two_orders
+    sem0 = solve_sem(cfg.loop(), run.r, run.d, H11, y=run.y)
+    sel = select_cogging(cfg.loop(), run.r, run.d, sem0)
+    later = solve_sem(cfg.loop(), val.r, val.d, H11, y=val.y, cogging=sel.orders)
+    again = sel.refitted(later)
+    assert again.status is sel.status and again.orders == sel.orders and again.tests == sel.tests
+    assert again.sem is later and again.cogging is later.cogging
+    for k, amp in zip(later.cogging.orders, later.cogging.amplitude, strict=True):
+        assert f"{k}/rev {amp:.3g}" in again.message  # the refitted amplitude, as printed
+    assert again.message != sel.message  # another run's estimate differs in 3 digits here
+
+
 @pytest.mark.parametrize("disturbance", [0.0, 5e-3])
 def test_auto_adds_nothing_without_cogging(disturbance):
     """No cogging: no candidate survives, and the fit is returned unchanged (same object)."""

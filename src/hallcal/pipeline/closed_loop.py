@@ -348,9 +348,7 @@ def _final_fit(
     if out is None:
         return fit, s
     sem, d = out
-    cog = fit.cogging
-    if cog is not None and cog.cogging is not None:
-        cog = dataclasses.replace(cog, sem=sem, cogging=sem.cogging)
+    cog = fit.cogging.refitted(sem) if fit.cogging is not None else None
     fit = dataclasses.replace(
         fit, sem=sem, flux=sem.flux, model_info=_fourier_info(sem.flux), gain_factor=sem.gain,
         gain_factor_std=sem.gain_std, adequacy=None, cogging=cog,

@@ -45,7 +45,6 @@ Units: as the SEM (Hall signals in the data's unit, angles in rad).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -290,7 +289,7 @@ def refine_plant(
     shape = step.shape
     k = float(nominal[0][-1] / shape.num[-1]) if shape.num[-1] != 0.0 else 1.0
     if cogging is not None:  # the torque as the final fit refined it
-        cogging = dataclasses.replace(cogging, cogging=final.cogging, sem=final)
+        cogging = cogging.refitted(final)
     return PlantRefinement(shape.scaled(k), step.alpha, cov, final, gain / k, step.bias(cov),
                            refined=True, distance=step.distance, bound=bound,
                            cogging=cogging)  # fmt: skip
