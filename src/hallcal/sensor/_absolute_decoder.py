@@ -348,9 +348,7 @@ class PowerUpDecoder:
         k = np.asarray(samples, dtype=np.float64)
         if not self.gate_rate > 0.0:
             return np.ones(np.broadcast(Q, k).shape, dtype=bool)
-        gz, g4 = self.gate_terms
-        x = Q - 2.0 * k - gz
-        return (x <= 0.0) | (x * x <= g4 * k)
+        return np.asarray(_within_gate(Q, k, *self.gate_terms), dtype=bool)
 
     @property
     def gain_weight(self) -> float:
@@ -571,6 +569,15 @@ def _profile_step(e: _Num, pr: _Num, pp: _Num, info: _Num, scale: _Num, cap: flo
     weight = cap / np.maximum(inc, cap)
     info = info + weight * pp
     return np.minimum(inc, cap), info, scale + weight * pr / info
+
+
+def _within_gate(total: Any, samples: Any, gz: float, g4: float) -> Any:
+    """Step 7's gate on Q = ``total`` over k = ``samples`` (floats, or arrays that broadcast):
+    ``x = Q - 2 k - gz <= 0`` or ``x^2 <= g4 k``, the chi-square(2 k) quantile in Cornish-Fisher
+    form without a root (:attr:`PowerUpDecoder.gate_terms`); one expression for the batch
+    decoder and the sample-by-sample identifier."""
+    x = total - 2.0 * samples - gz
+    return (x <= 0.0) | (x * x <= g4 * samples)
 
 
 def _span(F: dict[str, NDArray]) -> NDArray[np.float64]:
@@ -1071,8 +1078,7 @@ class PowerUpIdentifier:
         W = sum(math.exp(-0.5 * v) for j, v in enumerate(self.lam) if j != self.best)
         moved = self._ymax - self._ymin >= self._travel
         if W <= self._threshold and self.fit <= -self._bf and moved and self.samples >= self._k0:
-            x = self.total - 2.0 * self.samples - self._gz  # the gate
-            if not self._gate or x <= 0.0 or x * x <= self._g4 * self.samples:
+            if not self._gate or _within_gate(self.total, self.samples, self._gz, self._g4):
                 self.locked = True
                 self.lock_sample = self.samples - 1
             else:
