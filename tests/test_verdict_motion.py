@@ -24,6 +24,7 @@ from hypothesis import strategies as st
 
 from hallcal import pipeline
 from hallcal.fit.adequacy import POORLY_DETERMINED, motion_bias
+from hallcal.fit.error_source import ErrorSources
 from hallcal.identify.excitation import multisine_experiment
 from hallcal.io import Dataset, ModelSpec, Setup, write_dataset
 from hallcal.io.setup import BLASpec, write_setup
@@ -193,7 +194,7 @@ def test_the_refusal_names_the_motion_and_the_remedy():
     )
     v = decide(bijective=True, predicted=0.1085, floor=1.73e-4, correction_rms=0.1077,
                adequacy="warning", adequacy_message="warning: x", limit=limit,
-               motion_bias=0.106)  # fmt: skip
+               limited_by=ErrorSources(motion_cost=2.15, motion_bias=0.106))  # fmt: skip
     assert v.status is CalibrationStatus.INADEQUATE
     assert "as the model sees it" in v.refusal and "steady load" in v.refusal
     # without motion the message is the plain one

@@ -666,7 +666,7 @@ def calibrate_closed_loop(
         bijective=lut.bijective, predicted=predicted, floor=adequacy.noise_floor,
         correction_rms=adequacy.correction_rms, adequacy=str(adequacy.verdict),
         adequacy_message=adequacy.message, min_slope=lut.min_slope, predicted_upper=upper,
-        limit=limit, motion_bias=adequacy.motion_bias, checks_passed=not has_warning(messages),
+        limit=limit, checks_passed=not has_warning(messages),
         limited_by=adequacy.limited_by,
     )  # fmt: skip
     first = (verdict.status, verdict.refusal, verdict.leading)

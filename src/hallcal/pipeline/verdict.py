@@ -155,7 +155,6 @@ def decide(
     min_slope: float = math.nan,
     predicted_upper: float = math.nan,
     limit: str = "",
-    motion_bias: float = 0.0,
     limited_by: ErrorSources | None = None,
 ) -> Verdict:
     """The status of a calibration (see the module docstring for the policy).
@@ -185,22 +184,20 @@ def decide(
         What carries the table's predicted variance (one phrase,
         :func:`hallcal.fit.adequacy.error_sources`), named in a refusal for a poorly determined
         table.
-    motion_bias : float, keyword-only
-        The part of the correction unmodelled motion may have put in poorly determined
-        directions, counted in ``predicted`` [rad RMS] (:func:`hallcal.fit.adequacy.motion_bias`;
-        0: none): a refusal then says f_init's error is the model's view and names a steady
-        load as a remedy.
     limited_by : ErrorSources or None, keyword-only
         What ``limit`` names, typed (:attr:`hallcal.fit.adequacy.AdequacyReport.limited_by`):
         when harmonics carry the table's variance (its ``harmonics``), the refusal adds fewer
-        harmonics to the remedies. None: nothing named.
+        harmonics to the remedies; when unmodelled motion may have put part of the correction
+        in poorly determined directions (its ``motion_bias`` > 0, counted in ``predicted``:
+        :func:`hallcal.fit.adequacy.motion_bias`), the refusal says f_init's error is the
+        model's view and names a steady load as a remedy. None: nothing named.
 
     Returns
     -------
     Verdict
     """
     mrad = 1e3
-    motion = motion_bias > 0.0
+    motion = limited_by is not None and limited_by.motion_bias > 0.0
     fewer_harmonics = limited_by is not None and bool(limited_by.harmonics)
     if not bijective:
         return Verdict(
