@@ -20,7 +20,7 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
-__all__ = ["Message", "MessageCode", "Outcome", "Severity", "has_warning"]
+__all__ = ["Graded", "Message", "MessageCode", "Outcome", "Severity", "has_warning"]
 
 
 class Outcome(enum.StrEnum):
@@ -34,6 +34,19 @@ class Outcome(enum.StrEnum):
     def success(self) -> bool:
         """True for the first member (the success)."""
         return self is next(iter(type(self)))
+
+
+class Graded(Outcome):
+    """An outcome graded ``ok``, ``warning`` (usable, look at the messages) or worse.
+
+    :attr:`success` is True for the members ``ok`` and ``warning``; every other member is a
+    refusal or a failure (a calibration's, a plant model's, a fleet motor's status).
+    """
+
+    @property
+    def success(self) -> bool:
+        """True for ``ok`` and ``warning``: the result may be used."""
+        return self in ("ok", "warning")
 
 
 class Severity(enum.StrEnum):

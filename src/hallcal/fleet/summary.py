@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import enum
 from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
 
 from hallcal.io import atomic_write
+from hallcal.messages import Graded
 
 #: Exit status of ``hallcal fleet`` when at least one motor was refused or failed.
 EXIT_INCOMPLETE = 4
@@ -44,7 +44,7 @@ SUMMARY_SCHEMA = pa.schema(
 SUMMARY_COLUMNS: tuple[str, ...] = tuple(SUMMARY_SCHEMA.names)
 
 
-class MotorStatus(enum.StrEnum):
+class MotorStatus(Graded):
     """Outcome of one motor (the ``status`` column).
 
     ``ok`` and ``warning`` wrote an artifact; ``refused`` and ``failed`` did not.
@@ -54,11 +54,6 @@ class MotorStatus(enum.StrEnum):
     WARNING = "warning"
     REFUSED = "refused"
     FAILED = "failed"
-
-    @property
-    def success(self) -> bool:
-        """True when the motor has a usable artifact."""
-        return self in (MotorStatus.OK, MotorStatus.WARNING)
 
 
 def _write_summary(out: Path, table: pa.Table) -> None:

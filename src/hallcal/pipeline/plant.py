@@ -8,7 +8,6 @@ the imperfect f_init, the BLA is known up to a gain c, estimated from the calibr
 
 from __future__ import annotations
 
-import enum
 import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal
@@ -20,7 +19,7 @@ from hallcal.errors import CalibrationRefused, HallcalInputError
 from hallcal.fit.sem import least_squares_start
 from hallcal.io.dataset import Dataset
 from hallcal.io.setup import Setup
-from hallcal.messages import Message, MessageCode, has_warning
+from hallcal.messages import Graded, Message, MessageCode, has_warning
 from hallcal.pipeline.boundary import numeric_errors
 from hallcal.pipeline.checks import (
     BLAFitCheck,
@@ -58,18 +57,13 @@ TWO_PI = 2.0 * math.pi
 COST_PER_LINE_WARNING = 3.0
 
 
-class BLAStatus(enum.StrEnum):
+class BLAStatus(Graded):
     """Outcome of the BLA identification: ``ok``, ``warning`` (usable, look at the messages) or
     ``refused`` (the plant model must not be used: :attr:`BLAIdentification.refusal` says why)."""
 
     OK = "ok"
     WARNING = "warning"
     REFUSED = "refused"
-
-    @property
-    def success(self) -> bool:
-        """True when the plant model may be used."""
-        return self is not BLAStatus.REFUSED
 
 
 @dataclass(frozen=True)

@@ -67,12 +67,11 @@ constant offset, :func:`hallcal.fit.sem.predicted_angle_error`); a validation ag
 
 from __future__ import annotations
 
-import enum
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from hallcal.messages import Message, MessageCode
+from hallcal.messages import Graded, Message, MessageCode
 
 if TYPE_CHECKING:  # not at run time: applying a table (reconstruct) loads no hallcal.fit
     from hallcal.fit.error_source import ErrorSources
@@ -101,7 +100,7 @@ OK_RATIO = 1.15
 OK_UPPER_RATIO = 1.3
 
 
-class CalibrationStatus(enum.StrEnum):
+class CalibrationStatus(Graded):
     """Outcome of a calibration; the string values are the artifact's ``diagnostics.status``.
 
     ``OK`` and ``WARNING`` give a usable table (a warning says what to look at);
@@ -113,11 +112,6 @@ class CalibrationStatus(enum.StrEnum):
     WARNING = "warning"
     INADEQUATE = "inadequate"
     NOT_BIJECTIVE = "not_bijective"
-
-    @property
-    def success(self) -> bool:
-        """True when the table may be used."""
-        return self in (CalibrationStatus.OK, CalibrationStatus.WARNING)
 
     @property
     def refused(self) -> bool:
