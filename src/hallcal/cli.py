@@ -542,11 +542,11 @@ def bla(data: str, setup_path: str, out: str) -> None:
 
 def _write_bla_plot(res: Any, path: Path) -> None:
     from hallcal.io.files import atomic_write
-    from hallcal.output.plots import plot_bla
+    from hallcal.output.plots import figure_png, plot_bla
 
-    fig = plot_bla(res)
+    png = figure_png(plot_bla(res), dpi=110)
     with atomic_write(path, "wb") as f:
-        fig.savefig(f, format="png", dpi=110)
+        f.write(png)
 
 
 @cli.command(
