@@ -544,9 +544,8 @@ def _write_bla_plot(res: Any, path: Path) -> None:
     from hallcal.io.files import atomic_write
     from hallcal.output.plots import figure_png, plot_bla
 
-    png = figure_png(plot_bla(res), dpi=110)
     with atomic_write(path, "wb") as f:
-        f.write(png)
+        f.write(figure_png(plot_bla(res), dpi=110))
 
 
 @cli.command(
