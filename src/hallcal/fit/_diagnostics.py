@@ -14,7 +14,6 @@ which combines them (with the chi-square ratio of the fit's cost) into its verdi
 
 from __future__ import annotations
 
-import enum
 import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -24,6 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal.fit.sem import SEMResult
+from hallcal.messages import Outcome
 from hallcal.sensor.flux import FluxModel
 
 __all__ = [
@@ -42,7 +42,7 @@ __all__ = [
 ]
 
 
-class NoiseStatus(enum.StrEnum):
+class NoiseStatus(Outcome):
     """Outcome of :func:`estimate_noise_variance`."""
 
     OK = "ok"
@@ -50,21 +50,13 @@ class NoiseStatus(enum.StrEnum):
     COLOURED = "coloured"
     TOO_SHORT = "too_short"
 
-    @property
-    def success(self) -> bool:
-        return self is NoiseStatus.OK
 
-
-class ContentStatus(enum.StrEnum):
+class ContentStatus(Outcome):
     """Outcome of :func:`harmonic_content`."""
 
     OK = "ok"
     #: the angle covers less than one revolution: harmonics are not separable
     TOO_SHORT = "too_short"
-
-    @property
-    def success(self) -> bool:
-        return self is ContentStatus.OK
 
 
 #: Median of the chi-square distribution with one degree of freedom.

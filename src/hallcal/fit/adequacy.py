@@ -96,6 +96,7 @@ from hallcal.fit._table_error import (
 from hallcal.fit.error_source import ErrorSource, ErrorSources
 from hallcal.fit.sem import SEMResult
 from hallcal.limits import one_blas_thread
+from hallcal.messages import Outcome
 from hallcal.sensor.reconstruction import clarke_matrix
 
 __all__ = [
@@ -138,16 +139,12 @@ class Verdict(enum.StrEnum):
         return self is not Verdict.INADEQUATE
 
 
-class AdequacyStatus(enum.StrEnum):
+class AdequacyStatus(Outcome):
     """Whether :func:`assess` could judge the fit."""
 
     OK = "ok"
     #: the fit itself failed (no finite cost)
     FAILED = "failed"
-
-    @property
-    def success(self) -> bool:
-        return self is AdequacyStatus.OK
 
 
 # --------------------------------------------------------------------------------------------

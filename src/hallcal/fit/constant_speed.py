@@ -27,7 +27,6 @@ ADC counts: offsets are handled by the geometry and by the constant term of the 
 
 from __future__ import annotations
 
-import enum
 import math
 from dataclasses import dataclass, field
 
@@ -36,6 +35,7 @@ import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal.limits import one_blas_thread
+from hallcal.messages import Outcome
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sensor.reconstruction import f_init
@@ -54,39 +54,27 @@ __all__ = [
 TWO_PI = 2.0 * math.pi
 
 
-class GeometryStatus(enum.StrEnum):
+class GeometryStatus(Outcome):
     """How well the three signals determine the sensor geometry (:class:`SensorGeometry`)."""
 
     OK = "ok"
     PARTIAL_COVERAGE = "partial_coverage"  # not every electrical angle seen: extrapolated
     DEGENERATE = "degenerate"  # no ellipse: noise only, or no rotation
 
-    @property
-    def success(self) -> bool:
-        return self is GeometryStatus.OK
 
-
-class SegmentStatus(enum.StrEnum):
+class SegmentStatus(Outcome):
     """Whether :func:`find_constant_speed` found a constant-speed part."""
 
     OK = "ok"
     NOT_FOUND = "not_found"
 
-    @property
-    def success(self) -> bool:
-        return self is SegmentStatus.OK
 
-
-class ConstantSpeedStatus(enum.StrEnum):
+class ConstantSpeedStatus(Outcome):
     """Outcome of :func:`calibrate_constant_speed`."""
 
     OK = "ok"
     WARNING = "warning"  # see ConstantSpeedResult.warnings
     NOT_CONVERGED = "not_converged"  # the speed estimate did not meet its tolerance
-
-    @property
-    def success(self) -> bool:
-        return self is ConstantSpeedStatus.OK
 
 
 # --------------------------------------------------------------------------------------------------

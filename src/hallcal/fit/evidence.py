@@ -36,7 +36,6 @@ has its own variance.
 
 from __future__ import annotations
 
-import enum
 import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -49,6 +48,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from hallcal.fit.gauss_newton import gram_from_moments
 from hallcal.limits import one_blas_thread
+from hallcal.messages import Outcome
 from hallcal.sensor.flux import FluxModel, FourierBasis
 
 __all__ = [
@@ -63,16 +63,12 @@ __all__ = [
 ]
 
 
-class GroupEvidenceStatus(enum.StrEnum):
+class GroupEvidenceStatus(Outcome):
     """Outcome of :func:`group_evidence`."""
 
     CONVERGED = "converged"
     MAX_ITERATIONS = "max_iterations"
     FAILED = "failed"
-
-    @property
-    def success(self) -> bool:
-        return self is GroupEvidenceStatus.CONVERGED
 
 
 # ================================================================================================

@@ -66,7 +66,6 @@ warning and in the artifact's ``diagnostics.model_selection``.
 
 from __future__ import annotations
 
-import enum
 import math
 import time
 from collections.abc import Iterable
@@ -90,7 +89,7 @@ from hallcal.fit.gauss_newton import ParameterLayout, simulate_model
 from hallcal.fit.sem import SEMResult, SEMStatus, least_squares_start, solve_sem
 from hallcal.fit.warp import BandEdge, band_edge, unwarp
 from hallcal.limits import one_blas_thread
-from hallcal.messages import Message, MessageCode
+from hallcal.messages import Message, MessageCode, Outcome
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sim.loop import ClosedLoop
 
@@ -122,7 +121,7 @@ _RANK = {"adequate": 0, "warning": 1, "inadequate": 2}
 WORK_BUDGET = 6e11
 
 
-class SelectionStatus(enum.StrEnum):
+class SelectionStatus(Outcome):
     """How :func:`select_harmonics` ended."""
 
     #: the adequacy test asks for no further flux harmonics
@@ -137,10 +136,6 @@ class SelectionStatus(enum.StrEnum):
     FIT_BUDGET = "fit_budget"
     #: the budget of Gauss-Newton work (iterations x N p^2) ran out before a fit or within one
     WORK_BUDGET = "work_budget"
-
-    @property
-    def success(self) -> bool:
-        return self is SelectionStatus.CONVERGED
 
     @property
     def budget_hit(self) -> bool:
