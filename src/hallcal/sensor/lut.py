@@ -211,12 +211,8 @@ class LUT:
 
         Parameters
         ----------
-        pole_pairs : int
-            n_m.
-        projection : array_like, shape (2, 3)
-            f_init's projection on the alpha/beta plane.
-        offset : array_like, shape (3,)
-            Sensor offsets subtracted before projecting (sensor's unit).
+        pole_pairs, projection, offset
+            As the attributes of the same names (array_like here; the offset in sensor units).
         y_hat : array_like, shape (M,)
             Table nodes y_hat_i = f_init(g_theta(y0_i)) (eq. (recon_biject)) [rad].
         eta : array_like, shape (M,)
