@@ -24,10 +24,10 @@ from numpy.typing import ArrayLike, NDArray
 from hallcal.sensor.reconstruction import (
     BLOCK_ROWS,
     InitReconstructor,
-    clarke_matrix,
     electrical_angle,
     f_init,
     f_init_columns,
+    projection_and_offset,
 )
 
 __all__ = ["LUT", "NotBijectiveError", "StarReconstructor", "build_lut"]
@@ -285,11 +285,11 @@ def build_lut(
     y_hat = (n * y0 + np.mod(psi - n * y0 + math.pi, TWO_PI) - math.pi) / n
     eta = y0 - y_hat
     bij, slope = _bijectivity(y0, y_hat)
-    P = clarke_matrix()[:2]
+    P, o = projection_and_offset(projection, offset)
     return LUT(
         n,
-        P if projection is None else np.asarray(projection, float).reshape(2, 3),
-        np.zeros(3) if offset is None else np.asarray(offset, float).reshape(3),
+        P.reshape(2, 3),
+        o.reshape(3),
         y0,
         y_hat,
         eta,
