@@ -236,7 +236,12 @@ def nonparametric_bla(
         option at fault).
     """
     lay = _period_layout(
-        r, u, y, realization, period_samples, transient_periods, sample_time, detrend
+        {"r": r, "u": u, "y": y},
+        realization,
+        period_samples=period_samples,
+        transient_periods=transient_periods,
+        sample_time=sample_time,
+        detrend=detrend,
     )
     spectra = _steady_state_spectra(lay, detrend=detrend)  # steps 1-2
     k = _excited_lines(spectra.r, lay.n, lines)
@@ -277,16 +282,16 @@ class _PeriodLayout:
 
 
 def _period_layout(
-    r: np.ndarray,
-    u: np.ndarray,
-    y: np.ndarray,
+    columns: dict[str, np.ndarray],
     realization: np.ndarray,
+    *,
     period_samples: int,
     transient_periods: int,
     sample_time: float,
     detrend: bool,
 ) -> _PeriodLayout:
-    """Check the columns and options; split the record into M realizations of P periods.
+    """Check the columns (``r``, ``u``, ``y`` by name) and options; split the record into M
+    realizations of P periods.
 
     The robust method of Pintelon & Schoukens (2012), sec. 3.8, needs M contiguous realizations
     holding the same whole number of periods; the first ``transient_periods`` of each are dropped.
@@ -296,9 +301,7 @@ def _period_layout(
     ts = float(sample_time)
     if not (np.isfinite(ts) and ts > 0.0):
         raise HallcalInputError(f"sample_time must be positive, got {sample_time!r}")
-    signals = {
-        name: _checked_column(name, values) for name, values in (("r", r), ("u", u), ("y", y))
-    }
+    signals = {name: _checked_column(name, values) for name, values in columns.items()}
     real = _checked_realization(realization)
     lengths = {name: arr.size for name, arr in signals.items()} | {"realization": real.size}
     if len(set(lengths.values())) != 1:

@@ -7,7 +7,6 @@ calibration identifies the pole pair is :mod:`hallcal.sensor._absolute_analysis`
 
 from __future__ import annotations
 
-import enum
 import math
 import statistics
 from dataclasses import dataclass, field
@@ -16,6 +15,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal.messages import Outcome
 from hallcal.sensor.drift_margin import PLAUSIBLE_GAIN_CHANGE
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT
@@ -796,16 +796,12 @@ def build_decoder(
 # ------------------------------------------------------------------------------------------------
 
 
-class PowerUpStatus(enum.StrEnum):
-    """Outcome of a power-up identification."""
+class PowerUpStatus(Outcome):
+    """Outcome of a power-up identification (:attr:`success` for ``identified`` alone)."""
 
     IDENTIFIED = "identified"  # the sequential test locked: posterior >= 1 - alpha, and it fits
     UNDECIDED = "undecided"  # not certain yet; the offset is the current maximum-likelihood one
     MISMATCH = "mismatch"  # no pole pair fits: the signals do not match this calibration
-
-    @property
-    def success(self) -> bool:
-        return self is PowerUpStatus.IDENTIFIED
 
 
 @dataclass(frozen=True)

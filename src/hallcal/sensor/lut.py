@@ -24,10 +24,10 @@ from numpy.typing import ArrayLike, NDArray
 from hallcal.sensor.reconstruction import (
     BLOCK_ROWS,
     InitReconstructor,
-    clarke_matrix,
     electrical_angle,
     f_init,
     f_init_columns,
+    projection_and_offset,
 )
 
 __all__ = ["LUT", "NotBijectiveError", "StarReconstructor", "build_lut"]
@@ -211,12 +211,8 @@ class LUT:
 
         Parameters
         ----------
-        pole_pairs : int
-            n_m.
-        projection : array_like, shape (2, 3)
-            f_init's projection on the alpha/beta plane.
-        offset : array_like, shape (3,)
-            Sensor offsets subtracted before projecting (sensor's unit).
+        pole_pairs, projection, offset
+            As the attributes of the same names (array_like here; the offset in sensor units).
         y_hat : array_like, shape (M,)
             Table nodes y_hat_i = f_init(g_theta(y0_i)) (eq. (recon_biject)) [rad].
         eta : array_like, shape (M,)
@@ -289,11 +285,11 @@ def build_lut(
     y_hat = (n * y0 + np.mod(psi - n * y0 + math.pi, TWO_PI) - math.pi) / n
     eta = y0 - y_hat
     bij, slope = _bijectivity(y0, y_hat)
-    P = clarke_matrix()[:2]
+    P, o = projection_and_offset(projection, offset)
     return LUT(
         n,
-        P if projection is None else np.asarray(projection, float).reshape(2, 3),
-        np.zeros(3) if offset is None else np.asarray(offset, float).reshape(3),
+        P.reshape(2, 3),
+        o.reshape(3),
         y0,
         y_hat,
         eta,

@@ -30,6 +30,7 @@ __all__ = [
     "electrical_angle",
     "f_init",
     "f_init_columns",
+    "projection_and_offset",
     "projection_matrix",
     "unwrap_to",
 ]
@@ -81,6 +82,29 @@ def projection_matrix(phases: ArrayLike = NOMINAL_PHASES) -> NDArray[np.float64]
     return np.linalg.pinv(H)[1:3].copy()
 
 
+def projection_and_offset(
+    projection: ArrayLike | None = None, offset: ArrayLike | None = None
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """f_init's projection P and sensor offsets o (eq. (fimp)), with their defaults.
+
+    Parameters
+    ----------
+    projection : array_like, shape (2, 3), optional
+        Projection matrix P; default the Clarke rows (first two rows of :func:`clarke_matrix`).
+    offset : array_like, shape (3,), optional
+        Sensor offsets subtracted before projecting [sensor unit]; default zero.
+
+    Returns
+    -------
+    P : ndarray, shape (2, 3)
+    o : ndarray, shape (3,)
+        As float64 arrays, not reshaped or checked.
+    """
+    P = clarke_matrix()[:2] if projection is None else np.asarray(projection, dtype=np.float64)
+    o = np.zeros(3) if offset is None else np.asarray(offset, dtype=np.float64)
+    return P, o
+
+
 def alpha_beta(
     d: ArrayLike,
     *,
@@ -103,10 +127,10 @@ def alpha_beta(
     ndarray, shape (N, 2) or (2,)
         ``(d - offset) @ P.T``: columns alpha and beta.
     """
-    P = clarke_matrix()[:2] if projection is None else np.asarray(projection, dtype=np.float64)
+    P, o = projection_and_offset(projection, offset)
     x = np.asarray(d, dtype=np.float64)
     if offset is not None:
-        x = x - np.asarray(offset, dtype=np.float64)
+        x = x - o
     return x @ P.T
 
 
@@ -177,13 +201,9 @@ class InitReconstructor:
     ) -> None:
         self.pole_pairs = int(pole_pairs)
         self.y = float(y_initial)
-        P = clarke_matrix()[:2] if projection is None else np.asarray(projection, float)
+        P, o = projection_and_offset(projection, offset)
         self._P = [[float(v) for v in row] for row in P]
-        self._o = (
-            [0.0, 0.0, 0.0]
-            if offset is None
-            else [float(v) for v in np.asarray(offset, dtype=np.float64)]
-        )
+        self._o = [float(v) for v in o]
 
     def update(self, d1: float, d2: float, d3: float) -> float:
         """Process one sample: y(t_k) = f_init(d(t_k)) relative to y(t_k-1) (eq. (fimp)).
@@ -297,8 +317,7 @@ def f_init_columns(
     N = cols[0].shape[0]
     if any(c.ndim != 1 or c.shape[0] != N for c in cols):
         raise ValueError("d1, d2 and d3 must be 1-D arrays of the same length")
-    P = clarke_matrix()[:2] if projection is None else np.asarray(projection, dtype=np.float64)
-    o = np.zeros(3) if offset is None else np.asarray(offset, dtype=np.float64)
+    P, o = projection_and_offset(projection, offset)
     n = int(pole_pairs)
     y = np.empty(N) if out is None else out
     if y.shape != (N,) or y.dtype != np.float64:

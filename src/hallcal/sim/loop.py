@@ -41,7 +41,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from hallcal.messages import Outcome
 from hallcal.sensor.flux import FluxModel
-from hallcal.sensor.reconstruction import clarke_matrix
+from hallcal.sensor.reconstruction import clarke_matrix, projection_and_offset
 from hallcal.sim.cogging import CoggingTorque
 from hallcal.sim.loop_kernel import F64, LoopArrays, kernel_array, simulate
 from hallcal.sim.lti import ContinuousTF, DiscreteTF, StateSpace
@@ -145,8 +145,7 @@ class ClosedLoop:
             plant.discretize(sample_time),
             controller.state_space(sample_time),
             int(pole_pairs),
-            clarke_matrix()[:2] if projection is None else np.asarray(projection, float),
-            np.zeros(3) if offset is None else np.asarray(offset, float),
+            *projection_and_offset(projection, offset),
         )
 
     def with_plant_gain(self, c: float) -> ClosedLoop:
