@@ -97,7 +97,7 @@ from hallcal.fit.error_source import ErrorSource, ErrorSources
 from hallcal.fit.sem import SEMResult
 from hallcal.limits import one_blas_thread
 from hallcal.messages import Outcome
-from hallcal.sensor.reconstruction import clarke_matrix
+from hallcal.sensor.reconstruction import projection_and_offset
 
 __all__ = [
     "AdequacyReport",
@@ -392,8 +392,7 @@ def assess(
     """
     dd = np.asarray(d, dtype=np.float64)
     n = int(pole_pairs)
-    P = clarke_matrix()[:2] if projection is None else np.asarray(projection, dtype=np.float64)
-    o = np.zeros(3) if offset is None else np.asarray(offset, dtype=np.float64)
+    P, o = projection_and_offset(projection, offset)
     with one_blas_thread():
         lv = _levels(sem, dd, noise, warn_ratio, fail_ratio)
         lv.thresholds.update(significance=significance, min_amplitude_over_sigma=min_amplitude,
