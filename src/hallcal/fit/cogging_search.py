@@ -448,6 +448,78 @@ class CoggingSelection:
         how = "given" if self.status is CoggingStatus.GIVEN else "found in the data"
         return replace(self, sem=sem, cogging=sem.cogging, message=_describe(sem.cogging, how))
 
+    def load_retest(self, sem: SEMResult, *, significance: float = 1e-3) -> OrderTest | None:
+        """Order 0's T^2 test on a later fit that holds what the search's fit lacked.
+
+        The search tests a constant load a_0 on its joint fit; a later fit with the sensors'
+        drift (:func:`hallcal.pipeline.sensors.final_fit`) holds an effect the search's fit could
+        only give to a_0 (the drift's shift of y0 at the run's start; module docstring, "A
+        constant load torque"). The same test (:func:`order_tests`, Bonferroni over the orders
+        of ``sem``) there decides whether the load stays.
+
+        Parameters
+        ----------
+        sem : SEMResult
+            The later fit with this selection's orders.
+        significance : float
+            Family-wise false-alarm level (as :func:`select_cogging`).
+
+        Returns
+        -------
+        OrderTest or None
+            Order 0's test on ``sem``; None when the search did not choose order 0 (orders
+            given in the setup are kept as given).
+        """
+        if self.status is not CoggingStatus.FOUND or 0 not in self.orders:
+            return None
+        return next((t for t in order_tests(sem, significance=significance) if t.order == 0),
+                    None)  # fmt: skip
+
+    def load_retested(self, sem: SEMResult, retest: OrderTest) -> CoggingSelection:
+        """The selection after :meth:`load_retest`: order 0's test replaced by ``retest``, and
+        order 0 dropped when it failed there.
+
+        Parameters
+        ----------
+        sem : SEMResult
+            The later fit: the one of the retest when it passed, refitted without order 0 when
+            it failed (without cogging when 0 was the only order).
+        retest : OrderTest
+            Order 0's test on the later fit.
+
+        Returns
+        -------
+        CoggingSelection
+            Passed: :meth:`refitted` with the retest. Failed: NONE (no torque) when 0 was the
+            only order, else FOUND with the other orders and ``sem``'s torque.
+        """
+        tests = tuple(retest if t.order == 0 else t for t in self.tests)
+        if retest.significant:
+            return replace(self.refitted(sem), tests=tests)
+        orders = tuple(k for k in self.orders if k != 0)
+        tests = tuple(t for t in tests if t.order != 0) + (retest,)
+        why = (
+            "the constant load torque the search found is not significant once the sensors' "
+            f"drift is fitted (T^2 {retest.statistic:.3g} against {retest.threshold:.3g})"
+        )
+        if not orders:
+            return replace(self, status=CoggingStatus.NONE, orders=(), cogging=None, sem=sem,
+                           tests=tests, message=f"cogging: none found ({why})")  # fmt: skip
+        found = _describe(sem.cogging, "found in the data")
+        return replace(self, orders=orders, cogging=sem.cogging, sem=sem, tests=tests,
+                       message=f"{found}; {why}")  # fmt: skip
+
+    def without_load(self) -> CoggingTorque | None:
+        """This selection's torque without order 0 (None when 0 is its only order): the start
+        of the refit after :meth:`load_retest` failed."""
+        cog = self.cogging
+        if cog is None:
+            return None
+        keep = [i for i, k in enumerate(cog.orders) if k != 0]
+        if not keep:
+            return None
+        return CoggingTorque(tuple(cog.orders[i] for i in keep), cog.a[keep], cog.b[keep])
+
     def to_dict(self) -> dict:
         out: dict = {
             "status": self.status.value,
