@@ -107,6 +107,17 @@ SEM with the drift: calibration CPU 7.4 -> 8.2, 9.4 -> 10.4, 1.8 -> 1.9 s on 4, 
 cogload motors and the paper's load bench fit no drift and are unchanged
 (``benchmarks/bench_cogging_load.txt``).
 
+Not done: screening order 0 by a score (Lagrange-multiplier) test at the fit without it, so that
+the joint fit is spared when a_0 is clearly insignificant. With the batch-means variance at that
+fit the score's T^2 is about 1 whatever the load (0.86-2.1 on the cogload motors 6, 14, 22, 30,
+174, 182, 190, whose Wald T^2 are 106 to 4.5e6): under the integrator the score sits in the
+first batch, whose own square is then its variance. With the white variance it is 3.1 and 6.5
+on the true loads of 30 and 14 and 1.3-2.3 on 179's draws that keep order 0, so only a screen
+below 1.3 keeps every decision; and on the paper run (no load, harmonics 1..11) the joint
+fit is not order 0's alone: the shift spectrum passes order 198 (7.4x its local level, screen
+6.2x; T^2 10.7 against 22.1), so the joint SEM (0.27 s of the search's 0.34 s CPU; the score's
+one sensitivity pass 0.12 s) is done for 198 anyway and nothing would be saved.
+
 Orders searched by default (:func:`plausible_orders`): the multiples of 2 n_m up to 24 n_m. The
 fundamental cogging order of a machine with Q stator slots and 2 n_m poles is LCM(Q, 2 n_m)
 periods per revolution, followed by its multiples (for 11 pole pairs: 66 with 33 slots, 132 with
