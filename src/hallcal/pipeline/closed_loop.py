@@ -349,6 +349,16 @@ def _final_fit(
         return fit, s
     sem, d = out
     cog = fit.cogging.refitted(sem) if fit.cogging is not None else None
+    retest = cog.load_retest(sem) if cog is not None and found.drifting else None
+    if cog is not None and retest is not None:
+        # the search's constant load may stand in for the drift (cogging_search, "A constant
+        # load torque"): tested again with the drift, and refitted without it when it fails
+        again = None if retest.significant else sensors.final_fit(
+            loop, s.r, s.d, dataclasses.replace(sem, cogging=cog.without_load()), found,
+            fit_gain=fit_gain, progress=progress, max_iterations=setup.model.max_iterations,
+        )  # fmt: skip
+        sem, d = again or (sem, d)
+        cog = cog.load_retested(sem, retest)
     fit = dataclasses.replace(
         fit, sem=sem, flux=sem.flux, model_info=_fourier_info(sem.flux), gain_factor=sem.gain,
         gain_factor_std=sem.gain_std, adequacy=None, cogging=cog,
