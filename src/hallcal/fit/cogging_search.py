@@ -148,7 +148,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from hallcal.fit.adequacy import CurveProjection, project_fit
 from hallcal.fit.gauss_newton import _moments
-from hallcal.fit.sem import SEMResult, solve_sem
+from hallcal.fit.sem import SEMResult, score_blocks, solve_sem
 from hallcal.sensor.flux import FourierBasis
 from hallcal.sim.cogging import CoggingTorque
 from hallcal.sim.loop import ClosedLoop
@@ -601,6 +601,137 @@ def order_tests(sem: SEMResult, *, significance: float = 1e-3) -> tuple[OrderTes
     return tuple(tests)
 
 
+#: Samples per block of the score series of order 0's HAC variance (:func:`load_test`): well
+#: below the start transient in which an integrating loop shows a load (hundreds of samples),
+#: the finest the sensitivity pass takes (:func:`hallcal.fit.sem.score_blocks`).
+HAC_BLOCK = 64
+
+
+@dataclass(frozen=True)
+class LongRunVariance:
+    """A HAC (long-run) variance of a sum of scores and its reference degrees of freedom.
+
+    Attributes
+    ----------
+    variance : float
+        ``sum_|l|<S (1 - |l| / S) sum_t psi_t psi_t+l`` of the centred block scores psi.
+    bandwidth : float
+        Andrews' (1991) bandwidth S [blocks] (Bartlett kernel, AR(1) plug-in).
+    dof : float
+        Satterthwaite degrees of freedom of ``variance`` (see :func:`hac_variance`).
+    blocks : int
+        Length of the series.
+    """
+
+    variance: float
+    bandwidth: float
+    dof: float
+    blocks: int
+
+
+def hac_variance(psi: ArrayLike) -> LongRunVariance:
+    """Newey-West (1987) long-run variance of ``sum_t psi_t`` with Andrews' (1991) bandwidth.
+
+    Bartlett kernel ``w_l = 1 - l / S`` over the lags ``l < S``, ``S = 1.1447 (alpha(1) n)^(1/3)``
+    with ``alpha(1) = 4 rho^2 / ((1 - rho)^2 (1 + rho)^2)`` from the series' lag-one
+    autocorrelation rho (Andrews 1991, eq. 6.4; rho within +-0.97). The estimate is judged with
+    Satterthwaite's degrees of freedom: a sum of independent terms of variances s_t^2 has
+    ``(sum s_t^2)^2 / sum s_t^4`` of them (the effective number of blocks, estimated as
+    ``3 (sum psi^2)^2 / sum psi^4``, the Gaussian fourth moment), and the Bartlett kernel over S
+    lags divides them by ``2 S / 3`` (its variance ``(4 / 3) S / n`` relative, Andrews 1991,
+    Prop. 1), at most ``n - 1``. A score that sits in a short stretch of the run (order 0 under an
+    integrating controller) thus gets the few degrees of freedom it has, and a spread one many.
+
+    Parameters
+    ----------
+    psi : array_like (n,)
+        Scores summed over consecutive blocks (centred here).
+
+    Returns
+    -------
+    LongRunVariance
+    """
+    x = np.asarray(psi, dtype=np.float64)
+    x = x - x.mean()
+    n = x.size
+    g0 = float(x @ x)
+    if n < 3 or not g0 > 0:
+        return LongRunVariance(max(g0, 0.0), 0.0, 0.0, n)
+    rho = min(max(float(x[:-1] @ x[1:]) / g0, -0.97), 0.97)
+    alpha1 = 4.0 * rho * rho / ((1.0 - rho) ** 2 * (1.0 + rho) ** 2)
+    S = 1.1447 * (alpha1 * n) ** (1.0 / 3.0)
+    var = g0
+    for lag in range(1, min(math.ceil(S), n)):
+        var += 2.0 * (1.0 - lag / S) * float(x[:-lag] @ x[lag:])
+    x2 = x * x
+    n_eff = 3.0 * g0 * g0 / float(x2 @ x2)
+    dof = min(n_eff / max(1.0, 2.0 * S / 3.0), n - 1.0)
+    return LongRunVariance(max(var, 0.0), S, dof, n)
+
+
+def load_test(
+    loop: ClosedLoop, r: ArrayLike, d: ArrayLike, sem: SEMResult, *, alpha: float,
+    block: int = HAC_BLOCK,
+) -> tuple[OrderTest, LongRunVariance]:  # fmt: skip
+    """Order 0's test with the HAC variance of a_0 over the whole run's fine-block scores.
+
+    ``var a_0 = v^T M v`` with ``v = A^-1 e_a0`` (``A = J^T J + R``) and M the long-run
+    covariance of the scores: the HAC variance (:func:`hac_variance`) of the series
+    ``psi_b = v^T sum_{t in b} J_t^T W e_t`` over blocks of ``block`` samples
+    (:func:`hallcal.fit.sem.score_blocks`); ``T^2 = a_0^2 / var a_0`` against chi-square(1),
+    the HAC's asymptotic reference (Newey & West 1987; its Satterthwaite degrees of freedom,
+    :attr:`LongRunVariance.dof`, are reported, not used: see the module docstring, "A constant
+    load torque").
+
+    Parameters
+    ----------
+    loop, r, d : the loop, reference and Hall signals ``sem`` was solved with.
+    sem : SEMResult
+        A fit with order 0 among its cogging orders.
+    alpha : float
+        Level of this order's test (Bonferroni share).
+    block : int
+        Samples per block of the score series.
+
+    Returns
+    -------
+    (OrderTest, LongRunVariance)
+    """
+    cog, layout = sem.cogging, sem.layout
+    if cog is None or layout is None or 0 not in cog.orders:
+        raise ValueError("the fit has no constant load torque (order 0)")
+    i = cog.orders.index(0)
+    j = layout.cogging_start + 2 * i
+    v = sem.parameter_covariance[:, j] / sem.noise_variance  # A^-1 e_a0
+    lr = hac_variance(score_blocks(loop, r, d, sem, block=block) @ v)
+    a0 = float(cog.coefficients[2 * i])
+    t2 = a0 * a0 / lr.variance if lr.variance > 0 else 0.0
+    crit = f1_isf(alpha, 1e9)  # chi-square(1): the HAC's asymptotic reference (see above)
+    return OrderTest(0, abs(a0), t2, crit), lr
+
+
+def _with_load_test(
+    loop: ClosedLoop, r: NDArray, d: NDArray, sem: SEMResult, tests: tuple[OrderTest, ...], *,
+    significance: float,
+) -> tuple[OrderTest, ...]:  # fmt: skip
+    """``tests`` with order 0's decided by :func:`load_test` (module docstring, "A constant load
+    torque"), Bonferroni over the fitted orders as :func:`order_tests`. Made when the
+    batch-means or the white variance passes order 0 (else its test stands as failed): a run
+    where neither does (the paper's bench without a load) is not charged the pass."""
+    cog, layout, cov = sem.cogging, sem.layout, sem.parameter_covariance
+    t0 = next((t for t in tests if t.order == 0), None)
+    if t0 is None or cog is None or layout is None or cov is None:
+        return tests
+    alpha = significance / max(cog.size, 1)
+    j = layout.cogging_start + 2 * cog.orders.index(0)
+    vw = float(cov[j, j])  # the white variance sigma^2 (J^T J + R)^-1
+    white = vw > 0 and t0.amplitude**2 / vw > f1_isf(alpha, 1e9)
+    if not (t0.significant or white):
+        return tests
+    hac, _ = load_test(loop, r, d, sem, alpha=alpha)
+    return tuple(hac if t.order == 0 else t for t in tests)
+
+
 def _fit(
     loop: ClosedLoop,
     r: NDArray,
@@ -650,7 +781,8 @@ def _pruned(
     while candidates:
         joint = _fit(loop, r, d, sem, candidates, fit_gain=fit_gain,
                      max_iterations=max_iterations)  # fmt: skip
-        tests = order_tests(joint, significance=significance)
+        tests = _with_load_test(loop, r, d, joint, order_tests(joint, significance=significance),
+                                significance=significance)  # fmt: skip
         kept = tuple(t.order for t in tests if t.significant)
         if kept == candidates:
             return joint, tests, candidates
