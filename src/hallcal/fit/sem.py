@@ -51,7 +51,6 @@ __all__ = [
     "default_chunk",
     "angle_error_gradient",
     "predicted_angle_error",
-    "score_blocks",
     "solve_sem",
 ]
 
@@ -427,47 +426,6 @@ def _batch_covariance(
     with one_blas_thread():
         L = Ainv @ Sc.T  # (p, B)
         return (B / (B - 1)) * (L @ L.T)
-
-
-def score_blocks(
-    loop: ClosedLoop, r: ArrayLike, d: ArrayLike, sem: SEMResult, *, block: int = 64,
-    weights: ArrayLike | None = None,
-) -> NDArray[np.float64]:  # fmt: skip
-    """The scores ``J^T W e`` at the solution of ``sem`` summed over blocks of ``block`` samples.
-
-    The same scores as the batches of :attr:`SEMResult.batch_covariance`, on a finer grid (one
-    sensitivity pass without the Gram matrix, at least 64 samples a block): the series a
-    heteroscedasticity-and-autocorrelation-consistent (HAC) long-run covariance needs when a
-    parameter's information sits in a stretch shorter than a batch (Newey & West 1987;
-    :func:`hallcal.fit.cogging_search.hac_variance`).
-
-    Parameters
-    ----------
-    loop : ClosedLoop
-        The loop ``sem`` was solved with.
-    r, d : array_like
-        Its reference (N,) [rad] and Hall signals (N, 3).
-    sem : SEMResult
-        The fit (its layout and final parameters: theta, gain, cogging, drift).
-    block : int
-        Samples per block.
-    weights : array_like (N, 3), optional
-        The sample weights of the fit, if any.
-
-    Returns
-    -------
-    ndarray (ceil(N / block), p)
-        The block sums of the scores (they add up to the gradient at the solution, about zero).
-    """
-    layout = sem.layout
-    if layout is None:
-        raise ValueError("the fit has no parameter layout")
-    rr, dd = checked_record(r, d)
-    log_gain = math.log(sem.gain) if layout.fit_gain else 0.0
-    x = layout.pack(sem.flux.theta, log_gain, sem.cogging, sem.drift)
-    system = gauss_newton_system(loop, layout, x, rr, dd, chunk=int(block), gram=False,
-                                 weights=weights)  # fmt: skip
-    return system.batch_gradients
 
 
 def _default_stride(p: int) -> int:
