@@ -36,7 +36,9 @@ over ten noise draws, cogging ``"auto"``: act/pred 0.92-1.27 on eight, 1.69 and 
   harmonic selection had left out; with them in the basis its T^2 on draw 4 fell from 103 to
   6.8): with ``"auto"`` no order k > 0 is taken on any of the ten draws, draw 4 is at 1.36x
   (predicted 1.40x), draw 8 at 1.06x (1.07x), act/pred 0.92-1.27 on nine (order 0 alone is
-  still taken on four draws, 3, 5, 7 and 9, the table within 0.06x the floor of "none").
+  then still taken on four draws, 3, 5, 7 and 9, the table within 0.06x the floor of "none";
+  since order 0 is decided with the HAC variance, :mod:`hallcal.fit.cogging_search`, "Order
+  0's variance", no draw takes it and every row is the "none" row).
 - Draw 0 (the zoo's row; no cogging chosen) is the tail of the table's offset: 2.47x the floor
   against a standard deviation of 1.30x (batch means; 0.60x white), the electrical harmonics
   n_m and 2 n_m about 2x theirs; the same draw with all 70 harmonics: offset 5.48x against
