@@ -77,28 +77,27 @@ refined jointly (``fit_gain``) a constant torque trades off against c (both set 
 steady lag on a constant-speed ramp): there the calibration does not try order 0
 (``load=False``).
 
-Order 0's variance. Under a controller that integrates (the zoo's lead-lag PI) the integrator
-takes up a load within the start transient, so a_0 is seen in a short stretch only (on unseen
-zoo motor 179: 100 % of its sensitivity in the first of 25 batches, the shift of y0 at most
-2.8e-6 rad at sample 136 for a_0 = 7e-4, 1e-12 rad after 4096 samples). The batch-means
-variance of the other orders is then one batch's squared score, and at the fit that score is
-about zero (the residual is orthogonal to a_0's influence where the influence lives): on 179
-(adc12, no load in its truth) it was 0.02-0.13x the white one and order 0 was kept on noise
-draws 3, 5, 7, 9 (T^2 19, 83, 81, 34 against 14.0; white T^2 2.4, 2.0, 1.3, 1.2). A HAC of the
-fitted scores themselves fails the same way at any block size, only less (Newey-West over
-64-sample blocks, Andrews' bandwidth: 179 draw 5 T^2 4.3 with 2 Satterthwaite degrees of
-freedom; on a regression whose regressor decays in 200 of 25 600 samples, 27 % false alarms at
-the 1 % level). So a_0's variance is ``sigma^2 (A^-1)_00`` times the ratio of the long-run to
-the lag-0 variance of ``sum_t u_t^T e_t``, with a_0's influence ``u_t = J_t A^-1 e_a0`` (two
-simulations along that direction) and the residual's auto- and cross-covariances up to
-Andrews' (1991) bandwidth estimated over the WHOLE run (Bartlett kernel, Newey & West 1987;
-:func:`hac_variance`): a localized influence is judged against the residual's autocorrelation
-with ``1.5 N / S`` degrees of freedom (thousands on the zoo), not against its own few samples.
-On that regression: 1 % false alarms with white and with AR(1) 0.8 noise (batch means 96 %,
-white 40 % under the AR noise; ``tests/test_cogging_load.py``). The pass (two simulations and
-FFTs) is made only when the batch-means or the white test passes order 0; the paper's run
-without a load (T^2 0) is not charged (artifact bit-identical, the search 0.10 s CPU as before;
-with the load 0.003: 0.17 -> 0.22 s).
+Order 0's variance. Under a controller that integrates (the zoo's lead-lag PI) the integrator takes
+up a load within the start transient, so a_0 is seen in a short stretch only (on unseen zoo motor
+179: 100 % of its sensitivity in the first of 25 batches, the shift of y0 at most 2.8e-6 rad at
+sample 136 for a_0 = 7e-4, 1e-12 rad after 4096 samples). The batch-means variance of the other
+orders is then one batch's squared score, and at the fit that score is about zero (the residual is
+orthogonal to a_0's influence where the influence lives): on 179 (adc12, no load in its truth) it
+was 0.02-0.13x the white one and order 0 was kept on noise draws 3, 5, 7, 9 (T^2 19, 83, 81, 34
+against 14.0; white T^2 2.4, 2.0, 1.3, 1.2). A HAC of the fitted scores themselves fails the same
+way at any block size, only less (Newey-West over 64-sample blocks, Andrews' bandwidth: 179 draw 5
+T^2 4.3 with 2 Satterthwaite degrees of freedom; on regressions whose regressor decays in 60-200 of
+25 600 samples, 13-40 % false alarms at the 1 % level). So a_0's variance is ``sigma^2 (A^-1)_00``
+times the ratio of the long-run to the lag-0 variance of ``sum_t u_t^T e_t``, with a_0's influence
+``u_t = J_t A^-1 e_a0`` (two simulations along that direction) and the residual's auto- and
+cross-covariances up to Andrews' (1991) bandwidth estimated over the WHOLE run (Bartlett kernel,
+Newey & West 1987; :func:`hac_variance`): a localized influence is judged against the residual's
+autocorrelation with ``1.5 N / S`` degrees of freedom (thousands on the zoo), not against its own
+few samples. On the regression of the test: 1.3 % and 1.0 % false alarms at the 1 % level with white
+and with AR(1) 0.8 noise (batch means 95 %, white 36 % under the AR noise;
+``tests/test_cogging_load.py``). The pass (two simulations and FFTs) is made only when the
+batch-means or the white test passes order 0; the paper's run without a load (T^2 0) is not charged
+(artifact bit-identical, the search 0.10 s CPU as before; with the load 0.003: 0.17 -> 0.22 s).
 
 Measured (``benchmarks/bench_cogging_load.txt``, order 0 alone given / ``"auto"``; tables RMS
 about zero over the floor): 179 draws 3, 5, 7, 9 (no load): HAC T^2 1.8, 1.5, 0.9, 0.9 against
