@@ -367,9 +367,12 @@ def _cogging_unaffordable(
     Measured on the unseen zoo motor 178 (``benchmarks/bench_bigmotor.txt``: 24 pole pairs, a
     clipped sensor, 1.5 revolutions, 100 000 samples, no cogging in its truth): 192 harmonics,
     p = 1155, the first fit stopped by the budget after 3 of its 10 iterations; the search took
-    8 fits of 1157-1181 parameters (94 iterations, 200 of the calibration's 283 s) to find a
-    false torque at 48/rev. No other motor of the benchmarks reaches the budget in one fit
-    (the largest, ``bench_bigmotor.py`` seed 16 on 25 000 samples, used a fifth of it).
+    8 fits of 1157-1181 parameters (94 iterations, about 200 s) to find a false torque at 48/rev:
+    calibrate 292 s wall, N p^2 / stride 6.1e12; with the search skipped 49 s, 6.6e11, the same
+    verdict (refused at 22x the noise floor: the run determines the table too poorly) and its
+    table 14.7x the floor instead of 16.0x. No other motor
+    of the benchmarks comes near the budget in one fit (the largest first fit, ``bench_bigmotor``
+    seed 16 on 25 000 samples: 2.8e10 per iteration against 178's 1.3e11, room for 20).
     """
     sel = fit.selection
     if setup.model.cogging != "auto" or sel is None or sel.fits != 1:
