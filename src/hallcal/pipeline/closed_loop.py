@@ -370,9 +370,9 @@ def _cogging_unaffordable(
     8 fits of 1157-1181 parameters (94 iterations, about 200 s) to find a false torque at 48/rev:
     calibrate 292 s wall, N p^2 / stride 6.1e12; with the search skipped 49 s, 6.6e11, the same
     verdict (refused at 22x the noise floor: the run determines the table too poorly) and its
-    table 14.7x the floor instead of 16.0x. No other motor
-    of the benchmarks comes near the budget in one fit (the largest first fit, ``bench_bigmotor``
-    seed 16 on 25 000 samples: 2.8e10 per iteration against 178's 1.3e11, room for 20).
+    table 14.7x the floor instead of 16.0x. No other motor of the benchmarks comes near the
+    budget in one fit (the largest first fit, ``bench_bigmotor`` seed 16 on 25 000 samples:
+    2.8e10 per iteration against 178's 1.3e11, room for 20).
     """
     sel = fit.selection
     if setup.model.cogging != "auto" or sel is None or sel.fits != 1:
