@@ -288,21 +288,9 @@ def _with_cogging(
         max_iterations=setup.model.max_iterations, load=not fit_gain,
     )  # fmt: skip
     if sel.status is CoggingStatus.NONE:
-        capped = (
-            fit.sem.status is SEMStatus.MAX_ITERATIONS
-            and fit.sem.iterations < setup.model.max_iterations
-        )
-        if not capped:
-            return dataclasses.replace(fit, cogging=sel)
-        say(progress, "SEM with the chosen harmonics, to convergence (no cogging found)")
-        sem = solve_sem(
-            loop, s.r, s.d, fit.sem.flux.basis, theta0=fit.sem.flux.theta, fit_gain=fit_gain,
-            gain0=fit.sem.gain, max_iterations=setup.model.max_iterations,
-        )  # fmt: skip
-        return dataclasses.replace(
-            fit, sem=sem, flux=sem.flux, model_info=_fourier_info(sem.flux), gain_factor=sem.gain,
-            gain_factor_std=sem.gain_std, adequacy=None, cogging=sel,
-        )  # fmt: skip
+        fit = _to_convergence(loop, s, setup, fit, fit_gain=fit_gain, progress=progress,
+                              why="no cogging found")  # fmt: skip
+        return dataclasses.replace(fit, cogging=sel)
     sem, selection, adequacy = sel.sem, fit.selection, None
     if selection is not None and sel.cogging is not None:
         from hallcal.fit.order import select_harmonics, shape_off  # loaded with the selection
@@ -335,6 +323,74 @@ def _with_cogging(
         fit, sem=sem, flux=sem.flux, model_info=_fourier_info(sem.flux), gain_factor=sem.gain,
         gain_factor_std=sem.gain_std, selection=selection, adequacy=adequacy, cogging=sel,
     )  # fmt: skip
+
+
+def _to_convergence(
+    loop: ClosedLoop, s: _Signals, setup: Setup, fit: _ModelFit, *, fit_gain: bool,
+    progress: Progress, why: str,
+) -> _ModelFit:  # fmt: skip
+    """The flux-only fit finished to convergence when an iteration cap below
+    ``[model] max_iterations`` stopped it (the first fit's, :data:`_FIRST_ITERATIONS`, or the
+    harmonic search's work budget), else ``fit``; ``why`` is said with the step."""
+    capped = (
+        fit.sem.status is SEMStatus.MAX_ITERATIONS
+        and fit.sem.iterations < setup.model.max_iterations
+    )
+    if not capped:
+        return fit
+    say(progress, f"SEM with the chosen harmonics, to convergence ({why})")
+    sem = solve_sem(
+        loop, s.r, s.d, fit.sem.flux.basis, theta0=fit.sem.flux.theta, fit_gain=fit_gain,
+        gain0=fit.sem.gain, max_iterations=setup.model.max_iterations,
+    )  # fmt: skip
+    return dataclasses.replace(
+        fit, sem=sem, flux=sem.flux, model_info=_fourier_info(sem.flux), gain_factor=sem.gain,
+        gain_factor_std=sem.gain_std, adequacy=None,
+    )  # fmt: skip
+
+
+def _cogging_unaffordable(
+    loop: ClosedLoop, s: _Signals, setup: Setup, fit: _ModelFit
+) -> Message | None:
+    """Why the cogging search is skipped (a warning), or None to run it.
+
+    Every step of the model choice is bounded in work (:mod:`hallcal.fit.order`), but the
+    cogging search (:func:`hallcal.fit.cogging_search.select_cogging`) refits the whole model
+    several times, each fit to convergence. When one SEM fit of the harmonics the data ask for
+    already used up the harmonic search's work budget (:data:`hallcal.fit.order.WORK_BUDGET`,
+    iterations times N p^2; the search's status WORK_BUDGET after its first fit), the cogging
+    search would cost many such budgets and is skipped: the warning says so (the calibration is
+    a warning at best) and how to model a known torque (given orders: one joint fit). Unmodelled
+    motion, if any, still shows in the adequacy check's cost and is counted in the predicted
+    error (:func:`hallcal.fit.adequacy.motion_bias`).
+
+    Measured on the unseen zoo motor 178 (``benchmarks/bench_bigmotor.txt``: 24 pole pairs, a
+    clipped sensor, 1.5 revolutions, 100 000 samples, no cogging in its truth): 192 harmonics,
+    p = 1155, the first fit stopped by the budget after 3 of its 10 iterations; the search took
+    8 fits of 1157-1181 parameters (94 iterations, about 200 s) to find a false torque at 48/rev:
+    calibrate 292 s wall, N p^2 / stride 6.1e12; with the search skipped 49 s, 6.6e11, the same
+    verdict (refused at 22x the noise floor: the run determines the table too poorly) and its
+    table 14.7x the floor instead of 16.0x. No other motor of the benchmarks comes near the
+    budget in one fit (the largest first fit, ``bench_bigmotor`` seed 16 on 25 000 samples:
+    2.8e10 per iteration against 178's 1.3e11, room for 20).
+    """
+    sel = fit.selection
+    if setup.model.cogging != "auto" or sel is None or sel.fits != 1:
+        return None
+    from hallcal.fit.order import SelectionStatus  # loaded with the selection
+
+    if sel.status is not SelectionStatus.WORK_BUDGET:
+        return None
+    h = fit.sem.flux.basis.harmonics
+    revs = abs(float(s.r[-1] - s.r[0])) / TWO_PI
+    return Message.warning(
+        MessageCode.COGGING,
+        f"cogging: not searched: one SEM fit of the {len(h)} harmonics up to {max(h)} the data "
+        f"ask for ({fit.sem.flux.theta.size} flux parameters, {s.r.size} samples over "
+        f"{revs:.3g} revolutions) used up the harmonic search's work budget, and the search "
+        "refits the model several times; a known torque can be given as cogging = [orders] "
+        "(one joint fit)",
+    )
 
 
 def _final_fit(
@@ -599,11 +655,21 @@ def calibrate_closed_loop(
             fit = _fit_fourier(
                 loop, s_choice, setup, fit_gain=pm.gain is not None, progress=progress
             )
-            fit = _with_cogging(
-                loop, s_choice, setup, fit, fit_gain=pm.gain is not None, progress=progress
-            )
+            skipped = _cogging_unaffordable(loop, s_choice, setup, fit)
+            if skipped is None:
+                fit = _with_cogging(
+                    loop, s_choice, setup, fit, fit_gain=pm.gain is not None, progress=progress
+                )
+            else:
+                messages.append(skipped)
+            chosen = fit.sem
             fit, s = _final_fit(loop, s, setup, fit, found, progress=progress,
                                 fit_gain=pm.gain is not None)  # fmt: skip
+            if skipped is not None and fit.sem is chosen:  # no refit followed: finish the fit
+                fit = _to_convergence(
+                    loop, s_choice, setup, fit, fit_gain=pm.gain is not None,
+                    progress=progress, why="the cogging search skipped",
+                )  # fmt: skip
     timings["sem"] = time.perf_counter() - t0
     if fit.selection is not None:
         timings["model_selection"] = fit.selection.elapsed
