@@ -689,8 +689,10 @@ def hac_variance(u: ArrayLike, e: ArrayLike, *, dof_used: int = 0) -> LongRunVar
     -------
     LongRunVariance
     """
-    uu = np.asarray(u, dtype=np.float64).reshape(len(u), -1)
-    ee = np.asarray(e, dtype=np.float64).reshape(len(e), -1)
+    ua = np.asarray(u, dtype=np.float64)
+    ea = np.asarray(e, dtype=np.float64)
+    uu = ua.reshape(ua.shape[0], -1)
+    ee = ea.reshape(ea.shape[0], -1)
     n, c = ee.shape
     ee = ee - ee.mean(axis=0)
     g0 = np.einsum("th,th->h", ee, ee)
