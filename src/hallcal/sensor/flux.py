@@ -86,9 +86,10 @@ class FourierBasis:
         value[:, 0] = 1.0
         value[:, 1::2] = sin
         value[:, 2::2] = cos
-        slope = np.zeros((y.size, self.size))
-        slope[:, 1::2] = h * cos
-        slope[:, 2::2] = -h * sin
+        slope = np.empty((y.size, self.size))
+        slope[:, 0] = 0.0
+        np.multiply(h, cos, out=slope[:, 1::2])  # in place: no (N, n_h) temporaries
+        np.multiply(-h, sin, out=slope[:, 2::2])
         return value, slope
 
     def index(self, harmonic: int) -> tuple[int, int]:
