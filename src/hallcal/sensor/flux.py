@@ -15,7 +15,6 @@ Units: y0 in rad (mechanical), g in the Hall sensor's unit (V or ADC counts).
 from __future__ import annotations
 
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -192,6 +191,8 @@ def _over_blocks(n: int, fill: Callable[[int, int], None]) -> None:
     def run(part: list[tuple[int, int]]) -> None:
         for a, b in part:
             fill(a, b)
+
+    from concurrent.futures import ThreadPoolExecutor  # here: the short evaluations need none
 
     half = len(blocks) // 2
     with ThreadPoolExecutor(1) as pool:
