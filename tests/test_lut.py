@@ -101,3 +101,21 @@ def test_flux_evaluated_in_blocks_equals_one_product():
     assert model(0.5).shape == (1, 3)
     sizes = [b - a for a, b in fx._blocks(5 * fx.EVALUATION_BLOCK + 1)]
     assert sum(sizes) == 5 * fx.EVALUATION_BLOCK + 1 and min(sizes) > fx.EVALUATION_BLOCK // 2
+
+
+def test_flux_blocks_in_two_threads_equal_the_blocks_one_after_the_other():
+    """A long evaluation's blocks go to two threads: the bits of the blocks one after the other
+    (each block is computed as alone, whichever thread takes it)."""
+    from hallcal.sensor import flux as fx
+
+    rng = np.random.default_rng(4)
+    basis = FourierBasis(tuple(range(1, 12)))
+    model = FluxModel(basis, rng.standard_normal((3, basis.size)))
+    y = rng.uniform(-3.0, 25.0, 5 * fx.EVALUATION_BLOCK + 3)
+    blocks = fx._blocks(y.size)
+    assert len(blocks) > 2  # the threaded path
+    g = np.vstack([basis.evaluate(y[a:b]) @ model.theta.T for a, b in blocks])
+    dg = np.vstack([basis.derivative(y[a:b]) @ model.theta.T for a, b in blocks])
+    value, slope = model.value_and_derivative(y)
+    assert np.array_equal(value, g) and np.array_equal(slope, dg)
+    assert np.array_equal(model(y), g) and np.array_equal(model.derivative(y), dg)

@@ -400,11 +400,12 @@ class PowerUpDecoder:
         M = self.table_size
         i = np.minimum(np.floor(pos).astype(np.int64), M - 1)
         f = pos - i
-        i1 = np.where(i == M - 1, 0, i + 1)
-        R0, R1 = self.radius[i], self.radius[i1]
-        Z0, Z1 = self.zero[i], self.zero[i1]
+        # each table point's step to the next one around the revolution (M differences, the
+        # same R[i + 1] - R[i] as taken per sample), gathered once per sample
+        R, Z = self.radius, self.zero
+        dR, dZ = (np.roll(R, -1) - R)[i], (np.roll(Z, -1) - Z)[i]
         k = self.grid / TWO_PI
-        return R0 + f * (R1 - R0), Z0 + f * (Z1 - Z0), (R1 - R0) * k, (Z1 - Z0) * k
+        return R[i] + f * dR, Z[i] + f * dZ, dR * k, dZ * k
 
     def tables_at(self, pos: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         """R, Z and their slopes per electrical rad at table coordinates ``pos`` in [0, M)

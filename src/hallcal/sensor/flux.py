@@ -85,9 +85,10 @@ class FourierBasis:
         value[:, 0] = 1.0
         value[:, 1::2] = sin
         value[:, 2::2] = cos
-        slope = np.zeros((y.size, self.size))
-        slope[:, 1::2] = h * cos
-        slope[:, 2::2] = -h * sin
+        slope = np.empty((y.size, self.size))
+        slope[:, 0] = 0.0
+        np.multiply(h, cos, out=slope[:, 1::2])  # in place: no (N, n_h) temporaries
+        np.multiply(-h, sin, out=slope[:, 2::2])
         return value, slope
 
     def index(self, harmonic: int) -> tuple[int, int]:
@@ -136,10 +137,13 @@ class FluxModel:
         if fused is None or y.ndim != 1:
             return self(y), self.derivative(y)
         value, slope = np.empty((y.size, 3)), np.empty((y.size, 3))
-        for a, b in _blocks(y.size):
+
+        def fill(a: int, b: int) -> None:
             B, dB = fused(y[a:b])
             value[a:b] = B @ self.theta.T
             slope[a:b] = dB @ self.theta.T
+
+        _over_blocks(y.size, fill)
         return value, slope
 
     def _evaluate(
@@ -150,8 +154,11 @@ class FluxModel:
         if y.ndim != 1 or y.size <= EVALUATION_BLOCK:
             return basis(y) @ self.theta.T
         out = np.empty((y.size, 3))
-        for a, b in _blocks(y.size):
+
+        def fill(a: int, b: int) -> None:
             out[a:b] = basis(y[a:b]) @ self.theta.T
+
+        _over_blocks(y.size, fill)
         return out
 
 
@@ -169,6 +176,29 @@ def _blocks(n: int) -> list[tuple[int, int]]:
     count = max(-(-n // EVALUATION_BLOCK), 1)
     edges = [(k * n) // count for k in range(count + 1)]
     return list(zip(edges[:-1], edges[1:], strict=True))
+
+
+def _over_blocks(n: int, fill: Callable[[int, int], None]) -> None:
+    """``fill(a, b)`` on each row range of :func:`_blocks`: with several blocks, the second half
+    of them in a second thread (NumPy releases the GIL in its array operations; each block is
+    computed as it is alone, so the result is the same to the bit in either thread)."""
+    blocks = _blocks(n)
+    if len(blocks) < 2:
+        for a, b in blocks:
+            fill(a, b)
+        return
+
+    def run(part: list[tuple[int, int]]) -> None:
+        for a, b in part:
+            fill(a, b)
+
+    from concurrent.futures import ThreadPoolExecutor  # here: the short evaluations need none
+
+    half = len(blocks) // 2
+    with ThreadPoolExecutor(1) as pool:
+        later = pool.submit(run, blocks[half:])
+        run(blocks[:half])
+        later.result()
 
 
 def sinusoidal_theta(
