@@ -595,8 +595,7 @@ def calibrate_closed_loop(
     dataset.require("r", "d1", "d2", "d3")
     say(progress, "checking pole pairs and direction against the reference")
     # the Hall signals' lag-1 correlation, computed once for the unit and the motion checks
-    # (the unit check needs it from 8 samples on, as its own early return)
-    rho = hall_lag_correlation(dataset) if dataset.n_samples >= 8 else None
+    rho = hall_lag_correlation(dataset)
     preflight = check_recording(
         dataset, pole_pairs=setup.pole_pairs, sample_time=setup.sample_time, lag_correlation=rho
     ) + [check_pole_pairs(dataset, setup.pole_pairs), check_direction(dataset)]
