@@ -420,6 +420,20 @@ def test_normal_tail_matches_scipy():
     np.testing.assert_allclose(_absolute_analysis._normal_tail(x), ndtr(-x), rtol=1.2e-7, atol=0.0)
 
 
+def test_turn_counts_are_the_plain_modulo(paper):
+    """The hypotheses' turn counts (m + j) mod n, taken from m mod n and j mod n (one integer
+    division per sample): the same integers as the plain modulo, negative m and j included."""
+    rng = np.random.default_rng(5)
+    dec = paper[3]
+    n, L = dec.pole_pairs, dec.grid
+    m = rng.integers(-40, 40, 300)
+    psi = rng.uniform(-math.pi, math.pi, 300)
+    offsets = np.array([0, 3, n - 1, n, 2 * n + 1, -2])
+    x = np.mod(m[:, None] + offsets[None, :], n) * L + (L / (2 * math.pi)) * psi[:, None]
+    want = np.where(x < 0.0, x + dec.table_size, x)
+    assert np.array_equal(dec.coordinates(psi, m, offsets), want)
+
+
 def test_standstill_computations_in_blocks_match_whole_arrays():
     """The standstill error and the sample search run over blocks of positions (bounded
     memory): the same values as on the whole array at once."""

@@ -430,8 +430,11 @@ class PowerUpDecoder:
             x_j in [0, M) [table points].
         """
         n, L, M = self.pole_pairs, self.grid, self.table_size
-        j = np.asarray(offsets, dtype=np.int64)
-        e = np.mod(np.asarray(m, dtype=np.int64)[:, None] + j[None, :], n)
+        j = np.mod(np.asarray(offsets, dtype=np.int64), n)
+        # (m + j) mod n from m mod n and j mod n: one integer division per sample, not per
+        # sample and hypothesis (the same integers)
+        e = np.mod(np.asarray(m, dtype=np.int64), n)[:, None] + j[None, :]
+        np.subtract(e, n, out=e, where=e >= n)
         x = e * L + (L / TWO_PI) * np.asarray(psi)[:, None]
         return np.where(x < 0.0, x + M, x)
 
