@@ -86,7 +86,7 @@ def _theta_covariances(sem: SEMResult) -> list[NDArray]:
 
 def _table(
     sem: SEMResult, n: int, P: NDArray, o: NDArray, sigma2: float, points: int,
-    *, motion: float | None = None,
+    *, motion: float | None = None, offset_variance: float | None = None,
 ) -> _Table:  # fmt: skip
     """Bijectivity and correction size of the table; noise floor of the angle for this model's
     amplitude; predicted error ``sqrt(floor^2 + mean var eta)`` from cov(theta), the larger of
@@ -94,7 +94,10 @@ def _table(
     constant offset included (both the correction and the prediction are about zero), and its
     upper quantile (:func:`error_spread`). With ``motion`` (the cost ratio, given when it is
     above its warning level) the correction in the directions the run determines poorly counts
-    as possible bias too (:func:`motion_bias`)."""
+    as possible bias too (:func:`motion_bias`). With ``offset_variance`` (the offset's HAC
+    variance, :func:`hallcal.fit.offset_variance.offset_long_run`) the offset's variance is the
+    largest of the white, batch-means and HAC ones: what the HAC exceeds both covariances' by
+    is added to the chosen one's offset (``error_spread(..., offset=)``)."""
     lut = build_lut(sem.flux, n, points=points, projection=P, offset=o)
     eta = lut.eta  # about zero: f_init's error with its offset, as the prediction
     floor = angle_noise_floor(sem.flux, n, sigma2, projection=P, offset=o, points=lut.y0.size)
@@ -102,9 +105,15 @@ def _table(
     bias = 0.0
     try:
         G = angle_error_gradient(sem.flux, n, projection=P, offset=o)
+        covs = _theta_covariances(sem)
         mean_var_eta, excess_q, C = max(
-            ((*error_spread(G, C), C) for C in _theta_covariances(sem)), key=lambda t: t[0]
+            ((*error_spread(G, C), C) for C in covs), key=lambda t: t[0]
         )
+        if offset_variance is not None:
+            gbar = G.mean(axis=0)
+            extra = offset_variance - max(float(gbar @ Ci @ gbar) for Ci in covs)
+            if extra > 0:
+                mean_var_eta, excess_q = error_spread(G, C, offset=extra)
         sources = error_sources(G, C, sem.flux.basis.harmonics, fundamental=n)
         if motion is not None and math.isfinite(mean_var_eta):
             grid = TWO_PI * np.arange(G.shape[0]) / G.shape[0]
@@ -239,8 +248,8 @@ def error_sources(
 UPPER_PROBABILITY = 0.95
 
 
-def error_spread(G: NDArray, C: ArrayLike, *, probability: float = UPPER_PROBABILITY
-                 ) -> tuple[float, float]:  # fmt: skip
+def error_spread(G: NDArray, C: ArrayLike, *, probability: float = UPPER_PROBABILITY,
+                 offset: float = 0.0) -> tuple[float, float]:  # fmt: skip
     """Mean and upper quantile of the table's mean-square error over y0 that cov(theta) implies.
 
     With ``delta theta ~ N(0, C)`` the table's mean-square error ``|G delta theta|^2 / M`` is
@@ -261,6 +270,9 @@ def error_spread(G: NDArray, C: ArrayLike, *, probability: float = UPPER_PROBABI
         cov(theta).
     probability : float, keyword-only
         Of the upper quantile.
+    offset : float, keyword-only
+        Variance [rad^2] added to the table's constant offset (its HAC excess, :func:`_table`):
+        ``offset / M`` on every entry of A (a constant over the grid).
 
     Returns
     -------
@@ -268,6 +280,8 @@ def error_spread(G: NDArray, C: ArrayLike, *, probability: float = UPPER_PROBABI
         ``tr A`` and the quantile of ``|G delta theta|^2 / M`` [rad^2].
     """
     A = G @ np.asarray(C, dtype=np.float64) @ G.T / G.shape[0]
+    if offset:
+        A = A + offset / G.shape[0]
     trace = float(np.trace(A))
     frob2 = float(np.sum(A * A))
     if not (math.isfinite(trace) and math.isfinite(frob2)) or trace <= 0.0 or frob2 <= 0.0:
