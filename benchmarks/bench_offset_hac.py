@@ -9,13 +9,21 @@ ways at the final fit: white ``c^T C_w c``, batch-means ``c^T C_b c``, and the H
 model simulations along ``A^-1 c``), as :func:`hallcal.fit.cogging_search.load_test` does for
 a_0: ``sigma^2 c^T A^-1 c`` times the long-run / lag-0 ratio of ``sum_t u_t^T e_t``. Each is
 compared with the table's actual offset (f_star's mean error on the validation run) as a
-z-score; the question is whether the HAC sd brings the RMS of z near 1 where today's exceeds it.
+z-score; the question was whether the HAC sd brings the RMS of z near 1 where today's exceeds it.
 
-Rows: zoo motors (``bench_zoo.run_motor``, oracle floor) and the paper bench with cogging 0.003
-at 132 and a random torque disturbance 2e-3, plant given (``bench_cogging.py``'s row) over
-bench seeds. sd's and offsets are over the floor.
+Rows: zoo motors (``bench_zoo.run_motor``, oracle floor; ``179:0-9`` its calibration noise
+draws), the paper bench with cogging 0.003 at 132 and a random torque disturbance 2e-3, plant
+given (``bench_cogging.py``'s row), and the paper bench itself, over bench seeds. Columns (over
+the floor): ``star`` f_star's RMS error about zero, ``off`` its mean (the table's offset);
+the offset's sd: ``white``, ``batch`` (batch-means, when the run has enough batches), ``andr``
+the HAC at Andrews' AR(1) bandwidth ``S``, ``hac`` the HAC at N / 12 the calibration uses
+(:mod:`hallcal.fit.offset_variance`); ``z_now`` = off / max(white, batch), ``z_new`` = off /
+max(white, batch, hac); ``pred0`` the predicted error without the HAC (``pred`` minus the
+excess in quadrature), ``pred`` with it, ``a/p0`` and ``a/p`` star over each; then the HAC /
+white sd ratio at fixed Bartlett bandwidths.
 
-Run ``nice python benchmarks/bench_offset_hac.py [--zoo 179:0-9 183 ...] [--cogging 1-6]``.
+Run ``nice python benchmarks/bench_offset_hac.py [--zoo 179:0-9 183 ...] [--cogging 1-6]
+[--paper 1-6]``; the output is committed beside it.
 """
 
 from __future__ import annotations
@@ -107,8 +115,16 @@ def zoo_row(seed: int, k: int) -> str:
     finally:
         hp.calibrate = calibrate
     floor = cap["cal"].predicted_error / row["pred"]
-    return _line(f"zoo {seed} k={k}", row["off"], row["star"], row["pred"], offset_sds(), floor,
+    sd = _applied(offset_sds(), cap["cal"].adequacy)
+    return _line(f"zoo {seed} k={k}", row["off"], row["star"], row["pred"], sd, floor,
                  row["status"])  # fmt: skip
+
+
+def _applied(sd: dict, adequacy) -> dict:
+    """The excess as the calibration applied it: none where the motion bias is predicted."""
+    if adequacy is not None and adequacy.motion_bias > 0:
+        sd["excess"] = 0.0
+    return sd
 
 
 def cogging_row(seed: int, *, amp: float = 0.003, td: float = 2e-3) -> str:
@@ -129,8 +145,9 @@ def cogging_row(seed: int, *, amp: float = 0.003, td: float = 2e-3) -> str:
     v = validate(cal.lut, Dataset.from_columns(val.columns(), path="validation"))
     floor = cfg.noise_floor
     name = f"cog132 Td s={seed}" if amp else f"paper s={seed}"
-    return _line(name, v.star.mean / floor, v.star.rms / floor, cal.predicted_error / floor,
-                 offset_sds(), floor, cal.status.value)  # fmt: skip
+    sd = _applied(offset_sds(), cal.computed.adequacy)
+    return _line(name, v.star.mean / floor, v.star.rms / floor, cal.predicted_error / floor, sd,
+                 floor, cal.status.value)  # fmt: skip
 
 
 def _line(name, off, star, pred, sd, floor, status) -> str:
