@@ -122,8 +122,11 @@ def zoo_row(seed: int, k: int) -> str:
 
 def _applied(sd: dict, adequacy) -> dict:
     """The excess as the calibration applied it: none where the motion bias is predicted."""
-    if adequacy is not None and adequacy.motion_bias > 0:
+    if adequacy is not None and (
+        adequacy.motion_bias > 0 or not adequacy.ratio > adequacy.thresholds["warn_ratio"]
+    ):
         sd["excess"] = 0.0
+    sd["ratio"] = adequacy.ratio if adequacy is not None else math.nan
     return sd
 
 
@@ -157,7 +160,7 @@ def _line(name, off, star, pred, sd, floor, status) -> str:
     before = math.sqrt(max(pred**2 - (sd["excess"] / floor) ** 2, 0.0))
     return (f"{name:>15} {status:>8} {star:6.3f} {off:+6.3f} | {w:5.3f} {b:5.3f} {a:5.3f} "
             f"{sd['S']:5.1f} {hc:5.3f} | {off / now:+6.2f} {off / new:+6.2f} | {before:6.3f} "
-            f"{pred:6.3f} {star / before:5.2f} {star / pred:5.2f} | "
+            f"{pred:6.3f} {star / before:5.2f} {star / pred:5.2f} {sd['ratio']:5.2f} | "
             + " ".join(f"{x:4.2f}" for x in sd["span"]))  # fmt: skip
 
 
@@ -170,7 +173,7 @@ def main() -> None:
     print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip(), flush=True)
     print(f"{'case':>15} {'status':>8} {'star':>6} {'off':>6} | {'white':>5} {'batch':>5} "
           f"{'andr':>5} {'S':>5} {'hac':>5} | {'z_now':>6} {'z_new':>6} | {'pred0':>6} "
-          f"{'pred':>6} {'a/p0':>5} {'a/p':>5} | HAC/white sd at S = "
+          f"{'pred':>6} {'a/p0':>5} {'a/p':>5} {'cost':>5} | HAC/white sd at S = "
           + " ".join(str(S) for S in SPAN))  # fmt: skip
     for spec in a.zoo:
         seed, _, ks = spec.partition(":")

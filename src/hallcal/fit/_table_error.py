@@ -100,11 +100,16 @@ def _table(
     as possible bias too (:func:`motion_bias`). With ``offset_variance`` (the offset's HAC
     variance, :func:`hallcal.fit.offset_variance.offset_long_run`) the offset's variance is the
     largest of the white, batch-means and HAC ones: what the HAC exceeds both covariances' by
-    is added to the chosen one's offset (``error_spread(..., offset=)``), unless the motion bias
-    is in the prediction already: it bounds the poorly determined directions (the offset among
-    them) by the correction itself, and the HAC of a residual that unmodelled motion dominates
-    counted the same motion again (random load torques with a BLA plant, cost 4-5x the noise
-    level, ``tests/test_verdict_motion.py``: predicted 2.9x -> 4.2x and 1.8x -> 4.1x the floor
+    is added to the chosen one's offset (``error_spread(..., offset=)``), only with ``motion``
+    and no motion bias. Without motion (the cost at its noise level) the HAC mistakes a misfit
+    periodic in the angle for noise (a run of one or two revolutions cannot tell them apart):
+    on the paper's bench it put the offset's sd at 2.0x the white one, while the offsets of six
+    seeds were 1.06 white sd's RMS (five; the sixth 5.7), and 1.14 with ideal sensors, where it
+    would have refused tables that are in fact 0.2-1.2 % worse than f_init. With the motion bias
+    the poorly determined directions (the offset among them) are bounded by the correction
+    itself, and the HAC of a residual that unmodelled motion dominates counted the same motion
+    again (random load torques with a BLA plant, cost 4-5x the noise level,
+    ``tests/test_verdict_motion.py``: predicted 2.9x -> 4.2x and 1.8x -> 4.1x the floor
     against tables 2.8x and 1.6x)."""
     lut = build_lut(sem.flux, n, points=points, projection=P, offset=o)
     eta = lut.eta  # about zero: f_init's error with its offset, as the prediction
@@ -121,7 +126,7 @@ def _table(
         if motion is not None and math.isfinite(mean_var_eta):
             grid = TWO_PI * np.arange(G.shape[0]) / G.shape[0]
             bias = motion_bias(G, C, np.interp(grid, lut.y0, eta, period=TWO_PI), floor=floor)
-        if offset_variance is not None and bias == 0.0:
+        if offset_variance is not None and motion is not None and bias == 0.0:
             gbar = G.mean(axis=0)
             extra = offset_variance - max(float(gbar @ Ci @ gbar) for Ci in covs)
             if extra > 0:
