@@ -105,7 +105,7 @@ def _table(
     periodic in the angle for noise (a run of one or two revolutions cannot tell them apart):
     on the paper's bench it put the offset's sd at 2.0x the white one, while the offsets of six
     seeds were 1.06 white sd's RMS (five; the sixth 5.7), and 1.14 with ideal sensors, where it
-    would have refused tables that are in fact 0.2-1.2 % worse than f_init. With the motion bias
+    would have refused tables that are in fact 0.1-1.2 % worse than f_init. With the motion bias
     the poorly determined directions (the offset among them) are bounded by the correction
     itself, and the HAC of a residual that unmodelled motion dominates counted the same motion
     again (random load torques with a BLA plant, cost 4-5x the noise level,
