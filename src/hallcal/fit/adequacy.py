@@ -348,6 +348,7 @@ def assess(
     warn_predicted: float = 1.5,
     lut_points: int = 4096,
     curve: CurveProjection | None = None,
+    offset_variance: float | None = None,
 ) -> AdequacyReport:
     """Judge a SEM fit from the calibration data alone (model validation, Ljung 1999, sec. 16).
 
@@ -385,6 +386,10 @@ def assess(
     curve : CurveProjection, optional
         The projection of d on the fit's curve if already computed (:func:`project_fit`: used
         only when it comes from this very fit and these very signals).
+    offset_variance : float, optional
+        The HAC variance of the table's constant offset [rad^2]
+        (:func:`hallcal.fit.offset_variance.offset_long_run`): the predicted error adds what it
+        exceeds both covariances' offset variance by (:func:`hallcal.fit._table_error._table`).
 
     Returns
     -------
@@ -398,7 +403,8 @@ def assess(
         lv.thresholds.update(significance=significance, min_amplitude_over_sigma=min_amplitude,
                              dominance=dominance, warn_predicted=warn_predicted)  # fmt: skip
         motion = lv.ratio if lv.ratio > lv.warn and not lv.no_noise else None
-        tab = _table(sem, n, P, o, lv.sigma2, lut_points, motion=motion)
+        tab = _table(sem, n, P, o, lv.sigma2, lut_points, motion=motion,
+                     offset_variance=offset_variance)  # fmt: skip
         if not math.isfinite(lv.cost) or sem.status == "diverged":
             return _failed_report(sem, lv, tab)
         sh = _shape_and_timing(project_fit(sem, dd, known=curve), lv)

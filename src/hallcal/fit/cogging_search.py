@@ -661,7 +661,9 @@ def _lagged_products(a: NDArray, b: NDArray, lags: int) -> NDArray[np.float64]:
     return np.concatenate([full[nfft - lags :], full[: lags + 1]], axis=0)
 
 
-def hac_variance(u: ArrayLike, e: ArrayLike, *, dof_used: int = 0) -> LongRunVariance:
+def hac_variance(
+    u: ArrayLike, e: ArrayLike, *, dof_used: int = 0, bandwidth: float | None = None
+) -> LongRunVariance:
     """Long-run variance of ``sum_t u_t^T e_t`` for a stationary residual e, Bartlett kernel.
 
     ``var = sum_|l|<S k(l / S) sum_{h, g} Gamma_hg(l) sum_t u_t,h u_t+l,g`` with the residual's
@@ -684,6 +686,9 @@ def hac_variance(u: ArrayLike, e: ArrayLike, *, dof_used: int = 0) -> LongRunVar
         Residual.
     dof_used : int
         Parameters fitted to e (their share per channel is taken off N, as sigma^2 does).
+    bandwidth : float, optional
+        S [samples] instead of Andrews' plug-in (at most N / 12 all the same): a fixed fraction
+        of N (:func:`hallcal.fit.offset_variance.offset_excess`).
 
     Returns
     -------
@@ -704,7 +709,8 @@ def hac_variance(u: ArrayLike, e: ArrayLike, *, dof_used: int = 0) -> LongRunVar
     s4 = (g0[ok] / n) ** 2
     alpha1 = float(np.sum(4 * rho**2 * s4 / ((1 - rho) ** 6 * (1 + rho) ** 2))
                    / np.sum(s4 / (1 - rho) ** 4))  # fmt: skip
-    S = min(1.1447 * (alpha1 * n) ** (1.0 / 3.0), n / 12.0)
+    S = 1.1447 * (alpha1 * n) ** (1.0 / 3.0) if bandwidth is None else float(bandwidth)
+    S = min(S, n / 12.0)
     lags = max(math.ceil(S) - 1, 0)
     norm = max(n - dof_used / c, 1.0)
     gam = _lagged_products(ee, ee, lags) / norm  # Gamma(l), l = -lags..lags

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from hallcal.errors import HallcalError, HallcalInputError
 from hallcal.fit.adequacy import AdequacyReport, ErrorSource, assess
 from hallcal.fit.cogging_search import CoggingSelection, CoggingStatus, select_cogging
+from hallcal.fit.offset_variance import offset_excess
 from hallcal.fit.ramp_design import RampPrediction, plan_ramp, speed_limits
 from hallcal.fit.sem import SEMResult, SEMStatus, solve_sem
 from hallcal.io.dataset import Dataset
@@ -701,14 +702,25 @@ def calibrate_closed_loop(
         messages.append(Message.note(MessageCode.COGGING, fit.cogging.message))
     loop = closed_loop(setup, pm.plant).with_cogging(cogging).with_rails(*found.censoring.rails)
 
+    # the table's offset with the residual's autocorrelation over the whole run (HAC): when it
+    # exceeds what both covariances give the offset and the run shows unmodelled motion (the
+    # cost above its warning level, no motion bias), the table's error is assessed with it
+    excess, long_run = offset_excess(loop, s.r, s.d, fit.sem)
+    offset_variance = long_run.variance if long_run is not None and excess > 0 else None
+    prior = fit.adequacy
+    if prior is not None and not (
+        prior.ratio > prior.thresholds["warn_ratio"] and prior.motion_bias == 0.0
+    ):
+        offset_variance = None  # the assessment made would not change
     with numeric_errors("setup", "model"):
-        adequacy = fit.adequacy or assess(
+        adequacy = (prior if offset_variance is None else None) or assess(
             *sensors.at_mid_run(fit.sem, s.d),
             noise=sensors.noise(found, s.d),
             pole_pairs=setup.pole_pairs,
             projection=loop.projection,
             offset=loop.offset,
             curve=fit.cogging.spectrum.curve if fit.cogging and fit.cogging.spectrum else None,
+            offset_variance=offset_variance,
         )
         say(progress, "lookup table and bijectivity check")
         lut = build_lut(

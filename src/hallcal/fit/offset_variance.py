@@ -1,0 +1,141 @@
+"""The table's constant offset: its long-run (HAC) variance, where the residual is coloured.
+
+The predicted table error (:mod:`hallcal.fit._table_error`) propagates the larger of the white
+``sigma^2 (J^T J)^-1`` and the batch-means covariance of theta. The table's constant offset is
+one linear functional of theta, ``c^T theta`` with ``c`` the mean over the revolution of
+``d eta / d theta`` (:func:`hallcal.fit.sem.angle_error_gradient`). Both covariances can miss it:
+the white one assumes a white residual, the batch-means one sees the offset in the few batches
+where its influence lives (the start of the run). A random load torque (the paper's bench with a
+torque disturbance of std 2e-3, 5 Hz low-pass, at 4 kHz) leaves in the residual a slow
+component far below the Hall noise per sample but dominant at low frequencies, along which the
+offset is fitted: over six bench seeds its offset was 0.65x the noise floor RMS against 0.10x
+(white) and 0.04-0.07x (batch) predicted (``benchmarks/bench_offset_hac.txt``).
+
+Its variance here is the HAC (heteroscedasticity-and-autocorrelation-consistent) variance of
+:func:`hallcal.fit.cogging_search.hac_variance` for the functional: the influence
+``u_t = J_t A^-1 c`` from two model simulations along ``A^-1 c`` (as for a constant load,
+:func:`hallcal.fit.cogging_search.load_test`), the residual's auto- and cross-covariances over
+the whole run, the Bartlett kernel (Newey & West 1987), and ``sigma^2 c^T A^-1 c`` times the
+long-run / lag-0 ratio of ``sum_t u_t^T e_t``. The bandwidth is a fixed fraction of the run,
+N / 12 (a "fixed-b" bandwidth, Kiefer & Vogelsang 2005: robust to strong autocorrelation at the
+cost of a noisier estimate, 1.5 N / S = 18 degrees of freedom), not Andrews' (1991) AR(1)
+plug-in: the plug-in reads the residual's lag-one autocorrelation, which the white Hall noise
+dominates (0.22 on the disturbed bench), and chose S = 32 samples, where the ratio had not
+levelled off (sd ratio 3.1 at S = 30, 5.7 at 300, 7.2 at 1000, 7.7 at 3000; the offsets asked
+for 6.5). With it the offsets' z-scores over the six seeds have RMS 0.78 (6.46 with the white
+sd), actual/predicted 1.00-1.39 -> 0.79-1.08. On the zoo's healthy motors the ratio stays at
+0.93-1.05 at every bandwidth.
+
+The prediction uses it only where the run shows unmodelled motion: the cost above its warning
+level and no motion bias (:func:`hallcal.fit._table_error._table` says why: without motion the
+HAC counts a misfit periodic in the angle as noise, 2.0x the white sd on the paper's bench
+whose offsets follow the white one; with the motion bias it counts the motion twice).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from hallcal.fit._table_error import _theta_covariances
+from hallcal.fit.cogging_search import LongRunVariance, hac_variance
+from hallcal.fit.gauss_newton import simulate_model
+from hallcal.fit.sem import SEMResult, angle_error_gradient
+from hallcal.sim.loop import ClosedLoop
+
+__all__ = ["BANDWIDTH_FRACTION", "offset_excess", "offset_long_run"]
+
+#: The HAC bandwidth as a fraction of the run's samples (module docstring; the cap of
+#: :func:`hallcal.fit.cogging_search.hac_variance`).
+BANDWIDTH_FRACTION = 1.0 / 12.0
+
+
+def _offset_functional(loop: ClosedLoop, sem: SEMResult) -> NDArray[np.float64]:
+    """``c``: the table's constant offset is ``c^T theta`` to first order [rad per theta]."""
+    G = angle_error_gradient(sem.flux, loop.pole_pairs, projection=loop.projection,
+                             offset=loop.offset)  # fmt: skip
+    return G.mean(axis=0)
+
+
+def offset_long_run(
+    loop: ClosedLoop, r: ArrayLike, d: ArrayLike, sem: SEMResult, *, step: float = 0.01
+) -> LongRunVariance | None:
+    """The HAC variance [rad^2] of the table's constant offset ``c^T theta`` (module docstring).
+
+    Parameters
+    ----------
+    loop : ClosedLoop
+        The loop ``sem`` was solved with (its projection and offset are f_init's).
+    r : array_like (N,)
+        Its reference [rad].
+    d : array_like (N, 3)
+        The Hall signals it fitted.
+    sem : SEMResult
+        The final fit.
+    step : float, keyword-only
+        Of the central differences along ``A^-1 c``, in the offset's white standard deviations.
+
+    Returns
+    -------
+    LongRunVariance or None
+        ``variance`` the HAC one, ``white`` ``sigma^2 c^T A^-1 c``; None when the fit has no
+        parameter covariance or a simulation fails.
+    """
+    cov, layout = sem.parameter_covariance, sem.layout
+    if cov is None or layout is None or not sem.noise_variance > 0:
+        return None
+    c = _offset_functional(loop, sem)
+    p = c.size
+    v = cov[:, :p] @ c / sem.noise_variance  # A^-1 c, theta first in the layout
+    white = float(c @ cov[:p, :p] @ c)
+    gain = math.log(sem.gain) if layout.fit_gain else 0.0
+    x = layout.pack(sem.flux.theta, gain, sem.cogging, sem.drift)
+    h = step * math.sqrt(max(white, 0.0)) / max(float(c @ v[:p]), 1e-300)
+    if not (h > 0 and math.isfinite(h)):
+        return None
+    up = simulate_model(loop, layout, x + h * v, r)
+    down = simulate_model(loop, layout, x - h * v, r)
+    if not (up.status.success and down.status.success):
+        return None
+    u = (up.d - down.d) / (2.0 * h)
+    e = np.asarray(d, dtype=np.float64) - sem.d_sim
+    lr = hac_variance(u, e, dof_used=layout.size, bandwidth=BANDWIDTH_FRACTION * e.shape[0])
+    if not lr.white > 0:
+        return None
+    # the ratio on sigma^2 c^T A^-1 c, as load_test does for a_0 (A is nearly singular)
+    return LongRunVariance(white * lr.variance / lr.white, lr.bandwidth, lr.dof, white)
+
+
+def offset_excess(
+    loop: ClosedLoop, r: ArrayLike, d: ArrayLike, sem: SEMResult
+) -> tuple[float, LongRunVariance | None]:
+    """What the offset's HAC variance adds to the predicted table error [rad].
+
+    The offset part of the prediction is the largest of its white, batch-means
+    (:func:`hallcal.fit._table_error._theta_covariances`) and HAC (:func:`offset_long_run`)
+    variances; the first two are in the prediction already, so this is
+    ``sqrt(max(0, hac - max(white, batch)))``, to be added in quadrature to the predicted error
+    (a constant over the revolution: about zero it adds its variance to the mean square).
+
+    Parameters
+    ----------
+    loop, r, d, sem
+        As :func:`offset_long_run`.
+
+    Returns
+    -------
+    (excess, long_run) : tuple
+        The excess [rad] (0 when the HAC variance is no larger, or cannot be had: no
+        covariance, a simulation or the gradient failing) and the HAC variance.
+    """
+    try:
+        lr = offset_long_run(loop, r, d, sem)
+        if lr is None or not math.isfinite(lr.variance):
+            return 0.0, lr
+        c = _offset_functional(loop, sem)
+        now = max(float(c @ C @ c) for C in _theta_covariances(sem))
+    except (ValueError, np.linalg.LinAlgError):  # the prediction stands as it was
+        return 0.0, None
+    return math.sqrt(max(lr.variance - now, 0.0)), lr
