@@ -38,8 +38,8 @@ import numpy as np
 import hallcal.pipeline as hp
 import hallcal.pipeline.closed_loop as cl
 from hallcal.fit._table_error import MIN_BATCHES
-from hallcal.fit.cogging_search import _lagged_products, hac_variance
 from hallcal.fit.gauss_newton import simulate_model
+from hallcal.fit.long_run import _lagged_products, hac_variance
 from hallcal.fit.offset_variance import offset_excess
 from hallcal.fit.sem import angle_error_gradient
 

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from hallcal.fit.cogging_search import hac_variance, load_test
+from hallcal.fit.cogging_search import load_test
+from hallcal.fit.long_run import hac_variance
 from hallcal.fit.sem import solve_sem
 from hallcal.io import ModelSpec, Setup
 from hallcal.pipeline.plant import closed_loop

@@ -9,7 +9,7 @@ from scipy.signal import lfilter
 
 from hallcal.fit._table_error import error_spread
 from hallcal.fit.adequacy import assess
-from hallcal.fit.cogging_search import hac_variance
+from hallcal.fit.long_run import hac_variance
 from hallcal.fit.offset_variance import BANDWIDTH_FRACTION, offset_excess, offset_long_run
 from hallcal.fit.sem import solve_sem
 from hallcal.io import ModelSpec, Setup

@@ -91,10 +91,10 @@ T^2 4.3 with 2 Satterthwaite degrees of freedom; on regressions whose regressor 
 times the ratio of the long-run to the lag-0 variance of ``sum_t u_t^T e_t``, with a_0's influence
 ``u_t = J_t A^-1 e_a0`` (two simulations along that direction) and the residual's auto- and
 cross-covariances up to Andrews' (1991) bandwidth estimated over the WHOLE run (Bartlett kernel,
-Newey & West 1987; :func:`hac_variance`): a localized influence is judged against the residual's
-autocorrelation with ``1.5 N / S`` degrees of freedom (thousands on the zoo), not against its own
-few samples. On the regression of the test: 1.3 % and 1.0 % false alarms at the 1 % level with white
-and with AR(1) 0.8 noise (batch means 95 %, white 36 % under the AR noise;
+Newey & West 1987; :func:`hallcal.fit.long_run.hac_variance`): a localized influence is judged
+against the residual's autocorrelation with ``1.5 N / S`` degrees of freedom (thousands on the zoo),
+not against its own few samples. On the regression of the test: 1.3 % and 1.0 % false alarms at the
+1 % level with white and with AR(1) 0.8 noise (batch means 95 %, white 36 % under the AR noise;
 ``tests/test_cogging_load.py``). The pass (two simulations and FFTs) is made only when the
 batch-means or the white test passes order 0; the paper's run without a load (T^2 0) is not charged
 (artifact bit-identical, the search 0.10 s CPU as before; with the load 0.003: 0.17 -> 0.22 s).
@@ -170,7 +170,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal.fit.adequacy import CurveProjection, project_fit
-from hallcal.fit.gauss_newton import _moments, simulate_model
+from hallcal.fit.gauss_newton import _moments
+from hallcal.fit.long_run import LongRunVariance, functional_long_run
 from hallcal.fit.sem import SEMResult, solve_sem
 from hallcal.sensor.flux import FourierBasis
 from hallcal.sim.cogging import CoggingTorque
@@ -179,10 +180,8 @@ from hallcal.sim.loop import ClosedLoop
 __all__ = [
     "CoggingSelection",
     "CoggingStatus",
-    "LongRunVariance",
     "ShiftSpectrum",
     "default_max_order",
-    "hac_variance",
     "load_test",
     "plausible_orders",
     "related_orders",
@@ -628,100 +627,6 @@ def order_tests(sem: SEMResult, *, significance: float = 1e-3) -> tuple[OrderTes
     return tuple(tests)
 
 
-@dataclass(frozen=True)
-class LongRunVariance:
-    """A HAC (long-run) variance of a linear functional of the residual and its reference.
-
-    Attributes
-    ----------
-    variance : float
-        ``sum_|l|<S (1 - |l| / S) sum_t u_t^T Gamma(l) u_t+l`` (see :func:`hac_variance`).
-    bandwidth : float
-        Andrews' (1991) bandwidth S [samples] (Bartlett kernel, AR(1) plug-in).
-    dof : float
-        Degrees of freedom of ``variance``: ``1.5 N / S`` for N samples, the Bartlett
-        kernel's (its relative variance ``(4 / 3) S / N``, Andrews 1991, Prop. 1).
-    white : float
-        The same functional's variance with the lag-0 covariance alone (white residual).
-    """
-
-    variance: float
-    bandwidth: float
-    dof: float
-    white: float
-
-
-def _lagged_products(a: NDArray, b: NDArray, lags: int) -> NDArray[np.float64]:
-    """``P[l + lags, h, g] = sum_t a[t, h] b[t + l, g]`` for ``l = -lags..lags`` (FFT)."""
-    n = a.shape[0]
-    nfft = 1 << int(math.ceil(math.log2(max(n + lags + 1, 2))))
-    A = np.fft.rfft(a, n=nfft, axis=0)
-    B = np.fft.rfft(b, n=nfft, axis=0)
-    full = np.fft.irfft(np.conj(A)[:, :, None] * B[:, None, :], n=nfft, axis=0)
-    return np.concatenate([full[nfft - lags :], full[: lags + 1]], axis=0)
-
-
-def hac_variance(
-    u: ArrayLike, e: ArrayLike, *, dof_used: int = 0, bandwidth: float | None = None
-) -> LongRunVariance:
-    """Long-run variance of ``sum_t u_t^T e_t`` for a stationary residual e, Bartlett kernel.
-
-    ``var = sum_|l|<S k(l / S) sum_{h, g} Gamma_hg(l) sum_t u_t,h u_t+l,g`` with the residual's
-    auto- and cross-covariances ``Gamma_hg(l) = sum_t e_t,h e_t+l,g / (N - dof_used / c)``
-    (c channels) estimated over the whole run, the Bartlett kernel ``k(x) = 1 - |x|`` (Newey &
-    West 1987) and Andrews' (1991, eq. 6.4) AR(1) plug-in bandwidth
-    ``S = 1.1447 (alpha(1) N)^(1/3)``, ``alpha(1) = sum_h 4 rho_h^2 s_h^4 / ((1 - rho_h)^6
-    (1 + rho_h)^2) / sum_h s_h^4 / (1 - rho_h)^4`` from each channel's lag-one autocorrelation
-    rho_h (within +-0.97) and variance s_h^2; S at most N / 12. It is the HAC variance of the
-    score series ``psi_t = u_t^T e_t`` with its autocovariances taken as
-    ``u_t^T Gamma(l) u_t+l``: a weight u that sits in a short stretch of the run (order 0 under
-    an integrating controller) is judged against the residual's autocorrelation from all N
-    samples (``1.5 N / S`` degrees of freedom), not against the few samples it covers.
-
-    Parameters
-    ----------
-    u : array_like (N, c)
-        Weights (the influence ``J_t v`` of the functional ``v^T x``).
-    e : array_like (N, c)
-        Residual.
-    dof_used : int
-        Parameters fitted to e (their share per channel is taken off N, as sigma^2 does).
-    bandwidth : float, optional
-        S [samples] instead of Andrews' plug-in (at most N / 12 all the same): a fixed fraction
-        of N (:func:`hallcal.fit.offset_variance.offset_excess`).
-
-    Returns
-    -------
-    LongRunVariance
-    """
-    ua = np.asarray(u, dtype=np.float64)
-    ea = np.asarray(e, dtype=np.float64)
-    uu = ua.reshape(ua.shape[0], -1)
-    ee = ea.reshape(ea.shape[0], -1)
-    n, c = ee.shape
-    ee = ee - ee.mean(axis=0)
-    g0 = np.einsum("th,th->h", ee, ee)
-    g1 = np.einsum("th,th->h", ee[:-1], ee[1:])
-    ok = g0 > 0
-    if n < 12 or not ok.any():
-        return LongRunVariance(0.0, 0.0, 0.0, 0.0)
-    rho = np.clip(g1[ok] / g0[ok], -0.97, 0.97)
-    s4 = (g0[ok] / n) ** 2
-    alpha1 = float(np.sum(4 * rho**2 * s4 / ((1 - rho) ** 6 * (1 + rho) ** 2))
-                   / np.sum(s4 / (1 - rho) ** 4))  # fmt: skip
-    S = 1.1447 * (alpha1 * n) ** (1.0 / 3.0) if bandwidth is None else float(bandwidth)
-    S = min(S, n / 12.0)
-    lags = max(math.ceil(S) - 1, 0)
-    norm = max(n - dof_used / c, 1.0)
-    gam = _lagged_products(ee, ee, lags) / norm  # Gamma(l), l = -lags..lags
-    cu = _lagged_products(uu, uu, lags)
-    ell = np.arange(-lags, lags + 1)
-    k = 1.0 - np.abs(ell) / S if S > 0 else (ell == 0).astype(float)
-    var = float(np.einsum("l,lhg,lhg->", k, gam, cu))
-    white = float(np.einsum("hg,hg->", gam[lags], cu[lags]))
-    return LongRunVariance(max(var, 0.0), S, 1.5 * n / max(S, 1.0), white)
-
-
 def load_test(
     loop: ClosedLoop, r: ArrayLike, d: ArrayLike, sem: SEMResult, *, alpha: float,
     step: float = 0.01,
@@ -730,10 +635,11 @@ def load_test(
 
     ``a_0 - a_0* = v^T J^T e`` to first order with ``v = A^-1 e_a0``, ``A = J^T J + R``: the
     functional ``sum_t u_t^T e_t`` of the residual with the influence ``u_t = J_t v``, whose
-    long-run variance :func:`hac_variance` gives. u comes from two simulations of the model
-    (central differences along v, a step moving a_0 by ``step`` times its white standard
-    deviation: a relative error of order step^2). ``var a_0 = sigma^2 (A^-1)_00`` times the
-    functional's long-run over its lag-0 variance; ``T^2 = a_0^2 / var a_0 ~ F(1, dof)``.
+    long-run variance :func:`hallcal.fit.long_run.functional_long_run` gives. u comes from two
+    simulations of the model (central differences along v, a step moving a_0 by ``step`` times
+    its white standard deviation: a relative error of order step^2). ``var a_0 = sigma^2
+    (A^-1)_00`` times the functional's long-run over its lag-0 variance; ``T^2 = a_0^2 / var
+    a_0 ~ F(1, dof)``.
 
     Parameters
     ----------
@@ -758,24 +664,13 @@ def load_test(
     if cog is None or layout is None or cov is None or 0 not in cog.orders:
         raise ValueError("the fit has no constant load torque (order 0)")
     i = cog.orders.index(0)
-    j = layout.cogging_start + 2 * i
-    v = cov[:, j] / sem.noise_variance  # A^-1 e_a0
-    x = layout.pack(sem.flux.theta, math.log(sem.gain) if layout.fit_gain else 0.0, cog, sem.drift)
-    h = step * math.sqrt(max(float(cov[j, j]), 0.0)) / max(float(v[j]), 1e-300)
-    up = simulate_model(loop, layout, x + h * v, r)
-    down = simulate_model(loop, layout, x - h * v, r)
+    w = np.zeros(layout.size)
+    w[layout.cogging_start + 2 * i] = 1.0  # a_0
     a0 = float(cog.coefficients[2 * i])
-    if not (up.status.success and down.status.success and h > 0):
+    lr = functional_long_run(loop, r, d, sem, w, step=step)
+    if lr is None:
         return OrderTest(0, abs(a0), 0.0, math.inf), LongRunVariance(0.0, 0.0, 0.0, 0.0)
-    u = (up.d - down.d) / (2.0 * h)
-    e = np.asarray(d, dtype=np.float64) - sem.d_sim
-    lr = hac_variance(u, e, dof_used=layout.size)
-    # the long-run / lag-0 ratio of the functional, on sigma^2 (A^-1)_00: where A is nearly
-    # singular (cond 1e15 on the paper's bench) the computed v is off in A's near-null
-    # directions and |J v|^2 is not v_0 (1.9x there); its shape in time is what the ratio uses
-    white = float(cov[j, j])
-    var = white * lr.variance / lr.white if lr.white > 0 else 0.0
-    lr = replace(lr, variance=var, white=white)
+    var = lr.variance
     t2 = a0 * a0 / var if var > 0 else 0.0
     return OrderTest(0, abs(a0), t2, f1_isf(alpha, lr.dof)), lr
 

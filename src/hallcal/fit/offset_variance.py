@@ -12,8 +12,9 @@ offset is fitted: over six bench seeds its offset was 0.65x the noise floor RMS 
 (white) and 0.04-0.07x (batch) predicted (``benchmarks/bench_offset_hac.txt``).
 
 Its variance here is the HAC (heteroscedasticity-and-autocorrelation-consistent) variance of
-:func:`hallcal.fit.cogging_search.hac_variance` for the functional: the influence
-``u_t = J_t A^-1 c`` from two model simulations along ``A^-1 c`` (as for a constant load,
+:func:`hallcal.fit.long_run.hac_variance` for the functional: the influence
+``u_t = J_t A^-1 c`` from two model simulations along ``A^-1 c``
+(:func:`hallcal.fit.long_run.functional_long_run`, as for a constant load in
 :func:`hallcal.fit.cogging_search.load_test`), the residual's auto- and cross-covariances over
 the whole run, the Bartlett kernel (Newey & West 1987), and ``sigma^2 c^T A^-1 c`` times the
 long-run / lag-0 ratio of ``sum_t u_t^T e_t``. The bandwidth is a fixed fraction of the run,
@@ -40,15 +41,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal.fit._table_error import _theta_covariances
-from hallcal.fit.cogging_search import LongRunVariance, hac_variance
-from hallcal.fit.gauss_newton import simulate_model
+from hallcal.fit.long_run import LongRunVariance, functional_long_run
 from hallcal.fit.sem import SEMResult, angle_error_gradient
 from hallcal.sim.loop import ClosedLoop
 
 __all__ = ["BANDWIDTH_FRACTION", "offset_excess", "offset_long_run"]
 
 #: The HAC bandwidth as a fraction of the run's samples (module docstring; the cap of
-#: :func:`hallcal.fit.cogging_search.hac_variance`).
+#: :func:`hallcal.fit.long_run.hac_variance`).
 BANDWIDTH_FRACTION = 1.0 / 12.0
 
 
@@ -83,29 +83,15 @@ def offset_long_run(
         ``variance`` the HAC one, ``white`` ``sigma^2 c^T A^-1 c``; None when the fit has no
         parameter covariance or a simulation fails.
     """
-    cov, layout = sem.parameter_covariance, sem.layout
-    if cov is None or layout is None or not sem.noise_variance > 0:
+    layout = sem.layout
+    if layout is None:
         return None
     c = _offset_functional(loop, sem)
-    p = c.size
-    v = cov[:, :p] @ c / sem.noise_variance  # A^-1 c, theta first in the layout
-    white = float(c @ cov[:p, :p] @ c)
-    gain = math.log(sem.gain) if layout.fit_gain else 0.0
-    x = layout.pack(sem.flux.theta, gain, sem.cogging, sem.drift)
-    h = step * math.sqrt(max(white, 0.0)) / max(float(c @ v[:p]), 1e-300)
-    if not (h > 0 and math.isfinite(h)):
-        return None
-    up = simulate_model(loop, layout, x + h * v, r)
-    down = simulate_model(loop, layout, x - h * v, r)
-    if not (up.status.success and down.status.success):
-        return None
-    u = (up.d - down.d) / (2.0 * h)
-    e = np.asarray(d, dtype=np.float64) - sem.d_sim
-    lr = hac_variance(u, e, dof_used=layout.size, bandwidth=BANDWIDTH_FRACTION * e.shape[0])
-    if not lr.white > 0:
-        return None
-    # the ratio on sigma^2 c^T A^-1 c, as load_test does for a_0 (A is nearly singular)
-    return LongRunVariance(white * lr.variance / lr.white, lr.bandwidth, lr.dof, white)
+    w = np.zeros(layout.size)
+    w[: c.size] = c  # theta first in the layout
+    return functional_long_run(
+        loop, r, d, sem, w, step=step, bandwidth=BANDWIDTH_FRACTION * np.shape(d)[0]
+    )
 
 
 def offset_excess(

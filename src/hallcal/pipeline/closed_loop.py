@@ -702,18 +702,8 @@ def calibrate_closed_loop(
         messages.append(Message.note(MessageCode.COGGING, fit.cogging.message))
     loop = closed_loop(setup, pm.plant).with_cogging(cogging).with_rails(*found.censoring.rails)
 
-    # the table's offset with the residual's autocorrelation over the whole run (HAC): when it
-    # exceeds what both covariances give the offset and the run shows unmodelled motion (the
-    # cost above its warning level, no motion bias), the table's error is assessed with it
-    excess, long_run = offset_excess(loop, s.r, s.d, fit.sem)
-    offset_variance = long_run.variance if long_run is not None and excess > 0 else None
-    prior = fit.adequacy
-    if prior is not None and not (
-        prior.ratio > prior.thresholds["warn_ratio"] and prior.motion_bias == 0.0
-    ):
-        offset_variance = None  # the assessment made would not change
-    with numeric_errors("setup", "model"):
-        adequacy = (prior if offset_variance is None else None) or assess(
+    def assessed(offset_variance: float | None = None) -> AdequacyReport:
+        return assess(
             *sensors.at_mid_run(fit.sem, s.d),
             noise=sensors.noise(found, s.d),
             pole_pairs=setup.pole_pairs,
@@ -722,6 +712,17 @@ def calibrate_closed_loop(
             curve=fit.cogging.spectrum.curve if fit.cogging and fit.cogging.spectrum else None,
             offset_variance=offset_variance,
         )
+
+    with numeric_errors("setup", "model"):
+        adequacy = fit.adequacy or assessed()
+        # the table's offset with the residual's autocorrelation over the whole run (HAC),
+        # computed only where the prediction may use it (the run shows unmodelled motion: the
+        # cost above its warning level, no motion bias); assessed again when it exceeds what
+        # both covariances give the offset
+        if adequacy.ratio > adequacy.thresholds["warn_ratio"] and adequacy.motion_bias == 0.0:
+            excess, long_run = offset_excess(loop, s.r, s.d, fit.sem)
+            if long_run is not None and excess > 0:
+                adequacy = assessed(long_run.variance)
         say(progress, "lookup table and bijectivity check")
         lut = build_lut(
             fit.flux,
