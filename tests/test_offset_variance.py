@@ -48,16 +48,23 @@ def test_fixed_bandwidth_sees_a_slow_component_under_white_noise():
     assert np.mean(fixed) == pytest.approx(truth, rel=0.3)
 
 
-@pytest.mark.parametrize("disturbance", [0.0, 2e-3])
-def test_offset_long_run_on_the_paper_bench(disturbance):
-    """A short run of the paper's bench: the offset's HAC variance scales its white one
-    ``sigma^2 c^T A^-1 c`` and the excess over both covariances is never negative."""
+def _paper_fit(disturbance: float, *, ramp_end: float, duration: float):
+    """The paper's bench with a random torque disturbance of this std, a ramp 0 -> ramp_end
+    [rad] in duration [s] (seed 1), and its SEM fit with harmonics 1..11 and the true plant."""
     cfg = BenchConfig(torque_disturbance=disturbance)
-    run = ramp_run(cfg, ramp_end=3.5, duration=7.0, seed=1)
+    run = ramp_run(cfg, ramp_end=ramp_end, duration=duration, seed=1)
     setup = Setup(pole_pairs=cfg.pole_pairs, sample_time=cfg.sample_time,
                   controller=cfg.controller, plant=cfg.plant, model=ModelSpec())  # fmt: skip
     loop = closed_loop(setup, cfg.plant)
     sem = solve_sem(loop, run.r, run.d, FourierBasis(tuple(range(1, 12))), y=run.y)
+    return cfg, run, loop, sem
+
+
+@pytest.mark.parametrize("disturbance", [0.0, 2e-3])
+def test_offset_long_run_on_the_paper_bench(disturbance):
+    """A short run of the paper's bench: the offset's HAC variance scales its white one
+    ``sigma^2 c^T A^-1 c`` and the excess over both covariances is never negative."""
+    cfg, run, loop, sem = _paper_fit(disturbance, ramp_end=3.5, duration=7.0)
     lr = offset_long_run(loop, run.r, run.d, sem)
     assert lr is not None and lr.bandwidth == pytest.approx(BANDWIDTH_FRACTION * len(run.r))
     # measured sd ratio HAC / white 3.2 without and 5.2 with the disturbance on this seed (the
@@ -73,12 +80,7 @@ def test_the_offset_hac_counts_only_where_the_run_shows_unmodelled_motion(distur
     """The paper's run (ramp 0 -> 13 rad in 26 s, harmonics 1..11) with and without a random
     torque disturbance: the assessment adds the offset's HAC excess only when the cost is above
     its warning level (and no motion bias is predicted)."""
-    cfg = BenchConfig(torque_disturbance=disturbance)
-    run = ramp_run(cfg, ramp_end=13.0, duration=26.0, seed=1)
-    setup = Setup(pole_pairs=cfg.pole_pairs, sample_time=cfg.sample_time,
-                  controller=cfg.controller, plant=cfg.plant, model=ModelSpec())  # fmt: skip
-    loop = closed_loop(setup, cfg.plant)
-    sem = solve_sem(loop, run.r, run.d, FourierBasis(tuple(range(1, 12))), y=run.y)
+    cfg, run, loop, sem = _paper_fit(disturbance, ramp_end=13.0, duration=26.0)
     lr = offset_long_run(loop, run.r, run.d, sem)
     kw = dict(pole_pairs=cfg.pole_pairs, projection=loop.projection, offset=loop.offset)
     before = assess(sem, run.d, **kw)
