@@ -34,6 +34,14 @@ def drifting_run():
     return ramp_run(DRIFTING, **RAMP)
 
 
+@pytest.fixture(scope="module")
+def drifting_fit(drifting_run):
+    """The joint fit of flux (harmonics 1..4) and drift on the drifting run."""
+    run = drifting_run
+    return solve_sem(SMALL.loop(), run.r, run.d, FourierBasis((1, 2, 3, 4)), y=run.y,
+                     fit_drift=True)  # fmt: skip
+
+
 def test_trend_of_the_residual_is_found_and_sized():
     """Synthetic residual: the estimates within 4 of their standard deviations (a 4-sigma
     band: 6e-5 per parameter), nothing named without a drift (5-sigma threshold)."""
@@ -54,13 +62,12 @@ def test_trend_of_the_residual_is_found_and_sized():
     np.testing.assert_allclose(undrifted(d, rep), d_sim, atol=1e-3)  # the estimates' error
 
 
-def test_joint_drift_identifies_the_sensors_at_mid_run(drifting_run):
+def test_joint_drift_identifies_the_sensors_at_mid_run(drifting_run, drifting_fit):
     """With the drift in the SEM: gain and offset changes within 4 std of the truth, the cost
     at the noise level, and the table within 1.15x the floor on a fresh run of the sensors
     frozen at the middle; without it the static model misses by far more."""
-    run = drifting_run
-    basis = FourierBasis((1, 2, 3, 4))
-    sem = solve_sem(SMALL.loop(), run.r, run.d, basis, y=run.y, fit_drift=True)
+    run, sem = drifting_run, drifting_fit
+    basis = sem.flux.basis
     assert sem.drift is not None and sem.drift_std is not None
     truth = np.array([[0.02, 0.0], [0.0, 0.0], [0.0, 0.01]])
     assert np.all(np.abs(sem.drift - truth) < 4 * sem.drift_std)
@@ -91,14 +98,14 @@ def test_calibrate_names_and_identifies_the_drift(drifting_run):
 
 
 @pytest.mark.parametrize("scale", [0.0, 0.5, 4.9, 5.1, 50.0])
-def test_a_drift_the_final_fit_does_not_confirm_is_a_note_not_a_warning(drifting_run, scale):
+def test_a_drift_the_final_fit_does_not_confirm_is_a_note_not_a_warning(
+    drifting_run, drifting_fit, scale
+):
     """The final fit's drift named (a warning, status ok -> warning) only when one of its six
     parameters reaches the detection's 5 standard deviations; below, a note that f_init's view
     saw a trend the fit does not confirm, the status unchanged (unseen zoo 211: adc12, no
     drift in its truth, largest 1.7 sigma, was told "the sensors drift")."""
-    run = drifting_run
-    sem = solve_sem(SMALL.loop(), run.r, run.d, FourierBasis((1, 2, 3, 4)), y=run.y,
-                    fit_drift=True)  # fmt: skip
+    run, sem = drifting_run, drifting_fit
     assert sem.drift_std is not None
     sign = np.where(np.arange(6).reshape(3, 2) % 2 == 0, 1.0, -1.0)
     drift = scale * sem.drift_std * sign  # the largest |z| is exactly `scale`
