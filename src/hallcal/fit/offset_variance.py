@@ -83,10 +83,16 @@ def offset_long_run(
         ``variance`` the HAC one, ``white`` ``sigma^2 c^T A^-1 c``; None when the fit has no
         parameter covariance or a simulation fails.
     """
+    return _long_run(loop, r, d, sem, _offset_functional(loop, sem), step=step)
+
+
+def _long_run(
+    loop: ClosedLoop, r: ArrayLike, d: ArrayLike, sem: SEMResult, c: NDArray, *, step: float
+) -> LongRunVariance | None:
+    """:func:`offset_long_run` with the offset functional ``c`` already formed."""
     layout = sem.layout
     if layout is None:
         return None
-    c = _offset_functional(loop, sem)
     w = np.zeros(layout.size)
     w[: c.size] = c  # theta first in the layout
     return functional_long_run(
@@ -117,10 +123,10 @@ def offset_excess(
         covariance, a simulation or the gradient failing) and the HAC variance.
     """
     try:
-        lr = offset_long_run(loop, r, d, sem)
+        c = _offset_functional(loop, sem)  # formed once for the HAC and both covariances
+        lr = _long_run(loop, r, d, sem, c, step=0.01)
         if lr is None or not math.isfinite(lr.variance):
             return 0.0, lr
-        c = _offset_functional(loop, sem)
         now = max(float(c @ C @ c) for C in _theta_covariances(sem))
     except (ValueError, np.linalg.LinAlgError):  # the prediction stands as it was
         return 0.0, None
