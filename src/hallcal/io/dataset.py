@@ -521,7 +521,7 @@ def _read_parquet(p: Path) -> dict[str, np.ndarray]:
         pf = pq.ParquetFile(p)
         meta = pf.metadata
         _check_table_size(source, int(meta.num_rows), int(meta.num_columns))
-        table = pf.read()
+        table = pf.read(use_threads=False)
         if table.num_rows != meta.num_rows:
             raise HallcalInputError(
                 f"{source}: corrupt Parquet file ({table.num_rows} rows read, "

@@ -21,10 +21,13 @@ Two readers, one result
 -----------------------
 Both readers find the layout (header, delimiter, names) with the same code, :func:`_layout`.
 
-- :func:`_read_fast` hands the rows to pyarrow's CSV reader (multi-threaded C++), or to NumPy's
-  ``loadtxt`` for columns aligned with runs of spaces. It accepts a file only when it is
-  regular: every row complete and numeric, no comment lines among the rows, no trailing
-  delimiters, no lone carriage returns. Anything else raises :class:`_NotRegular`.
+- :func:`_read_fast` hands the rows to pyarrow's CSV reader (C++, in the calling thread: Arrow's
+  thread pool, still alive when the interpreter exits, sometimes aborts the process there with
+  "terminate called without an active exception", apache/arrow#34314; on two cores the pool
+  read 20 MB no faster), or to NumPy's ``loadtxt`` for columns aligned with runs of spaces. It
+  accepts a file only when it is regular: every row complete and numeric, no comment lines
+  among the rows, no trailing delimiters, no lone carriage returns. Anything else raises
+  :class:`_NotRegular`.
 - :func:`_read_careful` parses line by line in Python. It reads the irregular files the fast
   reader declines and writes the precise one-line error messages (row and line of a
   non-numeric or missing value, a ragged row, ...).
@@ -348,7 +351,7 @@ def _pyarrow_csv(body: memoryview, names: list[str], layout: _Layout) -> dict[st
     try:
         table = pacsv.read_csv(
             pa.py_buffer(body),
-            read_options=pacsv.ReadOptions(column_names=column_names),
+            read_options=pacsv.ReadOptions(column_names=column_names, use_threads=False),
             parse_options=pacsv.ParseOptions(
                 delimiter=layout.delimiter or " ",
                 quote_char='"' if layout.delimiter else False,
