@@ -38,13 +38,13 @@ from pathlib import Path
 
 import numpy as np
 
+from hallcal._constants import TWO_PI
 from hallcal.io import default_setup, read_dataset, write_dataset, write_json, write_setup
 from hallcal.pipeline import simulate
 from hallcal.pipeline.plant import closed_loop
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sim.loop import simulate_loop
 
-TWO_PI = 2.0 * math.pi
 RECONSTRUCT_SAMPLES = 10_000_000
 
 

@@ -37,7 +37,6 @@ are):
 
 from __future__ import annotations
 
-import math
 import os
 import platform
 import subprocess
@@ -54,10 +53,9 @@ import arm_harness as ah  # noqa: E402
 import firmware_support as fs  # noqa: E402
 from bench_support import DEMO_ADC_SCALE, arm_args, demo_case, finish_report, ringjig_case  # noqa: E402
 
+from hallcal._constants import TWO_PI  # noqa: E402
 from hallcal.output.codegen import CORDIC_STEPS, export_c  # noqa: E402
 from hallcal.sensor.flux import FluxModel, FourierBasis  # noqa: E402
-
-TWO_PI = 2.0 * math.pi
 
 
 def _fast_spin(art: dict) -> np.ndarray:

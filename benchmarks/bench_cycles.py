@@ -51,10 +51,10 @@ import firmware_support as fs  # noqa: E402
 import slip_trials as st  # noqa: E402
 from bench_support import DEMO_ADC_SCALE, arm_args, demo_case, finish_report, ringjig_case  # noqa: E402
 
+from hallcal._constants import TWO_PI  # noqa: E402
 from hallcal.output.codegen import export_c  # noqa: E402
 from hallcal.sensor.flux import FluxModel, FourierBasis  # noqa: E402
 
-TWO_PI = 2.0 * math.pi
 M4_MODELS = [ah.CycleModel("m4", p, 0) for p in (1, 2, 3)] + [ah.CycleModel("m4", 3, 1)]
 M0_MODELS = [ah.CycleModel("m0plus", muls=1), ah.CycleModel("m0plus", muls=32)]
 

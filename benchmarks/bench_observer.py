@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 import hallcal
+from hallcal._constants import TWO_PI
 from hallcal.fit.constant_speed import (
     calibrate_constant_speed,
     default_harmonics,
@@ -52,7 +53,6 @@ from hallcal.sensor.metrics import angle_error
 from hallcal.sensor.observer import observer_model, run_observer
 from hallcal.sim.bench import BenchConfig, simulate_run
 
-TWO_PI = 2.0 * math.pi
 WARM = {"amplitude": 0.928, "gain_mismatch": (0.01, -0.008, 0.004),
         "offset": (0.01, -0.01, 0.005)}  # fmt: skip
 

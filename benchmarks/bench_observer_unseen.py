@@ -48,6 +48,7 @@ import time
 import numpy as np
 from bench_support import RINGJIG
 
+from hallcal._constants import TWO_PI
 from hallcal.io import Dataset
 from hallcal.pipeline.powerup import identification_check
 from hallcal.sensor import absolute as ab
@@ -56,7 +57,6 @@ from hallcal.sensor.misfit import model_misfit
 from hallcal.sensor.observer import observer_model, run_observer
 from hallcal.sim.bench import BenchConfig
 
-TWO_PI = 2.0 * math.pi
 TS = 2.5e-4
 SIGMA = math.sqrt(7.5e-6)  # the paper's noise (0.27 % of the amplitude)
 LINES: list[str] = []

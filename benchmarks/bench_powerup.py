@@ -48,6 +48,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from motor_support import remount_trials  # noqa: E402
 
 import hallcal  # noqa: E402
+from hallcal._constants import TWO_PI  # noqa: E402
 from hallcal.errors import CalibrationRefused  # noqa: E402
 from hallcal.io import Dataset, default_setup  # noqa: E402
 from hallcal.pipeline import simulate  # noqa: E402
@@ -55,8 +56,6 @@ from hallcal.sensor import absolute as ab  # noqa: E402
 from hallcal.sensor.misfit import model_misfit  # noqa: E402
 from hallcal.sim.bench import BenchConfig  # noqa: E402
 from hallcal.sim.loop import simulate_loop  # noqa: E402
-
-TWO_PI = 2.0 * math.pi
 
 
 def wrap(x):

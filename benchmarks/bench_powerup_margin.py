@@ -45,13 +45,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_unseen as bu  # noqa: E402
 
 from hallcal import pipeline  # noqa: E402
+from hallcal._constants import TWO_PI  # noqa: E402
 from hallcal.io import Dataset, default_setup  # noqa: E402
 from hallcal.messages import MessageCode  # noqa: E402
 from hallcal.sensor import absolute as ab  # noqa: E402
 from hallcal.sensor.drift_margin import _amplitudes, _table_signals, wrong_lock_share  # noqa: E402
 from hallcal.sim.bench import BenchConfig  # noqa: E402
-
-TWO_PI = 2.0 * math.pi
 
 #: Changes after calibration: bench_unseen's audit set and a few more common gains (gains
 #: multiply d as in the audit; offsets added in the signal's unit).

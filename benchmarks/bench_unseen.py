@@ -96,6 +96,7 @@ from bench_bla import _multisine  # noqa: E402
 from bench_support import run_rows  # noqa: E402
 
 from hallcal import pipeline  # noqa: E402
+from hallcal._constants import TWO_PI  # noqa: E402
 from hallcal.errors import HallcalError  # noqa: E402
 from hallcal.io import Dataset, ModelSpec, Setup  # noqa: E402
 from hallcal.io.setup import BLASpec, TrajectorySpec  # noqa: E402
@@ -104,7 +105,6 @@ from hallcal.sim.bench import BenchConfig, position_controller, simulate_run  # 
 from hallcal.sim.lti import ContinuousTF  # noqa: E402
 from hallcal.sim.oracle import oracle_table  # noqa: E402
 
-TWO_PI = 2.0 * math.pi
 FAMILIES = ("lowpp", "highpp", "spacing", "gains", "harm357", "noisy", "adc10", "short", "slow",
             "open", "blaload")  # fmt: skip
 #: Calibration runs hold at most this many samples (a shared 2-core machine).

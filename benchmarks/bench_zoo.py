@@ -53,13 +53,13 @@ import numpy as np
 from bench_support import run_rows
 
 from hallcal import pipeline
+from hallcal._constants import TWO_PI
 from hallcal.io import Dataset, ModelSpec, Setup
 from hallcal.sensor.metrics import angle_error
 from hallcal.sim.bench import BenchConfig, position_controller, simulate_run
 from hallcal.sim.lti import ContinuousTF
 from hallcal.sim.oracle import oracle_error, oracle_table
 
-TWO_PI = 2.0 * math.pi
 CLASSES = ("shape", "clip", "adc12", "drift", "skew", "cogload", "spikes", "plain")
 POLE_PAIRS = (2, 3, 4, 5, 7, 8, 10, 11, 14, 15, 21, 24, 28)
 #: Calibration runs hold at most this many samples (the zoo runs on a shared 2-core machine).

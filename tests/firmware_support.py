@@ -41,11 +41,11 @@ from pathlib import Path
 
 import numpy as np
 
+from hallcal._constants import TWO_PI
 from hallcal.sensor.flux import FluxModel, FourierBasis, sinusoidal_theta
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sensor.reconstruction import projection_matrix
 
-TWO_PI = 2.0 * math.pi
 CC = shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
 STRICT = [
     "-std=c99", "-Wall", "-Wextra", "-Wpedantic", "-Wconversion", "-Wshadow",

@@ -31,7 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-TWO_PI = 2.0 * math.pi
+from hallcal._constants import TWO_PI
+
 CLASSES = ("overspeed", "first-sample", "burst", "stuck", "clipped")
 FAULT = 2
 

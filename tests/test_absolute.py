@@ -17,13 +17,12 @@ import numpy as np
 import pytest
 from motor_support import true_offset
 
+from hallcal._constants import TWO_PI
 from hallcal.sensor import _absolute_analysis, _absolute_decoder
 from hallcal.sensor import absolute as ab
 from hallcal.sensor.lut import build_lut
 from hallcal.sensor.reconstruction import f_init
 from hallcal.sim.bench import BenchConfig, power_up_run, power_up_start, ramp_run
-
-TWO_PI = 2.0 * math.pi
 
 
 def _identifiability(cfg: BenchConfig) -> ab.IdentifiabilityReport:

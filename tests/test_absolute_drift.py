@@ -15,6 +15,7 @@ import math
 import numpy as np
 import pytest
 
+from hallcal._constants import TWO_PI
 from hallcal.messages import MessageCode, Severity
 from hallcal.pipeline.powerup import drift_message
 from hallcal.sensor import absolute as ab
@@ -26,8 +27,6 @@ from hallcal.sensor.drift_margin import (
 )
 from hallcal.sensor.lut import build_lut
 from hallcal.sim.bench import BenchConfig, power_up_run
-
-TWO_PI = 2.0 * math.pi
 
 
 def _bench(magnet_variation: float, noise_variance: float):

@@ -21,11 +21,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.stats import chi2
 
+from hallcal._constants import TWO_PI
 from hallcal.sensor import absolute as ab
 from hallcal.sensor.lut import build_lut
 from hallcal.sim.bench import BenchConfig
 
-TWO_PI = 2.0 * math.pi
 STARTS = 300
 SAMPLES = 128  # > K0 = 96: the gate decides within the record
 

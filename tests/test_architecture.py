@@ -19,6 +19,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "hallcal"
 #: Layer of each top-level part of the package; a module may import only from its own layer or
 #: lower ones (README, "Layout").
 LAYERS: dict[str, int] = {
+    "_constants": 0,
     "_version": 0,
     "errors": 0,
     "formatting": 0,

@@ -20,11 +20,10 @@ from cli_support import calibrated_folder, paper_setup
 from cli_support import run_cli as run
 
 import hallcal
+from hallcal._constants import TWO_PI
 from hallcal.io import read_dataset, read_setup, write_dataset
 from hallcal.pipeline import bench_config
 from hallcal.sim.bench import power_up_run
-
-TWO_PI = 2.0 * math.pi
 
 SETUP = paper_setup(duration=14.0, seed=0, bench_extra="magnet_variation = {mv}\n")
 

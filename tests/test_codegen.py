@@ -40,11 +40,11 @@ from firmware_support import (
     sanitizer_flags,
 )
 
+from hallcal._constants import TWO_PI
 from hallcal.errors import HallcalInputError
 from hallcal.output.codegen import comment_text, export_c
 from hallcal.output.codegen.numbers import MAGIC_SEED_ERROR, RECIPROCAL_MAGIC, _fixed_numbers
 
-TWO_PI = 2.0 * math.pi
 pytestmark = pytest.mark.skipif(CC is None, reason="no C compiler (cc, gcc or clang) on PATH")
 
 

@@ -36,11 +36,11 @@ import firmware_support as fs
 import numpy as np
 import pytest
 
+from hallcal._constants import TWO_PI
 from hallcal.io import read_artifact, read_dataset
 from hallcal.output.codegen import export_c
 from hallcal.sensor.metrics import angle_error
 
-TWO_PI = 2.0 * math.pi
 MISSING = ah.toolchain()
 pytestmark = pytest.mark.skipif(
     MISSING is not None, reason=f"ARM toolchain incomplete ({MISSING} not found)"

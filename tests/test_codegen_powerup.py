@@ -20,7 +20,6 @@ random rotor angle, f_init from y = 0). C and Python get the same float32 sample
 from __future__ import annotations
 
 import copy
-import math
 import os
 import subprocess
 
@@ -41,12 +40,12 @@ from firmware_support import (
     sanitizer_flags,
 )
 
+from hallcal._constants import TWO_PI
 from hallcal.errors import HallcalInputError
 from hallcal.output.codegen import export_c
 from hallcal.sensor import absolute as ab
 from hallcal.sim.bench import BenchConfig
 
-TWO_PI = 2.0 * math.pi
 pytestmark = pytest.mark.skipif(CC is None, reason="no C compiler (cc, gcc or clang) on PATH")
 STARTS = 200
 STANDSTILL_SAMPLES = 300  # the paper bench locks within a few samples at almost every position

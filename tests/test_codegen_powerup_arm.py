@@ -10,18 +10,17 @@ breaks at a 0.3 % common gain, where calibrate keeps the profile), all signals 3
 from __future__ import annotations
 
 import copy
-import math
 
 import arm_harness as ah
 import firmware_support as fs
 import numpy as np
 import pytest
 
+from hallcal._constants import TWO_PI
 from hallcal.output.codegen import export_c
 from hallcal.sensor import absolute as ab
 from hallcal.sim.bench import BenchConfig
 
-TWO_PI = 2.0 * math.pi
 MISSING = ah.toolchain()
 pytestmark = pytest.mark.skipif(
     MISSING is not None, reason=f"ARM toolchain incomplete ({MISSING} not found)"

@@ -43,10 +43,10 @@ from firmware_support import (
     sanitizer_flags,
 )
 
+from hallcal._constants import TWO_PI
 from hallcal.output.codegen import export_c
 from hallcal.sim.bench import BenchConfig
 
-TWO_PI = 2.0 * math.pi
 pytestmark = pytest.mark.skipif(CC is None, reason="no C compiler (cc, gcc or clang) on PATH")
 README = Path(__file__).resolve().parents[1] / "README.md"
 

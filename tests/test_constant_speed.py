@@ -9,13 +9,13 @@ electrical harmonic, white noise, and both directions of rotation.
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from hallcal._constants import TWO_PI
 from hallcal.fit.constant_speed import (
     GeometryStatus,
     calibrate_constant_speed,
@@ -26,7 +26,6 @@ from hallcal.fit.constant_speed import (
 from hallcal.sensor.flux import FourierBasis
 from hallcal.sensor.reconstruction import clarke_matrix
 
-TWO_PI = 2.0 * math.pi
 PHASES = np.radians([0.0, 101.0, 261.0])
 AMPS = np.array([3000.0, 2400.0, 3300.0])
 OFFSETS = np.array([41000.0, 40500.0, 42000.0])

@@ -11,6 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from hallcal._constants import TWO_PI
 from hallcal.fit.evidence import (
     GroupEvidenceStatus,
     _block_gain,
@@ -20,8 +21,6 @@ from hallcal.fit.evidence import (
     shape_system,
 )
 from hallcal.sensor.flux import FluxModel, FourierBasis
-
-TWO_PI = 2.0 * math.pi
 
 
 def _problem(seed=0, n_angles=400, K=8, sigma=0.05, zero=(2, 5, 7)):

@@ -22,6 +22,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from loop_oracle import loop_jacobian
 
+from hallcal._constants import TWO_PI
 from hallcal.fit.gauss_newton import (
     ParameterLayout,
     _moments,
@@ -35,7 +36,6 @@ from hallcal.sim.bench import BenchConfig, ramp_run
 from hallcal.sim.cogging import CoggingTorque
 from hallcal.sim.loop import simulate_loop
 
-TWO_PI = 2.0 * math.pi
 RTOL = 1e-10
 
 

@@ -7,18 +7,16 @@ default band 1..3 n_m at many times the floor (``benchmarks/bench_unseen.py``: 1
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
 from hallcal import pipeline
+from hallcal._constants import TWO_PI
 from hallcal.io import Dataset, setup_from_dict
 from hallcal.sensor.metrics import angle_error
 from hallcal.sim.bench import BenchConfig
 from hallcal.sim.oracle import oracle_table
 
-TWO_PI = 2.0 * math.pi
 N_M = 5
 #: A trapezoid-like magnet: 3rd, 5th and 7th electrical harmonics of 12, 8 and 5 %.
 CFG = BenchConfig(pole_pairs=N_M, noise_variance=0.004**2, magnet_variation=0.02,

@@ -14,6 +14,7 @@ import math
 import numpy as np
 import pytest
 
+from hallcal._constants import TWO_PI
 from hallcal.fit.kernel import (
     KernelBasis,
     select_hyperparameters,
@@ -24,8 +25,6 @@ from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.lut import build_lut
 from hallcal.sensor.metrics import angle_error
 from hallcal.sim.bench import BenchConfig, ramp_run
-
-TWO_PI = 2.0 * math.pi
 
 
 def _weights(seed: int, m: int) -> np.ndarray:

@@ -20,6 +20,7 @@ import pytest
 from firmware_support import CC, bench_artifact, python_decoder
 from motor_support import true_offset
 
+from hallcal._constants import TWO_PI
 from hallcal.io import Dataset
 from hallcal.output.codegen import export_c
 from hallcal.pipeline.powerup import MISMATCH_TEXT, SignalStatus, check_signals
@@ -27,8 +28,6 @@ from hallcal.sensor import absolute as ab
 from hallcal.sensor.lut import build_lut
 from hallcal.sensor.misfit import MisfitStatus, MisfitTest, model_misfit
 from hallcal.sim.bench import BenchConfig, power_up_run
-
-TWO_PI = 2.0 * math.pi
 
 
 @pytest.fixture(scope="module")

@@ -21,6 +21,7 @@ from cli_support import PAPER_LOOP_TOML, run_cli
 from hypothesis import given
 from hypothesis import strategies as st
 
+from hallcal._constants import TWO_PI
 from hallcal.io import read_dataset, write_dataset
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import build_lut
@@ -35,7 +36,6 @@ from hallcal.sensor.observer import (
 from hallcal.sim.bench import BenchConfig, ramp_run, simulate_run
 
 N_M = 4
-TWO_PI = 2.0 * math.pi
 BENCH = BenchConfig(pole_pairs=N_M, seed=3)
 #: a bench whose map y0 -> f_init(g(y0)) folds (min slope -0.26) while g(y) is injective
 FOLDING = BenchConfig(pole_pairs=N_M, shape_variation=0.25, seed=1)

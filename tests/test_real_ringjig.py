@@ -79,6 +79,7 @@ import numpy as np
 import pytest
 from motor_support import remount_trials
 
+from hallcal._constants import TWO_PI
 from hallcal.fit.constant_speed import (
     calibrate_constant_speed,
     default_harmonics,
@@ -103,7 +104,6 @@ def _data_dir() -> Path:
 DATA_DIR = _data_dir()
 FILES = [DATA_DIR / f"hall_calibration_one_rotation_{i}.txt" for i in (1, 2, 3)]
 POLE_PAIRS = 25
-TWO_PI = 2.0 * math.pi
 CAL_REVOLUTIONS = 2.0
 
 

@@ -16,6 +16,7 @@ import math
 import numpy as np
 import pytest
 
+from hallcal._constants import TWO_PI
 from hallcal.io import Dataset
 from hallcal.pipeline.powerup import SignalStatus, identification_check
 from hallcal.sensor import absolute as ab
@@ -23,7 +24,6 @@ from hallcal.sensor.lut import build_lut
 from hallcal.sensor.misfit import MisfitStatus, model_misfit
 from hallcal.sim.bench import BenchConfig
 
-TWO_PI = 2.0 * math.pi
 TS = 2.5e-4
 
 

@@ -23,6 +23,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hallcal import pipeline
+from hallcal._constants import TWO_PI
 from hallcal.fit.adequacy import POORLY_DETERMINED, motion_bias
 from hallcal.fit.error_source import ErrorSources
 from hallcal.identify.excitation import multisine_experiment
@@ -35,7 +36,6 @@ from hallcal.sim.bench import BenchConfig, position_controller, simulate_run
 from hallcal.sim.lti import ContinuousTF
 from hallcal.sim.oracle import oracle_floor
 
-TWO_PI = 2.0 * math.pi
 M = 64
 
 

@@ -10,10 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from hallcal._constants import TWO_PI
 from hallcal.fit.warp import BandEdgeStatus, band_edge, f_init_view, unwarp
 from hallcal.sensor.flux import FluxModel, FourierBasis
-
-TWO_PI = 2.0 * math.pi
 
 
 def _curve(seed: int, n: int, edge: int) -> FluxModel:

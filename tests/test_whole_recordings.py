@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 
 import hallcal.sensor.lut as lut_module
 import hallcal.sensor.reconstruction as rec_module
+from hallcal._constants import TWO_PI
 from hallcal.errors import HallcalInputError
 from hallcal.io import read_dataset, write_dataset
 from hallcal.io.dataset import _map_stored_members
@@ -29,8 +30,6 @@ from hallcal.sensor.reconstruction import (
     f_init_columns,
     projection_matrix,
 )
-
-TWO_PI = 2.0 * math.pi
 
 
 def _recording(n_samples: int, pole_pairs: int, seed: int, *, offset=(0.0, 0.0, 0.0)):

@@ -25,6 +25,7 @@ from typing import Any
 
 import click
 
+from hallcal._constants import DEFAULT_FAULT_AFTER, DEFAULT_TOLERANCE
 from hallcal.errors import CalibrationRefused, HallcalError, HallcalInputError
 from hallcal.formatting import AngleUnit, one_line, ranges, tf_text
 from hallcal.limits import MAX_POLE_PAIRS
@@ -852,14 +853,14 @@ def _print_identification(ident, pole_pairs: int, *, lock_travel: float = 0.0) -
 @click.option(
     "--tolerance",
     type=float,
-    default=0.25,
+    default=DEFAULT_TOLERANCE,
     show_default=True,
     help="Relative widening of the calibrated amplitude windows.",
 )
 @click.option(
     "--fault-after",
     type=int,
-    default=8,
+    default=DEFAULT_FAULT_AFTER,
     show_default=True,
     help="Rejected samples in a row before the fault flag.",
 )

@@ -22,6 +22,7 @@ import numba as nb
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.fit.sem import SEMResult
 from hallcal.messages import Outcome
 from hallcal.sensor.flux import FluxModel
@@ -445,7 +446,7 @@ def harmonic_content(
         raise ValueError("x and d must have the same number of samples")
     N, C = dd.shape
     m = 1 + 2 * K.size
-    revs = float((xx.max() - xx.min()) / (2.0 * math.pi)) if N else 0.0
+    revs = float((xx.max() - xx.min()) / TWO_PI) if N else 0.0
     G, rhs = _fourier_normal_equations(xx, dd, K)
     total = np.einsum("ij,ij->j", dd, dd)
     scale = np.sqrt(np.maximum(np.diag(G), 1e-300))

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.fit.error_source import ErrorSources
 from hallcal.fit.ramp_design import angle_noise_floor
 from hallcal.fit.sem import SEMResult, angle_error_gradient
@@ -32,8 +33,6 @@ __all__ = [
     "error_spread",
     "motion_bias",
 ]
-
-TWO_PI = 2.0 * math.pi
 
 
 @dataclass

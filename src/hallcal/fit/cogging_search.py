@@ -169,6 +169,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.fit.adequacy import CurveProjection, project_fit
 from hallcal.fit.gauss_newton import _moments
 from hallcal.fit.long_run import LongRunVariance, functional_long_run
@@ -380,7 +381,7 @@ def shift_spectrum(
     peak[:-1] &= power[:-1] >= power[1:]
     hits = np.flatnonzero((ratio > threshold) & peak & allowed)
     hits = hits[np.argsort(-ratio[hits])][: int(max_candidates)]
-    revs = float((np.nanmax(y0) - np.nanmin(y0)) / (2.0 * math.pi)) if y0.size else 0.0
+    revs = float((np.nanmax(y0) - np.nanmin(y0)) / TWO_PI) if y0.size else 0.0
     return ShiftSpectrum(
         orders=np.arange(1, K + 1),
         amplitude=np.sqrt(power),

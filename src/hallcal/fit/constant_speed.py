@@ -34,6 +34,7 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.limits import one_blas_thread
 from hallcal.messages import Outcome
 from hallcal.sensor.flux import FluxModel, FourierBasis
@@ -50,8 +51,6 @@ __all__ = [
     "find_constant_speed",
     "speed_deviation",
 ]
-
-TWO_PI = 2.0 * math.pi
 
 
 class GeometryStatus(Outcome):

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.fit.constant_speed import (
     ConstantSpeedResult,
     calibrate_constant_speed,
@@ -53,8 +54,6 @@ from hallcal.fit.constant_speed import (
 from hallcal.sensor.flux import FourierBasis
 
 __all__ = ["ELECTRICAL_BANDS", "HeldOut", "held_out_choice", "held_out_error"]
-
-TWO_PI = 2.0 * math.pi
 
 #: Highest electrical harmonics E of the bands 1..E n_m that ``"auto"`` tries, in order (a
 #: magnet's flux is odd-symmetric to first order: its strong harmonics are the odd ones).

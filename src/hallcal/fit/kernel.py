@@ -91,6 +91,7 @@ import scipy.optimize
 import scipy.special
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.fit.adequacy import estimate_noise_variance
 from hallcal.fit.evidence import HarmonicRelevance, harmonic_relevance
 from hallcal.fit.gauss_newton import (
@@ -113,8 +114,6 @@ __all__ = [
     "select_hyperparameters",
     "solve_kernel_sem",
 ]
-
-TWO_PI = 2.0 * math.pi
 
 
 # ================================================================================================

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.fit.gauss_newton import ParameterLayout, gauss_newton_system, simulate_model
 from hallcal.fit.sem import predicted_angle_error
 from hallcal.messages import Outcome
@@ -44,8 +45,6 @@ __all__ = [
     "predict_ramp_error",
     "speed_limits",
 ]
-
-TWO_PI = 2.0 * math.pi
 
 #: Samples per spatial period of the highest harmonic at the fastest speed considered: the
 #: simulation holds the flux between samples, and 8 samples per period keep that well resolved.

@@ -29,6 +29,7 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.fit.gauss_newton import (
     GaussNewtonSystem,
     ParameterLayout,
@@ -53,8 +54,6 @@ __all__ = [
     "predicted_angle_error",
     "solve_sem",
 ]
-
-TWO_PI = 2.0 * math.pi
 
 
 class SEMStatus(Outcome):

@@ -38,6 +38,7 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.fit.adequacy import chi2_isf_even
 from hallcal.fit.gauss_newton import regression_normal_equations
 from hallcal.limits import one_blas_thread
@@ -55,8 +56,6 @@ __all__ = [
     "f_init_view",
     "unwarp",
 ]
-
-TWO_PI = 2.0 * math.pi
 
 
 # ================================================================================================

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hallcal import _version
+from hallcal._constants import TWO_PI
 from hallcal.errors import HallcalInputError
 from hallcal.io.files import (
     _check_parsed,
@@ -160,8 +161,6 @@ def migrate_values(data: Any) -> Any:
             stack.extend(node)
     return data
 
-
-TWO_PI = 2.0 * math.pi
 
 #: Table nodes y_hat_i = y0_i - eta_i with y0_i in [0, 2 pi) and |eta_i| < pi lie in (-pi, 3 pi).
 _Y_HAT_RANGE = (-math.pi, 3.0 * math.pi)

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from hallcal._constants import DEFAULT_FAULT_AFTER, DEFAULT_TOLERANCE, TWO_PI
 from hallcal.errors import HallcalInputError
 from hallcal.io.artifact import ArtifactData, validate_artifact
 from hallcal.messages import Outcome
@@ -78,7 +79,6 @@ __all__ = [
     "fit_table",
 ]
 
-TWO_PI = 2.0 * math.pi
 #: Budget for the table's difference to the artifact's interpolant [rad] when the artifact
 #: states no noise floor.
 DEFAULT_BUDGET = 1e-6
@@ -86,10 +86,6 @@ DEFAULT_BUDGET = 1e-6
 MAX_BUDGET = 1e-5
 #: Fraction of the noise floor the table may use.
 BUDGET_FRACTION = 0.1
-#: Relative widening of the calibrated amplitude windows (gain and magnet drift).
-DEFAULT_TOLERANCE = 0.25
-#: Consecutive rejected samples after which the state flags a fault.
-DEFAULT_FAULT_AFTER = 8
 
 
 @dataclass(frozen=True)

@@ -37,11 +37,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.errors import HallcalInputError
 from hallcal.sensor.absolute import null_vector
 from hallcal.sensor.flux import FluxModel
 
-TWO_PI = 2.0 * math.pi
 #: Speed limit without a maximum speed [electrical turns per sample]: 22.5 electrical degrees.
 DEFAULT_SPEED = 0.0625
 #: Noise sigmas added to every window.

@@ -34,6 +34,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormatter
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.formatting import AngleUnit
 
 if TYPE_CHECKING:
@@ -65,7 +66,6 @@ __all__ = [
     "plot_sem_cost",
 ]
 
-TWO_PI = 2.0 * math.pi
 #: f_init and measured signals (blue in the paper).
 INIT_COLOR = "#1f77b4"
 #: f_star and the identified model (red in the paper).

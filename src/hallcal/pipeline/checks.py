@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.errors import HallcalInputError
 from hallcal.io.dataset import Dataset
 from hallcal.messages import Message, MessageCode, Severity
@@ -65,8 +66,6 @@ __all__ = [
     "pole_pairs_from_signature",
     "raise_if_failed",
 ]
-
-TWO_PI = 2.0 * math.pi
 
 #: |z| above 1 + this is an unstable closed-loop pole. A cancelled integrator (the paper's C(q)
 #: has a zero at q = 1) gives |z| = 1 to about 1e-9 in the eigenvalues; 1e-6 is a mode that grows

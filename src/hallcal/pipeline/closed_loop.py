@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.errors import HallcalError, HallcalInputError
 from hallcal.fit.adequacy import AdequacyReport, ErrorSource, assess
 from hallcal.fit.cogging_search import CoggingSelection, CoggingStatus, select_cogging
@@ -65,8 +66,6 @@ if TYPE_CHECKING:
     from hallcal.sensor.observer import Injectivity
 
 __all__ = ["calibrate_closed_loop"]
-
-TWO_PI = 2.0 * math.pi
 
 
 @dataclass(frozen=True)
@@ -451,7 +450,7 @@ def _ramp_advice(
     if r.size < 2 or span <= 0:
         return None
     v0 = span / ((r.size - 1) * setup.sample_time)
-    revs = span / (2.0 * math.pi)
+    revs = span / TWO_PI
     x = sem.layout.pack(sem.flux.theta, 0.0, sem.cogging)  # the loop's plant holds the gain c
     _, v_max = speed_limits(loop, sem.layout, revs)
     speeds = v0 * 2.0 ** np.arange(1, 40)

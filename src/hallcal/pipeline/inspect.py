@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hallcal._constants import TWO_PI
 from hallcal.errors import HallcalInputError
 from hallcal.fit.constant_speed import (
     SensorGeometry,
@@ -41,8 +42,6 @@ from hallcal.pipeline.checks import (
 )
 
 __all__ = ["Inspection", "inspect_recording"]
-
-TWO_PI = 2.0 * math.pi
 
 #: Revolutions used for calibration when the constant-speed window is long enough to keep some for
 #: a check on unseen data (the recording guide: two revolutions, better more).

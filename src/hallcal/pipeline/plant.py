@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.errors import CalibrationRefused, HallcalInputError
 from hallcal.fit.sem import least_squares_start
 from hallcal.io.dataset import Dataset
@@ -47,8 +48,6 @@ __all__ = [
     "identify_bla",
     "plant_model",
 ]
-
-TWO_PI = 2.0 * math.pi
 
 
 #: A fit whose weighted cost exceeds this many times the number of lines leaves structure the

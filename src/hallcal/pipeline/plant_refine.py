@@ -51,6 +51,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.fit.cogging_search import CoggingSelection, select_cogging
 from hallcal.fit.sem import SEMResult, solve_sem
 from hallcal.io.setup import Setup
@@ -63,7 +64,6 @@ from hallcal.sim.lti import ContinuousTF
 
 __all__ = ["PlantRefinement", "refine_plant"]
 
-TWO_PI = 2.0 * math.pi
 #: Risk of calling a healthy BLA and run "in disagreement": alpha^T alpha above the chi-square
 #: quantile of p degrees of freedom (under the prior, alpha_hat is about N(0, I - P)).
 DISAGREEMENT_RISK = 1e-3

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from hallcal._constants import TWO_PI
 from hallcal.errors import CalibrationRefused, HallcalInputError
 from hallcal.io.dataset import Dataset
 from hallcal.messages import Message, MessageCode
@@ -58,8 +59,6 @@ MISMATCH_TEXT = (
 #: test decides within a few dozen (a mismatch after about 11 samples far off the model, a fit
 #: after about 6), so this bounds the work (n_m costs per sample) on long recordings.
 CHECK_SAMPLES = 20_000
-
-TWO_PI = 2.0 * math.pi
 
 
 def power_up_analysis(
@@ -423,8 +422,8 @@ def _far(scale: float) -> bool:
 def _electrical_turns(decoder: PowerUpDecoder, d: np.ndarray) -> float:
     """Electrical turns f_init's angle spans over the samples (max - min)."""
     F = decoder.features(d)
-    y = (F["psi"] + 2.0 * math.pi * F["m"])[F["valid"]]
-    return float(np.ptp(y)) / (2.0 * math.pi) if y.size else 0.0
+    y = (F["psi"] + TWO_PI * F["m"])[F["valid"]]
+    return float(np.ptp(y)) / TWO_PI if y.size else 0.0
 
 
 def identification_check(

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.messages import Outcome
 from hallcal.sensor.drift_margin import PLAUSIBLE_GAIN_CHANGE
 from hallcal.sensor.flux import FluxModel
@@ -26,7 +27,6 @@ from hallcal.sensor.misfit import (
     MisfitTest,
 )
 
-TWO_PI = 2.0 * math.pi
 #: Grid sizes per electrical period tried by :func:`build_decoder` (powers of two).
 GRID_CHOICES = (32, 64, 128, 256, 512, 1024)
 #: Default largest linear-interpolation error of the tables, in noise sigmas.

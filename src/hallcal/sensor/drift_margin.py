@@ -43,6 +43,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.sensor.misfit import MisfitTest
 
 __all__ = [
@@ -53,8 +54,6 @@ __all__ = [
     "drift_margin",
     "wrong_lock_share",
 ]
-
-TWO_PI = 2.0 * math.pi
 
 #: Wrong-lock share above which a change is said to break the lock: one power-up in ten at a
 #: random position. Not the decoder's alpha (0.1 %): on every motor measured, a gain change of

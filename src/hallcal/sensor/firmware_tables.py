@@ -27,6 +27,7 @@ import scipy.sparse as sparse
 import scipy.sparse.linalg as sparse_linalg
 from numpy.typing import NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.sensor.absolute import PowerUpDecoder, gram_at, tangent_terms
 from hallcal.sensor.lut import LUT
 
@@ -47,7 +48,6 @@ __all__ = [
     "tangent_range",
 ]
 
-TWO_PI = 2.0 * math.pi
 #: Largest table: M = n_m 2^k <= this many intervals.
 MAX_TABLE_POINTS = 16384
 #: Largest linear table the exporter chooses by itself (int16: 4 kB).

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.sensor.reconstruction import (
     BLOCK_ROWS,
     InitReconstructor,
@@ -31,8 +32,6 @@ from hallcal.sensor.reconstruction import (
 )
 
 __all__ = ["LUT", "NotBijectiveError", "StarReconstructor", "build_lut"]
-
-TWO_PI = 2.0 * math.pi
 
 
 class NotBijectiveError(ValueError):

@@ -14,9 +14,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["AngleError", "SpatialSpectrum", "angle_error", "spatial_spectrum"]
+from hallcal._constants import TWO_PI
 
-TWO_PI = 2.0 * math.pi
+__all__ = ["AngleError", "SpatialSpectrum", "angle_error", "spatial_spectrum"]
 
 
 @dataclass(frozen=True)

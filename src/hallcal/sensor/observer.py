@@ -59,6 +59,7 @@ import numba as nb
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.sensor.flux import FluxModel
 
 __all__ = [
@@ -73,8 +74,6 @@ __all__ = [
     "observer_model",
     "run_observer",
 ]
-
-TWO_PI = 2.0 * math.pi
 
 
 class ObserverState(enum.StrEnum):
@@ -844,8 +843,8 @@ def _track(d, G, dG, c, amp, w0, n_m, y_initial, cfg, offsets, a, b, y_out, misf
     outlier), isolate faults, update the misfit window, adapt gain and level, readmit, and write
     y_obs, misfit and state. The first sample (and only it) is
     acquired by a search of the table nodes ``offsets`` within half a pole pitch."""
-    h = 2.0 * math.pi / G.shape[0]
-    pitch = 2.0 * math.pi / n_m
+    h = TWO_PI / G.shape[0]
+    pitch = TWO_PI / n_m
     max_step = pitch / 8.0
     v_max = 0.4 * pitch  # the tracker's speed bound: 0.8 of Nyquist (half a pitch per sample)
     gross = np.maximum(cfg[16] * math.sqrt(2.0) * amp, 8.0 / np.sqrt(w0))

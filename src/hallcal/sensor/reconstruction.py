@@ -22,6 +22,8 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal._constants import TWO_PI
+
 __all__ = [
     "NOMINAL_PHASES",
     "InitReconstructor",
@@ -35,7 +37,6 @@ __all__ = [
     "unwrap_to",
 ]
 
-TWO_PI = 2.0 * math.pi
 #: Rows per block of the whole-recording functions: memory beyond the result is a few work
 #: arrays of this many float64 (2 MiB each), whatever the length of the recording.
 BLOCK_ROWS = 1 << 18

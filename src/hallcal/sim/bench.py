@@ -46,6 +46,7 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.sensor.flux import FluxModel, FourierBasis
 from hallcal.sensor.reconstruction import unwrap_to
 from hallcal.sim.bench_spec import BenchSpec
@@ -67,7 +68,6 @@ __all__ = [
     "simulate_run",
 ]
 
-TWO_PI = 2.0 * math.pi
 #: G(s) of the paper's simulation (with the physical sign of the delay, see docs/design.md).
 PAPER_PLANT = ContinuousTF((1.663e5,), (1.0, 632.6, 2702.0, 0.0), 1.2e-4)
 #: C(q) of eq. (controller).

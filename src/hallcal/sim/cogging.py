@@ -29,9 +29,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["COGGING_RELATIVE_ERROR", "MAX_COGGING_POINTS", "CoggingTable", "CoggingTorque"]
+from hallcal._constants import TWO_PI
 
-TWO_PI = 2.0 * math.pi
+__all__ = ["COGGING_RELATIVE_ERROR", "MAX_COGGING_POINTS", "CoggingTable", "CoggingTorque"]
 
 
 @dataclass(frozen=True)

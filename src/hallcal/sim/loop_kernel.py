@@ -24,6 +24,8 @@ import numba as nb
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hallcal._constants import TWO_PI
+
 __all__ = [
     "F64",
     "LoopArrays",
@@ -48,8 +50,6 @@ __all__ = [
     "trig_table",
     "unwrap",
 ]
-
-TWO_PI = 2.0 * math.pi
 
 F64 = NDArray[np.float64]
 LoopArrays = tuple[F64, F64, F64, F64, F64, F64, float, F64, F64]

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import string
 
+from hallcal._constants import TWO_PI
 from hallcal.output.codegen.c_text import _c_list, _cf, comment_text
-from hallcal.output.codegen.numbers import TWO_PI
 from hallcal.output.codegen.sections import Section, _Context
 from hallcal.output.firmware import cogging_table
 

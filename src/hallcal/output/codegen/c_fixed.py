@@ -10,9 +10,10 @@ from __future__ import annotations
 import string
 from collections.abc import Sequence
 
+from hallcal._constants import TWO_PI
 from hallcal.output.codegen import c_common
 from hallcal.output.codegen.c_text import _U32, _c_list, _cu, _int_add, _int_sub, _speed_text
-from hallcal.output.codegen.numbers import CORDIC_STEPS, TWO_PI, _FixedNumbers
+from hallcal.output.codegen.numbers import CORDIC_STEPS, _FixedNumbers
 from hallcal.output.codegen.sections import Section, _Context
 from hallcal.sensor.firmware_tables import CorrectionTable
 

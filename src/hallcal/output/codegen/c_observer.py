@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from hallcal._constants import TWO_PI
 from hallcal.errors import HallcalInputError
 from hallcal.io import ArtifactData, validate_artifact
 from hallcal.output.codegen.c_text import comment_text
@@ -48,8 +49,6 @@ from hallcal.sensor.observer import (
 )
 
 __all__ = ["ObserverExport", "export_observer_c"]
-
-TWO_PI = 2.0 * math.pi
 
 
 @dataclass(frozen=True)

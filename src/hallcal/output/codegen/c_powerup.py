@@ -16,9 +16,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from hallcal._constants import TWO_PI
 from hallcal.output.codegen.c_float import _FLOAT_UPDATE, _atan2_c
 from hallcal.output.codegen.c_text import _U32, _c_list, _cf, comment_text
-from hallcal.output.codegen.numbers import _EPS_F32, _TAN_PI_8, TWO_PI, _float_atan2_design
+from hallcal.output.codegen.numbers import _EPS_F32, _TAN_PI_8, _float_atan2_design
 from hallcal.output.codegen.sections import Section, _Context
 from hallcal.output.firmware import EXP2_CUT, PowerUpCode, PowerUpFirmware
 

@@ -15,12 +15,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.errors import HallcalInputError
 from hallcal.output.codegen.c_text import _U32
 from hallcal.output.firmware import FirmwareDesign, Plausibility
 from hallcal.sensor.firmware_tables import newton_seed
 
-TWO_PI = 2.0 * math.pi
 _EPS_F32 = 2.0**-24  # unit roundoff of IEEE single precision
 #: The generated code's stated error bound against Python should not exceed this [rad]; a larger
 #: table is chosen when the arithmetic would take it above.

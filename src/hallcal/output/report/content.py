@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from hallcal._constants import TWO_PI
 from hallcal.errors import HallcalInputError
 from hallcal.formatting import AngleUnit
 from hallcal.io import ArtifactData, Dataset, Setup, validate_artifact
@@ -20,9 +21,6 @@ from hallcal.pipeline.progress import Progress, say
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT, build_lut
 from hallcal.sim.lti import ContinuousTF
-
-TWO_PI = 2.0 * math.pi
-
 
 # ------------------------------------------------------------------------------------------------
 # What a report shows
