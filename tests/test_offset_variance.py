@@ -71,8 +71,8 @@ def test_offset_long_run_on_the_paper_bench(disturbance):
     # short run's residual is coloured by the misfit of 11 harmonics and by the torque)
     ratio = (lr.variance / lr.white) ** 0.5
     assert 2.0 < ratio < (5.0 if disturbance == 0 else 8.0)
-    excess, same = offset_excess(loop, run.r, run.d, sem)
-    assert excess >= 0.0 and same == lr
+    hac = offset_excess(loop, run.r, run.d, sem)
+    assert hac.excess >= 0.0 and hac.long_run == lr
 
 
 @pytest.mark.parametrize("disturbance", [0.0, 2e-3])
@@ -97,7 +97,7 @@ def test_the_offset_hac_counts_only_where_the_run_shows_unmodelled_motion(distur
         # the white 0.10x: bench_offset_hac.txt, the table's offsets 0.65x RMS over six seeds)
         assert before.ratio > before.thresholds["warn_ratio"]
         assert after.predicted_error**2 == pytest.approx(
-            before.predicted_error**2 + offset_excess(loop, run.r, run.d, sem)[0] ** 2, rel=1e-9
+            before.predicted_error**2 + offset_excess(loop, run.r, run.d, sem).excess ** 2, rel=1e-9
         )  # the excess adds its variance to the mean square, nothing else moves
         assert after.predicted_error > 1.15 * before.predicted_error
         assert after.predicted_upper > after.predicted_error

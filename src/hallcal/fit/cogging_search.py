@@ -172,7 +172,7 @@ from numpy.typing import ArrayLike, NDArray
 from hallcal._constants import TWO_PI
 from hallcal.fit.adequacy import CurveProjection, project_fit
 from hallcal.fit.gauss_newton import _moments
-from hallcal.fit.long_run import LongRunVariance, functional_long_run
+from hallcal.fit.long_run import INFLUENCE_STEP, LongRunVariance, functional_long_run
 from hallcal.fit.sem import SEMResult, solve_sem
 from hallcal.sensor.flux import FourierBasis
 from hallcal.sim.cogging import CoggingTorque
@@ -630,7 +630,7 @@ def order_tests(sem: SEMResult, *, significance: float = 1e-3) -> tuple[OrderTes
 
 def load_test(
     loop: ClosedLoop, r: ArrayLike, d: ArrayLike, sem: SEMResult, *, alpha: float,
-    step: float = 0.01,
+    step: float = INFLUENCE_STEP,
 ) -> tuple[OrderTest, LongRunVariance]:  # fmt: skip
     """Order 0's test with the HAC variance of a_0 (module docstring, "A constant load torque").
 
@@ -655,7 +655,8 @@ def load_test(
     alpha : float
         Level of this order's test (Bonferroni share).
     step : float
-        Of the central differences, in a_0's white standard deviations.
+        Of the central differences, in a_0's white standard deviations
+        (:data:`hallcal.fit.long_run.INFLUENCE_STEP`).
 
     Returns
     -------

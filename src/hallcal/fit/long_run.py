@@ -26,7 +26,17 @@ from hallcal.fit.gauss_newton import simulate_model
 from hallcal.fit.sem import SEMResult
 from hallcal.sim.loop import ClosedLoop
 
-__all__ = ["LongRunVariance", "functional_long_run", "hac_variance"]
+__all__ = ["INFLUENCE_STEP", "LongRunVariance", "functional_long_run", "hac_variance"]
+
+#: Step of the central differences that give the influence ``u_t = J_t v`` of a functional
+#: ``w^T x`` (:func:`functional_long_run`): the two simulations of the model are at ``x +- h v``,
+#: ``v = A^-1 w``, with ``h`` chosen so that the functional moves by this many of its white
+#: standard deviations ``sqrt(sigma^2 w^T A^-1 w)`` (dimensionless; relative to the
+#: functional's own uncertainty, so the same for a load a_0 [torque] and the table's offset
+#: [rad]). 0.01, a hundredth of the fit's own uncertainty: deep in the range where the model is
+#: linear in x, so the central difference's relative error, of order step^2, is about 1e-4, while
+#: the two simulations still differ far above float64 rounding.
+INFLUENCE_STEP = 0.01
 
 
 @dataclass(frozen=True)
@@ -130,7 +140,7 @@ def functional_long_run(
     sem: SEMResult,
     w: NDArray[np.float64],
     *,
-    step: float = 0.01,
+    step: float = INFLUENCE_STEP,
     bandwidth: float | None = None,
 ) -> LongRunVariance | None:
     """The HAC variance of the functional ``w^T x`` of the fit's parameters (module docstring).
@@ -156,7 +166,8 @@ def functional_long_run(
     w : ndarray (P,)
         The functional over the fit's packed parameters (:class:`hallcal.fit.layout` order).
     step : float, keyword-only
-        Of the central differences, in the functional's white standard deviations.
+        Of the central differences, in the functional's white standard deviations
+        (:data:`INFLUENCE_STEP`).
     bandwidth : float, optional, keyword-only
         S [samples] for :func:`hac_variance` (default: Andrews' plug-in).
 

@@ -36,20 +36,40 @@ whose offsets follow the white one; with the motion bias it counts the motion tw
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal.fit._table_error import _theta_covariances
-from hallcal.fit.long_run import LongRunVariance, functional_long_run
+from hallcal.fit.long_run import INFLUENCE_STEP, LongRunVariance, functional_long_run
 from hallcal.fit.sem import SEMResult, angle_error_gradient
 from hallcal.sim.loop import ClosedLoop
 
-__all__ = ["BANDWIDTH_FRACTION", "offset_excess", "offset_long_run"]
+__all__ = ["BANDWIDTH_FRACTION", "OffsetExcess", "offset_excess", "offset_long_run"]
 
 #: The HAC bandwidth as a fraction of the run's samples (module docstring; the cap of
 #: :func:`hallcal.fit.long_run.hac_variance`).
 BANDWIDTH_FRACTION = 1.0 / 12.0
+
+
+@dataclass(frozen=True)
+class OffsetExcess:
+    """What the table offset's HAC variance adds to the predicted error (:func:`offset_excess`).
+
+    Attributes
+    ----------
+    excess : float
+        ``sqrt(max(0, hac - max(white, batch)))`` [rad]: the offset's HAC standard deviation
+        beyond what the white and batch-means covariances already give it, to be added in
+        quadrature to the predicted table error; 0 when the HAC variance is no larger or cannot
+        be had (no covariance, a simulation or the gradient failing).
+    long_run : LongRunVariance or None
+        The offset's HAC variance [rad^2] (:func:`offset_long_run`); None when it cannot be had.
+    """
+
+    excess: float
+    long_run: LongRunVariance | None
 
 
 def _offset_functional(loop: ClosedLoop, sem: SEMResult) -> NDArray[np.float64]:
@@ -60,7 +80,7 @@ def _offset_functional(loop: ClosedLoop, sem: SEMResult) -> NDArray[np.float64]:
 
 
 def offset_long_run(
-    loop: ClosedLoop, r: ArrayLike, d: ArrayLike, sem: SEMResult, *, step: float = 0.01
+    loop: ClosedLoop, r: ArrayLike, d: ArrayLike, sem: SEMResult, *, step: float = INFLUENCE_STEP
 ) -> LongRunVariance | None:
     """The HAC variance [rad^2] of the table's constant offset ``c^T theta`` (module docstring).
 
@@ -75,7 +95,8 @@ def offset_long_run(
     sem : SEMResult
         The final fit.
     step : float, keyword-only
-        Of the central differences along ``A^-1 c``, in the offset's white standard deviations.
+        Of the central differences along ``A^-1 c``, in the offset's white standard deviations
+        (:data:`hallcal.fit.long_run.INFLUENCE_STEP`).
 
     Returns
     -------
@@ -100,9 +121,7 @@ def _long_run(
     )
 
 
-def offset_excess(
-    loop: ClosedLoop, r: ArrayLike, d: ArrayLike, sem: SEMResult
-) -> tuple[float, LongRunVariance | None]:
+def offset_excess(loop: ClosedLoop, r: ArrayLike, d: ArrayLike, sem: SEMResult) -> OffsetExcess:
     """What the offset's HAC variance adds to the predicted table error [rad].
 
     The offset part of the prediction is the largest of its white, batch-means
@@ -118,16 +137,15 @@ def offset_excess(
 
     Returns
     -------
-    (excess, long_run) : tuple
-        The excess [rad] (0 when the HAC variance is no larger, or cannot be had: no
-        covariance, a simulation or the gradient failing) and the HAC variance.
+    OffsetExcess
+        The excess [rad] and the offset's HAC variance it rests on.
     """
     try:
         c = _offset_functional(loop, sem)  # formed once for the HAC and both covariances
-        lr = _long_run(loop, r, d, sem, c, step=0.01)
+        lr = _long_run(loop, r, d, sem, c, step=INFLUENCE_STEP)
         if lr is None or not math.isfinite(lr.variance):
-            return 0.0, lr
+            return OffsetExcess(0.0, lr)
         now = max(float(c @ C @ c) for C in _theta_covariances(sem))
     except (ValueError, np.linalg.LinAlgError):  # the prediction stands as it was
-        return 0.0, None
-    return math.sqrt(max(lr.variance - now, 0.0)), lr
+        return OffsetExcess(0.0, None)
+    return OffsetExcess(math.sqrt(max(lr.variance - now, 0.0)), lr)

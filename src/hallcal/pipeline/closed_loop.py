@@ -719,9 +719,9 @@ def calibrate_closed_loop(
         # cost above its warning level, no motion bias); assessed again when it exceeds what
         # both covariances give the offset
         if adequacy.ratio > adequacy.thresholds["warn_ratio"] and adequacy.motion_bias == 0.0:
-            excess, long_run = offset_excess(loop, s.r, s.d, fit.sem)
-            if long_run is not None and excess > 0:
-                adequacy = assessed(long_run.variance)
+            hac = offset_excess(loop, s.r, s.d, fit.sem)
+            if hac.long_run is not None and hac.excess > 0:
+                adequacy = assessed(hac.long_run.variance)
         say(progress, "lookup table and bijectivity check")
         lut = build_lut(
             fit.flux,
