@@ -39,7 +39,7 @@ import hallcal.pipeline as hp
 import hallcal.pipeline.closed_loop as cl
 from hallcal.fit._table_error import MIN_BATCHES
 from hallcal.fit.gauss_newton import simulate_model
-from hallcal.fit.long_run import _lagged_products, hac_variance
+from hallcal.fit.long_run import INFLUENCE_STEP, _lagged_products, hac_variance
 from hallcal.fit.offset_variance import offset_excess
 from hallcal.fit.sem import angle_error_gradient
 
@@ -59,7 +59,7 @@ def _capturing_build_lut(*args, **kwargs):
 cl.build_lut = _capturing_build_lut
 
 
-def offset_sds(step: float = 0.01) -> dict:
+def offset_sds(step: float = INFLUENCE_STEP) -> dict:
     """Offset sd's [rad] at the captured final fit: white, batch, HAC with Andrews' bandwidth,
     HAC at N / 12 (the calibration's, :func:`hallcal.fit.offset_variance.offset_long_run`), the
     excess the calibration added, and the HAC / white sd ratio at the fixed bandwidths SPAN."""
