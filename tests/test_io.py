@@ -1049,3 +1049,37 @@ def test_atomic_write_into_missing_directory(tmp_path: Path) -> None:
     with pytest.raises(HallcalInputError) as excinfo:
         write_json(target, {"a": 1})
     assert _message(excinfo).startswith(f"{target}: directory")
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="counts threads in /proc (Linux)")
+def test_reading_starts_no_arrow_thread_pool(tmp_path: Path) -> None:
+    """Reading Parquet leaves no Arrow thread behind and reading CSV at most one (the idle
+    read-ahead thread of Arrow's serial CSV reader): Arrow's CPU pool (``cpu_count`` threads,
+    2 on a 2-core machine, 3 threads in all after a CSV read before this was fixed), still alive
+    at interpreter exit, can abort the process with "terminate called without an active
+    exception" (apache/arrow#34314; it failed a CI run of ``reconstruct --absolute``). A child
+    process counts its threads after importing pyarrow and after each read."""
+    import subprocess
+    import sys
+
+    columns = {"d1": np.arange(5000.0), "d2": np.ones(5000), "d3": np.zeros(5000)}
+    write_dataset(tmp_path / "d.csv", columns)
+    write_dataset(tmp_path / "d.parquet", columns)
+    code = (
+        "import os, sys, pyarrow\n"
+        "from hallcal.io import read_dataset\n"
+        "n = lambda: len(os.listdir('/proc/self/task'))\n"
+        "counts = [n()]\n"
+        "read_dataset(sys.argv[1]); counts.append(n())\n"
+        "read_dataset(sys.argv[2]); counts.append(n())\n"
+        "print(*counts)\n"
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", code, str(tmp_path / "d.parquet"), str(tmp_path / "d.csv")],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    before, after_parquet, after_csv = map(int, res.stdout.split())
+    assert after_parquet == before, res.stdout
+    assert after_csv <= before + 1, res.stdout

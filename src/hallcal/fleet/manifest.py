@@ -89,7 +89,7 @@ def _manifest_rows_parquet(p: Path) -> tuple[list[str], list[dict[str, str]]]:
     import pyarrow.parquet as pq
 
     try:
-        table = pq.read_table(p, use_threads=False)
+        table = pq.read_table(p, use_threads=False, pre_buffer=False)
     except (OSError, pa.ArrowException) as exc:
         raise HallcalInputError(f"{p}: cannot read the Parquet manifest ({exc})") from None
     header = list(table.column_names)

@@ -518,7 +518,7 @@ def _read_parquet(p: Path) -> dict[str, np.ndarray]:
         raise HallcalInputError(f"{source}: not a valid Parquet file (no PAR1 signature)")
     cols: dict[str, np.ndarray] = {}
     with _library_errors(p, "Parquet file"):
-        pf = pq.ParquetFile(p)
+        pf = pq.ParquetFile(p, pre_buffer=False)  # no Arrow I/O thread (see text.py)
         meta = pf.metadata
         _check_table_size(source, int(meta.num_rows), int(meta.num_columns))
         table = pf.read(use_threads=False)
