@@ -105,7 +105,8 @@ def _case(i: int) -> dict:
     j = sem.layout.cogging_start
     a0 = float(sem.cogging.coefficients[0])
     vw, vb = float(sem.parameter_covariance[j, j]), float(sem.batch_covariance[j, j])
-    hac, lr = cogging_search.load_test(loop, r, d, sem, alpha=ALPHA)
+    result = cogging_search.load_test(loop, r, d, sem, alpha=ALPHA)
+    hac, lr = result.test, result.long_run
     load = sum(a for order, a, _ in cfg.cogging_terms if order == 0)
     t2b, t2w = a0 * a0 / vb, a0 * a0 / vw
     t0 = time.process_time()

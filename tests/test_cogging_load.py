@@ -82,7 +82,8 @@ def test_a0_hac_variance_is_the_white_one_on_a_white_noise_run():
                   controller=cfg.controller, plant=cfg.plant, model=ModelSpec())  # fmt: skip
     loop = closed_loop(setup, cfg.plant)
     sem = solve_sem(loop, run.r, run.d, FourierBasis(tuple(range(1, 12))), y=run.y, cogging=(0,))
-    test, lr = load_test(loop, run.r, run.d, sem, alpha=1e-3)
+    result = load_test(loop, run.r, run.d, sem, alpha=1e-3)
+    test, lr = result.test, result.long_run
     j = sem.layout.cogging_start
     white = float(sem.parameter_covariance[j, j])
     assert lr.white == white  # the HAC's ratio to the lag-0 term scales the white variance

@@ -25,7 +25,7 @@ from typing import Any
 
 import click
 
-from hallcal._constants import DEFAULT_FAULT_AFTER, DEFAULT_TOLERANCE
+from hallcal._constants import DEFAULT_C_PREFIX, DEFAULT_FAULT_AFTER, DEFAULT_TOLERANCE
 from hallcal.errors import CalibrationRefused, HallcalError, HallcalInputError
 from hallcal.formatting import AngleUnit, one_line, ranges, tf_text
 from hallcal.limits import MAX_POLE_PAIRS
@@ -864,7 +864,7 @@ def _print_identification(ident, pole_pairs: int, *, lock_travel: float = 0.0) -
     show_default=True,
     help="Rejected samples in a row before the fault flag.",
 )
-@click.option("--prefix", default="hallcal", show_default=True, help="C name prefix.")
+@click.option("--prefix", default=DEFAULT_C_PREFIX, show_default=True, help="C name prefix.")
 @click.option(
     "--observer",
     is_flag=True,

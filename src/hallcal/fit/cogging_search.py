@@ -181,6 +181,7 @@ from hallcal.sim.loop import ClosedLoop
 __all__ = [
     "CoggingSelection",
     "CoggingStatus",
+    "LoadTest",
     "ShiftSpectrum",
     "default_max_order",
     "load_test",
@@ -628,10 +629,27 @@ def order_tests(sem: SEMResult, *, significance: float = 1e-3) -> tuple[OrderTes
     return tuple(tests)
 
 
+@dataclass(frozen=True)
+class LoadTest:
+    """Outcome of :func:`load_test`.
+
+    Attributes
+    ----------
+    test : OrderTest
+        Order 0's T^2 test with a_0's HAC variance (``threshold`` is ``inf`` when the run gives
+        no long-run variance: the test cannot pass).
+    long_run : LongRunVariance
+        The functional's long-run variance behind it (zeros when there is none).
+    """
+
+    test: OrderTest
+    long_run: LongRunVariance
+
+
 def load_test(
     loop: ClosedLoop, r: ArrayLike, d: ArrayLike, sem: SEMResult, *, alpha: float,
     step: float = INFLUENCE_STEP,
-) -> tuple[OrderTest, LongRunVariance]:  # fmt: skip
+) -> LoadTest:  # fmt: skip
     """Order 0's test with the HAC variance of a_0 (module docstring, "A constant load torque").
 
     ``a_0 - a_0* = v^T J^T e`` to first order with ``v = A^-1 e_a0``, ``A = J^T J + R``: the
@@ -660,7 +678,7 @@ def load_test(
 
     Returns
     -------
-    (OrderTest, LongRunVariance)
+    LoadTest
     """
     cog, layout, cov = sem.cogging, sem.layout, sem.parameter_covariance
     if cog is None or layout is None or cov is None or 0 not in cog.orders:
@@ -671,10 +689,10 @@ def load_test(
     a0 = float(cog.coefficients[2 * i])
     lr = functional_long_run(loop, r, d, sem, w, step=step)
     if lr is None:
-        return OrderTest(0, abs(a0), 0.0, math.inf), LongRunVariance(0.0, 0.0, 0.0, 0.0)
+        return LoadTest(OrderTest(0, abs(a0), 0.0, math.inf), LongRunVariance(0.0, 0.0, 0.0, 0.0))
     var = lr.variance
     t2 = a0 * a0 / var if var > 0 else 0.0
-    return OrderTest(0, abs(a0), t2, f1_isf(alpha, lr.dof)), lr
+    return LoadTest(OrderTest(0, abs(a0), t2, f1_isf(alpha, lr.dof)), lr)
 
 
 def _with_load_test(
@@ -695,7 +713,7 @@ def _with_load_test(
     white = vw > 0 and t0.amplitude**2 / vw > f1_isf(alpha, 1e9)
     if not (t0.significant or white):
         return tests
-    hac, _ = load_test(loop, r, d, sem, alpha=alpha)
+    hac = load_test(loop, r, d, sem, alpha=alpha).test
     return tuple(hac if t.order == 0 else t for t in tests)
 
 

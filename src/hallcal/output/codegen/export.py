@@ -17,6 +17,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from hallcal._constants import DEFAULT_C_PREFIX
 from hallcal.errors import HallcalInputError
 from hallcal.io import ArtifactData, atomic_write, make_folder, output_set, validate_artifact
 from hallcal.output.codegen.anticogging import _anticogging_section
@@ -431,7 +432,7 @@ def export_c(
     artifact: Mapping | ArtifactData,
     out_dir: str | os.PathLike[str],
     *,
-    prefix: str = "hallcal",
+    prefix: str = DEFAULT_C_PREFIX,
     fixed_point: bool = True,
     source: str | os.PathLike[str] | None = None,
     adc_scale: float = 1.0,
