@@ -26,7 +26,7 @@ from hallcal.fit.gauss_newton import simulate_model
 from hallcal.fit.sem import SEMResult
 from hallcal.sim.loop import ClosedLoop
 
-__all__ = ["LongRunVariance", "functional_long_run", "hac_variance"]
+__all__ = ["LongRunVariance", "functional_influence", "functional_long_run", "hac_variance"]
 
 
 @dataclass(frozen=True)
@@ -123,6 +123,44 @@ def hac_variance(
     return LongRunVariance(max(var, 0.0), S, 1.5 * n / max(S, 1.0), white)
 
 
+def functional_influence(
+    loop: ClosedLoop, r: ArrayLike, sem: SEMResult, w: NDArray[np.float64], *, step: float = 0.01
+) -> tuple[NDArray[np.float64], float] | None:
+    """The influence ``u_t = J_t A^-1 w`` of the functional ``w^T x`` and its white variance.
+
+    ``v = A^-1 w`` from the fit's covariance, ``u`` by central differences of two simulations
+    of the model along v (a step moving the functional by ``step`` times its white standard
+    deviation: a relative error of order step^2).
+
+    Parameters
+    ----------
+    loop, r, sem, w, step
+        As :func:`functional_long_run`.
+
+    Returns
+    -------
+    (u, white) : tuple or None
+        ``u`` (N, 3): the functional moves by ``sum_t u_t^T e_t`` to first order for a
+        residual e (Hall signal units); ``white`` ``sigma^2 w^T A^-1 w``. None when the fit has
+        no parameter covariance or a simulation fails.
+    """
+    cov, layout = sem.parameter_covariance, sem.layout
+    if cov is None or layout is None or not sem.noise_variance > 0:
+        return None
+    v = cov @ w / sem.noise_variance  # A^-1 w
+    white = float(w @ cov @ w)
+    gain = math.log(sem.gain) if layout.fit_gain else 0.0
+    x = layout.pack(sem.flux.theta, gain, sem.cogging, sem.drift)
+    h = step * math.sqrt(max(white, 0.0)) / max(float(w @ v), 1e-300)
+    if not (h > 0 and math.isfinite(h)):
+        return None
+    up = simulate_model(loop, layout, x + h * v, r)
+    down = simulate_model(loop, layout, x - h * v, r)
+    if not (up.status.success and down.status.success):
+        return None
+    return (up.d - down.d) / (2.0 * h), white
+
+
 def functional_long_run(
     loop: ClosedLoop,
     r: ArrayLike,
@@ -166,22 +204,11 @@ def functional_long_run(
         ``variance`` the HAC one, ``white`` ``sigma^2 w^T A^-1 w``; None when the fit has no
         parameter covariance or a simulation fails.
     """
-    cov, layout = sem.parameter_covariance, sem.layout
-    if cov is None or layout is None or not sem.noise_variance > 0:
+    found = functional_influence(loop, r, sem, w, step=step)
+    if found is None:
         return None
-    v = cov @ w / sem.noise_variance  # A^-1 w
-    white = float(w @ cov @ w)
-    gain = math.log(sem.gain) if layout.fit_gain else 0.0
-    x = layout.pack(sem.flux.theta, gain, sem.cogging, sem.drift)
-    h = step * math.sqrt(max(white, 0.0)) / max(float(w @ v), 1e-300)
-    if not (h > 0 and math.isfinite(h)):
-        return None
-    up = simulate_model(loop, layout, x + h * v, r)
-    down = simulate_model(loop, layout, x - h * v, r)
-    if not (up.status.success and down.status.success):
-        return None
-    u = (up.d - down.d) / (2.0 * h)
+    u, white = found
     e = np.asarray(d, dtype=np.float64) - sem.d_sim
-    lr = hac_variance(u, e, dof_used=layout.size, bandwidth=bandwidth)
+    lr = hac_variance(u, e, dof_used=sem.layout.size, bandwidth=bandwidth)
     var = white * lr.variance / lr.white if lr.white > 0 else 0.0
     return LongRunVariance(var, lr.bandwidth, lr.dof, white)

@@ -41,11 +41,17 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal.fit._table_error import _theta_covariances
-from hallcal.fit.long_run import LongRunVariance, functional_long_run
+from hallcal.fit.long_run import LongRunVariance, functional_influence, functional_long_run
 from hallcal.fit.sem import SEMResult, angle_error_gradient
 from hallcal.sim.loop import ClosedLoop
 
-__all__ = ["BANDWIDTH_FRACTION", "offset_excess", "offset_long_run"]
+__all__ = [
+    "BANDWIDTH_FRACTION",
+    "offset_excess",
+    "offset_long_run",
+    "offset_loop_excess",
+    "offset_loop_noise",
+]
 
 #: The HAC bandwidth as a fraction of the run's samples (module docstring; the cap of
 #: :func:`hallcal.fit.long_run.hac_variance`).
@@ -131,3 +137,122 @@ def offset_excess(
     except (ValueError, np.linalg.LinAlgError):  # the prediction stands as it was
         return 0.0, None
     return math.sqrt(max(lr.variance - now, 0.0)), lr
+
+
+def _noise_to_angle(loop: ClosedLoop) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The closed loop from an angle error added to f_init's output to the rotor angle y0, as a
+    transfer function (num, den) in powers of q^-1: ``-C G / (1 + C G)`` (unit slope of the
+    sensor map; the controller acts on ``e_k = r_k - y_k`` within the sample)."""
+    import scipy.signal  # here: the numeric core imports scipy.signal lazily
+
+    p, c = loop.plant, loop.controller
+    n, m = p.order, c.order
+    A = np.zeros((n + m, n + m))
+    A[:n, :n] = p.A - c.D * np.outer(p.B, p.C)
+    A[:n, n:] = np.outer(p.B, c.C)
+    A[n:, :n] = -np.outer(c.B, p.C)
+    A[n:, n:] = c.A
+    B = np.concatenate([-c.D * p.B, -c.B])
+    C = np.concatenate([p.C, np.zeros(m)])
+    num, den = scipy.signal.ss2tf(A, B[:, None], C[None, :], np.zeros((1, 1)))
+    return np.asarray(num[0], dtype=np.float64), np.asarray(den, dtype=np.float64)
+
+
+def offset_loop_noise(loop: ClosedLoop, r: ArrayLike, sem: SEMResult) -> float | None:
+    """Variance [rad^2] of the table's constant offset with the Hall noise fed back by the loop.
+
+    The SEM simulates the loop without noise, but the drive's loop acted on f_init of the NOISY
+    signals: the rotor moved by ``delta = M nu`` away from the noise-free simulation (``nu_t =
+    K_t^T n_t`` the angle noise, K the gradient of f_init, M the closed loop
+    :func:`_noise_to_angle`), so the data are ``d_t = g(y0_sim,t) + g'_t delta_t + n_t`` and the
+    offset ``c^T theta`` moves by ``sum_t u_t^T (n_t + g'_t delta_t)`` (u its influence,
+    :func:`hallcal.fit.long_run.functional_influence`) ``= sum_s (u_s + K_s b_s)^T n_s`` with
+    ``b = M^T a``, ``a_t = u_t^T g'_t`` (the adjoint of the loop: M run backwards in time). Its
+    variance is ``sigma^2 sum_s |u_s + K_s b_s|^2``, reported as the white ``sigma^2 c^T A^-1 c``
+    times ``sum |u + K b|^2 / sum |u|^2`` (as :func:`hallcal.fit.long_run.functional_long_run`
+    scales its ratio). A first-order variance from the model and the noise level, not estimated
+    from the residual: it needs no bandwidth and mistakes no periodic misfit for noise. The
+    offset is where it matters: only the start of the run informs it, where the rotor's
+    noise-driven wander is not averaged out, and the batch-means covariance sees that stretch
+    in one batch.
+
+    Measured on zoo motor 193 (``benchmarks/bench_zoo.py``; 5 pole pairs, fs 16 kHz, 25 000
+    samples, the model holding the truth's harmonics 1..25): over ten noise draws the offsets
+    were 2.45 white standard deviations RMS, 0.80 with the same noise added to signals whose
+    loop ran noise-free (the premise of the white covariance); this variance puts the offset's
+    standard deviation at 2.30x the white one (``benchmarks/bench_bias193.txt``).
+
+    Parameters
+    ----------
+    loop : ClosedLoop
+        The loop ``sem`` was solved with.
+    r : array_like (N,)
+        Its reference [rad].
+    sem : SEMResult
+        The final fit.
+
+    Returns
+    -------
+    float or None
+        The variance; None when the fit has no covariance or a simulation fails.
+    """
+    try:
+        return _loop_noise(loop, r, sem, _offset_functional(loop, sem))
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+
+
+def _loop_noise(loop: ClosedLoop, r: ArrayLike, sem: SEMResult, c: NDArray) -> float | None:
+    """:func:`offset_loop_noise` with the offset functional ``c`` already formed."""
+    import scipy.signal  # here: see _noise_to_angle
+
+    layout = sem.layout
+    if layout is None:
+        return None
+    w = np.zeros(layout.size)
+    w[: c.size] = c  # theta first in the layout
+    found = functional_influence(loop, r, sem, w)
+    if found is None:
+        return None
+    u, white = found
+    a = np.einsum("th,th->t", u, sem.flux.derivative(sem.y0_sim))  # u_t^T g'_t
+    num, den = _noise_to_angle(loop)
+    b = scipy.signal.lfilter(num, den, a[::-1])[::-1]  # M^T a
+    ab = (np.asarray(sem.d_sim, dtype=np.float64) - loop.offset) @ loop.projection.T
+    rho2 = np.maximum(np.einsum("tk,tk->t", ab, ab), 1e-300)
+    # K_t = d f_init / d d at the model's signals: d atan2(beta, alpha) / n_m
+    K = (ab[:, :1] * loop.projection[1] - ab[:, 1:] * loop.projection[0]) / (
+        rho2[:, None] * loop.pole_pairs
+    )
+    uu = float(np.sum(u * u))
+    v = u + K * b[:, None]
+    ratio = float(np.sum(v * v)) / uu if uu > 0 else math.nan
+    return white * ratio if math.isfinite(ratio) else None
+
+
+def offset_loop_excess(
+    loop: ClosedLoop, r: ArrayLike, sem: SEMResult
+) -> tuple[float, float | None]:
+    """How far the offset's loop-noise variance (:func:`offset_loop_noise`) exceeds the offset
+    variance of both covariances (:func:`hallcal.fit._table_error._theta_covariances`).
+
+    Parameters
+    ----------
+    loop, r, sem
+        As :func:`offset_loop_noise`.
+
+    Returns
+    -------
+    (excess, variance) : tuple
+        The excess [rad^2] (0 when no larger or not to be had) and the loop-noise variance
+        [rad^2] (None when it cannot be had).
+    """
+    try:
+        c = _offset_functional(loop, sem)
+        var = _loop_noise(loop, r, sem, c)
+        if var is None:
+            return 0.0, None
+        now = max(float(c @ C @ c) for C in _theta_covariances(sem))
+    except (ValueError, np.linalg.LinAlgError):
+        return 0.0, None
+    return max(var - now, 0.0), var
