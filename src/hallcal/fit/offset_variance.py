@@ -139,23 +139,27 @@ def offset_excess(
     return math.sqrt(max(lr.variance - now, 0.0)), lr
 
 
-def _noise_to_angle(loop: ClosedLoop) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """The closed loop from an angle error added to f_init's output to the rotor angle y0, as a
-    transfer function (num, den) in powers of q^-1: ``-C G / (1 + C G)`` (unit slope of the
-    sensor map; the controller acts on ``e_k = r_k - y_k`` within the sample)."""
-    import scipy.signal  # here: the numeric core imports scipy.signal lazily
-
+def _noise_to_angle(loop: ClosedLoop, n: int) -> NDArray[np.float64]:
+    """Impulse response (n samples) of the closed loop from an angle error added to f_init's
+    output to the rotor angle y0: ``-C G / (1 + C G)`` with unit slope of the sensor map, the
+    controller acting on ``e_k = r_k - y_k`` within the sample. From the state space (the
+    paper's C(q) cancels the plant's integrator: a transfer function's polynomials would carry
+    the cancelled mode), its Markov parameters ``C A^(k-1) B`` by doubling."""
     p, c = loop.plant, loop.controller
-    n, m = p.order, c.order
-    A = np.zeros((n + m, n + m))
-    A[:n, :n] = p.A - c.D * np.outer(p.B, p.C)
-    A[:n, n:] = np.outer(p.B, c.C)
-    A[n:, :n] = -np.outer(c.B, p.C)
-    A[n:, n:] = c.A
-    B = np.concatenate([-c.D * p.B, -c.B])
-    C = np.concatenate([p.C, np.zeros(m)])
-    num, den = scipy.signal.ss2tf(A, B[:, None], C[None, :], np.zeros((1, 1)))
-    return np.asarray(num[0], dtype=np.float64), np.asarray(den, dtype=np.float64)
+    a, m = p.order, c.order
+    A = np.zeros((a + m, a + m))
+    A[:a, :a] = p.A - c.D * np.outer(p.B, p.C)
+    A[:a, a:] = np.outer(p.B, c.C)
+    A[a:, :a] = -np.outer(c.B, p.C)
+    A[a:, a:] = c.A
+    X = np.concatenate([-c.D * p.B, -c.B])[:, None]  # A^j B, j = 0 .. cols - 1
+    power = A
+    while X.shape[1] < n - 1:
+        X = np.hstack([X, power @ X])
+        power = power @ power
+    h = np.zeros(n)
+    h[1:] = (np.concatenate([p.C, np.zeros(m)]) @ X)[: n - 1]  # no feedthrough: h_0 = 0
+    return h
 
 
 def offset_loop_noise(loop: ClosedLoop, r: ArrayLike, sem: SEMResult) -> float | None:
@@ -204,7 +208,7 @@ def offset_loop_noise(loop: ClosedLoop, r: ArrayLike, sem: SEMResult) -> float |
 
 def _loop_noise(loop: ClosedLoop, r: ArrayLike, sem: SEMResult, c: NDArray) -> float | None:
     """:func:`offset_loop_noise` with the offset functional ``c`` already formed."""
-    import scipy.signal  # here: see _noise_to_angle
+    import scipy.signal  # here, as in hallcal.sim.bench: scipy.signal is slow to import
 
     layout = sem.layout
     if layout is None:
@@ -216,8 +220,8 @@ def _loop_noise(loop: ClosedLoop, r: ArrayLike, sem: SEMResult, c: NDArray) -> f
         return None
     u, white = found
     a = np.einsum("th,th->t", u, sem.flux.derivative(sem.y0_sim))  # u_t^T g'_t
-    num, den = _noise_to_angle(loop)
-    b = scipy.signal.lfilter(num, den, a[::-1])[::-1]  # M^T a
+    h = _noise_to_angle(loop, a.size)
+    b = scipy.signal.fftconvolve(a[::-1], h)[: a.size][::-1]  # M^T a: M run backwards in time
     ab = (np.asarray(sem.d_sim, dtype=np.float64) - loop.offset) @ loop.projection.T
     rho2 = np.maximum(np.einsum("tk,tk->t", ab, ab), 1e-300)
     # K_t = d f_init / d d at the model's signals: d atan2(beta, alpha) / n_m
