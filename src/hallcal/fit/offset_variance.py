@@ -31,6 +31,21 @@ The prediction uses it only where the run shows unmodelled motion: the cost abov
 level and no motion bias (:func:`hallcal.fit._table_error._table` says why: without motion the
 HAC counts a misfit periodic in the angle as noise, 2.0x the white sd on the paper's bench
 whose offsets follow the white one; with the motion bias it counts the motion twice).
+
+Without any unmodelled motion the white covariance still misses one thing: the drive's loop ran
+on f_init of the NOISY signals, so the Hall noise moved the rotor, and the SEM's noise-free
+simulation has none of that motion. :func:`offset_loop_noise` gives the offset's variance with
+it, to first order and from the model alone (no residual, no bandwidth), and the prediction
+takes it wherever it exceeds both covariances' (:func:`offset_loop_excess`, with or without
+motion). Measured with the oracle (``benchmarks/bench_bias193.txt``): zoo motor 193, whose
+table was "ok" at 1.239x the floor with 1.018x predicted (offset -0.70x the floor, 3.9 white
+sd's), has the truth's harmonics 1..25 in its model; its offset scales with the noise (-0.006,
+-0.072, -0.70x the floor at 0.01, 0.1 and 1 times its sigma), over ten noise draws the offsets
+were 2.45 white sd's RMS, and 0.80 when the same noise was added to signals whose loop had run
+noise-free; the loop-noise sd is 2.30x the white one. Over ten seeds of the paper's bench with
+ideal sensors the offsets were 2.13 white sd's RMS and 1.06 loop-noise sd's (1.86-2.25x the
+white; with the paper's magnets, six seeds: 2.52 -> 1.21). So the "misfit" the HAC was blamed
+for above on the paper's bench was mostly this noise.
 """
 
 from __future__ import annotations
