@@ -13,11 +13,13 @@ one run's upper quantile (over the floor) and the status, with the loop term
 (``--before``: without it, as before).
 
 Cases: ``--zoo 193:0-9`` zoo motors with calibration noise draws (``bench_zoo.run_motor``, the
-oracle floor), ``--paper 1-6`` the paper's bench over bench seeds (``bench_offset_hac.py``'s
-rows; the bench's floor).
+oracle floor); ``--open 193:0-9`` the control: the same motor's loop run without noise and the
+same kind of noise added to its signals afterwards (what the white covariance assumes);
+``--paper 1-6`` the paper's bench over bench seeds (``bench_offset_hac.py``'s rows; the bench's
+floor).
 
 Run ``nice python benchmarks/bench_bias193.py [--before] [--zoo 193:0-9 179:0-2 ...]
-[--paper 1-6]``; the output is committed beside it.
+[--open 193:0-9] [--paper 1-6]``; the output is committed beside it.
 """
 
 from __future__ import annotations
@@ -76,6 +78,36 @@ def zoo_row(seed: int, k: int) -> tuple[str, float, dict]:
     return line, row["off"] * floor, sd
 
 
+def open_row(seed: int, k: int) -> tuple[str, float, dict]:
+    """The control: the zoo motor's calibration run simulated WITHOUT noise (the loop ran on
+    clean signals), the same kind of Hall noise added afterwards (seed ``[seed, k, 99]``):
+    what the white covariance assumes."""
+    from dataclasses import replace
+
+    import bench_zoo as bz
+
+    from hallcal.io import Dataset
+    from hallcal.sensor.metrics import angle_error
+    from hallcal.sim.oracle import oracle_error, oracle_table
+
+    cfg, end, duration, _, _ = bz.draw_motor(seed)
+    cols = bz.ramp(replace(cfg, noise_variance=0.0), end, duration, seed).columns()
+    rng = np.random.default_rng([seed, k, 99])
+    for h in range(3):
+        cols[f"d{h + 1}"] = cols[f"d{h + 1}"] + math.sqrt(cfg.noise_variance) * rng.standard_normal(
+            cols["r"].size
+        )
+    cal = hp.calibrate(Dataset.from_columns(cols), bz.setup_for(cfg))
+    val = bz.ramp(cfg, 0.8 * end, 0.8 * duration, seed + 10_000)
+    floor = oracle_error(val, table=oracle_table(cfg)).rms_raw
+    e = angle_error(cal.lut.f_star(val.d), val.y0)
+    sd = _sds()
+    upper = cal.adequacy.predicted_upper / floor
+    line = _line(f"open {seed} k={k}", str(cal.status), e.rms_raw / floor, e.mean / floor, sd,
+                 floor, cal.predicted_error / floor, upper)  # fmt: skip
+    return line, e.mean, sd
+
+
 def paper_row(seed: int) -> tuple[str, float, dict]:
     import bench_cogging as bc
 
@@ -113,6 +145,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--zoo", nargs="*", default=[])  # "193:0-9" or "176"
     ap.add_argument("--paper", default="")  # "1-6"
+    ap.add_argument("--open", nargs="*", default=[])  # "193:0-9": the control (open_row)
     ap.add_argument("--before", action="store_true", help="without the loop-noise term")
     a = ap.parse_args()
     _CAP["before"] = a.before
@@ -130,6 +163,13 @@ def main() -> None:
             line, off, sd = zoo_row(int(seed), k)
             print(line, flush=True)
             z.setdefault(f"zoo {seed}", []).append((off, sd))
+    for spec in a.open:
+        seed, _, ks = spec.partition(":")
+        lo, _, hi = (ks or "0").partition("-")
+        for k in range(int(lo), int(hi or lo) + 1):
+            line, off, sd = open_row(int(seed), k)
+            print(line, flush=True)
+            z.setdefault(f"open {seed}", []).append((off, sd))
     if a.paper:
         lo, _, hi = a.paper.partition("-")
         for s in range(int(lo), int(hi or lo) + 1):

@@ -223,8 +223,6 @@ def offset_loop_noise(loop: ClosedLoop, r: ArrayLike, sem: SEMResult) -> float |
 
 def _loop_noise(loop: ClosedLoop, r: ArrayLike, sem: SEMResult, c: NDArray) -> float | None:
     """:func:`offset_loop_noise` with the offset functional ``c`` already formed."""
-    import scipy.signal  # here, as in hallcal.sim.bench: scipy.signal is slow to import
-
     layout = sem.layout
     if layout is None:
         return None
@@ -236,7 +234,9 @@ def _loop_noise(loop: ClosedLoop, r: ArrayLike, sem: SEMResult, c: NDArray) -> f
     u, white = found
     a = np.einsum("th,th->t", u, sem.flux.derivative(sem.y0_sim))  # u_t^T g'_t
     h = _noise_to_angle(loop, a.size)
-    b = scipy.signal.fftconvolve(a[::-1], h)[: a.size][::-1]  # M^T a: M run backwards in time
+    nfft = 1 << int(math.ceil(math.log2(2 * a.size)))  # linear, not circular, convolution
+    # M^T a: M run backwards in time (numpy's FFT: calibrate loads no scipy.signal)
+    b = np.fft.irfft(np.fft.rfft(a[::-1], nfft) * np.fft.rfft(h, nfft), nfft)[: a.size][::-1]
     ab = (np.asarray(sem.d_sim, dtype=np.float64) - loop.offset) @ loop.projection.T
     rho2 = np.maximum(np.einsum("tk,tk->t", ab, ab), 1e-300)
     # K_t = d f_init / d d at the model's signals: d atan2(beta, alpha) / n_m
