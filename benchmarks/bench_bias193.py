@@ -15,11 +15,12 @@ one run's upper quantile (over the floor) and the status, with the loop term
 Cases: ``--zoo 193:0-9`` zoo motors with calibration noise draws (``bench_zoo.run_motor``, the
 oracle floor); ``--open 193:0-9`` the control: the same motor's loop run without noise and the
 same kind of noise added to its signals afterwards (what the white covariance assumes);
+``--scale 193:0.1`` its run with the Hall noise scaled (a bias would stay, noise scales);
 ``--paper 1-6`` the paper's bench over bench seeds (``bench_offset_hac.py``'s rows; the bench's
 floor).
 
 Run ``nice python benchmarks/bench_bias193.py [--before] [--zoo 193:0-9 179:0-2 ...]
-[--open 193:0-9] [--paper 1-6]``; the output is committed beside it.
+[--open 193:0-9] [--scale 193:0.01 193:0.1] [--paper 1-6]``; the output is committed beside it.
 """
 
 from __future__ import annotations
@@ -78,10 +79,12 @@ def zoo_row(seed: int, k: int) -> tuple[str, float, dict]:
     return line, row["off"] * floor, sd
 
 
-def open_row(seed: int, k: int) -> tuple[str, float, dict]:
-    """The control: the zoo motor's calibration run simulated WITHOUT noise (the loop ran on
-    clean signals), the same kind of Hall noise added afterwards (seed ``[seed, k, 99]``):
-    what the white covariance assumes."""
+def control_row(seed: int, k: int, *, scale: float = 1.0, clean_loop: bool = True) -> tuple:
+    """The controls on a zoo motor. ``clean_loop``: its calibration run simulated WITHOUT noise
+    (the loop ran on clean signals) and the same kind of Hall noise added afterwards (seed
+    ``[seed, k, 99]``): what the white covariance assumes. Otherwise the run with the motor's
+    Hall noise sigma times ``scale`` (calibration noise draw k): does the offset scale with
+    the noise (no model bias) or stay (a bias)?"""
     from dataclasses import replace
 
     import bench_zoo as bz
@@ -90,21 +93,27 @@ def open_row(seed: int, k: int) -> tuple[str, float, dict]:
     from hallcal.sensor.metrics import angle_error
     from hallcal.sim.oracle import oracle_error, oracle_table
 
-    cfg, end, duration, _, _ = bz.draw_motor(seed)
-    cols = bz.ramp(replace(cfg, noise_variance=0.0), end, duration, seed).columns()
-    rng = np.random.default_rng([seed, k, 99])
-    for h in range(3):
-        cols[f"d{h + 1}"] = cols[f"d{h + 1}"] + math.sqrt(cfg.noise_variance) * rng.standard_normal(
-            cols["r"].size
-        )
-    cal = hp.calibrate(Dataset.from_columns(cols), bz.setup_for(cfg))
-    val = bz.ramp(cfg, 0.8 * end, 0.8 * duration, seed + 10_000)
-    floor = oracle_error(val, table=oracle_table(cfg)).rms_raw
+    cfg0, end, duration, _, _ = bz.draw_motor(seed)
+    if clean_loop:
+        cols = bz.ramp(replace(cfg0, noise_variance=0.0), end, duration, seed).columns()
+        rng = np.random.default_rng([seed, k, 99])
+        sigma = math.sqrt(cfg0.noise_variance)
+        for h in range(3):
+            cols[f"d{h + 1}"] = cols[f"d{h + 1}"] + sigma * rng.standard_normal(cols["r"].size)
+        name = f"open {seed} k={k}"
+    else:
+        cfg = replace(cfg0, noise_variance=cfg0.noise_variance * scale**2)
+        cols = bz.ramp(cfg, end, duration, seed + 20_000 * k).columns()
+        name = f"{seed} x{scale:g} k={k}"
+    cal = hp.calibrate(Dataset.from_columns(cols), bz.setup_for(cfg0))
+    # the scale is the motor's own oracle floor (at its own noise), as in the zoo
+    val = bz.ramp(cfg0, 0.8 * end, 0.8 * duration, seed + 10_000)
+    floor = oracle_error(val, table=oracle_table(cfg0)).rms_raw
     e = angle_error(cal.lut.f_star(val.d), val.y0)
     sd = _sds()
     upper = cal.adequacy.predicted_upper / floor
-    line = _line(f"open {seed} k={k}", str(cal.status), e.rms_raw / floor, e.mean / floor, sd,
-                 floor, cal.predicted_error / floor, upper)  # fmt: skip
+    line = _line(name, str(cal.status), e.rms_raw / floor, e.mean / floor, sd, floor,
+                 cal.predicted_error / floor, upper)  # fmt: skip
     return line, e.mean, sd
 
 
@@ -145,7 +154,8 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--zoo", nargs="*", default=[])  # "193:0-9" or "176"
     ap.add_argument("--paper", default="")  # "1-6"
-    ap.add_argument("--open", nargs="*", default=[])  # "193:0-9": the control (open_row)
+    ap.add_argument("--open", nargs="*", default=[])  # "193:0-9": the control (control_row)
+    ap.add_argument("--scale", nargs="*", default=[])  # "193:0.01": noise times 0.01, draw 0
     ap.add_argument("--before", action="store_true", help="without the loop-noise term")
     a = ap.parse_args()
     _CAP["before"] = a.before
@@ -167,9 +177,12 @@ def main() -> None:
         seed, _, ks = spec.partition(":")
         lo, _, hi = (ks or "0").partition("-")
         for k in range(int(lo), int(hi or lo) + 1):
-            line, off, sd = open_row(int(seed), k)
+            line, off, sd = control_row(int(seed), k)
             print(line, flush=True)
             z.setdefault(f"open {seed}", []).append((off, sd))
+    for spec in a.scale:
+        seed, _, factor = spec.partition(":")
+        print(control_row(int(seed), 0, scale=float(factor), clean_loop=False)[0], flush=True)
     if a.paper:
         lo, _, hi = a.paper.partition("-")
         for s in range(int(lo), int(hi or lo) + 1):
