@@ -16,11 +16,13 @@ Cases: ``--zoo 193:0-9`` zoo motors with calibration noise draws (``bench_zoo.ru
 oracle floor); ``--open 193:0-9`` the control: the same motor's loop run without noise and the
 same kind of noise added to its signals afterwards (what the white covariance assumes);
 ``--scale 193:0.1`` its run with the Hall noise scaled (a bias would stay, noise scales);
-``--paper 1-6`` the paper's bench over bench seeds (``bench_offset_hac.py``'s rows; the bench's
-floor).
+``--ideal 0-9`` the paper's bench with ideal sensors over noise seeds (f_init at the floor;
+its f_init error printed last); ``--paper 1-6`` the paper's bench over bench seeds
+(``bench_offset_hac.py``'s rows; the bench's floor).
 
 Run ``nice python benchmarks/bench_bias193.py [--before] [--zoo 193:0-9 179:0-2 ...]
-[--open 193:0-9] [--scale 193:0.01 193:0.1] [--paper 1-6]``; the output is committed beside it.
+[--open 193:0-9] [--scale 193:0.01 193:0.1] [--ideal 0-9] [--paper 1-6]``; the output is
+committed beside it.
 """
 
 from __future__ import annotations
@@ -117,6 +119,31 @@ def control_row(seed: int, k: int, *, scale: float = 1.0, clean_loop: bool = Tru
     return line, e.mean, sd
 
 
+def ideal_row(k: int) -> tuple[str, float, dict]:
+    """The paper's bench with ideal sensors (no magnet variation: f_init at the floor), the run of
+    ``tests/test_cli_powerup.py`` (ramp to 7 rad in 14 s) with noise seed k, harmonics 1..11,
+    no cogging; the table against f_init on a fresh run."""
+    from hallcal.io import Dataset, ModelSpec, Setup
+    from hallcal.sensor.metrics import angle_error
+    from hallcal.sim.bench import BenchConfig, ramp_run
+
+    cfg = BenchConfig(magnet_variation=0.0, seed=0)
+    run = ramp_run(cfg, ramp_end=7.0, duration=14.0, seed=k)
+    val = ramp_run(cfg, ramp_end=5.6, duration=11.2, seed=999)
+    setup = Setup(pole_pairs=cfg.pole_pairs, sample_time=cfg.sample_time,
+                  controller=cfg.controller, plant=cfg.plant,
+                  model=ModelSpec(harmonics=tuple(range(1, 12)), cogging="none"))  # fmt: skip
+    cal = hp.calibrate(Dataset.from_columns(run.columns()), setup)
+    floor = cfg.noise_floor
+    e = angle_error(cal.lut.f_star(val.d), val.y0)
+    init = angle_error(cal.lut.f_init(val.d), val.y0).rms_raw / floor
+    sd = _sds()
+    upper = cal.adequacy.predicted_upper / floor
+    line = _line(f"ideal k={k}", str(cal.status), e.rms_raw / floor, e.mean / floor, sd, floor,
+                 cal.predicted_error / floor, upper)  # fmt: skip
+    return f"{line}  f_init {init:.4f}", e.mean, sd
+
+
 def paper_row(seed: int) -> tuple[str, float, dict]:
     import bench_cogging as bc
 
@@ -154,6 +181,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--zoo", nargs="*", default=[])  # "193:0-9" or "176"
     ap.add_argument("--paper", default="")  # "1-6"
+    ap.add_argument("--ideal", default="")  # "0-9": ideal sensors, noise seeds
     ap.add_argument("--open", nargs="*", default=[])  # "193:0-9": the control (control_row)
     ap.add_argument("--scale", nargs="*", default=[])  # "193:0.01": noise times 0.01, draw 0
     ap.add_argument("--before", action="store_true", help="without the loop-noise term")
@@ -189,6 +217,12 @@ def main() -> None:
             line, off, sd = paper_row(s)
             print(line, flush=True)
             z.setdefault("paper", []).append((off, sd))
+    if a.ideal:
+        lo, _, hi = a.ideal.partition("-")
+        for k in range(int(lo), int(hi or lo) + 1):
+            line, off, sd = ideal_row(k)
+            print(line, flush=True)
+            z.setdefault("ideal", []).append((off, sd))
     print("\nRMS of the offset's z-score, against cov -> against max(cov, loop):")
     for name, rows in z.items():
         zc = [o / s["cov"] for o, s in rows]

@@ -39,10 +39,11 @@ it, to first order and from the model alone (no residual, no bandwidth), and the
 takes it wherever it exceeds both covariances' (:func:`offset_loop_excess`, with or without
 motion). Measured with the oracle (``benchmarks/bench_bias193.txt``): zoo motor 193, whose
 table was "ok" at 1.239x the floor with 1.018x predicted (offset -0.70x the floor, 3.9 white
-sd's), has the truth's harmonics 1..25 in its model; its offset scales with the noise (-0.006,
--0.072, -0.70x the floor at 0.01, 0.1 and 1 times its sigma), over ten noise draws the offsets
-were 2.45 white sd's RMS, and 0.80 when the same noise was added to signals whose loop had run
-noise-free; the loop-noise sd is 2.30x the white one. Over ten seeds of the paper's bench with
+sd's), has the truth's harmonics 1..25 in its model; its offset shrinks with the noise (-0.70,
+-0.13, -0.013x the floor at 1, 0.1 and 0.01 times its sigma: no bias), over ten noise draws the
+offsets were 2.29 white sd's RMS, and 0.96 when the same noise was added to signals whose loop
+had run noise-free; the loop-noise sd is 2.30x the white one (RMS z 1.07). Over ten seeds of
+the paper's bench with
 ideal sensors the offsets were 2.13 white sd's RMS and 1.06 loop-noise sd's (1.86-2.25x the
 white; with the paper's magnets, six seeds: 2.52 -> 1.21). So the "misfit" the HAC was blamed
 for above on the paper's bench was mostly this noise.
@@ -197,9 +198,10 @@ def offset_loop_noise(loop: ClosedLoop, r: ArrayLike, sem: SEMResult) -> float |
 
     Measured on zoo motor 193 (``benchmarks/bench_zoo.py``; 5 pole pairs, fs 16 kHz, 25 000
     samples, the model holding the truth's harmonics 1..25): over ten noise draws the offsets
-    were 2.45 white standard deviations RMS, 0.80 with the same noise added to signals whose
+    were 2.29 white standard deviations RMS, 0.96 with the same noise added to signals whose
     loop ran noise-free (the premise of the white covariance); this variance puts the offset's
-    standard deviation at 2.30x the white one (``benchmarks/bench_bias193.txt``).
+    standard deviation at 2.30x the white one, and the offsets at 1.07 of it RMS
+    (``benchmarks/bench_bias193.txt``).
 
     Parameters
     ----------
