@@ -40,9 +40,10 @@ user's only reference, so the policy is stated on them:
    left are warnings whose error lies along the table's constant offset, at about the upper
    quantile of item 5: ``benchmarks/bench_unseen.py`` case 226 at 3.55x the floor predicted
    2.19x (actual/predicted 1.62; upper quantile 3.56x) and the unseen zoo motor 179 at 3.05x
-   predicted 1.80x (1.69; upper 3.01x; ``benchmarks/bench_zoo_noise.txt``: 0.92-1.27 on eight
-   of ten noise draws, and the cogging search's false orders can bend the table beyond its
-   covariance).
+   predicted 1.86x (1.64; upper 3.13x; ``benchmarks/bench_zoo_bias.txt``; its offset +2.49x the
+   floor is 1.8 of its standard deviation with the loop's noise; ``bench_zoo_noise.txt``:
+   0.92-1.27 on eight of ten noise draws, and the cogging search's false orders can bend the
+   table beyond its covariance).
 4. **Warning**: any warning another step raised (``checks_passed`` False), an adequacy
    warning, no finite predicted error, or a predicted error above :data:`OK_RATIO` times the
    noise floor.
