@@ -235,7 +235,10 @@ def _loop_noise(loop: ClosedLoop, r: ArrayLike, sem: SEMResult, c: NDArray) -> f
         return None
     u, white = found
     a = np.einsum("th,th->t", u, sem.flux.derivative(sem.y0_sim))  # u_t^T g'_t
-    h = _noise_to_angle(loop, a.size)
+    with np.errstate(over="ignore", invalid="ignore"):  # an unstable linearization: None below
+        h = _noise_to_angle(loop, a.size)
+    if not np.all(np.isfinite(h)):
+        return None
     nfft = 1 << int(math.ceil(math.log2(2 * a.size)))  # linear, not circular, convolution
     # M^T a: M run backwards in time (numpy's FFT: calibrate loads no scipy.signal)
     b = np.fft.irfft(np.fft.rfft(a[::-1], nfft) * np.fft.rfft(h, nfft), nfft)[: a.size][::-1]
