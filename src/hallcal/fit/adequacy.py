@@ -349,6 +349,7 @@ def assess(
     lut_points: int = 4096,
     curve: CurveProjection | None = None,
     offset_variance: float | None = None,
+    loop_noise_variance: float | None = None,
 ) -> AdequacyReport:
     """Judge a SEM fit from the calibration data alone (model validation, Ljung 1999, sec. 16).
 
@@ -390,6 +391,10 @@ def assess(
         The HAC variance of the table's constant offset [rad^2]
         (:func:`hallcal.fit.offset_variance.offset_long_run`): the predicted error adds what it
         exceeds both covariances' offset variance by (:func:`hallcal.fit._table_error._table`).
+    loop_noise_variance : float, optional
+        The variance of the table's constant offset with the Hall noise fed back by the loop
+        [rad^2] (:func:`hallcal.fit.offset_variance.offset_loop_noise`): counted the same way,
+        with or without unmodelled motion.
 
     Returns
     -------
@@ -404,7 +409,8 @@ def assess(
                              dominance=dominance, warn_predicted=warn_predicted)  # fmt: skip
         motion = lv.ratio if lv.ratio > lv.warn and not lv.no_noise else None
         tab = _table(sem, n, P, o, lv.sigma2, lut_points, motion=motion,
-                     offset_variance=offset_variance)  # fmt: skip
+                     offset_variance=offset_variance,
+                     loop_noise_variance=loop_noise_variance)  # fmt: skip
         if not math.isfinite(lv.cost) or sem.status == "diverged":
             return _failed_report(sem, lv, tab)
         sh = _shape_and_timing(project_fit(sem, dd, known=curve), lv)

@@ -26,7 +26,14 @@ from hallcal.fit.gauss_newton import simulate_model
 from hallcal.fit.sem import SEMResult
 from hallcal.sim.loop import ClosedLoop
 
-__all__ = ["INFLUENCE_STEP", "LongRunVariance", "functional_long_run", "hac_variance"]
+__all__ = [
+    "INFLUENCE_STEP",
+    "FunctionalInfluence",
+    "LongRunVariance",
+    "functional_influence",
+    "functional_long_run",
+    "hac_variance",
+]
 
 #: Step of the central differences that give the influence ``u_t = J_t v`` of a functional
 #: ``w^T x`` (:func:`functional_long_run`): the two simulations of the model are at ``x +- h v``,
@@ -133,6 +140,64 @@ def hac_variance(
     return LongRunVariance(max(var, 0.0), S, 1.5 * n / max(S, 1.0), white)
 
 
+@dataclass(frozen=True)
+class FunctionalInfluence:
+    """Outcome of :func:`functional_influence`.
+
+    Attributes
+    ----------
+    u : ndarray (N, 3)
+        The influence: the functional moves by ``sum_t u_t^T e_t`` to first order for a
+        residual e (Hall signal units).
+    white : float
+        Its white variance ``sigma^2 w^T A^-1 w`` (the functional's unit squared).
+    """
+
+    u: NDArray[np.float64]
+    white: float
+
+
+def functional_influence(
+    loop: ClosedLoop,
+    r: ArrayLike,
+    sem: SEMResult,
+    w: NDArray[np.float64],
+    *,
+    step: float = INFLUENCE_STEP,
+) -> FunctionalInfluence | None:
+    """The influence ``u_t = J_t A^-1 w`` of the functional ``w^T x`` and its white variance.
+
+    ``v = A^-1 w`` from the fit's covariance, ``u`` by central differences of two simulations
+    of the model along v (a step moving the functional by ``step`` times its white standard
+    deviation: a relative error of order step^2).
+
+    Parameters
+    ----------
+    loop, r, sem, w, step
+        As :func:`functional_long_run`.
+
+    Returns
+    -------
+    FunctionalInfluence or None
+        None when the fit has no parameter covariance or a simulation fails.
+    """
+    cov, layout = sem.parameter_covariance, sem.layout
+    if cov is None or layout is None or not sem.noise_variance > 0:
+        return None
+    v = cov @ w / sem.noise_variance  # A^-1 w
+    white = float(w @ cov @ w)
+    gain = math.log(sem.gain) if layout.fit_gain else 0.0
+    x = layout.pack(sem.flux.theta, gain, sem.cogging, sem.drift)
+    h = step * math.sqrt(max(white, 0.0)) / max(float(w @ v), 1e-300)
+    if not (h > 0 and math.isfinite(h)):
+        return None
+    up = simulate_model(loop, layout, x + h * v, r)
+    down = simulate_model(loop, layout, x - h * v, r)
+    if not (up.status.success and down.status.success):
+        return None
+    return FunctionalInfluence((up.d - down.d) / (2.0 * h), white)
+
+
 def functional_long_run(
     loop: ClosedLoop,
     r: ArrayLike,
@@ -177,22 +242,11 @@ def functional_long_run(
         ``variance`` the HAC one, ``white`` ``sigma^2 w^T A^-1 w``; None when the fit has no
         parameter covariance or a simulation fails.
     """
-    cov, layout = sem.parameter_covariance, sem.layout
-    if cov is None or layout is None or not sem.noise_variance > 0:
+    found = functional_influence(loop, r, sem, w, step=step)
+    if found is None or sem.layout is None:  # no layout: no influence either
         return None
-    v = cov @ w / sem.noise_variance  # A^-1 w
-    white = float(w @ cov @ w)
-    gain = math.log(sem.gain) if layout.fit_gain else 0.0
-    x = layout.pack(sem.flux.theta, gain, sem.cogging, sem.drift)
-    h = step * math.sqrt(max(white, 0.0)) / max(float(w @ v), 1e-300)
-    if not (h > 0 and math.isfinite(h)):
-        return None
-    up = simulate_model(loop, layout, x + h * v, r)
-    down = simulate_model(loop, layout, x - h * v, r)
-    if not (up.status.success and down.status.success):
-        return None
-    u = (up.d - down.d) / (2.0 * h)
+    u, white = found.u, found.white
     e = np.asarray(d, dtype=np.float64) - sem.d_sim
-    lr = hac_variance(u, e, dof_used=layout.size, bandwidth=bandwidth)
+    lr = hac_variance(u, e, dof_used=sem.layout.size, bandwidth=bandwidth)
     var = white * lr.variance / lr.white if lr.white > 0 else 0.0
     return LongRunVariance(var, lr.bandwidth, lr.dof, white)

@@ -25,7 +25,7 @@ from hallcal._constants import TWO_PI
 from hallcal.errors import HallcalError, HallcalInputError
 from hallcal.fit.adequacy import AdequacyReport, ErrorSource, assess
 from hallcal.fit.cogging_search import CoggingSelection, CoggingStatus, select_cogging
-from hallcal.fit.offset_variance import offset_excess
+from hallcal.fit.offset_variance import offset_excess, offset_loop_excess
 from hallcal.fit.ramp_design import RampPrediction, plan_ramp, speed_limits
 from hallcal.fit.sem import SEMResult, SEMStatus, solve_sem
 from hallcal.io.dataset import Dataset
@@ -701,7 +701,9 @@ def calibrate_closed_loop(
         messages.append(Message.note(MessageCode.COGGING, fit.cogging.message))
     loop = closed_loop(setup, pm.plant).with_cogging(cogging).with_rails(*found.censoring.rails)
 
-    def assessed(offset_variance: float | None = None) -> AdequacyReport:
+    def assessed(
+        offset_variance: float | None = None, loop_noise_variance: float | None = None
+    ) -> AdequacyReport:
         return assess(
             *sensors.at_mid_run(fit.sem, s.d),
             noise=sensors.noise(found, s.d),
@@ -710,6 +712,7 @@ def calibrate_closed_loop(
             offset=loop.offset,
             curve=fit.cogging.spectrum.curve if fit.cogging and fit.cogging.spectrum else None,
             offset_variance=offset_variance,
+            loop_noise_variance=loop_noise_variance,
         )
 
     with numeric_errors("setup", "model"):
@@ -718,10 +721,19 @@ def calibrate_closed_loop(
         # computed only where the prediction may use it (the run shows unmodelled motion: the
         # cost above its warning level, no motion bias); assessed again when it exceeds what
         # both covariances give the offset
+        hac = noisy = None
         if adequacy.ratio > adequacy.thresholds["warn_ratio"] and adequacy.motion_bias == 0.0:
-            hac = offset_excess(loop, s.r, s.d, fit.sem)
-            if hac.long_run is not None and hac.excess > 0:
-                adequacy = assessed(hac.long_run.variance)
+            autocorrelated = offset_excess(loop, s.r, s.d, fit.sem)
+            if autocorrelated.long_run is not None and autocorrelated.excess > 0:
+                hac = autocorrelated.long_run.variance
+        # the offset with the Hall noise the drive's loop fed back (the SEM's simulation has
+        # none of it): a first-order variance from the model, wherever it exceeds both
+        # covariances' (zoo motor 193: 2.3x the white standard deviation)
+        if adequacy.motion_bias == 0.0:
+            loop_noise = offset_loop_excess(loop, s.r, fit.sem)
+            noisy = loop_noise.variance if loop_noise.excess > 0 else None
+        if hac is not None or noisy is not None:
+            adequacy = assessed(hac, noisy)
         say(progress, "lookup table and bijectivity check")
         lut = build_lut(
             fit.flux,

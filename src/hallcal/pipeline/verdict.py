@@ -40,9 +40,10 @@ user's only reference, so the policy is stated on them:
    left are warnings whose error lies along the table's constant offset, at about the upper
    quantile of item 5: ``benchmarks/bench_unseen.py`` case 226 at 3.55x the floor predicted
    2.19x (actual/predicted 1.62; upper quantile 3.56x) and the unseen zoo motor 179 at 3.05x
-   predicted 1.80x (1.69; upper 3.01x; ``benchmarks/bench_zoo_noise.txt``: 0.92-1.27 on eight
-   of ten noise draws, and the cogging search's false orders can bend the table beyond its
-   covariance).
+   predicted 1.86x (1.64; upper 3.13x; ``benchmarks/bench_zoo_bias.txt``; its offset +2.49x the
+   floor is 1.8 of its standard deviation with the loop's noise; ``bench_zoo_noise.txt``:
+   0.92-1.27 on eight of ten noise draws, and the cogging search's false orders can bend the
+   table beyond its covariance).
 4. **Warning**: any warning another step raised (``checks_passed`` False), an adequacy
    warning, no finite predicted error, or a predicted error above :data:`OK_RATIO` times the
    noise floor.
@@ -61,7 +62,10 @@ forced"): a table that is not bijective is never written, an inadequate one only
 
 The predicted error is the expected RMS error of f_star about zero on a fresh run,
 ``sqrt(floor^2 + mean_y0 var eta(y0) + bias^2)`` (cov(theta) propagated to the table with its
-constant offset, :func:`hallcal.fit.sem.predicted_angle_error`); a validation against an encoder
+constant offset, :func:`hallcal.fit.sem.predicted_angle_error`; the offset's variance at least
+the one with the Hall noise the drive's loop fed back,
+:func:`hallcal.fit.offset_variance.offset_loop_noise`: zoo motor 193 "ok" at 1.239x the floor,
+predicted 1.018x before, 1.082x with it, its upper quantile 1.28x); a validation against an encoder
 (:func:`hallcal.pipeline.calibration.validate`) measures the same quantity, ``rms_raw``.
 """
 
