@@ -101,14 +101,14 @@ def _table(
     variance, :func:`hallcal.fit.offset_variance.offset_long_run`) the offset's variance is the
     largest of the white, batch-means and HAC ones: what the HAC exceeds both covariances' by
     is added to the chosen one's offset (``error_spread(..., offset=)``), only with ``motion``
-    and no motion bias. Without motion (the cost at its noise level) the HAC mistakes a misfit
-    periodic in the angle for noise (a run of one or two revolutions cannot tell them apart):
-    on the paper's bench it put the offset's sd at 2.0x the white one, while the offsets of six
-    seeds were 1.06 white sd's RMS (five; the sixth 5.7), and 1.14 with ideal sensors, where it
-    would have refused tables that are in fact 0.1-1.2 % worse than f_init. With the motion bias
-    the poorly determined directions (the offset among them) are bounded by the correction
-    itself, and the HAC of a residual that unmodelled motion dominates counted the same motion
-    again (random load torques with a BLA plant, cost 4-5x the noise level,
+    and no motion bias. Without motion (the cost at its noise level) the HAC cannot tell a
+    misfit periodic in the angle from noise (a run of one or two revolutions cannot tell them
+    apart): on the paper's bench it put the offset's sd at 2.0x the white one (the offsets of
+    six seeds: 2.52 white sd's RMS, five of them 1.06 and the sixth 5.7); the loop-noise
+    variance below, from the model, accounts for most of that without reading the residual.
+    With the motion bias the poorly determined directions (the offset among them) are bounded
+    by the correction itself, and the HAC of a residual that unmodelled motion dominates counted
+    the same motion again (random load torques with a BLA plant, cost 4-5x the noise level,
     ``tests/test_verdict_motion.py``: predicted 2.9x -> 4.2x and 1.8x -> 4.1x the floor
     against tables 2.8x and 1.6x). With ``loop_noise_variance`` (the offset's variance with the
     Hall noise fed back by the loop, :func:`hallcal.fit.offset_variance.offset_loop_noise`) the

@@ -29,8 +29,8 @@ sd), actual/predicted 1.00-1.39 -> 0.79-1.08. On the zoo's healthy motors the ra
 
 The prediction uses it only where the run shows unmodelled motion: the cost above its warning
 level and no motion bias (:func:`hallcal.fit._table_error._table` says why: without motion the
-HAC counts a misfit periodic in the angle as noise, 2.0x the white sd on the paper's bench
-whose offsets follow the white one; with the motion bias it counts the motion twice).
+HAC cannot tell a misfit periodic in the angle from noise, a run of one or two revolutions
+being too short; with the motion bias it counts the motion twice).
 
 Without any unmodelled motion the white covariance still misses one thing: the drive's loop ran
 on f_init of the NOISY signals, so the Hall noise moved the rotor, and the SEM's noise-free
@@ -43,10 +43,9 @@ sd's), has the truth's harmonics 1..25 in its model; its offset shrinks with the
 -0.13, -0.013x the floor at 1, 0.1 and 0.01 times its sigma: no bias), over ten noise draws the
 offsets were 2.29 white sd's RMS, and 0.96 when the same noise was added to signals whose loop
 had run noise-free; the loop-noise sd is 2.30x the white one (RMS z 1.07). Over ten seeds of
-the paper's bench with
-ideal sensors the offsets were 2.13 white sd's RMS and 1.06 loop-noise sd's (1.86-2.25x the
-white; with the paper's magnets, six seeds: 2.52 -> 1.21). So the "misfit" the HAC was blamed
-for above on the paper's bench was mostly this noise.
+the paper's bench with ideal sensors the offsets were 2.13 white sd's RMS and 1.06 loop-noise
+sd's (1.86-2.25x the white; with the paper's magnets, six seeds: 2.52 -> 1.21). So the HAC's
+2.0x the white sd on the paper's bench, once blamed on a periodic misfit, was mostly this noise.
 """
 
 from __future__ import annotations
