@@ -31,6 +31,7 @@ from hallcal.sensor._absolute_decoder import (
     gram_at,
     tangent_terms,
 )
+from hallcal.sensor._absolute_gate import bias_dispersion
 from hallcal.sensor.drift_margin import DriftMargin, drift_margin
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT
@@ -234,6 +235,9 @@ class IdentifiabilityReport:
     gate_dispersion : float
         phi of the gate (:attr:`PowerUpDecoder.gate_dispersion`); 1 in artifacts made before
         it.
+    gate_bias_dispersion : float
+        phi_b of the gate's bias half (:attr:`PowerUpDecoder.gate_bias_dispersion`); 0 (no
+        bias half) in artifacts made before it.
     """
 
     status: Identifiability
@@ -267,6 +271,7 @@ class IdentifiabilityReport:
     gate_rate: float = 0.0
     gate_samples: int = 0
     gate_dispersion: float = 1.0
+    gate_bias_dispersion: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         """The artifact's ``"identifiability"`` entry (JSON-ready; infinities as None)."""
@@ -308,6 +313,8 @@ class IdentifiabilityReport:
             out["gate_rate"] = float(self.gate_rate)
             out["gate_samples"] = int(self.gate_samples)
             out["gate_dispersion"] = float(self.gate_dispersion)
+        if self.gate_bias_dispersion > 0.0:  # absent: no bias half (older artifacts)
+            out["gate_bias_dispersion"] = float(self.gate_bias_dispersion)
         if self.noise is not None:
             out["noise"] = self.noise.to_dict()
         if self.drift is not None:
@@ -368,6 +375,7 @@ class IdentifiabilityReport:
                 gate_rate=_nonnegative(d, "gate_rate"),
                 gate_samples=_count(d, "gate_samples"),
                 gate_dispersion=max(_nonnegative(d, "gate_dispersion"), 1.0),
+                gate_bias_dispersion=_bias_dispersion_key(d),
                 noise=None
                 if noise is None
                 else NoiseEstimate(
@@ -414,7 +422,19 @@ class IdentifiabilityReport:
             gate_rate=self.gate_rate,
             gate_samples=self.gate_samples,
             gate_dispersion=self.gate_dispersion,
+            gate_bias_dispersion=self.gate_bias_dispersion,
         )
+
+
+def _bias_dispersion_key(d: Mapping[str, Any]) -> float:
+    """``d["gate_bias_dispersion"]``: 0 when absent (an artifact made before it), else a
+    finite number >= 1 with the gate and without the gain profile."""
+    v = _nonnegative(d, "gate_bias_dispersion")
+    if "gate_bias_dispersion" in d and not v >= 1.0:
+        raise ValueError(f"gate_bias_dispersion must be >= 1, got {v!r}")
+    if v > 0.0 and not (_nonnegative(d, "gate_rate") > 0.0 and _nonnegative(d, "gain_sd") == 0):
+        raise ValueError("gate_bias_dispersion needs gate_rate > 0 and no gain_sd")
+    return v
 
 
 def _count(d: Mapping[str, Any], key: str) -> int:
@@ -672,6 +692,7 @@ def assess_identifiability(
         gate_rate=dec.gate_rate,
         gate_samples=dec.gate_samples,
         gate_dispersion=dec.gate_dispersion,
+        gate_bias_dispersion=dec.gate_bias_dispersion,
         drift=drift_margin(dec, standstill_budget=standstill_budget)
         if drift and status.success and dec.pole_pairs > 1
         else None,
@@ -929,6 +950,8 @@ def analyze_calibration(
             phi = gate_dispersion(dec, d, DEFAULT_GATE_SAMPLES, start=start, stop=stop)
             dec = dataclasses.replace(dec, gate_rate=DEFAULT_GATE_RATE, gate_dispersion=phi)
             dec = dataclasses.replace(dec, gate_samples=DEFAULT_GATE_SAMPLES)
+            phi_b = bias_dispersion(dec, d, DEFAULT_GATE_SAMPLES, start=start, stop=stop)
+            dec = dataclasses.replace(dec, gate_bias_dispersion=phi_b)
         return dec, assess_identifiability(
             dec,
             standstill_budget=standstill_budget,

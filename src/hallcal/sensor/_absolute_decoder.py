@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal.messages import Outcome
+from hallcal.sensor._absolute_gate import bias_bound, bias_sums, bias_terms, within_bias_gate
 from hallcal.sensor.drift_margin import PLAUSIBLE_GAIN_CHANGE
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT
@@ -292,6 +293,10 @@ class PowerUpDecoder:
         phi >= 1: the variance of the right hypothesis's cost over K0 samples on the
         calibration recording relative to chi-square's (:func:`gate_dispersion`); the gate's
         quantile is Satterthwaite's for that variance (1: white noise as calibrated).
+    gate_bias_dispersion : float
+        phi_b >= 1 of the gate's bias half (the winner's residual mean against the
+        chi-square(2) quantile, :mod:`hallcal.sensor._absolute_gate`); the two halves then
+        take alpha_g / 2 each. 0: no bias half (the decoder before it).
     """
 
     pole_pairs: int
@@ -314,6 +319,7 @@ class PowerUpDecoder:
     gate_rate: float = 0.0
     gate_samples: int = 0
     gate_dispersion: float = 1.0
+    gate_bias_dispersion: float = 0.0
 
     @property
     def gate_terms(self) -> tuple[float, float]:
@@ -322,8 +328,10 @@ class PowerUpDecoder:
         ``1 - alpha_g`` is ``2 k + gz + sqrt(g4 k)`` to the Cornish-Fisher expansion's constant
         term at phi = 1; a cost of mean 2 k and variance 4 k phi is ``phi`` times a
         chi-square(2 k / phi) (Satterthwaite 1946, Biometrics Bull. 2(6)), whose quantile is
-        the same expression with these terms."""
-        z = statistics.NormalDist().inv_cdf(1.0 - self.gate_rate)
+        the same expression with these terms. With the bias half the chi-square half takes
+        ``alpha_g / 2`` (Bonferroni)."""
+        rate = self.gate_rate / 2.0 if self.gate_bias_dispersion > 0.0 else self.gate_rate
+        z = statistics.NormalDist().inv_cdf(1.0 - rate)
         phi = self.gate_dispersion
         return 2.0 * phi * (z * z - 1.0) / 3.0, 4.0 * phi * z * z
 
@@ -349,6 +357,13 @@ class PowerUpDecoder:
         if not self.gate_rate > 0.0:
             return np.ones(np.broadcast(Q, k).shape, dtype=bool)
         return np.asarray(_within_gate(Q, k, *self.gate_terms), dtype=bool)
+
+    @property
+    def gate_bias_bound(self) -> float:
+        """The bias half's bound on S, ``phi_b 2 ln(2 / alpha_g)`` (inf without it)."""
+        if not (self.gate_bias_dispersion > 0.0 and self.gate_rate > 0.0):
+            return math.inf
+        return bias_bound(self.gate_rate, self.gate_bias_dispersion)
 
     @property
     def gain_weight(self) -> float:
@@ -527,6 +542,11 @@ class PowerUpDecoder:
             "gate_rate": float(self.gate_rate),
             "gate_samples": int(self.gate_samples),
             "gate_dispersion": float(self.gate_dispersion),
+            **(
+                {"gate_bias_dispersion": float(self.gate_bias_dispersion)}
+                if self.gate_bias_dispersion > 0.0
+                else {}
+            ),  # fmt: skip
             **self.misfit.to_dict(),
         }
 
@@ -607,9 +627,24 @@ class _Rule:
     gate: NDArray[np.bool_]
 
 
-def _lock_rule(dec: PowerUpDecoder, lam: NDArray, used: NDArray, span: NDArray) -> _Rule:
+def _bias_passes(dec: PowerUpDecoder, F: dict[str, NDArray], lam: NDArray) -> NDArray | None:
+    """Per row of the cumulative costs ``lam`` (K, n), whether the gate's bias half passes for
+    that row's best hypothesis (:mod:`hallcal.sensor._absolute_gate`); None without it."""
+    if not math.isfinite(dec.gate_bias_bound):
+        return None
+    rows, n = lam.shape
+    F = {k: v[:rows] for k, v in F.items()}
+    sums = bias_sums(dec, F, dec.coordinates(F["psi"], F["m"], np.arange(n)))
+    best = np.argmin(lam, axis=1)
+    return np.asarray(within_bias_gate(sums[np.arange(rows), best], dec.gate_bias_bound))
+
+
+def _lock_rule(
+    dec: PowerUpDecoder, lam: NDArray, used: NDArray, span: NDArray, bias: NDArray | None = None
+) -> _Rule:
     """Steps 6 and 7 on cumulative costs ``lam`` (K, n), with the samples of evidence ``used``
-    and f_init's electrical travel ``span`` per row (:func:`_span`)."""
+    and f_init's electrical travel ``span`` per row (:func:`_span`); ``bias``: where the gate's
+    bias half passes (:func:`_bias_passes`; None: no bias half)."""
     total = np.min(lam, axis=1)  # the best hypothesis's whole cost (sum of the Lmin, step 6)
     D = dec.misfit.statistic(total, used)
     relative = lam - total[:, None]
@@ -618,7 +653,10 @@ def _lock_rule(dec: PowerUpDecoder, lam: NDArray, used: NDArray, span: NDArray) 
     if dec.lock_travel > 0.0:  # and f_init's angle has spanned lock_travel turns
         lock &= span >= TWO_PI * dec.lock_travel
     lock &= used >= dec.gate_samples  # and K0 samples of evidence
-    return _Rule(total, relative, D, D >= dec.misfit.bound, lock, dec.gate_passes(total, used))
+    gate = dec.gate_passes(total, used)
+    if bias is not None:
+        gate &= bias
+    return _Rule(total, relative, D, D >= dec.misfit.bound, lock, gate)
 
 
 def _gram(
@@ -674,6 +712,17 @@ def _check_gate(gate_rate: float, gate_samples: int, gate_dispersion: float) -> 
         raise ValueError("gate_dispersion must be a finite number >= 1")
 
 
+def _check_bias(dispersion: float, gate_rate: float, gain_sd: float) -> None:
+    """:func:`build_decoder`'s check of the bias half's phi_b (ValueError): 0 (none) or a finite
+    number >= 1, only with the gate and without the gain profile (its residual is s = 1's)."""
+    if dispersion == 0.0:
+        return
+    if not (dispersion >= 1.0 and math.isfinite(dispersion)):
+        raise ValueError("gate_bias_dispersion must be 0 or a finite number >= 1")
+    if not gate_rate > 0.0 or gain_sd > 0.0:
+        raise ValueError("gate_bias_dispersion needs gate_rate > 0 and gain_sd = 0")
+
+
 def build_decoder(
     flux: FluxModel,
     lut: LUT,
@@ -692,6 +741,7 @@ def build_decoder(
     gate_rate: float = 0.0,
     gate_samples: int = 0,
     gate_dispersion: float = 1.0,
+    gate_bias_dispersion: float = 0.0,
 ) -> PowerUpDecoder:
     """Tables and constants of the power-up decoder for an identified flux model.
 
@@ -735,6 +785,9 @@ def build_decoder(
         K0, samples of evidence before the lock (>= 0), see :data:`DEFAULT_GATE_SAMPLES`.
     gate_dispersion : float
         phi >= 1 of the gate (:func:`gate_dispersion`; 1: white noise as calibrated).
+    gate_bias_dispersion : float
+        phi_b >= 1 of the gate's bias half (:func:`~hallcal.sensor._absolute_gate.
+        bias_dispersion`); 0: none. Needs the gate and no gain profile.
 
     Returns
     -------
@@ -743,6 +796,7 @@ def build_decoder(
     lut._require_bijective()
     _check_options(gain_sd, lock_travel, error_target, cost_cap)
     _check_gate(gate_rate, gate_samples, gate_dispersion)
+    _check_bias(gate_bias_dispersion, gate_rate, gain_sd)
     misfit = MisfitTest(float(misfit_ratio), float(mismatch_rate), float(fit_rate))
     n = lut.pole_pairs
     cov = _noise_covariance(noise_std, noise_covariance)
@@ -792,6 +846,7 @@ def build_decoder(
         gate_rate=float(gate_rate),
         gate_samples=int(gate_samples),
         gate_dispersion=float(gate_dispersion),
+        gate_bias_dispersion=float(gate_bias_dispersion),
     )
 
 
@@ -885,7 +940,7 @@ def _identify(dec: PowerUpDecoder, d: NDArray, *, lock: bool) -> PowerUpIdentifi
     rows = lam.shape[0]
     F = dec.features(d)
     used = np.cumsum(F["valid"])[:rows]
-    rule = _lock_rule(dec, lam, used, _span(F)[:rows])
+    rule = _lock_rule(dec, lam, used, _span(F)[:rows], _bias_passes(dec, F, lam))
     total, D, lam = rule.total, rule.D, rule.relative
     best = np.argmin(lam, axis=1)
     lock_at = mismatch_at = None
@@ -963,6 +1018,8 @@ class PowerUpIdentifier:
         self._gate = dec.gate_rate > 0.0
         self._k0 = int(dec.gate_samples)
         self._gz, self._g4 = dec.gate_terms if self._gate else (0.0, 0.0)
+        self._bias = dec.gate_bias_bound  # inf: no bias half
+        self.bias = [[0.0] * 5 for _ in range(self._n)]  # the bias sums h, H per hypothesis
         self.total = 0.0  # Q, the best hypothesis's whole cost (step 6)
         self._ymin = self._ymax = math.nan  # range of f_init's electrical angle (step 7)
         self.scale = [1.0] * self._n  # s_j, the common gain of each hypothesis
@@ -1058,6 +1115,10 @@ class PowerUpIdentifier:
             if not self._profile:
                 e = _step5_cost(rho - Rj, zeta - Zj, dR, Rj, dZ, gram)
                 self.lam[j] += min(e, self._cap)
+                if self._bias < math.inf:  # step 5's bias sums (module doc, step 7)
+                    tu, tn, tt = tangent_terms(dR, Rj, dZ, gram)
+                    terms = bias_terms(rho - Rj, zeta - Zj, tu, tn, tt, gram, self._cap)
+                    self.bias[j] = [v + float(t) for v, t in zip(self.bias[j], terms, strict=True)]
                 continue
             sj = self.scale[j]
             e, pr, pp = gain_terms(rho - sj * Rj, zeta - sj * Zj, Rj, Zj, dR, dZ, gram)
@@ -1078,7 +1139,10 @@ class PowerUpIdentifier:
         W = sum(math.exp(-0.5 * v) for j, v in enumerate(self.lam) if j != self.best)
         moved = self._ymax - self._ymin >= self._travel
         if W <= self._threshold and self.fit <= -self._bf and moved and self.samples >= self._k0:
-            if not self._gate or _within_gate(self.total, self.samples, self._gz, self._g4):
+            fits = not self._gate or _within_gate(self.total, self.samples, self._gz, self._g4)
+            if fits and self._bias < math.inf:
+                fits = bool(within_bias_gate(self.bias[self.best], self._bias))
+            if fits:
                 self.locked = True
                 self.lock_sample = self.samples - 1
             else:

@@ -1,0 +1,176 @@
+"""The bias half of the power-up lock's gate (step 7 of :mod:`hallcal.sensor.absolute`): does
+the winning pole pair's residual have a mean?
+
+The chi-square half of the gate tests the winner's whole cost Q over k samples against the
+chi-square(2 k) quantile. It has little power against what a changed sensor does at standstill:
+the measured point sits at a fixed offset ``delta`` from the nearest wrong pole pair's curve,
+so its residual is white noise plus a *constant* vector, and the cost grows by only
+``k |delta|^2`` against a quantile margin of about ``z sqrt(4 k)`` (at k = 96 a bias of 0.9
+noise sigmas goes unseen half the time). Measured on ``benchmarks/bench_powerup_margin.txt``
+(five plain-lock motors, eleven sensor changes, 40 power-ups each): all 16 wrong locks of the
+gated decoder locked at K0 = 96 samples with a cost 1.05-1.42 times the noise's per degree of
+freedom, and their residual's mean, as the statistic below, 10-109 (healthy power-ups: median
+1.5, 99 % below 8.9, as chi-square(2)).
+
+The test. Per sample and hypothesis the residual across the curve is ``r_k = (a_k, b_k)``
+(step 5: ``a = rho - R_j``, ``b = zeta - Z_j``) with the noise metric ``G_k = [[Guu, Gun],
+[Gun, C]] - g g' / tt``, ``g = (tu, tn)`` the tangent's products (the curve's direction
+profiled out; ``e_k = r_k' G_k r_k`` is the sample's cost). Under H0 (sensors as calibrated, the
+hypothesis right) ``r_k`` has mean 0 and information ``G_k``; under H1 a constant mean delta.
+The generalized likelihood ratio (Neyman-Pearson with delta profiled out; the uniformly most
+powerful invariant test for a Gaussian mean, Lehmann & Romano, Testing Statistical Hypotheses,
+3rd ed., sec. 7.1) is
+
+    S_k = h' H^-1 h,     h = sum_k G_k r_k,   H = sum_k G_k,
+
+chi-square with 2 degrees of freedom under H0 whatever k, and noncentral with
+``delta' H delta`` under H1. Each sample enters with Huber's weight ``u = cap / max(e, cap)``
+(the decoder's censoring; Huber 1964, Ann. Math. Statist. 35(1)) in both sums, so that one
+glitch cannot reach the bound (its term in h is at most ``cap / sqrt(e)`` sigmas); under H0
+the weighted sums have ``Var(h) = sum u^2 G <= H``, so the weighting only makes the test
+conservative. The gate passes when ``S <= phi_b 2 ln(2 / alpha_g)``: the chi-square(2)
+quantile of ``1 - alpha_g / 2``, the chi-square half taking the other ``alpha_g / 2``
+(Bonferroni: the gate's false alarm stays at most alpha_g), and ``phi_b >= 1`` the dispersion
+the calibration recording shows for this statistic over K0-sample windows (the model's own
+error along the turn is a bias too; :func:`bias_dispersion`). Written without a division:
+``n <= c det`` with ``n = Hbb ha^2 - 2 Hab ha hb + Haa hb^2`` and ``det = Haa Hbb - Hab^2``.
+
+What it cannot do: a wrong curve within a third of a noise sigma of the changed point gives
+``S`` about ``2 + k / 9``, inside the healthy spread at k = 96; only more samples would tell
+(the lock comes at K0 for healthy power-ups, and stays there).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+if TYPE_CHECKING:  # the decoder's type only (the decoder module imports this one)
+    from hallcal.sensor._absolute_decoder import PowerUpDecoder
+
+#: A float (the sample-by-sample identifier) or an array (the batch decoder).
+_Num = Any
+
+
+def bias_terms(
+    a: _Num, b: _Num, tu: _Num, tn: _Num, tt: _Num, gram: tuple[_Num, ...], cap: float
+) -> tuple[_Num, _Num, _Num, _Num, _Num]:
+    """One sample's terms of the bias sums (module doc): ``u G r`` and ``u G``.
+
+    Parameters
+    ----------
+    a, b : float or ndarray
+        The residual's components along u and nv (``rho - R_j``, ``zeta - Z_j``) [sensor's
+        unit].
+    tu, tn, tt : float or ndarray
+        <t, u>, <t, nv> and <t, t> of the curve's tangent (``tangent_terms`` of the decoder).
+    gram : tuple
+        The metric's terms guu, gvv, guv, gun, gvn, gnn at the sample's angle.
+    cap : float
+        The decoder's censoring level c [noise sigma^2].
+
+    Returns
+    -------
+    (ha, hb, haa, hab, hbb)
+        The sample's terms of h (2) and H (3 of the symmetric 2 x 2), weighted by Huber's
+        ``u = cap / max(e, cap)``.
+    """
+    guu, _, _, gun, _, gnn = gram
+    rt = a * tu + b * tn
+    ga = a * guu + b * gun - tu * rt / tt
+    gb = a * gun + b * gnn - tn * rt / tt
+    e = a * ga + b * gb  # the sample's cost e_j of step 5, uncensored
+    u = cap / np.maximum(e, cap)
+    return (u * ga, u * gb, u * (guu - tu * tu / tt), u * (gun - tu * tn / tt),
+            u * (gnn - tn * tn / tt))  # fmt: skip
+
+
+def bias_statistic(sums: ArrayLike) -> NDArray[np.float64]:
+    """S = h' H^-1 h from the sums (..., 5) of :func:`bias_terms` (0 where H is singular)."""
+    s = np.asarray(sums, dtype=np.float64)
+    ha, hb, haa, hab, hbb = (s[..., i] for i in range(5))
+    det = haa * hbb - hab * hab
+    num = hbb * ha * ha - 2.0 * hab * ha * hb + haa * hb * hb
+    return np.where(det > 0.0, num / np.where(det > 0.0, det, 1.0), 0.0)
+
+
+def within_bias_gate(sums: Any, bound: float) -> Any:
+    """The bias half of step 7's gate on the sums (5, or (..., 5)): ``n <= bound det`` (the
+    statistic within ``bound`` without a division; a singular H passes: no evidence of a
+    bias). One expression for the batch decoder and the sample-by-sample identifier."""
+    ha, hb, haa, hab, hbb = (sums[..., i] for i in range(5)) if hasattr(sums, "ndim") else sums
+    det = haa * hbb - hab * hab
+    num = hbb * ha * ha - 2.0 * hab * ha * hb + haa * hb * hb
+    return num <= bound * det
+
+
+def bias_bound(gate_rate: float, dispersion: float) -> float:
+    """``phi_b 2 ln(2 / alpha_g)``: the chi-square(2) quantile of ``1 - alpha_g / 2`` (exact:
+    chi-square(2) is exponential with mean 2), times the dispersion."""
+    return dispersion * 2.0 * math.log(2.0 / gate_rate)
+
+
+def bias_sums(decoder: PowerUpDecoder, F: dict[str, NDArray], pos: NDArray) -> NDArray[np.float64]:
+    """Cumulative sums (K, J, 5) of :func:`bias_terms` after each sample, for the features F
+    (:meth:`PowerUpDecoder.features`) and table coordinates ``pos`` (K, J), at the calibrated
+    gain; samples without angle add nothing."""
+    from hallcal.sensor._absolute_decoder import tangent_terms
+
+    Rj, Zj, dR, dZ = decoder.tables_at(pos)
+    gram = (F["guu"][:, None], F["gvv"][:, None], F["guv"][:, None], F["gun"][:, None],
+            F["gvn"][:, None], decoder.gram_c)  # fmt: skip
+    tu, tn, tt = tangent_terms(dR, Rj, dZ, gram)
+    a = F["rho"][:, None] - Rj
+    b = F["zeta"][:, None] - Zj
+    terms = np.stack(bias_terms(a, b, tu, tn, tt, gram, decoder.cost_cap), axis=-1)
+    terms[~F["valid"]] = 0.0
+    return np.cumsum(terms, axis=0)
+
+
+def bias_dispersion(
+    decoder: PowerUpDecoder,
+    d: ArrayLike,
+    samples: int,
+    *,
+    start: int = 0,
+    stop: int | None = None,
+) -> float:
+    """phi_b of the gate's bias half: the mean of S over the calibration recording's windows
+    of ``samples`` consecutive samples (hypothesis 0, the calibration frame) over its
+    chi-square(2) mean 2, at least 1.
+
+    The model's own error along the turn is a slowly varying bias the white-noise model does
+    not know; over a window it raises S by about ``k b^2``. Scaling the quantile by the
+    recording's mean (as the chi-square half's :func:`gate_dispersion` does with the variance,
+    Satterthwaite 1946) keeps the false alarm on that rig near alpha_g / 2, at the price of
+    power there; on a bench whose model fits, phi_b is 1.
+
+    Parameters
+    ----------
+    decoder : PowerUpDecoder
+        The calibration's decoder (its tables, sigma and cap).
+    d : array_like, shape (N, 3)
+        The calibration recording (f_init from y = 0 before its first sample).
+    samples : int
+        K: the window (the gate's K0).
+    start, stop : int, keyword-only
+        The samples the model was fitted on.
+
+    Returns
+    -------
+    float
+        phi_b >= 1 (1 when the samples hold fewer than two windows).
+    """
+    d = np.atleast_2d(np.asarray(d, dtype=np.float64))
+    F = decoder.features(d if stop is None else d[:stop])
+    F = {k: v[start:] for k, v in F.items()}
+    F = {k: v[F["valid"]] for k, v in F.items()}
+    if samples < 1 or F["psi"].size < 2 * samples:
+        return 1.0
+    pos = decoder.coordinates(F["psi"], F["m"], np.zeros(1, dtype=np.int64))
+    c = np.concatenate([np.zeros((1, 5)), bias_sums(decoder, F, pos)[:, 0]])
+    phi = float(np.mean(bias_statistic(c[samples:] - c[:-samples]))) / 2.0
+    return max(phi, 1.0) if math.isfinite(phi) else 1.0
