@@ -429,9 +429,13 @@ class IdentifiabilityReport:
 def _bias_dispersion_key(d: Mapping[str, Any]) -> float:
     """``d["gate_bias_dispersion"]``: 0 when absent (an artifact made before it), else a
     finite number >= 1 with the gate and without the gain profile."""
-    v = _nonnegative(d, "gate_bias_dispersion")
-    if "gate_bias_dispersion" in d and not v >= 1.0:
-        raise ValueError(f"gate_bias_dispersion must be >= 1, got {v!r}")
+    key = "gate_bias_dispersion"
+    try:
+        v = _nonnegative(d, key)
+    except (TypeError, ValueError):
+        v = -1.0
+    if key in d and not v >= 1.0:
+        raise ValueError(f"{key} must be a finite number >= 1, got {d[key]!r}")
     if v > 0.0 and not (_nonnegative(d, "gate_rate") > 0.0 and _nonnegative(d, "gain_sd") == 0):
         raise ValueError("gate_bias_dispersion needs gate_rate > 0 and no gain_sd")
     return v
