@@ -19,12 +19,8 @@ from scipy.stats import chi2, kstest
 from test_absolute_gate import STARTS, _change, _outcomes, bench  # noqa: F401 (the fixture)
 
 from hallcal.sensor import absolute as ab
-from hallcal.sensor._absolute_gate import (
-    bias_bound,
-    bias_is_white,
-    bias_statistic,
-    bias_sums,
-)
+from hallcal.sensor._absolute_decoder import bias_sums
+from hallcal.sensor._absolute_gate import bias_bound, bias_is_white, bias_statistic
 from hallcal.sim.bench import BenchConfig
 
 TWO_PI = 2.0 * math.pi

@@ -16,7 +16,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from hallcal.messages import Outcome
-from hallcal.sensor._absolute_gate import bias_bound, bias_sums, bias_terms, within_bias_gate
+from hallcal.sensor._absolute_gate import (
+    bias_bound,
+    bias_terms,
+    check_bias,
+    check_gate,
+    within_bias_gate,
+    within_gate,
+)
 from hallcal.sensor.drift_margin import PLAUSIBLE_GAIN_CHANGE
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT
@@ -356,7 +363,7 @@ class PowerUpDecoder:
         k = np.asarray(samples, dtype=np.float64)
         if not self.gate_rate > 0.0:
             return np.ones(np.broadcast(Q, k).shape, dtype=bool)
-        return np.asarray(_within_gate(Q, k, *self.gate_terms), dtype=bool)
+        return np.asarray(within_gate(Q, k, *self.gate_terms), dtype=bool)
 
     @property
     def gate_bias_bound(self) -> float:
@@ -595,15 +602,6 @@ def _profile_step(e: _Num, pr: _Num, pp: _Num, info: _Num, scale: _Num, cap: flo
     return np.minimum(inc, cap), info, scale + weight * pr / info
 
 
-def _within_gate(total: Any, samples: Any, gz: float, g4: float) -> Any:
-    """Step 7's gate on Q = ``total`` over k = ``samples`` (floats, or arrays that broadcast):
-    ``x = Q - 2 k - gz <= 0`` or ``x^2 <= g4 k``, the chi-square(2 k) quantile in Cornish-Fisher
-    form without a root (:attr:`PowerUpDecoder.gate_terms`); one expression for the batch
-    decoder and the sample-by-sample identifier."""
-    x = total - 2.0 * samples - gz
-    return (x <= 0.0) | (x * x <= g4 * samples)
-
-
 def _span(F: dict[str, NDArray]) -> NDArray[np.float64]:
     """Per sample of the features ``F``, the range of f_init's electrical angle
     ``psi + 2 pi m`` over the samples of evidence so far [rad, electrical] (step 7's travel)."""
@@ -625,6 +623,19 @@ class _Rule:
     mismatch: NDArray[np.bool_]
     lock: NDArray[np.bool_]
     gate: NDArray[np.bool_]
+
+
+def bias_sums(dec: PowerUpDecoder, F: dict[str, NDArray], pos: NDArray) -> NDArray[np.float64]:
+    """Cumulative sums (K, J, 5) of the gate's bias terms (:func:`~hallcal.sensor.
+    _absolute_gate.bias_terms`) after each sample, for the features F (:meth:`~PowerUpDecoder.
+    features`) and table coordinates ``pos`` (K, J), at s = 1; samples without angle add 0."""
+    Rj, Zj, dR, dZ = dec._interp(pos)
+    gram = (*(F[k][:, None] for k in ("guu", "gvv", "guv", "gun", "gvn")), dec.gram_c)
+    tu, tn, tt = tangent_terms(dR, Rj, dZ, gram)
+    a, b = F["rho"][:, None] - Rj, F["zeta"][:, None] - Zj
+    terms = np.stack(bias_terms(a, b, tu, tn, tt, gram, dec.cost_cap), axis=-1)
+    terms[~F["valid"]] = 0.0
+    return np.cumsum(terms, axis=0)
 
 
 def _bias_passes(dec: PowerUpDecoder, F: dict[str, NDArray], lam: NDArray) -> NDArray | None:
@@ -702,27 +713,6 @@ def _check_options(
         raise ValueError("cost_cap must be > 0")
 
 
-def _check_gate(gate_rate: float, gate_samples: int, gate_dispersion: float) -> None:
-    """:func:`build_decoder`'s checks of the gate's alpha_g, K0 and phi (ValueError)."""
-    if not 0.0 <= gate_rate < 0.5:
-        raise ValueError("gate_rate must be in [0, 0.5)")
-    if int(gate_samples) != gate_samples or gate_samples < 0:
-        raise ValueError("gate_samples must be an integer >= 0")
-    if not (gate_dispersion >= 1.0 and math.isfinite(gate_dispersion)):
-        raise ValueError("gate_dispersion must be a finite number >= 1")
-
-
-def _check_bias(dispersion: float, gate_rate: float, gain_sd: float) -> None:
-    """:func:`build_decoder`'s check of the bias half's phi_b (ValueError): 0 (none) or a finite
-    number >= 1, only with the gate and without the gain profile (its residual is s = 1's)."""
-    if dispersion == 0.0:
-        return
-    if not (dispersion >= 1.0 and math.isfinite(dispersion)):
-        raise ValueError("gate_bias_dispersion must be 0 or a finite number >= 1")
-    if not gate_rate > 0.0 or gain_sd > 0.0:
-        raise ValueError("gate_bias_dispersion needs gate_rate > 0 and gain_sd = 0")
-
-
 def build_decoder(
     flux: FluxModel,
     lut: LUT,
@@ -795,8 +785,8 @@ def build_decoder(
     """
     lut._require_bijective()
     _check_options(gain_sd, lock_travel, error_target, cost_cap)
-    _check_gate(gate_rate, gate_samples, gate_dispersion)
-    _check_bias(gate_bias_dispersion, gate_rate, gain_sd)
+    check_gate(gate_rate, gate_samples, gate_dispersion)
+    check_bias(gate_bias_dispersion, gate_rate, gain_sd)
     misfit = MisfitTest(float(misfit_ratio), float(mismatch_rate), float(fit_rate))
     n = lut.pole_pairs
     cov = _noise_covariance(noise_std, noise_covariance)
@@ -1053,6 +1043,17 @@ class PowerUpIdentifier:
         others = [v for j, v in enumerate(self.lam) if j != self.best]
         return math.sqrt(max(min(others), 0.0)) if others else math.inf
 
+    def _add_bias(self, j: int, a: float, b: float, tangent: tuple, gram: tuple) -> None:
+        """Step 5's bias sums of hypothesis j for the residual a u + b nv."""
+        terms = bias_terms(a, b, *tangent, gram, self._cap)
+        self.bias[j] = [v + float(t) for v, t in zip(self.bias[j], terms, strict=True)]
+
+    def _gate_fits(self) -> bool:
+        """Step 7's gate at the first lock: the chi-square half, then the bias half."""
+        if self._gate and not within_gate(self.total, self.samples, self._gz, self._g4):
+            return False
+        return not self._bias < math.inf or bool(within_bias_gate(self.bias[self.best], self._bias))
+
     def update(self, d1: float, d2: float, d3: float) -> int:
         """Process one sample (steps 1-7 of the module docstring).
 
@@ -1116,9 +1117,7 @@ class PowerUpIdentifier:
                 e = _step5_cost(rho - Rj, zeta - Zj, dR, Rj, dZ, gram)
                 self.lam[j] += min(e, self._cap)
                 if self._bias < math.inf:  # step 5's bias sums (module doc, step 7)
-                    tu, tn, tt = tangent_terms(dR, Rj, dZ, gram)
-                    terms = bias_terms(rho - Rj, zeta - Zj, tu, tn, tt, gram, self._cap)
-                    self.bias[j] = [v + float(t) for v, t in zip(self.bias[j], terms, strict=True)]
+                    self._add_bias(j, rho - Rj, zeta - Zj, tangent_terms(dR, Rj, dZ, gram), gram)
                 continue
             sj = self.scale[j]
             e, pr, pp = gain_terms(rho - sj * Rj, zeta - sj * Zj, Rj, Zj, dR, dZ, gram)
@@ -1139,10 +1138,7 @@ class PowerUpIdentifier:
         W = sum(math.exp(-0.5 * v) for j, v in enumerate(self.lam) if j != self.best)
         moved = self._ymax - self._ymin >= self._travel
         if W <= self._threshold and self.fit <= -self._bf and moved and self.samples >= self._k0:
-            fits = not self._gate or _within_gate(self.total, self.samples, self._gz, self._g4)
-            if fits and self._bias < math.inf:
-                fits = bool(within_bias_gate(self.bias[self.best], self._bias))
-            if fits:
+            if self._gate_fits():
                 self.locked = True
                 self.lock_sample = self.samples - 1
             else:

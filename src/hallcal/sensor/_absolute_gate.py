@@ -1,4 +1,5 @@
-"""The bias half of the power-up lock's gate (step 7 of :mod:`hallcal.sensor.absolute`): does
+"""The power-up lock's gate (step 7 of :mod:`hallcal.sensor.absolute`): the checks of its
+options, its chi-square half's root-free test (:func:`within_gate`), and its bias half: does
 the winning pole pair's residual have a mean?
 
 The chi-square half of the gate tests the winner's whole cost Q over k samples against the
@@ -32,7 +33,8 @@ conservative. The gate passes when ``S <= phi_b 2 ln(2 / alpha_g)``: the chi-squ
 quantile of ``1 - alpha_g / 2``, the chi-square half taking the other ``alpha_g / 2``
 (Bonferroni: the gate's false alarm stays at most alpha_g), and ``phi_b >= 1`` the dispersion
 the calibration recording shows for this statistic over K0-sample windows (the model's own
-error along the turn is a bias too; :func:`bias_dispersion`). Written without a division:
+error along the turn is a bias too; ``bias_dispersion`` of :mod:`hallcal.sensor.absolute`,
+used only where :func:`bias_is_white`). Written without a division:
 ``n <= c det`` with ``n = Hbb ha^2 - 2 Hab ha hb + Haa hb^2`` and ``det = Haa Hbb - Hab^2``.
 
 What it cannot do: a wrong curve within a third of a noise sigma of the changed point gives
@@ -43,13 +45,10 @@ What it cannot do: a wrong curve within a third of a noise sigma of the changed 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-
-if TYPE_CHECKING:  # the decoder's type only (the decoder module imports this one)
-    from hallcal.sensor._absolute_decoder import PowerUpDecoder
 
 #: A float (the sample-by-sample identifier) or an array (the batch decoder).
 _Num = Any
@@ -113,23 +112,6 @@ def bias_bound(gate_rate: float, dispersion: float) -> float:
     return dispersion * 2.0 * math.log(2.0 / gate_rate)
 
 
-def bias_sums(decoder: PowerUpDecoder, F: dict[str, NDArray], pos: NDArray) -> NDArray[np.float64]:
-    """Cumulative sums (K, J, 5) of :func:`bias_terms` after each sample, for the features F
-    (:meth:`PowerUpDecoder.features`) and table coordinates ``pos`` (K, J), at the calibrated
-    gain; samples without angle add nothing."""
-    from hallcal.sensor._absolute_decoder import tangent_terms
-
-    Rj, Zj, dR, dZ = decoder.tables_at(pos)
-    gram = (F["guu"][:, None], F["gvv"][:, None], F["guv"][:, None], F["gun"][:, None],
-            F["gvn"][:, None], decoder.gram_c)  # fmt: skip
-    tu, tn, tt = tangent_terms(dR, Rj, dZ, gram)
-    a = F["rho"][:, None] - Rj
-    b = F["zeta"][:, None] - Zj
-    terms = np.stack(bias_terms(a, b, tu, tn, tt, gram, decoder.cost_cap), axis=-1)
-    terms[~F["valid"]] = 0.0
-    return np.cumsum(terms, axis=0)
-
-
 #: Standard errors of phi_b's estimate under white noise that :func:`bias_is_white` allows.
 WHITE_BIAS_ERRORS = 4.0
 
@@ -150,7 +132,7 @@ def bias_is_white(dispersion: float, samples: int, recording: int) -> bool:
     Parameters
     ----------
     dispersion : float
-        phi_b (:func:`bias_dispersion`).
+        phi_b (:func:`~hallcal.sensor._absolute_analysis.bias_dispersion`).
     samples : int
         K, the window (the gate's K0).
     recording : int
@@ -166,47 +148,31 @@ def bias_is_white(dispersion: float, samples: int, recording: int) -> bool:
     return dispersion <= 1.0 + WHITE_BIAS_ERRORS * math.sqrt(samples / recording)
 
 
-def bias_dispersion(
-    decoder: PowerUpDecoder,
-    d: ArrayLike,
-    samples: int,
-    *,
-    start: int = 0,
-    stop: int | None = None,
-) -> float:
-    """phi_b of the gate's bias half: the mean of S over the calibration recording's windows
-    of ``samples`` consecutive samples (hypothesis 0, the calibration frame) over its
-    chi-square(2) mean 2, at least 1.
+def check_gate(gate_rate: float, gate_samples: int, gate_dispersion: float) -> None:
+    """``build_decoder``'s checks of the gate's alpha_g, K0 and phi (ValueError)."""
+    if not 0.0 <= gate_rate < 0.5:
+        raise ValueError("gate_rate must be in [0, 0.5)")
+    if int(gate_samples) != gate_samples or gate_samples < 0:
+        raise ValueError("gate_samples must be an integer >= 0")
+    if not (gate_dispersion >= 1.0 and math.isfinite(gate_dispersion)):
+        raise ValueError("gate_dispersion must be a finite number >= 1")
 
-    The model's own error along the turn is a slowly varying bias the white-noise model does
-    not know; over a window it raises S by about ``k b^2``. Scaling the quantile by the
-    recording's mean (as the chi-square half's :func:`gate_dispersion` does with the variance,
-    Satterthwaite 1946) keeps the false alarm on that rig near alpha_g / 2, at the price of
-    power there; on a bench whose model fits, phi_b is 1.
 
-    Parameters
-    ----------
-    decoder : PowerUpDecoder
-        The calibration's decoder (its tables, sigma and cap).
-    d : array_like, shape (N, 3)
-        The calibration recording (f_init from y = 0 before its first sample).
-    samples : int
-        K: the window (the gate's K0).
-    start, stop : int, keyword-only
-        The samples the model was fitted on.
+def check_bias(dispersion: float, gate_rate: float, gain_sd: float) -> None:
+    """``build_decoder``'s check of the bias half's phi_b (ValueError): 0 (none) or a finite
+    number >= 1, only with the gate and without the gain profile (its residual is s = 1's)."""
+    if dispersion == 0.0:
+        return
+    if not (dispersion >= 1.0 and math.isfinite(dispersion)):
+        raise ValueError("gate_bias_dispersion must be 0 or a finite number >= 1")
+    if not gate_rate > 0.0 or gain_sd > 0.0:
+        raise ValueError("gate_bias_dispersion needs gate_rate > 0 and gain_sd = 0")
 
-    Returns
-    -------
-    float
-        phi_b >= 1 (1 when the samples hold fewer than two windows).
-    """
-    d = np.atleast_2d(np.asarray(d, dtype=np.float64))
-    F = decoder.features(d if stop is None else d[:stop])
-    F = {k: v[start:] for k, v in F.items()}
-    F = {k: v[F["valid"]] for k, v in F.items()}
-    if samples < 1 or F["psi"].size < 2 * samples:
-        return 1.0
-    pos = decoder.coordinates(F["psi"], F["m"], np.zeros(1, dtype=np.int64))
-    c = np.concatenate([np.zeros((1, 5)), bias_sums(decoder, F, pos)[:, 0]])
-    phi = float(np.mean(bias_statistic(c[samples:] - c[:-samples]))) / 2.0
-    return max(phi, 1.0) if math.isfinite(phi) else 1.0
+
+def within_gate(total: Any, samples: Any, gz: float, g4: float) -> Any:
+    """Step 7's gate on Q = ``total`` over k = ``samples`` (floats, or arrays that broadcast):
+    ``x = Q - 2 k - gz <= 0`` or ``x^2 <= g4 k``, the chi-square(2 k) quantile in Cornish-Fisher
+    form without a root (``PowerUpDecoder.gate_terms``); one expression for the batch
+    decoder and the sample-by-sample identifier."""
+    x = total - 2.0 * samples - gz
+    return (x <= 0.0) | (x * x <= g4 * samples)

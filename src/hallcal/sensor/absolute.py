@@ -216,6 +216,7 @@ from hallcal.sensor._absolute_analysis import (
     gate_dispersion,
 )
 from hallcal.sensor._absolute_analysis import SeparationMap as SeparationMap
+from hallcal.sensor._absolute_analysis import bias_dispersion as bias_dispersion
 from hallcal.sensor._absolute_analysis import separation_map as separation_map
 from hallcal.sensor._absolute_analysis import standstill_error as standstill_error
 from hallcal.sensor._absolute_analysis import standstill_error_rate as standstill_error_rate
@@ -243,7 +244,6 @@ from hallcal.sensor._absolute_decoder import (
 from hallcal.sensor._absolute_decoder import gain_terms as gain_terms
 from hallcal.sensor._absolute_decoder import gram_at as gram_at
 from hallcal.sensor._absolute_decoder import tangent_terms as tangent_terms
-from hallcal.sensor._absolute_gate import bias_dispersion as bias_dispersion
 
 __all__ = [
     "AbsoluteAngles",
