@@ -680,16 +680,35 @@ def _gate_terms(pu: PowerUpFirmware) -> dict[str, str]:
 #: u G with G the metric across the curve (the tangent projected out).
 _BIAS_UPDATE = string.Template(
     r"""        {
-            const float bu = (cost > ${cap}) ? (${cap} / cost) : 1.0f;
-            const float ga = ${ga} - ((tu * rt) * q); /* G r */
-            const float gb = ${gb} - ((tn * rt) * q);
-            const float bt[5] = {bu * ga, bu * gb, bu * (guu - ((tu * tu) * q)),
-                                bu * (${gun} - ((tu * tn) * q)), bu * (${cnn} - ((tn * tn) * q))};
-            uint32_t bi;
-            for (bi = 0u; bi < 5u; bi = bi + 1u) { /* set by the first sample: no loop in init */
-                s->bias[(5u * j) + bi] =
-                    (s->samples != 0u) ? (s->bias[(5u * j) + bi] + bt[bi]) : bt[bi];
+            float *const hs = &s->bias[5u * j];
+            const float tuq = tu * q;
+            const float tnq = tn * q;
+            float bu = 1.0f;
+            float b0;
+            float b1;
+            float b2;
+            float b3;
+            float b4;
+            if (cost > ${cap}) {
+                bu = ${cap} / cost;
             }
+            b0 = bu * (${ga} - (tuq * rt)); /* u G r */
+            b1 = bu * (${gb} - (tnq * rt));
+            b2 = bu * (guu - (tuq * tu)); /* u G */
+            b3 = bu * (${gun} - (tuq * tn));
+            b4 = bu * (${cnn} - (tnq * tn));
+            if (s->samples != 0u) {
+                b0 = hs[0] + b0;
+                b1 = hs[1] + b1;
+                b2 = hs[2] + b2;
+                b3 = hs[3] + b3;
+                b4 = hs[4] + b4;
+            }
+            hs[0] = b0; /* set by the first sample: no loop in init */
+            hs[1] = b1;
+            hs[2] = b2;
+            hs[3] = b3;
+            hs[4] = b4;
         }
 """
 )
