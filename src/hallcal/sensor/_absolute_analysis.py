@@ -32,7 +32,12 @@ from hallcal.sensor._absolute_decoder import (
     gram_at,
     tangent_terms,
 )
-from hallcal.sensor._absolute_gate import bias_is_white, bias_statistic
+from hallcal.sensor._absolute_gate import (
+    QUANTIZER_NONCENTRALITY,
+    bias_is_white,
+    bias_statistic,
+    quantizer_noncentrality,
+)
 from hallcal.sensor.drift_margin import DriftMargin, drift_margin
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT
@@ -965,7 +970,9 @@ def analyze_calibration(
     recording shows the right hypothesis's residual without a mean beyond white noise's
     sampling error (:func:`~hallcal.sensor._absolute_gate.bias_is_white`): on the ring jig the
     model's error moves from revolution to revolution, and the bias half refused 3-13 % of
-    healthy held-out power-ups there; it has none (the gate as before).
+    healthy held-out power-ups there; it has none (the gate as before). Nor where the sensors'
+    quantizer, too little dithered by their analog noise, leaves a mean error at standstill
+    (:func:`~hallcal.sensor._absolute_gate.quantizer_noncentrality`).
 
     Sigma is the total noise across the model curve on the calibration samples
     (:func:`estimate_normal_noise`): white noise plus the model's own error there, so the
@@ -1007,7 +1014,10 @@ def analyze_calibration(
             dec = dataclasses.replace(dec, gate_rate=DEFAULT_GATE_RATE, gate_dispersion=phi)
             dec = dataclasses.replace(dec, gate_samples=DEFAULT_GATE_SAMPLES)
             phi_b = bias_dispersion(dec, d, DEFAULT_GATE_SAMPLES, start=start, stop=stop)
-            if bias_is_white(phi_b, DEFAULT_GATE_SAMPLES, used):
+            fit = np.asarray(d, dtype=np.float64)[start:stop]
+            quantizer = quantizer_noncentrality(fit, noise.white_std, sigma, DEFAULT_GATE_SAMPLES)
+            white = bias_is_white(phi_b, DEFAULT_GATE_SAMPLES, used)
+            if white and quantizer <= QUANTIZER_NONCENTRALITY:
                 dec = dataclasses.replace(dec, gate_bias_dispersion=phi_b)
         return dec, assess_identifiability(
             dec,

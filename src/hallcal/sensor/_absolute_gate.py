@@ -31,7 +31,9 @@ glitch cannot reach the bound (its term in h is at most ``cap / sqrt(e)`` sigmas
 the weighted sums have ``Var(h) = sum u^2 G <= H``, so the weighting only makes the test
 conservative. The gate passes when ``S <= phi_b 2 ln(2 / alpha_g)``: the chi-square(2)
 quantile of ``1 - alpha_g / 2``, the chi-square half taking the other ``alpha_g / 2``
-(Bonferroni: the gate's false alarm stays at most alpha_g), and ``phi_b >= 1`` the dispersion
+(Bonferroni: the gate's false alarm stays at most alpha_g; 1.13 alpha_g where the sensors'
+quantizer leaves the largest allowed mean at standstill, :data:`QUANTIZER_NONCENTRALITY`), and
+``phi_b >= 1`` the dispersion
 the calibration recording shows for this statistic over K0-sample windows (the model's own
 error along the turn is a bias too; ``bias_dispersion`` of :mod:`hallcal.sensor.absolute`,
 used only where :func:`bias_is_white`). Written without a division:
@@ -146,6 +148,63 @@ def bias_is_white(dispersion: float, samples: int, recording: int) -> bool:
     if recording < 2 * samples or samples < 1:
         return False
     return dispersion <= 1.0 + WHITE_BIAS_ERRORS * math.sqrt(samples / recording)
+
+
+#: Largest noncentrality the sensors' quantizer may give the bias half's statistic over K0
+#: samples at standstill (:func:`quantizer_noncentrality`): a noncentral chi-square(2) with
+#: 0.05 exceeds the bound 2 ln(2 / alpha_g) at alpha_g = 1e-4 with 1.26 times the stated
+#: probability (scipy.stats.ncx2; 0.25: 2.6 times, 1: 12.5 times).
+QUANTIZER_NONCENTRALITY = 0.05
+
+
+def quantizer_noncentrality(d: ArrayLike, white_std: float, sigma: float, samples: int) -> float:
+    """The bias half's noncentrality over ``samples`` samples at standstill that the sensors'
+    own quantizer gives a healthy power-up (0 for signals that are not quantized).
+
+    A quantizer of step Delta fed a constant input plus Gaussian noise of sigma_a (the analog
+    noise, which dithers it) has a mean error that depends on the input: its first Fourier
+    term has the amplitude ``(Delta / pi) exp(-2 pi^2 sigma_a^2 / Delta^2)`` (Widrow & Kollar,
+    Quantization Noise, Cambridge 2008, ch. 4 and 19: the characteristic function of the
+    Gaussian at the quantizer's harmonics). At standstill that mean is a fixed residual the
+    bias half sees (a moving calibration recording shows it as white noise: phi_b does not);
+    with ``a`` the largest amplitude over the channels, the noncentrality after K samples is
+    at most ``K 3 a^2 / sigma^2``. Measured on the unseen motors with a 10-11-bit ADC and 0.23-
+    0.27 codes of analog noise (174, 185, 240, 40 power-ups at rest each): false "mismatch"
+    11 of 120 with the gate alone, 24 with the bias half; this function gives them 9.6-31
+    (no bias half), and 0.014 for 218 (0.48 codes, no false "mismatch" with the bias half).
+
+    Parameters
+    ----------
+    d : array_like, shape (N, 3)
+        The calibration recording (the samples the model was fitted on).
+    white_std : float
+        The white noise per channel it shows (quantization included) [sensor's unit].
+    sigma : float
+        The decoder's noise sigma [sensor's unit].
+    samples : int
+        K (the gate's K0).
+
+    Returns
+    -------
+    float
+        ``K 3 a^2 / sigma^2``; 0 where no channel's values lie on a lattice (fewer distinct
+        values than a quarter of the samples, their gaps whole multiples of the smallest).
+    """
+    x = np.atleast_2d(np.asarray(d, dtype=np.float64))
+    worst = 0.0
+    for h in range(x.shape[1]):
+        u = np.unique(x[:, h])
+        if u.size < 2 or u.size > x.shape[0] // 4:
+            continue  # continuous signals, or a constant channel
+        gaps = np.diff(u)
+        step = float(gaps.min())
+        ratio = gaps / step
+        if not (step > 0.0 and np.allclose(ratio, np.round(ratio), rtol=0.0, atol=1e-6)):
+            continue
+        analog2 = max(white_std**2 - step**2 / 12.0, 0.0)
+        a = step / math.pi * math.exp(-2.0 * math.pi**2 * analog2 / step**2)
+        worst = max(worst, a)
+    return samples * 3.0 * worst**2 / sigma**2 if sigma > 0.0 else math.inf
 
 
 def check_gate(gate_rate: float, gate_samples: int, gate_dispersion: float) -> None:
