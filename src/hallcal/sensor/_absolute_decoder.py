@@ -638,24 +638,21 @@ def bias_sums(dec: PowerUpDecoder, F: dict[str, NDArray], pos: NDArray) -> NDArr
     return np.cumsum(terms, axis=0)
 
 
-def _bias_passes(dec: PowerUpDecoder, F: dict[str, NDArray], lam: NDArray) -> NDArray | None:
-    """Per row of the cumulative costs ``lam`` (K, n), whether the gate's bias half passes for
-    that row's best hypothesis (:mod:`hallcal.sensor._absolute_gate`); None without it."""
+def _bias_passes(dec: PowerUpDecoder, F: dict[str, NDArray], lam: NDArray, row: int) -> bool:
+    """Whether the gate's bias half passes at ``row`` of the cumulative costs ``lam`` (K, n)
+    for that row's best hypothesis (:mod:`hallcal.sensor._absolute_gate`; True without it):
+    its sums over the samples up to that row only (the gate decides once, there)."""
     if not math.isfinite(dec.gate_bias_bound):
-        return None
-    rows, n = lam.shape
-    F = {k: v[:rows] for k, v in F.items()}
-    sums = bias_sums(dec, F, dec.coordinates(F["psi"], F["m"], np.arange(n)))
-    best = np.argmin(lam, axis=1)
-    return np.asarray(within_bias_gate(sums[np.arange(rows), best], dec.gate_bias_bound))
+        return True
+    G = {k: v[: row + 1] for k, v in F.items()}
+    pos = dec.coordinates(G["psi"], G["m"], [int(np.argmin(lam[row]))])
+    return bool(within_bias_gate(bias_sums(dec, G, pos)[-1, 0], dec.gate_bias_bound))
 
 
-def _lock_rule(
-    dec: PowerUpDecoder, lam: NDArray, used: NDArray, span: NDArray, bias: NDArray | None = None
-) -> _Rule:
+def _lock_rule(dec: PowerUpDecoder, lam: NDArray, used: NDArray, span: NDArray) -> _Rule:
     """Steps 6 and 7 on cumulative costs ``lam`` (K, n), with the samples of evidence ``used``
-    and f_init's electrical travel ``span`` per row (:func:`_span`); ``bias``: where the gate's
-    bias half passes (:func:`_bias_passes`; None: no bias half)."""
+    and f_init's electrical travel ``span`` per row (:func:`_span`); the gate's chi-square
+    half per row (its bias half: :func:`_bias_passes`, at the row where it decides)."""
     total = np.min(lam, axis=1)  # the best hypothesis's whole cost (sum of the Lmin, step 6)
     D = dec.misfit.statistic(total, used)
     relative = lam - total[:, None]
@@ -664,10 +661,7 @@ def _lock_rule(
     if dec.lock_travel > 0.0:  # and f_init's angle has spanned lock_travel turns
         lock &= span >= TWO_PI * dec.lock_travel
     lock &= used >= dec.gate_samples  # and K0 samples of evidence
-    gate = dec.gate_passes(total, used)
-    if bias is not None:
-        gate &= bias
-    return _Rule(total, relative, D, D >= dec.misfit.bound, lock, gate)
+    return _Rule(total, relative, D, D >= dec.misfit.bound, lock, dec.gate_passes(total, used))
 
 
 def _gram(
@@ -776,8 +770,8 @@ def build_decoder(
     gate_dispersion : float
         phi >= 1 of the gate (:func:`gate_dispersion`; 1: white noise as calibrated).
     gate_bias_dispersion : float
-        phi_b >= 1 of the gate's bias half (:func:`~hallcal.sensor._absolute_gate.
-        bias_dispersion`); 0: none. Needs the gate and no gain profile.
+        phi_b >= 1 of the gate's bias half (:func:`~hallcal.sensor.absolute.bias_dispersion`);
+        0: none. Needs the gate and no gain profile.
 
     Returns
     -------
@@ -930,7 +924,7 @@ def _identify(dec: PowerUpDecoder, d: NDArray, *, lock: bool) -> PowerUpIdentifi
     rows = lam.shape[0]
     F = dec.features(d)
     used = np.cumsum(F["valid"])[:rows]
-    rule = _lock_rule(dec, lam, used, _span(F)[:rows], _bias_passes(dec, F, lam))
+    rule = _lock_rule(dec, lam, used, _span(F)[:rows])
     total, D, lam = rule.total, rule.D, rule.relative
     best = np.argmin(lam, axis=1)
     lock_at = mismatch_at = None
@@ -940,7 +934,7 @@ def _identify(dec: PowerUpDecoder, d: NDArray, *, lock: bool) -> PowerUpIdentifi
             mismatch_at = int(bad[0])
         limit = rows if mismatch_at is None else mismatch_at
         hit = np.flatnonzero(rule.lock[:limit])
-        if hit.size and rule.gate[hit[0]]:
+        if hit.size and rule.gate[hit[0]] and _bias_passes(dec, F, lam, int(hit[0])):
             lock_at = int(hit[0])
             mismatch_at = None
         elif hit.size:  # the gate refuses the first lock: no pole pair fits as the noise allows
