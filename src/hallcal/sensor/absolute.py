@@ -187,15 +187,17 @@ out these wrong locks, and over its thousands of samples the gate would refuse p
 The gate's bias half. After the gate the wrong locks left (16 of 2200) all came at K0 with a
 whole cost 1.05-1.42 times the noise's: a changed sensor puts the point at a fixed offset from
 a wrong curve, a constant residual the total cost barely sees (``k |delta|^2`` against a
-quantile margin of ``z sqrt(4 k)``). The likelihood-ratio test of a constant residual mean
-(chi-square(2) under the calibrated noise, whatever k; :mod:`hallcal.sensor._absolute_gate`)
-sees it with 16 times less bias energy at k = 96: wrong locks 16 -> 3 of 2200, the healthy
-power-ups locking as before, at K0. The two halves take ``alpha_g / 2`` each (Bonferroni), so
-the gate's false alarm stays at most alpha_g; the bias half's quantile is widened by the mean
-``phi_b`` its statistic shows on the calibration recording (the model's own error along the
-turn is a bias too). The wrong locks left sit within a third of a noise sigma of the wrong
-curve: at k = 96 that is within the healthy spread of any test, and only more samples (a later
-lock for some healthy power-ups) would tell.
+quantile margin of ``z sqrt(4 k)``, about 72 noise variances at k = 96). The likelihood-ratio
+test of a constant residual mean (chi-square(2) under the calibrated noise, whatever k;
+:mod:`hallcal.sensor._absolute_gate`) sees it from about 20: wrong locks 16 -> 3 of 2200, the
+healthy power-ups locking as before, at K0. The two halves take ``alpha_g / 2`` each
+(Bonferroni), so the gate's false alarm stays at most alpha_g; the bias half's quantile is
+widened by the mean ``phi_b`` its statistic shows on the calibration recording (the model's own
+error along the turn is a bias too). A calibration whose recording shows such a bias beyond
+white noise's sampling error (the ring jig), or whose ADC is too little dithered by the analog
+noise to be unbiased at standstill, keeps the chi-square half alone. The wrong locks left sit
+within a third of a noise sigma of the wrong curve: at k = 96 that is within the healthy spread
+of any test, and only more samples (a later lock for some healthy power-ups) would tell.
 
 Units: angles in rad (mechanical unless said electrical); d, rho, zeta in the sensor's unit;
 costs in noise-sigma units squared.
