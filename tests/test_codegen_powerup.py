@@ -555,3 +555,60 @@ def test_c_gates_the_lock_like_python(paper_gate, gains, offsets):
         assert counts["locked"] == starts
     else:  # the gate's own refusal (at or after K0) is among them (measured: 1, 3, 1)
         assert counts["gate"] >= 1
+
+
+# ------------------------------------------------------------------------------------------------
+# The gate's bias half (step 7: the winner's residual mean), as calibrate exports it
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def paper_bias(paper, tmp_path_factory):
+    """The paper bench's artifact with the gate and its bias half (``gate_bias_dispersion``)."""
+    art = copy.deepcopy(paper["art"])
+    art["identifiability"]["gate_rate"] = ab.DEFAULT_GATE_RATE
+    art["identifiability"]["gate_samples"] = ab.DEFAULT_GATE_SAMPLES
+    art["identifiability"]["gate_bias_dispersion"] = 1.0
+    built = _exported(art, tmp_path_factory.mktemp("powerup_bias"))
+    assert math.isfinite(built["dec"].gate_bias_bound)
+    return {"cfg": paper["cfg"], **built}
+
+
+@pytest.mark.parametrize(
+    ("gains", "offsets"),
+    [((1.0, 1.0, 1.0), (0.0, 0.0, 0.0)), ((0.95, 1.0, 1.0), (0.0, 0.0, 0.0)),
+     ((1.0, 1.0, 1.0), (0.0, 0.0, 0.01)), ((0.995, 0.995, 0.995), (0.0, 0.0, 0.0))],
+    ids=["healthy", "d1 x0.95", "d3 +0.01", "all x0.995"],
+)  # fmt: skip
+def test_c_gates_the_residual_mean_like_python(paper_bias, gains, offsets):
+    """40 power-ups (half at rest, half at 2 rad/s; 300 samples) with the sensors as
+    calibrated or changed: the C decides (lock or mismatch) at the same sample as
+    PowerUpIdentifier, on the same pole pair, and takes no evidence after a mismatch. The bias
+    half's sums are float32 in the C: a decision could differ only where S is within float
+    rounding of its bound, which these seeds do not reach (every decision compared)."""
+    dec = paper_bias["dec"]
+    pu = PowerUps(paper_bias["cfg"])
+    rng = np.random.default_rng(2034)
+    starts, samples = 40, STANDSTILL_SAMPLES
+    counts = {"locked": 0, "mismatch": 0}
+    for k in range(starts):
+        speed = 0.0 if k % 2 else 2.0
+        x = pu.run(float(rng.uniform(0.0, TWO_PI)), samples, speed, seed=91_000 + k)
+        x = (x.astype(np.float64) * np.array(gains) + np.array(offsets)).astype(np.float32)
+        words, lam_c = _c_lam(paper_bias, x, samples)
+        ident = ab.PowerUpIdentifier(dec)
+        for row in x.astype(np.float64).tolist():
+            ident.update(*row)
+        ident_c = words[:, 2] >> 31
+        lock_c = int(np.argmax(ident_c)) if ident_c.any() else None
+        assert lock_c == ident.lock_sample, (k, lock_c, ident.lock_sample)
+        if ident.locked:
+            counts["locked"] += 1
+            assert (words[ident.lock_sample, 2] >> 16) & 0x7FFF == ident.best
+        if ident.mismatch:
+            counts["mismatch"] += 1
+            m = ident.mismatch_sample
+            assert np.all(lam_c[m:] == lam_c[m]), k  # no evidence after the mismatch
+    print(f"gains {gains} offsets {offsets}: {counts} of {starts}, C as Python")
+    if gains == (1.0, 1.0, 1.0) and offsets == (0.0, 0.0, 0.0):
+        assert counts["locked"] == starts  # false alarm <= 1e-4 per power-up

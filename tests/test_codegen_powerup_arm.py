@@ -173,3 +173,52 @@ def test_the_gate_on_m4f_locks_like_python_and_costs_few_cycles(gate_builds):
     )
     assert diff.max() <= 40
     assert last.max() <= max(at_lock) + 60
+
+
+@pytest.fixture(scope="module")
+def bias_builds(tmp_path_factory):
+    """The same bench exported with the gate alone and with its bias half
+    (``gate_bias_dispersion``, as calibrate stores it where the calibration's residual is
+    white), built for the M4F; power-ups at rest, one sensor's offset +1 % for half of them."""
+    cfg = BenchConfig(pole_pairs=5)
+    plain = fs.bench_artifact(cfg)
+    gate = {"gate_rate": ab.DEFAULT_GATE_RATE, "gate_samples": ab.DEFAULT_GATE_SAMPLES,
+            "gate_dispersion": 1.0}  # fmt: skip
+    variants = {"gate": gate, "bias": {**gate, "gate_bias_dispersion": 1.0}}
+    out = _build_variants(tmp_path_factory.mktemp("pu_bias_arm"), plain, variants)
+    x = _power_ups_at_rest(cfg, GATE_STARTS, GATE_SAMPLES, rng_seed=507, seed0=9200)
+    x[GATE_STARTS // 2 :, :, 2] += 0.01
+    return out, x.astype(np.float32)
+
+
+def test_the_bias_half_on_m4f_decides_like_python_and_costs_bounded_cycles(bias_builds):
+    """The gate with its bias half on the M4F: the same lock sample and pole pair as
+    PowerUpIdentifier (or neither locks). Cycles per sample before the decision against the
+    gate alone on the same samples: five Huber-weighted sums per hypothesis (about 17 float
+    operations, five loads and stores, a division only for a censored sample) and the check at
+    the first lock once: measured +69-70 cycles per hypothesis and sample (836 -> 1181 per
+    sample, 5 pole pairs); bound 80 (room for the toolchain's scheduling)."""
+    out, x = bias_builds
+    b, art = out["bias"]
+    raw = ah.run(b, x.reshape(-1, 3), block=GATE_SAMPLES).reshape(GATE_STARTS, GATE_SAMPLES, 3)
+    assert ah.undefined_symbols(b.obj) == []
+    dec, _ = fs.python_decoder(art)
+    assert math.isfinite(dec.gate_bias_bound)
+    for k in range(GATE_STARTS):
+        lock, j, _ = fs.identify_python(dec, x[k].astype(np.float64))
+        ident = raw[k, :, 2] >> 31
+        assert (int(np.argmax(ident)) if ident.any() else None) == lock
+        assert ((raw[k, -1, 2] >> 16) & 0x7FFF) == j
+    cycles = {}
+    for name in ("gate", "bias"):
+        xx = x[:, : ab.DEFAULT_GATE_SAMPLES - 1].reshape(-1, 3)  # before the decision
+        tr = ah.trace(out[name][0], xx, block=ab.DEFAULT_GATE_SAMPLES - 1)
+        cycles[name] = tr.cycles.reshape(GATE_STARTS, -1)
+    diff = cycles["bias"] - cycles["gate"]
+    n = dec.pole_pairs
+    print(
+        f"M4 cycles per sample before the decision, {n} pole pairs: gate alone "
+        f"{int(np.median(cycles['gate']))}, with the bias half {int(np.median(cycles['bias']))} "
+        f"(median); per hypothesis +{np.median(diff) / n:.0f} (max +{diff.max() / n:.0f})"
+    )
+    assert diff.max() <= 80 * n

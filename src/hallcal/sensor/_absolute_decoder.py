@@ -17,6 +17,14 @@ from numpy.typing import ArrayLike, NDArray
 
 from hallcal._constants import TWO_PI
 from hallcal.messages import Outcome
+from hallcal.sensor._absolute_gate import (
+    bias_bound,
+    bias_terms,
+    check_bias,
+    check_gate,
+    within_bias_gate,
+    within_gate,
+)
 from hallcal.sensor.drift_margin import PLAUSIBLE_GAIN_CHANGE
 from hallcal.sensor.flux import FluxModel
 from hallcal.sensor.lut import LUT
@@ -292,6 +300,10 @@ class PowerUpDecoder:
         phi >= 1: the variance of the right hypothesis's cost over K0 samples on the
         calibration recording relative to chi-square's (:func:`gate_dispersion`); the gate's
         quantile is Satterthwaite's for that variance (1: white noise as calibrated).
+    gate_bias_dispersion : float
+        phi_b >= 1 of the gate's bias half (the winner's residual mean against the
+        chi-square(2) quantile, :mod:`hallcal.sensor._absolute_gate`); the two halves then
+        take alpha_g / 2 each. 0: no bias half (the decoder before it).
     """
 
     pole_pairs: int
@@ -314,6 +326,7 @@ class PowerUpDecoder:
     gate_rate: float = 0.0
     gate_samples: int = 0
     gate_dispersion: float = 1.0
+    gate_bias_dispersion: float = 0.0
 
     @property
     def gate_terms(self) -> tuple[float, float]:
@@ -322,8 +335,10 @@ class PowerUpDecoder:
         ``1 - alpha_g`` is ``2 k + gz + sqrt(g4 k)`` to the Cornish-Fisher expansion's constant
         term at phi = 1; a cost of mean 2 k and variance 4 k phi is ``phi`` times a
         chi-square(2 k / phi) (Satterthwaite 1946, Biometrics Bull. 2(6)), whose quantile is
-        the same expression with these terms."""
-        z = statistics.NormalDist().inv_cdf(1.0 - self.gate_rate)
+        the same expression with these terms. With the bias half the chi-square half takes
+        ``alpha_g / 2`` (Bonferroni)."""
+        rate = self.gate_rate / 2.0 if self.gate_bias_dispersion > 0.0 else self.gate_rate
+        z = statistics.NormalDist().inv_cdf(1.0 - rate)
         phi = self.gate_dispersion
         return 2.0 * phi * (z * z - 1.0) / 3.0, 4.0 * phi * z * z
 
@@ -348,7 +363,14 @@ class PowerUpDecoder:
         k = np.asarray(samples, dtype=np.float64)
         if not self.gate_rate > 0.0:
             return np.ones(np.broadcast(Q, k).shape, dtype=bool)
-        return np.asarray(_within_gate(Q, k, *self.gate_terms), dtype=bool)
+        return np.asarray(within_gate(Q, k, *self.gate_terms), dtype=bool)
+
+    @property
+    def gate_bias_bound(self) -> float:
+        """The bias half's bound on S, ``phi_b 2 ln(2 / alpha_g)`` (inf without it)."""
+        if not (self.gate_bias_dispersion > 0.0 and self.gate_rate > 0.0):
+            return math.inf
+        return bias_bound(self.gate_rate, self.gate_bias_dispersion)
 
     @property
     def gain_weight(self) -> float:
@@ -527,6 +549,11 @@ class PowerUpDecoder:
             "gate_rate": float(self.gate_rate),
             "gate_samples": int(self.gate_samples),
             "gate_dispersion": float(self.gate_dispersion),
+            **(
+                {"gate_bias_dispersion": float(self.gate_bias_dispersion)}
+                if self.gate_bias_dispersion > 0.0
+                else {}
+            ),  # fmt: skip
             **self.misfit.to_dict(),
         }
 
@@ -575,15 +602,6 @@ def _profile_step(e: _Num, pr: _Num, pp: _Num, info: _Num, scale: _Num, cap: flo
     return np.minimum(inc, cap), info, scale + weight * pr / info
 
 
-def _within_gate(total: Any, samples: Any, gz: float, g4: float) -> Any:
-    """Step 7's gate on Q = ``total`` over k = ``samples`` (floats, or arrays that broadcast):
-    ``x = Q - 2 k - gz <= 0`` or ``x^2 <= g4 k``, the chi-square(2 k) quantile in Cornish-Fisher
-    form without a root (:attr:`PowerUpDecoder.gate_terms`); one expression for the batch
-    decoder and the sample-by-sample identifier."""
-    x = total - 2.0 * samples - gz
-    return (x <= 0.0) | (x * x <= g4 * samples)
-
-
 def _span(F: dict[str, NDArray]) -> NDArray[np.float64]:
     """Per sample of the features ``F``, the range of f_init's electrical angle
     ``psi + 2 pi m`` over the samples of evidence so far [rad, electrical] (step 7's travel)."""
@@ -607,9 +625,34 @@ class _Rule:
     gate: NDArray[np.bool_]
 
 
+def bias_sums(dec: PowerUpDecoder, F: dict[str, NDArray], pos: NDArray) -> NDArray[np.float64]:
+    """Cumulative sums (K, J, 5) of the gate's bias terms (:func:`~hallcal.sensor.
+    _absolute_gate.bias_terms`) after each sample, for the features F (:meth:`~PowerUpDecoder.
+    features`) and table coordinates ``pos`` (K, J), at s = 1; samples without angle add 0."""
+    Rj, Zj, dR, dZ = dec._interp(pos)
+    gram = (*(F[k][:, None] for k in ("guu", "gvv", "guv", "gun", "gvn")), dec.gram_c)
+    tu, tn, tt = tangent_terms(dR, Rj, dZ, gram)
+    a, b = F["rho"][:, None] - Rj, F["zeta"][:, None] - Zj
+    terms = np.stack(bias_terms(a, b, tu, tn, tt, gram, dec.cost_cap), axis=-1)
+    terms[~F["valid"]] = 0.0
+    return np.cumsum(terms, axis=0)
+
+
+def _bias_passes(dec: PowerUpDecoder, F: dict[str, NDArray], lam: NDArray, row: int) -> bool:
+    """Whether the gate's bias half passes at ``row`` of the cumulative costs ``lam`` (K, n)
+    for that row's best hypothesis (:mod:`hallcal.sensor._absolute_gate`; True without it):
+    its sums over the samples up to that row only (the gate decides once, there)."""
+    if not math.isfinite(dec.gate_bias_bound):
+        return True
+    G = {k: v[: row + 1] for k, v in F.items()}
+    pos = dec.coordinates(G["psi"], G["m"], [int(np.argmin(lam[row]))])
+    return bool(within_bias_gate(bias_sums(dec, G, pos)[-1, 0], dec.gate_bias_bound))
+
+
 def _lock_rule(dec: PowerUpDecoder, lam: NDArray, used: NDArray, span: NDArray) -> _Rule:
     """Steps 6 and 7 on cumulative costs ``lam`` (K, n), with the samples of evidence ``used``
-    and f_init's electrical travel ``span`` per row (:func:`_span`)."""
+    and f_init's electrical travel ``span`` per row (:func:`_span`); the gate's chi-square
+    half per row (its bias half: :func:`_bias_passes`, at the row where it decides)."""
     total = np.min(lam, axis=1)  # the best hypothesis's whole cost (sum of the Lmin, step 6)
     D = dec.misfit.statistic(total, used)
     relative = lam - total[:, None]
@@ -664,16 +707,6 @@ def _check_options(
         raise ValueError("cost_cap must be > 0")
 
 
-def _check_gate(gate_rate: float, gate_samples: int, gate_dispersion: float) -> None:
-    """:func:`build_decoder`'s checks of the gate's alpha_g, K0 and phi (ValueError)."""
-    if not 0.0 <= gate_rate < 0.5:
-        raise ValueError("gate_rate must be in [0, 0.5)")
-    if int(gate_samples) != gate_samples or gate_samples < 0:
-        raise ValueError("gate_samples must be an integer >= 0")
-    if not (gate_dispersion >= 1.0 and math.isfinite(gate_dispersion)):
-        raise ValueError("gate_dispersion must be a finite number >= 1")
-
-
 def build_decoder(
     flux: FluxModel,
     lut: LUT,
@@ -692,6 +725,7 @@ def build_decoder(
     gate_rate: float = 0.0,
     gate_samples: int = 0,
     gate_dispersion: float = 1.0,
+    gate_bias_dispersion: float = 0.0,
 ) -> PowerUpDecoder:
     """Tables and constants of the power-up decoder for an identified flux model.
 
@@ -735,6 +769,9 @@ def build_decoder(
         K0, samples of evidence before the lock (>= 0), see :data:`DEFAULT_GATE_SAMPLES`.
     gate_dispersion : float
         phi >= 1 of the gate (:func:`gate_dispersion`; 1: white noise as calibrated).
+    gate_bias_dispersion : float
+        phi_b >= 1 of the gate's bias half (:func:`~hallcal.sensor.absolute.bias_dispersion`);
+        0: none. Needs the gate and no gain profile.
 
     Returns
     -------
@@ -742,7 +779,8 @@ def build_decoder(
     """
     lut._require_bijective()
     _check_options(gain_sd, lock_travel, error_target, cost_cap)
-    _check_gate(gate_rate, gate_samples, gate_dispersion)
+    check_gate(gate_rate, gate_samples, gate_dispersion)
+    check_bias(gate_bias_dispersion, gate_rate, gain_sd)
     misfit = MisfitTest(float(misfit_ratio), float(mismatch_rate), float(fit_rate))
     n = lut.pole_pairs
     cov = _noise_covariance(noise_std, noise_covariance)
@@ -792,6 +830,7 @@ def build_decoder(
         gate_rate=float(gate_rate),
         gate_samples=int(gate_samples),
         gate_dispersion=float(gate_dispersion),
+        gate_bias_dispersion=float(gate_bias_dispersion),
     )
 
 
@@ -895,7 +934,7 @@ def _identify(dec: PowerUpDecoder, d: NDArray, *, lock: bool) -> PowerUpIdentifi
             mismatch_at = int(bad[0])
         limit = rows if mismatch_at is None else mismatch_at
         hit = np.flatnonzero(rule.lock[:limit])
-        if hit.size and rule.gate[hit[0]]:
+        if hit.size and rule.gate[hit[0]] and _bias_passes(dec, F, lam, int(hit[0])):
             lock_at = int(hit[0])
             mismatch_at = None
         elif hit.size:  # the gate refuses the first lock: no pole pair fits as the noise allows
@@ -963,6 +1002,8 @@ class PowerUpIdentifier:
         self._gate = dec.gate_rate > 0.0
         self._k0 = int(dec.gate_samples)
         self._gz, self._g4 = dec.gate_terms if self._gate else (0.0, 0.0)
+        self._bias = dec.gate_bias_bound  # inf: no bias half
+        self.bias = [[0.0] * 5 for _ in range(self._n)]  # the bias sums h, H per hypothesis
         self.total = 0.0  # Q, the best hypothesis's whole cost (step 6)
         self._ymin = self._ymax = math.nan  # range of f_init's electrical angle (step 7)
         self.scale = [1.0] * self._n  # s_j, the common gain of each hypothesis
@@ -995,6 +1036,17 @@ class PowerUpIdentifier:
         """sqrt(Lambda_second - Lambda_best) [noise sigmas]."""
         others = [v for j, v in enumerate(self.lam) if j != self.best]
         return math.sqrt(max(min(others), 0.0)) if others else math.inf
+
+    def _add_bias(self, j: int, a: float, b: float, tangent: tuple, gram: tuple) -> None:
+        """Step 5's bias sums of hypothesis j for the residual a u + b nv."""
+        terms = bias_terms(a, b, *tangent, gram, self._cap)
+        self.bias[j] = [v + float(t) for v, t in zip(self.bias[j], terms, strict=True)]
+
+    def _gate_fits(self) -> bool:
+        """Step 7's gate at the first lock: the chi-square half, then the bias half."""
+        if self._gate and not within_gate(self.total, self.samples, self._gz, self._g4):
+            return False
+        return not self._bias < math.inf or bool(within_bias_gate(self.bias[self.best], self._bias))
 
     def update(self, d1: float, d2: float, d3: float) -> int:
         """Process one sample (steps 1-7 of the module docstring).
@@ -1058,6 +1110,8 @@ class PowerUpIdentifier:
             if not self._profile:
                 e = _step5_cost(rho - Rj, zeta - Zj, dR, Rj, dZ, gram)
                 self.lam[j] += min(e, self._cap)
+                if self._bias < math.inf:  # step 5's bias sums (module doc, step 7)
+                    self._add_bias(j, rho - Rj, zeta - Zj, tangent_terms(dR, Rj, dZ, gram), gram)
                 continue
             sj = self.scale[j]
             e, pr, pp = gain_terms(rho - sj * Rj, zeta - sj * Zj, Rj, Zj, dR, dZ, gram)
@@ -1078,7 +1132,7 @@ class PowerUpIdentifier:
         W = sum(math.exp(-0.5 * v) for j, v in enumerate(self.lam) if j != self.best)
         moved = self._ymax - self._ymin >= self._travel
         if W <= self._threshold and self.fit <= -self._bf and moved and self.samples >= self._k0:
-            if not self._gate or _within_gate(self.total, self.samples, self._gz, self._g4):
+            if self._gate_fits():
                 self.locked = True
                 self.lock_sample = self.samples - 1
             else:

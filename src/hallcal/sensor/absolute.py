@@ -61,12 +61,16 @@ Constants (:class:`PowerUpDecoder`, all float64 in the reference):
   calibration"): the samples of evidence before the lock ``K0`` (:data:`DEFAULT_GATE_SAMPLES`),
   and ``gz = 2 (z^2 - 1) / 3``, ``g4 = 4 z^2`` with ``z`` the standard normal quantile of
   ``1 - alpha_g`` (``alpha_g`` the gate's false-alarm rate, :data:`DEFAULT_GATE_RATE`); without
-  the gate ``K0 = 0`` and step 7's gate always passes (artifacts made before it).
+  the gate ``K0 = 0`` and step 7's gate always passes (artifacts made before it);
+- ``cb``: the bound of the gate's bias half, ``phi_b 2 ln(2 / alpha_g)`` (the winner's
+  residual mean, :mod:`hallcal.sensor._absolute_gate`; the chi-square half's ``z`` is then the
+  quantile of ``1 - alpha_g / 2``); without it (artifacts made before it, or no
+  ``gate_bias_dispersion``) ``cb = inf`` and the bias half always passes.
 
 State: ``m`` (integer turn count, 0), ``psi_prev`` (none yet), ``Lam[j] = 0`` for j = 0..n-1,
 ``locked = false``, ``mismatch = false``, ``best = 0``, ``D = 0`` (misfit statistic), ``Q = 0``
 (the best hypothesis's whole cost), ``k = 0`` (samples of evidence); with the gain profile
-also ``s[j] = 1`` and ``I[j] = w``.
+also ``s[j] = 1`` and ``I[j] = w``; with the bias half ``h[j] = (0, 0, 0, 0, 0)``.
 
 Per sample ``d = (d1, d2, d3)``:
 
@@ -98,7 +102,11 @@ Per sample ``d = (d1, d2, d3)``:
      ``pr = Rj (a Guu + b Gun) + Zj (a Gun + b Gnn) - tp tr / tt``,
      ``pp = Rj^2 Guu + 2 Rj Zj Gun + Zj^2 Gnn - tp^2 / tt``, ``inc = e - pr^2 / (I[j] + pp)``;
      ``u = 1`` if ``inc <= cap`` else ``cap / inc``; ``I[j] += u pp``;
-     ``s[j] += u pr / I[j]``; ``Lam[j] += min(inc, cap)``.
+     ``s[j] += u pr / I[j]``; ``Lam[j] += min(inc, cap)``;
+   - with the bias half (no gain profile), ``e = rr - tr^2 / tt`` the uncensored cost,
+     ``u = cap / max(e, cap)``, ``tu = dR Guu + Rj Guv + dZ Gun``,
+     ``tn = dR Gun + Rj Gvn + dZ Gnn``: ``h[j] += u (a Guu + b Gun - tu tr / tt,
+     a Gun + b Gnn - tn tr / tt, Guu - tu^2 / tt, Gun - tu tn / tt, Gnn - tn^2 / tt)``.
 6. ``Lmin = min_j Lam[j]``, ``best`` = the smallest j attaining it; ``Lam[j] -= Lmin`` for all j
    (keeps the numbers bounded; the posterior only depends on differences). The sum of the Lmin
    so far is the best hypothesis's whole cost: ``Q += Lmin``; ``D += wt Lmin - kd`` (the misfit
@@ -112,7 +120,10 @@ Per sample ``d = (d1, d2, d3)``:
    samples of evidence. The first time all of these hold, the gate: with ``x = Q - 2 k - gz``,
    the best fits when ``x <= 0`` or ``x^2 <= g4 k`` (Q within the chi-square(2 k) quantile of
    ``1 - alpha_g``); then lock, else ``mismatch = true`` (the data fit no pole pair as the
-   calibration's noise allows), stop here for good. Margin ``sqrt(min_{j != best} Lam[j])`` in
+   calibration's noise allows), stop here for good. With the bias half, also (the same
+   first time, same outcome): with ``(ha, hb, Haa, Hab, Hbb) = h[best]``, the best fits only
+   when ``Hbb ha^2 - 2 Hab ha hb + Haa hb^2 <= cb (Haa Hbb - Hab^2)`` (its residual's mean
+   within the chi-square(2) quantile). Margin ``sqrt(min_{j != best} Lam[j])`` in
    noise sigmas (the log-likelihood-ratio margin is half its square).
 
 Output: the calibration frame's f_init value ``y_abs = y + 2 pi best / n``, and the corrected
@@ -173,6 +184,21 @@ jig's bursts) gets the quantile widened by the dispersion phi its calibration re
 leaves. Only the standstill lock has the gate: the lock after motion (``T > 0``) already keeps
 out these wrong locks, and over its thousands of samples the gate would refuse plausible drifts.
 
+The gate's bias half. After the gate the wrong locks left (16 of 2200) all came at K0 with a
+whole cost 1.05-1.42 times the noise's: a changed sensor puts the point at a fixed offset from
+a wrong curve, a constant residual the total cost barely sees (``k |delta|^2`` against a
+quantile margin of ``z sqrt(4 k)``, about 72 noise variances at k = 96). The likelihood-ratio
+test of a constant residual mean (chi-square(2) under the calibrated noise, whatever k;
+:mod:`hallcal.sensor._absolute_gate`) sees it from about 20: wrong locks 16 -> 3 of 2200, the
+healthy power-ups locking as before, at K0. The two halves take ``alpha_g / 2`` each
+(Bonferroni), so the gate's false alarm stays at most alpha_g; the bias half's quantile is
+widened by the mean ``phi_b`` its statistic shows on the calibration recording (the model's own
+error along the turn is a bias too). A calibration whose recording shows such a bias beyond
+white noise's sampling error (the ring jig), or whose ADC is too little dithered by the analog
+noise to be unbiased at standstill, keeps the chi-square half alone. The wrong locks left sit
+within a third of a noise sigma of the wrong curve: at k = 96 that is within the healthy spread
+of any test, and only more samples (a later lock for some healthy power-ups) would tell.
+
 Units: angles in rad (mechanical unless said electrical); d, rho, zeta in the sensor's unit;
 costs in noise-sigma units squared.
 """
@@ -192,6 +218,7 @@ from hallcal.sensor._absolute_analysis import (
     gate_dispersion,
 )
 from hallcal.sensor._absolute_analysis import SeparationMap as SeparationMap
+from hallcal.sensor._absolute_analysis import bias_dispersion as bias_dispersion
 from hallcal.sensor._absolute_analysis import separation_map as separation_map
 from hallcal.sensor._absolute_analysis import standstill_error as standstill_error
 from hallcal.sensor._absolute_analysis import standstill_error_rate as standstill_error_rate

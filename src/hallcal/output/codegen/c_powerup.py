@@ -160,7 +160,7 @@ ${tangent_calc}
         float cost;
 ${tt_steps}
         cost = rr - ((rt * rt) * q);
-${gain_update}        if (cost > ${cap}) {
+${gain_update}${bias_update}        if (cost > ${cap}) {
             cost = ${cap};
         }
         s->lam[j] = (s->samples != 0u) ? (s->lam[j] + cost) : cost; /* 0 + cost, exactly */
@@ -187,7 +187,7 @@ ${gate_sum}    if (s->fit >= ${fit_hi}) {
         s->locked = 0u;
     } else if ((s->fit <= ${fit_lo})${travel_cond}${gate_cond}) {
         s->locked = hc_lock_rule(s->lam, best);
-${gate_check}    } else {
+${gate_check}${bias_check}    } else {
         s->locked = 0u;
     }
 }
@@ -513,6 +513,7 @@ def _powerup_source(ctx: _Context, pu: PowerUpFirmware) -> str:
         **_gain_terms(pu),
         **_travel_terms(pu),
         **_gate_terms(pu),
+        **_bias_terms(pu),
     )
     return source + _powerup_identify(ctx) + "\n"
 
@@ -602,6 +603,11 @@ def _gain_members(pu: PowerUpFirmware, n: int) -> str:
         )
     if dec is not None and dec.gate_rate > 0.0:
         out += "    float cost;        /* Q: the best hypothesis's whole cost [noise sigma^2] */\n"
+    if dec is not None and dec.gate_bias_dispersion > 0.0:
+        out += (
+            f"    float bias[{5 * n}]; /* per hypothesis j at 5 j: the gate's bias sums h (2) and\n"
+            "                        * H (Haa, Hab, Hbb), Huber-weighted [noise sigma^2] */\n"
+        )
     if dec is not None and dec.lock_travel > 0.0:
         out += (
             "    float pos;         /* f_init's electrical angle since power-up [turns] */\n"
@@ -667,6 +673,81 @@ def _gate_terms(pu: PowerUpFirmware) -> dict[str, str]:
         "gate_sum": "    s->cost = s->cost + lmin; /* Q, the best's whole cost */\n",
         "gate_cond": f" && (s->samples >= {int(dec.gate_samples)}u)",
         "gate_check": _GATE_CHECK.substitute(gz=_cf(gz, "gate"), g4=_cf(g4, "gate")),
+    }
+
+
+#: The gate's bias half, its sums in the per-hypothesis loop (step 5 of the specification, "with
+#: the bias half"): Huber's weight u = cap / max(e, cap) on the uncensored cost, then u G r and
+#: u G with G the metric across the curve (the tangent projected out).
+_BIAS_UPDATE = string.Template(
+    r"""        {
+            float *const hs = &s->bias[5u * j];
+            const float tuq = tu * q;
+            const float tnq = tn * q;
+            float bu = 1.0f;
+            float b0;
+            float b1;
+            float b2;
+            float b3;
+            float b4;
+            if (cost > ${cap}) {
+                bu = ${cap} / cost;
+            }
+            b0 = bu * (${ga} - (tuq * rt)); /* u G r */
+            b1 = bu * (${gb} - (tnq * rt));
+            b2 = bu * (guu - (tuq * tu)); /* u G */
+            b3 = bu * (${gun} - (tuq * tn));
+            b4 = bu * (${cnn} - (tnq * tn));
+            if (s->samples != 0u) {
+                b0 = hs[0] + b0;
+                b1 = hs[1] + b1;
+                b2 = hs[2] + b2;
+                b3 = hs[3] + b3;
+                b4 = hs[4] + b4;
+            }
+            hs[0] = b0; /* set by the first sample: no loop in init */
+            hs[1] = b1;
+            hs[2] = b2;
+            hs[3] = b3;
+            hs[4] = b4;
+        }
+"""
+)
+
+#: The bias half's check at the first lock (step 7): the best's residual mean within the
+#: chi-square(2) quantile, S = h' H^-1 h <= cb written without a division.
+_BIAS_CHECK = string.Template(
+    r"""        if (s->locked != 0u) { /* the gate's bias half: the best's residual mean */
+            const float *const hs = &s->bias[5u * best];
+            const float det = (hs[2] * hs[4]) - (hs[3] * hs[3]);
+            const float num = (((hs[4] * hs[0]) * hs[0]) - (((2.0f * hs[3]) * hs[0]) * hs[1]))
+                              + ((hs[2] * hs[1]) * hs[1]);
+            if (num > (${cb} * det)) {
+                s->locked = 0u; /* the residual has a mean: the sensors changed, mismatch */
+                s->mismatch = 1u;
+            }
+        }
+"""
+)
+
+
+def _bias_terms(pu: PowerUpFirmware) -> dict[str, str]:
+    """The bias half's sums and its check at the lock (none without it)."""
+    dec = pu.decoder
+    if dec is None or not dec.gate_bias_dispersion > 0.0:
+        return {"bias_update": "", "bias_check": ""}
+    A, B, C = pu.gram_a, pu.gram_b, pu.gram_c
+    big = max(float(np.max(np.abs(A))), float(np.max(np.abs(B))), abs(C))
+    has_n = abs(B[0]) > 1e-12 * big or abs(B[1]) > 1e-12 * big
+    cnn = _cf(C, "Gram")
+    if has_n:
+        ga, gb, gun = "((ea * guu) + (eb * gun))", f"((ea * gun) + (eb * {cnn}))", "gun"
+    else:
+        ga, gb, gun = "(ea * guu)", f"(eb * {cnn})", "0.0f"
+    cap = _cf(pu.cost_cap, "cost cap")
+    return {
+        "bias_update": _BIAS_UPDATE.substitute(cap=cap, ga=ga, gb=gb, gun=gun, cnn=cnn),
+        "bias_check": _BIAS_CHECK.substitute(cb=_cf(dec.gate_bias_bound, "bias bound")),
     }
 
 
