@@ -20,6 +20,7 @@ random rotor angle, f_init from y = 0). C and Python get the same float32 sample
 from __future__ import annotations
 
 import copy
+import math
 import os
 import subprocess
 

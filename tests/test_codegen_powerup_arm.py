@@ -10,6 +10,7 @@ breaks at a 0.3 % common gain, where calibrate keeps the profile), all signals 3
 from __future__ import annotations
 
 import copy
+import math
 
 import arm_harness as ah
 import firmware_support as fs

@@ -1037,9 +1037,12 @@ class PowerUpIdentifier:
         others = [v for j, v in enumerate(self.lam) if j != self.best]
         return math.sqrt(max(min(others), 0.0)) if others else math.inf
 
-    def _add_bias(self, j: int, a: float, b: float, tangent: tuple, gram: tuple) -> None:
+    def _add_bias(
+        self, j: int, a: float, b: float, tangent: tuple[float, float, float], gram: tuple
+    ) -> None:
         """Step 5's bias sums of hypothesis j for the residual a u + b nv."""
-        terms = bias_terms(a, b, *tangent, gram, self._cap)
+        tu, tn, tt = tangent
+        terms = bias_terms(a, b, tu, tn, tt, gram, self._cap)
         self.bias[j] = [v + float(t) for v, t in zip(self.bias[j], terms, strict=True)]
 
     def _gate_fits(self) -> bool:
