@@ -216,7 +216,7 @@ def _turning(cfg, seed: int, decoders) -> None:
                   + "  ".join(f"{key} {v:2d}" for key, v in c.items()) + f"   {lock}")  # fmt: skip
 
 
-#: Unseen motors for the healthy false-alarm count (standstill lock; 174, 185, 240: ADC codes).
+#: Unseen motors for the healthy false-alarm count (174, 185, 207, 210, 240: ADC codes).
 HEALTHY = (174, 185, 240, 205, 207, 208, 210)
 
 

@@ -313,3 +313,6 @@ def test_a_coarse_quantizer_gets_the_lock_after_motion(codes):
     assert old["mismatch"] >= 1  # the premise: 5 of 40 (seeded), nominal 1e-4 per power-up
     assert kept["WRONG"] == 0 and kept["mismatch"] == 0 and kept["undecided"] == 40
     assert "ADC" in rep.message
+    # the artifact's entry reads back with the new reason and the lock after motion
+    back = ab.IdentifiabilityReport.from_dict(rep.to_dict())
+    assert back.reason == "quantizer" and back.decoder(truth, table).lock_travel == 1.0
