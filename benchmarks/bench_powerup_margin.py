@@ -32,7 +32,8 @@ decoder; among them five with a 10-11-bit ADC and 0.23-0.32 codes of analog nois
 gives them the lock after one electrical revolution of motion (reason ``quantizer``). For
 those, the standstill decoder it replaces ("before": gate, phi from the calibration
 recording) against the kept one at rest, moving (bench_unseen's 600 samples at two electrical
-revolutions per second) and turning 1.5 electrical revolutions, and the standstill decoder on
+revolutions per second), turning 1.5 electrical revolutions, and resting 5000 samples before
+turning (the rounding error of the rest in the evidence), and the standstill decoder on
 400 healthy power-ups at rest of K0 samples (its false "mismatch" against the nominal 1e-4).
 
 The prediction is a standstill figure (the moving half sees many positions, where a wrong
@@ -251,12 +252,33 @@ def healthy(seeds=HEALTHY) -> None:
         before = _standstill(cfg, seed, dec)
         turning = power_ups(cfg, seed, 20, turning=True)
         for label, sub in (("at rest (40)", runs[1::2]), ("moving (40)", runs[0::2]),
-                           ("turning 1.5 rev (20)", turning)):  # fmt: skip
+                           ("turning 1.5 rev (20)", turning),
+                           ("rest 5000, turning (20)", _rest_then_turning(cfg, seed))):  # fmt: skip
             for tag, x in (("before", before), ("kept", dec)):
                 c, k = measured(sub, x, (1.0,) * 3, (0.0,) * 3)
                 lock = f"{np.median(k):6.0f}/{max(k):5d}" if k else "     -"
                 cs = "  ".join(f"{key} {v:2d}" for key, v in c.items())
-                print(f"   {name:22s} {label:21s} {tag:6s} {cs}   {lock}")
+                print(f"   {name:22s} {label:23s} {tag:6s} {cs}   {lock}")
+
+
+def _rest_then_turning(cfg, seed: int, rest: int = 5000, trials: int = 20):
+    """Power-ups that rest ``rest`` samples, then turn 1.5 electrical revolutions (10 per
+    second) from the same angle: the rounding error of the rest is in the evidence before the
+    motion's. (d, true j)."""
+    from hallcal.sim.bench import power_up_run
+
+    n = cfg.pole_pairs
+    rng = np.random.default_rng([seed, 77])
+    samples = int(1.5 / (10.0 * cfg.sample_time))
+    out = []
+    for i in range(trials):
+        a = float(rng.uniform(0, TWO_PI))
+        still = power_up_run(cfg, a, samples=rest, speed=0.0, seed=seed * 1000 + 500 + i)
+        move = power_up_run(cfg, a, samples=samples, speed=10.0 * TWO_PI / n,
+                            seed=seed * 1000 + 700 + i)  # fmt: skip
+        j = int(np.round((move.y0[0] - move.y[0]) * n / TWO_PI)) % n
+        out.append((np.vstack([still.d, move.d]), j))
+    return out
 
 
 def _standstill(cfg, seed: int, dec):
