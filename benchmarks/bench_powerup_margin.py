@@ -27,8 +27,14 @@ on the same power-ups too.
 
 Last, the false alarm on healthy motors: more unseen motors whose calibration keeps the
 standstill lock, 80 healthy power-ups each (half at rest), the gate alone against the kept
-decoder; among them three with a 10-11-bit ADC and 0.23-0.27 codes of analog noise (174, 185,
-240), whose quantizer leaves a mean error at standstill: calibrate gives them no bias half.
+decoder; among them five with a 10-11-bit ADC and 0.23-0.32 codes of analog noise (174, 185,
+240, 207, 210), whose quantizer rounds a standstill's samples to the same codes: calibrate
+gives them the lock after one electrical revolution of motion (reason ``quantizer``). For
+those, the standstill decoder it replaces ("before": gate, phi from the calibration
+recording) against the kept one at rest, moving (bench_unseen's 600 samples at two electrical
+revolutions per second), turning 1.5 electrical revolutions, and resting 5000 samples before
+turning (the rounding error of the rest in the evidence), and the standstill decoder on
+400 healthy power-ups at rest of K0 samples (its false "mismatch" against the nominal 1e-4).
 
 The prediction is a standstill figure (the moving half sees many positions, where a wrong
 hypothesis must win on average); it is meant to rank motors, not to be the rate.
@@ -211,15 +217,19 @@ def _turning(cfg, seed: int, decoders) -> None:
                   + "  ".join(f"{key} {v:2d}" for key, v in c.items()) + f"   {lock}")  # fmt: skip
 
 
-#: Unseen motors for the healthy false-alarm count (standstill lock; 174, 185, 240: ADC codes).
+#: Unseen motors for the healthy false-alarm count (174, 185, 207, 210, 240: ADC codes).
 HEALTHY = (174, 185, 240, 205, 207, 208, 210)
 
 
 def healthy(seeds=HEALTHY) -> None:
     """Healthy power-ups (80: bench_unseen's procedure) on more unseen motors: gate alone vs
-    the kept decoder, at rest and in all."""
+    the kept decoder, at rest and in all. Where calibrate kept the lock after motion because
+    the ADC's rounding decides the evidence at rest (reason ``quantizer``), the standstill
+    decoder it replaces (gate at phi from the calibration recording) is "before", and 20
+    power-ups turning 1.5 electrical revolutions show the kept lock."""
     print("\nhealthy power-ups on more unseen motors (80 each, half at rest): right / mismatch")
     print("   motor                  bias half   gate alone: all   at rest    kept: all   at rest")
+    rows = []
     for seed in seeds:
         name, cfg, cal = unseen(seed)
         dec = cal.identifiability.decoder(cal.flux, cal.lut)
@@ -231,6 +241,79 @@ def healthy(seeds=HEALTHY) -> None:
             out.append(f"{c['right']:3d}/{c['mismatch']:2d}    {r['right']:3d}/{r['mismatch']:2d}")
         half = "yes" if dec.gate_bias_dispersion > 0.0 else "no"
         print(f"   {name:22s} {half:9s}   {out[0]}    {out[1]}")
+        if cal.identifiability.reason == "quantizer":
+            rows.append((name, cfg, seed, dec, runs))
+    if not rows:
+        return
+    _rest_false_alarm(rows)
+    print("\nlock after motion for the ADC's rounding (reason quantizer): right / WRONG / "
+          "mismatch / undecided")  # fmt: skip
+    for name, cfg, seed, dec, runs in rows:
+        before = _standstill(cfg, seed, dec)
+        turning = power_ups(cfg, seed, 20, turning=True)
+        for label, sub in (("at rest (40)", runs[1::2]), ("moving (40)", runs[0::2]),
+                           ("turning 1.5 rev (20)", turning),
+                           ("rest 5000, turning (20)", _rest_then_turning(cfg, seed))):  # fmt: skip
+            for tag, x in (("before", before), ("kept", dec)):
+                c, k = measured(sub, x, (1.0,) * 3, (0.0,) * 3)
+                lock = f"{np.median(k):6.0f}/{max(k):5d}" if k else "     -"
+                cs = "  ".join(f"{key} {v:2d}" for key, v in c.items())
+                print(f"   {name:22s} {label:23s} {tag:6s} {cs}   {lock}")
+
+
+def _rest_then_turning(cfg, seed: int, rest: int = 5000, trials: int = 20):
+    """Power-ups that rest ``rest`` samples, then turn 1.5 electrical revolutions (10 per
+    second) from the same angle: the rounding error of the rest is in the evidence before the
+    motion's. (d, true j)."""
+    from hallcal.sim.bench import power_up_run
+
+    n = cfg.pole_pairs
+    rng = np.random.default_rng([seed, 77])
+    samples = int(1.5 / (10.0 * cfg.sample_time))
+    out = []
+    for i in range(trials):
+        a = float(rng.uniform(0, TWO_PI))
+        still = power_up_run(cfg, a, samples=rest, speed=0.0, seed=seed * 1000 + 500 + i)
+        move = power_up_run(cfg, a, samples=samples, speed=10.0 * TWO_PI / n,
+                            seed=seed * 1000 + 700 + i)  # fmt: skip
+        j = int(np.round((move.y0[0] - move.y[0]) * n / TWO_PI)) % n
+        out.append((np.vstack([still.d, move.d]), j))
+    return out
+
+
+def _standstill(cfg, seed: int, dec):
+    """The standstill decoder (gate at phi from the calibration recording) that the lock after
+    motion for the ADC's rounding replaces."""
+    case = bu.draw_case(seed)
+    d = bu._ramp(cfg, case["end"], case["duration"], seed).d
+    phi = ab.gate_dispersion(dec, d, ab.DEFAULT_GATE_SAMPLES)
+    gate = {"gate_rate": ab.DEFAULT_GATE_RATE, "gate_samples": ab.DEFAULT_GATE_SAMPLES}
+    return dataclasses.replace(dec, lock_travel=0.0, gate_dispersion=phi, **gate)
+
+
+def _rest_false_alarm(rows, trials: int = 400) -> None:
+    """The standstill decoder on ``trials`` healthy power-ups at rest of K0 samples: its false
+    "mismatch" (nominal alpha_g = 1e-4), and the right hypothesis's cost over K0 as a z-score
+    of the gate's chi-square (sd 1 if the K0 samples were independent draws)."""
+    from hallcal.sim.bench import power_up_run
+
+    print(f"\nthe standstill decoder on {trials} healthy power-ups at rest of K0 samples: "
+          "right / WRONG / mismatch, sd of the right pole pair's cost as a z-score")  # fmt: skip
+    K = ab.DEFAULT_GATE_SAMPLES
+    for name, cfg, seed, dec, _ in rows:
+        before, n = _standstill(cfg, seed, dec), cfg.pole_pairs
+        rng = np.random.default_rng([seed, 55])
+        z, c = [], {"right": 0, "WRONG": 0, "mismatch": 0, "undecided": 0}
+        for i in range(trials):
+            pu = power_up_run(cfg, float(rng.uniform(0, TWO_PI)), samples=K, speed=0.0,
+                              seed=seed * 100000 + i)  # fmt: skip
+            j = int(np.round((pu.y0[0] - pu.y[0]) * n / TWO_PI)) % n
+            q = before.cumulative_costs(pu.d)[-1, j]
+            z.append((q - 2 * K) / math.sqrt(4 * K * before.gate_dispersion))
+            c2, _ = measured([(pu.d, j)], before, (1.0,) * 3, (0.0,) * 3)
+            c = {key: c[key] + c2[key] for key in c}
+        cs = "  ".join(f"{key} {v:3d}" for key, v in c.items() if key != "undecided")
+        print(f"   {name:22s} {cs}   z sd {np.std(z):.2f}")
 
 
 def main() -> None:

@@ -465,12 +465,30 @@ def alike_travel(alike, tmp_path_factory):
     return {**alike, **built}
 
 
-def test_c_waits_for_the_travel_like_python(alike_travel):
+@pytest.fixture(scope="module")
+def alike_travel_plain(alike, tmp_path_factory):
+    """The lock after motion without the profile, as calibrate exports it where the ADC's
+    rounding decides the standstill evidence (reason quantizer)."""
+    art = copy.deepcopy(alike["art"])
+    art["identifiability"].pop("gain_sd", None)
+    art["identifiability"]["lock_travel"] = ab.DEFAULT_LOCK_TRAVEL
+    built = _exported(art, tmp_path_factory.mktemp("powerup_travel_plain"))
+    assert built["dec"].lock_travel == ab.DEFAULT_LOCK_TRAVEL and built["dec"].gain_sd == 0.0
+    return {**alike, **built}
+
+
+@pytest.mark.parametrize(
+    ("which", "drift"),
+    [("alike_travel", 0.01), ("alike_travel_plain", 0.0)],
+    ids=["profile", "plain"],
+)
+def test_c_waits_for_the_travel_like_python(which, drift, request):
     """20 power-ups of 2000 samples at 3-5 rad/s either way (one electrical revolution of the 5
-    pole pairs takes 1000-1700 samples) and 4 at rest, one sensor's offset +1 % of the
-    amplitude (a plausible drift): the C locks at the same sample and on the same pole pair
-    as PowerUpIdentifier, never before one electrical revolution, never on a wrong pole pair;
-    at rest neither locks."""
+    pole pairs takes 1000-1700 samples) and 4 at rest, with the profile one sensor's offset
+    +1 % of the amplitude (a plausible drift; without it healthy sensors): the C locks at the
+    same sample and on the same pole pair as PowerUpIdentifier, never before one electrical
+    revolution, never on a wrong pole pair; at rest neither locks."""
+    alike_travel = request.getfixturevalue(which)
     dec, lut = alike_travel["dec"], alike_travel["lut"]
     pu = PowerUps(alike_travel["cfg"])
     rng = np.random.default_rng(2032)
@@ -481,7 +499,7 @@ def test_c_waits_for_the_travel_like_python(alike_travel):
         speed = 0.0 if k >= 20 else float(rng.uniform(3.0, 5.0) * rng.choice([-1.0, 1.0]))
         x = pu.run(angle, samples, speed, seed=80_000 + k)
         truth_j = int(np.round((angle - lut.f_init(x[:1])[0]) * n / TWO_PI)) % n
-        x = x.astype(np.float64) + np.array([0.0, 0.0, 0.01])
+        x = x.astype(np.float64) + np.array([0.0, 0.0, drift])
         x = x.astype(np.float32)
         words, _ = _c_lam(alike_travel, x, samples)
         lock, j, _ = identify_python(dec, x.astype(np.float64))

@@ -34,6 +34,7 @@ from hallcal.sensor._absolute_decoder import (
 )
 from hallcal.sensor._absolute_gate import (
     QUANTIZER_NONCENTRALITY,
+    QUANTIZER_STANDSTILL,
     bias_is_white,
     bias_statistic,
     quantizer_noncentrality,
@@ -170,6 +171,7 @@ class IdentifiabilityReason(enum.StrEnum):
     TOO_UNIFORM = "too_uniform"  # even one electrical revolution needs more than the motion budget
     BELOW_MODEL_UNCERTAINTY = "below_model_uncertainty"  # signature within the fit's own noise
     SENSOR_DRIFT = "sensor_drift"  # at standstill a plausible sensor drift looks like a magnet
+    QUANTIZER = "quantizer"  # at standstill the ADC's rounding, not noise, decides the evidence
 
 
 @dataclass(frozen=True)
@@ -671,7 +673,10 @@ def assess_identifiability(
     worst_K = float(np.max(need.standstill))
     status, reason = _verdict(need, floor, standstill_budget, motion_budget)
     if dec.lock_travel > 0.0 and status.success:  # the lock waits for motion by design
-        status, reason = Identifiability.NEEDS_MOTION, IdentifiabilityReason.SENSOR_DRIFT
+        status = Identifiability.NEEDS_MOTION
+        reason = IdentifiabilityReason.SENSOR_DRIFT  # with the gain profile (analyze_calibration)
+        if not dec.gain_sd > 0.0:  # without it only for the quantizer's standstill
+            reason = IdentifiabilityReason.QUANTIZER
     report: dict[str, Any] = dict(
         status=status,
         reason=reason,
@@ -804,6 +809,14 @@ def _message(r: dict[str, Any]) -> str:
             f"sensor's plausible drift (its gain or offset by about 1 %) looks like another pole "
             f"pair's magnet on this motor; the sensors' common gain (magnet temperature) is "
             f"divided out ({seps})"
+        )
+    if reason is IdentifiabilityReason.QUANTIZER:
+        return (
+            f"pole pair identifiable at power-up with motion: the lock waits for "
+            f"{r['lock_travel']:g} electrical revolution of motion, because the sensors' ADC, too "
+            f"little dithered by their analog noise, rounds a standstill's samples to the same "
+            f"codes: its rounding error is the same in every sample, so the evidence at rest "
+            f"does not grow with the samples ({seps})"
         )
     if status is Identifiability.NEEDS_MOTION:
         return (
@@ -972,7 +985,12 @@ def analyze_calibration(
     model's error moves from revolution to revolution, and the bias half refused 3-13 % of
     healthy held-out power-ups there; it has none (the gate as before). Nor where the sensors'
     quantizer, too little dithered by their analog noise, leaves a mean error at standstill
-    (:func:`~hallcal.sensor._absolute_gate.quantizer_noncentrality`).
+    (:func:`~hallcal.sensor._absolute_gate.quantizer_noncentrality`). Where that mean exceeds
+    :data:`~hallcal.sensor._absolute_gate.QUANTIZER_STANDSTILL` the standstill lock is not
+    used at all: the decoder without the gate and the profile, with the lock after
+    :data:`DEFAULT_LOCK_TRAVEL` electrical revolution of motion, over which every channel sweeps
+    its codes (verdict "needs motion", reason ``QUANTIZER``; unseen 174, 185, 207, 240: at rest
+    false "mismatch" 0-7 of 40 and one wrong lock on 174 before).
 
     Sigma is the total noise across the model curve on the calibration samples
     (:func:`estimate_normal_noise`): white noise plus the model's own error there, so the
@@ -1019,6 +1037,10 @@ def analyze_calibration(
             white = bias_is_white(phi_b, DEFAULT_GATE_SAMPLES, used)
             if white and quantizer <= QUANTIZER_NONCENTRALITY:
                 dec = dataclasses.replace(dec, gate_bias_dispersion=phi_b)
+            if quantizer > QUANTIZER_STANDSTILL:  # the evidence at rest saturates: wait for motion
+                dec = build_decoder(
+                    flux, lut, noise_std=sigma, gain_sd=0.0, lock_travel=DEFAULT_LOCK_TRAVEL
+                )
         return dec, assess_identifiability(
             dec,
             standstill_budget=standstill_budget,

@@ -156,6 +156,21 @@ def bias_is_white(dispersion: float, samples: int, recording: int) -> bool:
 #: probability (scipy.stats.ncx2; 0.25: 2.6 times, 1: 12.5 times).
 QUANTIZER_NONCENTRALITY = 0.05
 
+#: Noncentrality of :func:`quantizer_noncentrality` over K0 samples above which the standstill
+#: lock is not used at all (``analyze_calibration``: the lock waits for one electrical revolution
+#: of motion, reason ``quantizer``). At rest every sample of a channel rounds to the same one or
+#: two codes (Widrow & Kollar, ch. 4: the quantization noise is white only when the analog noise
+#: dithers the quantizer, sigma_a above about half a code), so the K0 samples are not K0
+#: independent draws: their rounding error is one constant, the cost does not average it down
+#: and the lock's posterior grows with K on a difference the samples repeat. The chi-square
+#: half's mean moves by up to this much, 0.05 of its quantile margin z sqrt(4 K0) = 73 at 1.
+#: Measured at rest (40 power-ups each) on the unseen motors with 0.23-0.30 codes of analog
+#: noise, noncentrality 5.7-31: the right hypothesis's cost over K0 varies 5.0-12.1 times
+#: chi-square's (the gate's phi from the moving calibration recording: 1.00), false
+#: "mismatch" 0-7 of 40 and, on 174 (31), a wrong lock that won on the rounding error; 218
+#: (0.48 codes, 0.014): 0.97 times, none.
+QUANTIZER_STANDSTILL = 1.0
+
 
 def quantizer_noncentrality(d: ArrayLike, white_std: float, sigma: float, samples: int) -> float:
     """The bias half's noncentrality over ``samples`` samples at standstill that the sensors'
