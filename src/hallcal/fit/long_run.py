@@ -17,6 +17,7 @@ simulations of the model. Used by the cogging search's test of a constant load
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -191,8 +192,10 @@ def functional_influence(
     h = step * math.sqrt(max(white, 0.0)) / max(float(w @ v), 1e-300)
     if not (h > 0 and math.isfinite(h)):
         return None
-    up = simulate_model(loop, layout, x + h * v, r)
-    down = simulate_model(loop, layout, x - h * v, r)
+    with ThreadPoolExecutor(1) as pool:  # the kernel releases the GIL: one on each core
+        later = pool.submit(simulate_model, loop, layout, x - h * v, r)
+        up = simulate_model(loop, layout, x + h * v, r)
+        down = later.result()
     if not (up.status.success and down.status.success):
         return None
     return FunctionalInfluence((up.d - down.d) / (2.0 * h), white)
