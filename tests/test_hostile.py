@@ -26,6 +26,7 @@ fixture starts the driver, and tests/conftest.py gives this module to a worker f
 from __future__ import annotations
 
 import functools
+import hashlib
 import json
 import os
 import re
@@ -198,12 +199,39 @@ def _macros(path: Path | None) -> frozenset[str]:
     )
 
 
+#: :func:`_c_symbols` of the files compiled so far, by :func:`_c_key` (see there).
+_COMPILED: dict[str, tuple[bool, str, set[str], set[str]]] = {}
+
+
+def _c_key(path: Path) -> str:
+    """What a compile of `path` depends on: its name, its bytes and those of the headers beside it
+    (its ``#include "..."``). Many cases export the base artifact unchanged, into folders of
+    their own: their files are compiled once (the same bytes compile to the same symbols)."""
+    digest = hashlib.sha256(path.name.encode() + b"\0" + path.read_bytes())
+    for h in sorted(path.parent.glob("*.h")):
+        digest.update(b"\0" + h.name.encode() + b"\0" + h.read_bytes())
+    return digest.hexdigest()
+
+
 def _c_symbols(path: Path) -> tuple[bool, str, set[str], set[str]]:
-    """Compile one generated file with gcc -std=c99 (trigraphs on, as ISO C99 has them).
+    """Compile one generated file with gcc -std=c99 (trigraphs on, as ISO C99 has them); a file
+    compiled before (:func:`_c_key`) is not compiled again.
 
     Returns (compiled, compiler output, global symbols it defines, macros it defines beyond the
     compiler's and <stdint.h>'s).
     """
+    key = _c_key(path)
+    if key in _COMPILED:
+        _, _, symbols, macros = _COMPILED[key]
+        return True, "", set(symbols), set(macros)
+    result = _compile_c(path)
+    if result[0]:  # a failure is compiled again: its message names its own file
+        _COMPILED[key] = result
+    return result
+
+
+def _compile_c(path: Path) -> tuple[bool, str, set[str], set[str]]:
+    """:func:`_c_symbols` without the cache."""
     obj = path.parent / (path.name + ".o")
     res = subprocess.run(
         [CC, "-std=c99", "-c", "-o", str(obj), "-x", "c", str(path)],
