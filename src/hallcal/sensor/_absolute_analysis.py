@@ -887,9 +887,7 @@ def gate_dispersion(
     float
         phi >= 1 (1 when the samples hold fewer than two windows).
     """
-    d = np.atleast_2d(np.asarray(d, dtype=np.float64))
-    F = decoder.features(d if stop is None else d[:stop])
-    F = {k: v[start:] for k, v in F.items()}
+    F = _fitted_features(decoder, d, start, stop)
     pos = decoder.coordinates(F["psi"], F["m"], np.zeros(1, dtype=np.int64))
     e = np.minimum(decoder._costs(F, pos)[:, 0], decoder.cost_cap)[F["valid"]]
     if samples < 1 or e.size < 2 * samples:
@@ -898,6 +896,16 @@ def gate_dispersion(
     window = c[samples:] - c[:-samples]
     phi = float(np.var(window)) / (4.0 * samples)
     return max(phi, 1.0) if math.isfinite(phi) else 1.0
+
+
+def _fitted_features(
+    decoder: PowerUpDecoder, d: ArrayLike, start: int, stop: int | None
+) -> dict[str, NDArray]:
+    """The decoder's features of the calibration recording (f_init from y = 0 before its
+    first sample), kept for the samples ``start:stop`` the model was fitted on."""
+    d = np.atleast_2d(np.asarray(d, dtype=np.float64))
+    F = decoder.features(d if stop is None else d[:stop])
+    return {k: v[start:] for k, v in F.items()}
 
 
 def bias_dispersion(
@@ -934,9 +942,7 @@ def bias_dispersion(
     float
         phi_b >= 1 (1 when the samples hold fewer than two windows).
     """
-    d = np.atleast_2d(np.asarray(d, dtype=np.float64))
-    F = decoder.features(d if stop is None else d[:stop])
-    F = {k: v[start:] for k, v in F.items()}
+    F = _fitted_features(decoder, d, start, stop)
     F = {k: v[F["valid"]] for k, v in F.items()}
     if samples < 1 or F["psi"].size < 2 * samples:
         return 1.0
