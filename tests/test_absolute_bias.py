@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from scipy.stats import chi2, kstest
 from test_absolute_gate import STARTS, _change, _outcomes, bench  # noqa: F401 (the fixture)
 
+from hallcal._constants import TWO_PI
 from hallcal.sensor import _absolute_gate as ab_gate
 from hallcal.sensor import absolute as ab
 from hallcal.sensor._absolute_decoder import bias_sums
@@ -25,7 +26,6 @@ from hallcal.sensor._absolute_gate import bias_bound, bias_is_white, bias_statis
 from hallcal.sensor.lut import build_lut
 from hallcal.sim.bench import BenchConfig
 
-TWO_PI = 2.0 * math.pi
 K0 = ab.DEFAULT_GATE_SAMPLES
 
 
