@@ -716,24 +716,23 @@ def calibrate_closed_loop(
         )
 
     with numeric_errors("setup", "model"):
-        adequacy = fit.adequacy or assessed()
+        # the offset with the Hall noise the drive's loop fed back (the SEM's simulation has
+        # none of it): a first-order variance from the model, counted wherever it exceeds both
+        # covariances' and no motion bias is predicted (zoo motor 193: 2.3x the white standard
+        # deviation); from the model alone, so known before the assessment, which it enters
+        loop_noise = offset_loop_excess(loop, s.r, fit.sem)
+        noisy = loop_noise.variance if loop_noise.excess > 0 else None
+        adequacy = (
+            fit.adequacy if fit.adequacy is not None and noisy is None else assessed(None, noisy)
+        )
         # the table's offset with the residual's autocorrelation over the whole run (HAC),
         # computed only where the prediction may use it (the run shows unmodelled motion: the
         # cost above its warning level, no motion bias); assessed again when it exceeds what
         # both covariances give the offset
-        hac = noisy = None
         if adequacy.ratio > adequacy.thresholds["warn_ratio"] and adequacy.motion_bias == 0.0:
             autocorrelated = offset_excess(loop, s.r, s.d, fit.sem)
             if autocorrelated.long_run is not None and autocorrelated.excess > 0:
-                hac = autocorrelated.long_run.variance
-        # the offset with the Hall noise the drive's loop fed back (the SEM's simulation has
-        # none of it): a first-order variance from the model, wherever it exceeds both
-        # covariances' (zoo motor 193: 2.3x the white standard deviation)
-        if adequacy.motion_bias == 0.0:
-            loop_noise = offset_loop_excess(loop, s.r, fit.sem)
-            noisy = loop_noise.variance if loop_noise.excess > 0 else None
-        if hac is not None or noisy is not None:
-            adequacy = assessed(hac, noisy)
+                adequacy = assessed(autocorrelated.long_run.variance, noisy)
         say(progress, "lookup table and bijectivity check")
         lut = build_lut(
             fit.flux,
