@@ -199,20 +199,14 @@ def main() -> None:
           f"{'loop':>5} {'l/w':>5} | {'z_cov':>6} {'z_new':>6} | {'pred':>6} {'upper':>6} "
           f"{'a/p':>5}")  # fmt: skip
     z: dict[str, list] = {}
-    for spec in a.zoo:
-        seed, _, ks = spec.partition(":")
-        lo, _, hi = (ks or "0").partition("-")
-        for k in range(int(lo), int(hi or lo) + 1):
-            line, off, sd = zoo_row(int(seed), k)
-            print(line, flush=True)
-            z.setdefault(f"zoo {seed}", []).append((off, sd))
-    for spec in a.open:
-        seed, _, ks = spec.partition(":")
-        lo, _, hi = (ks or "0").partition("-")
-        for k in range(int(lo), int(hi or lo) + 1):
-            line, off, sd = control_row(int(seed), k)
-            print(line, flush=True)
-            z.setdefault(f"open {seed}", []).append((off, sd))
+    for specs, row, name in ((a.zoo, zoo_row, "zoo"), (a.open, control_row, "open")):
+        for spec in specs:  # "193:0-9": the motor, its noise draws
+            seed, _, ks = spec.partition(":")
+            lo, _, hi = (ks or "0").partition("-")
+            for k in range(int(lo), int(hi or lo) + 1):
+                line, off, sd = row(int(seed), k)
+                print(line, flush=True)
+                z.setdefault(f"{name} {seed}", []).append((off, sd))
     for spec in a.scale:
         seed, _, factor = spec.partition(":")
         print(control_row(int(seed), 0, scale=float(factor), clean_loop=False)[0], flush=True)
