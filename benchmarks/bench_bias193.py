@@ -28,6 +28,7 @@ committed beside it.
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import os
 
@@ -182,6 +183,12 @@ def _keep_pred():
     hp.calibrate = keep
 
 
+def _span(text: str) -> range:
+    """``"0-9"`` -> 0..9, ``"3"`` -> 3 (inclusive)."""
+    lo, _, hi = text.partition("-")
+    return range(int(lo), int(hi or lo) + 1)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--zoo", nargs="*", default=[])  # "193:0-9" or "176"
@@ -199,29 +206,24 @@ def main() -> None:
           f"{'loop':>5} {'l/w':>5} | {'z_cov':>6} {'z_new':>6} | {'pred':>6} {'upper':>6} "
           f"{'a/p':>5}")  # fmt: skip
     z: dict[str, list] = {}
+
+    def rows(name: str, row, ks: range) -> None:  # print the rows, keep their offsets
+        for k in ks:
+            line, off, sd = row(k)
+            print(line, flush=True)
+            z.setdefault(name, []).append((off, sd))
+
     for specs, row, name in ((a.zoo, zoo_row, "zoo"), (a.open, control_row, "open")):
         for spec in specs:  # "193:0-9": the motor, its noise draws
             seed, _, ks = spec.partition(":")
-            lo, _, hi = (ks or "0").partition("-")
-            for k in range(int(lo), int(hi or lo) + 1):
-                line, off, sd = row(int(seed), k)
-                print(line, flush=True)
-                z.setdefault(f"{name} {seed}", []).append((off, sd))
+            rows(f"{name} {seed}", functools.partial(row, int(seed)), _span(ks or "0"))
     for spec in a.scale:
         seed, _, factor = spec.partition(":")
         print(control_row(int(seed), 0, scale=float(factor), clean_loop=False)[0], flush=True)
     if a.paper:
-        lo, _, hi = a.paper.partition("-")
-        for s in range(int(lo), int(hi or lo) + 1):
-            line, off, sd = paper_row(s)
-            print(line, flush=True)
-            z.setdefault("paper", []).append((off, sd))
+        rows("paper", paper_row, _span(a.paper))
     if a.ideal:
-        lo, _, hi = a.ideal.partition("-")
-        for k in range(int(lo), int(hi or lo) + 1):
-            line, off, sd = ideal_row(k)
-            print(line, flush=True)
-            z.setdefault("ideal", []).append((off, sd))
+        rows("ideal", ideal_row, _span(a.ideal))
     print("\nRMS of the offset's z-score, against cov -> against max(cov, loop):")
     for name, rows in z.items():
         zc = [o / s["cov"] for o, s in rows]

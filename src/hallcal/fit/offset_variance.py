@@ -107,6 +107,16 @@ def _offset_functional(loop: ClosedLoop, sem: SEMResult) -> NDArray[np.float64]:
     return G.mean(axis=0)
 
 
+def _over_parameters(sem: SEMResult, c: NDArray) -> NDArray[np.float64] | None:
+    """The offset functional ``c`` (over theta) over the fit's packed parameters (theta first in
+    :class:`hallcal.fit.layout`); None without a layout."""
+    if sem.layout is None:
+        return None
+    w = np.zeros(sem.layout.size)
+    w[: c.size] = c
+    return w
+
+
 def offset_long_run(
     loop: ClosedLoop, r: ArrayLike, d: ArrayLike, sem: SEMResult, *, step: float = INFLUENCE_STEP
 ) -> LongRunVariance | None:
@@ -139,11 +149,9 @@ def _long_run(
     loop: ClosedLoop, r: ArrayLike, d: ArrayLike, sem: SEMResult, c: NDArray, *, step: float
 ) -> LongRunVariance | None:
     """:func:`offset_long_run` with the offset functional ``c`` already formed."""
-    layout = sem.layout
-    if layout is None:
+    w = _over_parameters(sem, c)
+    if w is None:
         return None
-    w = np.zeros(layout.size)
-    w[: c.size] = c  # theta first in the layout
     return functional_long_run(
         loop, r, d, sem, w, step=step, bandwidth=BANDWIDTH_FRACTION * np.shape(d)[0]
     )
@@ -249,11 +257,9 @@ def offset_loop_noise(loop: ClosedLoop, r: ArrayLike, sem: SEMResult) -> float |
 
 def _loop_noise(loop: ClosedLoop, r: ArrayLike, sem: SEMResult, c: NDArray) -> float | None:
     """:func:`offset_loop_noise` with the offset functional ``c`` already formed."""
-    layout = sem.layout
-    if layout is None:
+    w = _over_parameters(sem, c)
+    if w is None:
         return None
-    w = np.zeros(layout.size)
-    w[: c.size] = c  # theta first in the layout
     found = functional_influence(loop, r, sem, w)
     if found is None:
         return None
